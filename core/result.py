@@ -1,0 +1,64 @@
+"""What the tracker produces per frame: the record every consumer (CLI, service, FAP) reads."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from core.camera import Pose
+
+
+@dataclass(frozen=True, eq=False)
+class TrackResult:
+    """One tracked frame.
+
+    alpha : (K,) articulatory parameters (units of training s.d.).
+    pose : head pose, head -> camera.
+    ok : False when the frame could not be tracked (occlusion, divergence, lost face); then
+        ``reason`` says why and alpha/pose hold the last good state, not a guess.
+    residual : cost per descriptor value at the solution (lower is better).
+    evals : cost evaluations spent; iterations : optimiser iterations; ms : wall time spent
+        (measured by the caller and passed in: core never reads a clock).
+    """
+
+    frame: int
+    t: float
+    alpha: np.ndarray
+    pose: Pose
+    ok: bool = True
+    reason: str = ""
+    residual: float = 0.0
+    evals: int = 0
+    iterations: int = 0
+    ms: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self, param_names: tuple[str, ...]) -> dict[str, Any]:
+        """The JSON-lines record of ``articast track`` (and of ground truth files)."""
+        return {
+            "frame": int(self.frame),
+            "t": float(self.t),
+            "alpha": {n: float(v) for n, v in zip(param_names, self.alpha, strict=True)},
+            "pose": self.pose.to_dict(),
+            "quality": {
+                "ok": bool(self.ok),
+                "reason": self.reason,
+                "residual": float(self.residual),
+                "evals": int(self.evals),
+                "iterations": int(self.iterations),
+                "ms": float(self.ms),
+            },
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], param_names: tuple[str, ...]) -> TrackResult:
+        q = d.get("quality", {})
+        alpha = np.array([float(d["alpha"].get(n, 0.0)) for n in param_names])
+        return cls(
+            frame=int(d["frame"]), t=float(d["t"]), alpha=alpha, pose=Pose.from_dict(d["pose"]),
+            ok=bool(q.get("ok", True)), reason=str(q.get("reason", "")),
+            residual=float(q.get("residual", 0.0)), evals=int(q.get("evals", 0)),
+            iterations=int(q.get("iterations", 0)), ms=float(q.get("ms", 0.0)),
+        )
