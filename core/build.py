@@ -159,10 +159,13 @@ def _guide_columns(name: str, groups: Mapping[str, np.ndarray], n: int) -> np.nd
                                    (*LIPS, "upper_lip", "lower_lip", "lower_teeth")])
         pts = np.setdiff1d(np.arange(n), excluded)
     else:
-        missing = [g for g in gnames if g not in groups or groups[g].size == 0]
-        if missing:
-            raise InputError(f"{name} needs point group(s) {missing}, which the corpus lacks")
-        pts = np.unique(np.concatenate([groups[g] for g in gnames]))
+        pts = np.unique(np.concatenate(
+            [groups.get(g, np.zeros(0, np.int64)) for g in gnames]
+        )).astype(np.int64)
+        if pts.size == 0:
+            raise InputError(
+                f"{name} needs point group(s) {' or '.join(gnames)}, which the corpus lacks"
+            )
     return (pts[:, None] * 3 + np.asarray(coords)[None, :]).ravel()
 
 
@@ -196,7 +199,7 @@ def build_model(corpus: Corpus, names: tuple[str, ...] = PARAM_NAMES) -> tuple[F
     mean = x.mean(0)
     r = (x - mean).reshape(v, -1)
     total = float((r**2).sum())
-    if total <= 0:
+    if np.ptp(x, axis=0).max() < 1e-9:
         raise InputError("all postures are identical: nothing to model")
     basis, scores, explained = [], [], []
     for name in names:
