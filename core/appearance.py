@@ -1,0 +1,392 @@
+"""Appearance models (METHOD.md §2): local appearance (la) and texture (tex), cst or lin.
+
+Both kinds are features sampled from the image at *sample points* on the face: each sample
+point is a fixed barycentric combination of up to three model points, so its head-frame
+position is linear in alpha like the model itself. la samples 8 Gaussian-derivative
+responses at selected model points; tex samples the smoothed, luminance-normalised Y channel
+at a dense grid of points spread over the mesh in its normalized shape (the piecewise-affine
+texture frame of the paper).
+
+Descriptor channels of la, from the Gaussian-smoothed Y, Cr, Cb image S (sigma px):
+``(Yx, Yy, Cr, Crx, Cry, Cb, Cbx, Cby)`` — derivatives scale-normalised (x sigma).
+The model predicts, per feature value, ``f(alpha) = W[0] + alpha @ W[1:]`` (lin) or
+``W[0]`` (cst); ``channel_weight`` balances the channels in the cost.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from core.bundle import load_bundle, require, save_bundle
+from core.camera import Camera, Pose
+from core.errors import InputError
+from core.model import FaceModel
+
+APPEARANCE_KIND = "appearance-model"
+APPEARANCE_VERSION = 1
+KINDS = ("la_cst", "la_lin", "tex_cst", "tex_lin")
+LA_CHANNELS = ("Yx", "Yy", "Cr", "Crx", "Cry", "Cb", "Cbx", "Cby")
+
+
+# --------------------------------------------------------------------------- image maps
+@dataclass(frozen=True, eq=False)
+class ImageMaps:
+    """The smoothed Y, Cr, Cb image over a region of interest, at one pyramid level.
+
+    smooth : (h, w, 3) float32, Gaussian-smoothed Y, Cr, Cb (0..255).
+    origin : (x0, y0) of the ROI in image pixels; scale : map px per image px (1 or 1/2^n).
+    sigma : smoothing scale in map pixels.
+    """
+
+    smooth: np.ndarray
+    origin: tuple[int, int]
+    scale: float
+    sigma: float
+
+    def to_map(self, uv: np.ndarray) -> np.ndarray:
+        """Image pixels (M, 2) -> map pixels (M, 2)."""
+        return (uv - np.asarray(self.origin)) * self.scale + 0.5 * (self.scale - 1.0)
+
+
+def image_maps(
+    image: np.ndarray, roi: tuple[int, int, int, int], sigma: float, level: int = 0
+) -> ImageMaps:
+    """Smooth the ROI ``(x0, y0, x1, y1)`` of a BGR uint8 image in YCrCb at scale ``sigma``.
+
+    ``level`` n halves the ROI n times first (coarse-to-fine); ``sigma`` is in the reduced
+    pixels, so the effective scale in image pixels is ``sigma * 2**level``.
+    """
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise InputError(f"expected a BGR uint8 image (H, W, 3), got {image.dtype} {image.shape}")
+    h, w = image.shape[:2]
+    x0, y0 = max(0, int(roi[0])), max(0, int(roi[1]))
+    x1, y1 = min(w, int(roi[2])), min(h, int(roi[3]))
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        x0, y0, x1, y1 = 0, 0, w, h
+    crop = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2YCrCb)
+    for _ in range(level):
+        crop = cv2.pyrDown(crop)
+    smooth = cv2.GaussianBlur(crop.astype(np.float32), (0, 0), sigma)
+    return ImageMaps(smooth, (x0, y0), 0.5**level, float(sigma))
+
+
+def _interpolate(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Bilinear interpolation of S and of its central differences at image points.
+
+    Returns (val, vx, vy, gx, gy, gxx, gxy, gyx, gyy), each (M, 3) in map px units, and
+    valid (M,) bool (False where the 4x4 neighbourhood leaves the map or uv is NaN). ``val``
+    is S interpolated, ``gx``/``gy`` its interpolated central differences; ``vx, vy`` and
+    ``gxx, gxy`` (d gx / dx, dy), ``gyx, gyy`` are the exact position derivatives of those
+    interpolants, so the optimiser's Jacobians are those of the very values the cost samples.
+    """
+    s = maps.smooth
+    hh, ww = s.shape[:2]
+    m = maps.to_map(np.asarray(uv, dtype=np.float64))
+    valid = np.isfinite(m).all(1)
+    m = np.where(valid[:, None], m, 0.0)
+    ix = np.floor(m[:, 0]).astype(np.int64)
+    iy = np.floor(m[:, 1]).astype(np.int64)
+    valid &= (ix >= 1) & (ix <= ww - 3) & (iy >= 1) & (iy <= hh - 3)
+    ix = np.clip(ix, 1, ww - 3)
+    iy = np.clip(iy, 1, hh - 3)
+    fx = (m[:, 0] - ix)[:, None]
+    fy = (m[:, 1] - iy)[:, None]
+    d = np.arange(-1, 3)
+    p = s[(iy[:, None] + d)[:, :, None], (ix[:, None] + d)[:, None, :]].astype(np.float64)
+    # p: (M, 4, 4, 3), rows y = iy-1..iy+2, cols x = ix-1..ix+2
+    v = p[:, 1:3, 1:3]
+    dx = (p[:, 1:3, 2:4] - p[:, 1:3, 0:2]) * 0.5
+    dy = (p[:, 2:4, 1:3] - p[:, 0:2, 1:3]) * 0.5
+
+    def lerp(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        top = c[:, 0, 0] * (1 - fx) + c[:, 0, 1] * fx
+        bot = c[:, 1, 0] * (1 - fx) + c[:, 1, 1] * fx
+        ddx = (c[:, 0, 1] - c[:, 0, 0]) * (1 - fy) + (c[:, 1, 1] - c[:, 1, 0]) * fy
+        return top * (1 - fy) + bot * fy, ddx, bot - top
+
+    val, vx, vy = lerp(v)
+    gx, gxx, gxy = lerp(dx)
+    gy, gyx, gyy = lerp(dy)
+    return val, vx, vy, gx, gy, gxx, gxy, gyx, gyy, valid
+
+
+def sample_la(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The 8 la descriptors at image points and their derivatives w.r.t. image position.
+
+    uv : (M, 2) image px. Returns desc (M, 8), ddesc (M, 8, 2) per image px, valid (M,).
+    """
+    val, vx, vy, gx, gy, gxx, gxy, gyx, gyy, valid = _interpolate(maps, uv)
+    sig = maps.sigma
+    # channels of S: 0 Y, 1 Cr, 2 Cb
+    desc = np.stack([gx[:, 0] * sig, gy[:, 0] * sig, val[:, 1], gx[:, 1] * sig, gy[:, 1] * sig,
+                     val[:, 2], gx[:, 2] * sig, gy[:, 2] * sig], axis=1)
+    ddx = np.stack([gxx[:, 0] * sig, gyx[:, 0] * sig, vx[:, 1], gxx[:, 1] * sig,
+                    gyx[:, 1] * sig, vx[:, 2], gxx[:, 2] * sig, gyx[:, 2] * sig], axis=1)
+    ddy = np.stack([gxy[:, 0] * sig, gyy[:, 0] * sig, vy[:, 1], gxy[:, 1] * sig,
+                    gyy[:, 1] * sig, vy[:, 2], gxy[:, 2] * sig, gyy[:, 2] * sig], axis=1)
+    return desc, np.stack([ddx, ddy], axis=2) * maps.scale, valid
+
+
+def sample_tex(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Smoothed luminance Y at image points: (M, 1), d/d(uv) (M, 1, 2) per image px, valid."""
+    val, vx, vy, *_, valid = _interpolate(maps, uv)
+    grad = np.stack([vx[:, 0], vy[:, 0]], axis=1)[:, None, :] * maps.scale
+    return val[:, :1], grad, valid
+
+
+# --------------------------------------------------------------------------- sample points
+@dataclass(frozen=True, eq=False)
+class SamplePoints:
+    """Sample points as barycentric combinations of model points.
+
+    index : (S, 3) int model point indices; weight : (S, 3) float, rows sum to 1.
+    """
+
+    index: np.ndarray
+    weight: np.ndarray
+
+    def positions(self, model: FaceModel) -> tuple[np.ndarray, np.ndarray]:
+        """Head-frame mean (S, 3) and basis (K, S, 3) of the sample points."""
+        mean = np.einsum("sj,sjd->sd", self.weight, model.mean[self.index])
+        basis = np.einsum("sj,ksjd->ksd", self.weight, model.basis[:, self.index])
+        return mean, basis
+
+    @classmethod
+    def of_points(cls, idx: np.ndarray) -> SamplePoints:
+        idx = np.asarray(idx, np.int64)
+        return cls(np.repeat(idx[:, None], 3, 1), np.tile([1.0, 0.0, 0.0], (idx.size, 1)))
+
+
+def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals (N, 3) of a mesh (triangles CCW seen from outside)."""
+    a, b, c = (points[triangles[:, i]] for i in range(3))
+    fn = np.cross(b - a, c - a)
+    n = np.zeros_like(points)
+    for i in range(3):
+        np.add.at(n, triangles[:, i], fn)
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
+def select_points(
+    model: FaceModel, per_param: int = 5, candidates: np.ndarray | None = None
+) -> np.ndarray:
+    """Automatic point selection (METHOD.md §2): for each parameter, the ``per_param`` points
+    whose displacement under its basis vector over the training range is largest; merged and
+    de-duplicated. ``candidates`` restricts the choice (e.g. visible points, no markers).
+    """
+    spread = model.stats.max - model.stats.min
+    allowed = np.arange(model.n_points) if candidates is None else np.asarray(candidates)
+    chosen: set[int] = set()
+    for k in range(model.n_params):
+        motion = np.linalg.norm(model.basis[k, allowed], axis=1) * spread[k]
+        chosen.update(int(i) for i in allowed[np.argsort(-motion)[:per_param]])
+    return np.array(sorted(chosen), np.int64)
+
+
+def texture_grid(model: FaceModel, spacing_mm: float = 2.0,
+                 triangles: np.ndarray | None = None) -> SamplePoints:
+    """A regular grid over the mesh in its normalized shape (frontal x-y of the mean face),
+    each grid point bound to the triangle containing it (the piecewise-affine texture frame).
+    """
+    tri = model.triangles if triangles is None else np.asarray(triangles)
+    if tri.size == 0:
+        raise InputError("texture models need a triangulated face model")
+    xy = model.mean[:, :2]
+    lo, hi = xy.min(0), xy.max(0)
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0], spacing_mm), np.arange(lo[1], hi[1], spacing_mm))
+    g = np.c_[gx.ravel(), gy.ravel()]
+    a, b, c = xy[tri[:, 0]], xy[tri[:, 1]], xy[tri[:, 2]]
+    v0, v1 = b - a, c - a
+    den = v0[:, 0] * v1[:, 1] - v0[:, 1] * v1[:, 0]
+    ok_tri = np.abs(den) > 1e-9
+    tri, a, v0, v1, den = tri[ok_tri], a[ok_tri], v0[ok_tri], v1[ok_tri], den[ok_tri]
+    idx, wts = [], []
+    for start in range(0, len(g), 4096):
+        q = g[start:start + 4096, None, :] - a[None]
+        l1 = (q[..., 0] * v1[:, 1] - q[..., 1] * v1[:, 0]) / den
+        l2 = (v0[:, 0] * q[..., 1] - v0[:, 1] * q[..., 0]) / den
+        inside = (l1 >= 0) & (l2 >= 0) & (l1 + l2 <= 1)
+        hit = inside.any(1)
+        t = np.argmax(inside, axis=1)[hit]
+        rows = np.nonzero(hit)[0]
+        b1, b2 = l1[rows, t], l2[rows, t]
+        idx.append(tri[t])
+        wts.append(np.c_[1 - b1 - b2, b1, b2])
+    return SamplePoints(np.concatenate(idx), np.concatenate(wts))
+
+
+# --------------------------------------------------------------------------- models
+@dataclass(frozen=True, eq=False)
+class AppearanceModel:
+    """A trained appearance model (one of :data:`KINDS`).
+
+    samples : where features are sampled. levels : pyramid levels trained (0 = full res).
+    weights : (L, K+1, S*C) predicted features ``f = W[0] + alpha @ W[1:]`` per level.
+    channel_weight : (L, S*C) per-feature cost weights (inverse residual s.d. in training).
+    sigma : smoothing scale in pixels of each level (image px x 2**level). explained : (L,) fraction of the feature
+    variance the model explains on its training frames.
+    """
+
+    kind: str
+    samples: SamplePoints
+    levels: tuple[int, ...]
+    weights: np.ndarray
+    channel_weight: np.ndarray
+    sigma: float
+    explained: np.ndarray
+
+    @property
+    def n_channels(self) -> int:
+        return 8 if self.kind.startswith("la") else 1
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.samples.index.shape[0])
+
+    def sample(self, maps: ImageMaps, uv: np.ndarray):
+        return sample_la(maps, uv) if self.kind.startswith("la") else sample_tex(maps, uv)
+
+    def level_index(self, level: int) -> int:
+        try:
+            return self.levels.index(level)
+        except ValueError:
+            raise InputError(f"appearance model has no pyramid level {level}") from None
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        save_bundle(path, APPEARANCE_KIND, APPEARANCE_VERSION, {
+            "index": self.samples.index, "weight": self.samples.weight,
+            "weights": self.weights, "channel_weight": self.channel_weight,
+            "explained": self.explained,
+        }, {"appearance_kind": self.kind, "levels": list(self.levels), "sigma": self.sigma})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], model: FaceModel | None = None) -> AppearanceModel:
+        arrays, meta = load_bundle(path, APPEARANCE_KIND, (APPEARANCE_VERSION,))
+        for key in ("index", "weight", "weights", "channel_weight", "explained"):
+            require(key in arrays, path, f"missing array {key!r}")
+        kind = meta.get("appearance_kind")
+        require(kind in KINDS, path, f"unknown appearance kind {kind!r}")
+        idx, w = arrays["index"], arrays["weight"]
+        s = idx.shape[0]
+        require(idx.shape == (s, 3) and w.shape == (s, 3), path, "sample points are malformed")
+        c = 8 if kind.startswith("la") else 1
+        levels = tuple(int(v) for v in meta.get("levels", []))
+        wt = arrays["weights"]
+        require(wt.ndim == 3 and wt.shape[0] == len(levels) and wt.shape[2] == s * c, path,
+                f"weights have shape {wt.shape}, expected ({len(levels)}, K+1, {s * c})")
+        if model is not None:
+            require(wt.shape[1] == model.n_params + 1, path,
+                    f"trained for {wt.shape[1] - 1} parameters, the model has {model.n_params}")
+            require(idx.max() < model.n_points, path,
+                    "sample points index points the face model does not have")
+        return cls(kind, SamplePoints(idx, w), levels, wt, arrays["channel_weight"],
+                   float(meta["sigma"]), arrays["explained"])
+
+
+@dataclass(frozen=True)
+class TrainingFrame:
+    """An image with its known state: BGR uint8 (H, W, 3), alpha (K,), head pose."""
+
+    image: np.ndarray
+    alpha: np.ndarray
+    pose: Pose
+
+
+def roi_of(uv: np.ndarray, margin: float) -> tuple[int, int, int, int]:
+    """Bounding box (x0, y0, x1, y1) of finite image points grown by ``margin`` px."""
+    finite = uv[np.isfinite(uv).all(1)]
+    if finite.size == 0:
+        return (0, 0, 0, 0)
+    lo = np.floor(finite.min(0) - margin).astype(int)
+    hi = np.ceil(finite.max(0) + margin).astype(int)
+    return (int(lo[0]), int(lo[1]), int(hi[0]) + 1, int(hi[1]) + 1)
+
+
+def visible_points(model: FaceModel, camera: Camera, frames: list[TrainingFrame],
+                   min_cos: float = 0.25, margin: float = 12.0) -> np.ndarray:
+    """Model points facing the camera and inside the image in every training frame."""
+    ok = np.ones(model.n_points, bool)
+    for fr in frames:
+        pts = model.shape(fr.alpha)
+        normals = vertex_normals(pts, model.triangles) @ fr.pose.matrix.T
+        cam_pts = fr.pose.transform(pts)
+        view = -cam_pts / np.linalg.norm(cam_pts, axis=1, keepdims=True)
+        ok &= (normals * view).sum(1) > min_cos
+        ok &= camera.inside(camera.project(cam_pts), margin)
+    return np.nonzero(ok)[0]
+
+
+def train_appearance(
+    model: FaceModel,
+    camera: Camera,
+    frames: list[TrainingFrame],
+    kind: str = "la_lin",
+    *,
+    sigma: float = 2.5,
+    levels: tuple[int, ...] = (0, 1),
+    per_param: int = 5,
+    tex_spacing_mm: float = 2.0,
+    ridge: float = 1e-2,
+    noise_floor: float = 1.0,
+) -> AppearanceModel:
+    """Fit an appearance model by least squares on frames with known state.
+
+    la: sample points chosen by :func:`select_points` among points visible in every frame.
+    tex: a grid in the normalized shape over front-facing triangles, features z-scored per
+    frame (luminance normalisation). cst models predict the training mean; lin models regress
+    every feature value on [1, alpha] (ridge-regularised, intercept free). Features are
+    weighted by the inverse of their training residual s.d., floored at half the channel's
+    median and at ``noise_floor`` grey levels (la), so that features the model predicts badly
+    (occluded inner-lip points, teeth) count little and none dominates the cost.
+    """
+    if kind not in KINDS:
+        raise InputError(f"appearance kind must be one of {KINDS}, got {kind!r}")
+    if len(frames) < (2 if kind.endswith("cst") else model.n_params + 2):
+        raise InputError(f"{len(frames)} training frames are too few for {kind}")
+    vis = visible_points(model, camera, frames)
+    if kind.startswith("la"):
+        samples = SamplePoints.of_points(select_points(model, per_param, vis))
+    else:
+        tri = model.triangles
+        tri = tri[np.isin(tri, vis).all(1)]
+        samples = texture_grid(model, tex_spacing_mm, tri)
+    if samples.index.shape[0] == 0:
+        raise InputError("no model point is visible in every training frame")
+    s_mean, s_basis = samples.positions(model)
+    alphas = np.stack([np.asarray(f.alpha, np.float64) for f in frames])
+    design = np.c_[np.ones(len(frames)), alphas]
+    weights, cweights, explained = [], [], []
+    for level in levels:
+        feats = []
+        for fr in frames:
+            pts = s_mean + np.einsum("k,ksd->sd", fr.alpha, s_basis)
+            uv = camera.project(fr.pose.transform(pts))
+            maps = image_maps(fr.image, roi_of(uv, 4 * sigma * 2**level + 8), sigma, level)
+            f = (sample_la if kind.startswith("la") else sample_tex)(maps, uv)[0]
+            if kind.startswith("tex"):
+                f = (f - f.mean()) / max(f.std(), 1e-6)
+            feats.append(f.reshape(-1))
+        fmat = np.stack(feats)  # (F, S*C)
+        if kind.endswith("lin"):
+            reg = ridge * len(frames) * np.diag([0.0] + [1.0] * model.n_params)
+            w = np.linalg.solve(design.T @ design + reg, design.T @ fmat)
+        else:
+            w = np.zeros((model.n_params + 1, fmat.shape[1]))
+            w[0] = fmat.mean(0)
+        resid = fmat - design @ w
+        c = 8 if kind.startswith("la") else 1
+        # per-feature weights: inverse residual s.d. (a Gaussian appearance model), floored
+        # per channel so that a feature that never varied in training cannot dominate
+        rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, c)
+        floor = np.maximum(np.median(rms_f, axis=0) * 0.5,
+                           noise_floor if kind.startswith("la") else 0.02)
+        cweights.append((1.0 / np.maximum(rms_f, floor)).reshape(-1))
+        total = ((fmat - fmat.mean(0)) ** 2).sum()
+        explained.append(1.0 - (resid**2).sum() / total if total > 0 else 0.0)
+        weights.append(w)
+    return AppearanceModel(kind, samples, tuple(levels), np.stack(weights), np.stack(cweights),
+                           float(sigma), np.array(explained))

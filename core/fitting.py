@@ -1,0 +1,237 @@
+"""Analysis-by-synthesis fitting of one frame (METHOD.md §3).
+
+State theta = (alpha (K), rotation (3, axis-angle), translation (3, mm)): head -> camera.
+
+    E(theta) = sum_i || c * (D(I, p_i(theta)) - f_i(alpha)) ||^2 + rho(alpha)
+    rho(alpha) = w * sum_k exp((|alpha_k| - a_k) / s)
+
+D samples the image features at the projected sample points, f is the appearance model's
+prediction, c the per-channel weights. Two optimisers: :func:`fit_gauss_newton` (default:
+Levenberg-Marquardt with analytic Jacobians, rotation updated multiplicatively) and
+:func:`fit_nelder_mead` (the paper's downhill simplex centred on the start, the baseline).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from core.appearance import AppearanceModel, ImageMaps
+from core.camera import Camera, axis_angle, rotation_matrix
+from core.model import FaceModel
+
+
+@dataclass(frozen=True)
+class PriorPolicy:
+    """Exponential prior on alpha: grows e-fold every ``softness`` s.d. beyond the training
+    range widened by ``margin`` s.d.; ``weight`` is the penalty at the boundary."""
+
+    weight: float = 1.0
+    margin: float = 0.5
+    softness: float = 0.25
+
+
+@dataclass(frozen=True)
+class FitPolicy:
+    """Stopping rules of one frame's fit."""
+
+    max_iterations: int = 8
+    tol_alpha: float = 2e-3
+    tol_rotation: float = 2e-5
+    tol_translation_mm: float = 2e-3
+    lm_lambda: float = 1e-3
+    nelder_mead_evals: int = 300
+    prior: PriorPolicy = field(default_factory=PriorPolicy)
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """Outcome of one fit: state, cost per residual value, counters, cost of each iteration."""
+
+    alpha: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    cost: float
+    residual: float
+    evals: int
+    iterations: int
+    converged: bool
+    valid_fraction: float
+    costs: tuple[float, ...] = ()
+
+    @property
+    def theta(self) -> np.ndarray:
+        return np.concatenate([self.alpha, self.rotation, self.translation])
+
+
+class Problem:
+    """Everything fixed while fitting: model, appearance model and camera.
+
+    Precomputes the sample points' head-frame mean (S, 3) and basis (K, S, 3).
+    """
+
+    def __init__(self, model: FaceModel, appearance: AppearanceModel, camera: Camera,
+                 prior: PriorPolicy | None = None) -> None:
+        self.model, self.appearance, self.camera = model, appearance, camera
+        self.s_mean, self.s_basis = appearance.samples.positions(model)
+        self.k = model.n_params
+        self.c = appearance.n_channels
+        self.prior = prior or PriorPolicy()
+        st = model.stats
+        self.bound = np.maximum(np.abs(st.min), np.abs(st.max)) + self.prior.margin
+        self._tex = appearance.kind.startswith("tex")
+
+    # -------------------------------------------------------------- geometry
+    def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
+                          t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Head-frame (S, 3) and camera-frame (S, 3) positions of the sample points."""
+        head = self.s_mean + np.tensordot(alpha, self.s_basis, 1)
+        return head, head @ rot.T + t
+
+    def project(self, theta: np.ndarray) -> np.ndarray:
+        """Image positions (S, 2) of the sample points at state theta (K + 6,)."""
+        rot = rotation_matrix(theta[self.k:self.k + 3])
+        return self.camera.project(self.sample_points_cam(theta[:self.k], rot,
+                                                          theta[self.k + 3:])[1])
+
+    # -------------------------------------------------------------- cost
+    def prior_terms(self, alpha: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """rho(alpha), its gradient (K,) and diagonal Hessian (K,)."""
+        p = self.prior
+        e = p.weight * np.exp(np.minimum((np.abs(alpha) - self.bound) / p.softness, 50.0))
+        return float(e.sum()), np.sign(alpha) * e / p.softness, e / p.softness**2
+
+    def residuals(self, maps: ImageMaps, level_index: int, alpha: np.ndarray, rot: np.ndarray,
+                  t: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """Weighted residuals r (S*C,), Jacobian (S*C, K+6) w.r.t. (alpha, rotation increment,
+        translation), and the fraction of valid samples. Invalid samples contribute 0."""
+        app = self.appearance
+        head, cam = self.sample_points_cam(alpha, rot, t)
+        uv, jp = self.camera.project_jacobian(cam, jacobian)
+        feats, dfeats, valid = app.sample(maps, uv)
+        w = app.weights[level_index]
+        s, c = feats.shape
+        cw = app.channel_weight[level_index].reshape(s, c)
+        if self._tex:
+            mu, sd = feats[valid].mean() if valid.any() else 0.0, feats[valid].std() + 1e-6
+            feats = (feats - mu) / sd
+            dfeats = dfeats / sd
+        pred = (w[0] + alpha @ w[1:]).reshape(s, c)
+        r = (feats - pred) * cw
+        r[~valid] = 0.0
+        vf = float(valid.mean())
+        if not jacobian:
+            return r.reshape(-1), None, vf
+        # d(cam)/d(alpha) = R basis ; d(cam)/d(delta) = -[R head]x ; d(cam)/d(t) = I
+        rh = head @ rot.T
+        dcam = np.empty((s, 3, self.k + 6))
+        dcam[:, :, :self.k] = np.einsum("ij,ksj->sik", rot, self.s_basis)
+        dcam[:, 0, self.k:self.k + 3] = np.c_[np.zeros(s), rh[:, 2], -rh[:, 1]]
+        dcam[:, 1, self.k:self.k + 3] = np.c_[-rh[:, 2], np.zeros(s), rh[:, 0]]
+        dcam[:, 2, self.k:self.k + 3] = np.c_[rh[:, 1], -rh[:, 0], np.zeros(s)]
+        dcam[:, :, self.k + 3:] = np.eye(3)
+        duv = np.einsum("sij,sjp->sip", jp, dcam)  # (S, 2, P)
+        jac = np.einsum("scj,sjp->scp", dfeats, duv)  # (S, C, P)
+        if self._tex:
+            jac -= jac[valid].mean(0, keepdims=True) if valid.any() else 0.0
+        jac[:, :, :self.k] -= w[1:].T.reshape(s, c, self.k)
+        jac *= cw[:, :, None]
+        jac[~valid] = 0.0
+        return r.reshape(-1), jac.reshape(s * c, -1), vf
+
+    def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray) -> float:
+        """E(theta) for the Nelder-Mead baseline (theta with absolute axis-angle rotation)."""
+        a = theta[:self.k]
+        r, _, _ = self.residuals(maps, level_index, a, rotation_matrix(theta[self.k:self.k + 3]),
+                                 theta[self.k + 3:], jacobian=False)
+        return float(r @ r) + self.prior_terms(a)[0]
+
+
+def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
+                     rotation0: np.ndarray, translation0: np.ndarray,
+                     policy: FitPolicy | None = None) -> FitResult:
+    """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level."""
+    pol = policy or FitPolicy()
+    li = problem.appearance.level_index(level)
+    k = problem.k
+    alpha = np.array(alpha0, np.float64)
+    rot = rotation_matrix(rotation0)
+    t = np.array(translation0, np.float64)
+    lam = pol.lm_lambda
+    r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True)
+    prior, g_p, h_p = problem.prior_terms(alpha)
+    cost = float(r @ r) + prior
+    evals, costs, converged, it = 1, [cost], False, 0
+    for it in range(1, pol.max_iterations + 1):
+        h = jac.T @ jac
+        g = jac.T @ r
+        h[np.arange(k), np.arange(k)] += h_p / 2
+        g[:k] += g_p / 2
+        diag = np.diag(h).copy()
+        diag[diag <= 0] = 1.0
+        accepted = False
+        while not accepted:
+            try:
+                step = -np.linalg.solve(h + lam * np.diag(diag), g)
+            except np.linalg.LinAlgError:
+                lam *= 10
+                continue
+            a_new = alpha + step[:k]
+            rot_new = rotation_matrix(step[k:k + 3]) @ rot
+            t_new = t + step[k + 3:]
+            r_new, jac_new, vf_new = problem.residuals(maps, li, a_new, rot_new, t_new, True)
+            prior_new, gp_new, hp_new = problem.prior_terms(a_new)
+            cost_new = float(r_new @ r_new) + prior_new
+            evals += 1
+            if cost_new <= cost or lam > 1e6:
+                accepted = cost_new <= cost
+                break
+            lam *= 10
+        if not accepted:
+            converged = True  # no descent direction left at this damping: a minimum
+            break
+        lam = max(lam / 10, 1e-7)
+        alpha, rot, t = a_new, rot_new, t_new
+        r, jac, vf, cost = r_new, jac_new, vf_new, cost_new
+        g_p, h_p = gp_new, hp_new
+        costs.append(cost)
+        if (np.abs(step[:k]).max() < pol.tol_alpha
+                and np.abs(step[k:k + 3]).max() < pol.tol_rotation
+                and np.abs(step[k + 3:]).max() < pol.tol_translation_mm):
+            converged = True
+            break
+    n = max(r.size * vf, 1.0)
+    return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
+                     vf, tuple(costs))
+
+
+def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
+                    rotation0: np.ndarray, translation0: np.ndarray,
+                    policy: FitPolicy | None = None,
+                    steps: tuple[float, float, float] = (0.3, 0.01, 1.0)) -> FitResult:
+    """The paper's downhill simplex, its initial simplex centred on the start state.
+
+    steps : half-widths of the simplex in alpha (s.d.), rotation (rad) and translation (mm).
+    """
+    from scipy.optimize import minimize
+
+    pol = policy or FitPolicy()
+    li = problem.appearance.level_index(level)
+    k = problem.k
+    x0 = np.concatenate([alpha0, rotation0, translation0]).astype(np.float64)
+    p = x0.size
+    scale = np.r_[np.full(k, steps[0]), np.full(3, steps[1]), np.full(3, steps[2])]
+    # regular simplex centred on x0: vertices x0 + scale * (e_i - centroid)
+    base = np.vstack([np.zeros(p), np.eye(p)])
+    base -= base.mean(0)
+    simplex = x0 + base * scale * (p + 1) / p
+    res = minimize(lambda th: problem.cost(maps, li, th), x0, method="Nelder-Mead",
+                   options={"initial_simplex": simplex, "maxfev": pol.nelder_mead_evals,
+                            "xatol": 1e-4, "fatol": 1e-6})
+    th = res.x
+    r, _, vf = problem.residuals(maps, li, th[:k], rotation_matrix(th[k:k + 3]), th[k + 3:],
+                                 False)
+    n = max(r.size * vf, 1.0)
+    return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun), float(r @ r) / n,
+                     int(res.nfev), int(res.nit), bool(res.success), vf)

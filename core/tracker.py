@@ -1,0 +1,204 @@
+"""The per-sequence tracker: warm start, motion prediction, divergence detection and
+re-initialisation around the single-frame fit of :mod:`core.fitting` (METHOD.md §3).
+
+Core never reads a clock: pass ``clock`` (e.g. ``time.perf_counter``) to get ms per frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from core.appearance import AppearanceModel, ImageMaps, image_maps, roi_of
+from core.camera import Camera, Pose
+from core.fitting import FitPolicy, FitResult, Problem, fit_gauss_newton, fit_nelder_mead
+from core.model import FaceModel
+from core.result import TrackResult
+
+OPTIMISERS = ("gauss-newton", "nelder-mead")
+
+
+@dataclass(frozen=True)
+class TrackingPolicy:
+    """How a sequence is tracked.
+
+    optimiser : "gauss-newton" (default) or "nelder-mead" (the paper's baseline).
+    levels : pyramid levels fitted every frame, coarse first; reinit_levels on re-initialisation.
+    predict : constant-velocity prediction of the state from the two last good frames,
+        scaled by ``velocity_gain``.
+    divergence_factor : a frame whose residual exceeds this many times the running residual
+        level (and ``residual_floor``) is not trusted: the tracker retries from the last good
+        state and from the neutral articulation; if that fails the frame is marked not ok.
+    min_valid_fraction : below this fraction of sample points inside the image: not ok.
+    min_contrast : luminance s.d. of the face region below which the frame is blank.
+    """
+
+    optimiser: str = "gauss-newton"
+    fit: FitPolicy = field(default_factory=FitPolicy)
+    reinit_fit: FitPolicy = field(default_factory=lambda: FitPolicy(max_iterations=30))
+    levels: tuple[int, ...] = (0,)
+    reinit_levels: tuple[int, ...] = (1, 0)
+    predict: bool = True
+    velocity_gain: float = 0.8
+    divergence_factor: float = 4.0
+    residual_floor: float = 0.5
+    level_rate: float = 0.05
+    min_valid_fraction: float = 0.8
+    min_contrast: float = 3.0
+    roi_margin_px: float = 24.0
+    search_step_mm: float = 8.0
+    search_radius_mm: float = 40.0
+
+    def __post_init__(self) -> None:
+        if self.optimiser not in OPTIMISERS:
+            raise ValueError(f"optimiser must be one of {OPTIMISERS}, got {self.optimiser!r}")
+
+
+class Tracker:
+    """Tracks one face through one sequence of frames."""
+
+    def __init__(self, model: FaceModel, appearance: AppearanceModel, camera: Camera,
+                 policy: TrackingPolicy | None = None, initial_pose: Pose | None = None,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.policy = policy or TrackingPolicy()
+        for lv in set(self.policy.levels) | set(self.policy.reinit_levels):
+            appearance.level_index(lv)
+        self.problem = Problem(model, appearance, camera, self.policy.fit.prior)
+        self.model, self.camera = model, camera
+        self.initial_pose = initial_pose
+        self.clock = clock
+        self.k = model.n_params
+        self.reset()
+
+    def reset(self, pose: Pose | None = None, alpha: np.ndarray | None = None) -> None:
+        """Forget the sequence; the next frame starts from ``pose`` (or a search)."""
+        self._frame = -1
+        self._theta: np.ndarray | None = None
+        self._prev: np.ndarray | None = None
+        self._level: float | None = None
+        if pose is not None:
+            a = np.zeros(self.k) if alpha is None else np.asarray(alpha, np.float64)
+            self._theta = np.concatenate([a, pose.as_vector()])
+
+    # ------------------------------------------------------------------ fitting
+    def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
+             cache: dict[int, ImageMaps], policy: FitPolicy | None = None) -> FitResult:
+        pol = self.policy
+        theta = theta0
+        result: FitResult | None = None
+        evals = 0
+        for level in levels:
+            if level not in cache:
+                uv = self.problem.project(theta0)
+                sig = self.problem.appearance.sigma
+                margin = pol.roi_margin_px + 4 * sig * 2**level
+                cache[level] = image_maps(image, roi_of(uv, margin), sig, level)
+            fit = fit_nelder_mead if pol.optimiser == "nelder-mead" else fit_gauss_newton
+            result = fit(self.problem, cache[level], level, theta[:self.k],
+                         theta[self.k:self.k + 3], theta[self.k + 3:], policy or pol.fit)
+            evals += result.evals
+            theta = result.theta
+        assert result is not None
+        return FitResult(result.alpha, result.rotation, result.translation, result.cost,
+                         result.residual, evals, result.iterations, result.converged,
+                         result.valid_fraction, result.costs)
+
+    def _search(self, image: np.ndarray, pose: Pose) -> np.ndarray:
+        """Coarse grid search of the translation around ``pose`` at the coarsest level."""
+        pol = self.policy
+        level = max(pol.reinit_levels)
+        li = self.problem.appearance.level_index(level)
+        sig = self.problem.appearance.sigma
+        h, w = image.shape[:2]
+        maps = image_maps(image, (0, 0, w, h), sig, level)
+        steps = np.arange(-pol.search_radius_mm, pol.search_radius_mm + 1e-9, pol.search_step_mm)
+        best, best_cost = None, np.inf
+        for dx in steps:
+            for dy in steps:
+                th = np.concatenate([np.zeros(self.k), pose.rotation,
+                                     pose.translation + [dx, dy, 0.0]])
+                c = self.problem.cost(maps, li, th)
+                if c < best_cost:
+                    best, best_cost = th, c
+        return best
+
+    # ------------------------------------------------------------------ per frame
+    def track(self, image: np.ndarray, t: float) -> TrackResult:
+        """Fit one frame (BGR uint8) taken at time ``t`` (s)."""
+        t0 = self.clock() if self.clock else 0.0
+        self._frame += 1
+        pol = self.policy
+        cache: dict[int, ImageMaps] = {}
+        if self._theta is None:
+            if self.initial_pose is None:
+                return self._lost(t, t0, "no initial pose: give one or call reset(pose)", 0)
+            self._theta = self._search(image, self.initial_pose)
+            first = self._fit(image, self._theta, pol.reinit_levels, cache, pol.reinit_fit)
+            return self._accept(first, t, t0, first.evals, force=True)
+        theta0 = self._theta
+        if pol.predict and self._prev is not None:
+            theta0 = self._theta + pol.velocity_gain * (self._theta - self._prev)
+        uv = self.problem.project(theta0)
+        roi = roi_of(uv, pol.roi_margin_px)
+        x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
+        patch = image[y0:y1, x0:x1]
+        if patch.size == 0 or float(patch.std()) < pol.min_contrast:
+            return self._lost(t, t0, "blank frame: no contrast where the face should be", 0)
+        fit = self._fit(image, theta0, pol.levels, cache)
+        evals = fit.evals
+        if not self._good(fit):
+            tries = [fit]
+            if pol.predict and self._prev is not None:
+                tries.append(self._fit(image, self._theta, pol.levels, cache))
+            neutral = self._theta.copy()
+            neutral[:self.k] = 0.0
+            tries.append(self._fit(image, neutral, pol.reinit_levels, {}, pol.reinit_fit))
+            evals += sum(f.evals for f in tries[1:])
+            fit = min(tries, key=lambda f: f.cost)
+            if not self._good(fit):
+                why = ("points left the image" if fit.valid_fraction < pol.min_valid_fraction
+                       else f"residual {fit.residual:.3g} is far above its running level "
+                            f"{self._level or 0:.3g} (occlusion or lost face)")
+                return self._lost(t, t0, why, evals, fit)
+        return self._accept(fit, t, t0, evals)
+
+    def _good(self, fit: FitResult) -> bool:
+        pol = self.policy
+        if fit.valid_fraction < pol.min_valid_fraction or not np.all(np.isfinite(fit.theta)):
+            return False
+        if np.any(np.abs(fit.alpha) > self.problem.bound + 3.0):
+            return False
+        if self._level is None:
+            return True
+        return fit.residual <= max(pol.divergence_factor * self._level, pol.residual_floor)
+
+    def _accept(self, fit: FitResult, t: float, t0: float, evals: int,
+                force: bool = False) -> TrackResult:
+        pol = self.policy
+        if force and self._level is None and fit.valid_fraction < pol.min_valid_fraction:
+            return self._lost(t, t0, "initial search did not find the face", evals, fit)
+        self._prev = self._theta if not force else None
+        self._theta = fit.theta
+        lvl = fit.residual
+        self._level = lvl if self._level is None else (
+            (1 - pol.level_rate) * self._level + pol.level_rate * lvl)
+        return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
+                           True, "", fit.residual, evals, fit.iterations, self._ms(t0),
+                           {"converged": fit.converged, "valid_fraction": fit.valid_fraction})
+
+    def _lost(self, t: float, t0: float, reason: str, evals: int,
+              fit: FitResult | None = None) -> TrackResult:
+        self._prev = None  # no velocity across a gap
+        if self._theta is None:
+            alpha, pose = np.zeros(self.k), self.initial_pose or Pose()
+        else:
+            alpha = self._theta[:self.k].copy()
+            pose = Pose(self._theta[self.k:self.k + 3], self._theta[self.k + 3:])
+        return TrackResult(self._frame, t, alpha, pose, False, reason,
+                           fit.residual if fit else float("nan"), evals,
+                           fit.iterations if fit else 0, self._ms(t0), {})
+
+    def _ms(self, t0: float) -> float:
+        return (self.clock() - t0) * 1000.0 if self.clock else 0.0

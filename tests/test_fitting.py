@@ -1,0 +1,95 @@
+"""Appearance sampling, analytic Jacobians and single-frame fits on a stand-in blob face."""
+
+import numpy as np
+import pytest
+
+from core.appearance import TrainingFrame, image_maps, roi_of, sample_la, train_appearance
+from core.camera import Pose, rotation_matrix
+from core.fitting import Problem, fit_gauss_newton, fit_nelder_mead
+from tests.blobface import blob_setup, render_blobs
+
+
+@pytest.fixture(scope="module")
+def trained():
+    model, camera, pose = blob_setup()
+    rng = np.random.default_rng(5)
+    frames = []
+    for _ in range(30):
+        a = rng.normal(size=7) * 0.8
+        p = Pose(pose.rotation + rng.normal(size=3) * 0.02, pose.translation + rng.normal(size=3) * 3)
+        frames.append(TrainingFrame(render_blobs(model, camera, a, p), a, p))
+    app = train_appearance(model, camera, frames, "la_lin", sigma=2.0, levels=(0, 1), per_param=6)
+    return model, camera, pose, app
+
+
+def test_la_derivatives_match_finite_differences():
+    rng = np.random.default_rng(0)
+    img = (rng.random((60, 80, 3)) * 255).astype(np.uint8)
+    import cv2
+
+    img = cv2.GaussianBlur(img, (0, 0), 2)
+    maps = image_maps(img, (0, 0, 80, 60), 1.5, 0)
+    uv = rng.uniform([10, 10], [70, 50], size=(40, 2))
+    d, dd, valid = sample_la(maps, uv)
+    assert valid.all()
+    eps = 1e-4
+    for axis in range(2):
+        step = np.zeros(2)
+        step[axis] = eps
+        num = (sample_la(maps, uv + step)[0] - sample_la(maps, uv - step)[0]) / (2 * eps)
+        np.testing.assert_allclose(dd[:, :, axis], num, rtol=1e-3, atol=1e-3)
+
+
+def test_samples_outside_the_map_are_invalid():
+    img = np.zeros((40, 40, 3), np.uint8)
+    maps = image_maps(img, (0, 0, 40, 40), 1.0, 0)
+    _, _, valid = sample_la(maps, np.array([[20.0, 20.0], [-5.0, 3.0], [np.nan, 1.0], [39.5, 20]]))
+    assert valid.tolist() == [True, False, False, False]
+
+
+def test_residual_jacobian_matches_finite_differences(trained):
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    alpha = np.full(7, 0.2)
+    img = render_blobs(model, camera, alpha, pose)
+    maps = image_maps(img, roi_of(prob.project(np.r_[alpha, pose.as_vector()]), 30), app.sigma, 0)
+    rot = rotation_matrix(pose.rotation)
+    r, jac, _ = prob.residuals(maps, 0, alpha, rot, pose.translation, True)
+    eps = np.r_[np.full(7, 1e-4), np.full(3, 1e-6), np.full(3, 1e-4)]
+    for j in range(13):
+        d = np.zeros(13)
+        d[j] = eps[j]
+        def at(x):
+            return prob.residuals(maps, 0, alpha + x[:7], rotation_matrix(x[7:10]) @ rot,
+                                  pose.translation + x[10:], False)[0]
+        num = (at(d) - at(-d)) / (2 * eps[j])
+        scale = np.abs(num).max() + 1e-9
+        assert np.abs(jac[:, j] - num).max() / scale < 0.05, j
+
+
+@pytest.mark.parametrize("optimiser", ["gn", "nm"])
+def test_fit_recovers_a_perturbed_state(trained, optimiser):
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    truth = np.array([0.9, -0.6, 0.4, 0.3, -0.5, 0.2, 0.1])
+    img = render_blobs(model, camera, truth, pose)
+    start_t = pose.translation + [1.5, -1.0, 2.0]
+    roi = roi_of(prob.project(np.r_[np.zeros(7), pose.rotation, start_t]), 40)
+    maps = image_maps(img, roi, app.sigma, 0)
+    if optimiser == "gn":  # coarse to fine: half resolution first
+        from core.fitting import FitPolicy
+
+        coarse = fit_gauss_newton(prob, image_maps(img, roi, app.sigma, 1), 1, np.zeros(7),
+                                  pose.rotation, start_t, FitPolicy(max_iterations=30))
+        res = fit_gauss_newton(prob, maps, 0, coarse.alpha, coarse.rotation, coarse.translation)
+        assert coarse.evals + res.evals <= 40  # a cold start, far from the per-frame budget
+    else:
+        from core.fitting import FitPolicy
+
+        res = fit_nelder_mead(prob, maps, 0, np.zeros(7), pose.rotation, start_t,
+                              FitPolicy(nelder_mead_evals=3000))
+    err = model.shape(res.alpha) - model.shape(truth)
+    rms = np.sqrt((err**2).sum(1).mean())
+    start_rms = np.sqrt(((model.shape(np.zeros(7)) - model.shape(truth)) ** 2).sum(1).mean())
+    assert rms < 0.25 * start_rms, (rms, start_rms)
+    assert np.abs(res.translation - pose.translation).max() < 1.5

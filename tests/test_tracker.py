@@ -1,0 +1,143 @@
+"""The Tracker on the blob stand-in face: warm-started sequences, occlusion and recovery,
+appearance files. Accuracy on the real synthetic speaker is measured by core/evaluate."""
+
+import numpy as np
+import pytest
+
+from core.appearance import AppearanceModel, TrainingFrame, train_appearance
+from core.camera import Pose
+from core.errors import InputError, ModelFileError
+from core.tracker import Tracker, TrackingPolicy
+from tests.blobface import blob_setup, render_blobs
+
+
+# the blob face's features are small discs: the initial search needs a fine grid
+TOY = TrackingPolicy(search_step_mm=2.0, search_radius_mm=16.0)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    model, camera, pose = blob_setup()
+    rng = np.random.default_rng(7)
+    frames = []
+    for _ in range(30):
+        a = rng.normal(size=7) * 0.8
+        p = Pose(pose.rotation + rng.normal(size=3) * 0.02, pose.translation + rng.normal(size=3) * 3)
+        frames.append(TrainingFrame(render_blobs(model, camera, a, p), a, p))
+    app = train_appearance(model, camera, frames, "la_lin", sigma=2.0, levels=(0, 1), per_param=6)
+    return model, camera, pose, app
+
+
+def trajectory(n):
+    t = np.arange(n) / 25.0
+    alpha = np.stack([np.sin(2 * np.pi * f * t + p) * 0.9 for f, p in
+                      zip([1.1, 0.7, 0.9, 0.5, 0.6, 0.4, 0.3], [0, 1, 2, 3, 4, 5, 6])], 1)
+    return t, alpha
+
+
+def rms_mm(model, a, b):
+    return float(np.sqrt(((model.shape(a) - model.shape(b)) ** 2).sum(-1).mean()))
+
+
+def test_tracks_a_sequence_and_counts_work(setup):
+    model, camera, pose, app = setup
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(25)
+    errs, evals = [], []
+    for i in range(len(t)):
+        res = tracker.track(render_blobs(model, camera, alpha[i], pose), t[i])
+        assert res.ok, res.reason
+        assert res.frame == i
+        errs.append(rms_mm(model, res.alpha, alpha[i]))
+        evals.append(res.evals)
+    neutral = np.median([rms_mm(model, np.zeros(7), a) for a in alpha])
+    assert np.median(errs) < 0.8 < neutral
+    assert np.median(evals[1:]) <= 10
+
+
+def test_blank_frames_are_not_ok_and_tracking_recovers(setup):
+    model, camera, pose, app = setup
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(20)
+    out = []
+    for i in range(len(t)):
+        img = render_blobs(model, camera, alpha[i], pose)
+        if 8 <= i < 12:
+            img[:] = 0
+        out.append(tracker.track(img, t[i]))
+    assert all(not r.ok for r in out[8:12])
+    assert all("blank" in r.reason for r in out[8:12])
+    # the state streamed during the gap is the last good one, not a guess
+    np.testing.assert_array_equal(out[9].alpha, out[7].alpha)
+    assert all(r.ok for r in out[12:15])
+    assert rms_mm(model, out[14].alpha, alpha[14]) < 1.0
+
+
+def test_garbage_frame_is_flagged_as_divergence(setup):
+    model, camera, pose, app = setup
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(12)
+    for i in range(10):
+        assert tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]).ok
+    noise = np.random.default_rng(0).integers(0, 255, (camera.height, camera.width, 3), np.uint8)
+    res = tracker.track(noise, t[10])
+    assert not res.ok and "residual" in res.reason
+
+
+def test_without_initial_pose_the_frame_is_not_ok(setup):
+    model, camera, pose, app = setup
+    res = Tracker(model, app, camera).track(render_blobs(model, camera, np.zeros(7), pose), 0.0)
+    assert not res.ok and "initial pose" in res.reason
+
+
+def test_initial_search_finds_an_offset_face(setup):
+    model, camera, pose, app = setup
+    true_pose = Pose(pose.rotation, pose.translation + [14.0, -9.0, 0.0])
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    res = tracker.track(render_blobs(model, camera, np.zeros(7), true_pose), 0.0)
+    assert res.ok
+    assert np.abs(res.pose.translation[:2] - true_pose.translation[:2]).max() < 2.0
+
+
+def test_nelder_mead_baseline_tracks_too(setup):
+    model, camera, pose, app = setup
+    tracker = Tracker(model, app, camera,
+                      TrackingPolicy(optimiser="nelder-mead", search_step_mm=2.0,
+                                     search_radius_mm=16.0), pose)
+    t, alpha = trajectory(6)
+    res = [tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]) for i in range(6)]
+    assert all(r.ok for r in res)
+    assert np.mean([r.evals for r in res[1:]]) > 50  # the simplex spends far more evaluations
+
+
+def test_appearance_round_trip_and_errors(setup, tmp_path):
+    model, camera, pose, app = setup
+    app.save(tmp_path / "a.npz")
+    again = AppearanceModel.load(tmp_path / "a.npz", model)
+    assert again.kind == app.kind and again.levels == app.levels
+    np.testing.assert_array_equal(again.weights, app.weights)
+    np.testing.assert_array_equal(again.samples.index, app.samples.index)
+    model.save(tmp_path / "m.npz")
+    with pytest.raises(ModelFileError, match="expected an articast appearance-model"):
+        AppearanceModel.load(tmp_path / "m.npz")
+    with pytest.raises(InputError, match="appearance kind"):
+        train_appearance(model, camera, [], "la_quadratic")
+
+
+@pytest.mark.parametrize("kind, gain", [("la_cst", 0.5), ("tex_lin", 0.5), ("tex_cst", 1.0)])
+def test_other_appearance_kinds_track(setup, kind, gain):
+    """Every kind tracks; tex_cst (the paper's weakest) must at least beat standing still."""
+    model, camera, pose, app = setup
+    rng = np.random.default_rng(3)
+    frames = []
+    for _ in range(20):
+        a = rng.normal(size=7) * 0.8
+        frames.append(TrainingFrame(render_blobs(model, camera, a, pose), a, pose))
+    app2 = train_appearance(model, camera, frames, kind, sigma=2.0, levels=(0, 1),
+                            tex_spacing_mm=3.0)
+    tracker = Tracker(model, app2, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(10)
+    res = [tracker.track(render_blobs(model, camera, alpha[i] * 0.5, pose), t[i]) for i in range(10)]
+    assert all(r.ok for r in res)
+    start = rms_mm(model, np.zeros(7), alpha[9] * 0.5)
+    assert rms_mm(model, res[9].alpha, alpha[9] * 0.5) < gain * start
