@@ -1,0 +1,163 @@
+"""``articast train-appearance`` and ``articast track``: offline tracking of a video."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    tr = sub.add_parser(
+        "train-appearance",
+        help="train an appearance model from a video with known states",
+        description=(
+            "Fit an appearance model (la_lin by default: Gaussian-derivative descriptors at "
+            "automatically selected points, linear in the articulatory parameters) by least "
+            "squares on frames whose state is known. TRUTH is a JSON-lines file with one "
+            "object per frame: frame, alpha {name: value}, pose {rotation, translation} — "
+            "what 'articast synth sequence' writes and what 'articast track' produces."
+        ),
+    )
+    tr.add_argument("video", type=Path)
+    tr.add_argument("--truth", type=Path, required=True, help="states per frame (JSON lines)")
+    tr.add_argument("--model", type=Path, required=True, help="speaker model (.npz)")
+    tr.add_argument("--camera", type=Path, required=True, help="camera (.json)")
+    tr.add_argument("-o", "--output", type=Path, required=True, help="appearance file (.npz)")
+    tr.add_argument("--kind", default="la_lin", choices=["la_cst", "la_lin", "tex_cst", "tex_lin"])
+    tr.add_argument("--sigma", type=float, default=2.5, help="filter scale in px (default 2.5)")
+    tr.add_argument("--per-param", type=int, default=5,
+                    help="points selected per articulatory parameter (la; default 5)")
+    tr.add_argument("--frames", type=int, default=0, help="use only the first N frames")
+    tr.set_defaults(func=_train)
+
+    tk = sub.add_parser(
+        "track",
+        help="track a video offline, one JSON line per frame",
+        description=(
+            "Track the speaker's articulatory parameters and head pose in every frame of a "
+            "video. Output: one JSON object per line (frame, t, alpha by name, pose, quality), "
+            "flushed as it goes. The first frame starts from --init-pose, or from the first "
+            "state of --init-truth, or else from a search around a frontal face "
+            "--distance-mm in front of the camera."
+        ),
+    )
+    tk.add_argument("video", type=Path)
+    tk.add_argument("--model", type=Path, required=True)
+    tk.add_argument("--appearance", type=Path, required=True)
+    tk.add_argument("--camera", type=Path, required=True)
+    tk.add_argument("-o", "--output", type=Path, required=True, help="track file (.jsonl)")
+    tk.add_argument("--optimiser", default="gauss-newton", choices=["gauss-newton", "nelder-mead"])
+    tk.add_argument("--init-pose", help="rx,ry,rz,tx,ty,tz (axis-angle rad, mm)")
+    tk.add_argument("--init-truth", type=Path, help="take the first frame's pose from this file")
+    tk.add_argument("--distance-mm", type=float, default=300.0,
+                    help="face distance for the initial search (default 300)")
+    tk.add_argument("--quiet", action="store_true", help="no progress line")
+    tk.set_defaults(func=_track)
+
+
+def load_states(path: Path, param_names: tuple[str, ...]) -> list:
+    """TrackResults of a truth/track JSON-lines file, with line numbers in errors."""
+    from core.result import TrackResult
+    from service.video import read_jsonl
+
+    out = []
+    for n, obj in enumerate(read_jsonl(path), 1):
+        try:
+            out.append(TrackResult.from_dict(obj, param_names))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{path}: record {n}: missing or malformed field ({exc})") from None
+    return out
+
+
+def _train(args: argparse.Namespace) -> int:
+    from core.appearance import TrainingFrame, train_appearance
+    from core.camera import Camera
+    from core.model import FaceModel
+    from service.progress import Progress
+    from service.video import iter_video
+
+    model = FaceModel.load(args.model)
+    camera = Camera.load(args.camera)
+    states = {s.frame: s for s in load_states(args.truth, model.param_names)}
+    frames = []
+    for i, _, img in iter_video(args.video):
+        if args.frames and i >= args.frames:
+            break
+        if i in states:
+            frames.append(TrainingFrame(img, states[i].alpha, states[i].pose))
+    if not frames:
+        raise InputError(f"{args.truth}: no state matches a frame of {args.video}")
+    _check_size(frames[0].image, camera)
+    prog = Progress(1, "training")
+    app = train_appearance(model, camera, frames, args.kind, sigma=args.sigma,
+                           per_param=args.per_param)
+    prog.update()
+    prog.close()
+    app.save(args.output)
+    print(f"{args.kind}: {app.n_samples} sample points, {len(frames)} frames, variance "
+          f"explained {', '.join(f'{e:.1%}' for e in app.explained)} -> {args.output}")
+    return 0
+
+
+def _check_size(image: np.ndarray, camera) -> None:
+    h, w = image.shape[:2]
+    if (w, h) != (camera.width, camera.height):
+        raise InputError(f"video frames are {w}x{h} but the camera is calibrated for "
+                         f"{camera.width}x{camera.height}")
+
+
+def _initial_pose(args: argparse.Namespace, param_names):
+    from core.camera import Pose
+
+    if args.init_pose:
+        try:
+            v = [float(x) for x in args.init_pose.split(",")]
+        except ValueError:
+            v = []
+        if len(v) != 6:
+            raise InputError("--init-pose needs 6 numbers: rx,ry,rz,tx,ty,tz")
+        return Pose(v[:3], v[3:])
+    if args.init_truth:
+        states = load_states(args.init_truth, param_names)
+        if not states:
+            raise InputError(f"{args.init_truth}: empty")
+        return states[0].pose
+    return Pose(translation=[0.0, 0.0, args.distance_mm])
+
+
+def _track(args: argparse.Namespace) -> int:
+    from core.appearance import AppearanceModel
+    from core.camera import Camera
+    from core.model import FaceModel
+    from core.tracker import Tracker, TrackingPolicy
+    from service.progress import Progress
+    from service.video import iter_video, video_frame_count
+
+    model = FaceModel.load(args.model)
+    app = AppearanceModel.load(args.appearance, model)
+    camera = Camera.load(args.camera)
+    tracker = Tracker(model, app, camera, TrackingPolicy(optimiser=args.optimiser),
+                      _initial_pose(args, model.param_names), clock=time.perf_counter)
+    prog = Progress(video_frame_count(args.video), "tracking", quiet=args.quiet)
+    n_ok = n = 0
+    ms = []
+    with open(args.output, "w", encoding="utf-8") as out:
+        for i, t, img in iter_video(args.video):
+            if i == 0:
+                _check_size(img, camera)
+            res = tracker.track(img, t)
+            out.write(json.dumps(res.to_dict(model.param_names)) + "\n")
+            out.flush()
+            n += 1
+            n_ok += res.ok
+            ms.append(res.ms)
+            prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
+    prog.close()
+    print(f"{n} frames tracked ({n_ok} ok), median {np.median(ms):.2f} ms/frame -> {args.output}")
+    return 0
