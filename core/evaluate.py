@@ -85,7 +85,7 @@ class SequenceScore:
     evals: np.ndarray  # (F,)
     ms: np.ndarray  # (F,)
     jitter_mm: float
-    lag_frames: int
+    lag_frames: int  # -999 when the model labels no lip midpoints
 
     def summary(self, scored: np.ndarray | None = None) -> dict[str, float]:
         """The figures of ``evaluate --json`` (over ``scored`` frames, default the ok ones)."""
@@ -115,9 +115,11 @@ def score_sequence(model: FaceModel, alpha: np.ndarray, ok: np.ndarray, evals: n
 
     alpha_true = invert(model, points_true)
     still = still_pairs(points_true)
-    ap_t, ap_true = lip_aperture(model, alpha), lip_aperture(model, alpha_true)
+    lag = -999
+    if {"2.2", "2.3"} <= set(model.feature_points):
+        lag = lag_frames(lip_aperture(model, alpha), lip_aperture(model, alpha_true))
     return SequenceScore(
         rms_3d(model, alpha, alpha_true), rms_to_points(model, alpha, points_true),
         np.asarray(ok, bool), np.asarray(evals, float), np.asarray(ms, float),
-        jitter_mm(model, alpha, still & ok[1:] & ok[:-1]), lag_frames(ap_t, ap_true),
+        jitter_mm(model, alpha, still & ok[1:] & ok[:-1]), lag,
     )
