@@ -125,12 +125,13 @@ class Problem:
             return r.reshape(-1), None, vf
         # d(cam)/d(alpha) = R basis ; d(cam)/d(delta) = -[R head]x ; d(cam)/d(t) = I
         rh = head @ rot.T
-        dcam = np.empty((s, 3, self.k + 6))
-        dcam[:, :, :self.k] = np.einsum("ij,ksj->sik", rot, self.s_basis)
-        dcam[:, 0, self.k:self.k + 3] = np.c_[np.zeros(s), rh[:, 2], -rh[:, 1]]
-        dcam[:, 1, self.k:self.k + 3] = np.c_[-rh[:, 2], np.zeros(s), rh[:, 0]]
-        dcam[:, 2, self.k:self.k + 3] = np.c_[rh[:, 1], -rh[:, 0], np.zeros(s)]
-        dcam[:, :, self.k + 3:] = np.eye(3)
+        k = self.k
+        dcam = np.zeros((s, 3, k + 6))
+        dcam[:, :, :k] = np.einsum("ij,ksj->sik", rot, self.s_basis)
+        dcam[:, 0, k + 1], dcam[:, 0, k + 2] = rh[:, 2], -rh[:, 1]
+        dcam[:, 1, k], dcam[:, 1, k + 2] = -rh[:, 2], rh[:, 0]
+        dcam[:, 2, k], dcam[:, 2, k + 1] = rh[:, 1], -rh[:, 0]
+        dcam[:, 0, k + 3] = dcam[:, 1, k + 4] = dcam[:, 2, k + 5] = 1.0
         duv = np.einsum("sij,sjp->sip", jp, dcam)  # (S, 2, P)
         jac = np.einsum("scj,sjp->scp", dfeats, duv)  # (S, C, P)
         if self._tex:
