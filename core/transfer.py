@@ -50,9 +50,11 @@ from core.bundle import load_bundle, require, save_bundle
 from core.errors import InputError
 from core.mesh import (
     MeshTopology,
+    Registration,
     angle_deficits,
     facet_cross,
     point_triangle_distance,
+    register_icp,
     vertex_normals,
 )  # fmt: skip
 from core.model import FaceModel
@@ -62,8 +64,8 @@ BINDING_VERSION = 1
 _INSIDE_EPS = 1e-9
 _NEWTON_STEPS = 12
 
-__all__ = ["Binding", "apply", "barycentric_apply", "bind", "dense_modes", "facet_maps",
-           "linearity_error"]
+__all__ = ["Binding", "Registration", "apply", "barycentric_apply", "bind", "dense_modes",
+           "facet_maps", "linearity_error", "register_and_bind", "register_icp"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,21 +101,25 @@ class Binding:
     curvature: np.ndarray
     lambda2: float
     dense_triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    # derived once, for the per-frame maps
     topology: MeshTopology = field(init=False, repr=False)
+    curvature_weights: np.ndarray = field(init=False, repr=False)  # c_X (T, 3)
+    denominators: np.ndarray = field(init=False, repr=False)  # sum_X c_X^2 + lambda^2 (T,)
+    gather: sp.csr_matrix = field(init=False, repr=False)  # (M, 4T), see :func:`apply`
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "topology",
                            MeshTopology(self.triangles, len(self.sparse_vertices)))
-        c = self.curvature[self.triangles] * self.corner_normals[..., 2]  # c_X (T, 3)
-        object.__setattr__(self, "_c", c)
-        object.__setattr__(self, "_denominator", (c * c).sum(1) + self.lambda2)
-        # f(M) = [1, local] . [A', e1', e2', v][facet]: one sparse (M, 4T) product per frame
+        c = self.curvature[self.triangles] * self.corner_normals[..., 2]
+        object.__setattr__(self, "curvature_weights", c)
+        object.__setattr__(self, "denominators", (c * c).sum(1) + self.lambda2)
+        # f(M) = [1, local] . [A', e1', e2', v][facet]: one sparse product per frame
         m, t = len(self.facet), len(self.triangles)
         cols = np.arange(4)[None, :] * t + self.facet[:, None]
         coef = np.c_[np.ones(m), self.local]
         gather = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(m), 4), cols.ravel())),
                                shape=(m, 4 * t))
-        object.__setattr__(self, "_gather", gather)
+        object.__setattr__(self, "gather", gather)
 
     @property
     def n_dense(self) -> int:
@@ -264,6 +270,27 @@ def bind(
                    t[rows, best], found, corner_normals, curv, lambda2, dtri)
 
 
+def register_and_bind(
+    sparse_vertices: np.ndarray,
+    triangles: np.ndarray,
+    dense_vertices: np.ndarray,
+    dense_triangles: np.ndarray | None = None,
+    **bind_options: Any,
+) -> tuple[Binding, Registration]:
+    """Steps 1 and 2: ICP of the sparse mesh onto the dense scan, then :func:`bind`.
+
+    dense_vertices : (M, 3) mm in the scan's own frame, roughly aligned with the sparse mesh.
+    dense_triangles : (Q, 3), enables point-to-plane ICP (recommended). Returns the binding
+    (dense points moved into the sparse frame: ``registration.invert(dense_vertices)``) and
+    the registration (``dense ~ R sparse + T``; check its ``rms`` and ``converged``).
+    """
+    dense = _check_points("dense_vertices", dense_vertices)
+    reg = register_icp(_check_points("sparse_vertices", sparse_vertices), dense,
+                       fixed_triangles=dense_triangles)
+    return bind(sparse_vertices, triangles, reg.invert(dense), dense_triangles=dense_triangles,
+                **bind_options), reg
+
+
 def facet_maps(binding: Binding, vertices: np.ndarray) -> tuple[np.ndarray, ...]:
     """Per-facet affine maps for a deformed sparse mesh (paper §3.2, closed form above).
 
@@ -282,14 +309,14 @@ def facet_maps(binding: Binding, vertices: np.ndarray) -> tuple[np.ndarray, ...]
     r = k_new[tri][..., None] * normals[tri] - k_ref[..., None] * (
         cn[..., 0:1] * e1[:, None, :] + cn[..., 1:2] * e2[:, None, :]
     )
-    num = np.einsum("tc,tcd->td", binding._c, r) + binding.lambda2 * n_new  # type: ignore[attr-defined]
-    return a, e1, e2, num / binding._denominator[:, None]  # type: ignore[attr-defined]
+    num = np.einsum("tc,tcd->td", binding.curvature_weights, r) + binding.lambda2 * n_new
+    return a, e1, e2, num / binding.denominators[:, None]
 
 
 def apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.ndarray:
     """Dense mesh (M, 3) mm for the sparse mesh at ``sparse_vertices_new`` (N, 3) mm."""
     v = _check_points("sparse_vertices_new", sparse_vertices_new, len(binding.sparse_vertices))
-    return binding._gather @ np.concatenate(facet_maps(binding, v))  # type: ignore[attr-defined]
+    return binding.gather @ np.concatenate(facet_maps(binding, v))
 
 
 def barycentric_apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.ndarray:

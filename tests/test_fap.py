@@ -383,3 +383,13 @@ def test_export_fap_reports_malformed_lines(tmp_path, capsys, corrupt, message):
     err = capsys.readouterr().err
     assert err.startswith("articast export-fap: error:")
     assert re.search(message, err), err
+
+
+def test_export_fap_without_time_stamps_needs_fps_and_keeps_every_record(tmp_path, capsys):
+    args = _track(tmp_path, n=4, fps=float("inf"), not_ok=())  # every t = 10.0
+    assert main(args) == 2
+    assert "cannot infer fps from the time stamps" in capsys.readouterr().err
+    assert main(args + ["--fps", "25"]) == 0
+    seq = read_fap(tmp_path / "out.fap")
+    assert seq.n_frames == 4 and seq.fps == 25
+    assert np.all(np.diff(seq.values[:, col("open_jaw")]) > 0)

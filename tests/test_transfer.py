@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from core.camera import rotation_matrix
 from core.errors import InputError, ModelFileError
@@ -22,6 +24,7 @@ from core.transfer import (
     bind,
     dense_modes,
     linearity_error,
+    register_and_bind,
 )  # fmt: skip
 
 
@@ -83,6 +86,14 @@ def test_rigid_motion_moves_the_dense_mesh_rigidly(binding, rng):
     t = rng.normal(size=3) * 50
     moved = apply(binding, SPARSE @ rot.T + t)
     assert np.abs(moved - (DENSE @ rot.T + t)).max() < 1e-6
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3),
+       st.lists(st.floats(-200.0, 200.0), min_size=3, max_size=3))
+def test_any_rigid_motion_is_transferred_exactly(binding, axis_angle_rad, translation):
+    rot, t = rotation_matrix(np.array(axis_angle_rad)), np.array(translation)
+    assert np.abs(apply(binding, SPARSE @ rot.T + t) - (DENSE @ rot.T + t)).max() < 1e-6
 
 
 def test_points_outside_the_sparse_mesh_take_the_nearest_facet(rng):
@@ -171,6 +182,8 @@ def test_icp_recovers_a_known_rigid_offset(rng):
     np.testing.assert_allclose(reg.rotation, rot, atol=2e-4)
     np.testing.assert_allclose(reg.translation, t, atol=0.02)
     assert np.abs(reg.invert(scan_moved) - scan).max() < 0.03
+    b, reg2 = register_and_bind(SPARSE, TRI, scan_moved, scan_tri)
+    assert np.abs(b.dense_vertices - scan).max() < 0.03 and reg2.rms == reg.rms
     # without the scan's triangles, point-to-point ICP stalls at the sampling of the scan
     p2p = register_icp(SPARSE, scan_moved)
     assert p2p.rms > 10 * reg.rms

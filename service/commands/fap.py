@@ -9,6 +9,8 @@ Policy, as documented in ``--help``:
   grid frame takes the latest record at or before its time (sample and hold), so dropped
   frames and jitter keep the timing right. By default fps is the rounded inverse of the median
   time step of the track, and then every record is one ``.fap`` frame when the track is regular.
+  A track without a time span (all time stamps equal) needs ``--fps`` and gives one ``.fap``
+  frame per record.
 """
 
 from __future__ import annotations
@@ -135,7 +137,8 @@ def _export_fap(args: argparse.Namespace) -> int:
     if args.fps is not None and args.fps < 1:
         raise InputError(f"--fps must be a positive integer, got {args.fps}")
     fps = args.fps if args.fps is not None else track_fps(t)
-    idx = grid_indices(t, fps) if len(t) > 1 else np.zeros(1, dtype=np.int64)
+    # no usable time span (one record, or time stamps all equal): one .fap frame per record
+    idx = grid_indices(t, fps) if t[-1] > t[0] else np.arange(len(t))
     encoder = FapEncoder(model, reference_rotation=reference, jaw_relative=not args.absolute_lips)
     values, mask = encoder.values(alpha[idx], pose[idx])
     write_fap(args.output, values, mask, fps, args.name)
