@@ -246,6 +246,12 @@ class FapEncoder:
         out[:, np.array(HEAD_FAPS) - 1] = np.rint(ang).astype(np.int64)
         return out, self.mask.copy()
 
+    def frame_dict(self, alpha: np.ndarray, pose: np.ndarray) -> dict[str, int]:
+        """FAPs of one frame as ``{"3": value, ...}`` (FAP numbers as strings, masked-in FAPs
+        only), e.g. for the ``fap`` stream of the service. alpha (K,), pose (6,) rad, mm."""
+        values, mask = self.values(np.reshape(alpha, (1, -1)), np.reshape(pose, (1, -1)))
+        return {str(n + 1): int(values[0, n]) for n in np.flatnonzero(mask)}
+
     def _check(self, alpha: np.ndarray, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         alpha = np.asarray(alpha, dtype=np.float64)
         pose = np.asarray(pose, dtype=np.float64)

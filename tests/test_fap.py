@@ -187,6 +187,15 @@ def test_lip_aperture_and_width_rebuilt_from_faps_within_0_2_mm(rng, jaw_relativ
     assert np.ptp(lip_aperture(truth)) > 5.0  # the test spans real openings
 
 
+def test_frame_dict_matches_the_batch():
+    enc = FapEncoder(MODEL)
+    a, pose = one("jaw1", 1.3), frontal_poses(1)
+    d = enc.frame_dict(a[0], pose[0])
+    values, mask = enc.values(a, pose)
+    assert set(d) == {str(n + 1) for n in np.flatnonzero(mask)}
+    assert d["3"] == values[0, 2] > 0 and all(isinstance(v, int) for v in d.values())
+
+
 def test_values_reject_bad_shapes_and_nan():
     enc = FapEncoder(MODEL)
     with pytest.raises(InputError, match=r"alpha must have shape \(F, 7\)"):
