@@ -143,8 +143,9 @@ def parse_fap(text: str, source: str = "<fap>", *, allow_comments: bool = False)
         raise InputError(f"{source}: line 1: empty file, expected the header "
                          "'version name fps nframes'")
     version, name, fps, n_frames = _header(source, *lines[0])
-    values = np.zeros((n_frames, N_FAPS), dtype=np.int64)
-    mask = np.zeros((n_frames, N_FAPS), dtype=bool)
+    room = min(n_frames, len(lines) // 2)  # a lying header must not allocate gigabytes
+    values = np.zeros((room, N_FAPS), dtype=np.int64)
+    mask = np.zeros((room, N_FAPS), dtype=bool)
     pos = 1
     for i in range(n_frames):
         if pos >= len(lines):

@@ -147,6 +147,9 @@ def register_icp(
         the sparse mesh the dense one does not cover). Starts from the identity: bring the two
         meshes roughly together first (e.g. both in the head frame).
     """
+    if not (0.0 < keep <= 1.0) or max_iterations < 1:
+        raise InputError(f"need 0 < keep <= 1 and max_iterations >= 1, got {keep}, "
+                         f"{max_iterations}")
     moving, fixed = np.asarray(moving, float), np.asarray(fixed, float)
     for name, arr in (("moving", moving), ("fixed", fixed)):
         if arr.ndim != 2 or arr.shape[1] != 3 or len(arr) < 3 or not np.isfinite(arr).all():

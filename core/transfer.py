@@ -146,6 +146,11 @@ class Binding:
         tri, fac = arrays["triangles"], arrays["facet"]
         require(t > 0 and tri.min() >= 0 and tri.max() < n, path, "triangles index no vertex")
         require(m == 0 or (fac.min() >= 0 and fac.max() < t), path, "facet indexes no triangle")
+        dtri = arrays["dense_triangles"]
+        require(dtri.ndim == 2 and dtri.shape[1] == 3, path,
+                f"dense_triangles have shape {dtri.shape}, expected (Q, 3)")
+        require(dtri.size == 0 or (dtri.min() >= 0 and dtri.max() < m), path,
+                "dense_triangles index no dense point")
         lam = meta.get("lambda2")
         require(isinstance(lam, int | float) and lam > 0, path, "lambda2 must be positive")
         return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam))
@@ -257,7 +262,13 @@ def bind(
     rows = np.arange(len(dense))
     facet = cand[rows, best]
     weights = np.stack([wa[rows, best], wb[rows, best], wc[rows, best]], axis=1)
+    offset = t[rows, best]
     local = np.einsum("mij,mj->mi", inv[facet], dense - a_pt[facet])
+    bad = ~(np.isfinite(weights).all(1) & np.isfinite(offset))
+    if bad.any():  # projection diverged (far outside): orthogonal projection on the facet
+        lb = local[bad]
+        weights[bad] = np.c_[1.0 - lb[:, 0] - lb[:, 1], lb[:, 0], lb[:, 1]]
+        offset[bad] = lb[:, 2]
     corner_normals = np.einsum("tij,tcj->tci", inv, normals[tri])
     c = curv[tri] * corner_normals[..., 2]
     mean_c2 = float(np.mean(c * c))
@@ -267,7 +278,7 @@ def bind(
     if dtri.size and (dtri.min() < 0 or dtri.max() >= len(dense)):
         raise InputError(f"dense_triangles index points outside 0..{len(dense) - 1}")
     return Binding(sparse, tri, dense, facet.astype(np.int64), local, weights,
-                   t[rows, best], found, corner_normals, curv, lambda2, dtri)
+                   offset, found, corner_normals, curv, lambda2, dtri)
 
 
 def register_and_bind(

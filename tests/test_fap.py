@@ -384,6 +384,8 @@ def test_export_fap_resamples_to_a_given_fps(tmp_path):
 @pytest.mark.parametrize("corrupt, message", [
     ((2, "{not json"), "t.jsonl: line 3: not a track record"),
     ((1, '{"frame": 1, "t": 0.1}'), "t.jsonl: line 2: not a track record: missing field 'alpha'"),
+    ((2, '{"frame": 2, "t": 10.07, "alpha": {"jaw1": NaN}, "pose": {"rotation": [3, 0, 0], '
+         '"translation": [0, 0, 400]}}'), "t.jsonl: line 3: .*alpha values must be finite"),
     ((4, '{"frame": 4, "t": 1, "alpha": {"tongue": 1}, "pose": {}}'),
      r"line 5: not a track record: parameters \['tongue'\] are not in the model"),
 ])  # fmt: skip
@@ -402,3 +404,10 @@ def test_export_fap_without_time_stamps_needs_fps_and_keeps_every_record(tmp_pat
     seq = read_fap(tmp_path / "out.fap")
     assert seq.n_frames == 4 and seq.fps == 25
     assert np.all(np.diff(seq.values[:, col("open_jaw")]) > 0)
+
+
+def test_a_lying_frame_count_is_an_error_not_an_allocation():
+    lines = _valid_text()
+    lines[0] = "2.1 talk.fap 25 999999999999"
+    with pytest.raises(InputError, match="line 8: file ends after 3 of 999999999999 frames"):
+        parse_fap("\n".join(lines) + "\n")

@@ -116,6 +116,15 @@ def gentle_inflate(p):
     return p + 0.2 * (inflate(p) - p)
 
 
+def test_far_away_points_bind_to_finite_coordinates(tmp_path):
+    far = np.array([[0.0, 0.0, 1000.0], [5000.0, -3000.0, 20.0], [0.0, 0.0, -400.0]])
+    b = bind(SPARSE, TRI, np.vstack([DENSE[:10], far]))
+    assert np.isfinite(b.weights).all() and np.isfinite(b.offset).all()
+    b.save(tmp_path / "far.npz")  # NaN would make the file unreadable
+    np.testing.assert_allclose(apply(Binding.load(tmp_path / "far.npz"), SPARSE)[-3:], far,
+                               atol=1e-6)
+
+
 @pytest.mark.parametrize("surface, deform", [
     (paraboloid, bend_and_twist),
     (sphere_cap, gentle_inflate),

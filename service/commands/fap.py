@@ -73,7 +73,10 @@ def read_track(path: Path, param_names: tuple[str, ...]) -> list:
             unknown = set(doc.get("alpha", {})) - set(param_names)
             if unknown:
                 raise ValueError(f"parameters {sorted(unknown)} are not in the model")
-            results.append(TrackResult.from_dict(doc, param_names))
+            result = TrackResult.from_dict(doc, param_names)
+            if not np.all(np.isfinite(result.alpha)):
+                raise ValueError("alpha values must be finite numbers")
+            results.append(result)
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             reason = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
             raise InputError(f"{path}: line {n}: not a track record: {reason}") from None
