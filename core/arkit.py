@@ -6,8 +6,10 @@ eyes, brows, cheeks, nose and tongue stay 0: our model does not track them).
 
 Each populated shape is a **measure** in mm of feature-point displacements from the neutral
 face, in the head frame (x = the speaker's own left, y up, z forward), linear in alpha
-because the model is: ``m(alpha) = g . alpha``. ARKit's "Left" is the user's own left, i.e.
-our +x side (8.3, 8.5, 8.7). The measures:
+because the model is: ``m(alpha) = g . alpha`` (:meth:`ArkitMapper.weights`); the same
+measures apply to any geometry in the model's layout
+(:meth:`ArkitMapper.weights_from_geometry`). ARKit's "Left" is the user's own left, i.e. our
++x side (8.3, 8.5, 8.7). The measures:
 
 ==================== ===========================================================================
 jawOpen              drop of the jaw point 2.1
@@ -98,7 +100,7 @@ TWO_SIDED = ("jawOpen",)
 
 
 class ArkitMapper:
-    """Per-speaker map from alpha to ARKit blendshape weights.
+    """Per-speaker map from the tracked state to ARKit blendshape weights.
 
     model : the speaker model; feature points 2.1, 2.2, 2.3 and 8.1-8.8 are used. A shape
     whose points the model does not label is left at 0 (see :attr:`populated`).
@@ -118,31 +120,29 @@ class ArkitMapper:
         self.model = model
         self.min_full_scale_mm = float(min_full_scale_mm)
         self._index = {n: i for i, n in enumerate(ARKIT_BLENDSHAPES)}
-        rows, cols, lows, highs = [], [], [], []
-        for name, terms in MEASURES.items():
-            g = self._gradient(terms)
-            if g is not None:
-                lo, hi = self._calibration(g, two_sided=name in TWO_SIDED)
-                rows.append(g), cols.append(self._index[name]), lows.append(lo), highs.append(hi)
-        self._g = np.array(rows).reshape(-1, model.n_params)
-        self._cols = np.array(cols, dtype=np.int64)
-        self._lo, self._hi = np.array(lows), np.array(highs)
-        self._rounding = self._gradient(ROUNDING)
-        self._openness = self._gradient(OPENNESS)
-        self._round_cal = self._openness_cal = (0.0, np.inf)
-        populated = [ARKIT_BLENDSHAPES[c] for c in self._cols]
-        if self._rounding is not None and self._openness is not None:
-            self._round_cal = self._calibration(self._rounding, two_sided=False)
-            self._openness_cal = self._calibration(self._openness, two_sided=True)
-            populated += ["mouthFunnel", "mouthPucker"]
-        self.populated: tuple[str, ...] = tuple(n for n in ARKIT_BLENDSHAPES if n in populated)
+        # one row per measure over the flattened displacement (3N,): m = W . (x - mean)
+        specs = [(name, terms) for name, terms in MEASURES.items() if self._labelled(terms)]
+        self._has_rounding = self._labelled(ROUNDING) and self._labelled(OPENNESS)
+        if self._has_rounding:
+            specs += [("_rounding", ROUNDING), ("_openness", OPENNESS)]
+        self._w = np.zeros((len(specs), 3 * model.n_points))
+        for row, (_, terms) in enumerate(specs):
+            for p, ax, c in terms:
+                self._w[row, 3 * model.point(p) + _AXIS[ax]] += c
+        self._g = self._w @ model.basis.reshape(model.n_params, -1).T  # (B, K) mm per alpha
+        cal = [self._calibration(g, two_sided=name in TWO_SIDED + ("_openness",))
+               for (name, _), g in zip(specs, self._g, strict=True)]
+        self._lo = np.array([c[0] for c in cal])
+        self._hi = np.array([c[1] for c in cal])
+        self._cols = np.array([self._index[n] for n, _ in specs if not n.startswith("_")],
+                              dtype=np.int64)
+        driven = {n for n, _ in specs if not n.startswith("_")}
+        if self._has_rounding:
+            driven |= {"mouthFunnel", "mouthPucker"}
+        self.populated: tuple[str, ...] = tuple(n for n in ARKIT_BLENDSHAPES if n in driven)
 
-    def _gradient(self, terms: list[Term]) -> np.ndarray | None:
-        """d measure / d alpha (K,), or None if a point is not labelled."""
-        if any(p not in self.model.feature_points for p, _, _ in terms):
-            return None
-        basis = self.model.basis
-        return sum(c * basis[:, self.model.point(p), _AXIS[ax]] for p, ax, c in terms)
+    def _labelled(self, terms: list[Term]) -> bool:
+        return all(p in self.model.feature_points for p, _, _ in terms)
 
     def _calibration(self, g: np.ndarray, *, two_sided: bool) -> tuple[float, float]:
         """(lo, hi) mm: RSS over parameters of the largest excursions in the training range."""
@@ -154,9 +154,17 @@ class ArkitMapper:
             return lo, np.inf
         return lo, max(hi, lo + self.min_full_scale_mm)
 
-    @staticmethod
-    def _scale(m: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float) -> np.ndarray:
-        return np.clip((m - lo) / (np.asarray(hi) - lo), 0.0, 1.0)
+    def _from_measures(self, m: np.ndarray) -> np.ndarray:
+        """Measures (F, B) mm -> weights (F, 52)."""
+        scaled = np.clip((m - self._lo) / (self._hi - self._lo), 0.0, 1.0)
+        out = np.zeros((m.shape[0], len(ARKIT_BLENDSHAPES)))
+        n = len(self._cols)
+        out[:, self._cols] = scaled[:, :n]
+        if self._has_rounding:
+            rounding, openness = scaled[:, n], scaled[:, n + 1]
+            out[:, self._index["mouthFunnel"]] = rounding * openness
+            out[:, self._index["mouthPucker"]] = rounding * (1.0 - openness)
+        return out
 
     def weights(self, alpha: np.ndarray) -> np.ndarray:
         """Blendshape weights (F, 52) in 0..1, columns in :attr:`names` order.
@@ -169,13 +177,23 @@ class ArkitMapper:
         if a.ndim != 2 or a.shape[1] != self.model.n_params or not np.all(np.isfinite(a)):
             raise InputError(f"alpha must be finite with shape (F, {self.model.n_params}), "
                              f"got {np.shape(alpha)}")
-        out = np.zeros((a.shape[0], len(ARKIT_BLENDSHAPES)))
-        out[:, self._cols] = self._scale(a @ self._g.T, self._lo, self._hi)
-        if "mouthFunnel" in self.populated:
-            rounding = self._scale(a @ self._rounding, *self._round_cal)
-            openness = self._scale(a @ self._openness, *self._openness_cal)
-            out[:, self._index["mouthFunnel"]] = rounding * openness
-            out[:, self._index["mouthPucker"]] = rounding * (1.0 - openness)
+        out = self._from_measures(a @ self._g.T)
+        return out[0] if single else out
+
+    def weights_from_geometry(self, points: np.ndarray) -> np.ndarray:
+        """Blendshape weights (F, 52) from the model's points (F, N, 3) mm, head frame.
+
+        For geometry that does not come from ``model.shape(alpha)`` (e.g. another tracker's
+        points in this model's layout); equals :meth:`weights` when it does.
+        (N, 3) gives (52,).
+        """
+        x = np.asarray(points, dtype=np.float64)
+        single = x.ndim == 2
+        x = x[None] if single else x
+        if x.ndim != 3 or x.shape[1:] != self.model.mean.shape or not np.all(np.isfinite(x)):
+            raise InputError(f"points must be finite with shape (F, {self.model.n_points}, 3), "
+                             f"got {np.shape(points)}")
+        out = self._from_measures((x - self.model.mean).reshape(len(x), -1) @ self._w.T)
         return out[0] if single else out
 
     def weights_dict(self, alpha: np.ndarray, *, populated_only: bool = True) -> dict[str, float]:

@@ -84,6 +84,16 @@ def test_left_is_the_users_own_left():
     assert w["mouthSmileLeft"] > 0.5 and w["mouthSmileRight"] == 0.0
 
 
+def test_geometry_and_alpha_give_the_same_weights(rng):
+    mapper = ArkitMapper(MODEL)
+    alpha = rng.uniform(-2.5, 3.0, size=(20, 7))
+    np.testing.assert_allclose(mapper.weights_from_geometry(MODEL.shape(alpha)),
+                               mapper.weights(alpha), atol=1e-12)
+    pts = MODEL.mean.copy()
+    pts[MODEL.point("2.1"), 1] -= 100.0  # a jaw far beyond training saturates at 1
+    assert mapper.weights_from_geometry(pts)[ARKIT_BLENDSHAPES.index("jawOpen")] == 1.0
+
+
 def test_unlabelled_points_leave_their_shapes_at_zero():
     fp = {k: v for k, v in MODEL.feature_points.items() if k not in ("8.5", "8.6")}
     m = FaceModel(mean=MODEL.mean, basis=MODEL.basis, stats=MODEL.stats, feature_points=fp)
