@@ -205,3 +205,39 @@ def _point_to_plane_step(
         np.eye(3) + np.sin(theta) / theta * k + (1 - np.cos(theta)) / theta**2 * (k @ k)
     )
     return rot, centre + t - rot @ centre
+
+
+def parse_obj(text: str, source: str = "<obj>") -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (M, 3) and triangles (Q, 3) of a Wavefront OBJ text (e.g. a face scan).
+
+    Reads ``v x y z`` and ``f`` lines (``i``, ``i/t``, ``i//n``, ``i/t/n``, 1-based or
+    negative indices); polygons are split into triangle fans; other statements are ignored.
+    Raises :class:`InputError` ``"<source>: line <n>: <reason>"``.
+    """
+    verts: list[list[float]] = []
+    faces: list[list[int]] = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        parts = line.split()
+        if not parts or parts[0] not in ("v", "f"):
+            continue
+        try:
+            if parts[0] == "v":
+                if len(parts) < 4:
+                    raise ValueError("a vertex needs 3 coordinates")
+                verts.append([float(p) for p in parts[1:4]])
+                continue
+            idx = [int(p.split("/")[0]) for p in parts[1:]]
+        except ValueError as exc:
+            raise InputError(f"{source}: line {n}: {exc}") from None
+        if len(idx) < 3:
+            raise InputError(f"{source}: line {n}: a face needs at least 3 vertices")
+        idx = [i - 1 if i > 0 else len(verts) + i for i in idx]
+        if any(not 0 <= i < len(verts) for i in idx):
+            raise InputError(f"{source}: line {n}: face refers to a vertex not defined before")
+        faces.extend([idx[0], idx[j], idx[j + 1]] for j in range(1, len(idx) - 1))
+    vertices = np.array(verts, dtype=np.float64).reshape(-1, 3)
+    if len(vertices) == 0:
+        raise InputError(f"{source}: no vertices")
+    if not np.all(np.isfinite(vertices)):
+        raise InputError(f"{source}: vertices must be finite")
+    return vertices, np.array(faces, dtype=np.int64).reshape(-1, 3)

@@ -16,6 +16,7 @@ from core.errors import ArticastError
 COMMAND_MODULES = (
     "service.commands.model",
     "service.commands.fap",
+    "service.commands.transfer",
 )
 
 

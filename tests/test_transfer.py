@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -12,6 +14,7 @@ from core.errors import InputError, ModelFileError
 from core.mesh import (
     MeshTopology,
     angle_deficits,
+    parse_obj,
     point_triangle_distance,
     register_icp,
     vertex_normals,
@@ -25,7 +28,8 @@ from core.transfer import (
     dense_modes,
     linearity_error,
     register_and_bind,
-)  # fmt: skip
+)
+from service.cli import main  # fmt: skip
 
 
 def paraboloid(x, y):
@@ -226,3 +230,37 @@ def test_bad_inputs_are_refused(binding):
         bind(SPARSE, TRI + 100, DENSE)
     with pytest.raises(InputError, match="the model has 28 points"):
         dense_modes(binding, FaceModel(mean=np.zeros((28, 3)), basis=np.zeros((7, 28, 3))))
+
+
+def _obj(vertices, triangles, quads=False):
+    lines = ["# scan", "o face"] + [f"v {x:.9f} {y:.9f} {z:.9f}" for x, y, z in vertices]
+    lines += [f"f {a + 1}/1 {b + 1}//2 {c + 1}" for a, b, c in triangles]
+    return "\n".join(lines) + "\n"
+
+
+def test_parse_obj_reads_faces_and_reports_bad_lines():
+    v, t = parse_obj("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\nf 1 2 3 4\nf -4 -3 -2\n")
+    assert v.shape == (4, 3) and t.tolist() == [[0, 1, 2], [0, 2, 3], [0, 1, 2]]
+    with pytest.raises(InputError, match="scan.obj: line 2: a vertex needs 3 coordinates"):
+        parse_obj("v 0 0 0\nv 1 0\n", "scan.obj")
+    with pytest.raises(InputError, match="line 3: face refers to a vertex not defined"):
+        parse_obj("v 0 0 0\nv 1 0 0\nf 1 2 3\n")
+
+
+def test_bind_dense_command_writes_a_binding_and_states_the_mode_tolerance(tmp_path, capsys):
+    model = surface_model()
+    model.save(tmp_path / "m.npz")
+    scan, scan_tri = grid(paraboloid, 70, 46.0)
+    rot, t = rotation_matrix([0.02, -0.03, 0.01]), np.array([1.0, -2.0, 0.5])
+    (tmp_path / "scan.obj").write_text(_obj((scan @ rot.T + t) / 1000.0, scan_tri))
+    args = ["bind-dense", str(tmp_path / "scan.obj"), "--model", str(tmp_path / "m.npz"),
+            "-o", str(tmp_path / "b.npz"), "--scale", "1000", "--json"]
+    assert main(args) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["icp_converged"] and report["icp_rms_mm"] < 0.01
+    assert report["dense_modes_max_error_mm"] < DENSE_MODE_TOLERANCE_MM
+    b = Binding.load(tmp_path / "b.npz")
+    assert np.abs(b.dense_vertices - scan).max() < 0.03 and len(b.dense_triangles) == len(scan_tri)
+    (tmp_path / "bad.obj").write_text("v 0 0 0\nf 1 2 3\n")
+    assert main(args[:1] + [str(tmp_path / "bad.obj")] + args[2:]) == 2
+    assert "bad.obj: line 2: face refers to a vertex" in capsys.readouterr().err
