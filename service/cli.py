@@ -16,6 +16,8 @@ from core.errors import ArticastError
 COMMAND_MODULES = (
     "service.commands.model",
     "service.commands.track",
+    "service.commands.fap",
+    "service.commands.transfer",
 )
 
 

@@ -1,0 +1,150 @@
+"""``articast export-fap``: a tracked sequence (JSON lines) -> an MPEG-4 ``.fap`` file.
+
+Policy, as documented in ``--help``:
+
+* frames whose ``quality.ok`` is false hold the last good frame's values (a player should see
+  the face stay still, not jump to a guess); before the first good frame, the neutral face
+  (alpha = 0, head at the reference pose) is held;
+* the ``.fap`` frames are a uniform grid at ``--fps`` starting at the first record's time; each
+  grid frame takes the latest record at or before its time (sample and hold), so dropped
+  frames and jitter keep the timing right. By default fps is the rounded inverse of the median
+  time step of the track, and then every record is one ``.fap`` frame when the track is regular.
+  A track without a time span (all time stamps equal) needs ``--fps`` and gives one ``.fap``
+  frame per record.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from core.errors import InputError
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "export-fap",
+        help="convert a tracked sequence (JSON lines) to an MPEG-4 .fap file",
+        description=(
+            "Compute MPEG-4 FAPs (open_jaw, lip FAPs 3-18 and 51-60, head pitch/yaw/roll "
+            "48-50) from the JSON lines written by 'articast track', and write the ASCII .fap "
+            "file Xface, Greta, visage and VREng read. Frames with quality.ok false hold the "
+            "last good values. Lower-lip FAPs are relative to open_jaw (use --absolute-lips "
+            "for absolute ones); see docs/FAP_CHOICES.md."
+        ),
+    )
+    p.add_argument("track", type=Path, help="tracked sequence (.jsonl, one frame per line)")
+    p.add_argument("--model", type=Path, required=True, help="speaker model (.npz) that was "
+                   "tracked; its feature-point labels define the FAPs")
+    p.add_argument("-o", "--output", type=Path, required=True, help=".fap file to write")
+    p.add_argument("--fps", type=int, help="frame rate of the .fap file (default: from the "
+                   "track's time stamps)")
+    p.add_argument("--name", help="name in the .fap header (default: the output file name; "
+                   "spaces become _)")
+    p.add_argument("--head-reference", choices=("frontal", "first"), default="frontal",
+                   help="pose with zero head FAPs: a frontal camera (default) or the first "
+                   "good frame of the track")
+    p.add_argument("--absolute-lips", action="store_true",
+                   help="lower-lip FAPs absolute instead of relative to open_jaw")
+    p.set_defaults(func=_export_fap)
+
+
+def read_track(path: Path, param_names: tuple[str, ...]) -> list:
+    """TrackResults of a JSON-lines file; blank lines are skipped, anything else must parse."""
+    from core.result import TrackResult
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read: {exc}") from None
+    results = []
+    for n, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        try:
+            doc = json.loads(line)
+            if not isinstance(doc, dict):
+                raise ValueError("a line must hold one JSON object")
+            unknown = set(doc.get("alpha", {})) - set(param_names)
+            if unknown:
+                raise ValueError(f"parameters {sorted(unknown)} are not in the model")
+            result = TrackResult.from_dict(doc, param_names)
+            if not np.all(np.isfinite(result.alpha)):
+                raise ValueError("alpha values must be finite numbers")
+            results.append(result)
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            reason = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise InputError(f"{path}: line {n}: not a track record: {reason}") from None
+        if len(results) > 1 and results[-1].t < results[-2].t:
+            raise InputError(f"{path}: line {n}: time stamp {results[-1].t} goes back in time")
+    if not results:
+        raise InputError(f"{path}: no frames")
+    return results
+
+
+def hold_last_good(
+    alpha: np.ndarray, pose: np.ndarray, ok: np.ndarray, neutral_pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Replace frames with ``ok`` false by the last good frame (neutral before the first).
+
+    alpha : (F, K); pose : (F, 6); ok : (F,) bool; neutral_pose : (6,).
+    """
+    good = np.where(ok, np.arange(len(ok)), -1)
+    last = np.maximum.accumulate(good)
+    alpha = np.where((last >= 0)[:, None], alpha[np.maximum(last, 0)], 0.0)
+    pose = np.where((last >= 0)[:, None], pose[np.maximum(last, 0)], neutral_pose)
+    return alpha, pose
+
+
+def grid_indices(t: np.ndarray, fps: float) -> np.ndarray:
+    """For a uniform grid at ``fps`` from ``t[0]`` to ``t[-1]``, the latest record index (G,)."""
+    n = int(np.floor((t[-1] - t[0]) * fps + 0.5)) + 1
+    grid = t[0] + np.arange(n) / fps
+    tol = 1e-6 / fps
+    return np.clip(np.searchsorted(t, grid + tol, side="right") - 1, 0, len(t) - 1)
+
+
+def track_fps(t: np.ndarray) -> int:
+    """Rounded inverse of the median positive time step; :class:`InputError` if none."""
+    dt = np.diff(t)
+    dt = dt[dt > 0]
+    if dt.size == 0:
+        raise InputError("cannot infer fps from the time stamps (one frame, or all at the "
+                         "same time): pass --fps")
+    return max(1, int(round(1.0 / float(np.median(dt)))))
+
+
+def _export_fap(args: argparse.Namespace) -> int:
+    from core.camera import FRONTAL
+    from core.fap import FapEncoder, write_fap
+    from core.model import FaceModel
+
+    model = FaceModel.load(args.model)
+    results = read_track(args.track, model.param_names)
+    alpha = np.array([r.alpha for r in results])
+    pose = np.array([r.pose.as_vector() for r in results])
+    ok = np.array([r.ok for r in results], dtype=bool)
+    t = np.array([r.t for r in results])
+    reference = FRONTAL
+    if args.head_reference == "first":
+        if not ok.any():
+            raise InputError(f"{args.track}: no good frame to take as the head reference")
+        reference = pose[int(np.argmax(ok)), :3]
+    neutral_pose = np.concatenate([reference, pose[0, 3:]])
+    alpha, pose = hold_last_good(alpha, pose, ok, neutral_pose)
+    if args.fps is not None and args.fps < 1:
+        raise InputError(f"--fps must be a positive integer, got {args.fps}")
+    fps = args.fps if args.fps is not None else track_fps(t)
+    # no usable time span (one record, or time stamps all equal): one .fap frame per record
+    idx = grid_indices(t, fps) if t[-1] > t[0] else np.arange(len(t))
+    encoder = FapEncoder(model, reference_rotation=reference, jaw_relative=not args.absolute_lips)
+    values, mask = encoder.values(alpha[idx], pose[idx])
+    write_fap(args.output, values, mask, fps, args.name)
+    print(f"{len(idx)} frames at {fps} fps ({int((~ok).sum())} of {len(ok)} track frames "
+          f"not ok, held) -> {args.output}")
+    return 0

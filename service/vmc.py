@@ -1,0 +1,173 @@
+"""Send the tracked face to VMC-protocol receivers (VSeeFace, VNyan, Warudo, EVMC4U in Unity).
+
+One OSC bundle (UDP) per frame, in this order:
+
+* ``/VMC/Ext/Bone/Pos "Head" px py pz qx qy qz qw`` — the head bone's rotation (and offset);
+* ``/VMC/Ext/Blend/Val name value`` for each blendshape (ARKit names, :mod:`core.arkit`);
+* ``/VMC/Ext/Blend/Apply`` — the receiver applies the values it has received.
+
+**Head pose conversion.** Our pose maps the head frame (x = the speaker's left, y up, z
+forward; right-handed) to the OpenCV camera. The head's rotation relative to a reference
+pose, in the reference head frame, is ``R_rel = R_ref^T R`` (as for the FAPs; the reference is
+:data:`~core.camera.FRONTAL` unless given). Unity is left-handed with a character looking
+along +z, +y up and +x to the character's right, so Unity's axes are ours with x mirrored,
+``S = diag(-1, 1, 1)``, and the rotation becomes ``M = S R_rel S`` (a proper rotation),
+sent as a unit quaternion (x, y, z, w). A nod down is then a positive rotation about Unity's
++x and a turn to the speaker's left a negative rotation about Unity's +y, as Unity expects.
+The position is the head origin's displacement from the reference translation (by default the
+first frame sent), in the same axes, in metres; many receivers use only the rotation.
+Mirroring the avatar (a "selfie view") is left to the receiver.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+from pythonosc.osc_message_builder import OscMessageBuilder
+from pythonosc.udp_client import SimpleUDPClient
+
+from core.arkit import ArkitMapper
+from core.camera import FRONTAL, rotation_matrix
+from core.errors import InputError
+from core.model import FaceModel
+from core.result import TrackResult
+
+DEFAULT_PORT = 39539
+"""The VMC protocol's default receiving (Marionette) port."""
+
+UNITY_FROM_HEAD = np.diag([-1.0, 1.0, 1.0])
+"""Head-frame axes -> Unity axes (mirror x: the speaker's left is the character's -x)."""
+
+
+def quaternion_xyzw(rot: np.ndarray) -> np.ndarray:
+    """Unit quaternion (4,) = (x, y, z, w), w >= 0, of a (3, 3) rotation matrix."""
+    m = np.asarray(rot, dtype=np.float64)
+    tr = np.trace(m)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+    else:
+        i = int(np.argmax(np.diag(m)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q[i], q[j], q[k] = s / 4, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def head_bone(
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    reference_rotation: np.ndarray,
+    reference_translation: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Unity position (3,) m and quaternion (4,) xyzw of the head, from a pose (rad, mm)."""
+    r_ref = rotation_matrix(reference_rotation)
+    rel = r_ref.T @ rotation_matrix(rotation)
+    unity = UNITY_FROM_HEAD @ rel @ UNITY_FROM_HEAD
+    offset = UNITY_FROM_HEAD @ (r_ref.T @ (np.asarray(translation) - reference_translation))
+    return offset / 1000.0, quaternion_xyzw(unity)
+
+
+def _message(address: str, *args: object) -> object:
+    b = OscMessageBuilder(address=address)
+    for a in args:
+        b.add_arg(a)
+    return b.build()
+
+
+class VmcSender:
+    """Send one VMC bundle per tracked frame to ``host:port`` over UDP.
+
+    reference_rotation : (3,) axis-angle rad of the pose sent as "no rotation" (FRONTAL).
+    reference_translation : (3,) mm, default: the translation of the first frame sent.
+    populated_only : send only the blendshapes the model drives (default), so other trackers'
+        eye or brow values on the same receiver are not overwritten with zeros.
+    """
+
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = DEFAULT_PORT,
+        *,
+        reference_rotation: np.ndarray = FRONTAL,
+        reference_translation: np.ndarray | None = None,
+        populated_only: bool = True,
+    ) -> None:
+        if not 0 < int(port) < 65536:
+            raise InputError(f"VMC port must be in 1..65535, got {port}")
+        self.address = (host, int(port))
+        self.reference_rotation = np.asarray(reference_rotation, dtype=np.float64)
+        self.reference_translation = (
+            None if reference_translation is None else np.asarray(reference_translation, float)
+        )
+        self.populated_only = populated_only
+        self._client = SimpleUDPClient(host, int(port))
+        self._mapper: ArkitMapper | None = None
+        self.frames_sent = 0
+        self.frames_dropped = 0
+        self.last_error = ""
+
+    def _mapper_for(self, model: FaceModel) -> ArkitMapper:
+        if self._mapper is None or self._mapper.model is not model:
+            self._mapper = ArkitMapper(model)
+        return self._mapper
+
+    def bundle(self, result: TrackResult, model: FaceModel) -> OscBundle:
+        """The OSC bundle of one frame (no I/O)."""
+        if self.reference_translation is None:
+            self.reference_translation = np.array(result.pose.translation, dtype=np.float64)
+        pos, quat = head_bone(result.pose.rotation, result.pose.translation,
+                              self.reference_rotation, self.reference_translation)
+        builder = OscBundleBuilder(IMMEDIATELY)
+        builder.add_content(_message("/VMC/Ext/Bone/Pos", "Head",
+                                     *(float(v) for v in pos), *(float(v) for v in quat)))
+        weights = self._mapper_for(model).weights_dict(
+            result.alpha, populated_only=self.populated_only)
+        for name, value in weights.items():
+            builder.add_content(_message("/VMC/Ext/Blend/Val", name, float(value)))
+        builder.add_content(_message("/VMC/Ext/Blend/Apply"))
+        return builder.build()
+
+    def send(self, result: TrackResult, model: FaceModel) -> bool:
+        """Send the frame's bundle; never blocks. Returns False (and counts the frame in
+        :attr:`frames_dropped`, keeping :attr:`last_error`) if the OS refused the datagram,
+        e.g. a full send buffer or an unreachable network: a live stream goes on."""
+        packet = self.bundle(result, model)
+        try:
+            self._client.send(packet)
+        except OSError as exc:  # includes BlockingIOError on the non-blocking socket
+            self.frames_dropped += 1
+            self.last_error = f"{exc.__class__.__name__}: {exc}"
+            return False
+        self.frames_sent += 1
+        return True
+
+    def close(self) -> None:
+        """Close the UDP socket."""
+        sock = getattr(self._client, "_sock", None)
+        if sock is not None:
+            sock.close()
+
+    def __enter__(self) -> VmcSender:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def parse_host_port(text: str, default_port: int = DEFAULT_PORT) -> tuple[str, int]:
+    """``"HOST:PORT"`` or ``"HOST"`` -> (host, port), for the service's ``--vmc`` option."""
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        return text, default_port
+    try:
+        p = int(port)
+    except ValueError:
+        raise InputError(f"--vmc expects HOST:PORT, got {text!r}") from None
+    if not host or not 0 < p < 65536:
+        raise InputError(f"--vmc expects HOST:PORT with a port in 1..65535, got {text!r}")
+    return host, p
