@@ -175,7 +175,7 @@ def _lip_rings(theta: np.ndarray) -> np.ndarray:
     s, c = np.sin(theta), np.cos(theta)
     cx = np.sign(c) * np.abs(c) ** 0.8
     up = s > 0
-    inner = np.stack([24.0 * cx, 0.6 * s], -1)
+    inner = np.stack([24.0 * cx, 0.2 * s], -1)
     xo = 26.5 * cx
     bow = 1.2 * np.exp(-((xo / 3.0) ** 2)) - 0.8 * np.exp(-(((np.abs(xo) - 6.0) / 3.0) ** 2))
     yo_up = (8.5 - bow) * np.abs(s) ** 0.75
@@ -387,12 +387,12 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
     # lips1: asymmetric spreading/rounding; lips slide along the curved face
     s = c[:, 1]
     scale = 0.13 * s - 0.05 * s * np.tanh(2.0 * s) + 0.05 * s  # +0.13 at s=1, -0.23 at s=-1
-    scale = scale * (1.0 + q[3] * side)
+    scale = scale * (1.0 + q[3] * side) * (1.0 + 0.5 * w["inner"] * (s < 0))  # round aperture
     x_new = x * (1.0 + w["lip"] * scale)
     rnd = _softplus(-s, 0.5) - _softplus(np.zeros(1), 0.5)  # +0.72 at s=-1, -0.28 at s=+1
     stretch = 1.0 / (1.0 + 0.3 * np.clip(c[:, 0], 0, None))  # an open jaw limits protrusion
     z = z + (x**2 - x_new**2) / (2 * 48.0) * w["lip"]
-    z = z + 5.5 * rnd * stretch * w["lip"] * (0.6 + 0.4 * mid)
+    z = z + 7.0 * rnd * stretch * w["lip"] * (0.6 + 0.4 * mid)
     y = y + np.sign(y) * 1.5 * np.clip(rnd, 0, None) * w["inner"] * mid
     x = x_new
 
