@@ -1,0 +1,30 @@
+"""The built-in synthetic speaker: embedded default and test bed for every accuracy claim.
+
+- :mod:`.geometry` - procedural face (points, groups, mesh, MPEG-4 labels) and its non-linear
+  articulation by 7 ground-truth controls.
+- :mod:`.corpus` - the 68-posture corpus (``make_corpus``).
+- :mod:`.texture`, :mod:`.scene`, :mod:`.render` - textures, render parts and the z-buffered
+  software renderer (``RenderOptions``).
+- :mod:`.sequence` - talking sequences with head motion and ground truth (``make_sequence``).
+- :mod:`.speaker` - ``SyntheticSpeaker`` / ``default_speaker`` tying them together.
+"""
+
+from core.synthetic.corpus import make_corpus
+from core.synthetic.geometry import SpeakerGeometry, make_geometry
+from core.synthetic.render import RenderOptions
+from core.synthetic.sequence import RIGS, Sequence, default_camera, make_sequence, rest_pose
+from core.synthetic.speaker import SyntheticSpeaker, default_speaker
+
+__all__ = [
+    "RIGS",
+    "RenderOptions",
+    "Sequence",
+    "SpeakerGeometry",
+    "SyntheticSpeaker",
+    "default_camera",
+    "default_speaker",
+    "make_corpus",
+    "make_geometry",
+    "make_sequence",
+    "rest_pose",
+]

@@ -1,0 +1,129 @@
+"""The synthetic speaker's posture corpus: 68 visemes like the paper's (METHOD.md §1).
+
+14 vowels (French oral and nasal), central frames of 52 VCV sequences (13 consonants x the
+vowels a, i, u, y, with bilabial closure for p b m and lower lip against the upper teeth for
+f v), and the silent postures ``rest`` and ``preph``. Each posture's controls are a phonetic
+target plus seeded token-to-token variability (coarticulation, the speaker is not a robot),
+which also keeps the seven controls from being too correlated across the corpus - a condition
+for guided PCA to recover them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from core.build import Corpus
+from core.errors import InputError
+from core.model import PARAM_NAMES
+from core.synthetic.geometry import SpeakerGeometry, make_geometry
+
+#: jaw1, lips1, lips2, lips3, lips4, jaw2, lar1 targets of the vowels
+VOWELS: dict[str, tuple[float, ...]] = {
+    "a": (2.0, 0.3, -0.3, 0.0, 0.3, -0.3, 0.3),
+    "E": (1.4, 0.6, 0.0, -0.2, 0.0, 0.2, 0.6),
+    "e": (0.8, 0.9, 0.3, 0.2, 0.5, 0.1, 0.9),
+    "i": (0.4, 1.2, 0.5, -0.1, 0.2, 0.5, 1.1),
+    "y": (0.4, -1.5, 0.4, 0.4, 0.2, 0.4, 0.7),
+    "u": (0.5, -1.8, -0.1, 0.3, -0.4, -0.3, -1.0),
+    "o": (0.9, -1.3, -0.3, 0.0, 0.1, -0.5, -0.9),
+    "O": (1.5, -0.8, -0.5, -0.3, 0.3, -0.4, -0.5),
+    "2": (0.8, -1.2, 0.2, 0.3, -0.2, 0.1, 0.1),
+    "9": (1.3, -0.7, -0.2, 0.0, 0.4, -0.1, -0.1),
+    "@": (1.0, -0.5, 0.0, 0.1, -0.3, 0.0, 0.0),
+    "a~": (1.7, -0.3, -0.4, 0.2, -0.2, -0.6, -0.4),
+    "o~": (1.0, -1.4, -0.1, 0.1, 0.0, -0.4, -0.7),
+    "e~": (1.3, 0.5, -0.1, -0.3, 0.6, 0.0, 0.3),
+}
+CONTEXT_VOWELS = ("a", "i", "u", "y")
+NAN = float("nan")
+#: consonant targets; NaN keeps the context vowel's value, else blend weight CONSONANT_WEIGHT
+CONSONANTS: dict[str, tuple[float, ...]] = {
+    "p": (0.3, NAN, 1.3, 1.0, NAN, NAN, NAN),
+    "b": (0.3, NAN, 1.2, 0.9, NAN, NAN, NAN),
+    "m": (0.4, NAN, 1.2, 0.9, NAN, NAN, NAN),
+    "f": (0.3, 0.3, 1.7, -0.6, NAN, NAN, NAN),
+    "v": (0.4, 0.2, 1.5, -0.5, NAN, NAN, NAN),
+    "t": (0.3, NAN, NAN, NAN, NAN, 0.4, 0.3),
+    "d": (0.4, NAN, NAN, NAN, NAN, 0.3, 0.1),
+    "s": (0.2, 0.6, NAN, NAN, 0.5, 0.8, 0.6),
+    "z": (0.2, 0.5, NAN, NAN, 0.4, 0.7, 0.4),
+    "S": (0.3, -1.7, 0.5, -0.6, NAN, 0.5, 0.2),
+    "Z": (0.3, -1.6, 0.4, -0.5, NAN, 0.4, 0.0),
+    "k": (0.8, NAN, NAN, NAN, NAN, -0.2, 0.7),
+    "l": (0.8, NAN, NAN, NAN, NAN, 0.1, -0.2),
+}
+CONSONANT_WEIGHT = 0.8
+SILENT = {
+    "rest": (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0),
+    "preph": (0.6, 0.0, -0.3, -0.2, 0.0, 0.0, -0.8),
+}
+#: seeded token variability (s.d., control units) added to every posture except rest
+JITTER_SD = np.array([0.25, 0.3, 0.4, 0.5, 0.6, 0.7, 0.6])
+
+
+def posture_targets() -> tuple[tuple[str, ...], np.ndarray]:
+    """Names and phonetic targets (V, 7) of the 68 postures, before token variability."""
+    names, rows = [], []
+    for v, target in VOWELS.items():
+        names.append(v)
+        rows.append(target)
+    for cons, ctarget in CONSONANTS.items():
+        for v in CONTEXT_VOWELS:
+            vt, ct = np.array(VOWELS[v]), np.array(ctarget)
+            row = np.where(np.isnan(ct), vt, (1 - CONSONANT_WEIGHT) * vt + CONSONANT_WEIGHT * ct)
+            names.append(f"{v}{cons}{v}")
+            rows.append(row)
+    for name, target in SILENT.items():
+        names.append(name)
+        rows.append(target)
+    return tuple(names), np.array(rows, dtype=np.float64)
+
+
+def corpus_controls(seed: int = 0) -> tuple[tuple[str, ...], np.ndarray]:
+    """Posture names and generating controls (68, 7) of the corpus of ``seed``."""
+    names, targets = posture_targets()
+    rng = np.random.default_rng([int(seed), 0xC0DE])
+    jitter = rng.normal(size=targets.shape) * JITTER_SD
+    jitter[names.index("rest")] = 0.0
+    controls = targets + jitter
+    # Phonetics correlates the controls (bilabials: lips up, jaw closed...). Guided PCA
+    # attributes shared variance to the earlier parameter, so the corpus is decorrelated with
+    # the transform nearest to identity (ZCA on correlations), about the rest posture.
+    centred = controls - controls.mean(0)
+    sd = centred.std(0)
+    corr = np.corrcoef(centred.T)
+    evals, evecs = np.linalg.eigh(corr)
+    zca = evecs @ np.diag(evals**-0.5) @ evecs.T
+    controls = controls @ (np.diag(1 / sd) @ zca @ np.diag(sd))
+    controls[:, 0] = np.clip(controls[:, 0], -0.3, None)  # the jaw does not close past the teeth
+    return names, controls
+
+
+def make_corpus(seed: int = 0, noise_mm: float = 0.3,
+                geometry: SpeakerGeometry | None = None) -> Corpus:
+    """The 68-posture corpus of the synthetic speaker.
+
+    seed : speaker and token variability. noise_mm : RMS 3D measurement error per point (mm),
+    drawn iid, isotropic (each coordinate has s.d. ``noise_mm / sqrt(3)``).
+    geometry : the speaker (default ``make_geometry(seed)``).
+    Returns a :class:`core.build.Corpus` with ``controls`` (68, 7) and ``control_names``.
+    """
+    if not np.isfinite(noise_mm) or noise_mm < 0:
+        raise InputError(f"noise_mm must be finite and >= 0, got {noise_mm!r}")
+    geom = geometry if geometry is not None else make_geometry(seed)
+    names, controls = corpus_controls(seed)
+    points = geom.articulate(controls)
+    rng = np.random.default_rng([int(seed), 0x0B5E])
+    points = points + rng.normal(size=points.shape) * (noise_mm / np.sqrt(3.0))
+    return Corpus(
+        postures=points,
+        posture_names=names,
+        point_names=geom.point_names,
+        groups=dict(geom.groups),
+        triangles=geom.triangles,
+        feature_points=dict(geom.feature_points),
+        fapu_overrides=dict(geom.fapu_overrides),
+        controls=controls,
+        control_names=PARAM_NAMES,
+        name=f"synthetic-{geom.seed}",
+    )
