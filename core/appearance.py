@@ -377,16 +377,21 @@ def train_appearance(
         else:
             w = np.zeros((model.n_params + 1, fmat.shape[1]))
             w[0] = fmat.mean(0)
-        resid = fmat - design @ w
         c = 8 if kind.startswith("la") else 1
-        # per-feature weights: inverse residual s.d. (a Gaussian appearance model), floored
-        # per channel so that a feature that never varied in training cannot dominate
+        fitted = fmat - design @ w
+        resid = fitted
+        if kind.endswith("lin"):
+            # leave-one-out residuals (e / (1 - h)): weights must reflect how well a feature
+            # is *predicted* on frames it was not fitted on, not how well it was fitted
+            hat = np.einsum("fi,ij,fj->f", design,
+                            np.linalg.inv(design.T @ design + reg), design)
+            resid = resid / np.maximum(1.0 - hat, 0.05)[:, None]
         rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, c)
         floor = np.maximum(np.median(rms_f, axis=0) * 0.5,
                            noise_floor if kind.startswith("la") else 0.02)
         cweights.append((1.0 / np.maximum(rms_f, floor)).reshape(-1))
         total = ((fmat - fmat.mean(0)) ** 2).sum()
-        explained.append(1.0 - (resid**2).sum() / total if total > 0 else 0.0)
+        explained.append(1.0 - (fitted**2).sum() / total if total > 0 else 0.0)
         weights.append(w)
     return AppearanceModel(kind, samples, tuple(levels), np.stack(weights), np.stack(cweights),
                            float(sigma), np.array(explained))

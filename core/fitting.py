@@ -34,7 +34,11 @@ class PriorPolicy:
 
 @dataclass(frozen=True)
 class FitPolicy:
-    """Stopping rules of one frame's fit."""
+    """Stopping rules of one frame's fit, and an optional Gaussian prior on the head pose
+    around a reference pose (``pose_sigma_rad``, ``pose_sigma_mm``: s.d. of the motion
+    expected from the reference; None = no prior). A head-mounted camera barely moves
+    relative to the head, and monocular depth trades off against articulation (jaw advance,
+    scale): the prior removes that ambiguity where the rig makes it physically implausible."""
 
     max_iterations: int = 8
     tol_alpha: float = 2e-3
@@ -43,6 +47,8 @@ class FitPolicy:
     lm_lambda: float = 1e-3
     nelder_mead_evals: int = 300
     prior: PriorPolicy = field(default_factory=PriorPolicy)
+    pose_sigma_rad: float | None = None
+    pose_sigma_mm: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,11 +155,31 @@ class Problem:
         return float(r @ r) + self.prior_terms(a)[0]
 
 
+def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
+                ref: tuple[np.ndarray, np.ndarray] | None) -> tuple[float, np.ndarray, np.ndarray]:
+    """Cost, gradient (6,) and Gauss-Newton Hessian (6, 6) of the pose prior."""
+    g, h = np.zeros(6), np.zeros((6, 6))
+    if ref is None or pol.pose_sigma_mm is None or pol.pose_sigma_rad is None:
+        return 0.0, g, h
+    d_rot = axis_angle(rot @ ref[0].T)  # left increment from the reference (small)
+    d_t = t - ref[1]
+    wr, wt = 1.0 / pol.pose_sigma_rad**2, 1.0 / pol.pose_sigma_mm**2
+    g[:3], g[3:] = 2 * wr * d_rot, 2 * wt * d_t
+    h[np.arange(3), np.arange(3)] = 2 * wr
+    h[np.arange(3, 6), np.arange(3, 6)] = 2 * wt
+    return float(wr * d_rot @ d_rot + wt * d_t @ d_t), g, h
+
+
 def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
                      rotation0: np.ndarray, translation0: np.ndarray,
-                     policy: FitPolicy | None = None) -> FitResult:
-    """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level."""
+                     policy: FitPolicy | None = None,
+                     pose_ref: tuple[np.ndarray, np.ndarray] | None = None) -> FitResult:
+    """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level.
+
+    pose_ref : (rotation (3,), translation (3,)) the pose prior is centred on, if any.
+    """
     pol = policy or FitPolicy()
+    ref = None if pose_ref is None else (rotation_matrix(pose_ref[0]), np.asarray(pose_ref[1]))
     li = problem.appearance.level_index(level)
     k = problem.k
     alpha = np.array(alpha0, np.float64)
@@ -162,13 +188,16 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     lam = pol.lm_lambda
     r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True)
     prior, g_p, h_p = problem.prior_terms(alpha)
-    cost = float(r @ r) + prior
+    pp, g_pp, h_pp = _pose_prior(pol, rot, t, ref)
+    cost = float(r @ r) + prior + pp
     evals, costs, converged, it = 1, [cost], False, 0
     for it in range(1, pol.max_iterations + 1):
         h = jac.T @ jac
         g = jac.T @ r
         h[np.arange(k), np.arange(k)] += h_p / 2
         g[:k] += g_p / 2
+        h[k:, k:] += h_pp / 2
+        g[k:] += g_pp / 2
         diag = np.diag(h).copy()
         diag[diag <= 0] = 1.0
         accepted = False
@@ -183,7 +212,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             t_new = t + step[k + 3:]
             r_new, jac_new, vf_new = problem.residuals(maps, li, a_new, rot_new, t_new, True)
             prior_new, gp_new, hp_new = problem.prior_terms(a_new)
-            cost_new = float(r_new @ r_new) + prior_new
+            pp_new, gpp_new, hpp_new = _pose_prior(pol, rot_new, t_new, ref)
+            cost_new = float(r_new @ r_new) + prior_new + pp_new
             evals += 1
             if cost_new <= cost or lam > 1e6:
                 accepted = cost_new <= cost
@@ -195,7 +225,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         lam = max(lam / 10, 1e-7)
         alpha, rot, t = a_new, rot_new, t_new
         r, jac, vf, cost = r_new, jac_new, vf_new, cost_new
-        g_p, h_p = gp_new, hp_new
+        g_p, h_p, g_pp, h_pp = gp_new, hp_new, gpp_new, hpp_new
         costs.append(cost)
         if (np.abs(step[:k]).max() < pol.tol_alpha
                 and np.abs(step[k:k + 3]).max() < pol.tol_rotation

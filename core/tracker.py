@@ -38,7 +38,7 @@ class TrackingPolicy:
     optimiser: str = "gauss-newton"
     fit: FitPolicy = field(default_factory=FitPolicy)
     reinit_fit: FitPolicy = field(default_factory=lambda: FitPolicy(max_iterations=30))
-    levels: tuple[int, ...] = (0,)
+    levels: tuple[int, ...] = (1, 0)
     reinit_levels: tuple[int, ...] = (1, 0)
     predict: bool = True
     velocity_gain: float = 0.8
@@ -54,6 +54,17 @@ class TrackingPolicy:
     def __post_init__(self) -> None:
         if self.optimiser not in OPTIMISERS:
             raise ValueError(f"optimiser must be one of {OPTIMISERS}, got {self.optimiser!r}")
+
+    @classmethod
+    def for_rig(cls, rig: str, **changes) -> TrackingPolicy:
+        """The policy for a camera rig: "head" (camera fixed to the head: the pose moves by
+        at most ~0.1 mm / 1 mrad between frames) or "desk" (free head motion)."""
+        sigmas = {"head": (0.001, 0.1), "desk": (0.003, 0.5)}
+        if rig not in sigmas:
+            raise ValueError(f"rig must be one of {sorted(sigmas)}, got {rig!r}")
+        sr, st = sigmas[rig]
+        fit = changes.pop("fit", FitPolicy(pose_sigma_rad=sr, pose_sigma_mm=st))
+        return cls(fit=fit, **changes)
 
 
 class Tracker:
@@ -84,7 +95,8 @@ class Tracker:
 
     # ------------------------------------------------------------------ fitting
     def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
-             cache: dict[int, ImageMaps], policy: FitPolicy | None = None) -> FitResult:
+             cache: dict[int, ImageMaps], policy: FitPolicy | None = None,
+             pose_ref: np.ndarray | None = None) -> FitResult:
         pol = self.policy
         theta = theta0
         result: FitResult | None = None
@@ -95,9 +107,13 @@ class Tracker:
                 sig = self.problem.appearance.sigma
                 margin = pol.roi_margin_px + 4 * sig * 2**level
                 cache[level] = image_maps(image, roi_of(uv, margin), sig, level)
-            fit = fit_nelder_mead if pol.optimiser == "nelder-mead" else fit_gauss_newton
-            result = fit(self.problem, cache[level], level, theta[:self.k],
-                         theta[self.k:self.k + 3], theta[self.k + 3:], policy or pol.fit)
+            args = (self.problem, cache[level], level, theta[:self.k],
+                    theta[self.k:self.k + 3], theta[self.k + 3:], policy or pol.fit)
+            if pol.optimiser == "nelder-mead":
+                result = fit_nelder_mead(*args)
+            else:
+                ref = None if pose_ref is None else (pose_ref[:3], pose_ref[3:])
+                result = fit_gauss_newton(*args, pose_ref=ref)
             evals += result.evals
             theta = result.theta
         assert result is not None
@@ -146,12 +162,13 @@ class Tracker:
         patch = image[y0:y1:4, x0:x1:4, 1]  # green, every 4th pixel: contrast is coarse
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
             return self._lost(t, t0, "blank frame: no contrast where the face should be", 0)
-        fit = self._fit(image, theta0, pol.levels, cache)
+        ref = self._theta[self.k:]
+        fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref)
         evals = fit.evals
         if not self._good(fit):
             tries = [fit]
             if pol.predict and self._prev is not None:
-                tries.append(self._fit(image, self._theta, pol.levels, cache))
+                tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref))
             neutral = self._theta.copy()
             neutral[:self.k] = 0.0
             tries.append(self._fit(image, neutral, pol.reinit_levels, {}, pol.reinit_fit))
