@@ -24,12 +24,30 @@ FRONTAL = np.array([np.pi, 0.0, 0.0])
 """Axis-angle of a camera looking at the face from the front (head y up -> image y down)."""
 
 
+def _rotation_one(r: np.ndarray) -> np.ndarray:
+    """Rodrigues' formula for one (3,) vector (the hot path of the optimiser)."""
+    x, y, z = float(r[0]), float(r[1]), float(r[2])
+    th2 = x * x + y * y + z * z
+    if th2 < 1e-16:
+        a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
+    else:
+        th = th2**0.5
+        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
+    return np.array([
+        [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
+        [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
+        [-a * y + b * x * z, a * x + b * y * z, 1.0 - b * (x * x + y * y)],
+    ])
+
+
 def rotation_matrix(r: np.ndarray) -> np.ndarray:
     """Rodrigues' formula, vectorised.
 
     r : (..., 3) axis-angle, rad -> (..., 3, 3) rotation matrices.
     """
     r = np.asarray(r, dtype=np.float64)
+    if r.shape == (3,):
+        return _rotation_one(r)
     theta = np.linalg.norm(r, axis=-1)[..., None, None]
     k = np.zeros(r.shape[:-1] + (3, 3))
     k[..., 0, 1], k[..., 0, 2] = -r[..., 2], r[..., 1]
@@ -172,6 +190,16 @@ class Camera:
         valid = z > 1e-6
         iz = np.where(valid, 1.0 / np.where(valid, z, 1.0), np.nan)
         x, y = p[..., 0] * iz, p[..., 1] * iz
+        if not self.dist.any():
+            uv = np.stack([self.fx * x + self.cx, self.fy * y + self.cy], axis=-1)
+            if not jacobian:
+                return uv, None
+            jac = np.zeros(p.shape[:-1] + (2, 3))
+            jac[..., 0, 0] = self.fx * iz
+            jac[..., 0, 2] = -self.fx * x * iz
+            jac[..., 1, 1] = self.fy * iz
+            jac[..., 1, 2] = -self.fy * y * iz
+            return uv, jac
         k1, k2, p1, p2, k3 = self.dist
         r2 = x * x + y * y
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))

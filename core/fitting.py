@@ -40,10 +40,10 @@ class FitPolicy:
     relative to the head, and monocular depth trades off against articulation (jaw advance,
     scale): the prior removes that ambiguity where the rig makes it physically implausible."""
 
-    max_iterations: int = 8
-    tol_alpha: float = 2e-3
-    tol_rotation: float = 2e-5
-    tol_translation_mm: float = 2e-3
+    max_iterations: int = 5
+    tol_alpha: float = 1e-2
+    tol_rotation: float = 1e-4
+    tol_translation_mm: float = 1e-2
     lm_lambda: float = 1e-3
     nelder_mead_evals: int = 300
     prior: PriorPolicy = field(default_factory=PriorPolicy)
@@ -81,6 +81,8 @@ class Problem:
                  prior: PriorPolicy | None = None) -> None:
         self.model, self.appearance, self.camera = model, appearance, camera
         self.s_mean, self.s_basis = appearance.samples.positions(model)
+        self._basis_flat = self.s_basis.reshape(self.s_basis.shape[0], -1)  # (K, S*3)
+        self._basis_sdk = np.ascontiguousarray(self.s_basis.transpose(1, 2, 0))  # (S, 3, K)
         self.k = model.n_params
         self.c = appearance.n_channels
         self.prior = prior or PriorPolicy()
@@ -92,7 +94,7 @@ class Problem:
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
                           t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Head-frame (S, 3) and camera-frame (S, 3) positions of the sample points."""
-        head = self.s_mean + np.tensordot(alpha, self.s_basis, 1)
+        head = self.s_mean + (alpha @ self._basis_flat).reshape(-1, 3)
         return head, head @ rot.T + t
 
     def project(self, theta: np.ndarray) -> np.ndarray:
@@ -133,13 +135,13 @@ class Problem:
         rh = head @ rot.T
         k = self.k
         dcam = np.zeros((s, 3, k + 6))
-        dcam[:, :, :k] = np.einsum("ij,ksj->sik", rot, self.s_basis)
+        dcam[:, :, :k] = np.matmul(rot, self._basis_sdk)
         dcam[:, 0, k + 1], dcam[:, 0, k + 2] = rh[:, 2], -rh[:, 1]
         dcam[:, 1, k], dcam[:, 1, k + 2] = -rh[:, 2], rh[:, 0]
         dcam[:, 2, k], dcam[:, 2, k + 1] = rh[:, 1], -rh[:, 0]
         dcam[:, 0, k + 3] = dcam[:, 1, k + 4] = dcam[:, 2, k + 5] = 1.0
-        duv = np.einsum("sij,sjp->sip", jp, dcam)  # (S, 2, P)
-        jac = np.einsum("scj,sjp->scp", dfeats, duv)  # (S, C, P)
+        duv = np.matmul(jp, dcam)  # (S, 2, P)
+        jac = np.matmul(dfeats, duv)  # (S, C, P)
         if self._tex:
             jac -= jac[valid].mean(0, keepdims=True) if valid.any() else 0.0
         jac[:, :, :self.k] -= w[1:].T.reshape(s, c, self.k)
