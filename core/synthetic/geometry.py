@@ -260,7 +260,8 @@ def _make_geometry(seed: int) -> SpeakerGeometry:
     c, d = b + m, a + m
     tri = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     p = neutral[:, :2]
-    area = np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]])
+    e1, e2 = p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     tri[area < 0] = tri[area < 0][:, ::-1]
 
     fp = {
@@ -326,8 +327,10 @@ def _weights(x0: np.ndarray, ring: np.ndarray, ang: np.ndarray, teeth: np.ndarra
     jaw[teeth] = 1.0
     jaw[~on_grid & ~np.isin(np.arange(x.size), teeth)] = 0.0
     throat = smooth_step((jaw_border_y(x) - 14.0 - y) / 6.0) * on_grid
+    cheek_flat = (np.exp(-(((np.abs(x) - 42.0) / 14.0) ** 2 + ((y + 8.0) / 18.0) ** 2))
+                  * on_grid * (1.0 - is_lip))
     return {"lip": lip_w, "upper": upper, "lower": lower, "corner": corner,
-            "cheek": cheek * on_grid, "jaw": jaw, "throat": throat,
+            "cheek": cheek * on_grid, "jaw": jaw, "throat": throat, "cheek_flat": cheek_flat,
             "inner": (ring == 0).astype(np.float64)}
 
 
@@ -386,18 +389,18 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
 
     # lips1: asymmetric spreading/rounding; lips slide along the curved face
     s = c[:, 1]
-    scale = 0.13 * s - 0.05 * s * np.tanh(2.0 * s) + 0.05 * s  # +0.13 at s=1, -0.23 at s=-1
+    scale = 0.16 * s - 0.08 * s * np.tanh(2.0 * s)  # +0.08 at s=1, -0.24 at s=-1
     scale = scale * (1.0 + q[3] * side) * (1.0 + 0.5 * w["inner"] * (s < 0))  # round aperture
     x_new = x * (1.0 + w["lip"] * scale)
     rnd = _softplus(-s, 0.5) - _softplus(np.zeros(1), 0.5)  # +0.72 at s=-1, -0.28 at s=+1
     stretch = 1.0 / (1.0 + 0.3 * np.clip(c[:, 0], 0, None))  # an open jaw limits protrusion
     z = z + (x**2 - x_new**2) / (2 * 48.0) * w["lip"]
     z = z + 7.0 * rnd * stretch * w["lip"] * (0.6 + 0.4 * mid)
-    y = y + np.sign(y) * 1.5 * np.clip(rnd, 0, None) * w["inner"] * mid
+    y = y + np.sign(y) * 0.8 * np.clip(rnd, 0, None) * w["inner"] * mid
     x = x_new
 
     # lips2 / lips3: lower lip up, upper lip down (with a little eversion)
-    l2, l3 = 2.0 * np.tanh(c[:, 2] / 2.0), 2.0 * np.tanh(c[:, 3] / 2.0)  # tissue saturates
+    l2, l3 = 3.0 * np.tanh(c[:, 2] / 3.0), 3.0 * np.tanh(c[:, 3] / 3.0)  # tissue saturates
     y = y + (LIPS2_MM + q[4] * side) * l2 * w["lower"] - LIPS3_MM * l3 * w["upper"]
     z = z - 0.6 * l2 * w["lower"] - 0.6 * l2 * np.abs(l2) * w["lower"] + 0.6 * l3 * w["upper"]
     # the lower lip thins and tucks in as the jaw opens wide (tissue stretch)
@@ -409,8 +412,12 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
     gain = np.where(x0[:, 0] >= 0, q[1], q[2])
     y = y + LIPS4_MM * l4 * w["corner"] * gain
     x = x + 1.5 * l4 * w["corner"] * np.sign(x0[:, 0]) * gain
-    z = z + (1.6 * _softplus(l4, 0.6) - 1.6 * _softplus(np.zeros(1), 0.6)) * w["cheek"]
+    z = z + (2.5 * _softplus(l4, 0.6) - 2.5 * _softplus(np.zeros(1), 0.6)) * w["cheek"]
     z = z - 0.8 * l4 * w["corner"]
+
+    # spreading thins the lips (they stretch over the teeth); an open jaw flattens the cheeks
+    y = y - 0.06 * np.clip(s, 0, None) ** 2 * (y - 0.0) * (geom.ring[None, :] >= 0) * w["lip"]
+    z = z - (0.5 * np.clip(c[:, 0], 0, None) ** 2 + 0.8 * rnd**2) * w["cheek_flat"]
 
     # jaw: each point rotates by its weight's share of the jaw angle (skin stretches)
     phi = np.radians(JAW_DEG_PER_UNIT) * c[:, 0] * w["jaw"]
@@ -424,7 +431,7 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
 
     # lar1: the throat rises and goes back a little
     y = y + 5.0 * 1.5 * np.tanh(c[:, 6] / 1.5) * w["throat"]
-    z = z - 1.0 * c[:, 6] * w["throat"]
+    z = z - 1.0 * c[:, 6] * w["throat"] + 1.2 * c[:, 6] ** 2 * w["throat"]  # larynx bulges
 
     out = np.stack([x, y, z], -1)
     # lower teeth are rigid with the jaw

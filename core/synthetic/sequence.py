@@ -8,7 +8,7 @@ constant for a given number of frames (for jitter measurements): the first one a
 in the middle on a vowel.
 
 Rigs:
-- ``"head"``: a head-mounted camera 23 cm in front of and below the mouth, looking at the lower
+- ``"head"``: a head-mounted camera 22 cm in front of and below the mouth, looking at the lower
   face (which fills most of the frame); the camera moves with the head up to a tiny wobble
   (< 0.5 mm, < 0.3 deg).
 - ``"desk"``: a desk camera 56 cm away; the whole face is visible and the head nods, turns and
@@ -32,7 +32,7 @@ HEAD_CENTRE = np.array([0.0, 12.0, -95.0])
 """Centre of head rotations in the head frame (mm), feature point 7.1."""
 #: rig -> (camera position, look-at point) in the head frame (mm), horizontal field of view
 RIG_GEOMETRY = {
-    "head": ((0.0, -40.0, 225.0), (0.0, -14.0, 0.0), 50.0),
+    "head": ((0.0, -40.0, 215.0), (0.0, -16.0, 0.0), 44.0),
     "desk": ((0.0, 5.0, 560.0), (0.0, -5.0, 0.0), 50.0),
 }
 RAMP_S = 0.12
@@ -159,13 +159,16 @@ def _head_motion(tau: np.ndarray, rig: str, rng: np.random.Generator) -> tuple[n
 
 
 def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: str = "head",
-                  still_frames: int = 15, geometry: SpeakerGeometry | None = None) -> Sequence:
+                  still_frames: int = 15, size: tuple[int, int] = (640, 480),
+                  geometry: SpeakerGeometry | None = None) -> Sequence:
     """A sequence of the speaker of ``seed`` talking, with its ground truth.
 
+    size : (width, height) of the rig's default camera (:func:`default_camera`).
     still_frames : length of each still segment (0 disables them; they are shortened or left
     out when the sequence is too short for them).
     """
     _check_rig(rig)
+    default_camera(rig, *size)  # validates the size before any work
     if int(n_frames) != n_frames or n_frames < 1:
         raise InputError(f"n_frames must be a positive integer, got {n_frames!r}")
     if not np.isfinite(fps) or fps <= 0:
@@ -217,5 +220,5 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     for a, b in holds:
         still |= (times >= max(a, 0.0)) & (times <= b)
     points = geom.articulate(controls)
-    cam = default_camera(rig)
+    cam = default_camera(rig, *size)
     return Sequence(times, controls, poses, points, cam, still, rig, float(fps))
