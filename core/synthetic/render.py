@@ -116,21 +116,25 @@ def rasterize(xy: np.ndarray, inv_z: np.ndarray, triangles: np.ndarray, cull: np
     a_e, b_e = -sig[:, None] * dy, sig[:, None] * dx  # inside: a x + b y + c >= 0
     c_e = -sig[:, None] * (-vx * dy + vy * dx)
     wa, wb, wc = _plane(vx, vy, w[t], area[t])
+    # each edge bounds the span of a row from the left (a > 0) or the right (a < 0):
+    # x >= m y + q or x <= m y + q; horizontal edges never cut a row inside the bounding box
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m_e, q_e = -b_e / a_e, -c_e / a_e
+    left, right = a_e > 0, a_e < 0
+    m_lo, q_lo = np.where(left, m_e, 0.0), np.where(left, q_e - 1e-7, -1e9)
+    m_hi, q_hi = np.where(right, m_e, 0.0), np.where(right, q_e + 1e-7, 1e9)
     # rows
     ny = (ymax[t] - ymin[t] + 1).astype(np.int64)
     start = np.cumsum(ny) - ny
     rt = np.repeat(np.arange(t.size), ny)
     ry = np.repeat(ymin[t] - start, ny) + np.arange(rt.size)
-    rhs = -(b_e[rt] * ry[:, None] + c_e[rt])  # a x >= rhs
-    a_r = a_e[rt]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = rhs / a_r
-    lo = np.max(np.where(a_r > 0, bound - 1e-7, -np.inf), 1)
-    hi = np.min(np.where(a_r < 0, bound + 1e-7, np.inf), 1)
-    empty = np.any((a_r == 0) & (rhs > 0), 1)
+    lo_k = m_lo[rt] * ry[:, None] + q_lo[rt]
+    hi_k = m_hi[rt] * ry[:, None] + q_hi[rt]
+    lo = np.maximum(np.maximum(lo_k[:, 0], lo_k[:, 1]), lo_k[:, 2])
+    hi = np.minimum(np.minimum(hi_k[:, 0], hi_k[:, 1]), hi_k[:, 2])
     xs = np.maximum(np.ceil(lo), xmin[t][rt])
     xe = np.minimum(np.floor(hi), xmax[t][rt])
-    n = np.where(empty, 0, np.maximum(xe - xs + 1, 0)).astype(np.int64)
+    n = np.maximum(xe - xs + 1, 0).astype(np.int64)
     # pixels
     pstart = np.cumsum(n) - n
     g = np.arange(int(n.sum()))
@@ -327,7 +331,7 @@ def composite(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions,
         colour = background.astype(np.float32)
     else:
         colour = np.zeros((camera.height, camera.width, 3), np.float32)
-    colour[roi] = np.where(mask[..., None], part, colour[roi])
+    np.copyto(colour[roi], part, where=mask[..., None])
     if options.occluder == "hand":
         pts = camera.project(pose.transform(scene.mouth_anchor))
         if np.all(np.isfinite(pts)):
