@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from core.build import Corpus, build_model, invert
-from core.camera import Camera, FRONTAL, Pose, rotation_matrix
+from core.camera import FRONTAL, Camera, Pose, rotation_matrix
 from core.errors import InputError
 from core.model import FEATURE_POINTS, PARAM_NAMES, POINT_GROUPS, FaceModel
 from core.synthetic import (

@@ -260,7 +260,8 @@ def draw_hand(img: np.ndarray, centre: np.ndarray, mouth_width_px: float, seed: 
     # fingers: four bumps on the upper edge
     for k in range(4):
         fx = centre[0] + (k - 1.5) * 0.45 * ax
-        r = np.minimum(r, ((xx - fx) / (0.2 * ax)) ** 2 + ((yy - centre[1] + 0.8 * ay) / (0.6 * ay)) ** 2)
+        finger = ((xx - fx) / (0.2 * ax)) ** 2 + ((yy - centre[1] + 0.8 * ay) / (0.6 * ay)) ** 2
+        r = np.minimum(r, finger)
     alpha = np.clip((1.0 - r) * 6.0, 0, 1)[..., None]
     rng = np.random.default_rng([seed, 0x4A4D])
     grain = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 1.2)

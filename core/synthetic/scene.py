@@ -14,13 +14,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from core.synthetic.geometry import (
-    ARCH_RADIUS,
-    N_ANGLES,
-    SpeakerGeometry,
-    arch_z,
-    jaw_transform,
-)
+from core.synthetic.geometry import N_ANGLES, SpeakerGeometry, jaw_transform
+from core.synthetic.surface import ARCH_RADIUS, arch_z
 from core.synthetic.texture import Atlas
 
 

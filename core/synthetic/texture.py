@@ -18,7 +18,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from core.synthetic.geometry import SpeakerGeometry, make_geometry, nasolabial_distance
+from core.synthetic.geometry import SpeakerGeometry, make_geometry
+from core.synthetic.surface import nasolabial_distance
 
 ATLAS_SIZE = (1024, 1024)  # (height, width) px
 SKIN_PPM = 4.0
