@@ -254,13 +254,13 @@ _GRIDS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 def draw_hand(img: np.ndarray, centre: np.ndarray, mouth_width_px: float, seed: int) -> None:
     """Paint a skin-coloured hand-like blob (in place) over ``centre`` (x, y) px."""
     h, w = img.shape[:2]
-    ax, ay = 1.0 * mouth_width_px, 0.75 * mouth_width_px
+    ax, ay = 1.4 * mouth_width_px, 0.8 * mouth_width_px
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     r = ((xx - centre[0]) / ax) ** 2 + ((yy - centre[1]) / ay) ** 2
     # fingers: four bumps on the upper edge
     for k in range(4):
         fx = centre[0] + (k - 1.5) * 0.45 * ax
-        finger = ((xx - fx) / (0.2 * ax)) ** 2 + ((yy - centre[1] + 0.8 * ay) / (0.6 * ay)) ** 2
+        finger = ((xx - fx) / (0.2 * ax)) ** 2 + ((yy - centre[1] + 0.6 * ay) / (0.7 * ay)) ** 2
         r = np.minimum(r, finger)
     alpha = np.clip((1.0 - r) * 6.0, 0, 1)[..., None]
     rng = np.random.default_rng([seed, 0x4A4D])
