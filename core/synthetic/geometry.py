@@ -4,8 +4,7 @@ The face is a polar grid around the mouth: ring 0 is the inner lip contour, ring
 lip-contouring beads (mid-vermilion), ring 2 the outer lip contour, rings 3.. are skin, out to
 an outline running over the eyes, the cheeks and under the jaw to the throat. The neutral
 surface is a smooth height field (:mod:`core.synthetic.surface`: lips, nose, chin, nasolabial
-folds, jaw border with the
-under-jaw drop). Extra points: lower incisor edges (``lower_teeth``), eye centres and the head
+folds, jaw border with the under-jaw drop). Extra points: lower incisor edges (``lower_teeth``), eye centres and the head
 rotation centre (in ``rest``, not triangulated).
 
 Frame: head frame of :mod:`core.model` (mm, x speaker's left, y up, z forward, origin at the

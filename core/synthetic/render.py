@@ -240,11 +240,13 @@ def shade_scene(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions
 def _pixel_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel x and y coordinates (H, W) float32 (cached per size)."""
     key = (width, height)
-    if key not in _GRIDS:
+    grids = _GRIDS.get(key)
+    if grids is None:
         gy, gx = np.mgrid[0:height, 0:width].astype(np.float32)
+        grids = (gx, gy)
         _GRIDS.clear()
-        _GRIDS[key] = (gx, gy)
-    return _GRIDS[key]
+        _GRIDS[key] = grids
+    return grids
 
 
 _GRIDS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -276,12 +278,15 @@ NOISE_MARGIN = 251
 def _noise_bank(height: int, width: int) -> np.ndarray:
     """Unit Gaussian noise (H + margin, W + margin, 3) float32, cached per size."""
     key = (height, width)
-    if key not in _NOISE:
+    bank = _NOISE.get(key)
+    if bank is None:  # (thread-safe: a racing thread at worst builds the same bank twice)
         rng = np.random.default_rng([height, width, 0x5E45])
+        bank = rng.standard_normal((height + NOISE_MARGIN, width + NOISE_MARGIN, 3),
+                                   dtype=np.float32)
+        bank.setflags(write=False)
         _NOISE.clear()
-        _NOISE[key] = rng.standard_normal((height + NOISE_MARGIN, width + NOISE_MARGIN, 3),
-                                          dtype=np.float32)
-    return _NOISE[key]
+        _NOISE[key] = bank
+    return bank
 
 
 _NOISE: dict[tuple[int, int], np.ndarray] = {}
