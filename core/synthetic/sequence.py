@@ -95,7 +95,8 @@ class Sequence:
     def still_segments(self) -> list[tuple[int, int]]:
         """[start, stop) frame ranges of the still segments."""
         edges = np.diff(np.concatenate([[0], self.still.astype(np.int8), [0]]))
-        return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
 
 
 def minimum_jerk(times: np.ndarray, key_t: np.ndarray, key_x: np.ndarray) -> np.ndarray:
@@ -164,8 +165,8 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     """A sequence of the speaker of ``seed`` talking, with its ground truth.
 
     size : (width, height) of the rig's default camera (:func:`default_camera`).
-    still_frames : length of each still segment (0 disables them; they are shortened or left
-    out when the sequence is too short for them).
+    still_frames : length of each still segment (0 disables them). The first one (at rest,
+    from frame 0) needs at least 2 x still_frames frames, the one in the middle 5 x.
     """
     _check_rig(rig)
     default_camera(rig, *size)  # validates the size before any work
@@ -185,12 +186,12 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     hold = still_frames / fps  # [t, t + hold] holds at least still_frames frame times
     key_t, key_x, holds = [0.0], [rest], []
     t = 0.0
-    if still_frames and duration > 4 * hold:
+    if still_frames and duration >= 2 * hold:
         t = hold
         key_t.append(t)
         key_x.append(rest)
         holds.append((0.0, hold))
-    mid_hold_done = not still_frames or duration < 6 * hold
+    mid_hold_done = not still_frames or duration < 5 * hold
     vowels = np.arange(14)  # the corpus lists the 14 vowels first
     while t < duration + 0.2:
         t += rng.uniform(0.09, 0.16)
