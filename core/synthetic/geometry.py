@@ -4,8 +4,8 @@ The face is a polar grid around the mouth: ring 0 is the inner lip contour, ring
 lip-contouring beads (mid-vermilion), ring 2 the outer lip contour, rings 3.. are skin, out to
 an outline running over the eyes, the cheeks and under the jaw to the throat. The neutral
 surface is a smooth height field (:mod:`core.synthetic.surface`: lips, nose, chin, nasolabial
-folds, jaw border with the under-jaw drop). Extra points: lower incisor edges (``lower_teeth``), eye centres and the head
-rotation centre (in ``rest``, not triangulated).
+folds, jaw border with the under-jaw drop). Extra points: lower incisor edges
+(``lower_teeth``), eye centres and the head rotation centre (in ``rest``, not triangulated).
 
 Frame: head frame of :mod:`core.model` (mm, x speaker's left, y up, z forward, origin at the
 upper incisor edge on the bite plane).
@@ -14,7 +14,7 @@ Controls (dimensionless, 0 = rest, order of :data:`core.model.PARAM_NAMES`):
 
 =====  ==================================================================================
 jaw1   jaw rotation about a hinge 80 mm behind and 20 mm above the incisors; 1 = 7 deg open
-lips1  +1 spreads the corners ~3 mm each; -1 rounds (corners ~5 mm in) and protrudes ~4 mm
+lips1  +1 spreads the corners ~2 mm each, lips back ~2 mm; -1 rounds: corners ~6 mm in, 5 mm out
 lips2  +1 raises the lower lip 4 mm at its middle (relative to the jaw)
 lips3  +1 lowers the upper lip 3.5 mm at its middle
 lips4  +1 raises the corners 4.5 mm and pulls them out 1.5 mm (smile), cheeks bulge

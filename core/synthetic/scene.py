@@ -4,7 +4,8 @@ Parts (head frame, mm): ``skin`` (the model mesh itself, at the true articulated
 ``cavity`` (the mouth interior hanging from the inner lip contour, dark, with a tongue on its
 floor), ``upper_teeth`` (fixed to the head), ``lower_teeth`` (rigid with the jaw, the same
 motion as the model's lower-teeth points), ``head`` (an ellipsoid with hair behind the face),
-``ears``, ``neck`` (an elliptic cylinder down to a shirt collar) and ``shoulders``. Only ``skin`` is part of the model.
+``ears``, ``neck`` (an elliptic cylinder down to a shirt collar) and ``shoulders``.
+Only ``skin`` is part of the model.
 """
 
 from __future__ import annotations
