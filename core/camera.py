@@ -68,11 +68,16 @@ def axis_angle(rot: np.ndarray) -> np.ndarray:
     if theta < 1e-8:
         return np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / 2
     if np.pi - theta < 1e-4:
-        # near pi: axis from the symmetric part
-        m = (rot + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(m), 0.0, None))
-        i = int(np.argmax(axis))
+        # near pi: the symmetric part gives a a^T exactly, the antisymmetric part
+        # w = 2 sin(theta) a (small, zero only at pi) the sign of the axis and, with atan2,
+        # an angle that arccos of the trace cannot resolve this close to pi
+        w = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+        theta = float(np.arctan2(np.linalg.norm(w) / 2.0, (np.trace(rot) - 1.0) / 2.0))
+        m = ((rot + rot.T) / 2.0 - np.cos(theta) * np.eye(3)) / (1.0 - np.cos(theta))
+        i = int(np.argmax(np.diag(m)))
         axis = m[i] / np.sqrt(m[i, i])
+        if w @ axis < 0:
+            axis = -axis
         return axis / np.linalg.norm(axis) * theta
     w = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
     return w / (2.0 * np.sin(theta)) * theta

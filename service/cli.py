@@ -18,6 +18,7 @@ COMMAND_MODULES = (
     "service.commands.track",
     "service.commands.fap",
     "service.commands.transfer",
+    "service.commands.synth",
 )
 
 

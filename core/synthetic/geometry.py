@@ -3,9 +3,9 @@
 The face is a polar grid around the mouth: ring 0 is the inner lip contour, ring 1 the
 lip-contouring beads (mid-vermilion), ring 2 the outer lip contour, rings 3.. are skin, out to
 an outline running over the eyes, the cheeks and under the jaw to the throat. The neutral
-surface is a smooth height field (lips, nose, chin, nasolabial folds, jaw border with the
-under-jaw drop). Extra points: lower incisor edges (``lower_teeth``), eye centres and the head
-rotation centre (in ``rest``, not triangulated).
+surface is a smooth height field (:mod:`core.synthetic.surface`: lips, nose, chin, nasolabial
+folds, jaw border with the under-jaw drop). Extra points: lower incisor edges
+(``lower_teeth``), eye centres and the head rotation centre (in ``rest``, not triangulated).
 
 Frame: head frame of :mod:`core.model` (mm, x speaker's left, y up, z forward, origin at the
 upper incisor edge on the bite plane).
@@ -14,7 +14,7 @@ Controls (dimensionless, 0 = rest, order of :data:`core.model.PARAM_NAMES`):
 
 =====  ==================================================================================
 jaw1   jaw rotation about a hinge 80 mm behind and 20 mm above the incisors; 1 = 7 deg open
-lips1  +1 spreads the corners ~3 mm each; -1 rounds (corners ~5 mm in) and protrudes ~4 mm
+lips1  +1 spreads the corners ~2 mm each, lips back ~2 mm; -1 rounds: corners ~6 mm in, 5 mm out
 lips2  +1 raises the lower lip 4 mm at its middle (relative to the jaw)
 lips3  +1 lowers the upper lip 3.5 mm at its middle
 lips4  +1 raises the corners 4.5 mm and pulls them out 1.5 mm (smile), cheeks bulge
@@ -29,16 +29,23 @@ a corpus of it is an approximation, as for a real speaker.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
 from types import MappingProxyType
-from typing import Mapping
 
 import numpy as np
-from scipy.interpolate import PchipInterpolator
 
 from core.errors import InputError
 from core.model import PARAM_NAMES
+from core.synthetic.surface import (
+    arch_z,
+    jaw_border_y,
+    nasolabial_distance,
+    neutral_height,
+    smooth_step,
+    softplus,
+)
 
 N_ANGLES = 32
 """Samples around the mouth (index 0 = speaker's left corner, counter-clockwise from +z)."""
@@ -52,73 +59,6 @@ HINGE_YZ = (20.0, -80.0)
 JAW_DEG_PER_UNIT = 7.0
 LOWER_TEETH_X = np.array([-17.0, -10.0, -3.5, 3.5, 10.0, 17.0])
 LIPS2_MM, LIPS3_MM, LIPS4_MM = 4.0, 3.5, 4.5
-ARCH_RADIUS = 24.0
-"""Radius of the dental arch (mm): incisors at z ~ 0, molars curving back."""
-
-
-def smooth_step(u: np.ndarray) -> np.ndarray:
-    """0 -> 1 logistic ramp, ``0.5 * (1 + tanh(u))``."""
-    return 0.5 * (1.0 + np.tanh(u))
-
-
-def _softplus(u: np.ndarray, k: float) -> np.ndarray:
-    return k * np.logaddexp(0.0, np.asarray(u) / k)
-
-
-def jaw_border_y(x: np.ndarray) -> np.ndarray:
-    """y (mm) of the lower border of the mandible under head-frame x (mm)."""
-    return -52.0 + 24.0 * (np.asarray(x) / 60.0) ** 2
-
-
-def arch_z(x: np.ndarray) -> np.ndarray:
-    """z (mm) of the labial face of the upper dental arch at x (mm); 0 at the incisors."""
-    x = np.clip(np.abs(np.asarray(x)), 0.0, ARCH_RADIUS * 0.999)
-    return -(ARCH_RADIUS - np.sqrt(ARCH_RADIUS**2 - x**2)) * 1.6
-
-
-# ---------------------------------------------------------------- neutral surface
-_NOSE_H = PchipInterpolator([14.0, 20.0, 23.0, 27.0, 31.0, 40.0, 52.0, 64.0, 75.0],
-                            [0.0, 1.0, 8.0, 19.0, 20.0, 14.0, 9.0, 5.0, 3.0])
-
-
-def neutral_height(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Neutral face surface z(x, y) (mm, head frame), vectorised over any shape."""
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    ax = np.abs(x)
-    radius = 48.0 + 22.0 * np.exp(-(((y - 28.0) / 18.0) ** 2))  # cheekbones stand out
-    z = 7.0 + 5.0 * smooth_step((y - 45.0) / 12.0)  # brow/forehead forward
-    z = z - x**2 / (2 * radius) - 9.0 * (ax / 70.0) ** 4
-    e = (x / 27.0) ** 2 + ((y + 1.0) / 13.0) ** 2
-    z = z + 6.0 * np.exp(-2.0 * e**2) + 1.5 * smooth_step(y / 3.0) * np.exp(-(e**2))  # lips
-    z = z + 7.0 * np.exp(-((x / 21.0) ** 2 + ((y + 40.0) / 10.0) ** 2))  # chin
-    z = z - 2.0 * np.exp(-((x / 18.0) ** 2 + ((y + 22.0) / 5.0) ** 2))  # mentolabial sulcus
-    width = 7.0 + 10.0 * np.exp(-(((y - 24.0) / 5.0) ** 2))  # nose, alae at y ~ 24
-    yn = np.clip(y, 14.0, 75.0)
-    z = z + _NOSE_H(yn) * np.exp(-((x / width) ** 2)) * (y > 14.0)
-    z = z - 7.0 * np.exp(-(((ax - 32.0) / 13.0) ** 2 + ((y - 52.0) / 9.0) ** 2))  # eye sockets
-    z = z - nasolabial_profile(x, y)
-    z = z - 44.0 * smooth_step((jaw_border_y(x) - y) / 6.0)  # under the jaw
-    return z
-
-
-def nasolabial_distance(x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distance (mm, + lateral) to the nasolabial fold and position along it (0..1)."""
-    ax = np.abs(np.asarray(x, np.float64))
-    p0, p1 = np.array([20.0, 23.0]), np.array([35.0, -9.0])
-    d = p1 - p0
-    length = np.hypot(*d)
-    rel_x, rel_y = ax - p0[0], np.asarray(y, np.float64) - p0[1]
-    u = (rel_x * d[0] + rel_y * d[1]) / length**2
-    normal = np.array([d[1], -d[0]]) / length  # points laterally (+x) and down
-    signed = rel_x * normal[0] + rel_y * normal[1]
-    return signed, u
-
-
-def nasolabial_profile(x: np.ndarray, y: np.ndarray, depth: float = 1.8) -> np.ndarray:
-    """Depth (mm, to subtract from z) of the nasolabial crease, with the cheek bulge beside it."""
-    s, u = nasolabial_distance(x, y)
-    along = smooth_step(u * 8.0) * smooth_step((1.05 - u) * 8.0)
-    return along * (depth * np.exp(-((s / 2.5) ** 2)) - 1.5 * np.exp(-(((s - 7.0) / 6.0) ** 2)))
 
 
 # ---------------------------------------------------------------- the speaker
@@ -260,7 +200,8 @@ def _make_geometry(seed: int) -> SpeakerGeometry:
     c, d = b + m, a + m
     tri = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     p = neutral[:, :2]
-    area = np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]])
+    e1, e2 = p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]
+    area = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
     tri[area < 0] = tri[area < 0][:, ::-1]
 
     fp = {
@@ -326,8 +267,10 @@ def _weights(x0: np.ndarray, ring: np.ndarray, ang: np.ndarray, teeth: np.ndarra
     jaw[teeth] = 1.0
     jaw[~on_grid & ~np.isin(np.arange(x.size), teeth)] = 0.0
     throat = smooth_step((jaw_border_y(x) - 14.0 - y) / 6.0) * on_grid
+    cheek_flat = (np.exp(-(((np.abs(x) - 42.0) / 14.0) ** 2 + ((y + 8.0) / 18.0) ** 2))
+                  * on_grid * (1.0 - is_lip))
     return {"lip": lip_w, "upper": upper, "lower": lower, "corner": corner,
-            "cheek": cheek * on_grid, "jaw": jaw, "throat": throat,
+            "cheek": cheek * on_grid, "jaw": jaw, "throat": throat, "cheek_flat": cheek_flat,
             "inner": (ring == 0).astype(np.float64)}
 
 
@@ -386,18 +329,18 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
 
     # lips1: asymmetric spreading/rounding; lips slide along the curved face
     s = c[:, 1]
-    scale = 0.13 * s - 0.05 * s * np.tanh(2.0 * s) + 0.05 * s  # +0.13 at s=1, -0.23 at s=-1
+    scale = 0.16 * s - 0.08 * s * np.tanh(2.0 * s)  # +0.08 at s=1, -0.24 at s=-1
     scale = scale * (1.0 + q[3] * side) * (1.0 + 0.5 * w["inner"] * (s < 0))  # round aperture
     x_new = x * (1.0 + w["lip"] * scale)
-    rnd = _softplus(-s, 0.5) - _softplus(np.zeros(1), 0.5)  # +0.72 at s=-1, -0.28 at s=+1
+    rnd = softplus(-s, 0.5) - softplus(np.zeros(1), 0.5)  # +0.72 at s=-1, -0.28 at s=+1
     stretch = 1.0 / (1.0 + 0.3 * np.clip(c[:, 0], 0, None))  # an open jaw limits protrusion
     z = z + (x**2 - x_new**2) / (2 * 48.0) * w["lip"]
     z = z + 7.0 * rnd * stretch * w["lip"] * (0.6 + 0.4 * mid)
-    y = y + np.sign(y) * 1.5 * np.clip(rnd, 0, None) * w["inner"] * mid
+    y = y + np.sign(y) * 0.8 * np.clip(rnd, 0, None) * w["inner"] * mid
     x = x_new
 
     # lips2 / lips3: lower lip up, upper lip down (with a little eversion)
-    l2, l3 = 2.0 * np.tanh(c[:, 2] / 2.0), 2.0 * np.tanh(c[:, 3] / 2.0)  # tissue saturates
+    l2, l3 = 3.0 * np.tanh(c[:, 2] / 3.0), 3.0 * np.tanh(c[:, 3] / 3.0)  # tissue saturates
     y = y + (LIPS2_MM + q[4] * side) * l2 * w["lower"] - LIPS3_MM * l3 * w["upper"]
     z = z - 0.6 * l2 * w["lower"] - 0.6 * l2 * np.abs(l2) * w["lower"] + 0.6 * l3 * w["upper"]
     # the lower lip thins and tucks in as the jaw opens wide (tissue stretch)
@@ -409,8 +352,12 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
     gain = np.where(x0[:, 0] >= 0, q[1], q[2])
     y = y + LIPS4_MM * l4 * w["corner"] * gain
     x = x + 1.5 * l4 * w["corner"] * np.sign(x0[:, 0]) * gain
-    z = z + (1.6 * _softplus(l4, 0.6) - 1.6 * _softplus(np.zeros(1), 0.6)) * w["cheek"]
+    z = z + (2.5 * softplus(l4, 0.6) - 2.5 * softplus(np.zeros(1), 0.6)) * w["cheek"]
     z = z - 0.8 * l4 * w["corner"]
+
+    # spreading thins the lips (they stretch over the teeth); an open jaw flattens the cheeks
+    y = y - 0.06 * np.clip(s, 0, None) ** 2 * (y - 0.0) * (geom.ring[None, :] >= 0) * w["lip"]
+    z = z - (0.5 * np.clip(c[:, 0], 0, None) ** 2 + 0.8 * rnd**2) * w["cheek_flat"]
 
     # jaw: each point rotates by its weight's share of the jaw angle (skin stretches)
     phi = np.radians(JAW_DEG_PER_UNIT) * c[:, 0] * w["jaw"]
@@ -424,7 +371,7 @@ def articulate(geom: SpeakerGeometry, controls: np.ndarray) -> np.ndarray:
 
     # lar1: the throat rises and goes back a little
     y = y + 5.0 * 1.5 * np.tanh(c[:, 6] / 1.5) * w["throat"]
-    z = z - 1.0 * c[:, 6] * w["throat"]
+    z = z - 1.0 * c[:, 6] * w["throat"] + 1.2 * c[:, 6] ** 2 * w["throat"]  # larynx bulges
 
     out = np.stack([x, y, z], -1)
     # lower teeth are rigid with the jaw
@@ -443,6 +390,6 @@ def _lip_contact(points: np.ndarray, pairs: np.ndarray, k: float = 0.3) -> None:
     up, lo = pairs[:, 0], pairs[:, 1]
     gap = points[:, up, 1] - points[:, lo, 1]
     centre = 0.5 * (points[:, up, 1] + points[:, lo, 1])
-    gap = _softplus(gap, k)
+    gap = softplus(gap, k)
     points[:, up, 1] = centre + 0.5 * gap
     points[:, lo, 1] = centre - 0.5 * gap

@@ -116,21 +116,25 @@ def rasterize(xy: np.ndarray, inv_z: np.ndarray, triangles: np.ndarray, cull: np
     a_e, b_e = -sig[:, None] * dy, sig[:, None] * dx  # inside: a x + b y + c >= 0
     c_e = -sig[:, None] * (-vx * dy + vy * dx)
     wa, wb, wc = _plane(vx, vy, w[t], area[t])
+    # each edge bounds the span of a row from the left (a > 0) or the right (a < 0):
+    # x >= m y + q or x <= m y + q; horizontal edges never cut a row inside the bounding box
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m_e, q_e = -b_e / a_e, -c_e / a_e
+    left, right = a_e > 0, a_e < 0
+    m_lo, q_lo = np.where(left, m_e, 0.0), np.where(left, q_e - 1e-7, -1e9)
+    m_hi, q_hi = np.where(right, m_e, 0.0), np.where(right, q_e + 1e-7, 1e9)
     # rows
     ny = (ymax[t] - ymin[t] + 1).astype(np.int64)
     start = np.cumsum(ny) - ny
     rt = np.repeat(np.arange(t.size), ny)
     ry = np.repeat(ymin[t] - start, ny) + np.arange(rt.size)
-    rhs = -(b_e[rt] * ry[:, None] + c_e[rt])  # a x >= rhs
-    a_r = a_e[rt]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = rhs / a_r
-    lo = np.max(np.where(a_r > 0, bound - 1e-7, -np.inf), 1)
-    hi = np.min(np.where(a_r < 0, bound + 1e-7, np.inf), 1)
-    empty = np.any((a_r == 0) & (rhs > 0), 1)
+    lo_k = m_lo[rt] * ry[:, None] + q_lo[rt]
+    hi_k = m_hi[rt] * ry[:, None] + q_hi[rt]
+    lo = np.maximum(np.maximum(lo_k[:, 0], lo_k[:, 1]), lo_k[:, 2])
+    hi = np.minimum(np.minimum(hi_k[:, 0], hi_k[:, 1]), hi_k[:, 2])
     xs = np.maximum(np.ceil(lo), xmin[t][rt])
     xe = np.minimum(np.floor(hi), xmax[t][rt])
-    n = np.where(empty, 0, np.maximum(xe - xs + 1, 0)).astype(np.int64)
+    n = np.maximum(xe - xs + 1, 0).astype(np.int64)
     # pixels
     pstart = np.cumsum(n) - n
     g = np.arange(int(n.sum()))
@@ -236,11 +240,13 @@ def shade_scene(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions
 def _pixel_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Pixel x and y coordinates (H, W) float32 (cached per size)."""
     key = (width, height)
-    if key not in _GRIDS:
+    grids = _GRIDS.get(key)
+    if grids is None:
         gy, gx = np.mgrid[0:height, 0:width].astype(np.float32)
+        grids = (gx, gy)
         _GRIDS.clear()
-        _GRIDS[key] = (gx, gy)
-    return _GRIDS[key]
+        _GRIDS[key] = grids
+    return grids
 
 
 _GRIDS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -250,13 +256,14 @@ _GRIDS: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 def draw_hand(img: np.ndarray, centre: np.ndarray, mouth_width_px: float, seed: int) -> None:
     """Paint a skin-coloured hand-like blob (in place) over ``centre`` (x, y) px."""
     h, w = img.shape[:2]
-    ax, ay = 1.0 * mouth_width_px, 0.75 * mouth_width_px
+    ax, ay = 1.4 * mouth_width_px, 0.8 * mouth_width_px
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
     r = ((xx - centre[0]) / ax) ** 2 + ((yy - centre[1]) / ay) ** 2
     # fingers: four bumps on the upper edge
     for k in range(4):
         fx = centre[0] + (k - 1.5) * 0.45 * ax
-        r = np.minimum(r, ((xx - fx) / (0.2 * ax)) ** 2 + ((yy - centre[1] + 0.8 * ay) / (0.6 * ay)) ** 2)
+        finger = ((xx - fx) / (0.2 * ax)) ** 2 + ((yy - centre[1] + 0.6 * ay) / (0.7 * ay)) ** 2
+        r = np.minimum(r, finger)
     alpha = np.clip((1.0 - r) * 6.0, 0, 1)[..., None]
     rng = np.random.default_rng([seed, 0x4A4D])
     grain = cv2.GaussianBlur(rng.standard_normal((h, w)).astype(np.float32), (0, 0), 1.2)
@@ -271,12 +278,15 @@ NOISE_MARGIN = 251
 def _noise_bank(height: int, width: int) -> np.ndarray:
     """Unit Gaussian noise (H + margin, W + margin, 3) float32, cached per size."""
     key = (height, width)
-    if key not in _NOISE:
+    bank = _NOISE.get(key)
+    if bank is None:  # (thread-safe: a racing thread at worst builds the same bank twice)
         rng = np.random.default_rng([height, width, 0x5E45])
+        bank = rng.standard_normal((height + NOISE_MARGIN, width + NOISE_MARGIN, 3),
+                                   dtype=np.float32)
+        bank.setflags(write=False)
         _NOISE.clear()
-        _NOISE[key] = rng.standard_normal((height + NOISE_MARGIN, width + NOISE_MARGIN, 3),
-                                          dtype=np.float32)
-    return _NOISE[key]
+        _NOISE[key] = bank
+    return bank
 
 
 _NOISE: dict[tuple[int, int], np.ndarray] = {}
@@ -327,7 +337,7 @@ def composite(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions,
         colour = background.astype(np.float32)
     else:
         colour = np.zeros((camera.height, camera.width, 3), np.float32)
-    colour[roi] = np.where(mask[..., None], part, colour[roi])
+    np.copyto(colour[roi], part, where=mask[..., None])
     if options.occluder == "hand":
         pts = camera.project(pose.transform(scene.mouth_anchor))
         if np.all(np.isfinite(pts)):

@@ -3,8 +3,9 @@
 Parts (head frame, mm): ``skin`` (the model mesh itself, at the true articulated points),
 ``cavity`` (the mouth interior hanging from the inner lip contour, dark, with a tongue on its
 floor), ``upper_teeth`` (fixed to the head), ``lower_teeth`` (rigid with the jaw, the same
-motion as the model's lower-teeth points), ``head`` (an ellipsoid with hair behind the face)
-and ``neck`` (an elliptic cylinder down to a shirt collar). Only ``skin`` is part of the model.
+motion as the model's lower-teeth points), ``head`` (an ellipsoid with hair behind the face),
+``ears``, ``neck`` (an elliptic cylinder down to a shirt collar) and ``shoulders``.
+Only ``skin`` is part of the model.
 """
 
 from __future__ import annotations
@@ -14,13 +15,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from core.synthetic.geometry import (
-    ARCH_RADIUS,
-    N_ANGLES,
-    SpeakerGeometry,
-    arch_z,
-    jaw_transform,
-)
+from core.synthetic.geometry import N_ANGLES, SpeakerGeometry, jaw_transform
+from core.synthetic.surface import ARCH_RADIUS, arch_z
 from core.synthetic.texture import Atlas
 
 
@@ -89,19 +85,22 @@ def _teeth(lower: bool) -> _Part:
     return _Part(v, _normals(v, tri), Atlas.material_uv("teeth", st.reshape(-1, 2)), tri, True)
 
 
-def _ellipsoid() -> _Part:
-    centre, radii = np.array([0.0, 30.0, -118.0]), np.array([76.0, 112.0, 78.0])
-    az = np.linspace(-np.pi, np.pi, 33)[:-1]
-    pol = np.linspace(0.05, np.pi - 0.05, 16)
+def _ellipsoid(centre: tuple[float, ...], radii: tuple[float, ...], material: str,
+               n_az: int = 32, n_pol: int = 16) -> _Part:
+    """A closed ellipsoid (head, ears, shoulders) with outward triangles and (s, t) texture
+    coordinates: s = azimuth around y (0.5 = facing forward), t = polar angle from the top."""
+    centre_a, radii_a = np.asarray(centre), np.asarray(radii)
+    az = np.linspace(-np.pi, np.pi, n_az + 1)[:-1]
+    pol = np.linspace(0.05, np.pi - 0.05, n_pol)
     unit = np.stack([np.sin(pol)[:, None] * np.sin(az)[None, :],
                      np.cos(pol)[:, None] * np.ones_like(az)[None, :],
                      np.sin(pol)[:, None] * np.cos(az)[None, :]], -1).reshape(-1, 3)
-    v = centre + unit * radii
+    v = centre_a + unit * radii_a
     tri = _grid_triangles(pol.size, az.size, wrap=True)
     tri = _orient(v, tri, unit[tri[:, 0]])
     st = np.stack(np.broadcast_arrays((az[None, :] + np.pi) / (2 * np.pi),
                                       pol[:, None] / np.pi), -1).reshape(-1, 2)
-    return _Part(v, _normals(v, tri), Atlas.material_uv("head", st), tri, False)
+    return _Part(v, _normals(v, tri), Atlas.material_uv(material, st), tri, False)
 
 
 def _neck() -> _Part:
@@ -120,11 +119,21 @@ def _neck() -> _Part:
 
 
 @lru_cache(maxsize=1)
-def _static_parts() -> tuple[_Part, _Part, _Part, _Part]:
-    return _teeth(lower=False), _teeth(lower=True), _ellipsoid(), _neck()
+def _static_parts() -> tuple[_Part, ...]:
+    """Upper teeth, lower teeth (at rest), then the parts behind the face: head, ears, neck,
+    shoulders."""
+    return (
+        _teeth(lower=False),
+        _teeth(lower=True),
+        _ellipsoid((0.0, 30.0, -118.0), (80.0, 114.0, 80.0), "head"),
+        _ellipsoid((74.0, 18.0, -100.0), (9.0, 28.0, 16.0), "ear", 12, 8),
+        _ellipsoid((-74.0, 18.0, -100.0), (9.0, 28.0, 16.0), "ear", 12, 8),
+        _neck(),
+        _ellipsoid((0.0, -215.0, -95.0), (190.0, 70.0, 90.0), "shirt", 24, 10),
+    )
 
 
-TEETH_LIGHT = 0.7
+TEETH_LIGHT = 0.62
 """Light reaching the teeth relative to the face (the lips and cheeks shadow them)."""
 CAVITY_T = np.array([0.0, 0.05, 0.3, 0.8, 1.0])
 """Texture depth coordinate of the lip rim, cavity rings and back point."""
@@ -163,7 +172,7 @@ def build_scene(geom: SpeakerGeometry, points: np.ndarray, controls: np.ndarray,
     points : (N, 3) articulated model points (head frame, mm); controls : (7,) that produced
     them (for the jaw's rigid motion of the lower teeth); skin_uv : (N, 2) atlas px.
     """
-    upper, lower, head, neck = _static_parts()
+    upper, lower, *behind = _static_parts()
     rot, t = jaw_transform(geom, controls)
     lower_v = lower.vertices @ rot.T + t
     lower_n = lower.normals @ rot.T
@@ -179,8 +188,7 @@ def build_scene(geom: SpeakerGeometry, points: np.ndarray, controls: np.ndarray,
     parts = [(cav_v, cav_n, cav_uv, None, True, 0.8),
              (upper.vertices, upper.normals, upper.uv, upper.triangles, True, TEETH_LIGHT),
              (lower_v, lower_n, lower.uv, lower.triangles, True, TEETH_LIGHT),
-             (head.vertices, head.normals, head.uv, head.triangles, False, 1.0),
-             (neck.vertices, neck.normals, neck.uv, neck.triangles, False, 1.0)]
+             *((p.vertices, p.normals, p.uv, p.triangles, False, 1.0) for p in behind)]
     verts, norms, uvs, tris, culls, two = [points], [skin_n], [skin_uv], [skin_tri], [], []
     occ = [np.ones(n)]
     culls.append(np.ones(skin_tri.shape[0], bool))

@@ -8,7 +8,7 @@ constant for a given number of frames (for jitter measurements): the first one a
 in the middle on a vowel.
 
 Rigs:
-- ``"head"``: a head-mounted camera 23 cm in front of and below the mouth, looking at the lower
+- ``"head"``: a head-mounted camera 22 cm in front of and below the mouth, looking at the lower
   face (which fills most of the frame); the camera moves with the head up to a tiny wobble
   (< 0.5 mm, < 0.3 deg).
 - ``"desk"``: a desk camera 56 cm away; the whole face is visible and the head nods, turns and
@@ -32,7 +32,7 @@ HEAD_CENTRE = np.array([0.0, 12.0, -95.0])
 """Centre of head rotations in the head frame (mm), feature point 7.1."""
 #: rig -> (camera position, look-at point) in the head frame (mm), horizontal field of view
 RIG_GEOMETRY = {
-    "head": ((0.0, -40.0, 225.0), (0.0, -14.0, 0.0), 50.0),
+    "head": ((0.0, -40.0, 215.0), (0.0, -16.0, 0.0), 44.0),
     "desk": ((0.0, 5.0, 560.0), (0.0, -5.0, 0.0), 50.0),
 }
 RAMP_S = 0.12
@@ -95,7 +95,8 @@ class Sequence:
     def still_segments(self) -> list[tuple[int, int]]:
         """[start, stop) frame ranges of the still segments."""
         edges = np.diff(np.concatenate([[0], self.still.astype(np.int8), [0]]))
-        return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+        starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+        return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
 
 
 def minimum_jerk(times: np.ndarray, key_t: np.ndarray, key_x: np.ndarray) -> np.ndarray:
@@ -159,13 +160,16 @@ def _head_motion(tau: np.ndarray, rig: str, rng: np.random.Generator) -> tuple[n
 
 
 def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: str = "head",
-                  still_frames: int = 15, geometry: SpeakerGeometry | None = None) -> Sequence:
+                  still_frames: int = 15, size: tuple[int, int] = (640, 480),
+                  geometry: SpeakerGeometry | None = None) -> Sequence:
     """A sequence of the speaker of ``seed`` talking, with its ground truth.
 
-    still_frames : length of each still segment (0 disables them; they are shortened or left
-    out when the sequence is too short for them).
+    size : (width, height) of the rig's default camera (:func:`default_camera`).
+    still_frames : length of each still segment (0 disables them). The first one (at rest,
+    from frame 0) needs at least 2 x still_frames frames, the one in the middle 5 x.
     """
     _check_rig(rig)
+    default_camera(rig, *size)  # validates the size before any work
     if int(n_frames) != n_frames or n_frames < 1:
         raise InputError(f"n_frames must be a positive integer, got {n_frames!r}")
     if not np.isfinite(fps) or fps <= 0:
@@ -182,12 +186,12 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     hold = still_frames / fps  # [t, t + hold] holds at least still_frames frame times
     key_t, key_x, holds = [0.0], [rest], []
     t = 0.0
-    if still_frames and duration > 4 * hold:
+    if still_frames and duration >= 2 * hold:
         t = hold
         key_t.append(t)
         key_x.append(rest)
         holds.append((0.0, hold))
-    mid_hold_done = not still_frames or duration < 6 * hold
+    mid_hold_done = not still_frames or duration < 5 * hold
     vowels = np.arange(14)  # the corpus lists the 14 vowels first
     while t < duration + 0.2:
         t += rng.uniform(0.09, 0.16)
@@ -217,5 +221,5 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     for a, b in holds:
         still |= (times >= max(a, 0.0)) & (times <= b)
     points = geom.articulate(controls)
-    cam = default_camera(rig)
+    cam = default_camera(rig, *size)
     return Sequence(times, controls, poses, points, cam, still, rig, float(fps))

@@ -16,7 +16,7 @@ import numpy as np
 from core.build import Corpus, VarianceTable, build_model
 from core.camera import Camera, Pose
 from core.errors import InputError
-from core.model import FaceModel, PARAM_NAMES
+from core.model import PARAM_NAMES, FaceModel
 from core.synthetic.corpus import make_corpus
 from core.synthetic.geometry import SpeakerGeometry, make_geometry
 from core.synthetic.render import RenderOptions, composite

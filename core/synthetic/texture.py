@@ -18,7 +18,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from core.synthetic.geometry import SpeakerGeometry, make_geometry, nasolabial_distance
+from core.synthetic.geometry import SpeakerGeometry, make_geometry
+from core.synthetic.surface import nasolabial_distance
 
 ATLAS_SIZE = (1024, 1024)  # (height, width) px
 SKIN_PPM = 4.0
@@ -32,6 +33,8 @@ MATERIALS: dict[str, tuple[int, int, int, int]] = {
     "cavity": (690, 100, 320, 100),
     "head": (690, 210, 320, 300),
     "neck": (690, 520, 320, 200),
+    "ear": (690, 730, 100, 100),
+    "shirt": (800, 730, 200, 100),
 }
 SKIN_BGR = np.array([128.0, 152.0, 200.0])
 LIP_BGR = np.array([88.0, 86.0, 168.0])
@@ -98,8 +101,13 @@ def _skin(geom: SpeakerGeometry, rng: np.random.Generator) -> np.ndarray:
     img -= (along * np.exp(-((s / 1.6) ** 2)))[..., None] * np.float32(30.0)
     # nostrils
     for side in (-1.0, 1.0):
-        nost = _gauss(x, y, side * 7.5, 23.5, 3.6, 1.9)
-        img = img * (1 - 0.8 * nost[..., None])
+        nost = np.clip(1.6 * (1.0 - ((x - side * 7.0) / 3.6) ** 2 - ((y - 23.2) / 1.8) ** 2),
+                       0, 1)
+        nost = cv2.GaussianBlur(nost.astype(np.float32), (0, 0), 0.5 * SKIN_PPM)
+        img = img * (1 - 0.75 * nost[..., None])
+        crease = np.abs(np.hypot((x - side * 12.0) / 6.5, (y - 26.0) / 7.0) - 1.0) < 0.08
+        crease &= (y < 30.0) & (np.abs(x) > 9.0)
+        img[crease] *= 0.9
     # lips: fill the neutral outer contour, soft edge, striations; wet inner band
     img = _paint_lips(img, geom, x, rng)
     # eyes and eyebrows
@@ -183,6 +191,14 @@ def _materials(atlas: np.ndarray, rng: np.random.Generator) -> None:
     neck = np.where(shirt, np.array([120.0, 80.0, 50.0]) + _field(rng, (h, w), 1.0)[..., None]
                     * 6.0, neck)
     atlas[y0:y0 + h, x0:x0 + w] = np.clip(neck, 0, 255)
+    # ears: skin, a darker inner fold; shirt: blue cloth
+    x0, y0, w, h = MATERIALS["ear"]
+    s, t = np.meshgrid(np.linspace(0, 1, w), np.linspace(0, 1, h))
+    ear = SKIN_BGR * (1.0 - 0.25 * np.exp(-(((t - 0.5) / 0.2) ** 2)))[..., None]
+    atlas[y0:y0 + h, x0:x0 + w] = np.clip(ear + _field(rng, (h, w), 2.0)[..., None] * 4, 0, 255)
+    x0, y0, w, h = MATERIALS["shirt"]
+    cloth = np.array([120.0, 80.0, 50.0]) + _field(rng, (h, w), 1.0)[..., None] * 6.0
+    atlas[y0:y0 + h, x0:x0 + w] = np.clip(cloth, 0, 255)
 
 
 def make_atlas(seed: int = 0) -> Atlas:
