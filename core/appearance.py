@@ -9,8 +9,10 @@ texture frame of the paper).
 
 Descriptor channels of la, from the Gaussian-smoothed Y, Cr, Cb image S (sigma px):
 ``(Yx, Yy, Cr, Crx, Cry, Cb, Cbx, Cby)`` — derivatives scale-normalised (x sigma).
-The model predicts, per feature value, ``f(alpha) = W[0] + alpha @ W[1:]`` (lin) or
-``W[0]`` (cst); ``channel_weight`` balances the channels in the cost.
+The model predicts, per feature value, ``f(alpha) = W[0] + alpha @ W[1:K+1]`` (lin), or
+``W[0]`` (cst); ``la_quad`` (ours, beyond the paper) adds ``alpha**2 @ W[K+1:]`` so the
+appearance of lip-contour points, which changes non-linearly as lips open and round, is
+predicted without bias at the extremes. ``channel_weight`` balances the features in the cost.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from core.model import FaceModel
 
 APPEARANCE_KIND = "appearance-model"
 APPEARANCE_VERSION = 1
-KINDS = ("la_cst", "la_lin", "tex_cst", "tex_lin")
+KINDS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin")
 LA_CHANNELS = ("Yx", "Yy", "Cr", "Crx", "Cry", "Cb", "Cbx", "Cby")
 
 
@@ -220,7 +222,7 @@ class AppearanceModel:
     """A trained appearance model (one of :data:`KINDS`).
 
     samples : where features are sampled. levels : pyramid levels trained (0 = full res).
-    weights : (L, K+1, S*C) predicted features ``f = W[0] + alpha @ W[1:]`` per level.
+    weights : (L, D, S*C) per level, rows of :func:`design` (D = 1 + K, or 1 + 2K for quad).
     channel_weight : (L, S*C) per-feature cost weights (inverse residual s.d. in training).
     sigma : smoothing scale in pixels of each level (image px x 2**level). explained : (L,) fraction of the feature
     variance the model explains on its training frames.
@@ -274,12 +276,23 @@ class AppearanceModel:
         require(wt.ndim == 3 and wt.shape[0] == len(levels) and wt.shape[2] == s * c, path,
                 f"weights have shape {wt.shape}, expected ({len(levels)}, K+1, {s * c})")
         if model is not None:
-            require(wt.shape[1] == model.n_params + 1, path,
-                    f"trained for {wt.shape[1] - 1} parameters, the model has {model.n_params}")
+            d = 2 * model.n_params + 1 if kind.endswith("quad") else model.n_params + 1
+            require(wt.shape[1] == d, path,
+                    f"weights have {wt.shape[1]} rows, a {kind} model of {model.n_params} "
+                    f"parameters has {d}")
             require(idx.max() < model.n_points, path,
                     "sample points index points the face model does not have")
         return cls(kind, SamplePoints(idx, w), levels, wt, arrays["channel_weight"],
                    float(meta["sigma"]), arrays["explained"])
+
+
+def design(alpha: np.ndarray, kind: str) -> np.ndarray:
+    """Regressors of an appearance model: alpha (F, K) -> (F, D) = [1, alpha(, alpha**2)]."""
+    alpha = np.atleast_2d(alpha)
+    cols = [np.ones((alpha.shape[0], 1)), alpha]
+    if kind.endswith("quad"):
+        cols.append(alpha**2)
+    return np.concatenate(cols, axis=1)
 
 
 @dataclass(frozen=True)
@@ -322,7 +335,7 @@ def train_appearance(
     kind: str = "la_lin",
     *,
     sigma: float = 2.5,
-    levels: tuple[int, ...] = (0, 1),
+    levels: tuple[int, ...] = (0, 1, 2),
     per_param: int = 5,
     tex_spacing_mm: float = 2.0,
     ridge: float = 1e-2,
@@ -340,7 +353,8 @@ def train_appearance(
     """
     if kind not in KINDS:
         raise InputError(f"appearance kind must be one of {KINDS}, got {kind!r}")
-    if len(frames) < (2 if kind.endswith("cst") else model.n_params + 2):
+    n_terms = design(np.zeros((1, model.n_params)), kind).shape[1]
+    if len(frames) < (2 if kind.endswith("cst") else n_terms + 1):
         raise InputError(f"{len(frames)} training frames are too few for {kind}")
     vis = visible_points(model, camera, frames)
     if kind.startswith("la"):
@@ -353,7 +367,7 @@ def train_appearance(
         raise InputError("no model point is visible in every training frame")
     s_mean, s_basis = samples.positions(model)
     alphas = np.stack([np.asarray(f.alpha, np.float64) for f in frames])
-    design = np.c_[np.ones(len(frames)), alphas]
+    dmat = design(alphas, kind)
     weights, cweights, explained = [], [], []
     for level in levels:
         feats = []
@@ -366,20 +380,19 @@ def train_appearance(
                 f = (f - f.mean()) / max(f.std(), 1e-6)
             feats.append(f.reshape(-1))
         fmat = np.stack(feats)  # (F, S*C)
-        if kind.endswith("lin"):
-            reg = ridge * len(frames) * np.diag([0.0] + [1.0] * model.n_params)
-            w = np.linalg.solve(design.T @ design + reg, design.T @ fmat)
+        if not kind.endswith("cst"):
+            reg = ridge * len(frames) * np.diag([0.0] + [1.0] * (n_terms - 1))
+            w = np.linalg.solve(dmat.T @ dmat + reg, dmat.T @ fmat)
         else:
-            w = np.zeros((model.n_params + 1, fmat.shape[1]))
+            w = np.zeros((n_terms, fmat.shape[1]))
             w[0] = fmat.mean(0)
         c = 8 if kind.startswith("la") else 1
-        fitted = fmat - design @ w
+        fitted = fmat - dmat @ w
         resid = fitted
-        if kind.endswith("lin"):
+        if not kind.endswith("cst"):
             # leave-one-out residuals (e / (1 - h)): weights must reflect how well a feature
             # is *predicted* on frames it was not fitted on, not how well it was fitted
-            hat = np.einsum("fi,ij,fj->f", design,
-                            np.linalg.inv(design.T @ design + reg), design)
+            hat = np.einsum("fi,ij,fj->f", dmat, np.linalg.inv(dmat.T @ dmat + reg), dmat)
             resid = resid / np.maximum(1.0 - hat, 0.05)[:, None]
         rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, c)
         floor = np.maximum(np.median(rms_f, axis=0) * 0.5,

@@ -89,6 +89,7 @@ class Problem:
         st = model.stats
         self.bound = np.maximum(np.abs(st.min), np.abs(st.max)) + self.prior.margin
         self._tex = appearance.kind.startswith("tex")
+        self._quad = appearance.kind.endswith("quad")
 
     # -------------------------------------------------------------- geometry
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
@@ -125,7 +126,11 @@ class Problem:
             mu, sd = feats[valid].mean() if valid.any() else 0.0, feats[valid].std() + 1e-6
             feats = (feats - mu) / sd
             dfeats = dfeats / sd
-        pred = (w[0] + alpha @ w[1:]).reshape(s, c)
+        k = self.k
+        pred = w[0] + alpha @ w[1:k + 1]
+        if self._quad:
+            pred = pred + (alpha * alpha) @ w[k + 1:]
+        pred = pred.reshape(s, c)
         r = (feats - pred) * cw
         r[~valid] = 0.0
         vf = float(valid.mean())
@@ -133,7 +138,6 @@ class Problem:
             return r.reshape(-1), None, vf
         # d(cam)/d(alpha) = R basis ; d(cam)/d(delta) = -[R head]x ; d(cam)/d(t) = I
         rh = head @ rot.T
-        k = self.k
         dcam = np.zeros((s, 3, k + 6))
         dcam[:, :, :k] = np.matmul(rot, self._basis_sdk)
         dcam[:, 0, k + 1], dcam[:, 0, k + 2] = rh[:, 2], -rh[:, 1]
@@ -144,7 +148,10 @@ class Problem:
         jac = np.matmul(dfeats, duv)  # (S, C, P)
         if self._tex:
             jac -= jac[valid].mean(0, keepdims=True) if valid.any() else 0.0
-        jac[:, :, :self.k] -= w[1:].T.reshape(s, c, self.k)
+        dpred = w[1:k + 1]
+        if self._quad:
+            dpred = dpred + 2.0 * alpha[:, None] * w[k + 1:]
+        jac[:, :, :k] -= dpred.T.reshape(s, c, k)
         jac *= cw[:, :, None]
         jac[~valid] = 0.0
         return r.reshape(-1), jac.reshape(s * c, -1), vf
