@@ -16,6 +16,7 @@ from core.errors import ArticastError
 COMMAND_MODULES = (
     "service.commands.model",
     "service.commands.track",
+    "service.commands.evaluate",
     "service.commands.fap",
     "service.commands.transfer",
     "service.commands.synth",

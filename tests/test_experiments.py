@@ -1,0 +1,49 @@
+"""articast evaluate on a small configuration: structure of the figures, and that the
+tracker measurably recovers articulation (errors far below standing still at neutral)."""
+
+import json
+
+import pytest
+
+from service.cli import main
+
+
+@pytest.fixture(scope="module")
+def figures(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ev")
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = main(["evaluate", "--quick", "--conditions", "postures,teleconference",
+                     "--models", "la_lin,la_cst", "-o", str(out), "--json"])
+    assert code == 0
+    return json.loads(buf.getvalue()), out
+
+
+def test_json_has_every_figure(figures):
+    doc, out = figures
+    keys = {"rms_mm_mean", "rms_mm_median", "rms_mm_p95", "evals_per_frame", "ms_per_frame",
+            "ok_fraction", "jitter_mm", "lag_frames"}
+    for cond in ("postures", "teleconference"):
+        for model in ("la_lin", "la_cst"):
+            assert keys <= set(doc["conditions"][cond][model])
+    assert (out / "report.md").read_text().count("| la_lin |") == 2
+    assert (out / "teleconference_rms_boxplot.png").stat().st_size > 1000
+
+
+def test_tracking_recovers_articulation(figures):
+    doc, _ = figures
+    post = doc["conditions"]["postures"]["la_lin"]
+    # held-out postures from neutral: far better than not moving at all
+    assert post["rms_mm_median"] < 0.3 * post["neutral_rms_mm_mean"]
+    tele = doc["conditions"]["teleconference"]["la_lin"]
+    assert tele["ok_fraction"] > 0.9
+    assert tele["rms_mm_mean"] < 1.0
+    assert tele["evals_per_frame"] <= 30
+
+
+def test_unknown_condition_is_a_clear_error(capsys):
+    assert main(["evaluate", "--conditions", "moon"]) == 2
+    assert "unknown conditions" in capsys.readouterr().err
