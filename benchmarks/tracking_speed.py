@@ -1,0 +1,97 @@
+"""Tracking speed at 640x480 on one core: the default optimiser (Gauss-Newton/LM) and the
+paper's Nelder-Mead baseline on the same frames, so their ratio is measured in one run;
+memory per tracker. Video decoding and rendering are excluded (frames are pre-rendered).
+
+    python benchmarks/tracking_speed.py [--frames 150] [--nm-frames 40] [--kind la_lin]
+
+Prints one JSON object.
+"""
+
+from __future__ import annotations
+
+import os
+
+for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import time  # noqa: E402
+import tracemalloc  # noqa: E402
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--frames", type=int, default=150)
+    ap.add_argument("--nm-frames", type=int, default=40)
+    ap.add_argument("--kind", default="la_lin")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    cv2.setNumThreads(1)
+
+    from core.appearance import TrainingFrame, train_appearance
+    from core.build import invert
+    from core.evaluate import rms_3d
+    from core.synthetic import RenderOptions, default_speaker, make_sequence
+    from core.tracker import Tracker, TrackingPolicy
+
+    sp = default_speaker(args.seed)
+    model = sp.model()
+    tr = make_sequence(args.seed * 100 + 1, 75, 6.0, "head")
+    a_tr = invert(model, tr.points)
+    app = train_appearance(model, tr.camera, [
+        TrainingFrame(sp.render(tr.controls[i], tr.pose(i), tr.camera, RenderOptions(seed=i)),
+                      a_tr[i], tr.pose(i)) for i in range(tr.n_frames)], args.kind)
+    te = make_sequence(args.seed * 100 + 2, args.frames, 50.0, "head")
+    imgs = [sp.render(te.controls[i], te.pose(i), te.camera, RenderOptions(seed=900 + i))
+            for i in range(te.n_frames)]
+    a_true = invert(model, te.points)
+
+    def memory(policy: TrackingPolicy, n: int = 10) -> float:
+        """Peak Python heap (MiB) of a tracker over n frames (traced apart: tracing is slow)."""
+        tracemalloc.start()
+        tracker = Tracker(model, app, te.camera, policy)
+        tracker.reset(te.pose(0), a_true[0])
+        for i in range(n):
+            tracker.track(imgs[i], float(te.times[i]))
+        _, peak = tracemalloc.get_traced_memory()
+        tracemalloc.stop()
+        return peak / 2**20
+
+    def run(policy: TrackingPolicy, n: int) -> dict:
+        tracker = Tracker(model, app, te.camera, policy, clock=time.perf_counter)
+        tracker.reset(te.pose(0), a_true[0])
+        res = []
+        t0 = time.perf_counter()
+        for i in range(n):
+            res.append(tracker.track(imgs[i], float(te.times[i])))
+        wall = time.perf_counter() - t0
+        ms = np.array([r.ms for r in res])
+        err = rms_3d(model, np.array([r.alpha for r in res]), a_true[:n])
+        return {"frames": n, "fps": n / wall, "ms_per_frame_mean": float(ms.mean()),
+                "ms_per_frame_p95": float(np.percentile(ms, 95)),
+                "evals_per_frame": float(np.mean([r.evals for r in res])),
+                "rms_mm_mean": float(err.mean()), "peak_heap_mib": memory(policy)}
+
+    base = TrackingPolicy.for_rig("head")
+    gn = run(base, te.n_frames)
+    from dataclasses import replace
+
+    nm = run(replace(base, optimiser="nelder-mead", levels=(0,)), min(args.nm_frames, te.n_frames))
+    gn_same = run(base, nm["frames"])
+    out = {
+        "image": "640x480", "kind": args.kind, "threads": 1,
+        "gauss_newton": gn, "nelder_mead": nm,
+        "speedup_vs_nelder_mead_same_frames": nm["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"],
+        "accuracy_same_frames_mm": {"gauss_newton": gn_same["rms_mm_mean"],
+                                    "nelder_mead": nm["rms_mm_mean"]},
+        "appearance_model_kb": app.weights.nbytes / 1024,
+    }
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()
