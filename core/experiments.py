@@ -159,8 +159,7 @@ class Evaluation:
                 extra["light_azimuth_deg"] = -20.0 + 30.0 * i / max(n - 1, 1)
             if cond == "occlusion" and OCCLUSION[0] <= i < OCCLUSION[1]:
                 extra["occluder"] = "hand" if seq_index % 2 == 0 else "black"
-            return RenderOptions(**base, seed=base["seed"] + i, **extra) if extra else \
-                RenderOptions(**{**base, "seed": base["seed"] + i})
+            return RenderOptions(**{**base, "seed": base["seed"] + i, **extra})
         return opts
 
     def _sequences(self, cond: str):
