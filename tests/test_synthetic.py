@@ -151,6 +151,14 @@ def test_rasterize_culls_back_faces_only_when_asked():
     assert (ids == 0).sum() == 0
 
 
+def test_rasterize_in_chunks_gives_the_same_image(monkeypatch):
+    import core.synthetic.render as render
+
+    whole = _render(OPEN)
+    monkeypatch.setattr(render, "MAX_SPAN_PIXELS", 5000)
+    assert np.array_equal(_render(OPEN), whole)
+
+
 def _render(controls, **kw):
     sp = default_speaker(0)
     opts = RenderOptions(**{"noise_sigma": 0.0, **kw})

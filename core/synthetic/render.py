@@ -135,16 +135,41 @@ def rasterize(xy: np.ndarray, inv_z: np.ndarray, triangles: np.ndarray, cull: np
     xs = np.maximum(np.ceil(lo), xmin[t][rt])
     xe = np.minimum(np.floor(hi), xmax[t][rt])
     n = np.maximum(xe - xs + 1, 0).astype(np.int64)
-    # pixels
+    # pixels, in chunks of rows so that a face filling the view from very close cannot ask for
+    # an unbounded amount of memory; one chunk in normal use
+    ends = np.cumsum(n)
+    cuts = np.searchsorted(ends, np.arange(MAX_SPAN_PIXELS, ends[-1], MAX_SPAN_PIXELS))
+    bounds = np.unique(np.concatenate([[0], cuts + 1, [n.size]]))
+    chunks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    spans = (ry, xs, n, wa[rt], wb[rt] * ry + wc[rt])
+    done = []
+    for c in chunks:  # pass 1: nearest 1/z per pixel
+        pid, depth = _span_pixels(width, *(a[c] for a in spans))
+        np.maximum.at(zbuf, pid, depth)
+        done.append((pid, depth) if len(chunks) == 1 else None)
+    for c, kept in zip(chunks, done, strict=True):  # pass 2: who is the nearest
+        pid, depth = kept or _span_pixels(width, *(a[c] for a in spans))
+        win = depth >= zbuf[pid]
+        ids[pid[win]] = np.repeat(t[rt[c]], n[c])[win]
+    return ids.reshape(height, width), zbuf.reshape(height, width)
+
+
+MAX_SPAN_PIXELS = 4_000_000
+"""Largest number of candidate pixels rasterised at once (bounds memory)."""
+
+
+def _span_pixels(width: int, ry: np.ndarray, xs: np.ndarray, n: np.ndarray,
+                 slope: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel index and 1/z of every pixel of row spans.
+
+    Span r covers pixels xs[r] .. xs[r] + n[r] - 1 of image row ry[r], where 1/z is
+    slope[r] * x + offset[r].
+    """
     pstart = np.cumsum(n) - n
     g = np.arange(int(n.sum()))
     pid = np.repeat((ry * width + xs - pstart).astype(np.int64), n) + g
-    k_row = wa[rt] * (xs - pstart) + wb[rt] * ry + wc[rt]
-    depth = np.repeat(k_row, n) + np.repeat(wa[rt], n) * g
-    np.maximum.at(zbuf, pid, depth)
-    win = depth >= zbuf[pid]
-    ids[pid[win]] = np.repeat(t[rt], n)[win]
-    return ids.reshape(height, width), zbuf.reshape(height, width)
+    depth = np.repeat(slope * (xs - pstart) + offset, n) + np.repeat(slope, n) * g
+    return pid, depth
 
 
 def _plane(vx: np.ndarray, vy: np.ndarray, f: np.ndarray, area: np.ndarray):
