@@ -304,16 +304,21 @@ def test_cli_synth_sequence_writes_consistent_files(tmp_path):
 
     out = tmp_path / "seq"
     rc = main(["synth", "sequence", "-o", str(out), "--frames", "7", "--size", "160x120",
-               "--seed", "1", "--noise", "3", "--still-frames", "0"])
+               "--seed", "1", "--noise", "3", "--still-frames", "0", "--occluder", "black",
+               "--occlude-frames", "5:9"])
     assert rc == 0
     cap = cv2.VideoCapture(str(out / "video.mp4"))
     frames = 0
     while cap.read()[0]:
         frames += 1
     assert frames == 7
+    cap = cv2.VideoCapture(str(out / "video.mp4"))
+    means = [cap.read()[1].mean() for _ in range(7)]
+    assert min(means[:5]) > 40 and max(means[5:]) < 10  # black from frame 5 on
     lines = [json.loads(x) for x in (out / "truth.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in lines] == list(range(7))
     assert set(lines[0]) >= {"frame", "t", "alpha", "pose", "controls"}
+    assert [r["occluded"] for r in lines] == [False] * 5 + [True] * 2
     assert list(lines[0]["alpha"]) == list(PARAM_NAMES)
     with np.load(out / "truth.npz") as npz:
         points, controls, poses = npz["points"], npz["controls"], npz["poses"]
