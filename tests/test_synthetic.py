@@ -296,6 +296,10 @@ def test_sequence_rejects_bad_arguments():
         make_sequence(0, 0)
     with pytest.raises(InputError):
         make_sequence(0, 10, fps=-1)
+    with pytest.raises(InputError):
+        make_sequence(-3, 10)
+    with pytest.raises(InputError):
+        make_corpus(-3)
 
 
 # ---------------------------------------------------------------- CLI

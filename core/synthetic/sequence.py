@@ -169,6 +169,8 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     from frame 0) needs at least 2 x still_frames frames, the one in the middle 5 x.
     """
     _check_rig(rig)
+    if int(seed) != seed or seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
     default_camera(rig, *size)  # validates the size before any work
     if int(n_frames) != n_frames or n_frames < 1:
         raise InputError(f"n_frames must be a positive integer, got {n_frames!r}")
@@ -181,7 +183,7 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     n_frames, still_frames = int(n_frames), int(still_frames)
     times = np.arange(n_frames) / fps
     duration = times[-1] + 1.0 / fps
-    _, tokens = corpus_controls(seed + 1000)  # same phonetics, fresh token variability
+    _, tokens = corpus_controls(seed + 1000, geom)  # same phonetics, fresh variability
     rest = np.zeros(len(PARAM_NAMES))
     hold = still_frames / fps  # [t, t + hold] holds at least still_frames frame times
     key_t, key_x, holds = [0.0], [rest], []
