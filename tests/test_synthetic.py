@@ -203,6 +203,27 @@ def test_lips_are_redder_than_the_skin():
     assert np.median(cr(uv_lip)) > np.median(cr(uv_skin)) + 8
 
 
+def test_visibility_hides_the_lower_teeth_behind_closed_lips_and_the_far_cheek():
+    sp = default_speaker(0)
+    g = sp.geometry
+    pose, cam = rest_pose("head"), default_camera("head")
+    vis = sp.visible(np.zeros(7), pose, cam)
+    assert not vis[g.groups["lower_teeth"]].any()
+    assert vis[g.groups["lip_outer"]].all()
+    turned = Pose(rotation_matrix_to_vec(np.radians(60)), [0.0, -10.0, 500.0])
+    vis = sp.visible(np.zeros(7), turned, cam)
+    x = g.neutral[:, 0]
+    far, near = (x > 45) & (g.ring >= 6), (x < -45) & (g.ring >= 6)
+    assert vis[near].mean() > 0.8 and vis[far].mean() < 0.3
+
+
+def rotation_matrix_to_vec(yaw):
+    """Axis-angle of a frontal view with the head turned by ``yaw`` (rad) to its left."""
+    from core.camera import axis_angle
+
+    return axis_angle(rotation_matrix(FRONTAL) @ rotation_matrix([0.0, yaw, 0.0]))
+
+
 def test_render_is_deterministic_and_noise_follows_the_seed():
     a = _render(OPEN, noise_sigma=3.0, seed=5)
     b = _render(OPEN, noise_sigma=3.0, seed=5)

@@ -215,10 +215,7 @@ def shade_scene(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions
     light = options.light_vector()
     intensity = options.ambient + options.diffuse * np.clip(normals @ light, 0.0, None)
     intensity *= scene.occlusion
-    z = cam_pts[:, 2]
-    front = z > NEAR_MM
-    inv_z = np.where(front, 1.0 / np.where(front, z, 1.0), -1.0)
-    xy = camera.project(np.where(front[:, None], cam_pts, np.nan))
+    xy, inv_z = _project(cam_pts, camera)
     ids, _ = rasterize(xy, inv_z, scene.triangles, scene.cull, camera.width, camera.height)
     covered = ids >= 0
     rows, cols = np.flatnonzero(covered.any(1)), np.flatnonzero(covered.any(0))
@@ -260,6 +257,32 @@ def shade_scene(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions
     tex = cv2.remap(atlas, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     colour = tex.astype(np.float32) * light_img[..., None]
     return roi_slices, colour, mask
+
+
+def _project(cam_pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame vertices (V, 3) -> pixels (V, 2) (NaN behind the near plane), 1/z (V,)."""
+    z = cam_pts[:, 2]
+    front = z > NEAR_MM
+    inv_z = np.where(front, 1.0 / np.where(front, z, 1.0), -1.0)
+    return camera.project(np.where(front[:, None], cam_pts, np.nan)), inv_z
+
+
+def visible_points(scene: Scene, points: np.ndarray, pose: Pose, camera: Camera,
+                   tolerance: float = 0.01) -> np.ndarray:
+    """Which head-frame points (M, 3) are seen by the camera (not hidden, inside the image).
+
+    A point is visible when the nearest surface at its pixel is no nearer than the point
+    itself (relative depth ``tolerance``). Points on hidden parts of the mesh (the lower teeth
+    behind the lips, the far cheek of a turned head) are not. Returns (M,) bool.
+    """
+    xy, inv_z = _project(scene.vertices @ pose.matrix.T + pose.translation, camera)
+    _, zbuf = rasterize(xy, inv_z, scene.triangles, scene.cull, camera.width, camera.height)
+    p_xy, p_inv = _project(pose.transform(np.asarray(points, np.float64)), camera)
+    inside = camera.inside(p_xy) & (p_inv > 0)
+    px = np.clip(np.round(np.nan_to_num(p_xy)).astype(np.int64), 0,
+                 [camera.width - 1, camera.height - 1])
+    nearest = zbuf[px[:, 1], px[:, 0]]
+    return inside & (p_inv * (1.0 + tolerance) >= nearest)
 
 
 def _pixel_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
