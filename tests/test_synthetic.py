@@ -293,6 +293,20 @@ def test_sequence_is_smooth_with_exact_still_segments(rig):
     assert np.abs(pose_acc).max() < 2000  # mm/s^2
 
 
+def test_quintic_path_passes_its_keyframes_with_their_velocities():
+    from core.synthetic.sequence import quintic_path
+
+    key_t = np.array([0.0, 0.1, 0.25, 0.4])
+    key_x = np.array([[0.0], [1.0], [-0.5], [0.2]])
+    key_v = np.array([[0.0], [4.0], [-2.0], [0.0]])
+    np.testing.assert_allclose(quintic_path(key_t, key_t, key_x, key_v), key_x, atol=1e-12)
+    h = 1e-6
+    for k in (1, 2):
+        slope = (quintic_path(key_t[k:k + 1] + h, key_t, key_x, key_v)
+                 - quintic_path(key_t[k:k + 1] - h, key_t, key_x, key_v)) / (2 * h)
+        assert slope[0, 0] == pytest.approx(key_v[k, 0], rel=1e-4)
+
+
 def test_head_mounted_rig_moves_little_and_desk_rig_moves():
     head, desk = make_sequence(2, 250, 50.0, "head"), make_sequence(2, 250, 50.0, "desk")
     rot = [max(_angle_deg(s.poses[i, :3], s.poses[0, :3]) for i in range(s.n_frames))
