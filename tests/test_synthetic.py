@@ -151,6 +151,14 @@ def test_rasterize_culls_back_faces_only_when_asked():
     assert (ids == 0).sum() == 0
 
 
+def test_rasterize_in_chunks_gives_the_same_image(monkeypatch):
+    import core.synthetic.render as render
+
+    whole = _render(OPEN)
+    monkeypatch.setattr(render, "MAX_SPAN_PIXELS", 5000)
+    assert np.array_equal(_render(OPEN), whole)
+
+
 def _render(controls, **kw):
     sp = default_speaker(0)
     opts = RenderOptions(**{"noise_sigma": 0.0, **kw})
@@ -193,6 +201,27 @@ def test_lips_are_redder_than_the_skin():
         return ycc[np.round(uv[:, 1]).astype(int), np.round(uv[:, 0]).astype(int), 1]
 
     assert np.median(cr(uv_lip)) > np.median(cr(uv_skin)) + 8
+
+
+def test_visibility_hides_the_lower_teeth_behind_closed_lips_and_the_far_cheek():
+    sp = default_speaker(0)
+    g = sp.geometry
+    pose, cam = rest_pose("head"), default_camera("head")
+    vis = sp.visible(np.zeros(7), pose, cam)
+    assert not vis[g.groups["lower_teeth"]].any()
+    assert vis[g.groups["lip_outer"]].all()
+    turned = Pose(rotation_matrix_to_vec(np.radians(60)), [0.0, -10.0, 500.0])
+    vis = sp.visible(np.zeros(7), turned, cam)
+    x = g.neutral[:, 0]
+    far, near = (x > 45) & (g.ring >= 6), (x < -45) & (g.ring >= 6)
+    assert vis[near].mean() > 0.8 and vis[far].mean() < 0.3
+
+
+def rotation_matrix_to_vec(yaw):
+    """Axis-angle of a frontal view with the head turned by ``yaw`` (rad) to its left."""
+    from core.camera import axis_angle
+
+    return axis_angle(rotation_matrix(FRONTAL) @ rotation_matrix([0.0, yaw, 0.0]))
 
 
 def test_render_is_deterministic_and_noise_follows_the_seed():
@@ -264,6 +293,20 @@ def test_sequence_is_smooth_with_exact_still_segments(rig):
     assert np.abs(pose_acc).max() < 2000  # mm/s^2
 
 
+def test_quintic_path_passes_its_keyframes_with_their_velocities():
+    from core.synthetic.sequence import quintic_path
+
+    key_t = np.array([0.0, 0.1, 0.25, 0.4])
+    key_x = np.array([[0.0], [1.0], [-0.5], [0.2]])
+    key_v = np.array([[0.0], [4.0], [-2.0], [0.0]])
+    np.testing.assert_allclose(quintic_path(key_t, key_t, key_x, key_v), key_x, atol=1e-12)
+    h = 1e-6
+    for k in (1, 2):
+        slope = (quintic_path(key_t[k:k + 1] + h, key_t, key_x, key_v)
+                 - quintic_path(key_t[k:k + 1] - h, key_t, key_x, key_v)) / (2 * h)
+        assert slope[0, 0] == pytest.approx(key_v[k, 0], rel=1e-4)
+
+
 def test_head_mounted_rig_moves_little_and_desk_rig_moves():
     head, desk = make_sequence(2, 250, 50.0, "head"), make_sequence(2, 250, 50.0, "desk")
     rot = [max(_angle_deg(s.poses[i, :3], s.poses[0, :3]) for i in range(s.n_frames))
@@ -288,6 +331,10 @@ def test_sequence_rejects_bad_arguments():
         make_sequence(0, 0)
     with pytest.raises(InputError):
         make_sequence(0, 10, fps=-1)
+    with pytest.raises(InputError):
+        make_sequence(-3, 10)
+    with pytest.raises(InputError):
+        make_corpus(-3)
 
 
 # ---------------------------------------------------------------- CLI
@@ -296,16 +343,21 @@ def test_cli_synth_sequence_writes_consistent_files(tmp_path):
 
     out = tmp_path / "seq"
     rc = main(["synth", "sequence", "-o", str(out), "--frames", "7", "--size", "160x120",
-               "--seed", "1", "--noise", "3", "--still-frames", "0"])
+               "--seed", "1", "--noise", "3", "--still-frames", "0", "--occluder", "black",
+               "--occlude-frames", "5:9"])
     assert rc == 0
     cap = cv2.VideoCapture(str(out / "video.mp4"))
     frames = 0
     while cap.read()[0]:
         frames += 1
     assert frames == 7
+    cap = cv2.VideoCapture(str(out / "video.mp4"))
+    means = [cap.read()[1].mean() for _ in range(7)]
+    assert min(means[:5]) > 40 and max(means[5:]) < 10  # black from frame 5 on
     lines = [json.loads(x) for x in (out / "truth.jsonl").read_text().splitlines()]
     assert [r["frame"] for r in lines] == list(range(7))
     assert set(lines[0]) >= {"frame", "t", "alpha", "pose", "controls"}
+    assert [r["occluded"] for r in lines] == [False] * 5 + [True] * 2
     assert list(lines[0]["alpha"]) == list(PARAM_NAMES)
     with np.load(out / "truth.npz") as npz:
         points, controls, poses = npz["points"], npz["controls"], npz["poses"]

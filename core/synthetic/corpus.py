@@ -3,9 +3,10 @@
 14 vowels (French oral and nasal), central frames of 52 VCV sequences (13 consonants x the
 vowels a, i, u, y, with bilabial closure for p b m and lower lip against the upper teeth for
 f v), and the silent postures ``rest`` and ``preph``. Each posture's controls are a phonetic
-target plus seeded token-to-token variability (coarticulation, the speaker is not a robot),
-which also keeps the seven controls from being too correlated across the corpus - a condition
-for guided PCA to recover them.
+target plus seeded token-to-token variability (coarticulation, the speaker is not a robot).
+The controls are then decorrelated across the corpus (guided PCA credits shared variance to
+the earlier parameter, so correlated controls could not be recovered) and every bilabial is
+closed by the least extra lip raising/lowering that closes the middle of the mouth.
 """
 
 from __future__ import annotations
@@ -82,15 +83,22 @@ def posture_targets() -> tuple[tuple[str, ...], np.ndarray]:
     return tuple(names), np.array(rows, dtype=np.float64)
 
 
-def corpus_controls(seed: int = 0) -> tuple[tuple[str, ...], np.ndarray]:
-    """Posture names and generating controls (68, 7) of the corpus of ``seed``."""
+def corpus_controls(seed: int = 0, geometry: SpeakerGeometry | None = None,
+                    ) -> tuple[tuple[str, ...], np.ndarray]:
+    """Posture names and generating controls (68, 7) of the corpus of ``seed``.
+
+    geometry : the speaker whose lips must close for the bilabials (default
+    ``make_geometry(seed)``).
+    """
+    if int(seed) != seed or seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
     names, targets = posture_targets()
     rng = np.random.default_rng([int(seed), 0xC0DE])
     jitter = rng.normal(size=targets.shape) * JITTER_SD
     jitter[names.index("rest")] = 0.0
     controls = targets + jitter
     bilabial = np.array([len(n) == 3 and n[1] in BILABIALS for n in names])
-    geom = make_geometry(seed)
+    geom = geometry if geometry is not None else make_geometry(seed)
     controls[bilabial] = close_lips(geom, controls[bilabial])
     # Phonetics correlates the controls (bilabials: lips up, jaw closed...). Guided PCA
     # attributes shared variance to the earlier parameter, so the corpus is decorrelated with
@@ -150,7 +158,7 @@ def make_corpus(seed: int = 0, noise_mm: float = 0.3,
     if not np.isfinite(noise_mm) or noise_mm < 0:
         raise InputError(f"noise_mm must be finite and >= 0, got {noise_mm!r}")
     geom = geometry if geometry is not None else make_geometry(seed)
-    names, controls = corpus_controls(seed)
+    names, controls = corpus_controls(seed, geom)
     points = geom.articulate(controls)
     rng = np.random.default_rng([int(seed), 0x0B5E])
     points = points + rng.normal(size=points.shape) * (noise_mm / np.sqrt(3.0))

@@ -135,16 +135,41 @@ def rasterize(xy: np.ndarray, inv_z: np.ndarray, triangles: np.ndarray, cull: np
     xs = np.maximum(np.ceil(lo), xmin[t][rt])
     xe = np.minimum(np.floor(hi), xmax[t][rt])
     n = np.maximum(xe - xs + 1, 0).astype(np.int64)
-    # pixels
+    # pixels, in chunks of rows so that a face filling the view from very close cannot ask for
+    # an unbounded amount of memory; one chunk in normal use
+    ends = np.cumsum(n)
+    cuts = np.searchsorted(ends, np.arange(MAX_SPAN_PIXELS, ends[-1], MAX_SPAN_PIXELS))
+    bounds = np.unique(np.concatenate([[0], cuts + 1, [n.size]]))
+    chunks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    spans = (ry, xs, n, wa[rt], wb[rt] * ry + wc[rt])
+    done = []
+    for c in chunks:  # pass 1: nearest 1/z per pixel
+        pid, depth = _span_pixels(width, *(a[c] for a in spans))
+        np.maximum.at(zbuf, pid, depth)
+        done.append((pid, depth) if len(chunks) == 1 else None)
+    for c, kept in zip(chunks, done, strict=True):  # pass 2: who is the nearest
+        pid, depth = kept or _span_pixels(width, *(a[c] for a in spans))
+        win = depth >= zbuf[pid]
+        ids[pid[win]] = np.repeat(t[rt[c]], n[c])[win]
+    return ids.reshape(height, width), zbuf.reshape(height, width)
+
+
+MAX_SPAN_PIXELS = 4_000_000
+"""Largest number of candidate pixels rasterised at once (bounds memory)."""
+
+
+def _span_pixels(width: int, ry: np.ndarray, xs: np.ndarray, n: np.ndarray,
+                 slope: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flat pixel index and 1/z of every pixel of row spans.
+
+    Span r covers pixels xs[r] .. xs[r] + n[r] - 1 of image row ry[r], where 1/z is
+    slope[r] * x + offset[r].
+    """
     pstart = np.cumsum(n) - n
     g = np.arange(int(n.sum()))
     pid = np.repeat((ry * width + xs - pstart).astype(np.int64), n) + g
-    k_row = wa[rt] * (xs - pstart) + wb[rt] * ry + wc[rt]
-    depth = np.repeat(k_row, n) + np.repeat(wa[rt], n) * g
-    np.maximum.at(zbuf, pid, depth)
-    win = depth >= zbuf[pid]
-    ids[pid[win]] = np.repeat(t[rt], n)[win]
-    return ids.reshape(height, width), zbuf.reshape(height, width)
+    depth = np.repeat(slope * (xs - pstart) + offset, n) + np.repeat(slope, n) * g
+    return pid, depth
 
 
 def _plane(vx: np.ndarray, vy: np.ndarray, f: np.ndarray, area: np.ndarray):
@@ -190,10 +215,7 @@ def shade_scene(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions
     light = options.light_vector()
     intensity = options.ambient + options.diffuse * np.clip(normals @ light, 0.0, None)
     intensity *= scene.occlusion
-    z = cam_pts[:, 2]
-    front = z > NEAR_MM
-    inv_z = np.where(front, 1.0 / np.where(front, z, 1.0), -1.0)
-    xy = camera.project(np.where(front[:, None], cam_pts, np.nan))
+    xy, inv_z = _project(cam_pts, camera)
     ids, _ = rasterize(xy, inv_z, scene.triangles, scene.cull, camera.width, camera.height)
     covered = ids >= 0
     rows, cols = np.flatnonzero(covered.any(1)), np.flatnonzero(covered.any(0))
@@ -235,6 +257,32 @@ def shade_scene(scene: Scene, pose: Pose, camera: Camera, options: RenderOptions
     tex = cv2.remap(atlas, mapx, mapy, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     colour = tex.astype(np.float32) * light_img[..., None]
     return roi_slices, colour, mask
+
+
+def _project(cam_pts: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame vertices (V, 3) -> pixels (V, 2) (NaN behind the near plane), 1/z (V,)."""
+    z = cam_pts[:, 2]
+    front = z > NEAR_MM
+    inv_z = np.where(front, 1.0 / np.where(front, z, 1.0), -1.0)
+    return camera.project(np.where(front[:, None], cam_pts, np.nan)), inv_z
+
+
+def visible_points(scene: Scene, points: np.ndarray, pose: Pose, camera: Camera,
+                   tolerance: float = 0.01) -> np.ndarray:
+    """Which head-frame points (M, 3) are seen by the camera (not hidden, inside the image).
+
+    A point is visible when the nearest surface at its pixel is no nearer than the point
+    itself (relative depth ``tolerance``). Points on hidden parts of the mesh (the lower teeth
+    behind the lips, the far cheek of a turned head) are not. Returns (M,) bool.
+    """
+    xy, inv_z = _project(scene.vertices @ pose.matrix.T + pose.translation, camera)
+    _, zbuf = rasterize(xy, inv_z, scene.triangles, scene.cull, camera.width, camera.height)
+    p_xy, p_inv = _project(pose.transform(np.asarray(points, np.float64)), camera)
+    inside = camera.inside(p_xy) & (p_inv > 0)
+    px = np.clip(np.round(np.nan_to_num(p_xy)).astype(np.int64), 0,
+                 [camera.width - 1, camera.height - 1])
+    nearest = zbuf[px[:, 1], px[:, 0]]
+    return inside & (p_inv * (1.0 + tolerance) >= nearest)
 
 
 def _pixel_grid(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:

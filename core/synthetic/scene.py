@@ -107,7 +107,7 @@ def _neck() -> _Part:
     az = np.linspace(-np.pi, np.pi, 25)[:-1]
     ys = np.linspace(-40.0, -250.0, 8)
     unit = np.stack([np.sin(az), np.zeros_like(az), np.cos(az)], -1)
-    v = (np.array([0.0, 0.0, -88.0]) + unit * np.array([50.0, 0.0, 38.0]))[None, :, :].repeat(
+    v = (np.array([0.0, 0.0, -100.0]) + unit * np.array([47.0, 0.0, 40.0]))[None, :, :].repeat(
         ys.size, 0)
     v[..., 1] = ys[:, None]
     v = v.reshape(-1, 3)

@@ -1,11 +1,12 @@
 """Synthetic speech sequences: coarticulated control trajectories, head motion, ground truth.
 
 Controls move through a chain of posture tokens drawn from the speaker's corpus targets
-(about 4 syllables per second, one target per consonant or vowel) along minimum-jerk
-transitions (zero velocity and acceleration at every target, so the trajectory is C2 and its
-acceleration is bounded). *Still segments* hold one posture and the head pose exactly
-constant for a given number of frames (for jitter measurements): the first one at rest, one
-in the middle on a vowel.
+(about 4 syllables per second, one target per consonant or vowel) along a quintic path that
+passes every target without stopping (coarticulation: velocity there is 0.6 x the mean of the
+neighbouring slopes, acceleration zero, so the trajectory is C2 and its acceleration
+bounded). *Still segments* hold one posture and the head pose exactly constant for a given
+number of frames (for jitter measurements): the first one at rest, one in the middle on a
+vowel.
 
 Rigs:
 - ``"head"``: a head-mounted camera 22 cm in front of and below the mouth, looking at the lower
@@ -99,18 +100,40 @@ class Sequence:
         return [(int(a), int(b)) for a, b in zip(starts, stops, strict=True)]
 
 
-def minimum_jerk(times: np.ndarray, key_t: np.ndarray, key_x: np.ndarray) -> np.ndarray:
-    """Piecewise minimum-jerk interpolation through keyframes.
+def quintic_path(times: np.ndarray, key_t: np.ndarray, key_x: np.ndarray,
+                 key_v: np.ndarray | None = None) -> np.ndarray:
+    """Piecewise quintic Hermite path through keyframes, zero acceleration at every keyframe.
 
-    times : (F,) s; key_t : (K,) increasing s; key_x : (K, D). Returns (F, D); constant
-    outside the keyframes. Velocity and acceleration are zero at every keyframe.
+    times : (F,) s; key_t : (K,) increasing s; key_x : (K, D) positions; key_v : (K, D)
+    velocities per s (default zero: the minimum-jerk path that stops at every keyframe).
+    Returns (F, D); constant outside the keyframes. The path is C2: position, velocity and
+    acceleration (zero) are continuous at the keyframes.
     """
+    key_v = np.zeros_like(key_x) if key_v is None else key_v
     t = np.clip(times, key_t[0], key_t[-1])
     seg = np.clip(np.searchsorted(key_t, t, side="right") - 1, 0, len(key_t) - 2)
     t0, t1 = key_t[seg], key_t[seg + 1]
+    span = (t1 - t0)[:, None]
     s = ((t - t0) / (t1 - t0))[:, None]
-    blend = s**3 * (10 - 15 * s + 6 * s**2)
-    return key_x[seg] + (key_x[seg + 1] - key_x[seg]) * blend
+    s3 = s**3
+    h_p1 = s3 * (10 - 15 * s + 6 * s**2)
+    h_v0 = s - s3 * (6 - 8 * s + 3 * s**2)
+    h_v1 = s3 * (-4 + 7 * s - 3 * s**2)
+    return (key_x[seg] + (key_x[seg + 1] - key_x[seg]) * h_p1
+            + span * (key_v[seg] * h_v0 + key_v[seg + 1] * h_v1))
+
+
+def via_velocities(key_t: np.ndarray, key_x: np.ndarray, stop: np.ndarray,
+                   gain: float = 0.6) -> np.ndarray:
+    """Velocities (K, D) at keyframes for a fluid path: ``gain`` times the mean of the slopes
+    of the two neighbouring segments (coarticulation: the articulators do not stop at each
+    target), zero where ``stop`` (K,) bool (first/last keyframe, holds)."""
+    slope = np.diff(key_x, axis=0) / np.diff(key_t)[:, None]
+    v = np.zeros_like(key_x)
+    v[1:-1] = gain * 0.5 * (slope[:-1] + slope[1:])
+    v[stop] = 0.0
+    v[[0, -1]] = 0.0
+    return v
 
 
 def _frozen_time(t: np.ndarray, holds: list[tuple[float, float]], r: float) -> np.ndarray:
@@ -169,6 +192,8 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     from frame 0) needs at least 2 x still_frames frames, the one in the middle 5 x.
     """
     _check_rig(rig)
+    if int(seed) != seed or seed < 0:
+        raise InputError(f"seed must be a non-negative integer, got {seed!r}")
     default_camera(rig, *size)  # validates the size before any work
     if int(n_frames) != n_frames or n_frames < 1:
         raise InputError(f"n_frames must be a positive integer, got {n_frames!r}")
@@ -181,7 +206,7 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
     n_frames, still_frames = int(n_frames), int(still_frames)
     times = np.arange(n_frames) / fps
     duration = times[-1] + 1.0 / fps
-    _, tokens = corpus_controls(seed + 1000)  # same phonetics, fresh token variability
+    _, tokens = corpus_controls(seed + 1000, geom)  # same phonetics, fresh variability
     rest = np.zeros(len(PARAM_NAMES))
     hold = still_frames / fps  # [t, t + hold] holds at least still_frames frame times
     key_t, key_x, holds = [0.0], [rest], []
@@ -205,7 +230,11 @@ def make_sequence(seed: int = 0, n_frames: int = 150, fps: float = 50.0, rig: st
             continue
         key_t.append(t)
         key_x.append(tokens[rng.integers(len(tokens))])
-    controls = minimum_jerk(times, np.array(key_t), np.array(key_x))
+    key_t_a, key_x_a = np.array(key_t), np.array(key_x)
+    stop = np.zeros(len(key_t), bool)
+    for a, b in holds:
+        stop |= (key_t_a >= a) & (key_t_a <= b)
+    controls = quintic_path(times, key_t_a, key_x_a, via_velocities(key_t_a, key_x_a, stop))
 
     tau = _frozen_time(times, [(a if a > 0 else -1.0, b) for a, b in holds], RAMP_S)
     d_rot, d_trans = _head_motion(tau, rig, rng)

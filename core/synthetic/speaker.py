@@ -19,7 +19,7 @@ from core.errors import InputError
 from core.model import PARAM_NAMES, FaceModel
 from core.synthetic.corpus import make_corpus
 from core.synthetic.geometry import SpeakerGeometry, make_geometry
-from core.synthetic.render import RenderOptions, composite
+from core.synthetic.render import RenderOptions, composite, visible_points
 from core.synthetic.scene import build_scene
 from core.synthetic.texture import Atlas, make_atlas, make_background
 
@@ -73,12 +73,24 @@ class SyntheticSpeaker:
             raise InputError("render needs a core.camera.Pose and a core.camera.Camera")
         options = options or RenderOptions()
         atlas = make_atlas(self.seed)
+        scene = self._scene(c)
+        bg = make_background(camera.width, camera.height, self.seed) if options.background else None
+        return composite(scene, pose, camera, options, atlas.image, bg)
+
+
+    def visible(self, controls: np.ndarray, pose: Pose, camera: Camera) -> np.ndarray:
+        """(N,) bool: which model points the camera sees at ``controls`` and ``pose``
+        (inside the image and not hidden by the lips, the nose, the cheeks...)."""
+        c = np.asarray(controls, np.float64)
+        if c.shape != (len(PARAM_NAMES),):
+            raise InputError(f"visible takes one posture, controls of shape (7,), got {c.shape}")
+        return visible_points(self._scene(c), self.points(c), pose, camera)
+
+    def _scene(self, c: np.ndarray):
         skin_uv = self._cache.get("skin_uv")
         if skin_uv is None:
             skin_uv = self._cache["skin_uv"] = Atlas.skin_uv(self.geometry.uv)
-        scene = build_scene(self.geometry, self.points(c), c, skin_uv)
-        bg = make_background(camera.width, camera.height, self.seed) if options.background else None
-        return composite(scene, pose, camera, options, atlas.image, bg)
+        return build_scene(self.geometry, self.points(c), c, skin_uv)
 
 
 def default_speaker(seed: int = 0) -> SyntheticSpeaker:

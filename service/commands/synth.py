@@ -12,8 +12,9 @@ files written to DIR:
   video.mp4     the rendered frames (mp4v), what a tracker reads
   truth.jsonl   one JSON object per frame: frame, t (s), alpha {jaw1..lar1} (direct inversion
                 of the TRUE 3D points in model.npz: the best any tracker using that model can
-                do), pose {rotation (axis-angle, rad), translation (mm)} head -> camera, and
-                controls {jaw1..lar1} (the generating controls of the synthetic speaker)
+                do), pose {rotation (axis-angle, rad), translation (mm)} head -> camera,
+                controls {jaw1..lar1} (the generating controls of the synthetic speaker) and
+                occluded (true where --occluder hides the mouth in this frame)
   truth.npz     arrays points (F, N, 3) mm head frame, controls (F, 7), poses (F, 6), times,
                 still (F,) frames inside still segments (for jitter measurements)
   model.npz     the linear model built from the speaker's corpus (articast build-model)
@@ -22,7 +23,7 @@ files written to DIR:
 examples:
   articast synth sequence -o out/talk --rig head --frames 150
   articast synth sequence -o out/desk --rig desk --noise 4 --blur 0.8 --light-drift 20
-  articast synth sequence -o out/occl --occluder hand --frames 50
+  articast synth sequence -o out/occl --occluder hand --occlude-frames 40:60
 """
 
 
@@ -60,7 +61,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="render a talking sequence with its ground truth",
         description=(
             "Render the speaker talking (coarticulated postures, head motion, still segments) "
-            "and write the video and the ground truth. Rig 'head': head-mounted camera ~23 cm "
+            "and write the video and the ground truth. Rig 'head': head-mounted camera ~22 cm "
             "from the mouth, lower face filling the frame; rig 'desk': desk camera ~56 cm "
             "away, whole face visible, head nods and drifts."
         ),
@@ -82,6 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="illumination drift: light azimuth swings +-DEG over the sequence")
     s.add_argument("--occluder", choices=("none", "hand", "black"), default="none",
                    help="hand over the mouth, or black frames (default none)")
+    s.add_argument("--occlude-frames", default="", metavar="A:B",
+                   help="occlude only frames A..B-1 (default: all frames when --occluder is "
+                        "set); truth.jsonl marks them with \"occluded\": true")
     s.add_argument("--still-frames", type=int, default=15,
                    help="length of the still segments, frames (default 15; 0 = none)")
     s.set_defaults(func=_sequence)
@@ -97,6 +101,21 @@ def _parse_size(text: str) -> tuple[int, int]:
     if w < 16 or h < 16 or w > 8192 or h > 8192:
         raise InputError(f"--size {w}x{h} is out of range (16..8192 px)")
     return w, h
+
+
+def _parse_range(text: str, n_frames: int) -> tuple[int, int]:
+    """'A:B' -> (A, B) frame range; '' -> all frames."""
+    from core.errors import InputError
+
+    if not text:
+        return 0, n_frames
+    try:
+        a, b = (int(v) for v in text.split(":"))
+    except ValueError:
+        raise InputError(f"--occlude-frames must look like 40:60, got {text!r}") from None
+    if not 0 <= a < b:
+        raise InputError(f"--occlude-frames needs 0 <= A < B, got {text!r}")
+    return a, b
 
 
 def _corpus(args: argparse.Namespace) -> int:
@@ -123,6 +142,7 @@ def _sequence(args: argparse.Namespace) -> int:
     from core.synthetic import RenderOptions, default_speaker, make_sequence
 
     width, height = _parse_size(args.size)
+    occluded = _parse_range(args.occlude_frames, args.frames) if args.occluder != "none" else None
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
     if args.frames < 1:
@@ -154,9 +174,10 @@ def _sequence(args: argparse.Namespace) -> int:
         with open(out / "truth.jsonl", "w") as fh:
             for i in range(seq.n_frames):
                 drift = args.light_drift * np.sin(2 * np.pi * i / max(seq.n_frames, 2))
+                hidden = occluded is not None and occluded[0] <= i < occluded[1]
                 opts = RenderOptions(
                     noise_sigma=base.noise_sigma, blur_sigma=base.blur_sigma, gain=base.gain,
-                    occluder=base.occluder, seed=args.seed * 100_003 + i,
+                    occluder=base.occluder if hidden else "none", seed=args.seed * 100_003 + i,
                     light_azimuth_deg=base.light_azimuth_deg + drift,
                 )
                 writer.write(speaker.render(seq.controls[i], seq.pose(i), seq.camera, opts))
@@ -167,6 +188,7 @@ def _sequence(args: argparse.Namespace) -> int:
                     "pose": seq.pose(i).to_dict(),
                     "controls": {n: float(v) for n, v in
                                  zip(PARAM_NAMES, seq.controls[i], strict=True)},
+                    "occluded": bool(hidden),
                 }
                 fh.write(json.dumps(record) + "\n")
                 if (i + 1) % 25 == 0 or i + 1 == seq.n_frames:
