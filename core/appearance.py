@@ -115,6 +115,7 @@ def _interpolate(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, ...]:
 # la descriptors as columns of the interpolated (M, 9) = [S(Y Cr Cb), Sx(Y Cr Cb), Sy(Y Cr Cb)]
 _LA_COLS = np.array([3, 6, 1, 4, 7, 2, 5, 8])  # Yx Yy Cr Crx Cry Cb Cbx Cby
 _LA_DERIV = np.array([1, 1, 0, 1, 1, 0, 1, 1], bool)
+_LA_OFFSET = np.array([0, 0, 128.0, 0, 0, 128.0, 0, 0])
 
 
 def sample_la(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -125,7 +126,8 @@ def sample_la(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, 
     ival, idx, idy, valid = _interpolate(maps, uv)
     scale = np.where(_LA_DERIV, maps.sigma, 1.0)
     dd = np.stack([idx[:, _LA_COLS], idy[:, _LA_COLS]], axis=2)
-    return ival[:, _LA_COLS] * scale, dd * (scale * maps.scale)[None, :, None], valid
+    # chroma values centred on 128 (neutral grey): every descriptor then scales with gain
+    return ival[:, _LA_COLS] * scale - _LA_OFFSET, dd * (scale * maps.scale)[None, :, None], valid
 
 
 def sample_tex(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -47,8 +47,10 @@ class FitPolicy:
     lm_lambda: float = 1e-3
     nelder_mead_evals: int = 300
     prior: PriorPolicy = field(default_factory=PriorPolicy)
+    # s.d. of the image gain's change from its start value (la models estimate a gain)
     pose_sigma_rad: float | None = None
     pose_sigma_mm: float | None = None
+    gain_sigma: float = 0.02
 
 
 @dataclass(frozen=True, eq=False)
@@ -65,6 +67,7 @@ class FitResult:
     converged: bool
     valid_fraction: float
     costs: tuple[float, ...] = ()
+    gain: float = 1.0
 
     @property
     def theta(self) -> np.ndarray:
@@ -90,6 +93,7 @@ class Problem:
         self.bound = np.maximum(np.abs(st.min), np.abs(st.max)) + self.prior.margin
         self._tex = appearance.kind.startswith("tex")
         self._quad = appearance.kind.endswith("quad")
+        self.estimate_gain = not self._tex  # tex features are z-scored: gain-invariant
 
     # -------------------------------------------------------------- geometry
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
@@ -112,9 +116,15 @@ class Problem:
         return float(e.sum()), np.sign(alpha) * e / p.softness, e / p.softness**2
 
     def residuals(self, maps: ImageMaps, level_index: int, alpha: np.ndarray, rot: np.ndarray,
-                  t: np.ndarray, jacobian: bool) -> tuple[np.ndarray, np.ndarray | None, float]:
-        """Weighted residuals r (S*C,), Jacobian (S*C, K+6) w.r.t. (alpha, rotation increment,
-        translation), and the fraction of valid samples. Invalid samples contribute 0."""
+                  t: np.ndarray, jacobian: bool, gain: float = 1.0,
+                  with_gain: bool = False) -> tuple[np.ndarray, np.ndarray | None, float]:
+        """Weighted residuals r (S*C,), Jacobian (S*C, P) w.r.t. (alpha, rotation increment,
+        translation[, gain]), and the fraction of valid samples. Invalid samples contribute 0.
+
+        la models predict ``gain * f(alpha)``: every la descriptor (first-order derivatives,
+        chroma centred on 128) scales with a global image gain, so exposure and light-level
+        changes are one more unknown (P = K + 7 with ``with_gain``) instead of an error.
+        """
         app = self.appearance
         head, cam = self.sample_points_cam(alpha, rot, t)
         uv, jp = self.camera.project_jacobian(cam, jacobian)
@@ -131,14 +141,15 @@ class Problem:
         if self._quad:
             pred = pred + (alpha * alpha) @ w[k + 1:]
         pred = pred.reshape(s, c)
-        r = (feats - pred) * cw
+        r = (feats - gain * pred) * cw
         r[~valid] = 0.0
         vf = float(valid.mean())
         if not jacobian:
             return r.reshape(-1), None, vf
         # d(cam)/d(alpha) = R basis ; d(cam)/d(delta) = -[R head]x ; d(cam)/d(t) = I
         rh = head @ rot.T
-        dcam = np.zeros((s, 3, k + 6))
+        with_gain = with_gain and self.estimate_gain
+        dcam = np.zeros((s, 3, k + 6 + int(with_gain)))
         dcam[:, :, :k] = np.matmul(rot, self._basis_sdk)
         dcam[:, 0, k + 1], dcam[:, 0, k + 2] = rh[:, 2], -rh[:, 1]
         dcam[:, 1, k], dcam[:, 1, k + 2] = -rh[:, 2], rh[:, 0]
@@ -151,7 +162,9 @@ class Problem:
         dpred = w[1:k + 1]
         if self._quad:
             dpred = dpred + 2.0 * alpha[:, None] * w[k + 1:]
-        jac[:, :, :k] -= dpred.T.reshape(s, c, k)
+        jac[:, :, :k] -= gain * dpred.T.reshape(s, c, k)
+        if with_gain:
+            jac[:, :, k + 6] = -pred
         jac *= cw[:, :, None]
         jac[~valid] = 0.0
         return r.reshape(-1), jac.reshape(s * c, -1), vf
@@ -182,10 +195,14 @@ def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
 def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
                      rotation0: np.ndarray, translation0: np.ndarray,
                      policy: FitPolicy | None = None,
-                     pose_ref: tuple[np.ndarray, np.ndarray] | None = None) -> FitResult:
+                     pose_ref: tuple[np.ndarray, np.ndarray] | None = None,
+                     gain0: float = 1.0, estimate_gain: bool = False) -> FitResult:
     """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level.
 
     pose_ref : (rotation (3,), translation (3,)) the pose prior is centred on, if any.
+    gain0, estimate_gain : the image gain of la models and whether to refine it. Far from the
+        solution, shrinking the gain is a cheap way to shrink a misaligned residual, so the
+        tracker refines it only in the final fine-level fit of a frame.
     """
     pol = policy or FitPolicy()
     ref = None if pose_ref is None else (rotation_matrix(pose_ref[0]), np.asarray(pose_ref[1]))
@@ -194,10 +211,12 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     alpha = np.array(alpha0, np.float64)
     rot = rotation_matrix(rotation0)
     t = np.array(translation0, np.float64)
+    gain = gain0 = float(gain0)
     lam = pol.lm_lambda
-    r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True)
+    r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True, gain, estimate_gain)
     prior, g_p, h_p = problem.prior_terms(alpha)
     pp, g_pp, h_pp = _pose_prior(pol, rot, t, ref)
+    wg = 1.0 / pol.gain_sigma**2
     cost = float(r @ r) + prior + pp
     evals, costs, converged, it = 1, [cost], False, 0
     for it in range(1, pol.max_iterations + 1):
@@ -205,8 +224,11 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         g = jac.T @ r
         h[np.arange(k), np.arange(k)] += h_p / 2
         g[:k] += g_p / 2
-        h[k:, k:] += h_pp / 2
-        g[k:] += g_pp / 2
+        h[k:k + 6, k:k + 6] += h_pp / 2
+        g[k:k + 6] += g_pp / 2
+        if h.shape[0] > k + 6:  # gain prior around its start value
+            h[k + 6, k + 6] += wg
+            g[k + 6] += wg * (gain - gain0)
         diag = np.diag(h).copy()
         diag[diag <= 0] = 1.0
         accepted = False
@@ -218,11 +240,14 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                 continue
             a_new = alpha + step[:k]
             rot_new = rotation_matrix(step[k:k + 3]) @ rot
-            t_new = t + step[k + 3:]
-            r_new, jac_new, vf_new = problem.residuals(maps, li, a_new, rot_new, t_new, True)
+            t_new = t + step[k + 3:k + 6]
+            g_new = float(np.clip(gain + step[k + 6], 0.2, 5.0)) if step.size > k + 6 else gain
+            r_new, jac_new, vf_new = problem.residuals(maps, li, a_new, rot_new, t_new, True,
+                                                       g_new, estimate_gain)
             prior_new, gp_new, hp_new = problem.prior_terms(a_new)
             pp_new, gpp_new, hpp_new = _pose_prior(pol, rot_new, t_new, ref)
-            cost_new = float(r_new @ r_new) + prior_new + pp_new
+            cost_new = (float(r_new @ r_new) + prior_new + pp_new
+                        + wg * (g_new - gain0) ** 2 * (step.size > k + 6))
             evals += 1
             if cost_new <= cost or lam > 1e6:
                 accepted = cost_new <= cost
@@ -232,18 +257,18 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             converged = True  # no descent direction left at this damping: a minimum
             break
         lam = max(lam / 10, 1e-7)
-        alpha, rot, t = a_new, rot_new, t_new
+        alpha, rot, t, gain = a_new, rot_new, t_new, g_new
         r, jac, vf, cost = r_new, jac_new, vf_new, cost_new
         g_p, h_p, g_pp, h_pp = gp_new, hp_new, gpp_new, hpp_new
         costs.append(cost)
         if (np.abs(step[:k]).max() < pol.tol_alpha
                 and np.abs(step[k:k + 3]).max() < pol.tol_rotation
-                and np.abs(step[k + 3:]).max() < pol.tol_translation_mm):
+                and np.abs(step[k + 3:k + 6]).max() < pol.tol_translation_mm):
             converged = True
             break
     n = max(r.size * vf, 1.0)
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
-                     vf, tuple(costs))
+                     vf, tuple(costs), gain)
 
 
 def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,

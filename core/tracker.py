@@ -89,6 +89,7 @@ class Tracker:
         self._theta: np.ndarray | None = None
         self._prev: np.ndarray | None = None
         self._level: float | None = None
+        self._gain = 1.0
         if pose is not None:
             a = np.zeros(self.k) if alpha is None else np.asarray(alpha, np.float64)
             self._theta = np.concatenate([a, pose.as_vector()])
@@ -96,7 +97,7 @@ class Tracker:
     # ------------------------------------------------------------------ fitting
     def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
              cache: dict[int, ImageMaps], policy: FitPolicy | None = None,
-             pose_ref: np.ndarray | None = None) -> FitResult:
+             pose_ref: np.ndarray | None = None, refine_gain: bool = True) -> FitResult:
         pol = self.policy
         theta = theta0
         result: FitResult | None = None
@@ -113,13 +114,14 @@ class Tracker:
                 result = fit_nelder_mead(*args)
             else:
                 ref = None if pose_ref is None else (pose_ref[:3], pose_ref[3:])
-                result = fit_gauss_newton(*args, pose_ref=ref)
+                result = fit_gauss_newton(*args, pose_ref=ref, gain0=self._gain,
+                                          estimate_gain=(level == 0 and refine_gain))
             evals += result.evals
             theta = result.theta
         assert result is not None
         return FitResult(result.alpha, result.rotation, result.translation, result.cost,
                          result.residual, evals, result.iterations, result.converged,
-                         result.valid_fraction, result.costs)
+                         result.valid_fraction, result.costs, result.gain)
 
     def _search(self, image: np.ndarray, pose: Pose) -> np.ndarray:
         """Coarse grid search of the translation around ``pose`` at the coarsest level."""
@@ -151,7 +153,8 @@ class Tracker:
             if self.initial_pose is None:
                 return self._lost(t, t0, "no initial pose: give one or call reset(pose)", 0)
             self._theta = self._search(image, self.initial_pose)
-            first = self._fit(image, self._theta, pol.reinit_levels, cache, pol.reinit_fit)
+            first = self._fit(image, self._theta, pol.reinit_levels, cache, pol.reinit_fit,
+                              refine_gain=False)
             return self._accept(first, t, t0, first.evals, force=True)
         theta0 = self._theta
         if pol.predict and self._prev is not None:
@@ -171,7 +174,8 @@ class Tracker:
                 tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref))
             neutral = self._theta.copy()
             neutral[:self.k] = 0.0
-            tries.append(self._fit(image, neutral, pol.reinit_levels, {}, pol.reinit_fit))
+            tries.append(self._fit(image, neutral, pol.reinit_levels, {}, pol.reinit_fit,
+                                   refine_gain=False))
             evals += sum(f.evals for f in tries[1:])
             fit = min(tries, key=lambda f: f.cost)
             if not self._good(fit):
@@ -198,12 +202,14 @@ class Tracker:
             return self._lost(t, t0, "initial search did not find the face", evals, fit)
         self._prev = self._theta if not force else None
         self._theta = fit.theta
+        self._gain = fit.gain
         lvl = fit.residual
         self._level = lvl if self._level is None else (
             (1 - pol.level_rate) * self._level + pol.level_rate * lvl)
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
-                           {"converged": fit.converged, "valid_fraction": fit.valid_fraction})
+                           {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
+                            "gain": fit.gain})
 
     def _lost(self, t: float, t0: float, reason: str, evals: int,
               fit: FitResult | None = None) -> TrackResult:
