@@ -107,6 +107,7 @@ class Evaluation:
         self.speaker = default_speaker(config.seed)
         self.model = self.speaker.model()
         self._apps: dict[tuple[str, str], AppearanceModel] = {}
+        self._frames: dict[str, list[TrainingFrame]] = {}
 
     # ------------------------------------------------------------------ data
     def _render_sequence(self, seq, options_for_frame: Callable[[int], Any]) -> list[np.ndarray]:
@@ -114,22 +115,16 @@ class Evaluation:
                 for i in range(seq.n_frames)]
 
     def _appearance(self, rig: str, kind: str) -> AppearanceModel:
-        from core.synthetic import RenderOptions, make_sequence
+        from core.synthetic.enrol import enrolment_appearance, enrolment_frames
 
         if (rig, kind) not in self._apps:
-            key = ("frames", rig)
-            if key not in self._apps:
+            if rig not in self._frames:
                 cfg = self.cfg
-                seq = make_sequence(cfg.seed * 100 + 1, cfg.train_frames, cfg.train_fps, rig)
-                imgs = self._render_sequence(seq, lambda i: RenderOptions(seed=10_000 + i))
-                alpha = invert(self.model, seq.points)
-                self._apps[key] = [TrainingFrame(imgs[i], alpha[i], seq.pose(i))  # type: ignore
-                                   for i in range(seq.n_frames)]
-                self._cam = seq.camera
+                self._frames[rig] = enrolment_frames(self.speaker, rig, cfg.seed * 100 + 1,
+                                                     cfg.train_frames, cfg.train_fps)
             self.say(f"training {kind} ({rig} rig)")
-            self._apps[(rig, kind)] = train_appearance(
-                self.model, self._cam, self._apps[key], kind,  # type: ignore[arg-type]
-                tex_spacing_mm=self.cfg.tex_spacing_mm)
+            self._apps[(rig, kind)] = enrolment_appearance(
+                self.speaker, rig, kind, self._frames[rig], tex_spacing_mm=self.cfg.tex_spacing_mm)
         return self._apps[(rig, kind)]
 
     # ------------------------------------------------------------------ conditions
