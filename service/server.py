@@ -1,0 +1,48 @@
+"""Running the app under uvicorn, with a clean shutdown.
+
+SIGTERM or Ctrl-C: uvicorn stops accepting, closes the WebSocket connections, waits up to
+``shutdown_timeout_s`` for them, then the app's lifespan stops every session (workers are told
+to stop, joined with a timeout, processes terminated if they do not).
+"""
+
+from __future__ import annotations
+
+import socket
+from collections.abc import Callable
+
+import uvicorn
+
+from service.app import ServiceConfig, create_app
+
+
+def uvicorn_config(config: ServiceConfig, sock: socket.socket | None = None) -> uvicorn.Config:
+    s = config.server
+    return uvicorn.Config(
+        create_app(config), host=s.host, port=s.port, log_level=s.log_level,
+        ws="websockets-sansio", ws_max_size=config.hub.ws_max_size,
+        ws_ping_interval=20.0, ws_ping_timeout=20.0,
+        timeout_graceful_shutdown=s.shutdown_timeout_s, lifespan="on",
+        access_log=False, server_header=False,
+    )
+
+
+def bound_socket(host: str, port: int) -> socket.socket:
+    """A listening socket (port 0: any free port), so the URL is known before serving."""
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    sock.bind((host, port))
+    sock.listen(2048)
+    sock.set_inheritable(True)
+    return sock
+
+
+def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = None) -> None:
+    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound."""
+    sock = bound_socket(config.server.host, config.server.port)
+    host, port = sock.getsockname()[:2]
+    if on_listening:
+        shown = f"[{host}]" if ":" in host else host
+        on_listening(f"ws://{shown}:{port}/ws")
+    server = uvicorn.Server(uvicorn_config(config))
+    server.run(sockets=[sock])
