@@ -15,6 +15,7 @@ from core.errors import ArticastError
 
 COMMAND_MODULES = (
     "service.commands.model",
+    "service.commands.serve",
 )
 
 

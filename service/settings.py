@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from core.errors import InputError
@@ -18,54 +18,48 @@ from core.errors import InputError
 S = TypeVar("S")
 
 
+def _opt(default: Any, help: str) -> Any:  # noqa: A002 - argparse's word
+    return field(default=default, metadata={"help": help})
+
+
 @dataclass(frozen=True)
 class CaptureSettings:
     """How a capture thread treats its source."""
 
-    retry_initial_s: float = 0.5
-    """First wait before reopening an unavailable camera; doubles up to ``retry_max_s``."""
-    retry_max_s: float = 10.0
-    read_timeout_s: float = 2.0
-    """A live source that delivers nothing for this long is considered lost."""
+    retry_initial_s: float = _opt(0.5, "first wait before reopening an unavailable camera")
+    retry_max_s: float = _opt(10.0, "longest wait between reopening attempts (backoff cap)")
 
 
 @dataclass(frozen=True)
 class HubSettings:
     """Limits of the fan-out to subscribers."""
 
-    max_queue: int = 4
-    """Frames queued per subscriber before the oldest is dropped."""
-    max_subscribers: int = 2000
-    max_subscriptions_per_connection: int = 16
-    max_message_bytes: int = 65536
-    """Largest client message the app accepts (larger ones get an ``error``)."""
-    ws_max_size: int = 1 << 20
-    """Largest WebSocket message the protocol layer reads at all (larger: close 1009)."""
-    stall_timeout_s: float = 30.0
-    """A subscriber whose single send has not completed for this long is disconnected."""
+    max_queue: int = _opt(4, "frames queued per subscriber before the oldest is dropped")
+    max_subscribers: int = _opt(2000, "subscriptions the server accepts in all")
+    max_subscriptions_per_connection: int = _opt(16, "sessions one connection may follow")
+    max_message_bytes: int = _opt(65536, "largest client message or HTTP body accepted")
+    ws_max_size: int = _opt(1 << 20, "largest WebSocket message read at all (else close 1009)")
+    stall_timeout_s: float = _opt(30.0, "disconnect a subscriber whose send is stuck this long")
 
 
 @dataclass(frozen=True)
 class SessionPolicy:
     """How sessions run and recover."""
 
-    worker: str = "auto"
-    """``thread``, ``process``, or ``auto`` (at most one session tracks in the server's own
-    process; every further concurrent session gets a process, so faces never share a GIL)."""
-    restart_initial_s: float = 0.5
-    restart_max_s: float = 30.0
-    max_restarts: int = 20
-    """Restarts after crashes before a session is declared failed (input errors never restart)."""
+    worker: str = _opt("auto", "thread | process | auto (one session in the server process, "
+                       "the others in their own processes: faces never share a GIL)")
+    restart_initial_s: float = _opt(0.5, "first wait before restarting a crashed session")
+    restart_max_s: float = _opt(30.0, "longest wait between restarts (backoff cap)")
+    max_restarts: int = _opt(20, "crashes before a session is declared failed")
 
 
 @dataclass(frozen=True)
 class ServerSettings:
-    host: str = "127.0.0.1"
-    port: int = 8765
-    record: str = ""
-    """Directory where every session's frames are written as JSONL ('' = no recording)."""
-    shutdown_timeout_s: float = 5.0
-    log_level: str = "warning"
+    host: str = _opt("127.0.0.1", "address to listen on")
+    port: int = _opt(8765, "port to listen on (0: any free port)")
+    record: str = _opt("", "write every session's frames as JSONL into this folder")
+    shutdown_timeout_s: float = _opt(5.0, "wait this long for connections and workers to end")
+    log_level: str = _opt("warning", "uvicorn and articast log level")
 
 
 def from_env(cls: type[S], env: Mapping[str, str] | None = None, **overrides: Any) -> S:
@@ -105,7 +99,8 @@ def add_arguments(parser: Any, cls: type, skip: tuple[str, ...] = ()) -> None:
         t = {"int": int, "float": float}.get(str(f.type), str)
         parser.add_argument(
             "--" + f.name.replace("_", "-"), dest=f.name, type=t, default=None,
-            help=f"(default {f.default!r}; env ARTICAST_{f.name.upper()})",
+            help=f"{f.metadata.get('help', '')} (default {f.default!r}; "
+            f"env ARTICAST_{f.name.upper()})".lstrip(),
         )
 
 

@@ -191,6 +191,10 @@ class V4L2Source:
     def open(self) -> SourceInfo:
         import cv2
 
+        try:  # a missing camera is our status to report, not OpenCV's warning on stderr
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        except AttributeError:
+            pass
         cap = cv2.VideoCapture(self._index(), cv2.CAP_V4L2)
         if not cap.isOpened():
             cap.release()
