@@ -63,7 +63,9 @@ async def recv(ws, timeout=TIMEOUT):
 
 
 async def subscribe(url, **msg):
-    ws = await websockets.connect(url, open_timeout=TIMEOUT, max_size=2**24)
+    # close_timeout: a client that stopped reading cannot see the server's close reply behind
+    # the frames it has not read, so the closing handshake would wait the default 10 s
+    ws = await websockets.connect(url, open_timeout=TIMEOUT, max_size=2**24, close_timeout=1)
     await ws.send(json.dumps({"type": "subscribe", **msg}))
     return ws
 
@@ -145,7 +147,8 @@ def test_several_subscribers_get_the_same_frames(server):
 def test_a_stalled_subscriber_does_not_slow_the_others(server):
     async def go():
         # the stalled client asks for the heavy mesh stream (~200 kB a frame) and stops reading
-        stalled = await websockets.connect(server.url, max_queue=1, max_size=2**24)
+        stalled = await websockets.connect(server.url, max_queue=1, max_size=2**24,
+                                           close_timeout=1)
         await stalled.send(json.dumps({"type": "subscribe", "session": "big",
                                        "streams": ["mesh"]}))
         fast = await subscribe(server.url, session="big", streams=["articulatory"])
