@@ -20,6 +20,9 @@ def uvicorn_config(config: ServiceConfig, sock: socket.socket | None = None) -> 
     return uvicorn.Config(
         create_app(config), host=s.host, port=s.port, log_level=s.log_level,
         ws="websockets-sansio", ws_max_size=config.hub.ws_max_size,
+        # no permessage-deflate: it compresses every message once per connection, which
+        # would undo encode-once fan-out (frames are small; loopback and LANs do not need it)
+        ws_per_message_deflate=False,
         ws_ping_interval=20.0, ws_ping_timeout=20.0,
         timeout_graceful_shutdown=s.shutdown_timeout_s, lifespan="on",
         access_log=False, server_header=False,
