@@ -61,7 +61,8 @@ async def reader(url: str, clock: Any, out: dict, lat: list[float], encoding: st
         out.setdefault("span", []).append((last_seq - first_seq + 1) if got else 0)
 
 
-def client_process(url: str, n: int, encoding: str, clock: Any, ready: Any, results: Any) -> None:
+def client_process(url: str, n: int, encoding: str, clock: Any, ready: Any, results: Any,
+                   lean: bool) -> None:
     """Runs ``n`` readers on one event loop; reports their figures through ``results``."""
     try:
         import uvloop
@@ -73,6 +74,8 @@ def client_process(url: str, n: int, encoding: str, clock: Any, ready: Any, resu
     async def run() -> dict:
         out: dict = {}
         lat: list[float] = []
+        if lean:
+            return await run_lean()
         tasks = [asyncio.create_task(reader(url, clock, out, lat, encoding)) for _ in range(n)]
         while out.get("connected", 0) < n:
             await asyncio.sleep(0.05)
@@ -80,6 +83,25 @@ def client_process(url: str, n: int, encoding: str, clock: Any, ready: Any, resu
         await asyncio.gather(*tasks)
         out["lat"] = lat
         return out
+
+    async def run_lean() -> dict:
+        from leanclient import LeanSubscriber
+
+        loop = asyncio.get_running_loop()
+        host, port = url.split("//")[1].split("/")[0].split(":")
+        sub = {"type": "subscribe", "session": "bench", "streams": ["articulatory", "pose"],
+               "encoding": "binary"}
+        protos = []
+        for _ in range(n):
+            _, p = await loop.create_connection(lambda: LeanSubscriber(sub, clock, {}),
+                                                host, int(port))
+            await p.connected
+            protos.append(p)
+        ready.release()
+        await asyncio.gather(*(p.done for p in protos))
+        return {"got": [p.got for p in protos], "dropped": [p.dropped for p in protos],
+                "span": [(p.last_seq - p.first_seq + 1) if p.got else 0 for p in protos],
+                "lat": [x for p in protos for x in p.lat]}
 
     results.put(asyncio.run(run()))
 
@@ -110,13 +132,13 @@ def stalled_client(url: str) -> socket.socket:
 
 
 def measure(srv: Server, n: int, seconds: float, stalled: int, procs: int,
-            encoding: str) -> dict:
+            encoding: str, lean: bool) -> dict:
     ctx = mp.get_context("spawn")
     clock = ctx.Array("d", [float("inf"), float("inf")])
     ready, results = ctx.Semaphore(0), ctx.Queue()
     sizes = [n // procs + (i < n % procs) for i in range(procs)]
     workers = [ctx.Process(target=client_process, args=(srv.url, k, encoding, clock, ready,
-                                                        results), daemon=True) for k in sizes]
+                                                        results, lean), daemon=True) for k in sizes]
     for w in workers:
         w.start()
     for _ in workers:
@@ -144,7 +166,7 @@ def measure(srv: Server, n: int, seconds: float, stalled: int, procs: int,
     lat = [x for o in outs for x in o["lat"]]
     return {
         "subscribers": n, "stalled": stalled, "seconds": seconds, "encoding": encoding,
-        "client_processes": procs,
+        "client": "lean" if lean else "websockets", "client_processes": procs,
         "rate_hz": round(sum(got) / max(1, len(got)) / seconds, 2),
         "min_rate_hz": round(min(got) / seconds, 2) if got else 0,
         "frames_missed": sum(s - g for s, g in zip(span, got)),
@@ -164,6 +186,9 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--client-processes", type=int, default=2)
     ap.add_argument("--encoding", choices=("json", "binary"), default="binary")
+    ap.add_argument("--client", choices=("lean", "websockets"), default="lean",
+                    help="load generator: lean (manual framing, binary) or the websockets "
+                    "library (costs the shared CPU more than the server does)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     rec = make_recording(frames=int(args.fps * 30), fps=args.fps, n_points=2000)
@@ -171,7 +196,7 @@ def main() -> None:
         srv.wait_running()
         for n in args.subscribers:
             r = measure(srv, n, args.seconds, args.stalled, args.client_processes,
-                        args.encoding)
+                        args.encoding, args.client == "lean")
             r["source_fps"] = args.fps
             print(json.dumps(r) if args.json else r, flush=True)
 
