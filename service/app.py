@@ -147,7 +147,9 @@ class Connection:
             await self.error("too_many_subscriptions", "the server is at its subscriber limit "
                              f"({svc.config.hub.max_subscribers})", name)
             return
-        sub = svc.hub.subscribe(name, max_queue=svc.config.hub.max_queue, max_rate=req.rate)
+        limits = svc.config.hub
+        depth = min(req.queue, limits.max_queue_limit) if req.queue else limits.max_queue
+        sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
         s = Subscriber(self, req, sub)
         self.subs[name] = s
         session.subscriber_arrived()

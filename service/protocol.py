@@ -56,6 +56,11 @@ class Subscribe(_Message):
         default=None, gt=0, le=1000, description="maximum frames per second (None: every frame)"
     )
     encoding: Encoding = "json"
+    queue: int | None = Field(
+        default=None, ge=1, le=1024,
+        description="frames the server may queue for this subscriber before dropping the "
+        "oldest (default and cap: the server's limits); a deep queue suits replays",
+    )
     geometry: bool = Field(
         default=True, description="include the model geometry (mean, triangles, basis) in hello"
     )

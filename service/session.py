@@ -28,6 +28,8 @@ from service.worker import ProcessWorker, SessionSpec, ThreadWorker
 log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 TERMINAL = ("ended", "failed", "stopped")
+JOIN_TIMEOUT_S = 5.0
+"""How long a stopped worker may take to finish its frame before its process is terminated."""
 
 
 class Session:
@@ -92,7 +94,7 @@ class Session:
                 await self._done.wait()
             finally:
                 worker.stop()
-                await asyncio.to_thread(worker.join, self._m.policy.restart_max_s)
+                await asyncio.to_thread(worker.join, JOIN_TIMEOUT_S)
             outcome, detail = self._outcome
             if self._stopping.is_set() or outcome == "stopped":
                 return

@@ -35,6 +35,7 @@ class HubSettings:
     """Limits of the fan-out to subscribers."""
 
     max_queue: int = _opt(4, "frames queued per subscriber before the oldest is dropped")
+    max_queue_limit: int = _opt(256, "deepest queue a subscriber may ask for")
     max_subscribers: int = _opt(2000, "subscriptions the server accepts in all")
     max_subscriptions_per_connection: int = _opt(16, "sessions one connection may follow")
     max_message_bytes: int = _opt(65536, "largest client message or HTTP body accepted")

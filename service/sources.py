@@ -246,6 +246,7 @@ class FileSource(_Finite):
         self._n = 0
 
     def open(self) -> SourceInfo:
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # our error, not FFmpeg's noise
         import cv2
 
         if not self.path.is_file():

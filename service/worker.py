@@ -160,17 +160,53 @@ class ThreadWorker:
         return not self._thread.is_alive()
 
 
-def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str, conn: Any,
-                  stop: Any, go: Any) -> None:
+class _Flag:
+    """``go``/``stop`` of a process worker, as seen by the server: a message on the pipe."""
+
+    def __init__(self, conn: Any, word: str) -> None:
+        self._conn, self._word, self._set = conn, word, False
+
+    def set(self) -> None:
+        if not self._set:
+            self._set = True
+            try:
+                self._conn.send(self._word)
+            except (OSError, ValueError):  # the worker is gone already
+                pass
+
+    def is_set(self) -> bool:
+        return self._set
+
+
+def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
+                  conn: Any) -> None:
+    """Worker process: control words (``go``, ``stop``) in, worker messages out, one pipe.
+
+    A closed pipe (the server died) stops the worker, so no orphan keeps a camera open.
+    """
     import signal
 
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through ``stop``
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through the pipe
+    stop, go = threading.Event(), threading.Event()
     lock = threading.Lock()
+
+    def control() -> None:
+        while True:
+            try:
+                word = conn.recv()
+            except (EOFError, OSError):
+                stop.set()
+                return
+            (go if word == "go" else stop).set()
 
     def emit(msg: tuple[Any, ...]) -> None:
         with lock:
-            conn.send(msg)
+            try:
+                conn.send(msg)
+            except (OSError, ValueError):
+                stop.set()
 
+    threading.Thread(target=control, daemon=True).start()
     try:
         run_worker(spec, capture, record_dir, emit, stop, go)
     finally:
@@ -182,6 +218,8 @@ class ProcessWorker:
 
     A reader thread in the server receives the worker's messages and passes them to ``emit``;
     if the process dies without saying ``done``, ``emit`` gets ``("done", "crashed", ...)``.
+    The pipe carries no semaphores (unlike multiprocessing.Event), so nothing leaks when the
+    server is killed.
     """
 
     kind = "process"
@@ -189,26 +227,26 @@ class ProcessWorker:
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
                  emit: Emit) -> None:
-        self.stop_event, self.go = self._ctx.Event(), self._ctx.Event()
-        recv, send = self._ctx.Pipe(duplex=False)
-        self._recv, self._emit = recv, emit
+        self._conn, child = self._ctx.Pipe(duplex=True)
+        self._emit = emit
+        self.stop_event, self.go = _Flag(self._conn, "stop"), _Flag(self._conn, "go")
         self.process = self._ctx.Process(
-            target=_process_main, args=(spec, capture, record_dir, send, self.stop_event, self.go),
+            target=_process_main, args=(spec, capture, record_dir, child),
             name=f"articast session {spec.name}", daemon=True)
-        self._send = send
+        self._child = child
         self._reader = threading.Thread(target=self._read, name=f"reader {spec.name}",
                                         daemon=True)
 
     def start(self) -> None:
         self.process.start()
-        self._send.close()  # the child holds the only write end: EOF when it dies
+        self._child.close()  # the child holds the other end: EOF when it dies
         self._reader.start()
 
     def _read(self) -> None:
         done = False
         while True:
             try:
-                msg = self._recv.recv()
+                msg = self._conn.recv()
             except (EOFError, OSError):
                 break
             done = done or msg[0] == "done"
@@ -227,4 +265,5 @@ class ProcessWorker:
             self.process.terminate()
             self.process.join(1.0)
         self._reader.join(1.0)
+        self._conn.close()
         return not self.process.is_alive()
