@@ -379,3 +379,46 @@ def test_recording_round_trip(server, recording):
     for f in frames[:20]:
         t = truth[f["frame"] % len(truth)]
         assert list(f["alpha"].values()) == pytest.approx(list(t.alpha))
+
+
+def test_two_faces_never_share_a_gil(server):
+    sessions = {s["name"]: s for s in httpx.get(server.http + "/api/sessions",
+                                                timeout=TIMEOUT).json()}
+    kinds = [sessions[n]["worker"] for n in ("rec", "big")]
+    assert sorted(kinds) == ["process", "thread"]  # one in the server, the other its own
+
+
+def test_a_subscriber_stalled_past_the_timeout_is_disconnected(tmp_path):
+    big = tmp_path / "big.jsonl"  # ~200 kB mesh frames: a socket fills within a second
+    write_recording(big, frames=60, fps=30, model=small_model(n=4000))
+    config = ServiceConfig(
+        server=ServerSettings(log_level="critical"),
+        hub=HubSettings(stall_timeout_s=0.5),
+        sessions=(SessionSpec("big", f"replay-record:{big}?loop=0"),),
+        api_token="secret",
+    )
+
+    async def go(srv):
+        stalled = await websockets.connect(srv.url, max_queue=1, max_size=2**24,
+                                           close_timeout=1)
+        await stalled.send(json.dumps({"type": "subscribe", "session": "big",
+                                       "streams": ["mesh"]}))
+        healthy = await subscribe(srv.url, session="big")
+        await until(healthy, "hello")
+        deadline = time.monotonic() + TIMEOUT
+        while len(srv.service.connections) > 1:  # the watchdog cuts the stalled one
+            assert time.monotonic() < deadline
+            await until(healthy, "frame")
+        for _ in range(5):
+            await until(healthy, "frame")  # and the healthy one goes on
+        await healthy.close()
+        stalled.transport.abort()
+
+    with ServerThread(config) as srv:
+        run(go(srv))
+        c = httpx.Client(base_url=srv.http, timeout=TIMEOUT)
+        bad = c.post("/api/sessions", json={"name": "x", "source": "file:/a"})
+        assert bad.status_code == 401 and "Bearer" in bad.json()["detail"]
+        assert c.delete("/api/sessions/big").status_code == 401
+        ok = c.delete("/api/sessions/big", headers={"Authorization": "Bearer secret"})
+        assert ok.status_code == 200
