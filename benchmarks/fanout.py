@@ -1,10 +1,10 @@
 """Fan-out: many subscribers at 30 Hz, plus clients that stop reading.
 
-The server (a subprocess) replays a 30 fps ground-truth recording; N subscribers in this
-process read every frame; S "stalled" subscribers subscribe to the heavy mesh stream and never
-read. Reports, as JSON with --json, per-client delivery, drops seen during the measured window
-by the clients that keep up (must be 0), drops the server counted (all on the stalled ones), latency percentiles and
-the server's CPU use:
+The server (a subprocess) replays a 30 fps ground-truth recording; N subscribers in client
+processes read every frame; S "stalled" subscribers ask for the heavy mesh stream and never
+read. Reports, as JSON with --json: per-client delivery, drops seen during the measured
+window by the clients that keep up (must be 0), drops the server counted in all (the
+stalled ones, plus any while clients connected), latency percentiles, the server's CPU use:
 
     python benchmarks/fanout.py --json --subscribers 500 --seconds 20
 """
@@ -169,7 +169,7 @@ def measure(srv: Server, n: int, seconds: float, stalled: int, procs: int,
         "client": "lean" if lean else "websockets", "client_processes": procs,
         "rate_hz": round(sum(got) / max(1, len(got)) / seconds, 2),
         "min_rate_hz": round(min(got) / seconds, 2) if got else 0,
-        "frames_missed": sum(s - g for s, g in zip(span, got)),
+        "frames_missed": sum(s - g for s, g in zip(span, got, strict=True)),
         "drops": sum(d for o in outs for d in o.get("dropped", [])),
         "server_drops_total": server_drops,
         "p50_ms": round(percentile(lat, 50), 2), "p99_ms": round(percentile(lat, 99), 2),

@@ -51,10 +51,10 @@ class TruthProcessor:
         if frame.truth is not None:
             self._last = frame.truth
             return frame.truth
+        import numpy as np
+
         from core.camera import Pose
         from core.model import PARAM_NAMES
-
-        import numpy as np
 
         last = self._last
         return TrackResult(frame.index, frame.t,

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import json
 import struct
-from typing import Annotated, Any, Literal, Union
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
@@ -72,7 +72,7 @@ class Unsubscribe(_Message):
     session: SessionName
 
 
-ClientMessage = Annotated[Union[Subscribe, Unsubscribe], Field(discriminator="type")]
+ClientMessage = Annotated[Subscribe | Unsubscribe, Field(discriminator="type")]
 
 
 # ----------------------------------------------------------------------------- server -> client
@@ -200,7 +200,7 @@ class Error(_Message):
     session: str | None = None
 
 
-ServerMessage = Annotated[Union[Hello, Frame, Status, Error], Field(discriminator="type")]
+ServerMessage = Annotated[Hello | Frame | Status | Error, Field(discriminator="type")]
 
 _client_adapter: TypeAdapter[Any] = TypeAdapter(ClientMessage)
 _server_adapter: TypeAdapter[Any] = TypeAdapter(ServerMessage)

@@ -360,7 +360,7 @@ def test_fast_file_replay_gives_the_offline_parameters(server, tmp_path):
     frames = run(go())
     assert [f["frame"] for f in frames] == list(range(30))
     assert all(f["dropped"] == 0 for f in frames)
-    for f, o in zip(frames, offline):
+    for f, o in zip(frames, offline, strict=True):
         assert [f["values"]["articulatory"][n] for n in small_model().param_names] == \
             [float(a) for a in o.alpha]
         assert f["t"] == pytest.approx(o.t)

@@ -43,8 +43,8 @@ def test_fast_file_playback_is_lossless_with_container_times(tmp_path):
     assert [f.t for f in frames] == pytest.approx([i / 25 for i in range(20)])
     means = [float(f.image[:, 40:, 1].mean()) for f in frames]
     assert means == pytest.approx(levels, abs=3)  # MJPG is lossy
-    assert all(b >= a for a, b in zip([f.t_capture for f in frames],
-                                      [f.t_capture for f in frames][1:]))
+    assert all(b >= a for a, b in zip([f.t_capture for f in frames][:-1],
+                                      [f.t_capture for f in frames][1:], strict=True))
     assert cap.info.width == 64 and cap.info.height == 48 and cap.info.fps == 25
 
 
@@ -110,7 +110,7 @@ def test_recording_replays_ground_truth(tmp_path):
     frames = drain(cap)
     assert cap.error is None
     assert len(frames) == 12 and all(f.image is None for f in frames)
-    for f, r in zip(frames, truth):
+    for f, r in zip(frames, truth, strict=True):
         np.testing.assert_allclose(f.truth.alpha, r.alpha)
         np.testing.assert_allclose(f.truth.pose.translation, r.pose.translation)
     assert cap.assets.model is not None and cap.assets.model.n_points == 12
