@@ -422,3 +422,24 @@ def test_a_subscriber_stalled_past_the_timeout_is_disconnected(tmp_path):
         assert c.delete("/api/sessions/big").status_code == 401
         ok = c.delete("/api/sessions/big", headers={"Authorization": "Bearer secret"})
         assert ok.status_code == 200
+
+
+def test_a_missing_camera_is_a_status_not_a_crash(server):
+    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    assert c.post("/api/sessions", json={"name": "cam", "source": "v4l2:/dev/video97"}
+                  ).status_code == 201
+
+    async def go():
+        async with await subscribe(server.url, session="cam") as ws:
+            details = []
+            while len(details) < 3:  # retried with backoff, reported each time
+                m = await recv(ws)
+                assert m["type"] == "status", m
+                if m["state"] == "unavailable":
+                    details.append(m["detail"])
+        assert all("/dev/video97" in d for d in details)
+    run(go())
+    s = [s for s in c.get("/api/sessions").json() if s["name"] == "cam"][0]
+    assert s["state"] == "unavailable" and "no such device" in s["detail"]
+    assert c.delete("/api/sessions/cam").status_code == 200
+    assert c.get("/healthz").json()["status"] == "ok"
