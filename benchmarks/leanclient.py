@@ -2,7 +2,8 @@
 
 The benchmarks' clients share two cores with the server; the ``websockets`` library costs
 tens of microseconds per message, so 500 of them at 30 Hz would measure the clients, not the
-server. This one only parses frame headers and the binary frame header (~2 us per message).
+server. This one only parses frame headers and the binary frame header (~2 us per message), or
+``json.loads`` for JSON frames.
 It is a load generator, not a client library (see clients/python).
 """
 
@@ -32,8 +33,10 @@ def client_frame(text: str) -> bytes:
 
 
 class LeanSubscriber(asyncio.Protocol):
-    def __init__(self, subscribe: dict[str, Any], clock: Any, stats: dict) -> None:
+    def __init__(self, subscribe: dict[str, Any], clock: Any, stats: dict,
+                 sample_every: int = 10) -> None:
         self.subscribe, self.clock, self.stats = subscribe, clock, stats
+        self.sample_every = sample_every
         self.buf = bytearray()
         self.upgraded = False
         self.done = asyncio.get_running_loop().create_future()
@@ -80,12 +83,23 @@ class LeanSubscriber(asyncio.Protocol):
             opcode = b0 & 0x0F
             if opcode == 2:
                 self._frame(buf, off + h)
+            elif opcode == 1:
+                self._text(bytes(buf[off + h: off + h + n]))
             elif opcode == 8:
                 self._finish()
             off += h + n
         del buf[:off]
 
     def _frame(self, buf: bytearray, off: int) -> None:
+        h = BINARY_HEADER.unpack_from(buf, off)
+        self._count(h[5], h[9], h[12])
+
+    def _text(self, data: bytes) -> None:
+        if data.startswith(b'{"type":"frame"'):
+            m = json.loads(data)
+            self._count(m["seq"], m["t_tracked"], m["dropped"])
+
+    def _count(self, seq: int, t_tracked: float, drop: int) -> None:
         now = time.time()
         t_start, t_stop = self.clock[0], self.clock[1]
         if now < t_start:
@@ -93,14 +107,12 @@ class LeanSubscriber(asyncio.Protocol):
         if now >= t_stop:
             self._finish()
             return
-        h = BINARY_HEADER.unpack_from(buf, off)
-        seq, t_tracked, drop = h[5], h[9], h[12]
         self.got += 1
         if self.first_seq is None:
             self.first_seq, self.dropped0 = seq, drop
         self.last_seq = seq
         self.dropped = drop - (self.dropped0 or 0)
-        if self.got % 10 == 0:
+        if self.got % self.sample_every == 0:
             self.lat.append((now - t_tracked) * 1000)
 
     def _finish(self) -> None:
