@@ -50,6 +50,9 @@ class ServiceConfig:
     sessions: tuple[SessionSpec, ...] = ()
     api_token: str = ""
     """If set, POST and DELETE need ``Authorization: Bearer <token>``."""
+    http_processors: tuple[str, ...] = ("auto", "truth", "tracker")
+    """Processors a session added over HTTP may name: importing ``module:callable`` on a
+    client's word would run the client's choice of code, so only these are accepted."""
 
 
 class SessionCreate(BaseModel):
@@ -91,6 +94,14 @@ class Connection:
                 await self.ws.send(msg)
             finally:
                 self.sending_since = 0.0
+
+    def abort(self) -> None:
+        """Drop the connection now (a stalled peer cannot complete a closing handshake)."""
+        abort = self.ws.scope.get("extensions", {}).get("articast.abort")
+        if abort is not None:
+            abort()  # the blocked send and receive then end with a disconnect
+        elif self.task is not None:
+            self.task.cancel()
 
     async def error(self, code: str, reason: str, session: str | None = None) -> None:
         await self.send(error_text(code, reason, session))
@@ -258,8 +269,7 @@ class Service:
                 if c.sending_since and t - c.sending_since > limit:
                     log.info("disconnecting a subscriber stalled for %.1f s", t - c.sending_since)
                     c.sending_since = 0.0
-                    if c.task is not None:
-                        c.task.cancel()
+                    c.abort()
 
     async def stop(self) -> None:
         if self._watchdog:
@@ -337,6 +347,10 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     @app.post("/api/sessions", status_code=201)
     async def create_session(body: SessionCreate, request: Request) -> dict[str, Any]:
         authorise(request)
+        if body.processor not in config.http_processors:
+            raise HTTPException(400, f"processor {body.processor!r} is not allowed over HTTP "
+                                f"(allowed: {list(config.http_processors)}; start the server "
+                                "with --processor to allow another)")
         spec = SessionSpec(body.name, body.source, body.model, body.appearance, body.camera,
                            body.processor, body.wait_for_subscriber)
         try:

@@ -7,19 +7,55 @@ to stop, joined with a timeout, processes terminated if they do not).
 
 from __future__ import annotations
 
+import contextlib
 import socket
 from collections.abc import Callable
+from typing import Any
 
 import uvicorn
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from service.app import ServiceConfig, create_app
 
+ABORT_EXTENSION = "articast.abort"
+"""ASGI scope extension: a callable that aborts the connection's transport at once."""
 
-def uvicorn_config(config: ServiceConfig, sock: socket.socket | None = None) -> uvicorn.Config:
+
+def websocket_protocol(socket_buffer_bytes: int) -> type[WebSocketsSansIOProtocol]:
+    """uvicorn's sans-I/O WebSocket protocol with bounded buffers and an abort handle.
+
+    Newest-wins only bounds a slow client's lag if little can pile up *after* the hub queue:
+    the transport's write buffer and the kernel's send buffer are capped at
+    ``socket_buffer_bytes``, so a client that reads too slowly blocks its own sender (and
+    then loses frames in its hub queue) instead of receiving stale frames seconds late.
+    ``scope["extensions"]["articast.abort"]`` lets the stall watchdog drop a client that stopped
+    reading without waiting for a closing handshake it can never complete.
+    """
+
+    class ArticastWebSocketProtocol(WebSocketsSansIOProtocol):
+        def connection_made(self, transport: Any) -> None:
+            super().connection_made(transport)
+            transport.set_write_buffer_limits(high=socket_buffer_bytes)
+            sock = transport.get_extra_info("socket")
+            if sock is not None:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, socket_buffer_bytes)
+
+        def handle_connect(self, event: Any) -> None:
+            super().handle_connect(event)
+            scope = getattr(self, "scope", None)
+            if scope is not None:
+                scope.setdefault("extensions", {})[ABORT_EXTENSION] = self.transport.abort
+
+    return ArticastWebSocketProtocol
+
+
+def uvicorn_config(config: ServiceConfig) -> uvicorn.Config:
     s = config.server
     return uvicorn.Config(
         create_app(config), host=s.host, port=s.port, log_level=s.log_level,
-        ws="websockets-sansio", ws_max_size=config.hub.ws_max_size,
+        ws=websocket_protocol(config.hub.socket_buffer_bytes),
+        ws_max_size=config.hub.ws_max_size,
         # no permessage-deflate: it compresses every message once per connection, which
         # would undo encode-once fan-out (frames are small; loopback and LANs do not need it)
         ws_per_message_deflate=False,

@@ -41,6 +41,8 @@ class HubSettings:
     max_message_bytes: int = _opt(65536, "largest client message or HTTP body accepted")
     ws_max_size: int = _opt(1 << 20, "largest WebSocket message read at all (else close 1009)")
     stall_timeout_s: float = _opt(30.0, "disconnect a subscriber whose send is stuck this long")
+    socket_buffer_bytes: int = _opt(32768, "bytes buffered per connection after its queue: "
+                                    "bounds how stale a slow client's frames can get")
 
 
 @dataclass(frozen=True)

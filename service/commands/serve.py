@@ -106,7 +106,8 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     config = ServiceConfig(
         server=from_args(ServerSettings, args), hub=from_args(HubSettings, args),
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
-        sessions=specs, api_token=token)
+        sessions=specs, api_token=token,
+        http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", args.processor))))
 
     def listening(url: str) -> None:
         if args.json:
