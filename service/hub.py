@@ -25,21 +25,22 @@ from collections.abc import Callable
 from typing import Generic, Protocol, TypeVar
 
 T = TypeVar("T")
+T_co = TypeVar("T_co", covariant=True)
 
 
 class HubClosed(Exception):
     """The subscription (or the whole hub) was closed while waiting for a message."""
 
 
-class Subscription(Protocol[T]):
+class Subscription(Protocol[T_co]):
     topic: str
 
     @property
     def dropped(self) -> int: ...
 
-    async def get(self) -> T: ...
+    async def get(self) -> T_co: ...
 
-    def get_nowait(self) -> T | None: ...
+    def get_nowait(self) -> T_co | None: ...
 
     def close(self) -> None: ...
 

@@ -31,11 +31,11 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 PROTOCOL_VERSION = 1
 
 Stream = Literal["articulatory", "pose", "fap", "mesh", "arkit"]
+DEFAULT_STREAMS: tuple[Stream, ...] = ("articulatory", "pose")
 STREAMS: tuple[str, ...] = ("articulatory", "pose", "fap", "mesh", "arkit")
 """Every stream name the protocol knows. ``fap`` and ``arkit`` are reserved: a session that
 cannot produce them says so with an ``error`` (code ``unavailable_stream``)."""
 
-DEFAULT_STREAMS: tuple[str, ...] = ("articulatory", "pose")
 Encoding = Literal["json", "binary"]
 
 SessionName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.-]+$")]

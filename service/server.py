@@ -8,6 +8,7 @@ to stop, joined with a timeout, processes terminated if they do not).
 from __future__ import annotations
 
 import contextlib
+import math
 import socket
 from collections.abc import Callable
 from typing import Any
@@ -60,7 +61,7 @@ def uvicorn_config(config: ServiceConfig) -> uvicorn.Config:
         # would undo encode-once fan-out (frames are small; loopback and LANs do not need it)
         ws_per_message_deflate=False,
         ws_ping_interval=20.0, ws_ping_timeout=20.0,
-        timeout_graceful_shutdown=s.shutdown_timeout_s, lifespan="on",
+        timeout_graceful_shutdown=max(1, math.ceil(s.shutdown_timeout_s)), lifespan="on",
         access_log=False, server_header=False,
     )
 

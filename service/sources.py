@@ -200,7 +200,7 @@ class V4L2Source:
             cap.release()
             raise SourceUnavailable(f"{self.device}: cannot be opened (busy, or not a camera)")
         if self.fourcc:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
         if self.want["width"]:
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.want["width"])
         if self.want["height"]:
@@ -209,15 +209,14 @@ class V4L2Source:
             cap.set(cv2.CAP_PROP_FPS, self.want_fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog in the driver
         code = int(cap.get(cv2.CAP_PROP_FOURCC))
-        got = {
-            "width": int(cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
-            "height": int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)),
-            "fps": float(cap.get(cv2.CAP_PROP_FPS)),
-            "fourcc": "".join(chr((code >> 8 * i) & 0xFF) for i in range(4)).strip("\0"),
-        }
+        width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        got = {"width": width, "height": height, "fps": fps,
+               "fourcc": "".join(chr((code >> 8 * i) & 0xFF) for i in range(4)).strip("\0")}
         self._cap, self._t0 = cap, time.monotonic()
         requested = {**self.want, "fps": self.want_fps, "fourcc": self.fourcc or None}
-        return SourceInfo(self.uri, "v4l2", True, got["width"], got["height"], got["fps"],
+        return SourceInfo(self.uri, "v4l2", True, width, height, fps,
                           detail={"device": self.device, "requested": requested, "actual": got})
 
     def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
@@ -243,6 +242,7 @@ class FileSource(_Finite):
         if not p.target:
             raise SourceError(f"{p.text!r}: give a file, e.g. file:talk.mp4")
         self._cap: Any = None
+        self._first: np.ndarray | None = None
         self._n = 0
 
     def open(self) -> SourceInfo:
@@ -262,7 +262,8 @@ class FileSource(_Finite):
         self._cap, self._first, self._n = cap, first, 0
         fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
-        return SourceInfo(self.uri, "file", False, first.shape[1], first.shape[0], fps, count,
+        height, width = int(first.shape[0]), int(first.shape[1])
+        return SourceInfo(self.uri, "file", False, width, height, fps, count,
                           {"path": str(self.path), "pace": self.pace, "loop": self.loops})
 
     def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:

@@ -167,7 +167,7 @@ class FrameEvent:
 
 
 def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] | None,
-          sub: P.Subscribe, state: str, streams: list[str]) -> str:
+          sub: P.Subscribe, state: str, streams: list[Any]) -> str:
     """The hello message for one subscription (JSON text)."""
     msg = P.Hello(
         session=session, sid=sid, streams=streams, encoding=sub.encoding, rate=sub.rate,
@@ -183,9 +183,10 @@ def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] |
 
 
 def status_text(ev: StatusEvent, dropped: int = 0) -> str:
-    return P.Status(session=ev.session, state=ev.state, detail=ev.detail, t=ev.t,
-                    dropped=dropped).model_dump_json()
+    return P.Status.model_validate({"session": ev.session, "state": ev.state, "detail": ev.detail,
+                                    "t": ev.t, "dropped": dropped}).model_dump_json()
 
 
 def error_text(code: str, reason: str, session: str | None = None) -> str:
-    return P.Error(code=code, reason=reason[:500], session=session).model_dump_json()
+    return P.Error.model_validate({"code": code, "reason": reason[:500],
+                                   "session": session}).model_dump_json()

@@ -22,7 +22,7 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 from core.errors import ArticastError
 from service.capture import Capture
@@ -56,9 +56,10 @@ class SessionSpec:
                 "options": dict(self.options)}
 
 
-class _Event:  # what threading.Event and multiprocessing.Event have in common
-    def is_set(self) -> bool: ...  # type: ignore[empty-body]
-    def wait(self, timeout: float | None = None) -> bool: ...  # type: ignore[empty-body]
+class _Event(Protocol):  # what a worker needs of threading.Event
+    def is_set(self) -> bool: ...
+
+    def wait(self, timeout: float | None = None) -> bool: ...
 
 
 def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir: str,
