@@ -127,6 +127,18 @@ def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProc
     raise InputError(f"unknown processor {name!r}: auto, truth, tracker or module:callable")
 
 
+def check_processor(name: str, source_kind: str, appearance_given: bool) -> None:
+    """Fail before serving when ``name`` cannot work for this kind of source (CLI check)."""
+    if name in ("auto", "tracker") and source_kind not in ("replay-record", "synthetic"):
+        if not tracker_available():
+            raise InputError(f"a {source_kind} source needs the tracker (core.tracker), which "
+                             "is not available in this build")
+        if not appearance_given:
+            raise InputError(f"tracking a {source_kind} source needs --appearance (and --model)")
+    if name == "truth" and source_kind not in ("replay-record", "synthetic"):
+        raise InputError(f"a {source_kind} source carries no ground truth for --processor truth")
+
+
 def load_assets(spec_model: str, spec_appearance: str, spec_camera: str,
                 from_source: SourceAssets, source: SourceInfo) -> tuple[Any, Any, Any]:
     """Model, appearance, camera: files given for the session win over the source's own."""

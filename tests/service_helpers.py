@@ -127,3 +127,16 @@ class ServerThread:
     @property
     def service(self) -> Any:
         return self.server.config.loaded_app.app.state.service  # type: ignore[union-attr]
+
+
+class HardCrash:
+    """A test FrameProcessor whose process dies on frame 3 (no exception, no goodbye)."""
+
+    def __init__(self, context: Any) -> None:
+        self.n = 0
+
+    def process(self, frame: Any) -> TrackResult:
+        self.n += 1
+        if self.n == 3:
+            os._exit(3)
+        return frame.truth

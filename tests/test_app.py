@@ -52,6 +52,7 @@ def server(recording, tmp_path_factory):
         sessions=(SessionSpec("rec", f"replay-record:{recording[0]}?loop=0"),
                   SessionSpec("big", f"replay-record:{big}?loop=0")),
         http_processors=("auto", "truth", "tests.service_helpers:Crashy",
+                         "tests.service_helpers:HardCrash",
                          "tests.service_helpers:ImageStats"),
     )
     with ServerThread(config) as srv:
@@ -316,6 +317,25 @@ def test_a_crashing_session_is_restarted_and_the_server_survives(server, recordi
     assert s["restarts"] == 4 and "crashed" in s["detail"]
     assert c.get("/healthz").status_code == 200
     c.delete("/api/sessions/crashy")
+
+
+def test_a_worker_process_that_dies_is_restarted(server, recording):
+    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    assert c.post("/api/sessions", json={
+        "name": "dies", "source": f"replay-record:{recording[0]}?loop=0",
+        "processor": "tests.service_helpers:HardCrash"}).status_code == 201
+
+    async def go():
+        async with await subscribe(server.url, session="dies") as ws:
+            while True:
+                m = await recv(ws)
+                if m["type"] == "status" and m["state"] == "restarting":
+                    return m["detail"]
+    detail = run(go())
+    assert "exited with code 3" in detail
+    s = [s for s in c.get("/api/sessions").json() if s["name"] == "dies"][0]
+    assert s["worker"] == "process"
+    c.delete("/api/sessions/dies")
 
 
 def test_corrupt_file_session_fails_once_with_a_clear_error(server, tmp_path):

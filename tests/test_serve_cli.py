@@ -89,3 +89,52 @@ def test_bad_source_option_is_one_clear_error():
                        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "NAME=URI" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_replay_without_a_tracker_says_so(tmp_path):
+    from service.processors import tracker_available
+
+    if tracker_available():
+        pytest.skip("the tracker is available")
+    video = tmp_path / "v.avi"
+    from tests.service_helpers import write_video
+
+    write_video(video, frames=3)
+    r = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(video)], cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "tracker" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_sigterm_with_subscribers_connected(tmp_path):
+    rec = tmp_path / "in.jsonl"
+    write_recording(rec, frames=40, fps=60)
+    p, url = start("serve", "--source", f"a=replay-record:{rec}?loop=0",
+                   "--source", f"b=replay-record:{rec}?loop=0")  # a thread and a process
+
+    async def go():
+        clients = []
+        for name in ("a", "b"):
+            ws = await websockets.connect(url, close_timeout=1)
+            await ws.send(json.dumps({"type": "subscribe", "session": name}))
+            clients.append(ws)
+        for ws in clients:
+            while json.loads(await asyncio.wait_for(ws.recv(), TIMEOUT))["type"] != "frame":
+                pass
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        for ws in clients:
+            with pytest.raises(websockets.ConnectionClosed):
+                while True:
+                    await asyncio.wait_for(ws.recv(), TIMEOUT)
+        return time.monotonic() - t0
+
+    try:
+        took = asyncio.run(go())
+        code = p.wait(TIMEOUT * 2)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert took < TIMEOUT and code in (0, -signal.SIGTERM)
+    err = p.stderr.read()
+    assert "Traceback" not in err and "leaked" not in err, err

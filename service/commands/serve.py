@@ -97,8 +97,12 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     names = [n for n, _ in sources]
     if len(set(names)) != len(names):
         raise InputError(f"session names must differ: {names}")
+    from service.processors import check_processor
+    from service.sources import parse_uri
+
     for _, uri in sources:
         probe(uri)  # a corrupt file or unknown kind: one clear error now, not a server later
+        check_processor(args.processor, parse_uri(uri).kind, bool(args.appearance))
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
                               args.wait_for_subscriber) for n, uri in sources)
     token = args.api_token if args.api_token is not None else os.environ.get(
