@@ -290,6 +290,38 @@ class Service:
         return render(rows, len(self.connections))
 
 
+class BodyTooLarge(Exception):
+    pass
+
+
+class BodyLimit:
+    """ASGI middleware: HTTP bodies over ``limit`` bytes get 413, declared or chunked."""
+
+    def __init__(self, app: Any, limit: int) -> None:
+        self.app, self.limit = app, limit
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        length = dict(scope["headers"]).get(b"content-length")
+        if length is not None and (not length.isdigit() or int(length) > self.limit):
+            await JSONResponse({"detail": f"request body over {self.limit} bytes or "
+                                "malformed length"}, 413)(scope, receive, send)
+            return
+        seen = 0
+
+        async def limited() -> Any:
+            nonlocal seen
+            msg = await receive()
+            seen += len(msg.get("body", b""))
+            if seen > self.limit:
+                raise BodyTooLarge(f"request body over {self.limit} bytes")
+            return msg
+
+        await self.app(scope, limited, send)
+
+
 def create_app(config: ServiceConfig | None = None) -> FastAPI:
     config = config or ServiceConfig()
     svc = Service(config)
@@ -306,12 +338,11 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                   docs_url=None, redoc_url=None)
     app.state.service = svc
 
-    @app.middleware("http")
-    async def limit_body(request: Request, call_next: Any) -> Any:
-        length = request.headers.get("content-length")
-        if length and (not length.isdigit() or int(length) > config.hub.max_message_bytes):
-            return JSONResponse({"detail": "request body too large or malformed length"}, 413)
-        return await call_next(request)
+    app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes)
+
+    @app.exception_handler(BodyTooLarge)
+    async def too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, 413)
 
     @app.exception_handler(Exception)
     async def internal(request: Request, exc: Exception) -> JSONResponse:

@@ -16,6 +16,7 @@ delays subscribers and a crash of the server loses at most the frame in flight.
 
 from __future__ import annotations
 
+import math
 import multiprocessing
 import threading
 import time
@@ -25,6 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 from core.errors import ArticastError
+from core.result import TrackResult
 from service.capture import Capture
 from service.processors import ProcessorContext, load_assets, make_processor
 from service.record import Recorder
@@ -105,16 +107,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             result = processor.process(frame)
             ms = (time.perf_counter() - t0) * 1000.0
             t_tracked = time.monotonic()
-            rec = FrameRecord(
-                seq=seq, frame=frame.index, t=frame.t, t_capture=epoch(frame.t_capture),
-                t_tracked=epoch(t_tracked), alpha=tuple(float(a) for a in result.alpha),
-                rotation=tuple(float(v) for v in result.pose.rotation),
-                translation=tuple(float(v) for v in result.pose.translation),
-                quality={"ok": bool(result.ok), "reason": str(result.reason),
-                         "residual": float(result.residual), "evals": int(result.evals),
-                         "iterations": int(result.iterations), "ms": ms},
-                source_dropped=capture.dropped,
-            )
+            rec = _record(seq, frame.index, frame.t, epoch(frame.t_capture), epoch(t_tracked),
+                          result, ms, capture.dropped)
             emit(("frame", rec))
             if recorder is not None:
                 recorder.write(rec)
@@ -135,6 +129,26 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             capture.stop()
         if recorder is not None:
             recorder.close()
+
+
+def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
+            result: TrackResult, ms: float, source_dropped: int) -> FrameRecord:
+    """A picklable, JSON-safe record: non-finite values never reach the wire (JSON has no NaN)."""
+    alpha = [float(a) for a in result.alpha]
+    ok, reason = bool(result.ok), str(result.reason)
+    if not all(math.isfinite(a) for a in alpha):
+        alpha = [a if math.isfinite(a) else 0.0 for a in alpha]
+        ok, reason = False, reason or "the processor returned non-finite parameters"
+    residual = float(result.residual)
+    return FrameRecord(
+        seq=seq, frame=index, t=t, t_capture=t_capture, t_tracked=t_tracked,
+        alpha=tuple(alpha), rotation=tuple(float(v) for v in result.pose.rotation),
+        translation=tuple(float(v) for v in result.pose.translation),
+        quality={"ok": ok, "reason": reason,
+                 "residual": residual if math.isfinite(residual) else -1.0,
+                 "evals": int(result.evals), "iterations": int(result.iterations), "ms": ms},
+        source_dropped=source_dropped,
+    )
 
 
 # ----------------------------------------------------------------------------- runners

@@ -249,6 +249,8 @@ def test_http_errors_are_4xx_with_a_reason(server):
         c.post("/api/sessions", json={"name": "rec", "source": "file:/no/such.mp4"}),
         c.post("/api/sessions", content=b"\xff" * 10_000,
                headers={"content-type": "application/json"}),
+        c.post("/api/sessions", content=(b"x" * 1000 for _ in range(100)),  # chunked
+               headers={"content-type": "application/json"}),
         c.delete("/api/sessions/nobody"),
         c.get("/api/nothing"),
     ]
