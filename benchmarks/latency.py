@@ -92,6 +92,8 @@ def main() -> None:
     ap.add_argument("--encoding", choices=("json", "binary"), default="json")
     ap.add_argument("--client", choices=("lean", "websockets"), default="lean")
     ap.add_argument("--worker", choices=("auto", "thread", "process"), default="auto")
+    ap.add_argument("--busy-ms", type=float, default=0.0,
+                    help="simulate a tracker holding the GIL this long per frame")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     try:
@@ -101,11 +103,17 @@ def main() -> None:
     except ImportError:
         pass
     rec = make_recording(frames=int(args.fps * 20), fps=args.fps)
-    with Server({"bench": f"replay-record:{rec}?loop=0"}, "--worker", args.worker) as srv:
+    extra = ["--worker", args.worker]
+    if args.busy_ms:
+        import os
+
+        os.environ["ARTICAST_BUSY_MS"] = str(args.busy_ms)
+        extra += ["--processor", "benchmarks.busy:Busy"]
+    with Server({"bench": f"replay-record:{rec}?loop=0"}, *extra) as srv:
         srv.wait_running()
         for n in args.subscribers:
             r = asyncio.run(measure(srv.url, n, args.seconds, args.encoding, args.client))
-            r.update(source_fps=args.fps, worker=args.worker)
+            r.update(source_fps=args.fps, worker=args.worker, busy_ms=args.busy_ms)
             print(json.dumps(r) if args.json else
                   f"{n:4d} subscribers: p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms, "
                   f"{r['rate_hz']} Hz each, {r['drops']} drops", flush=True)

@@ -21,7 +21,7 @@ from core.errors import InputError
 from service.hub import Hub
 from service.metrics import SessionMetrics
 from service.settings import CaptureSettings, SessionPolicy
-from service.sources import check_uri
+from service.sources import check_uri, parse_uri
 from service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
 from service.worker import ProcessWorker, SessionSpec, ThreadWorker
 
@@ -193,10 +193,20 @@ class SessionManager:
         self._thread_owner: Session | None = None
 
     def make_worker(self, s: Session) -> ThreadWorker | ProcessWorker:
-        """``auto``: at most one session tracks in this process; the others get processes."""
+        """``auto``: a process per session that tracks images; at most one light session
+        (ground truth passed through) in a thread of this process.
+
+        A tracker holding the GIL in the server's process delays the event loop that sends
+        its frames: with 14 ms of GIL-held work per 60 fps frame and 100 subscribers, p99
+        latency was 17 ms (max 42) in a thread and 12 ms (max 21) in a process
+        (benchmarks/latency.py --busy-ms 14). Passing ground truth through costs nothing, so
+        the first such session skips the process start-up and the pipe hop.
+        """
         kind = self.policy.worker
         if kind == "auto":
-            kind = "thread" if self._thread_owner in (None, s) else "process"
+            light = s.spec.processor == "truth" or (
+                s.spec.processor == "auto" and parse_uri(s.spec.source).kind == "replay-record")
+            kind = "thread" if light and self._thread_owner in (None, s) else "process"
         if kind == "thread":
             self._thread_owner = self._thread_owner or s
             return ThreadWorker(s.spec, self.capture, self.record_dir, s.emit_threadsafe)

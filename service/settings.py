@@ -49,8 +49,8 @@ class HubSettings:
 class SessionPolicy:
     """How sessions run and recover."""
 
-    worker: str = _opt("auto", "thread | process | auto (one session in the server process, "
-                       "the others in their own processes: faces never share a GIL)")
+    worker: str = _opt("auto", "thread | process | auto (a process per tracking session; one "
+                       "ground-truth session may run in a thread): faces never share a GIL")
     restart_initial_s: float = _opt(0.5, "first wait before restarting a crashed session")
     restart_max_s: float = _opt(30.0, "longest wait between restarts (backoff cap)")
     max_restarts: int = _opt(20, "crashes before a session is declared failed")
