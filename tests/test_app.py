@@ -472,3 +472,34 @@ def test_a_missing_camera_is_a_status_not_a_crash(server):
     assert s["state"] == "unavailable" and "no such device" in s["detail"]
     assert c.delete("/api/sessions/cam").status_code == 200
     assert c.get("/healthz").json()["status"] == "ok"
+
+
+def test_random_garbage_never_breaks_the_server(server):
+    """200 seeded random messages (text, JSON-ish, binary); every one answered, server fine."""
+    import random
+
+    rng = random.Random(7)
+    pieces = ['{"type":', '"subscribe"', '"session":', '"rec"', '"streams":', '[', ']', '{',
+              '}', ',', '"rate":', '-1', '1e309', 'null', '"\\u0000"', '"mesh"', '9' * 40]
+
+    def garbage():
+        k = rng.random()
+        if k < 0.3:
+            return bytes(rng.randrange(256) for _ in range(rng.randrange(1, 200)))
+        if k < 0.6:
+            return "".join(rng.choice(pieces) for _ in range(rng.randrange(1, 12)))
+        return "".join(chr(rng.randrange(32, 0x2FFF)) for _ in range(rng.randrange(0, 300)))
+
+    async def go():
+        async with websockets.connect(server.url, max_size=2**24, close_timeout=1) as ws:
+            for _ in range(200):
+                await ws.send(garbage())
+                while True:  # each message gets an error, or (if valid) a hello: skip frames
+                    m = await recv(ws)
+                    if m["type"] in ("error", "hello"):
+                        assert "Traceback" not in json.dumps(m)
+                        break
+            await ws.send(json.dumps({"type": "subscribe", "session": "rec"}))
+            await until(ws, "hello", skip=("status", "frame"))
+    run(go())
+    assert httpx.get(server.http + "/healthz", timeout=TIMEOUT).json()["status"] == "ok"
