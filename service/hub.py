@@ -92,10 +92,13 @@ class MemorySubscription(Generic[T]):
 
     def _offer(self, message: T, now: float) -> bool:
         if self._interval:
-            # deliver when due, with half an interval of slack for source jitter; never drift
-            if now < self._next_due - 0.5 * self._interval:
+            # due times advance by whole intervals (no drift: 60 -> 50 Hz gives 50, not 30);
+            # a quarter interval of slack absorbs source jitter; more than an interval late
+            # (a pause, the first message) restarts the schedule from now
+            if now < self._next_due - 0.25 * self._interval:
                 return False
-            self._next_due = max(self._next_due + self._interval, now)
+            late = now - self._next_due
+            self._next_due = (self._next_due if late < self._interval else now) + self._interval
         if len(self._queue) == self._queue.maxlen:
             self._dropped += 1  # deque(maxlen) discards the oldest on append
         self._queue.append(message)

@@ -122,6 +122,28 @@ def test_max_rate_throttles_without_counting_drops():
     assert sub.dropped == 0 and every.delivered == 600
 
 
+@pytest.mark.parametrize("source_hz, rate, expected", [(60, 30, 30), (60, 20, 20), (60, 50, 50),
+                                                      (30, 60, 30), (60, 59, 59)])
+def test_max_rate_gives_the_rate_asked_for(source_hz, rate, expected):
+    clock = [100.0]
+    hub = InMemoryHub(clock=lambda: clock[0])
+    sub = hub.subscribe("s", max_queue=10000, max_rate=rate)
+    for i in range(source_hz * 10):
+        clock[0] = 100.0 + i / source_hz + 0.002 * ((i * 7) % 3 - 1)  # +-2 ms jitter
+        hub.publish("s", i)
+    assert abs(sub.delivered / 10 - expected) <= 0.05 * expected + 1
+
+
+def test_max_rate_first_messages_are_throttled_too():
+    clock = [1000.0]
+    hub = InMemoryHub(clock=lambda: clock[0])
+    sub = hub.subscribe("s", max_queue=100, max_rate=30)
+    for i in range(4):  # 0, 16.7, 33.3, 50 ms
+        clock[0] = 1000.0 + i / 60
+        hub.publish("s", i)
+    assert [sub.get_nowait() for _ in range(2)] == [0, 2]
+
+
 def test_bad_limits_are_refused():
     hub = InMemoryHub()
     with pytest.raises(ValueError):
