@@ -14,6 +14,14 @@ The :class:`Hub` protocol is deliberately small so a Redis-backed hub can implem
 All methods of :class:`InMemoryHub` must be called from the event loop that owns it; a
 thread or process that produces messages hands them over with
 ``loop.call_soon_threadsafe(hub.publish, topic, message)``.
+
+Notes for the Redis hub (same protocol, messages through a codec to bytes): keep an
+:class:`InMemoryHub` for the local fan-out (queues, drops, throttle stay per subscriber);
+``publish`` puts the encoded message on a bounded local buffer drained by a writer task (it
+must not await Redis) and returns the number of *local* subscribers offered; ``subscribe``
+registers locally at once and joins the Redis channel from a reader task (messages published
+before the join completes are not seen: pub/sub semantics). The contract tests in
+``tests/test_hub.py`` then need a short wait after ``subscribe`` for that backend.
 """
 
 from __future__ import annotations
