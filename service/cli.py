@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "service.commands.fap",
     "service.commands.transfer",
     "service.commands.synth",
+    "service.commands.serve",
 )
 
 

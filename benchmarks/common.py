@@ -1,0 +1,89 @@
+"""Shared by the benchmarks: a server in a subprocess (its own GIL and core), inputs, stats."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def make_recording(frames: int, fps: float, n_points: int = 200) -> Path:
+    """A ground-truth recording that the truth processor replays at ``fps``."""
+    from tests.service_helpers import small_model, write_recording
+
+    path = Path(tempfile.mkdtemp(prefix="articast-bench-")) / f"bench-{fps:g}.jsonl"
+    write_recording(path, frames=frames, fps=fps, model=small_model(n=n_points))
+    return path
+
+
+class Server:
+    """``articast serve`` in a subprocess on 127.0.0.1, any free port."""
+
+    def __init__(self, sources: dict[str, str], *extra: str) -> None:
+        args = [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--json",
+                "--log-level", "error"]
+        for name, uri in sources.items():
+            args += ["--source", f"{name}={uri}"]
+        self.proc = subprocess.Popen([*args, *extra], cwd=ROOT, stdout=subprocess.PIPE,
+                                     text=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+        line = self.proc.stdout.readline() if self.proc.stdout else ""
+        if not line:
+            raise RuntimeError("the server did not start")
+        self.url = json.loads(line)["url"]
+        self.http = self.url.replace("ws://", "http://").rsplit("/", 1)[0]
+        self.pid = self.proc.pid
+
+    def rss_mb(self) -> float:
+        with open(f"/proc/{self.pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+        return float("nan")
+
+    def cpu_s(self) -> float:
+        with open(f"/proc/{self.pid}/stat") as fh:
+            f = fh.read().rsplit(")", 1)[1].split()
+        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+
+    def wait_running(self, timeout: float = 20.0) -> None:
+        import httpx
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            try:
+                states = httpx.get(self.http + "/healthz", timeout=2).json()["sessions"]
+                if states and all(s == "running" for s in states.values()):
+                    return
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.1)
+        raise RuntimeError("sessions did not start")
+
+    def close(self) -> None:
+        self.proc.terminate()
+        try:
+            self.proc.wait(10)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+
+    def __enter__(self) -> Server:
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.close()
+
+
+def percentile(values: list[float], q: float) -> float:
+    if not values:
+        return float("nan")
+    v = sorted(values)
+    i = min(len(v) - 1, max(0, round(q / 100 * (len(v) - 1))))
+    return v[i]

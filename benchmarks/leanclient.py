@@ -1,0 +1,126 @@
+"""A lean WebSocket subscriber for load generation: asyncio.Protocol + manual framing.
+
+The benchmarks' clients share two cores with the server; the ``websockets`` library costs
+tens of microseconds per message, so 500 of them at 30 Hz would measure the clients, not the
+server. This one only parses frame headers and the binary frame header (~2 us per message), or
+``json.loads`` for JSON frames.
+It is a load generator, not a client library (see clients/python).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import os
+import struct
+import time
+from typing import Any
+
+from service.protocol import BINARY_HEADER
+
+
+def _mask(payload: bytes) -> bytes:
+    key = os.urandom(4)
+    return key + bytes(b ^ key[i % 4] for i, b in enumerate(payload))
+
+
+def client_frame(text: str) -> bytes:
+    data = text.encode()
+    n = len(data)
+    head = struct.pack("!BB", 0x81, 0x80 | n) if n < 126 else struct.pack("!BBH", 0x81, 0xFE, n)
+    return head + _mask(data)
+
+
+class LeanSubscriber(asyncio.Protocol):
+    def __init__(self, subscribe: dict[str, Any], clock: Any, stats: dict,
+                 sample_every: int = 10) -> None:
+        self.subscribe, self.clock, self.stats = subscribe, clock, stats
+        self.sample_every = sample_every
+        self.buf = bytearray()
+        self.upgraded = False
+        self.done = asyncio.get_running_loop().create_future()
+        self.connected = asyncio.get_running_loop().create_future()
+        self.got = 0
+        self.first_seq: int | None = None
+        self.last_seq = 0
+        self.dropped0: int | None = None
+        self.dropped = 0
+        self.lat: list[float] = []
+
+    def connection_made(self, transport: Any) -> None:
+        self.transport = transport
+        key = base64.b64encode(os.urandom(16)).decode()
+        transport.write((f"GET /ws HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+                         f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+                         "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+
+    def data_received(self, data: bytes) -> None:
+        self.buf += data
+        if not self.upgraded:
+            end = self.buf.find(b"\r\n\r\n")
+            if end < 0:
+                return
+            del self.buf[: end + 4]
+            self.upgraded = True
+            self.transport.write(client_frame(json.dumps(self.subscribe)))
+            self.connected.set_result(None)
+        buf = self.buf
+        off = 0
+        while len(buf) - off >= 2:
+            b0, b1 = buf[off], buf[off + 1]
+            n, h = b1 & 0x7F, 2
+            if n == 126:
+                if len(buf) - off < 4:
+                    break
+                n, h = struct.unpack_from("!H", buf, off + 2)[0], 4
+            elif n == 127:
+                if len(buf) - off < 10:
+                    break
+                n, h = struct.unpack_from("!Q", buf, off + 2)[0], 10
+            if len(buf) - off < h + n:
+                break
+            opcode = b0 & 0x0F
+            if opcode == 2:
+                self._frame(buf, off + h)
+            elif opcode == 1:
+                self._text(bytes(buf[off + h: off + h + n]))
+            elif opcode == 8:
+                self._finish()
+            off += h + n
+        del buf[:off]
+
+    def _frame(self, buf: bytearray, off: int) -> None:
+        h = BINARY_HEADER.unpack_from(buf, off)
+        self._count(h[5], h[9], h[12])
+
+    def _text(self, data: bytes) -> None:
+        if data.startswith(b'{"type":"frame"'):
+            m = json.loads(data)
+            self._count(m["seq"], m["t_tracked"], m["dropped"])
+
+    def _count(self, seq: int, t_tracked: float, drop: int) -> None:
+        now = time.time()
+        t_start, t_stop = self.clock[0], self.clock[1]
+        if now < t_start:
+            return
+        if now >= t_stop:
+            self._finish()
+            return
+        self.got += 1
+        if self.first_seq is None:
+            self.first_seq, self.dropped0 = seq, drop
+        self.last_seq = seq
+        self.dropped = drop - (self.dropped0 or 0)
+        if self.got % self.sample_every == 0:
+            self.lat.append((now - t_tracked) * 1000)
+
+    def _finish(self) -> None:
+        if not self.done.done():
+            self.done.set_result(None)
+            self.transport.close()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if not self.connected.done():
+            self.connected.set_exception(ConnectionError("connection lost before upgrade"))
+        self._finish()

@@ -1,0 +1,145 @@
+"""The capture thread: reads a source, keeps only the newest frame in a one-frame slot.
+
+* Live sources (cameras) and ``pace=realtime`` playback: a new frame replaces an unread one and
+  the replaced frame is counted in :attr:`Capture.dropped` — a slow tracker never builds a
+  queue, it just sees the newest frame.
+* ``pace=fast`` playback is lossless: the thread waits until the slot is taken.
+* :class:`~service.sources.SourceUnavailable` (missing, busy, unplugged camera) is reported
+  through ``on_status("unavailable", reason)`` and retried with exponential backoff.
+* :class:`~service.sources.SourceError` ends the capture with :attr:`Capture.error` set.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+
+from service.settings import CaptureSettings
+from service.sources import Frame, Source, SourceAssets, SourceInfo, SourceUnavailable
+
+StatusCallback = Callable[[str, str], None]
+
+
+class Capture:
+    def __init__(self, source: Source, settings: CaptureSettings | None = None,
+                 on_status: StatusCallback | None = None) -> None:
+        self.source = source
+        self.settings = settings or CaptureSettings()
+        self._on_status = on_status or (lambda state, detail: None)
+        self._cond = threading.Condition()
+        self._slot: Frame | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"capture {source.uri}",
+                                        daemon=True)
+        self.opened = threading.Event()
+        self.info: SourceInfo | None = None
+        self.assets = SourceAssets()
+        self.error: BaseException | None = None
+        self.finished = False
+        self.frames = 0
+        self.dropped = 0
+        self.attempts = 0
+
+    # ------------------------------------------------------------------ consumer side
+    def start(self) -> Capture:
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 2.0) -> None:
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+        self._thread.join(timeout)
+
+    def get(self, timeout: float) -> Frame | None:
+        """The newest frame, or None after ``timeout`` s (check :attr:`done`)."""
+        with self._cond:
+            if self._slot is None and not self.finished:
+                self._cond.wait(timeout)
+            frame, self._slot = self._slot, None
+            self._cond.notify_all()
+            return frame
+
+    @property
+    def done(self) -> bool:
+        """The source ended or failed and every frame was taken."""
+        return self.finished and self._slot is None
+
+    # ------------------------------------------------------------------ capture thread
+    def _put(self, frame: Frame) -> None:
+        lossless = not self.source.live and self.source.pace == "fast"
+        with self._cond:
+            while lossless and self._slot is not None and not self._stop.is_set():
+                self._cond.wait(0.1)
+            if self._slot is not None:
+                self.dropped += 1
+            self._slot = frame
+            self.frames += 1
+            self._cond.notify_all()
+
+    def _open(self) -> bool:
+        """Open the source, retrying while it is unavailable. False if stopped meanwhile."""
+        delay = self.settings.retry_initial_s
+        while not self._stop.is_set():
+            self.attempts += 1
+            try:
+                self.info = self.source.open()
+                self.assets = self.source.assets()
+                return True
+            except SourceUnavailable as exc:
+                self.source.close()
+                self._on_status("unavailable", f"{exc}; retry {self.attempts} in {delay:.1f} s")
+                if self._stop.wait(delay):
+                    return False
+                delay = min(delay * 2, self.settings.retry_max_s)
+        return False
+
+    def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as exc:  # noqa: BLE001 - handed to the consumer, who reports it
+            self.error = exc
+        finally:
+            self.source.close()
+            with self._cond:
+                self.finished = True
+                self._cond.notify_all()
+            self.opened.set()
+
+    def _loop(self) -> None:
+        index, t_offset, play = 0, 0.0, 0
+        while not self._stop.is_set():
+            if not self._open():
+                return
+            first_open = not self.opened.is_set()
+            self.opened.set()
+            self._on_status("running", "" if first_open else "source is back")
+            t0_wall, t0_media, last_t = time.monotonic(), None, 0.0
+            try:
+                while not self._stop.is_set():
+                    item = self.source.read()
+                    if item is None:
+                        break
+                    t, image, truth = item
+                    if not self.source.live and self.source.pace == "realtime":
+                        t0_media = t if t0_media is None else t0_media
+                        wait = t0_wall + (t - t0_media) - time.monotonic()
+                        if wait > 0 and self._stop.wait(wait):
+                            return
+                    last_t = t
+                    self._put(Frame(index, t + t_offset, time.monotonic(), image, truth))
+                    index += 1
+            except SourceUnavailable as exc:
+                self.source.close()
+                self._on_status("unavailable", f"{exc}; reopening")
+                continue
+            self.source.close()
+            if self.source.live:
+                continue
+            play += 1
+            if self.source.loops and play >= self.source.loops:
+                return
+            # the next loop continues the time line one frame period after the last frame
+            period = 1.0 / (self.info.fps if self.info and self.info.fps else 30.0)
+            t_offset += last_t + period

@@ -1,0 +1,152 @@
+"""``articast serve``, ``demo``, ``replay`` and ``replay-record``: run the streaming service."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from service.settings import (
+    CaptureSettings,
+    HubSettings,
+    ServerSettings,
+    SessionPolicy,
+    add_arguments,
+    from_args,
+)
+
+EPILOG = """\
+Clients connect to ws://HOST:PORT/ws and send
+  {"type": "subscribe", "session": "NAME", "streams": ["articulatory", "pose"]}
+The protocol is served at http://HOST:PORT/api/protocol and described in docs/SERVICE.md.
+Every option is also settable as an ARTICAST_<OPTION> environment variable.
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+    s = sub.add_parser(
+        "serve", help="track faces and stream them to WebSocket subscribers",
+        description="Run the streaming service with one session per --source.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    s.add_argument("--source", action="append", default=[], metavar="NAME=URI",
+                   help="a session: v4l2:/dev/video0?width=640&height=480&fps=60, "
+                   "file:talk.mp4?pace=realtime&loop=1, images:DIR, synthetic:seed=3, "
+                   "replay-record:rec.jsonl (repeat for several faces; none: add them with "
+                   "POST /api/sessions)")
+    _common(s)
+    s.set_defaults(func=_serve)
+
+    d = sub.add_parser(
+        "demo", help="serve the built-in synthetic speaker on loopback",
+        description="Serve the synthetic speaker (no camera, no files needed) and print the "
+        "URL a client connects to.", epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    d.add_argument("--seed", type=int, default=1, help="sentence seed (default 1)")
+    d.add_argument("--fps", type=float, default=60.0, help="frame rate (default 60)")
+    _common(d)
+    d.set_defaults(func=_demo)
+
+    r = sub.add_parser("replay", help="serve a recorded video through the tracker",
+                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    r.add_argument("video", type=Path)
+    _playback(r)
+    _common(r)
+    r.set_defaults(func=_replay)
+
+    rr = sub.add_parser("replay-record", help="serve a recording made by serve --record",
+                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rr.add_argument("recording", type=Path)
+    _playback(rr)
+    _common(rr)
+    rr.set_defaults(func=_replay_record)
+
+
+def _playback(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--name", help="session name (default: the file name)")
+    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime")
+    p.add_argument("--loop", type=int, default=1, help="times to play (0 = forever)")
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("session")
+    g.add_argument("--model", default="", help="face model (.npz) for every session")
+    g.add_argument("--appearance", default="", help="trained appearance (.npz)")
+    g.add_argument("--camera", default="", help="camera calibration (.json)")
+    g.add_argument("--processor", default="auto",
+                   help="auto | truth | tracker | module:factory (default auto)")
+    g.add_argument("--wait-for-subscriber", action="store_true",
+                   help="hold each source until its first subscriber arrives")
+    g.add_argument("--api-token", default=None,
+                   help="require 'Authorization: Bearer TOKEN' to add or remove sessions")
+    add_arguments(p.add_argument_group("server"), ServerSettings)
+    add_arguments(p.add_argument_group("fan-out limits"), HubSettings)
+    add_arguments(p.add_argument_group("capture"), CaptureSettings)
+    add_arguments(p.add_argument_group("sessions"), SessionPolicy)
+    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+
+
+def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
+    import os
+
+    from core.errors import InputError
+    from service.app import ServiceConfig
+    from service.server import serve
+    from service.sources import probe
+    from service.worker import SessionSpec
+
+    names = [n for n, _ in sources]
+    if len(set(names)) != len(names):
+        raise InputError(f"session names must differ: {names}")
+    from service.processors import check_processor
+    from service.sources import parse_uri
+
+    for _, uri in sources:
+        probe(uri)  # a corrupt file or unknown kind: one clear error now, not a server later
+        check_processor(args.processor, parse_uri(uri).kind, bool(args.appearance))
+    specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
+                              args.wait_for_subscriber) for n, uri in sources)
+    token = args.api_token if args.api_token is not None else os.environ.get(
+        "ARTICAST_API_TOKEN", "")
+    config = ServiceConfig(
+        server=from_args(ServerSettings, args), hub=from_args(HubSettings, args),
+        capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
+        sessions=specs, api_token=token,
+        http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", args.processor))))
+
+    def listening(url: str) -> None:
+        if args.json:
+            print(json.dumps({"url": url, "sessions": names}), flush=True)
+        else:
+            first = names[0] if names else "NAME"
+            print(f"articast: serving {', '.join(names) or 'no session yet'} at {url}\n"
+                  f'  subscribe with {{"type": "subscribe", "session": "{first}"}}; '
+                  "Ctrl-C stops", flush=True)
+
+    serve(config, listening)
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from service.sources import parse_named
+
+    return _run(args, [parse_named(s) for s in args.source])
+
+
+def _demo(args: argparse.Namespace) -> int:
+    return _run(args, [("demo", f"synthetic:seed={args.seed}&fps={args.fps}&loop=0")])
+
+
+def _name(args: argparse.Namespace, path: Path) -> str:
+    import re
+
+    return args.name or re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem)[:64] or "replay"
+
+
+def _replay(args: argparse.Namespace) -> int:
+    uri = f"file:{args.video}?pace={args.pace}&loop={args.loop}"
+    return _run(args, [(_name(args, args.video), uri)])
+
+
+def _replay_record(args: argparse.Namespace) -> int:
+    uri = f"replay-record:{args.recording}?pace={args.pace}&loop={args.loop}"
+    return _run(args, [(_name(args, args.recording), uri)])

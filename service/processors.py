@@ -1,0 +1,164 @@
+"""What turns a frame into a :class:`~core.result.TrackResult`: the ``FrameProcessor`` seam.
+
+A session's ``processor`` option picks one:
+
+``truth``     pass the source's ground truth through (synthetic speaker, recordings): streams
+              exact ground truth to avatars for testing them.
+``tracker``   the real tracker (``core.tracker.Tracker``), one instance per session run.
+``auto``      ``truth`` for recordings; otherwise ``tracker`` when it is available, else
+              ``truth`` if the source carries ground truth; else a clear error.
+``pkg.mod:fn``  any callable ``fn(context: ProcessorContext) -> FrameProcessor``.
+
+Processors are built inside the worker (thread or process) that uses them, and are called
+from that worker only.
+"""
+
+from __future__ import annotations
+
+import importlib
+import time
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from core.errors import ArticastError, InputError
+from core.result import TrackResult
+from service.sources import Frame, SourceAssets, SourceInfo
+
+
+class FrameProcessor(Protocol):
+    def process(self, frame: Frame) -> TrackResult: ...
+
+
+@dataclass(frozen=True)
+class ProcessorContext:
+    """What a processor factory gets: the session's assets, resolved."""
+
+    session: str
+    source: SourceInfo
+    model: Any  # core.model.FaceModel | None
+    camera: Any  # core.camera.Camera | None
+    appearance: Any  # core.appearance.AppearanceModel | None
+    options: dict[str, Any]
+
+
+class TruthProcessor:
+    """Passes ground truth through; a frame without truth is ``ok=False``."""
+
+    def __init__(self, context: ProcessorContext | None = None) -> None:
+        self._last: TrackResult | None = None
+
+    def process(self, frame: Frame) -> TrackResult:
+        if frame.truth is not None:
+            self._last = frame.truth
+            return frame.truth
+        import numpy as np
+
+        from core.camera import Pose
+        from core.model import PARAM_NAMES
+
+        last = self._last
+        return TrackResult(frame.index, frame.t,
+                           last.alpha if last else np.zeros(len(PARAM_NAMES)),
+                           last.pose if last else Pose(), ok=False,
+                           reason="this frame carries no ground truth")
+
+
+class TrackerProcessor:
+    """Adapter to ``core.tracker.Tracker(model, appearance, camera, clock=...)``.
+
+    Integration seam: the only place the service touches the tracker.
+    """
+
+    def __init__(self, context: ProcessorContext) -> None:
+        try:
+            from core.tracker import Tracker
+        except ImportError as exc:
+            raise ArticastError(f"the tracker (core.tracker) is not available: {exc}") from None
+        missing = [n for n in ("model", "appearance", "camera") if getattr(context, n) is None]
+        if missing:
+            raise InputError(
+                f"session {context.session!r}: tracking needs {', '.join(missing)} "
+                f"(give --{' --'.join(missing)}, or use a source that brings them)"
+            )
+        self.tracker = Tracker(context.model, context.appearance, context.camera,
+                               clock=time.perf_counter)
+
+    def process(self, frame: Frame) -> TrackResult:
+        if frame.image is None:
+            raise InputError("this source has no images to track")
+        return self.tracker.track(frame.image, frame.t)
+
+
+def tracker_available() -> bool:
+    try:
+        importlib.import_module("core.tracker")
+    except ImportError:
+        return False
+    return True
+
+
+def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProcessor]:
+    """Build the named processor; returns (the name actually used, processor)."""
+    kind = context.source.kind
+    if name == "auto":
+        if kind == "replay-record":
+            name = "truth"
+        elif tracker_available() and context.appearance is not None:
+            name = "tracker"
+        elif kind == "synthetic":
+            name = "truth"
+        else:
+            raise InputError(
+                f"session {context.session!r}: no tracker is available for a {kind} source "
+                "(core.tracker and an appearance model are needed); only sources with ground "
+                "truth (synthetic, replay-record) can be served without one"
+            )
+    if name == "truth":
+        return name, TruthProcessor(context)
+    if name == "tracker":
+        return name, TrackerProcessor(context)
+    if ":" in name:
+        mod, _, attr = name.partition(":")
+        try:
+            factory = getattr(importlib.import_module(mod), attr)
+        except (ImportError, AttributeError) as exc:
+            raise InputError(f"processor {name!r} cannot be imported: {exc}") from None
+        return name, factory(context)
+    raise InputError(f"unknown processor {name!r}: auto, truth, tracker or module:callable")
+
+
+def check_processor(name: str, source_kind: str, appearance_given: bool) -> None:
+    """Fail before serving when ``name`` cannot work for this kind of source (CLI check)."""
+    if name in ("auto", "tracker") and source_kind not in ("replay-record", "synthetic"):
+        if not tracker_available():
+            raise InputError(f"a {source_kind} source needs the tracker (core.tracker), which "
+                             "is not available in this build")
+        if not appearance_given:
+            raise InputError(f"tracking a {source_kind} source needs --appearance (and --model)")
+    if name == "truth" and source_kind not in ("replay-record", "synthetic"):
+        raise InputError(f"a {source_kind} source carries no ground truth for --processor truth")
+
+
+def load_assets(spec_model: str, spec_appearance: str, spec_camera: str,
+                from_source: SourceAssets, source: SourceInfo) -> tuple[Any, Any, Any]:
+    """Model, appearance, camera: files given for the session win over the source's own."""
+    model, appearance, camera = from_source.model, from_source.appearance, from_source.camera
+    if spec_model:
+        from core.model import FaceModel
+
+        model = FaceModel.load(spec_model)
+    if spec_camera:
+        from core.camera import Camera
+
+        camera = Camera.load(spec_camera)
+    if spec_appearance:
+        try:
+            from core.appearance import AppearanceModel
+        except ImportError as exc:
+            raise ArticastError(f"appearance models are not available: {exc}") from None
+        appearance = AppearanceModel.load(spec_appearance, model)
+    if camera is None and source.width and source.height:
+        from core.camera import Camera
+
+        camera = Camera.default(source.width, source.height)
+    return model, appearance, camera

@@ -1,0 +1,246 @@
+"""Sessions (one per face) and the manager that runs several, restarts them, and stops them.
+
+A :class:`Session` lives on the server's event loop. It supervises one worker at a time
+(:mod:`service.worker`), turns the worker's messages into hub events (frames, status, ready),
+and keeps the session's metrics. A crashed worker is restarted with backoff; a session whose
+input is wrong (corrupt file, bad model) is reported ``failed`` once and not restarted; nothing
+a session does can take the server down.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import time
+from typing import Any
+
+import numpy as np
+
+from core.errors import InputError
+from service.hub import Hub
+from service.metrics import SessionMetrics
+from service.settings import CaptureSettings, SessionPolicy
+from service.sources import check_uri, parse_uri
+from service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
+from service.worker import ProcessWorker, SessionSpec, ThreadWorker
+
+log = logging.getLogger("articast.session")
+NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+TERMINAL = ("ended", "failed", "stopped")
+JOIN_TIMEOUT_S = 5.0
+"""How long a stopped worker may take to finish its frame before its process is terminated."""
+
+
+class Session:
+    def __init__(self, spec: SessionSpec, sid: int, manager: SessionManager) -> None:
+        self.spec, self.sid, self._m = spec, sid, manager
+        self.state, self.detail = "starting", ""
+        self.description: dict[str, Any] | None = None
+        self.source_info: dict[str, Any] | None = None
+        self.processor = ""
+        self.worker_kind = ""
+        self.metrics = SessionMetrics()
+        self._mesh: tuple[np.ndarray, np.ndarray] | None = None
+        self._worker: ThreadWorker | ProcessWorker | None = None
+        self._done = asyncio.Event()
+        self._outcome: tuple[str, str] = ("", "")
+        self._stopping = asyncio.Event()
+        self._task: asyncio.Task[None] | None = None
+        self._loop = asyncio.get_running_loop()
+
+    # ----------------------------------------------------------------------- lifecycle
+    def start(self) -> None:
+        self._task = asyncio.create_task(self._supervise(), name=f"session {self.spec.name}")
+
+    async def stop(self, timeout: float = 5.0) -> None:
+        self._stopping.set()
+        if self._worker is not None:
+            self._worker.stop()
+        if self._task is not None:
+            try:
+                await asyncio.wait_for(asyncio.shield(self._task), timeout)
+            except TimeoutError:
+                self._task.cancel()
+        self._set_state("stopped", "session removed")
+
+    @property
+    def up(self) -> bool:
+        return self.state == "running"
+
+    def subscriber_arrived(self) -> None:
+        if self._worker is not None:
+            self._worker.go.set()
+
+    async def _supervise(self) -> None:
+        try:
+            await self._run_workers()
+        finally:
+            self._m.release_thread(self)
+
+    async def _run_workers(self) -> None:
+        policy = self._m.policy
+        delay = policy.restart_initial_s
+        while not self._stopping.is_set():
+            self._done.clear()
+            worker = self._worker = self._m.make_worker(self)
+            self.worker_kind = worker.kind
+            started = time.monotonic()
+            try:
+                worker.start()
+                if not self.spec.wait_for_subscriber or self._m.hub.subscriber_count(
+                        self.spec.name):
+                    worker.go.set()
+                await self._done.wait()
+            finally:
+                worker.stop()
+                await asyncio.to_thread(worker.join, JOIN_TIMEOUT_S)
+            outcome, detail = self._outcome
+            if self._stopping.is_set() or outcome == "stopped":
+                return
+            if outcome in ("ended", "failed"):
+                self._set_state(outcome, detail)
+                return
+            self.metrics.restarts += 1
+            if time.monotonic() - started > 60:
+                delay = policy.restart_initial_s
+            if self.metrics.restarts > policy.max_restarts:
+                self._set_state("failed", f"crashed {self.metrics.restarts} times; last: {detail}")
+                return
+            self._set_state("restarting", f"{detail}; restarting in {delay:.1f} s")
+            log.warning("session %s crashed: %s", self.spec.name, detail)
+            try:
+                await asyncio.wait_for(self._stopping.wait(), delay)
+                return
+            except TimeoutError:
+                delay = min(delay * 2, policy.restart_max_s)
+
+    # ----------------------------------------------------------------------- worker messages
+    def emit_threadsafe(self, msg: tuple[Any, ...]) -> None:
+        """Called by worker threads (and process readers): hand over to the event loop."""
+        try:
+            self._loop.call_soon_threadsafe(self._on_message, msg)
+        except RuntimeError:  # loop closed during shutdown
+            pass
+
+    def _on_message(self, msg: tuple[Any, ...]) -> None:
+        kind = msg[0]
+        if kind == "frame":
+            self._on_frame(msg[1])
+        elif kind == "status":
+            self._set_state(msg[1], msg[2])
+        elif kind == "ready":
+            self._on_ready(msg[1], msg[2], msg[3])
+        elif kind == "done":
+            self._outcome = (msg[1], msg[2])
+            self._done.set()
+
+    def _on_ready(self, desc: dict[str, Any], source: dict[str, Any], processor: str) -> None:
+        self.description, self.source_info, self.processor = desc, source, processor
+        g = desc.get("geometry")
+        if g:
+            k = len(desc["param_names"])
+            self._mesh = (np.asarray(g["mean"], np.float32),
+                          np.asarray(g["basis"], np.float32).reshape(k, -1))
+        self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
+        self._set_state("running", "")
+
+    def _on_frame(self, rec: FrameRecord) -> None:
+        if self.description is None:
+            return
+        m = self.metrics
+        ev = FrameEvent(self.spec.name, self.sid, rec, self.description["param_names"],
+                        self._mesh)
+        self._m.hub.publish(self.spec.name, ev)
+        t = now()
+        m.publish_latency.observe(t - rec.t_tracked)
+        m.track_latency.observe(rec.t_tracked - rec.t_capture)
+        m.frames += 1
+        m.frames_failed += not rec.quality["ok"]
+        m.source_dropped = rec.source_dropped
+        m.fps.tick()
+        m.residual.observe(rec.quality["residual"])
+        m.last_residual = rec.quality["residual"]
+
+    def _set_state(self, state: str, detail: str) -> None:
+        if self.state in TERMINAL and state != "stopped":
+            return
+        if (state, detail) == (self.state, self.detail):
+            return
+        self.state, self.detail = state, detail
+        self._m.hub.publish(self.spec.name, StatusEvent(self.spec.name, state, detail, now()))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.spec.name, "sid": self.sid, "state": self.state,
+                "detail": self.detail, "spec": self.spec.to_dict(), "source": self.source_info,
+                "processor": self.processor, "worker": self.worker_kind,
+                "subscribers": self._m.hub.subscriber_count(self.spec.name),
+                "frames": self.metrics.frames, "fps": round(self.metrics.fps.rate(), 2),
+                "restarts": self.metrics.restarts}
+
+
+class SessionManager:
+    """All sessions of one server."""
+
+    def __init__(self, hub: Hub[Any], capture: CaptureSettings | None = None,
+                 policy: SessionPolicy | None = None, record_dir: str = "") -> None:
+        self.hub = hub
+        self.capture = capture or CaptureSettings()
+        self.policy = policy or SessionPolicy()
+        self.record_dir = record_dir
+        self.sessions: dict[str, Session] = {}
+        self._next_sid = 1
+        self._thread_owner: Session | None = None
+
+    def make_worker(self, s: Session) -> ThreadWorker | ProcessWorker:
+        """``auto``: a process per session that tracks images; at most one light session
+        (ground truth passed through) in a thread of this process.
+
+        A tracker holding the GIL in the server's process delays the event loop that sends
+        its frames: with 14 ms of GIL-held work per 60 fps frame and 100 subscribers, p99
+        latency was 17 ms (max 42) in a thread and 12 ms (max 21) in a process
+        (benchmarks/latency.py --busy-ms 14). Passing ground truth through costs nothing, so
+        the first such session skips the process start-up and the pipe hop.
+        """
+        kind = self.policy.worker
+        if kind == "auto":
+            light = s.spec.processor == "truth" or (
+                s.spec.processor == "auto" and parse_uri(s.spec.source).kind == "replay-record")
+            kind = "thread" if light and self._thread_owner in (None, s) else "process"
+        if kind == "thread":
+            self._thread_owner = self._thread_owner or s
+            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emit_threadsafe)
+        if kind == "process":
+            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emit_threadsafe)
+        raise InputError(f"worker must be auto, thread or process, not {kind!r}")
+
+    def release_thread(self, s: Session) -> None:
+        """``s`` no longer runs workers: the next session may track in this process."""
+        if self._thread_owner is s:
+            self._thread_owner = None
+
+    async def add(self, spec: SessionSpec) -> Session:
+        """Validate and start a session. Raises InputError (bad name/URI) or KeyError (taken)."""
+        if not NAME_RE.match(spec.name):
+            raise InputError(f"session name {spec.name!r}: 1-64 of letters, digits, _ . -")
+        if spec.name in self.sessions:
+            raise KeyError(spec.name)
+        check_uri(spec.source)
+        s = Session(spec, self._next_sid, self)
+        self._next_sid += 1
+        self.sessions[spec.name] = s
+        s.start()
+        return s
+
+    async def remove(self, name: str) -> None:
+        s = self.sessions.pop(name)
+        await s.stop(self.policy.restart_max_s)
+
+    async def close(self, timeout: float = 5.0) -> None:
+        names = list(self.sessions)
+        await asyncio.gather(*(self._stop_one(n, timeout) for n in names))
+
+    async def _stop_one(self, name: str, timeout: float) -> None:
+        s = self.sessions.pop(name, None)
+        if s is not None:
+            await s.stop(timeout)

@@ -1,0 +1,112 @@
+"""Service settings: one frozen dataclass per policy.
+
+Each field is settable from an environment variable ``ARTICAST_<FIELD>`` (upper case) and,
+for the ones the CLI exposes, from ``--<field-with-dashes>``; the command line wins over the
+environment, the environment over the defaults.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+from core.errors import InputError
+
+S = TypeVar("S")
+
+
+def _opt(default: Any, help: str) -> Any:  # noqa: A002 - argparse's word
+    return field(default=default, metadata={"help": help})
+
+
+@dataclass(frozen=True)
+class CaptureSettings:
+    """How a capture thread treats its source."""
+
+    retry_initial_s: float = _opt(0.5, "first wait before reopening an unavailable camera")
+    retry_max_s: float = _opt(10.0, "longest wait between reopening attempts (backoff cap)")
+
+
+@dataclass(frozen=True)
+class HubSettings:
+    """Limits of the fan-out to subscribers."""
+
+    max_queue: int = _opt(4, "frames queued per subscriber before the oldest is dropped")
+    max_queue_limit: int = _opt(256, "deepest queue a subscriber may ask for")
+    max_subscribers: int = _opt(2000, "subscriptions the server accepts in all")
+    max_subscriptions_per_connection: int = _opt(16, "sessions one connection may follow")
+    max_message_bytes: int = _opt(65536, "largest client message or HTTP body accepted")
+    ws_max_size: int = _opt(1 << 20, "largest WebSocket message read at all (else close 1009)")
+    stall_timeout_s: float = _opt(30.0, "disconnect a subscriber whose send is stuck this long")
+    socket_buffer_bytes: int = _opt(32768, "bytes buffered per connection after its queue: "
+                                    "bounds how stale a slow client's frames can get")
+
+
+@dataclass(frozen=True)
+class SessionPolicy:
+    """How sessions run and recover."""
+
+    worker: str = _opt("auto", "thread | process | auto (a process per tracking session; one "
+                       "ground-truth session may run in a thread): faces never share a GIL")
+    restart_initial_s: float = _opt(0.5, "first wait before restarting a crashed session")
+    restart_max_s: float = _opt(30.0, "longest wait between restarts (backoff cap)")
+    max_restarts: int = _opt(20, "crashes before a session is declared failed")
+
+
+@dataclass(frozen=True)
+class ServerSettings:
+    host: str = _opt("127.0.0.1", "address to listen on")
+    port: int = _opt(8765, "port to listen on (0: any free port)")
+    record: str = _opt("", "write every session's frames as JSONL into this folder")
+    shutdown_timeout_s: float = _opt(5.0, "wait this long for connections and workers to end")
+    log_level: str = _opt("warning", "uvicorn and articast log level")
+
+
+def from_env(cls: type[S], env: Mapping[str, str] | None = None, **overrides: Any) -> S:
+    """Build ``cls`` from its defaults, ``ARTICAST_*`` variables, then ``overrides``.
+
+    ``None`` overrides are ignored (an argparse option that was not given).
+    """
+    env = os.environ if env is None else env
+    values: dict[str, Any] = {}
+    for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        key = f"ARTICAST_{f.name.upper()}"
+        if key in env:
+            values[f.name] = _convert(f.type, env[key], key)
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    return cls(**values)
+
+
+def _convert(type_name: Any, raw: str, key: str) -> Any:
+    t = str(type_name)
+    try:
+        if t == "int":
+            return int(raw)
+        if t == "float":
+            return float(raw)
+        if t == "bool":
+            return raw.strip().lower() in ("1", "true", "yes", "on")
+        return raw
+    except ValueError:
+        raise InputError(f"{key}={raw!r} is not a valid {t}") from None
+
+
+def add_arguments(parser: Any, cls: type, skip: tuple[str, ...] = ()) -> None:
+    """Mirror the fields of a settings class as ``--options`` (default None: env/defaults)."""
+    for f in dataclasses.fields(cls):
+        if f.name in skip:
+            continue
+        t = {"int": int, "float": float}.get(str(f.type), str)
+        parser.add_argument(
+            "--" + f.name.replace("_", "-"), dest=f.name, type=t, default=None,
+            help=f"{f.metadata.get('help', '')} (default {f.default!r}; "
+            f"env ARTICAST_{f.name.upper()})".lstrip(),
+        )
+
+
+def from_args(cls: type[S], args: Any) -> S:
+    names = {f.name for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    return from_env(cls, **{k: v for k, v in vars(args).items() if k in names})

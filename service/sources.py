@@ -1,0 +1,474 @@
+"""Frame sources, opened from a URI.
+
+===================================================  ==========================================
+``v4l2:/dev/video0?width=640&height=480&fps=60&fourcc=MJPG``  a camera through OpenCV's V4L2
+                                                     backend; what the device actually gave is
+                                                     reported in ``SourceInfo.detail``
+``file:talk.mp4?pace=realtime|fast&loop=N``          a video; timestamps from the container
+``images:DIR?fps=30&pace=..&loop=N``                 a folder of images in name order
+``synthetic:seed=3&fps=60&pace=..&loop=N``           the built-in speaker, with ground truth
+``replay-record:rec.jsonl?pace=..&loop=N``           a recording made by ``serve --record``
+===================================================  ==========================================
+
+``loop=N`` plays a finite source N times (0 = forever; default 1). ``pace=realtime`` (the
+default) delivers frames at their media time, ``pace=fast`` as fast as the tracker takes them,
+losing none. A source only reads; pacing, looping, retries and the one-frame slot are the
+capture thread's job (:mod:`service.capture`).
+
+Errors: :class:`SourceUnavailable` (a camera that is missing, busy or unplugged: retried with
+backoff) and :class:`SourceError` (a wrong URI, a missing, corrupt or unreadable file: reported
+once, never retried). Both are :class:`~core.errors.ArticastError`.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+from urllib.parse import parse_qsl
+
+import numpy as np
+
+from core.errors import ArticastError, InputError
+from core.result import TrackResult
+
+
+class SourceError(ArticastError):
+    """A source that cannot work: bad URI, missing/corrupt file. Not retried."""
+
+
+class SourceUnavailable(ArticastError):
+    """A source that may come back (camera missing, busy or unplugged). Retried."""
+
+
+@dataclass(frozen=True, eq=False)
+class Frame:
+    """One captured frame.
+
+    index : source frame number (continues across loops).
+    t : media time, s (container time stamp, or time since the camera opened).
+    t_capture : ``time.monotonic()`` when the capture thread received the frame.
+    image : (H, W, 3) uint8 BGR, or None for sources that carry only results (recordings).
+    truth : ground truth for this frame, when the source knows it.
+    """
+
+    index: int
+    t: float
+    t_capture: float
+    image: np.ndarray | None
+    truth: TrackResult | None = None
+
+
+@dataclass(frozen=True)
+class SourceInfo:
+    uri: str
+    kind: str
+    live: bool
+    width: int | None = None
+    height: int | None = None
+    fps: float | None = None
+    frame_count: int | None = None
+    detail: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"uri": self.uri, "kind": self.kind, "live": self.live, "width": self.width,
+                "height": self.height, "fps": self.fps, "detail": dict(self.detail)}
+
+
+@dataclass(frozen=True)
+class SourceAssets:
+    """What a source brings for tracking and for ``hello`` (synthetic speaker, recordings)."""
+
+    model: Any = None  # core.model.FaceModel
+    camera: Any = None  # core.camera.Camera
+    appearance: Any = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class Source(Protocol):
+    """What the capture thread drives. ``read`` returns ``(t, image, truth)`` or None at end."""
+
+    uri: str
+    live: bool
+    pace: str  # "realtime" or "fast" (live sources: "realtime")
+    loops: int  # 0 = forever
+
+    def open(self) -> SourceInfo: ...
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None: ...
+
+    def close(self) -> None: ...
+
+    def assets(self) -> SourceAssets: ...
+
+
+# ------------------------------------------------------------------------------- URI parsing
+@dataclass(frozen=True)
+class SourceURI:
+    kind: str
+    target: str
+    params: dict[str, str]
+    text: str
+
+
+def parse_uri(uri: str) -> SourceURI:
+    """Split ``kind:target?k=v&..`` (for ``synthetic:`` the target is itself ``k=v&..``)."""
+    if not isinstance(uri, str) or ":" not in uri:
+        raise SourceError(f"{uri!r}: a source is KIND:TARGET, KIND one of {sorted(SOURCE_KINDS)}")
+    kind, rest = uri.split(":", 1)
+    if kind not in SOURCE_KINDS:
+        raise SourceError(f"{uri!r}: unknown source kind {kind!r}; known: {sorted(SOURCE_KINDS)}")
+    target, _, query = rest.partition("?")
+    if kind == "synthetic" and "=" in target:
+        target, query = "", "&".join(x for x in (target, query) if x)
+    params = dict(parse_qsl(query, keep_blank_values=True, strict_parsing=False))
+    known = SOURCE_KINDS[kind][1]
+    unknown = sorted(set(params) - set(known))
+    if unknown:
+        raise SourceError(f"{uri!r}: unknown option(s) {unknown} for {kind}; known: {known}")
+    return SourceURI(kind, target, params, uri)
+
+
+def _num(p: SourceURI, key: str, conv: Callable[[str], Any], default: Any, lo: float = 0) -> Any:
+    if key not in p.params:
+        return default
+    try:
+        v = conv(p.params[key])
+    except ValueError:
+        raise SourceError(f"{p.text!r}: {key}={p.params[key]!r} is not a number") from None
+    if v < lo:
+        raise SourceError(f"{p.text!r}: {key} must be >= {lo}")
+    return v
+
+
+class _Finite:
+    """Pacing and looping options shared by every non-live source."""
+
+    live = False
+
+    def _playback(self, p: SourceURI) -> None:
+        self.uri = p.text
+        self.pace = p.params.get("pace", "realtime")
+        if self.pace not in ("realtime", "fast"):
+            raise SourceError(f"{p.text!r}: pace must be 'realtime' or 'fast'")
+        self.loops = _num(p, "loop", int, 1)
+
+    def assets(self) -> SourceAssets:
+        return SourceAssets()
+
+
+# ------------------------------------------------------------------------------- V4L2
+class V4L2Source:
+    live = True
+    pace = "realtime"
+    loops = 1
+
+    def __init__(self, p: SourceURI) -> None:
+        self.uri = p.text
+        self.device = p.target or "/dev/video0"
+        self.want = {k: _num(p, k, int, None, 1) for k in ("width", "height")}
+        self.want_fps = _num(p, "fps", float, None, 0.1)
+        self.fourcc = p.params.get("fourcc", "")
+        if self.fourcc and len(self.fourcc) != 4:
+            raise SourceError(f"{p.text!r}: fourcc must be 4 characters, e.g. MJPG or YUYV")
+        self._cap: Any = None
+        self._t0 = 0.0
+
+    def _index(self) -> int:
+        real = os.path.realpath(self.device)
+        name = os.path.basename(real)
+        if self.device.isdigit():
+            return int(self.device)
+        if not os.path.exists(real):
+            raise SourceUnavailable(f"{self.device}: no such device (camera not plugged in?)")
+        if not (name.startswith("video") and name[5:].isdigit()):
+            raise SourceError(f"{self.device}: not a V4L2 device node (/dev/videoN)")
+        return int(name[5:])
+
+    def open(self) -> SourceInfo:
+        import cv2
+
+        try:  # a missing camera is our status to report, not OpenCV's warning on stderr
+            cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+        except AttributeError:
+            pass
+        cap = cv2.VideoCapture(self._index(), cv2.CAP_V4L2)
+        if not cap.isOpened():
+            cap.release()
+            raise SourceUnavailable(f"{self.device}: cannot be opened (busy, or not a camera)")
+        if self.fourcc:
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
+        if self.want["width"]:
+            cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.want["width"])
+        if self.want["height"]:
+            cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.want["height"])
+        if self.want_fps:
+            cap.set(cv2.CAP_PROP_FPS, self.want_fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # the newest frame, not a backlog in the driver
+        code = int(cap.get(cv2.CAP_PROP_FOURCC))
+        width = int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        height = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = float(cap.get(cv2.CAP_PROP_FPS))
+        got = {"width": width, "height": height, "fps": fps,
+               "fourcc": "".join(chr((code >> 8 * i) & 0xFF) for i in range(4)).strip("\0")}
+        self._cap, self._t0 = cap, time.monotonic()
+        requested = {**self.want, "fps": self.want_fps, "fourcc": self.fourcc or None}
+        return SourceInfo(self.uri, "v4l2", True, width, height, fps,
+                          detail={"device": self.device, "requested": requested, "actual": got})
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        ok, image = self._cap.read()
+        if not ok or image is None:
+            raise SourceUnavailable(f"{self.device}: stopped delivering frames (unplugged?)")
+        return time.monotonic() - self._t0, image, None
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+    def assets(self) -> SourceAssets:
+        return SourceAssets()
+
+
+# ------------------------------------------------------------------------------- video file
+class FileSource(_Finite):
+    def __init__(self, p: SourceURI) -> None:
+        self._playback(p)
+        self.path = Path(p.target)
+        if not p.target:
+            raise SourceError(f"{p.text!r}: give a file, e.g. file:talk.mp4")
+        self._cap: Any = None
+        self._first: np.ndarray | None = None
+        self._n = 0
+
+    def open(self) -> SourceInfo:
+        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # our error, not FFmpeg's noise
+        import cv2
+
+        if not self.path.is_file():
+            raise SourceError(f"{self.path}: no such file")
+        cap = cv2.VideoCapture(str(self.path))
+        if not cap.isOpened():
+            cap.release()
+            raise SourceError(f"{self.path}: not a readable video (OpenCV cannot decode it)")
+        ok, first = cap.read()
+        if not ok or first is None:
+            cap.release()
+            raise SourceError(f"{self.path}: corrupt or empty video (no frame could be decoded)")
+        self._cap, self._first, self._n = cap, first, 0
+        fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
+        count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
+        height, width = int(first.shape[0]), int(first.shape[1])
+        return SourceInfo(self.uri, "file", False, width, height, fps, count,
+                          {"path": str(self.path), "pace": self.pace, "loop": self.loops})
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        import cv2
+
+        if self._first is not None:
+            image, self._first = self._first, None
+        else:
+            ok, image = self._cap.read()
+            if not ok or image is None:
+                return None
+        t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+        fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0
+        if t <= 0 and self._n > 0:  # container without time stamps
+            t = self._n / fps
+        self._n += 1
+        return t, image, None
+
+    def close(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+# ------------------------------------------------------------------------------- images
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
+
+
+class ImagesSource(_Finite):
+    def __init__(self, p: SourceURI) -> None:
+        self._playback(p)
+        self.dir = Path(p.target)
+        self.fps = _num(p, "fps", float, 30.0, 0.001)
+        self._files: list[Path] = []
+        self._i = 0
+
+    def open(self) -> SourceInfo:
+        if not self.dir.is_dir():
+            raise SourceError(f"{self.dir}: no such folder")
+        self._files = sorted(f for f in self.dir.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+        if not self._files:
+            raise SourceError(f"{self.dir}: no images ({', '.join(IMAGE_SUFFIXES)})")
+        self._i = 0
+        first = self._load(self._files[0])
+        return SourceInfo(self.uri, "images", False, first.shape[1], first.shape[0], self.fps,
+                          len(self._files), {"dir": str(self.dir), "pace": self.pace})
+
+    @staticmethod
+    def _load(path: Path) -> np.ndarray:
+        import cv2
+
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise SourceError(f"{path}: not a readable image")
+        return image
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        if self._i >= len(self._files):
+            return None
+        image = self._load(self._files[self._i])
+        self._i += 1
+        return (self._i - 1) / self.fps, image, None
+
+    def close(self) -> None:
+        self._files = []
+
+
+# ------------------------------------------------------------------------------- recordings
+class RecordSource(_Finite):
+    """Replays a JSONL recording (``serve --record``, or ``articast track`` output)."""
+
+    def __init__(self, p: SourceURI) -> None:
+        self._playback(p)
+        self.path = Path(p.target)
+        self._lines: Iterator[tuple[int, str]] | None = None
+        self._fh: Any = None
+        self._assets = SourceAssets()
+
+    def open(self) -> SourceInfo:
+        from service.record import read_header
+
+        if not self.path.is_file():
+            raise SourceError(f"{self.path}: no such file")
+        header, self._assets, self.param_names = read_header(self.path)
+        self._fh = self.path.open("r", encoding="utf-8", errors="replace")
+        self._lines = enumerate(self._fh, 1)
+        src = header.get("source") or {}
+        return SourceInfo(self.uri, "replay-record", False, src.get("width"), src.get("height"),
+                          src.get("fps"), None, {"path": str(self.path), "recorded": src})
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        from service.record import parse_frame_line
+
+        assert self._lines is not None
+        for n, line in self._lines:
+            try:
+                result = parse_frame_line(line, self.param_names)
+            except ValueError as exc:
+                if line.endswith("\n"):
+                    raise SourceError(f"{self.path}:{n}: not a frame record ({exc})") from None
+                return None  # the last line of a crashed recording: lost frame in flight
+            if result is not None:
+                return result.t, None, result
+        return None
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+    def assets(self) -> SourceAssets:
+        return self._assets
+
+
+# ------------------------------------------------------------------------------- synthetic
+class SyntheticSource(_Finite):
+    """The built-in speaker (``core.synthetic``), imported only when a session opens it.
+
+    Integration seam (to finish after the synthetic speaker lands): ``core.synthetic`` must
+    expose ``open_stream(seed: int, fps: float) -> stream`` where ``stream`` has ``model``
+    (FaceModel), ``camera`` (Camera), ``appearance`` (trained appearance, or None), optional
+    ``frame_count`` (None: endless) and ``frames()`` yielding ``(t, image_bgr, truth)``
+    (truth a :class:`~core.result.TrackResult`). Only :meth:`open` touches it.
+    """
+
+    def __init__(self, p: SourceURI) -> None:
+        self._playback(p)
+        self.seed = _num(p, "seed", int, 1)
+        self.fps = _num(p, "fps", float, 60.0, 0.001)
+        self._it: Iterator[Any] | None = None
+        self._assets = SourceAssets()
+
+    def open(self) -> SourceInfo:
+        try:
+            import core.synthetic as synthetic
+
+            open_stream = synthetic.open_stream  # type: ignore[attr-defined]
+        except (ImportError, AttributeError) as exc:
+            raise SourceError(
+                "the synthetic speaker (core.synthetic.open_stream) is not available in this "
+                f"build: {exc}"
+            ) from None
+        stream = open_stream(seed=self.seed, fps=self.fps)
+        self._assets = SourceAssets(stream.model, stream.camera,
+                                    getattr(stream, "appearance", None))
+        self._it = iter(stream.frames())
+        cam = stream.camera
+        return SourceInfo(self.uri, "synthetic", False, cam.width, cam.height, self.fps,
+                          getattr(stream, "frame_count", None), {"seed": self.seed})
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        assert self._it is not None
+        item = next(self._it, None)
+        return None if item is None else (float(item[0]), item[1], item[2])
+
+    def close(self) -> None:
+        self._it = None
+
+    def assets(self) -> SourceAssets:
+        return self._assets
+
+
+_PLAYBACK = ("pace", "loop")
+SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
+    "v4l2": (V4L2Source, ("width", "height", "fps", "fourcc")),
+    "file": (FileSource, _PLAYBACK),
+    "images": (ImagesSource, (*_PLAYBACK, "fps")),
+    "synthetic": (SyntheticSource, (*_PLAYBACK, "seed", "fps")),
+    "replay-record": (RecordSource, _PLAYBACK),
+}
+"""Registry: kind -> (factory, accepted options)."""
+
+
+def make_source(uri: str) -> Source:
+    """Parse ``uri`` and build its source (no I/O yet: :meth:`Source.open` does that)."""
+    p = parse_uri(uri)
+    source: Source = SOURCE_KINDS[p.kind][0](p)
+    return source
+
+
+def check_uri(uri: str) -> None:
+    """Fail fast on a bad URI or a missing file, without opening anything."""
+    p = parse_uri(uri)
+    src = make_source(uri)
+    if p.kind in ("file", "replay-record") and not Path(p.target).is_file():
+        raise SourceError(f"{p.target}: no such file")
+    if p.kind == "images" and not Path(p.target).is_dir():
+        raise SourceError(f"{p.target}: no such folder")
+    del src
+
+
+def parse_named(spec: str) -> tuple[str, str]:
+    """``NAME=URI`` of ``--source`` -> (name, uri)."""
+    name, sep, uri = spec.partition("=")
+    if not sep or not name or not uri:
+        raise InputError(f"--source takes NAME=URI (e.g. cam=v4l2:/dev/video0), got {spec!r}")
+    return name, uri
+
+
+def probe(uri: str) -> SourceInfo:
+    """Open and close a finite source once: a corrupt file fails here with one clear error."""
+    src = make_source(uri)
+    if src.live:
+        return SourceInfo(uri, parse_uri(uri).kind, True)
+    try:
+        return src.open()
+    finally:
+        src.close()

@@ -1,0 +1,284 @@
+"""A session's worker: source -> capture thread -> processor -> records, in a thread or process.
+
+The worker never talks to subscribers: it hands each message to ``emit`` (a thread-safe
+hand-over to the event loop, or a pipe to the server process) and goes on. Messages are
+tuples:
+
+``("status", state, detail)``           source state changes (``unavailable``, ``running``)
+``("ready", description, source, processor)``  once the source is open (hello can be sent)
+``("frame", FrameRecord)``              one per tracked frame
+``("done", outcome, detail)``           last message: ``ended``, ``failed`` (bad input, not
+                                        restarted), ``crashed`` (restarted) or ``stopped``
+
+Recording (``--record``) happens here, after the frame was handed over, so disk latency never
+delays subscribers and a crash of the server loses at most the frame in flight.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+from core.errors import ArticastError
+from core.result import TrackResult
+from service.capture import Capture
+from service.processors import ProcessorContext, load_assets, make_processor
+from service.record import Recorder
+from service.settings import CaptureSettings
+from service.sources import make_source
+from service.wire import FrameRecord, describe, epoch
+
+Emit = Callable[[tuple[Any, ...]], None]
+
+
+@dataclass(frozen=True)
+class SessionSpec:
+    """One face: a name, a source URI, optional model/appearance/camera files, options."""
+
+    name: str
+    source: str
+    model: str = ""
+    appearance: str = ""
+    camera: str = ""
+    processor: str = "auto"
+    wait_for_subscriber: bool = False
+    """Hold the source until the first subscriber arrives (replays that must not be missed)."""
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "source": self.source, "model": self.model,
+                "appearance": self.appearance, "camera": self.camera,
+                "processor": self.processor, "wait_for_subscriber": self.wait_for_subscriber,
+                "options": dict(self.options)}
+
+
+class _Event(Protocol):  # what a worker needs of threading.Event
+    def is_set(self) -> bool: ...
+
+    def wait(self, timeout: float | None = None) -> bool: ...
+
+
+def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir: str,
+               emit: Emit, stop: _Event, go: _Event) -> None:
+    """Run one session until its source ends, ``stop`` is set, or it fails. Never raises."""
+    capture: Capture | None = None
+    recorder: Recorder | None = None
+    try:
+        while not go.wait(0.1):
+            if stop.is_set():
+                emit(("done", "stopped", ""))
+                return
+        source = make_source(spec.source)
+        capture = Capture(source, capture_settings,
+                          lambda state, detail: emit(("status", state, detail))).start()
+        while not capture.opened.wait(0.1):
+            if stop.is_set():
+                emit(("done", "stopped", ""))
+                return
+        if capture.error is not None:
+            raise capture.error
+        assert capture.info is not None
+        model, appearance, camera = load_assets(spec.model, spec.appearance, spec.camera,
+                                                capture.assets, capture.info)
+        ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
+                               dict(spec.options))
+        used, processor = make_processor(spec.processor, ctx)
+        from core.model import PARAM_NAMES
+
+        desc = describe(model, camera, tuple(model.param_names) if model else PARAM_NAMES)
+        source_info = capture.info.to_dict()
+        emit(("ready", desc, source_info, used))
+        if record_dir:
+            recorder = Recorder(record_dir, spec.name, desc, source_info)
+        seq = 0
+        while not stop.is_set():
+            frame = capture.get(timeout=0.1)
+            if frame is None:
+                if capture.done:
+                    break
+                continue
+            t0 = time.perf_counter()
+            result = processor.process(frame)
+            ms = (time.perf_counter() - t0) * 1000.0
+            t_tracked = time.monotonic()
+            rec = _record(seq, frame.index, frame.t, epoch(frame.t_capture), epoch(t_tracked),
+                          result, ms, capture.dropped)
+            emit(("frame", rec))
+            if recorder is not None:
+                recorder.write(rec)
+            seq += 1
+        if stop.is_set():
+            emit(("done", "stopped", ""))
+        elif capture.error is not None:
+            raise capture.error
+        else:
+            emit(("done", "ended", f"source ended after {capture.frames} frames"))
+    except ArticastError as exc:
+        emit(("done", "failed", str(exc)))
+    except Exception as exc:  # noqa: BLE001 - a crash is reported and the session restarted
+        detail = "".join(traceback.format_exception_only(type(exc), exc)).strip()
+        emit(("done", "crashed", detail))
+    finally:
+        if capture is not None:
+            capture.stop()
+        if recorder is not None:
+            recorder.close()
+
+
+def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
+            result: TrackResult, ms: float, source_dropped: int) -> FrameRecord:
+    """A picklable, JSON-safe record: non-finite values never reach the wire (JSON has no NaN)."""
+    alpha = [float(a) for a in result.alpha]
+    ok, reason = bool(result.ok), str(result.reason)
+    if not all(math.isfinite(a) for a in alpha):
+        alpha = [a if math.isfinite(a) else 0.0 for a in alpha]
+        ok, reason = False, reason or "the processor returned non-finite parameters"
+    residual = float(result.residual)
+    return FrameRecord(
+        seq=seq, frame=index, t=t, t_capture=t_capture, t_tracked=t_tracked,
+        alpha=tuple(alpha), rotation=tuple(float(v) for v in result.pose.rotation),
+        translation=tuple(float(v) for v in result.pose.translation),
+        quality={"ok": ok, "reason": reason,
+                 "residual": residual if math.isfinite(residual) else -1.0,
+                 "evals": int(result.evals), "iterations": int(result.iterations), "ms": ms},
+        source_dropped=source_dropped,
+    )
+
+
+# ----------------------------------------------------------------------------- runners
+class ThreadWorker:
+    """Runs :func:`run_worker` in a thread of the server process."""
+
+    kind = "thread"
+
+    def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
+                 emit: Emit) -> None:
+        self.stop_event, self.go = threading.Event(), threading.Event()
+        self._thread = threading.Thread(
+            target=run_worker, args=(spec, capture, record_dir, emit, self.stop_event, self.go),
+            name=f"session {spec.name}", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def join(self, timeout: float) -> bool:
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+
+class _Flag:
+    """``go``/``stop`` of a process worker, as seen by the server: a message on the pipe."""
+
+    def __init__(self, conn: Any, word: str) -> None:
+        self._conn, self._word, self._set = conn, word, False
+
+    def set(self) -> None:
+        if not self._set:
+            self._set = True
+            try:
+                self._conn.send(self._word)
+            except (OSError, ValueError):  # the worker is gone already
+                pass
+
+    def is_set(self) -> bool:
+        return self._set
+
+
+def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
+                  conn: Any) -> None:
+    """Worker process: control words (``go``, ``stop``) in, worker messages out, one pipe.
+
+    A closed pipe (the server died) stops the worker, so no orphan keeps a camera open.
+    """
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through the pipe
+    stop, go = threading.Event(), threading.Event()
+    lock = threading.Lock()
+
+    def control() -> None:
+        while True:
+            try:
+                word = conn.recv()
+            except (EOFError, OSError):
+                stop.set()
+                return
+            (go if word == "go" else stop).set()
+
+    def emit(msg: tuple[Any, ...]) -> None:
+        with lock:
+            try:
+                conn.send(msg)
+            except (OSError, ValueError):
+                stop.set()
+
+    threading.Thread(target=control, daemon=True).start()
+    try:
+        run_worker(spec, capture, record_dir, emit, stop, go)
+    finally:
+        conn.close()
+
+
+class ProcessWorker:
+    """Runs :func:`run_worker` in its own process (spawned: no inherited threads or loop).
+
+    A reader thread in the server receives the worker's messages and passes them to ``emit``;
+    if the process dies without saying ``done``, ``emit`` gets ``("done", "crashed", ...)``.
+    The pipe carries no semaphores (unlike multiprocessing.Event), so nothing leaks when the
+    server is killed.
+    """
+
+    kind = "process"
+    _ctx = multiprocessing.get_context("spawn")
+
+    def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
+                 emit: Emit) -> None:
+        self._conn, child = self._ctx.Pipe(duplex=True)
+        self._emit = emit
+        self.stop_event, self.go = _Flag(self._conn, "stop"), _Flag(self._conn, "go")
+        self.process = self._ctx.Process(
+            target=_process_main, args=(spec, capture, record_dir, child),
+            name=f"articast session {spec.name}", daemon=True)
+        self._child = child
+        self._reader = threading.Thread(target=self._read, name=f"reader {spec.name}",
+                                        daemon=True)
+
+    def start(self) -> None:
+        self.process.start()
+        self._child.close()  # the child holds the other end: EOF when it dies
+        self._reader.start()
+
+    def _read(self) -> None:
+        done = False
+        while True:
+            try:
+                msg = self._conn.recv()
+            except (EOFError, OSError):
+                break
+            done = done or msg[0] == "done"
+            self._emit(msg)
+        self.process.join(1.0)
+        if not done:
+            self._emit(("done", "crashed", f"worker process exited with code "
+                        f"{self.process.exitcode}"))
+
+    def stop(self) -> None:
+        self.stop_event.set()
+
+    def join(self, timeout: float) -> bool:
+        self.process.join(timeout)
+        if self.process.is_alive():
+            self.process.terminate()
+            self.process.join(1.0)
+        self._reader.join(1.0)
+        self._conn.close()
+        return not self.process.is_alive()

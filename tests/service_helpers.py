@@ -1,0 +1,142 @@
+"""Helpers for the service tests: a real uvicorn server in a thread, small inputs on disk."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.camera import Camera, Pose
+from core.model import PARAM_NAMES, FaceModel
+from core.result import TrackResult
+
+TIMEOUT = float(os.environ.get("ARTICAST_TEST_TIMEOUT", "1")) * 10.0
+"""Generous timeout (s) for any wait in service tests; scale with ARTICAST_TEST_TIMEOUT."""
+
+
+def small_model(n: int = 12, seed: int = 0) -> FaceModel:
+    rng = np.random.default_rng(seed)
+    mean = rng.normal(0, 20, (n, 3))
+    basis = rng.normal(0, 1, (len(PARAM_NAMES), n, 3))
+    tri = np.array([[i, i + 1, i + 2] for i in range(n - 2)], np.int32)
+    return FaceModel(mean, basis, triangles=tri, name="test-speaker")
+
+
+def truth(i: int, fps: float) -> TrackResult:
+    alpha = np.sin(0.1 * i + np.arange(len(PARAM_NAMES)))
+    pose = Pose(np.array([np.pi, 0.01 * i, 0.0]), np.array([0.0, 0.0, 400.0 + i]))
+    return TrackResult(i, i / fps, alpha, pose, residual=0.01 * i)
+
+
+def write_recording(path: Path, frames: int = 30, fps: float = 30.0,
+                    model: FaceModel | None = None) -> list[TrackResult]:
+    """A recording as ``serve --record`` writes it (header + one line per frame)."""
+    from service.wire import describe
+
+    model = model or small_model()
+    desc = describe(model, Camera.default(64, 48), model.param_names)
+    results = [truth(i, fps) for i in range(frames)]
+    with path.open("w") as fh:
+        fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
+                             "session": "rec", "source": {"kind": "test", "fps": fps},
+                             **desc}) + "\n")
+        for i, r in enumerate(results):
+            d = r.to_dict(model.param_names)
+            fh.write(json.dumps({"type": "frame", "seq": i, **d}) + "\n")
+    return results
+
+
+def write_video(path: Path, frames: int = 20, fps: float = 25.0, size=(64, 48)) -> list[float]:
+    """An MJPG AVI whose frame i is a flat grey of level 10*i (+ a gradient). Returns levels."""
+    import cv2
+
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, size)
+    assert w.isOpened()
+    for i in range(frames):
+        img = np.full((size[1], size[0], 3), (10 * i) % 250, np.uint8)
+        img[:, : size[0] // 2, 0] = 255 - (10 * i) % 250
+        w.write(img)
+    w.release()
+    return [float(10 * i % 250) for i in range(frames)]
+
+
+class ImageStats:
+    """A test FrameProcessor that reads the image: alpha = mean of each channel, 4 zeros."""
+
+    def __init__(self, context: Any) -> None:
+        pass
+
+    def process(self, frame: Any) -> TrackResult:
+        m = frame.image.reshape(-1, 3).mean(0)
+        alpha = np.concatenate([m, np.zeros(len(PARAM_NAMES) - 3)])
+        return TrackResult(frame.index, frame.t, alpha, Pose(), residual=float(m.sum()))
+
+
+class Crashy:
+    """A test FrameProcessor that raises on frame 3 of every run (exercises restarts)."""
+
+    def __init__(self, context: Any) -> None:
+        self.n = 0
+
+    def process(self, frame: Any) -> TrackResult:
+        self.n += 1
+        if self.n == 3:
+            raise RuntimeError("boom (test crash)")
+        return frame.truth
+
+
+class ServerThread:
+    """A real uvicorn server on 127.0.0.1, port 0, in a background thread."""
+
+    def __init__(self, config: Any) -> None:
+        import uvicorn
+
+        from service.server import bound_socket, uvicorn_config
+
+        self.sock = bound_socket("127.0.0.1", 0)
+        self.port = self.sock.getsockname()[1]
+        self.server = uvicorn.Server(uvicorn_config(config))
+        self.server.config.install_signal_handlers = False  # type: ignore[attr-defined]
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.url = f"ws://127.0.0.1:{self.port}/ws"
+        self.http = f"http://127.0.0.1:{self.port}"
+
+    def _run(self) -> None:
+        asyncio.run(self.server.serve(sockets=[self.sock]))
+
+    def __enter__(self) -> ServerThread:
+        self.thread.start()
+        deadline = time.monotonic() + TIMEOUT
+        while not self.server.started:
+            if time.monotonic() > deadline or not self.thread.is_alive():
+                raise RuntimeError("server did not start")
+            time.sleep(0.01)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self.server.should_exit = True
+        self.thread.join(TIMEOUT)
+        self.sock.close()
+
+    @property
+    def service(self) -> Any:
+        return self.server.config.loaded_app.app.state.service  # type: ignore[union-attr]
+
+
+class HardCrash:
+    """A test FrameProcessor whose process dies on frame 3 (no exception, no goodbye)."""
+
+    def __init__(self, context: Any) -> None:
+        self.n = 0
+
+    def process(self, frame: Any) -> TrackResult:
+        self.n += 1
+        if self.n == 3:
+            os._exit(3)
+        return frame.truth

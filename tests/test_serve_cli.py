@@ -1,0 +1,140 @@
+"""``articast serve`` / ``replay-record`` as a user runs them: a subprocess, SIGTERM, recordings."""
+
+import asyncio
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import websockets
+
+from tests.service_helpers import TIMEOUT, write_recording
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def start(*args):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "error"}
+    p = subprocess.Popen([sys.executable, "-m", "service.cli", *args, "--port", "0", "--json"],
+                         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    line = p.stdout.readline()
+    if not line:
+        p.kill()
+        raise AssertionError(p.stderr.read())
+    return p, json.loads(line)["url"]
+
+
+async def frames(url, session, n):
+    out = []
+    async with websockets.connect(url, close_timeout=1) as ws:
+        await ws.send(json.dumps({"type": "subscribe", "session": session}))
+        while len(out) < n:
+            m = json.loads(await asyncio.wait_for(ws.recv(), TIMEOUT))
+            if m["type"] == "frame":
+                out.append(m)
+    return out
+
+
+def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
+    rec = tmp_path / "in.jsonl"
+    write_recording(rec, frames=40, fps=60)
+    out = tmp_path / "out"
+    p, url = start("serve", "--source", f"talk=replay-record:{rec}?loop=0", "--record", str(out))
+    try:
+        got = asyncio.run(frames(url, "talk", 20))
+        assert len(got) == 20
+    finally:
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        code = p.wait(TIMEOUT * 2)
+    # uvicorn shuts down gracefully, then re-raises the signal so supervisors see it
+    assert code in (0, -signal.SIGTERM) and time.monotonic() - t0 < TIMEOUT
+    assert "Traceback" not in p.stderr.read()
+    files = list(out.glob("talk-*.jsonl"))
+    assert len(files) == 1
+    lines = files[0].read_text().splitlines()
+    assert json.loads(lines[0])["type"] == "header"
+    assert all(json.loads(x)["type"] == "frame" for x in lines[1:]) and len(lines) > 20
+
+    # what was recorded serves again, with the same values
+    p2, url2 = start("replay-record", str(files[0]), "--name", "again", "--loop", "0")
+    try:
+        again = asyncio.run(frames(url2, "again", 5))
+    finally:
+        p2.send_signal(signal.SIGTERM)
+        p2.wait(TIMEOUT * 2)
+    recorded = {json.loads(x)["frame"] % 40: json.loads(x)["alpha"] for x in lines[1:41]}
+    for f in again:
+        assert f["values"]["articulatory"] == pytest.approx(recorded[f["frame"] % 40])
+
+
+def test_replay_of_a_corrupt_video_is_one_clear_error(tmp_path):
+    bad = tmp_path / "talk.mp4"
+    bad.write_bytes(b"not a video at all" * 100)
+    r = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(bad)], cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0 and "talk.mp4" in r.stderr
+    assert "Traceback" not in r.stderr
+
+
+def test_bad_source_option_is_one_clear_error():
+    r = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--source", "nope"],
+                       cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "NAME=URI" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_replay_without_a_tracker_says_so(tmp_path):
+    from service.processors import tracker_available
+
+    if tracker_available():
+        pytest.skip("the tracker is available")
+    video = tmp_path / "v.avi"
+    from tests.service_helpers import write_video
+
+    write_video(video, frames=3)
+    r = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(video)], cwd=ROOT,
+                       env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+                       text=True, timeout=60)
+    assert r.returncode == 2 and "tracker" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_sigterm_with_subscribers_connected(tmp_path):
+    rec = tmp_path / "in.jsonl"
+    write_recording(rec, frames=40, fps=60)
+    p, url = start("serve", "--source", f"a=replay-record:{rec}?loop=0",
+                   "--source", f"b=replay-record:{rec}?loop=0")  # a thread and a process
+
+    async def go():
+        clients = []
+        for name in ("a", "b"):
+            ws = await websockets.connect(url, close_timeout=1)
+            await ws.send(json.dumps({"type": "subscribe", "session": name}))
+            clients.append(ws)
+        for ws in clients:
+            while json.loads(await asyncio.wait_for(ws.recv(), TIMEOUT))["type"] != "frame":
+                pass
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        for ws in clients:
+            with pytest.raises(websockets.ConnectionClosed):
+                while True:
+                    await asyncio.wait_for(ws.recv(), TIMEOUT)
+        return time.monotonic() - t0
+
+    try:
+        took = asyncio.run(go())
+        code = p.wait(TIMEOUT * 2)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert took < TIMEOUT and code in (0, -signal.SIGTERM)
+    err = p.stderr.read()
+    assert "Traceback" not in err and "leaked" not in err, err

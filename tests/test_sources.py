@@ -1,0 +1,152 @@
+"""Sources and the capture thread: real video files, image folders, recordings, a missing camera."""
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from service.capture import Capture
+from service.settings import CaptureSettings
+from service.sources import SourceError, make_source, parse_uri, probe
+from tests.service_helpers import TIMEOUT, write_recording, write_video
+
+
+def drain(capture, limit=10_000):
+    frames = []
+    deadline = time.monotonic() + TIMEOUT
+    while not capture.done and len(frames) < limit:
+        assert time.monotonic() < deadline, "capture did not finish"
+        f = capture.get(0.05)
+        if f is not None:
+            frames.append(f)
+    return frames
+
+
+def test_uri_parsing():
+    p = parse_uri("v4l2:/dev/video2?width=640&height=480&fps=60&fourcc=MJPG")
+    assert (p.kind, p.target, p.params["fps"]) == ("v4l2", "/dev/video2", "60")
+    assert parse_uri("synthetic:seed=3&fps=30").params == {"seed": "3", "fps": "30"}
+    for bad in ("nothing", "ftp:x", "file:a.mp4?speed=2", "v4l2:/dev/video0?fourcc=MJPEG",
+                "file:a.mp4?pace=slow", "images:d?fps=abc"):
+        with pytest.raises(SourceError):
+            make_source(bad)
+
+
+def test_fast_file_playback_is_lossless_with_container_times(tmp_path):
+    levels = write_video(tmp_path / "v.avi", frames=20, fps=25)
+    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}?pace=fast")).start()
+    frames = drain(cap)
+    cap.stop()
+    assert cap.error is None and cap.dropped == 0
+    assert [f.index for f in frames] == list(range(20))
+    assert [f.t for f in frames] == pytest.approx([i / 25 for i in range(20)])
+    means = [float(f.image[:, 40:, 1].mean()) for f in frames]
+    assert means == pytest.approx(levels, abs=3)  # MJPG is lossy
+    assert all(b >= a for a, b in zip([f.t_capture for f in frames][:-1],
+                                      [f.t_capture for f in frames][1:], strict=True))
+    assert cap.info.width == 64 and cap.info.height == 48 and cap.info.fps == 25
+
+
+def test_loop_continues_the_time_line(tmp_path):
+    write_video(tmp_path / "v.avi", frames=5, fps=10)
+    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}?pace=fast&loop=3")).start()
+    frames = drain(cap)
+    assert [f.index for f in frames] == list(range(15))
+    ts = [f.t for f in frames]
+    assert ts == pytest.approx([i / 10 for i in range(15)])
+
+
+def test_realtime_pace_follows_media_time_and_keeps_the_newest(tmp_path):
+    write_video(tmp_path / "v.avi", frames=10, fps=20)  # 0.45 s of media
+    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}")).start()
+    t0 = time.monotonic()
+    time.sleep(0.7)  # a tracker that never came: frames are replaced, not queued
+    last = cap.get(TIMEOUT)
+    assert time.monotonic() - t0 >= 0.4
+    assert last is not None and last.index == 9
+    assert cap.dropped == 9
+
+
+def test_corrupt_file_gives_one_clear_error(tmp_path):
+    bad = tmp_path / "bad.mp4"
+    bad.write_bytes(b"\x00\x01garbage" * 500)
+    with pytest.raises(SourceError, match="bad.mp4"):
+        probe(f"file:{bad}")
+    statuses = []
+    cap = Capture(make_source(f"file:{bad}"), on_status=lambda s, d: statuses.append(s)).start()
+    drain(cap)
+    assert isinstance(cap.error, SourceError) and "bad.mp4" in str(cap.error)
+    assert "unavailable" not in statuses  # not retried
+    with pytest.raises(SourceError, match="no such file"):
+        probe(f"file:{tmp_path / 'missing.mp4'}")
+
+
+def test_image_folder(tmp_path):
+    for i in range(4):
+        cv2.imwrite(str(tmp_path / f"{i:03d}.png"), np.full((8, 10, 3), 50 * i, np.uint8))
+    (tmp_path / "notes.txt").write_text("ignored")
+    cap = Capture(make_source(f"images:{tmp_path}?fps=10&pace=fast")).start()
+    frames = drain(cap)
+    assert [int(f.image.mean()) for f in frames] == [0, 50, 100, 150]
+    assert [f.t for f in frames] == pytest.approx([0, 0.1, 0.2, 0.3])
+
+
+def test_unreadable_image_and_empty_folder(tmp_path):
+    with pytest.raises(SourceError, match="no images"):
+        probe(f"images:{tmp_path}")
+    (tmp_path / "a.png").write_bytes(b"not a png")
+    with pytest.raises(SourceError, match="a.png: not a readable image"):
+        probe(f"images:{tmp_path}")
+
+
+def test_recording_replays_ground_truth(tmp_path):
+    rec = tmp_path / "r.jsonl"
+    truth = write_recording(rec, frames=12)
+    with rec.open("a") as fh:
+        fh.write('{"type": "frame", "fra')  # a crash mid-line: the frame in flight is lost
+    src = make_source(f"replay-record:{rec}?pace=fast")
+    cap = Capture(src).start()
+    frames = drain(cap)
+    assert cap.error is None
+    assert len(frames) == 12 and all(f.image is None for f in frames)
+    for f, r in zip(frames, truth, strict=True):
+        np.testing.assert_allclose(f.truth.alpha, r.alpha)
+        np.testing.assert_allclose(f.truth.pose.translation, r.pose.translation)
+    assert cap.assets.model is not None and cap.assets.model.n_points == 12
+
+
+def test_malformed_recording_line_is_an_error(tmp_path):
+    rec = tmp_path / "r.jsonl"
+    write_recording(rec, frames=3)
+    lines = rec.read_text().splitlines(keepends=True)
+    lines.insert(2, "this is not json\n")
+    rec.write_text("".join(lines))
+    cap = Capture(make_source(f"replay-record:{rec}?pace=fast")).start()
+    drain(cap)
+    assert isinstance(cap.error, SourceError) and ":3:" in str(cap.error)
+
+
+def test_missing_camera_is_a_status_with_retries_not_a_crash():
+    statuses = []
+    settings = CaptureSettings(retry_initial_s=0.02, retry_max_s=0.05)
+    cap = Capture(make_source("v4l2:/dev/video97?width=640"), settings,
+                  on_status=lambda s, d: statuses.append((s, d))).start()
+    deadline = time.monotonic() + TIMEOUT
+    while cap.attempts < 3:
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    cap.stop()
+    assert cap.error is None and cap.info is None
+    assert statuses and all(s == "unavailable" for s, _ in statuses)
+    assert "/dev/video97" in statuses[0][1] and "retry" in statuses[0][1]
+
+
+def test_synthetic_source_fails_clearly_without_the_speaker():
+    import importlib
+
+    synthetic = importlib.import_module("core.synthetic")
+    if hasattr(synthetic, "open_stream"):
+        pytest.skip("the synthetic speaker is available")
+    with pytest.raises(SourceError, match="synthetic speaker"):
+        probe("synthetic:seed=3")
