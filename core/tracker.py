@@ -25,7 +25,9 @@ class TrackingPolicy:
     """How a sequence is tracked.
 
     optimiser : "gauss-newton" (default) or "nelder-mead" (the paper's baseline).
-    levels : pyramid levels fitted every frame, coarse first; reinit_levels on re-initialisation.
+    levels : pyramid levels fitted every frame, coarse first; reinit_levels on re-initialisation
+        after a bad frame; init_levels on the first frame (from the neutral articulation,
+        which can be far from the speaker's: two octaves coarser widens the basin).
     predict : constant-velocity prediction of the state from the two last good frames,
         scaled by ``velocity_gain``.
     divergence_factor : a frame whose residual exceeds this many times the running residual
@@ -38,8 +40,9 @@ class TrackingPolicy:
     optimiser: str = "gauss-newton"
     fit: FitPolicy = field(default_factory=FitPolicy)
     reinit_fit: FitPolicy = field(default_factory=lambda: FitPolicy(max_iterations=30))
-    levels: tuple[int, ...] = (1, 0)
+    levels: tuple[int, ...] = (2, 1, 0)
     reinit_levels: tuple[int, ...] = (1, 0)
+    init_levels: tuple[int, ...] = (2, 1, 0)
     predict: bool = True
     velocity_gain: float = 0.8
     divergence_factor: float = 4.0
@@ -74,8 +77,17 @@ class Tracker:
                  policy: TrackingPolicy | None = None, initial_pose: Pose | None = None,
                  clock: Callable[[], float] | None = None) -> None:
         self.policy = policy or TrackingPolicy()
-        for lv in set(self.policy.levels) | set(self.policy.reinit_levels):
-            appearance.level_index(lv)
+        pol = self.policy
+        fitted = {}
+        for name in ("levels", "reinit_levels", "init_levels"):
+            usable = tuple(lv for lv in getattr(pol, name) if lv in appearance.levels)
+            if not usable:
+                raise ValueError(f"the appearance model (levels {appearance.levels}) has none "
+                                 f"of the policy's {name} {getattr(pol, name)}")
+            fitted[name] = usable
+        from dataclasses import replace
+
+        self.policy = pol = replace(pol, **fitted)  # e.g. a model trained on levels (0, 1)
         self.problem = Problem(model, appearance, camera, self.policy.fit.prior)
         self.model, self.camera = model, camera
         self.initial_pose = initial_pose
@@ -90,6 +102,7 @@ class Tracker:
         self._prev: np.ndarray | None = None
         self._level: float | None = None
         self._gain = 1.0
+        self._gap = False
         if pose is not None:
             a = np.zeros(self.k) if alpha is None else np.asarray(alpha, np.float64)
             self._theta = np.concatenate([a, pose.as_vector()])
@@ -126,20 +139,25 @@ class Tracker:
     def _search(self, image: np.ndarray, pose: Pose) -> np.ndarray:
         """Coarse grid search of the translation around ``pose`` at the coarsest level."""
         pol = self.policy
-        level = max(pol.reinit_levels)
+        level = max(pol.init_levels)
         li = self.problem.appearance.level_index(level)
         sig = self.problem.appearance.sigma
         h, w = image.shape[:2]
         maps = image_maps(image, (0, 0, w, h), sig, level)
         steps = np.arange(-pol.search_radius_mm, pol.search_radius_mm + 1e-9, pol.search_step_mm)
+        rot = pose.matrix
         best, best_cost = None, np.inf
         for dx in steps:
             for dy in steps:
-                th = np.concatenate([np.zeros(self.k), pose.rotation,
-                                     pose.translation + [dx, dy, 0.0]])
-                c = self.problem.cost(maps, li, th)
+                t = pose.translation + [dx, dy, 0.0]
+                r, _, vf = self.problem.residuals(maps, li, np.zeros(self.k), rot, t, False)
+                if vf < pol.min_valid_fraction:
+                    continue  # samples outside the image cost nothing: never prefer them
+                c = float(r @ r) / vf
                 if c < best_cost:
-                    best, best_cost = th, c
+                    best, best_cost = np.concatenate([np.zeros(self.k), pose.rotation, t]), c
+        if best is None:
+            return np.concatenate([np.zeros(self.k), pose.as_vector()])
         return best
 
     # ------------------------------------------------------------------ per frame
@@ -153,7 +171,7 @@ class Tracker:
             if self.initial_pose is None:
                 return self._lost(t, t0, "no initial pose: give one or call reset(pose)", 0)
             self._theta = self._search(image, self.initial_pose)
-            first = self._fit(image, self._theta, pol.reinit_levels, cache, pol.reinit_fit,
+            first = self._fit(image, self._theta, pol.init_levels, cache, pol.reinit_fit,
                               refine_gain=False)
             return self._accept(first, t, t0, first.evals, force=True)
         theta0 = self._theta
@@ -203,6 +221,7 @@ class Tracker:
         self._prev = self._theta if not force else None
         self._theta = fit.theta
         self._gain = fit.gain
+        self._gap = False
         lvl = fit.residual
         self._level = lvl if self._level is None else (
             (1 - pol.level_rate) * self._level + pol.level_rate * lvl)
@@ -214,6 +233,7 @@ class Tracker:
     def _lost(self, t: float, t0: float, reason: str, evals: int,
               fit: FitResult | None = None) -> TrackResult:
         self._prev = None  # no velocity across a gap
+        self._gap = True
         if self._theta is None:
             alpha, pose = np.zeros(self.k), self.initial_pose or Pose()
         else:

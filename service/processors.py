@@ -64,9 +64,11 @@ class TruthProcessor:
 
 
 class TrackerProcessor:
-    """Adapter to ``core.tracker.Tracker(model, appearance, camera, clock=...)``.
+    """Adapter to ``core.tracker.Tracker``: the only place the service touches the tracker.
 
-    Integration seam: the only place the service touches the tracker.
+    Session options: ``rig`` ("head" or "desk": the pose prior), ``initial_pose`` (6 numbers,
+    or a Pose; the synthetic source supplies its rig's rest pose) or ``distance_mm`` for a
+    search around a frontal face at that distance (default 300).
     """
 
     def __init__(self, context: ProcessorContext) -> None:
@@ -80,8 +82,29 @@ class TrackerProcessor:
                 f"session {context.session!r}: tracking needs {', '.join(missing)} "
                 f"(give --{' --'.join(missing)}, or use a source that brings them)"
             )
-        self.tracker = Tracker(context.model, context.appearance, context.camera,
-                               clock=time.perf_counter)
+        from core.camera import Pose
+        from core.tracker import TrackingPolicy
+
+        opts = context.options
+        rig = str(opts.get("rig", "head"))
+        try:
+            policy = TrackingPolicy.for_rig(rig)
+        except ValueError as exc:
+            raise InputError(f"session {context.session!r}: {exc}") from None
+        pose = opts.get("initial_pose")
+        if pose is not None and not isinstance(pose, Pose):
+            try:
+                v = [float(x) for x in (pose.split(",") if isinstance(pose, str) else pose)]
+                pose = Pose(v[:3], v[3:6]) if len(v) == 6 else None
+            except (TypeError, ValueError):
+                pose = None
+            if pose is None:
+                raise InputError(f"session {context.session!r}: initial_pose must be 6 numbers "
+                                 "rx,ry,rz,tx,ty,tz (axis-angle rad, mm)")
+        if pose is None:  # a frontal face in front of the camera: searched around it
+            pose = Pose(translation=[0.0, 0.0, float(opts.get("distance_mm", 300.0))])
+        self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
+                               initial_pose=pose, clock=time.perf_counter)
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:

@@ -407,8 +407,9 @@ class SyntheticSource(_Finite):
                 f"build: {exc}"
             ) from None
         stream = open_stream(seed=self.seed, fps=self.fps)
+        extra = {k: getattr(stream, k) for k in ("initial_pose", "rig") if hasattr(stream, k)}
         self._assets = SourceAssets(stream.model, stream.camera,
-                                    getattr(stream, "appearance", None))
+                                    getattr(stream, "appearance", None), extra)
         self._it = iter(stream.frames())
         cam = stream.camera
         return SourceInfo(self.uri, "synthetic", False, cam.width, cam.height, self.fps,

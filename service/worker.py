@@ -86,8 +86,9 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         assert capture.info is not None
         model, appearance, camera = load_assets(spec.model, spec.appearance, spec.camera,
                                                 capture.assets, capture.info)
+        # what the source knows (e.g. the synthetic rig and start pose), then the session's own
         ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
-                               dict(spec.options))
+                               {**capture.assets.extra, **dict(spec.options)})
         used, processor = make_processor(spec.processor, ctx)
         from core.model import PARAM_NAMES
 

@@ -14,6 +14,7 @@ from core.synthetic.geometry import SpeakerGeometry, make_geometry
 from core.synthetic.render import RenderOptions
 from core.synthetic.sequence import RIGS, Sequence, default_camera, make_sequence, rest_pose
 from core.synthetic.speaker import SyntheticSpeaker, default_speaker
+from core.synthetic.stream import open_stream
 
 __all__ = [
     "RIGS",
@@ -26,5 +27,6 @@ __all__ = [
     "make_corpus",
     "make_geometry",
     "make_sequence",
+    "open_stream",
     "rest_pose",
 ]
