@@ -174,7 +174,7 @@ class Connection:
         self._drop(s)
 
     def _drop(self, s: Subscriber) -> None:
-        self.svc.manager_metrics_drop(s)
+        self.svc.count_drops(s)
         s.sub.close()
         if s.task is not None and s.task is not asyncio.current_task():
             s.task.cancel()
@@ -230,7 +230,7 @@ class Connection:
         finally:
             if self.subs.get(name) is s:
                 del self.subs[name]
-                self.svc.manager_metrics_drop(s)
+                self.svc.count_drops(s)
                 s.sub.close()
 
 
@@ -248,7 +248,7 @@ class Service:
     def subscriber_total(self) -> int:
         return sum(len(c.subs) for c in self.connections)
 
-    def manager_metrics_drop(self, s: Subscriber) -> None:
+    def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""
         session = self.manager.sessions.get(s.req.session)
         if session is not None and not s.counted:

@@ -102,7 +102,6 @@ class ServerThread:
         self.sock = bound_socket("127.0.0.1", 0)
         self.port = self.sock.getsockname()[1]
         self.server = uvicorn.Server(uvicorn_config(config))
-        self.server.config.install_signal_handlers = False  # type: ignore[attr-defined]
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.url = f"ws://127.0.0.1:{self.port}/ws"
         self.http = f"http://127.0.0.1:{self.port}"

@@ -5,27 +5,78 @@ added to ``HUBS`` and must pass the same tests.
 """
 
 import asyncio
+import shutil
+import socket
+import subprocess
+import time
 
 import pytest
 
 from service.hub import HubClosed, InMemoryHub
-
-HUBS = [InMemoryHub]
 
 
 def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 10))
 
 
-@pytest.fixture(params=HUBS)
+class Memory:
+    """Backend adapter: build a hub inside the running loop; settle = let deliveries land."""
+
+    def __call__(self):
+        return InMemoryHub()
+
+    async def settle(self, hub):
+        pass
+
+
+class Redis:
+    def __init__(self, url):
+        self.url = url
+
+    def __call__(self):
+        from service.redis_hub import JSONCodec, RedisHub
+
+        return RedisHub(self.url, JSONCodec(), prefix=f"test{time.monotonic_ns()}:")
+
+    async def settle(self, hub):
+        await hub.ready()
+
+
+@pytest.fixture(scope="module")
+def redis_url():
+    if not shutil.which("redis-server"):
+        pytest.skip("redis-server is not installed")
+    pytest.importorskip("redis")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen(["redis-server", "--port", str(port), "--save", "",
+                             "--appendonly", "no"], stdout=subprocess.DEVNULL)
+    deadline = time.monotonic() + 10
+    while True:
+        try:
+            socket.create_connection(("127.0.0.1", port), 0.2).close()
+            break
+        except OSError:
+            assert time.monotonic() < deadline, "redis-server did not start"
+            time.sleep(0.05)
+    yield f"redis://127.0.0.1:{port}/0"
+    proc.terminate()
+    proc.wait(10)
+
+
+@pytest.fixture(params=["memory", "redis"])
 def make_hub(request):
-    return request.param
+    if request.param == "memory":
+        return Memory()
+    return Redis(request.getfixturevalue("redis_url"))
 
 
 def test_fan_out_in_order(make_hub):
     async def go():
         hub = make_hub()
         a, b = hub.subscribe("s", max_queue=10), hub.subscribe("s", max_queue=10)
+        await make_hub.settle(hub)
         for i in range(5):
             assert hub.publish("s", i) == 2
         assert [await a.get() for _ in range(5)] == list(range(5))
@@ -38,9 +89,12 @@ def test_topics_are_separate(make_hub):
     async def go():
         hub = make_hub()
         a = hub.subscribe("a")
+        await make_hub.settle(hub)
         assert hub.publish("b", 1) == 0
         hub.publish("a", 2)
-        assert await a.get() == 2 and a.get_nowait() is None
+        assert await a.get() == 2
+        await asyncio.sleep(0.05)  # a message on "b" would have arrived by now
+        assert a.get_nowait() is None
     run(go())
 
 
@@ -48,6 +102,7 @@ def test_full_queue_drops_oldest_and_counts_for_that_subscriber_only(make_hub):
     async def go():
         hub = make_hub()
         slow, fast = hub.subscribe("s", max_queue=3), hub.subscribe("s", max_queue=3)
+        await make_hub.settle(hub)
         got = []
         for i in range(10):
             hub.publish("s", i)
@@ -62,6 +117,7 @@ def test_publish_never_waits_for_a_stalled_subscriber(make_hub):
     async def go():
         hub = make_hub()
         hub.subscribe("s", max_queue=1)  # never read
+        await make_hub.settle(hub)
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         for i in range(10000):
@@ -74,6 +130,7 @@ def test_get_waits_then_wakes(make_hub):
     async def go():
         hub = make_hub()
         sub = hub.subscribe("s")
+        await make_hub.settle(hub)
         task = asyncio.create_task(sub.get())
         await asyncio.sleep(0.01)
         assert not task.done()
@@ -86,6 +143,7 @@ def test_close_wakes_a_waiting_reader_and_unsubscribes(make_hub):
     async def go():
         hub = make_hub()
         sub = hub.subscribe("s")
+        await make_hub.settle(hub)
         task = asyncio.create_task(sub.get())
         await asyncio.sleep(0.01)
         sub.close()
@@ -104,6 +162,7 @@ def test_hub_close_closes_everyone(make_hub):
         for s in subs:
             with pytest.raises(HubClosed):
                 await s.get()
+        await asyncio.sleep(0)
     run(go())
 
 

@@ -150,3 +150,60 @@ def test_synthetic_source_fails_clearly_without_the_speaker():
         pytest.skip("the synthetic speaker is available")
     with pytest.raises(SourceError, match="synthetic speaker"):
         probe("synthetic:seed=3")
+
+
+class FlakyCamera:
+    """A fake device (not our code): delivers 5 frames, is unplugged, is missing for 2 opens."""
+
+    live, pace, loops, uri = True, "realtime", 1, "fake:camera"
+
+    def __init__(self):
+        self.opens = 0
+        self.reads = 0
+
+    def open(self):
+        from service.sources import SourceInfo, SourceUnavailable
+
+        self.opens += 1
+        if 2 <= self.opens <= 3:
+            raise SourceUnavailable("fake:camera: no such device")
+        self.reads = 0
+        return SourceInfo(self.uri, "fake", True, 8, 6, 100.0)
+
+    def read(self):
+        from service.sources import SourceUnavailable
+
+        self.reads += 1
+        if self.opens == 1 and self.reads > 5:
+            raise SourceUnavailable("fake:camera: stopped delivering frames (unplugged?)")
+        time.sleep(0.005)
+        return self.reads * 0.01, np.zeros((6, 8, 3), np.uint8), None
+
+    def close(self):
+        pass
+
+    def assets(self):
+        from service.sources import SourceAssets
+
+        return SourceAssets()
+
+
+def test_an_unplugged_camera_is_reopened_with_backoff():
+    statuses = []
+    cam = FlakyCamera()
+    cap = Capture(cam, CaptureSettings(retry_initial_s=0.01, retry_max_s=0.02),
+                  on_status=lambda s, d: statuses.append((s, d))).start()
+    frames = []
+    deadline = time.monotonic() + TIMEOUT
+    while len(frames) < 15:
+        assert time.monotonic() < deadline
+        f = cap.get(0.05)
+        if f is not None:
+            frames.append(f)
+    cap.stop()
+    states = [s for s, _ in statuses]
+    assert states[0] == "running"
+    assert states.count("unavailable") == 3  # lost, then 2 failed reopen attempts
+    assert ("running", "source is back") in statuses
+    assert cam.opens == 4 and cap.error is None
+    assert [f.index for f in frames] == sorted(f.index for f in frames)  # one time line
