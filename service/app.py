@@ -144,9 +144,9 @@ class Connection:
                              f"{sorted(svc.manager.sessions)}", name)
             return
         bad = [s for s in req.streams if s in ("fap", "arkit")]
-        if bad:
+        if bad and session.description is not None and session.outputs is None:
             await self.error("unavailable_stream", f"session {name!r} does not produce "
-                             f"{bad} (reserved streams, not yet served)", name)
+                             f"{bad}: its model labels no MPEG-4 feature points", name)
             return
         if name in self.subs:
             self._drop(self.subs.pop(name))

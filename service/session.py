@@ -42,6 +42,7 @@ class Session:
         self.worker_kind = ""
         self.metrics = SessionMetrics()
         self._mesh: tuple[np.ndarray, np.ndarray] | None = None
+        self.outputs: Any = None  # service.outputs.Outputs when the model has FAP points
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._done = asyncio.Event()
         self._outcome: tuple[str, str] = ("", "")
@@ -142,6 +143,11 @@ class Session:
             k = len(desc["param_names"])
             self._mesh = (np.asarray(g["mean"], np.float32),
                           np.asarray(g["basis"], np.float32).reshape(k, -1))
+        from service.outputs import make_outputs
+
+        self.outputs = make_outputs(desc)
+        if self.outputs is not None:
+            desc["fapu"] = self.outputs.fapu
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
         self._set_state("running", "")
 
@@ -150,7 +156,7 @@ class Session:
             return
         m = self.metrics
         ev = FrameEvent(self.spec.name, self.sid, rec, self.description["param_names"],
-                        self._mesh)
+                        self._mesh, self.outputs)
         self._m.hub.publish(self.spec.name, ev)
         t = now()
         m.publish_latency.observe(t - rec.t_tracked)

@@ -123,6 +123,7 @@ class FrameEvent:
     record: FrameRecord
     param_names: list[str]
     mesh_basis: Any = None  # (mean (3N,), basis (K, 3N)) float32 or None
+    outputs: Any = None  # service.outputs.Outputs (fap, arkit) or None
     _cache: dict[View, str | bytes] = field(default_factory=dict)
 
     def encoded(self, view: View) -> str | bytes:
@@ -151,6 +152,13 @@ class FrameEvent:
         if "mesh" in streams and self.mesh_basis is not None:
             mean, basis = self.mesh_basis
             v["mesh"] = (mean + np.asarray(r.alpha, np.float32) @ basis).tolist()
+        if self.outputs is not None and ("fap" in streams or "arkit" in streams):
+            alpha = np.asarray(r.alpha)
+            if "fap" in streams:
+                v["fap"] = self.outputs.fap(alpha, np.asarray(r.rotation),
+                                            np.asarray(r.translation), bool(r.quality["ok"]))
+            if "arkit" in streams:
+                v["arkit"] = self.outputs.arkit_weights(alpha)
         return v
 
     def _encode(self, view: View) -> str | bytes:

@@ -1,0 +1,53 @@
+"""Standard animation outputs of a session: MPEG-4 FAPs and ARKit blendshapes per frame.
+
+Built once per session from its model (``hello``'s description); the head FAPs are relative
+to the session's first good frame (the speaker's own neutral head pose: a head-mounted camera
+does not look at the face frontally), which is what players expect of a ``head_pitch = 0``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from core.errors import InputError
+
+
+class Outputs:
+    """Per-frame FAP and ARKit values of one session's model."""
+
+    def __init__(self, model: Any) -> None:
+        from core.arkit import ArkitMapper
+        from core.fap import FapEncoder, fapu_from_model
+
+        self.model = model
+        self.fapu = fapu_from_model(model).as_dict()
+        self._fap_cls = FapEncoder
+        self._fap: Any = None
+        self.arkit = ArkitMapper(model)
+
+    def fap(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+            ok: bool) -> dict[str, Any]:
+        if self._fap is None:
+            if not ok:  # no reference head pose yet: nothing sensible to say
+                return {"values": {}, "mask": []}
+            self._fap = self._fap_cls(self.model, reference_rotation=np.asarray(rotation))
+        values = self._fap.frame_dict(alpha, np.concatenate([rotation, translation]))
+        return {"values": values, "mask": sorted(int(k) for k in values)}
+
+    def arkit_weights(self, alpha: np.ndarray) -> dict[str, float]:
+        return self.arkit.weights_dict(np.asarray(alpha))
+
+
+def make_outputs(desc: dict[str, Any]) -> Outputs | None:
+    """Outputs for a session description, or None when its model cannot produce them."""
+    from service.wire import model_from_description
+
+    model = model_from_description(desc)
+    if model is None:
+        return None
+    try:
+        return Outputs(model)
+    except InputError:
+        return None  # e.g. a model without the MPEG-4 feature points

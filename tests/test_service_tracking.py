@@ -1,0 +1,81 @@
+"""The real tracker behind the service: a fast file replay equals offline `articast track`,
+and a session streams MPEG-4 FAPs and ARKit blendshapes consistent with its articulation."""
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+import websockets
+
+from service.app import ServiceConfig
+from service.cli import main
+from service.settings import ServerSettings
+from service.worker import SessionSpec
+from tests.service_helpers import TIMEOUT, ServerThread
+
+
+@pytest.fixture(scope="module")
+def synthetic_files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("syn")
+    assert main(["synth", "sequence", "-o", str(d / "train"), "--seed", "1", "--frames", "40",
+                 "--fps", "6"]) == 0
+    assert main(["synth", "sequence", "-o", str(d / "test"), "--seed", "2", "--frames", "25"]) == 0
+    assert main(["train-appearance", str(d / "train/video.mp4"), "--truth",
+                 str(d / "train/truth.jsonl"), "--model", str(d / "train/model.npz"), "--camera",
+                 str(d / "train/camera.json"), "-o", str(d / "app.npz")]) == 0
+    return d
+
+
+async def collect(url, session, streams, until_end=True, n=None):
+    frames, hello = [], None
+    async with websockets.connect(url, max_size=2**24, close_timeout=1) as ws:
+        await ws.send(json.dumps({"type": "subscribe", "session": session, "streams": streams,
+                                  "queue": 256}))
+        while True:
+            m = json.loads(await asyncio.wait_for(ws.recv(), 20 * TIMEOUT))
+            if m["type"] == "hello":
+                hello = m
+            elif m["type"] == "frame":
+                frames.append(m)
+                if n and len(frames) >= n:
+                    return hello, frames
+            elif m["type"] == "status" and m["state"] in ("ended", "failed"):
+                assert m["state"] == "ended", m
+                return hello, frames
+            elif m["type"] == "error":
+                raise AssertionError(m)
+
+
+def test_fast_replay_equals_offline_track_and_streams_fap(synthetic_files, tmp_path):
+    d = synthetic_files
+    track = tmp_path / "track.jsonl"
+    assert main(["track", str(d / "test/video.mp4"), "--model", str(d / "train/model.npz"),
+                 "--appearance", str(d / "app.npz"), "--camera", str(d / "test/camera.json"),
+                 "--init-truth", str(d / "test/truth.jsonl"), "-o", str(track), "--quiet"]) == 0
+    offline = [json.loads(x) for x in track.read_text().splitlines()]
+    pose0 = json.loads((d / "test/truth.jsonl").read_text().splitlines()[0])["pose"]
+    spec = SessionSpec("talk", f"file:{d / 'test/video.mp4'}?pace=fast",
+                       model=str(d / "train/model.npz"), appearance=str(d / "app.npz"),
+                       camera=str(d / "test/camera.json"), processor="tracker",
+                       wait_for_subscriber=True,
+                       options={"initial_pose": pose0["rotation"] + pose0["translation"]})
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
+    with ServerThread(config) as srv:
+        hello, frames = asyncio.run(collect(srv.url, "talk",
+                                            ["articulatory", "pose", "fap", "arkit"]))
+    assert len(frames) == len(offline) == 25
+    names = list(offline[0]["alpha"])
+    served = np.array([[f["values"]["articulatory"][k] for k in names] for f in frames])
+    local = np.array([[o["alpha"][k] for k in names] for o in offline])
+    np.testing.assert_allclose(served, local, atol=1e-9)
+    assert [f["quality"]["ok"] for f in frames] == [o["quality"]["ok"] for o in offline]
+    # FAP units in hello, a FAP stream whose jaw opening follows jaw1
+    assert hello["fapu"]["MNS0"] > 0 and hello["fapu"]["MW0"] > 0
+    jaw = np.array([f["values"]["fap"]["values"]["3"] for f in frames])
+    assert np.corrcoef(jaw, served[:, 0])[0, 1] > 0.9
+    assert all(3 in f["values"]["fap"]["mask"] for f in frames)
+    # ARKit weights in 0..1, jawOpen rising with jaw1
+    jo = np.array([f["values"]["arkit"]["jawOpen"] for f in frames])
+    assert ((0 <= jo) & (jo <= 1)).all()
+    assert np.corrcoef(jo, served[:, 0])[0, 1] > 0.9
