@@ -24,7 +24,8 @@ import numpy as np  # noqa: E402
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=150)
     ap.add_argument("--nm-frames", type=int, default=40)
     ap.add_argument("--kind", default="la_lin")
@@ -85,7 +86,8 @@ def main() -> None:
     out = {
         "image": "640x480", "kind": args.kind, "threads": 1,
         "gauss_newton": gn, "nelder_mead": nm,
-        "speedup_vs_nelder_mead_same_frames": nm["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"],
+        "speedup_vs_nelder_mead_same_frames":
+            nm["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"],
         "accuracy_same_frames_mm": {"gauss_newton": gn_same["rms_mm_mean"],
                                     "nelder_mead": nm["rms_mm_mean"]},
         "appearance_model_kb": app.weights.nbytes / 1024,

@@ -226,8 +226,8 @@ class AppearanceModel:
     samples : where features are sampled. levels : pyramid levels trained (0 = full res).
     weights : (L, D, S*C) per level, rows of :func:`design` (D = 1 + K, or 1 + 2K for quad).
     channel_weight : (L, S*C) per-feature cost weights (inverse residual s.d. in training).
-    sigma : smoothing scale in pixels of each level (image px x 2**level). explained : (L,) fraction of the feature
-    variance the model explains on its training frames.
+    sigma : smoothing scale in pixels of each level (image px x 2**level).
+    explained : (L,) fraction of the feature variance explained on the training frames.
     """
 
     kind: str

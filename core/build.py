@@ -7,8 +7,8 @@ names, point groups, posture names, triangles and MPEG-4 feature-point labels.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 
@@ -185,7 +185,9 @@ def _sign(name: str, b: np.ndarray, groups: Mapping[str, np.ndarray], mean: np.n
     return 1.0 if score * want >= 0 else -1.0
 
 
-def build_model(corpus: Corpus, names: tuple[str, ...] = PARAM_NAMES) -> tuple[FaceModel, VarianceTable]:
+def build_model(
+    corpus: Corpus, names: tuple[str, ...] = PARAM_NAMES
+) -> tuple[FaceModel, VarianceTable]:
     """Guided iterative PCA of ``corpus`` -> (model, variance table).
 
     For each parameter in order: first principal component of the residual restricted to its

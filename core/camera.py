@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
@@ -129,7 +130,9 @@ class Pose:
         try:
             return cls(d["rotation"], d["translation"])
         except (KeyError, TypeError) as exc:
-            raise InputError(f"a pose needs 'rotation' and 'translation' (3 numbers each): {exc}")
+            raise InputError(
+                f"a pose needs 'rotation' and 'translation' (3 numbers each): {exc}"
+            ) from None
 
 
 @dataclass(frozen=True, eq=False)

@@ -219,7 +219,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     wg = 1.0 / pol.gain_sigma**2
     cost = float(r @ r) + prior + pp
     evals, costs, converged, it = 1, [cost], False, 0
-    for it in range(1, pol.max_iterations + 1):
+    for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
         h = jac.T @ jac
         g = jac.T @ r
         h[np.arange(k), np.arange(k)] += h_p / 2

@@ -12,9 +12,9 @@ scaled to unit variance), so ``alpha_k = +-1`` spans one s.d. of the corpus.
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Mapping
 
 import numpy as np
 

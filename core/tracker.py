@@ -6,8 +6,8 @@ Core never reads a clock: pass ``clock`` (e.g. ``time.perf_counter``) to get ms 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 

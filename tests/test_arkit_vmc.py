@@ -8,7 +8,6 @@ import time
 
 import numpy as np
 import pytest
-from tests.handmade_face import make_face_model
 from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_packet import OscPacket
@@ -20,6 +19,7 @@ from core.errors import InputError
 from core.model import FaceModel
 from core.result import TrackResult
 from service.vmc import DEFAULT_PORT, VmcSender, head_bone, parse_host_port, quaternion_xyzw
+from tests.handmade_face import make_face_model
 
 MODEL = make_face_model()
 TIMEOUT = 5.0 * float(os.environ.get("ARTICAST_TEST_TIMEOUT_SCALE", "1"))

@@ -7,7 +7,6 @@ import re
 
 import numpy as np
 import pytest
-from tests.handmade_face import make_face_model
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -32,6 +31,7 @@ from core.fap_table import FAP_BY_NAME, FAP_TABLE, N_FAPS
 from core.model import FaceModel
 from core.result import TrackResult
 from service.cli import main
+from tests.handmade_face import make_face_model
 
 MODEL = make_face_model()
 LIP_FAPS = np.array(GEOMETRIC_FAPS)

@@ -10,7 +10,6 @@ from core.errors import InputError, ModelFileError
 from core.tracker import Tracker, TrackingPolicy
 from tests.blobface import blob_setup, render_blobs
 
-
 # the blob face's features are small discs: the initial search needs a fine grid
 TOY = TrackingPolicy(search_step_mm=2.0, search_radius_mm=16.0)
 

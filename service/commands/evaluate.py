@@ -58,7 +58,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise InputError("the occlusion condition needs --frames of at least 80 "
                          "(the hand covers frames 60-69)")
     t0 = time.perf_counter()
-    log = (lambda m: print(m, file=sys.stderr, flush=True))
+    def log(message: str) -> None:
+        print(message, file=sys.stderr, flush=True)
+
     result = Evaluation(cfg, clock=time.perf_counter, progress=log).run()
     args.output.mkdir(parents=True, exist_ok=True)
     doc = _clean(result.to_json())
