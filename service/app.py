@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from fastapi import FastAPI, HTTPException, Request, WebSocket
-from fastapi.responses import JSONResponse, PlainTextResponse
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from core.errors import ArticastError
@@ -399,6 +399,18 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
             raise HTTPException(404, f"no session {name!r}")
         await svc.manager.remove(name)
         return {"name": name, "state": "stopped"}
+
+    @app.get("/api/sessions/{name}/dense")
+    def dense_mesh(name: str) -> Response:
+        """The session's dense face mesh and dense modes (METHOD.md §5), built once per model
+        (a fraction of a second, in the thread pool) and served as JSON:
+        ``{n_points, mean (3M), basis (K*3M), triangles (3T), linearity_error_mm}``."""
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r}")
+        if session.description is None or not session.description.get("geometry"):
+            raise HTTPException(409, f"session {name!r} has no face model (yet)")
+        return Response(session.dense_json(), media_type="application/json")
 
     @app.get("/api/protocol")
     async def protocol_schema() -> dict[str, Any]:

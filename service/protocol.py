@@ -124,7 +124,9 @@ class Hello(_Message):
     param_stats: ParamStats | None = None
     camera: dict[str, Any] | None = Field(default=None, description="core.camera.Camera.to_dict")
     geometry: Geometry | None = None
-    fapu: dict[str, float] | None = Field(default=None, description="reserved: FAPU in mm")
+    fapu: dict[str, float] | None = Field(default=None, description="FAPU in mm (MPEG-4)")
+    dense_url: str | None = Field(
+        default=None, description="HTTP path of the dense face mesh and its modes (JSON)")
     source: SourceDescription | None = None
     state: str = "running"
 

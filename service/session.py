@@ -43,6 +43,7 @@ class Session:
         self.metrics = SessionMetrics()
         self._mesh: tuple[np.ndarray, np.ndarray] | None = None
         self.outputs: Any = None  # service.outputs.Outputs when the model has FAP points
+        self._dense: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._done = asyncio.Event()
         self._outcome: tuple[str, str] = ("", "")
@@ -148,8 +149,24 @@ class Session:
         self.outputs = make_outputs(desc)
         if self.outputs is not None:
             desc["fapu"] = self.outputs.fapu
+        self._dense = None
+        if g:
+            desc["dense_url"] = f"/api/sessions/{self.spec.name}/dense"
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
         self._set_state("running", "")
+
+    def dense_json(self) -> bytes:
+        """JSON of the dense face of this session's model (cached; blocking: call from a
+        worker thread, as FastAPI does for plain ``def`` routes)."""
+        if self._dense is None:
+            import json
+
+            from core.synthetic.dense import dense_face
+            from service.wire import model_from_description
+
+            model = model_from_description(self.description or {})
+            self._dense = json.dumps(dense_face(model).to_dict()).encode()
+        return self._dense
 
     def _on_frame(self, rec: FrameRecord) -> None:
         if self.description is None:

@@ -184,6 +184,7 @@ def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] |
         camera=desc["camera"],
         geometry=desc["geometry"] if sub.geometry else None,
         fapu=desc.get("fapu"),
+        dense_url=desc.get("dense_url"),
         source=P.SourceDescription(**source) if source else None,
         state=state,
     )

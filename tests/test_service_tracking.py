@@ -64,6 +64,14 @@ def test_fast_replay_equals_offline_track_and_streams_fap(synthetic_files, tmp_p
     with ServerThread(config) as srv:
         hello, frames = asyncio.run(collect(srv.url, "talk",
                                             ["articulatory", "pose", "fap", "arkit"]))
+        import httpx
+
+        dense = httpx.get(srv.http + hello["dense_url"], timeout=30).json()
+    # the dense face: linear in alpha like the sparse one; stated tolerance 1.5 mm at +-2 s.d.
+    m = dense["n_points"]
+    assert m > 10 * hello["geometry"]["n_points"]
+    assert len(dense["basis"]) == 7 * 3 * m and len(dense["triangles"]) % 3 == 0
+    assert dense["linearity_error_mm"] < 1.5
     assert len(frames) == len(offline) == 25
     names = list(offline[0]["alpha"])
     served = np.array([[f["values"]["articulatory"][k] for k in names] for f in frames])
