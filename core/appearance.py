@@ -77,6 +77,28 @@ def image_maps(
     return ImageMaps(smooth, (x0, y0), 0.5**level, float(sigma))
 
 
+def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: float,
+                  levels: tuple[int, ...]) -> dict[int, ImageMaps]:
+    """:func:`image_maps` for several levels from one colour conversion of one ROI."""
+    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+        raise InputError(f"expected a BGR uint8 image (H, W, 3), got {image.dtype} {image.shape}")
+    h, w = image.shape[:2]
+    x0, y0 = max(0, int(roi[0])), max(0, int(roi[1]))
+    x1, y1 = min(w, int(roi[2])), min(h, int(roi[3]))
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        x0, y0, x1, y1 = 0, 0, w, h
+    crop = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2YCrCb)
+    k = 2 * int(np.ceil(3.0 * sigma)) + 1
+    out: dict[int, ImageMaps] = {}
+    for level in range(max(levels) + 1):
+        if level:
+            crop = cv2.pyrDown(crop)
+        if level in levels:
+            smooth = cv2.GaussianBlur(crop.astype(np.float32), (k, k), sigma)
+            out[level] = ImageMaps(smooth, (x0, y0), 0.5**level, float(sigma))
+    return out
+
+
 def _interpolate(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, ...]:
     """Bilinear interpolation of S and of its central differences at image points.
 

@@ -7,11 +7,11 @@ Core never reads a clock: pass ``clock`` (e.g. ``time.perf_counter``) to get ms 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from core.appearance import AppearanceModel, ImageMaps, image_maps, roi_of
+from core.appearance import AppearanceModel, ImageMaps, image_maps, image_pyramid, roi_of
 from core.camera import Camera, Pose
 from core.fitting import FitPolicy, FitResult, Problem, fit_gauss_newton, fit_nelder_mead
 from core.model import FaceModel
@@ -33,6 +33,8 @@ class TrackingPolicy:
     divergence_factor : a frame whose residual exceeds this many times the running residual
         level (and ``residual_floor``) is not trusted: the tracker retries from the last good
         state and from the neutral articulation; if that fails the frame is marked not ok.
+    coarse_iterations : per-frame iteration cap on the coarse levels (they only need to bring
+        the state into the fine level's basin); 0 = the fit policy's own.
     min_valid_fraction : below this fraction of sample points inside the image: not ok.
     min_contrast : luminance s.d. of the face region below which the frame is blank.
     """
@@ -43,6 +45,7 @@ class TrackingPolicy:
     levels: tuple[int, ...] = (2, 1, 0)
     reinit_levels: tuple[int, ...] = (1, 0)
     init_levels: tuple[int, ...] = (2, 1, 0)
+    coarse_iterations: int = 2
     predict: bool = True
     velocity_gain: float = 0.8
     divergence_factor: float = 4.0
@@ -85,8 +88,6 @@ class Tracker:
                 raise ValueError(f"the appearance model (levels {appearance.levels}) has none "
                                  f"of the policy's {name} {getattr(pol, name)}")
             fitted[name] = usable
-        from dataclasses import replace
-
         self.policy = pol = replace(pol, **fitted)  # e.g. a model trained on levels (0, 1)
         self.problem = Problem(model, appearance, camera, self.policy.fit.prior)
         self.model, self.camera = model, camera
@@ -115,14 +116,18 @@ class Tracker:
         theta = theta0
         result: FitResult | None = None
         evals = 0
+        if any(lv not in cache for lv in levels):  # one ROI and colour conversion per frame
+            uv = self.problem.project(theta0)
+            sig = self.problem.appearance.sigma
+            margin = pol.roi_margin_px + 4 * sig * 2 ** max(levels)
+            cache.update(image_pyramid(image, roi_of(uv, margin), sig,
+                                       tuple(lv for lv in levels if lv not in cache)))
         for level in levels:
-            if level not in cache:
-                uv = self.problem.project(theta0)
-                sig = self.problem.appearance.sigma
-                margin = pol.roi_margin_px + 4 * sig * 2**level
-                cache[level] = image_maps(image, roi_of(uv, margin), sig, level)
+            fit_pol = policy or pol.fit
+            if policy is None and level > 0 and pol.coarse_iterations:
+                fit_pol = replace(fit_pol, max_iterations=pol.coarse_iterations)
             args = (self.problem, cache[level], level, theta[:self.k],
-                    theta[self.k:self.k + 3], theta[self.k + 3:], policy or pol.fit)
+                    theta[self.k:self.k + 3], theta[self.k + 3:], fit_pol)
             if pol.optimiser == "nelder-mead":
                 result = fit_nelder_mead(*args)
             else:
