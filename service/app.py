@@ -242,6 +242,10 @@ class Service:
         self.hub: InMemoryHub[Any] = InMemoryHub()
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
+        if config.server.vmc:
+            from service.vmc import VmcSender, parse_host_port
+
+            self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc))
         self.connections: set[Connection] = set()
         self._watchdog: asyncio.Task[None] | None = None
 

@@ -45,6 +45,7 @@ class Session:
         self.outputs: Any = None  # service.outputs.Outputs when the model has FAP points
         self._dense: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
+        self._vmc_model: Any = None
         self._done = asyncio.Event()
         self._outcome: tuple[str, str] = ("", "")
         self._stopping = asyncio.Event()
@@ -150,6 +151,8 @@ class Session:
         if self.outputs is not None:
             desc["fapu"] = self.outputs.fapu
         self._dense = None
+        if self._m.vmc is not None and self.outputs is not None:
+            self._vmc_model = self.outputs.model
         if g:
             desc["dense_url"] = f"/api/sessions/{self.spec.name}/dense"
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
@@ -175,6 +178,13 @@ class Session:
         ev = FrameEvent(self.spec.name, self.sid, rec, self.description["param_names"],
                         self._mesh, self.outputs)
         self._m.hub.publish(self.spec.name, ev)
+        if self._m.vmc is not None and self._vmc_model is not None:
+            from core.camera import Pose
+            from core.result import TrackResult
+
+            res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
+                              Pose(rec.rotation, rec.translation), bool(rec.quality["ok"]))
+            self._m.vmc.send(res, self._vmc_model)  # UDP, never blocks
         t = now()
         m.publish_latency.observe(t - rec.t_tracked)
         m.track_latency.observe(rec.t_tracked - rec.t_capture)
@@ -211,6 +221,7 @@ class SessionManager:
         self.capture = capture or CaptureSettings()
         self.policy = policy or SessionPolicy()
         self.record_dir = record_dir
+        self.vmc: Any = None  # service.vmc.VmcSender when the server sends VMC
         self.sessions: dict[str, Session] = {}
         self._next_sid = 1
         self._thread_owner: Session | None = None

@@ -63,6 +63,8 @@ class ServerSettings:
     record: str = _opt("", "write every session's frames as JSONL into this folder")
     shutdown_timeout_s: float = _opt(5.0, "wait this long for connections and workers to end")
     log_level: str = _opt("warning", "uvicorn and articast log level")
+    vmc: str = _opt("", "also send every session's mouth/jaw ARKit blendshapes and head pose "
+                        "over the VMC protocol (OSC/UDP) to HOST[:PORT] (default port 39539)")
 
 
 def from_env(cls: type[S], env: Mapping[str, str] | None = None, **overrides: Any) -> S:

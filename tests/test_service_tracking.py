@@ -87,3 +87,40 @@ def test_fast_replay_equals_offline_track_and_streams_fap(synthetic_files, tmp_p
     jo = np.array([f["values"]["arkit"]["jawOpen"] for f in frames])
     assert ((0 <= jo) & (jo <= 1)).all()
     assert np.corrcoef(jo, served[:, 0])[0, 1] > 0.9
+
+
+def test_serve_sends_vmc_bundles_while_streaming(tmp_path):
+    """--vmc: a real OSC server on loopback receives ARKit blendshapes of a served session."""
+    import threading
+
+    from pythonosc.dispatcher import Dispatcher
+    from pythonosc.osc_server import ThreadingOSCUDPServer
+
+    from tests.service_helpers import write_recording
+
+    got = []
+    disp = Dispatcher()
+    disp.map("/VMC/Ext/Blend/Val", lambda addr, name, value: got.append((name, value)))
+    osc = ThreadingOSCUDPServer(("127.0.0.1", 0), disp)
+    threading.Thread(target=osc.serve_forever, daemon=True).start()
+    try:
+        from core.synthetic import default_speaker
+
+        rec = tmp_path / "talk.jsonl"
+        write_recording(rec, frames=20, fps=30, model=default_speaker(0).model())
+        spec = SessionSpec("talk", f"replay-record:{rec}?pace=fast", wait_for_subscriber=True)
+        config = ServiceConfig(server=ServerSettings(log_level="critical",
+                                                     vmc=f"127.0.0.1:{osc.server_address[1]}"),
+                               sessions=(spec,))
+        with ServerThread(config) as srv:
+            _, frames = asyncio.run(collect(srv.url, "talk", ["articulatory"]))
+            import time
+
+            deadline = time.monotonic() + TIMEOUT
+            while len({n for n, _ in got if n == "jawOpen"}) == 0 and time.monotonic() < deadline:
+                time.sleep(0.05)
+    finally:
+        osc.shutdown()
+    assert frames
+    names = {n for n, _ in got}
+    assert "jawOpen" in names and all(0.0 <= v <= 1.0 for _, v in got)
