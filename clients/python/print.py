@@ -1,0 +1,43 @@
+"""``python -m clients.python.print URL SESSION`` — one live line per frame: the seven
+articulatory parameters, quality and the measured latency (server send -> received, same host
+clock or NTP-synchronised hosts). Ctrl-C stops."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from clients.python.client import ClientClosed, ClientError, subscribe_sync
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m clients.python.print", description=__doc__)
+    ap.add_argument("url")
+    ap.add_argument("session")
+    ap.add_argument("--rate", type=float, default=None, help="max frames per second")
+    ap.add_argument("--frames", type=int, default=0, help="stop after N frames")
+    args = ap.parse_args(argv)
+    n = 0
+    try:
+        with subscribe_sync(args.url, args.session, ("articulatory", "pose"),
+                            rate=args.rate) as sub:
+            for f in sub:
+                a = f.values.articulatory or {}
+                lat = (time.time() - f.t_sent) * 1000
+                params = " ".join(f"{k}={v:+.2f}" for k, v in a.items())
+                flag = "ok" if f.quality.ok else f"NOT OK ({f.quality.reason})"
+                print(f"#{f.seq:6d} t={f.t:8.3f}s {params} {flag} {lat:5.1f} ms", flush=True)
+                n += 1
+                if args.frames and n >= args.frames:
+                    break
+    except (ClientError, ClientClosed) as exc:
+        print(f"print: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        pass
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
