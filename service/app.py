@@ -341,6 +341,9 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="articast", version=str(P.PROTOCOL_VERSION), lifespan=lifespan,
                   docs_url=None, redoc_url=None)
     app.state.service = svc
+    from service.avatar import mount_avatar
+
+    mount_avatar(app)
 
     app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes)
 

@@ -114,11 +114,14 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", args.processor))))
 
     def listening(url: str) -> None:
+        http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]
+        avatar = f"{http}/avatar/" + (f"?session={names[0]}" if names else "")
         if args.json:
-            print(json.dumps({"url": url, "sessions": names}), flush=True)
+            print(json.dumps({"url": url, "avatar": avatar, "sessions": names}), flush=True)
         else:
             first = names[0] if names else "NAME"
             print(f"articast: serving {', '.join(names) or 'no session yet'} at {url}\n"
+                  f"  browser avatar: {avatar}\n"
                   f'  subscribe with {{"type": "subscribe", "session": "{first}"}}; '
                   "Ctrl-C stops", flush=True)
 

@@ -1,0 +1,227 @@
+// articast browser avatar: subscribes over WebSocket, animates the face mesh linearly from the
+// streamed articulatory parameters (x = mean + sum_k alpha_k basis_k, the dense modes when the
+// server offers them), shades it with WebGL, shows the parameters, pose, latency and fps, and
+// reconnects by itself. No network but the articast server; no build step.
+import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
+
+const params = new URLSearchParams(location.search);
+const state = (window.articast = {
+  frames: 0, connects: 0, connected: false, hello: null, alpha: null, status: "", error: "",
+  mesh: "", lastSeq: -1,
+});
+const $ = (id) => document.getElementById(id);
+const canvas = $("canvas");
+const gl = canvas.getContext("webgl", { preserveDrawingBuffer: true, antialias: true });
+
+// ----------------------------------------------------------------------------- rendering
+const VS = `attribute vec3 p; attribute vec3 n; uniform mat4 mvp; uniform mat3 rot;
+varying vec3 vn; void main() { vn = rot * n; gl_Position = mvp * vec4(p, 1.0); }`;
+const FS = `precision mediump float; varying vec3 vn; uniform vec3 colour; uniform float unlit;
+void main() { vec3 l = normalize(vec3(-0.3, 0.4, 1.0));
+  float d = max(dot(normalize(vn), l), 0.0);
+  gl_FragColor = vec4(colour * mix(0.35 + 0.75 * d, 1.0, unlit), 1.0); }`;
+
+function shader(type, src) {
+  const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);
+  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
+  return s;
+}
+let prog = null, loc = {};
+if (gl) {
+  prog = gl.createProgram();
+  gl.attachShader(prog, shader(gl.VERTEX_SHADER, VS));
+  gl.attachShader(prog, shader(gl.FRAGMENT_SHADER, FS));
+  gl.linkProgram(prog);
+  loc = { p: gl.getAttribLocation(prog, "p"), n: gl.getAttribLocation(prog, "n"),
+          mvp: gl.getUniformLocation(prog, "mvp"), rot: gl.getUniformLocation(prog, "rot"),
+          colour: gl.getUniformLocation(prog, "colour"), unlit: gl.getUniformLocation(prog, "unlit") };
+  gl.enable(gl.DEPTH_TEST);
+}
+
+class Mesh {
+  // mean: Float32Array(3M), basis: Float32Array(K*3M), triangles: array of indices
+  constructor(mean, basis, triangles, k) {
+    this.mean = mean; this.basis = basis; this.k = k; this.m = mean.length / 3;
+    this.tri = new Uint32Array(triangles);
+    this.pos = new Float32Array(mean.length); this.nrm = new Float32Array(mean.length);
+    const edges = new Set();
+    for (let t = 0; t < this.tri.length; t += 3)
+      for (let e = 0; e < 3; e++) {
+        const a = this.tri[t + e], b = this.tri[t + (e + 1) % 3];
+        edges.add(a < b ? a * 1e6 + b : b * 1e6 + a);
+      }
+    this.lines = new Uint32Array(edges.size * 2);
+    let i = 0; for (const e of edges) { this.lines[i++] = Math.floor(e / 1e6); this.lines[i++] = e % 1e6; }
+    if (gl) {
+      this.pb = gl.createBuffer(); this.nb = gl.createBuffer();
+      this.ib = gl.createBuffer(); gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.ib);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, this.tri, gl.STATIC_DRAW);
+      this.lb = gl.createBuffer(); gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.lb);
+      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, this.lines, gl.STATIC_DRAW);
+    }
+  }
+  update(alpha) {
+    const n = this.mean.length, pos = this.pos, nrm = this.nrm;
+    pos.set(this.mean);
+    for (let k = 0; k < this.k; k++) {
+      const a = alpha[k]; if (!a) continue;
+      const off = k * n, b = this.basis;
+      for (let i = 0; i < n; i++) pos[i] += a * b[off + i];
+    }
+    nrm.fill(0);
+    const t = this.tri;
+    for (let i = 0; i < t.length; i += 3) {
+      const a = 3 * t[i], b = 3 * t[i + 1], c = 3 * t[i + 2];
+      const ux = pos[b] - pos[a], uy = pos[b + 1] - pos[a + 1], uz = pos[b + 2] - pos[a + 2];
+      const vx = pos[c] - pos[a], vy = pos[c + 1] - pos[a + 1], vz = pos[c + 2] - pos[a + 2];
+      const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+      for (const j of [a, b, c]) { nrm[j] += nx; nrm[j + 1] += ny; nrm[j + 2] += nz; }
+    }
+    for (let i = 0; i < n; i += 3) {
+      const l = Math.hypot(nrm[i], nrm[i + 1], nrm[i + 2]) || 1;
+      nrm[i] /= l; nrm[i + 1] /= l; nrm[i + 2] /= l;
+    }
+  }
+  draw(mvp, rot, colour, wire) {
+    gl.useProgram(prog);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.pb); gl.bufferData(gl.ARRAY_BUFFER, this.pos, gl.DYNAMIC_DRAW);
+    gl.enableVertexAttribArray(loc.p); gl.vertexAttribPointer(loc.p, 3, gl.FLOAT, false, 0, 0);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.nb); gl.bufferData(gl.ARRAY_BUFFER, this.nrm, gl.DYNAMIC_DRAW);
+    gl.enableVertexAttribArray(loc.n); gl.vertexAttribPointer(loc.n, 3, gl.FLOAT, false, 0, 0);
+    gl.uniformMatrix4fv(loc.mvp, false, mvp); gl.uniformMatrix3fv(loc.rot, false, rot);
+    gl.uniform3fv(loc.colour, colour); gl.uniform1f(loc.unlit, wire ? 1 : 0);
+    if (wire) {
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.lb);
+      gl.drawElements(gl.LINES, this.lines.length, gl.UNSIGNED_INT, 0);
+    } else {
+      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.ib);
+      gl.drawElements(gl.TRIANGLES, this.tri.length, gl.UNSIGNED_INT, 0);
+    }
+  }
+}
+if (gl) gl.getExtension("OES_element_index_uint");
+
+let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null;
+
+function render() {
+  if (!gl || !sparse || !state.alpha) return;
+  const w = canvas.clientWidth || canvas.width, h = canvas.clientHeight || canvas.height;
+  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
+  gl.viewport(0, 0, canvas.width, canvas.height);
+  gl.clearColor(0.19, 0.2, 0.23, 1); gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+  // the head frame: x = speaker's left (the viewer's right), y up, z towards the viewer
+  let rot = [1, 0, 0, 0, 1, 0, 0, 0, 1];
+  if ($("headpose").checked && pose && firstRot) {
+    // head rotation relative to the first frame, in the head frame: R0^T R
+    rot = mat3Mul(transpose3(firstRot), rotationFromAxisAngle(pose.rotation));
+  }
+  const model = mat4FromRot(rot, centre);
+  const proj = mat4Perspective(0.5, canvas.width / canvas.height, 50, 2000);
+  const view = mat4Translate(0, 0, -380);
+  const mvp = mat4Multiply(proj, mat4Multiply(view, model));
+  const rot3 = new Float32Array([rot[0], rot[3], rot[6], rot[1], rot[4], rot[7], rot[2], rot[5], rot[8]]);
+  const useDense = dense && $("dense").checked;
+  const mesh = useDense ? dense : sparse;
+  mesh.update(state.alpha);
+  mesh.draw(mvp, rot3, [0.86, 0.66, 0.56], false);
+  if ($("wire").checked) { sparse.update(state.alpha); sparse.draw(mvp, rot3, [0.2, 0.9, 0.6], true); }
+}
+function mat3Mul(a, b) {
+  const o = new Array(9);
+  for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++)
+    o[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+  return o;
+}
+function mat4FromRot(r, c) { // rotate about the face centre c (row-major r), column-major out
+  const t = [c[0] - (r[0] * c[0] + r[1] * c[1] + r[2] * c[2]),
+             c[1] - (r[3] * c[0] + r[4] * c[1] + r[5] * c[2]),
+             c[2] - (r[6] * c[0] + r[7] * c[1] + r[8] * c[2])];
+  return new Float32Array([r[0], r[3], r[6], 0, r[1], r[4], r[7], 0, r[2], r[5], r[8], 0,
+                           t[0] - c[0], t[1] - c[1], t[2] - c[2], 1]);
+}
+
+// ----------------------------------------------------------------------------- panel
+const bars = [];
+function setupBars(names) {
+  $("bars").innerHTML = "";
+  bars.length = 0;
+  for (const n of names) {
+    const d = document.createElement("div"); d.className = "bar";
+    d.innerHTML = `<span>${n}</span><div class="track"><div class="zero"></div><div class="fill"></div></div><b>0</b>`;
+    $("bars").appendChild(d); bars.push(d);
+  }
+}
+function showBars(alpha) {
+  alpha.forEach((a, i) => {
+    const v = Math.max(-3, Math.min(3, a)) / 6, f = bars[i].querySelector(".fill");
+    f.style.left = `${50 + Math.min(0, v) * 100}%`; f.style.width = `${Math.abs(v) * 100}%`;
+    bars[i].querySelector("b").textContent = a.toFixed(2);
+  });
+}
+function status(text, bad) { const s = $("status"); s.textContent = text; s.className = bad ? "bad" : "good"; state.status = text; }
+
+// ----------------------------------------------------------------------------- connection
+let times = [], delay = 250;
+async function chooseSession() {
+  if (params.get("session")) return params.get("session");
+  const r = await fetch("/api/sessions"); const list = await r.json();
+  if (!list.length) throw new Error("the server has no session");
+  return list[0].name;
+}
+async function onHello(h) {
+  state.hello = h; firstRot = null;
+  $("session").textContent = h.session; setupBars(h.param_names);
+  const g = h.geometry; if (!g) { status("this session has no face model", true); return; }
+  const k = h.param_names.length;
+  sparse = new Mesh(new Float32Array(g.mean), new Float32Array(g.basis), g.triangles, k);
+  centre = [0, 0, 0];
+  for (let i = 0; i < g.mean.length; i += 3) for (let d = 0; d < 3; d++) centre[d] += g.mean[i + d] * 3 / g.mean.length;
+  state.mesh = `sparse ${sparse.m} points`; $("mesh").textContent = state.mesh;
+  dense = null;
+  if (h.dense_url) {
+    try {
+      const d = await (await fetch(h.dense_url)).json();
+      dense = new Mesh(new Float32Array(d.mean), new Float32Array(d.basis), d.triangles, k);
+      state.mesh = `dense ${dense.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh;
+    } catch (e) { console.warn("dense mesh unavailable", e); }
+  }
+}
+function onFrame(f) {
+  const names = state.hello.param_names, a = f.values.articulatory || {};
+  state.alpha = names.map((n) => a[n] || 0); state.frames++; state.lastSeq = f.seq;
+  if (f.values.pose) { pose = f.values.pose; if (!firstRot && f.quality.ok) firstRot = rotationFromAxisAngle(pose.rotation); }
+  showBars(state.alpha);
+  const now = performance.now(); times.push(now); while (times.length > 30) times.shift();
+  if (times.length > 1) $("fps").textContent = (1000 * (times.length - 1) / (now - times[0])).toFixed(1);
+  // latency: server send time to arrival, on the wall clock (same host, or NTP-synced hosts)
+  $("latency").textContent = `${Math.max(0, Date.now() / 1000 - f.t_sent) * 1000 | 0} ms`;
+  $("quality").textContent = f.quality.ok ? `ok, ${f.quality.evals} evals` : `not ok: ${f.quality.reason}`;
+  $("quality").className = f.quality.ok ? "good" : "bad";
+  if (pose) $("pose").textContent = pose.translation.map((v) => v.toFixed(0)).join(", ") + " mm";
+  requestAnimationFrame(render);
+}
+async function connect() {
+  let session;
+  try { session = await chooseSession(); } catch (e) { return retry(`no session yet (${e.message})`); }
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  const ws = new WebSocket(params.get("ws") || `${proto}://${location.host}/ws`);
+  ws.onopen = () => {
+    state.connected = true; state.connects++; delay = 250; status(`connected to ${session}`);
+    ws.send(JSON.stringify({ type: "subscribe", session, streams: ["articulatory", "pose"],
+                             rate: params.get("rate") ? Number(params.get("rate")) : null }));
+  };
+  ws.onmessage = async (ev) => {
+    const m = JSON.parse(ev.data);
+    if (m.type === "hello") await onHello(m);
+    else if (m.type === "frame" && state.hello) onFrame(m);
+    else if (m.type === "status") status(`${m.session}: ${m.state} ${m.detail || ""}`, m.state !== "running");
+    else if (m.type === "error") { state.error = m.reason; status(`error: ${m.reason}`, true); }
+  };
+  ws.onclose = () => { state.connected = false; retry("disconnected"); };
+}
+function retry(why) {
+  status(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s`, true);
+  setTimeout(connect, delay); delay = Math.min(delay * 2, 5000);
+}
+if (!gl) status("WebGL is not available in this browser", true);
+connect();

@@ -1,0 +1,23 @@
+"""The browser avatar (``clients/web``) served at ``/avatar/`` as static files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
+from fastapi.staticfiles import StaticFiles
+
+WEB = Path(__file__).resolve().parent.parent / "clients" / "web"
+
+
+def mount_avatar(app: FastAPI) -> None:
+    """Serve the avatar page at ``/avatar/`` (``/avatar`` redirects there)."""
+    if not (WEB / "index.html").is_file():
+        return  # an installation without the web client: the API works all the same
+
+    @app.get("/avatar", include_in_schema=False)
+    async def avatar_redirect() -> RedirectResponse:
+        return RedirectResponse("/avatar/")
+
+    app.mount("/avatar", StaticFiles(directory=WEB, html=True), name="avatar")

@@ -1,0 +1,102 @@
+"""The browser avatar in real headless Chromium against a running server: it connects and
+receives frames, its canvas changes when the jaw opens, and it recovers after a restart."""
+
+import json
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from service.app import ServiceConfig
+from service.settings import ServerSettings
+from service.worker import SessionSpec
+from tests.browser import CHROMIUM, Browser
+from tests.service_helpers import ServerThread
+
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed "
+                                "(.ci/run installs Debian's chromium)")
+
+
+def jaw_recording(path, jaw1, frames=30):
+    """A replayable recording of the synthetic speaker holding jaw1 at a value."""
+    from core.camera import Camera
+    from core.synthetic import default_speaker, rest_pose
+    from service.wire import describe
+
+    model = default_speaker(0).model()
+    desc = describe(model, Camera.default(640, 480), model.param_names)
+    pose = rest_pose("head").to_dict()
+    with path.open("w") as fh:
+        fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
+                             "session": "s", "source": {"kind": "test", "fps": 30}, **desc}) + "\n")
+        for i in range(frames):
+            alpha = {n: 0.0 for n in model.param_names}
+            alpha["jaw1"] = jaw1
+            fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / 30,
+                                 "alpha": alpha, "pose": pose,
+                                 "quality": {"ok": True, "reason": "", "residual": 0.0,
+                                             "evals": 0, "iterations": 0, "ms": 0.0}}) + "\n")
+    return path
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    d = tmp_path_factory.mktemp("jaw")
+    return (SessionSpec("closed", f"replay-record:{jaw_recording(d / 'c.jsonl', 0.0)}?loop=0"),
+            SessionSpec("open", f"replay-record:{jaw_recording(d / 'o.jsonl', 2.0)}?loop=0"))
+
+
+def canvas_pixels(browser):
+    png = browser.screenshot()
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+    return img[:, : img.shape[1] - 280].astype(np.float32)  # the canvas, not the side panel
+
+
+def page(srv, session):
+    return f"http://127.0.0.1:{srv.port}/avatar/?session={session}"
+
+
+def test_connects_receives_frames_and_the_jaw_opens_the_mouth(sessions):
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=sessions)
+    with ServerThread(config) as srv:
+        shots = {}
+        for name in ("closed", "open", "closed"):
+            with Browser(page(srv, name)) as b:
+                b.wait_for("window.articast.frames > 10", 60)
+                assert b.evaluate("window.articast.connected") is True
+                # the dense face arrives from hello.dense_url shortly after the first frames
+                b.wait_for("window.articast.mesh.startsWith('dense')", 60)
+                b.wait_for(f"window.articast.frames > {b.evaluate('window.articast.frames') + 3}", 30)
+                alpha = b.evaluate("window.articast.alpha")
+                assert alpha[0] == pytest.approx(2.0 if name == "open" else 0.0)
+                time.sleep(0.3)
+                shots.setdefault(name, []).append(canvas_pixels(b))
+    same = np.abs(shots["closed"][0] - shots["closed"][1]).mean()
+    opened = np.abs(shots["closed"][0] - shots["open"][0])
+    assert opened.mean() > 5 * max(same, 0.05)
+    assert (opened > 30).sum() > 500  # a visibly different region (the opened mouth, the chin)
+
+
+def test_page_reconnects_on_its_own(sessions):
+    from tests.test_client_python import PortServer
+
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=sessions[:1])
+    first = ServerThread(config)
+    port = first.port
+    first.__enter__()
+    b = Browser(page(first, "closed"))
+    try:
+        b.wait_for("window.articast.frames > 5", 60)
+        first.__exit__(None, None, None)
+        b.wait_for("window.articast.connected === false", 30)
+        before = b.evaluate("window.articast.frames")
+        second = PortServer(config, port)
+        second.__enter__()
+        try:
+            b.wait_for("window.articast.connects >= 2", 60)
+            b.wait_for(f"window.articast.frames > {before + 5}", 60)
+        finally:
+            second.__exit__(None, None, None)
+    finally:
+        b.close()
