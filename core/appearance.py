@@ -78,8 +78,14 @@ def image_maps(
 
 
 def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: float,
-                  levels: tuple[int, ...]) -> dict[int, ImageMaps]:
-    """:func:`image_maps` for several levels from one colour conversion of one ROI."""
+                  levels: tuple[int, ...],
+                  fine_roi: tuple[int, int, int, int] | None = None) -> dict[int, ImageMaps]:
+    """:func:`image_maps` for several levels from one colour conversion of one ROI.
+
+    fine_roi : a smaller ROI for level 0 (inside ``roi``): the coarse levels need the wide
+    margin of their wider filters and search, the full-resolution level does not, and its blur
+    is the most expensive step of a frame.
+    """
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {image.dtype} {image.shape}")
     h, w = image.shape[:2]
@@ -93,9 +99,16 @@ def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: floa
     for level in range(max(levels) + 1):
         if level:
             crop = cv2.pyrDown(crop)
-        if level in levels:
-            smooth = cv2.GaussianBlur(crop.astype(np.float32), (k, k), sigma)
-            out[level] = ImageMaps(smooth, (x0, y0), 0.5**level, float(sigma))
+        if level not in levels:
+            continue
+        part, ox, oy = crop, x0, y0
+        if level == 0 and fine_roi is not None:
+            fx0, fy0 = max(int(fine_roi[0]), x0), max(int(fine_roi[1]), y0)
+            fx1, fy1 = min(int(fine_roi[2]), x1), min(int(fine_roi[3]), y1)
+            if fx1 - fx0 >= 8 and fy1 - fy0 >= 8:
+                part, ox, oy = crop[fy0 - y0:fy1 - y0, fx0 - x0:fx1 - x0], fx0, fy0
+        smooth = cv2.GaussianBlur(part.astype(np.float32), (k, k), sigma)
+        out[level] = ImageMaps(smooth, (ox, oy), 0.5**level, float(sigma))
     return out
 
 

@@ -183,7 +183,8 @@ def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
     g, h = np.zeros(6), np.zeros((6, 6))
     if ref is None or pol.pose_sigma_mm is None or pol.pose_sigma_rad is None:
         return 0.0, g, h
-    d_rot = axis_angle(rot @ ref[0].T)  # left increment from the reference (small)
+    d = rot @ ref[0].T  # left increment from the reference: small, so its axis-angle is
+    d_rot = 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])  # ~vee
     d_t = t - ref[1]
     wr, wt = 1.0 / pol.pose_sigma_rad**2, 1.0 / pol.pose_sigma_mm**2
     g[:3], g[3:] = 2 * wr * d_rot, 2 * wt * d_t

@@ -33,6 +33,9 @@ class TrackingPolicy:
     divergence_factor : a frame whose residual exceeds this many times the running residual
         level (and ``residual_floor``) is not trusted: the tracker retries from the last good
         state and from the neutral articulation; if that fails the frame is marked not ok.
+    fast_path_factor : first fit the full-resolution level alone from the prediction, and keep
+        it if its residual is within this factor of the running level (0 = always run every
+        level).
     coarse_iterations : per-frame iteration cap on the coarse levels (they only need to bring
         the state into the fine level's basin); 0 = the fit policy's own.
     min_valid_fraction : below this fraction of sample points inside the image: not ok.
@@ -46,6 +49,7 @@ class TrackingPolicy:
     reinit_levels: tuple[int, ...] = (1, 0)
     init_levels: tuple[int, ...] = (2, 1, 0)
     coarse_iterations: int = 2
+    fast_path_factor: float = 1.5
     predict: bool = True
     velocity_gain: float = 0.8
     divergence_factor: float = 4.0
@@ -120,8 +124,9 @@ class Tracker:
             uv = self.problem.project(theta0)
             sig = self.problem.appearance.sigma
             margin = pol.roi_margin_px + 4 * sig * 2 ** max(levels)
+            fine = roi_of(uv, pol.roi_margin_px + 4 * sig)
             cache.update(image_pyramid(image, roi_of(uv, margin), sig,
-                                       tuple(lv for lv in levels if lv not in cache)))
+                                       tuple(lv for lv in levels if lv not in cache), fine))
         for level in levels:
             fit_pol = policy or pol.fit
             if policy is None and level > 0 and pol.coarse_iterations:
@@ -189,8 +194,18 @@ class Tracker:
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
             return self._lost(t, t0, "blank frame: no contrast where the face should be", 0)
         ref = self._theta[self.k:]
-        fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref)
-        evals = fit.evals
+        fit = None
+        evals = 0
+        if pol.fast_path_factor and self._level is not None and self._prev is not None:
+            # most frames are easy: try the full-resolution fit from the prediction alone, and
+            # pay for coarse-to-fine only when its residual says the motion was not predicted
+            quick = self._fit(image, theta0, (0,), cache, pose_ref=ref)
+            evals += quick.evals
+            if self._good(quick) and quick.residual <= pol.fast_path_factor * self._level:
+                fit = quick
+        if fit is None:
+            fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref)
+            evals += fit.evals
         if not self._good(fit):
             tries = [fit]
             if pol.predict and self._prev is not None:
