@@ -1,0 +1,1 @@
+"""The browser avatar: static files served by the service at /avatar/ (service/avatar.py)."""
