@@ -62,19 +62,7 @@ def image_maps(
     ``level`` n halves the ROI n times first (coarse-to-fine); ``sigma`` is in the reduced
     pixels, so the effective scale in image pixels is ``sigma * 2**level``.
     """
-    if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
-        raise InputError(f"expected a BGR uint8 image (H, W, 3), got {image.dtype} {image.shape}")
-    h, w = image.shape[:2]
-    x0, y0 = max(0, int(roi[0])), max(0, int(roi[1]))
-    x1, y1 = min(w, int(roi[2])), min(h, int(roi[3]))
-    if x1 - x0 < 8 or y1 - y0 < 8:
-        x0, y0, x1, y1 = 0, 0, w, h
-    crop = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2YCrCb)
-    for _ in range(level):
-        crop = cv2.pyrDown(crop)
-    k = 2 * int(np.ceil(3.0 * sigma)) + 1  # +-3 sigma: OpenCV's default +-4 costs 30 % more
-    smooth = cv2.GaussianBlur(crop.astype(np.float32), (k, k), sigma)
-    return ImageMaps(smooth, (x0, y0), 0.5**level, float(sigma))
+    return image_pyramid(image, roi, sigma, (level,))[level]
 
 
 def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: float,

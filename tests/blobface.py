@@ -39,6 +39,22 @@ def render_blobs(model, camera, alpha, pose, seed=0):
     return cv2.GaussianBlur(img, (0, 0), 1.2)
 
 
+def blob_trained(seed=5, kind="la_lin", n=30):
+    """The blob face with an appearance model trained on n frames of random states."""
+    from core.appearance import TrainingFrame, train_appearance
+
+    model, camera, pose = blob_setup()
+    rng = np.random.default_rng(seed)
+    frames = []
+    for _ in range(n):
+        a = rng.normal(size=7) * 0.8
+        p = Pose(pose.rotation + rng.normal(size=3) * 0.02,
+                 pose.translation + rng.normal(size=3) * 3)
+        frames.append(TrainingFrame(render_blobs(model, camera, a, p), a, p))
+    app = train_appearance(model, camera, frames, kind, sigma=2.0, levels=(0, 1), per_param=6)
+    return model, camera, pose, app
+
+
 def blob_setup():
     model = blob_model()
     camera = Camera.default(480, 360, 36)

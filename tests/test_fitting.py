@@ -3,23 +3,15 @@
 import numpy as np
 import pytest
 
-from core.appearance import TrainingFrame, image_maps, roi_of, sample_la, train_appearance
-from core.camera import Pose, rotation_matrix
+from core.appearance import image_maps, roi_of, sample_la
+from core.camera import rotation_matrix
 from core.fitting import Problem, fit_gauss_newton, fit_nelder_mead
-from tests.blobface import blob_setup, render_blobs
+from tests.blobface import blob_trained, render_blobs
 
 
 @pytest.fixture(scope="module")
 def trained():
-    model, camera, pose = blob_setup()
-    rng = np.random.default_rng(5)
-    frames = []
-    for _ in range(30):
-        a = rng.normal(size=7) * 0.8
-        p = Pose(pose.rotation + rng.normal(size=3) * 0.02, pose.translation + rng.normal(size=3) * 3)
-        frames.append(TrainingFrame(render_blobs(model, camera, a, p), a, p))
-    app = train_appearance(model, camera, frames, "la_lin", sigma=2.0, levels=(0, 1), per_param=6)
-    return model, camera, pose, app
+    return blob_trained(seed=5)
 
 
 def test_la_derivatives_match_finite_differences():

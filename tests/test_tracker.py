@@ -8,7 +8,7 @@ from core.appearance import AppearanceModel, TrainingFrame, train_appearance
 from core.camera import Pose
 from core.errors import InputError, ModelFileError
 from core.tracker import Tracker, TrackingPolicy
-from tests.blobface import blob_setup, render_blobs
+from tests.blobface import blob_trained, render_blobs
 
 # the blob face's features are small discs: the initial search needs a fine grid
 TOY = TrackingPolicy(search_step_mm=2.0, search_radius_mm=16.0)
@@ -16,15 +16,7 @@ TOY = TrackingPolicy(search_step_mm=2.0, search_radius_mm=16.0)
 
 @pytest.fixture(scope="module")
 def setup():
-    model, camera, pose = blob_setup()
-    rng = np.random.default_rng(7)
-    frames = []
-    for _ in range(30):
-        a = rng.normal(size=7) * 0.8
-        p = Pose(pose.rotation + rng.normal(size=3) * 0.02, pose.translation + rng.normal(size=3) * 3)
-        frames.append(TrainingFrame(render_blobs(model, camera, a, p), a, p))
-    app = train_appearance(model, camera, frames, "la_lin", sigma=2.0, levels=(0, 1), per_param=6)
-    return model, camera, pose, app
+    return blob_trained(seed=7)
 
 
 def trajectory(n):
