@@ -91,11 +91,7 @@ def test_bad_source_option_is_one_clear_error():
     assert r.returncode == 2 and "NAME=URI" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_replay_without_a_tracker_says_so(tmp_path):
-    from service.processors import tracker_available
-
-    if tracker_available():
-        pytest.skip("the tracker is available")
+def test_replay_without_an_appearance_model_says_so(tmp_path):
     video = tmp_path / "v.avi"
     from tests.service_helpers import write_video
 
@@ -103,7 +99,7 @@ def test_replay_without_a_tracker_says_so(tmp_path):
     r = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(video)], cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
                        text=True, timeout=60)
-    assert r.returncode == 2 and "tracker" in r.stderr and "Traceback" not in r.stderr
+    assert r.returncode == 2 and "appearance" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_sigterm_with_subscribers_connected(tmp_path):

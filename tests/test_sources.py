@@ -142,14 +142,23 @@ def test_missing_camera_is_a_status_with_retries_not_a_crash():
     assert "/dev/video97" in statuses[0][1] and "retry" in statuses[0][1]
 
 
-def test_synthetic_source_fails_clearly_without_the_speaker():
-    import importlib
+def test_synthetic_source_brings_model_camera_appearance_and_truth():
+    from service.sources import make_source
 
-    synthetic = importlib.import_module("core.synthetic")
-    if hasattr(synthetic, "open_stream"):
-        pytest.skip("the synthetic speaker is available")
-    with pytest.raises(SourceError, match="synthetic speaker"):
-        probe("synthetic:seed=3")
+    src = make_source("synthetic:seed=0&fps=30")
+    info = src.open()
+    try:
+        assets = src.assets()
+        assert (info.width, info.height) == (640, 480) and info.kind == "synthetic"
+        assert assets.model is not None and assets.appearance is not None
+        assert assets.extra["rig"] == "head" and assets.extra["initial_pose"] is not None
+        t0, img, truth = src.read()
+        t1, _, truth1 = src.read()
+        assert img.shape == (480, 640, 3) and img.dtype == np.uint8
+        assert t1 - t0 == pytest.approx(1 / 30)
+        assert truth.alpha.shape == (7,) and truth1.frame == truth.frame + 1
+    finally:
+        src.close()
 
 
 class FlakyCamera:
