@@ -32,6 +32,7 @@ APPEARANCE_KIND = "appearance-model"
 APPEARANCE_VERSION = 1
 KINDS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin")
 LA_CHANNELS = ("Yx", "Yy", "Cr", "Crx", "Cry", "Cb", "Cbx", "Cby")
+SELECTIONS = ("auto", "information", "displacement")
 
 
 # --------------------------------------------------------------------------- image maps
@@ -209,6 +210,69 @@ def select_points(
     return np.array(sorted(chosen), np.int64)
 
 
+def informative_points(
+    model: FaceModel, camera: Camera, frames: list[TrainingFrame], candidates: np.ndarray,
+    n_points: int, sigma: float = 2.5, ridge: float = 1e-2, prior: float = 1.0,
+) -> np.ndarray:
+    """Point selection by the information the la lin cost carries about alpha (ours, beyond
+    the paper's largest-displacement rule).
+
+    For every candidate point and training frame, the Jacobian of its 8 weighted residuals
+    w.r.t. alpha, ``cw * (dD/duv . duv/dalpha - W_k)``, is computed at the true state (cw: the
+    inverse leave-one-out residual s.d. of a la lin model of that point, so badly predicted
+    points — inner lips, teeth — carry little information). Points are then added greedily,
+    each time the one that most reduces the expected RMS 3D error of the estimate,
+    ``trace(G (prior I + sum_i J_i^T J_i)^-1)`` with G the model's geometric metric (mm^2 per
+    alpha^2 over all points): parameters that move the face a lot but are barely seen in the
+    image (jaw advance, along the optical axis) get the points that do see them.
+    """
+    cand = np.asarray(candidates, np.int64)
+    if cand.size <= n_points:
+        return np.sort(cand)
+    k = model.n_params
+    alphas = np.stack([np.asarray(f.alpha, np.float64) for f in frames])
+    dmat = design(alphas, "la_lin")
+    basis = model.basis[:, cand]  # (K, S, 3)
+    feats, jacs = [], []
+    for fr in frames:
+        pts = model.mean[cand] + np.einsum("k,ksd->sd", fr.alpha, basis)
+        cam = fr.pose.transform(pts)
+        uv, jp = camera.project_jacobian(cam)
+        maps = image_maps(fr.image, roi_of(uv, 4 * sigma + 8), sigma, 0)
+        f, df, _ = sample_la(maps, uv)
+        dcam = np.einsum("de,kse->sdk", fr.pose.matrix, basis)  # (S, 3, K)
+        feats.append(f)
+        jacs.append(np.matmul(df, np.matmul(jp, dcam)))  # (S, 8, K)
+    fmat = np.stack(feats).reshape(len(frames), -1)  # (F, S*8)
+    reg = ridge * len(frames) * np.diag([0.0] + [1.0] * k)
+    inv = np.linalg.inv(dmat.T @ dmat + reg)
+    w = inv @ dmat.T @ fmat
+    hat = np.einsum("fi,ij,fj->f", dmat, inv, dmat)
+    resid = (fmat - dmat @ w) / np.maximum(1.0 - hat, 0.05)[:, None]
+    rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, 8)
+    floor = np.maximum(np.median(rms_f, axis=0) * 0.5, 1.0)
+    cw = 1.0 / np.maximum(rms_f, floor)  # (S, 8)
+    wk = w[1:].T.reshape(-1, 8, k)  # (S, 8, K) model derivative
+    info = np.zeros((cand.size, k, k))
+    for jac in jacs:
+        jr = (jac - wk) * cw[:, :, None]
+        info += np.einsum("sck,scl->skl", jr, jr)
+    info /= len(frames)
+    gmat = np.einsum("kpd,lpd->kl", model.basis, model.basis) / model.n_points
+    h = prior * np.eye(k)
+    chosen: list[int] = []
+    free = np.ones(cand.size, bool)
+    for _ in range(n_points):
+        trials = np.linalg.inv(h[None] + info)  # (S, K, K)
+        score = np.einsum("kl,slk->s", gmat, trials)
+        score[~free] = np.inf
+        best = int(np.argmin(score))
+        chosen.append(best)
+        free[best] = False
+        h = h + info[best]
+    return np.sort(cand[chosen])
+
+
 def texture_grid(model: FaceModel, spacing_mm: float = 2.0,
                  triangles: np.ndarray | None = None) -> SamplePoints:
     """A regular grid over the mesh in its normalized shape (frontal x-y of the mean face),
@@ -361,14 +425,19 @@ def train_appearance(
     *,
     sigma: float = 2.5,
     levels: tuple[int, ...] = (0, 1, 2),
-    per_param: int = 5,
+    per_param: int = 8,
     tex_spacing_mm: float = 2.0,
-    ridge: float = 1e-2,
+    ridge: float = 0.1,
     noise_floor: float = 1.0,
+    selection: str = "auto",
+    n_points: int | None = None,
 ) -> AppearanceModel:
     """Fit an appearance model by least squares on frames with known state.
 
-    la: sample points chosen by :func:`select_points` among points visible in every frame.
+    la: sample points among those visible in every frame, chosen by ``selection``:
+    "information" (:func:`informative_points`, ``n_points`` of them, default ``per_param``
+    per parameter), "displacement" (the paper's rule, :func:`select_points`), or "auto"
+    (information when there are at least 2(K+1) frames to fit and cross-validate it).
     tex: a grid in the normalized shape over front-facing triangles, features z-scored per
     frame (luminance normalisation). cst models predict the training mean; lin models regress
     every feature value on [1, alpha] (ridge-regularised, intercept free). Features are
@@ -382,8 +451,18 @@ def train_appearance(
     if len(frames) < (2 if kind.endswith("cst") else n_terms + 1):
         raise InputError(f"{len(frames)} training frames are too few for {kind}")
     vis = visible_points(model, camera, frames)
+    if selection not in SELECTIONS:
+        raise InputError(f"selection must be one of {SELECTIONS}, got {selection!r}")
     if kind.startswith("la"):
-        samples = SamplePoints.of_points(select_points(model, per_param, vis))
+        if selection == "auto":  # information needs a la lin fit with spare frames
+            enough = len(frames) >= 2 * (model.n_params + 1)
+            selection = "information" if enough else "displacement"
+        if selection == "information":
+            chosen = informative_points(model, camera, frames, vis,
+                                        n_points or per_param * model.n_params, sigma, ridge)
+        else:
+            chosen = select_points(model, per_param, vis)
+        samples = SamplePoints.of_points(chosen)
     else:
         tri = model.triangles
         tri = tri[np.isin(tri, vis).all(1)]

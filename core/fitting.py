@@ -2,11 +2,15 @@
 
 State theta = (alpha (K), rotation (3, axis-angle), translation (3, mm)): head -> camera.
 
-    E(theta) = sum_i || c * (D(I, p_i(theta)) - f_i(alpha)) ||^2 + rho(alpha)
+    E(theta) = sum_i L(|| c * (D(I, p_i(theta)) - f_i(alpha)) ||^2) + rho(alpha)
     rho(alpha) = w * sum_k exp((|alpha_k| - a_k) / s)
 
 D samples the image features at the projected sample points, f is the appearance model's
-prediction, c the per-channel weights. Two optimisers: :func:`fit_gauss_newton` (default:
+prediction, c the per-channel weights. L is the paper's least squares (L(q) = q) or, by
+default, ours: a Cauchy loss per sample point, L(q) = s^2 log(1 + q / s^2) with s = 2 (the
+weighted residuals are ~unit s.d. where the model is right). A point whose appearance the
+linear model gets wrong (lips beyond the enrolment's range, a hand) then stops pulling the
+whole state; measured on the teleconference condition it cuts the la lin mean error by ~20 %. Two optimisers: :func:`fit_gauss_newton` (default:
 Levenberg-Marquardt with analytic Jacobians, rotation updated multiplicatively) and
 :func:`fit_nelder_mead` (the paper's downhill simplex centred on the start, the baseline).
 """
@@ -51,6 +55,9 @@ class FitPolicy:
     pose_sigma_rad: float | None = None
     pose_sigma_mm: float | None = None
     gain_sigma: float = 0.02
+    # per-point Cauchy loss scale on the weighted residual norm, la models (None: least
+    # squares; tex models always: one z-scored value per point, measured worse robustly)
+    robust_scale: float | None = 2.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -169,12 +176,28 @@ class Problem:
         jac[~valid] = 0.0
         return r.reshape(-1), jac.reshape(s * c, -1), vf
 
-    def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray) -> float:
+    def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray,
+             robust_scale: float | None = None) -> float:
         """E(theta) for the Nelder-Mead baseline (theta with absolute axis-angle rotation)."""
         a = theta[:self.k]
         r, _, _ = self.residuals(maps, level_index, a, rotation_matrix(theta[self.k:self.k + 3]),
                                  theta[self.k + 3:], jacobian=False)
-        return float(r @ r) + self.prior_terms(a)[0]
+        scale = None if self._tex else robust_scale
+        return _robust(r, None, self.c, scale)[0] + self.prior_terms(a)[0]
+
+
+def _robust(r: np.ndarray, jac: np.ndarray | None, c: int, scale: float | None
+            ) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """Per-sample-point Cauchy loss: cost sum_s scale^2 log(1 + q_s / scale^2) with q_s the
+    squared residual norm of point s over its C channels, and the IRLS-weighted residuals and
+    Jacobian whose Gauss-Newton step minimises it. scale None: plain least squares."""
+    if scale is None:
+        return float(r @ r), r, jac
+    q = (r.reshape(-1, c) ** 2).sum(1)
+    s2 = scale * scale
+    w = np.repeat(1.0 / np.sqrt(1.0 + q / s2), c)
+    cost = float(s2 * np.log1p(q / s2).sum())
+    return cost, r * w, None if jac is None else jac * w[:, None]
 
 
 def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
@@ -214,15 +237,18 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     t = np.array(translation0, np.float64)
     gain = gain0 = float(gain0)
     lam = pol.lm_lambda
+    nc = problem.c
+    scale = None if problem._tex else pol.robust_scale
     r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True, gain, estimate_gain)
+    rc, rw, jw = _robust(r, jac, nc, scale)
     prior, g_p, h_p = problem.prior_terms(alpha)
     pp, g_pp, h_pp = _pose_prior(pol, rot, t, ref)
     wg = 1.0 / pol.gain_sigma**2
-    cost = float(r @ r) + prior + pp
+    cost = rc + prior + pp
     evals, costs, converged, it = 1, [cost], False, 0
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
-        h = jac.T @ jac
-        g = jac.T @ r
+        h = jw.T @ jw
+        g = jw.T @ rw
         h[np.arange(k), np.arange(k)] += h_p / 2
         g[:k] += g_p / 2
         h[k:k + 6, k:k + 6] += h_pp / 2
@@ -245,9 +271,10 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             g_new = float(np.clip(gain + step[k + 6], 0.2, 5.0)) if step.size > k + 6 else gain
             r_new, jac_new, vf_new = problem.residuals(maps, li, a_new, rot_new, t_new, True,
                                                        g_new, estimate_gain)
+            rc_new, rw_new, jw_new = _robust(r_new, jac_new, nc, scale)
             prior_new, gp_new, hp_new = problem.prior_terms(a_new)
             pp_new, gpp_new, hpp_new = _pose_prior(pol, rot_new, t_new, ref)
-            cost_new = (float(r_new @ r_new) + prior_new + pp_new
+            cost_new = (rc_new + prior_new + pp_new
                         + wg * (g_new - gain0) ** 2 * (step.size > k + 6))
             evals += 1
             if cost_new <= cost or lam > 1e6:
@@ -259,7 +286,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
         lam = max(lam / 10, 1e-7)
         alpha, rot, t, gain = a_new, rot_new, t_new, g_new
-        r, jac, vf, cost = r_new, jac_new, vf_new, cost_new
+        r, vf, cost, rw, jw = r_new, vf_new, cost_new, rw_new, jw_new
         g_p, h_p, g_pp, h_pp = gp_new, hp_new, gpp_new, hpp_new
         costs.append(cost)
         if (np.abs(step[:k]).max() < pol.tol_alpha
@@ -292,7 +319,7 @@ def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.nd
     base = np.vstack([np.zeros(p), np.eye(p)])
     base -= base.mean(0)
     simplex = x0 + base * scale * (p + 1) / p
-    res = minimize(lambda th: problem.cost(maps, li, th), x0, method="Nelder-Mead",
+    res = minimize(lambda th: problem.cost(maps, li, th, pol.robust_scale), x0, method="Nelder-Mead",
                    options={"initial_simplex": simplex, "maxfev": pol.nelder_mead_evals,
                             "xatol": 1e-4, "fatol": 1e-6})
     th = res.x

@@ -38,6 +38,11 @@ class TrackingPolicy:
         level).
     coarse_iterations : per-frame iteration cap on the coarse levels (they only need to bring
         the state into the fine level's basin); 0 = the fit policy's own.
+    pose_anchor_rate : None: the pose prior is centred on the previous frame's pose. A
+        number r: on an anchor, the running average of the accepted poses updated at rate r
+        per frame (0 = the first frame's pose). A head-mounted camera does not move on the
+        head, but a prior on frame-to-frame motion alone lets the pose random-walk (several
+        mrad of pitch over 3 s), and the articulation absorbs the drift; the anchor stops it.
     min_valid_fraction : below this fraction of sample points inside the image: not ok.
     min_contrast : luminance s.d. of the face region below which the frame is blank.
     """
@@ -60,6 +65,7 @@ class TrackingPolicy:
     roi_margin_px: float = 24.0
     search_step_mm: float = 8.0
     search_radius_mm: float = 40.0
+    pose_anchor_rate: float | None = None
 
     def __post_init__(self) -> None:
         if self.optimiser not in OPTIMISERS:
@@ -74,6 +80,7 @@ class TrackingPolicy:
             raise ValueError(f"rig must be one of {sorted(sigmas)}, got {rig!r}")
         sr, st = sigmas[rig]
         fit = changes.pop("fit", FitPolicy(pose_sigma_rad=sr, pose_sigma_mm=st))
+        changes.setdefault("pose_anchor_rate", 0.02 if rig == "head" else None)
         return cls(fit=fit, **changes)
 
 
@@ -108,9 +115,17 @@ class Tracker:
         self._level: float | None = None
         self._gain = 1.0
         self._gap = False
+        self._anchor: np.ndarray | None = None
         if pose is not None:
             a = np.zeros(self.k) if alpha is None else np.asarray(alpha, np.float64)
             self._theta = np.concatenate([a, pose.as_vector()])
+
+    @property
+    def pose_prior_centre(self) -> np.ndarray | None:
+        """Pose (6,) the next frame's pose prior is centred on (None before a start)."""
+        if self._anchor is not None:
+            return self._anchor.copy()
+        return None if self._theta is None else self._theta[self.k:].copy()
 
     # ------------------------------------------------------------------ fitting
     def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
@@ -193,7 +208,7 @@ class Tracker:
         patch = image[y0:y1:4, x0:x1:4, 1]  # green, every 4th pixel: contrast is coarse
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
             return self._lost(t, t0, "blank frame: no contrast where the face should be", 0)
-        ref = self._theta[self.k:]
+        ref = self.pose_prior_centre
         fit = None
         evals = 0
         if pol.fast_path_factor and self._level is not None and self._prev is not None:
@@ -240,6 +255,11 @@ class Tracker:
             return self._lost(t, t0, "initial search did not find the face", evals, fit)
         self._prev = self._theta if not force else None
         self._theta = fit.theta
+        rate = pol.pose_anchor_rate
+        if rate is not None:
+            pose_vec = fit.theta[self.k:]
+            self._anchor = (pose_vec.copy() if self._anchor is None
+                            else (1 - rate) * self._anchor + rate * pose_vec)
         self._gain = fit.gain
         self._gap = False
         lvl = fit.residual

@@ -85,3 +85,58 @@ def test_fit_recovers_a_perturbed_state(trained, optimiser):
     start_rms = np.sqrt(((model.shape(np.zeros(7)) - model.shape(truth)) ** 2).sum(1).mean())
     assert rms < 0.25 * start_rms, (rms, start_rms)
     assert np.abs(res.translation - pose.translation).max() < 1.5
+
+
+def test_robust_loss_gradient_and_weights_are_those_of_its_cost():
+    """The IRLS residuals/Jacobian give g = J_w^T r_w = half the gradient of the Cauchy cost
+    (the least-squares convention of the optimiser), checked by finite differences on a
+    random linear residual; None is plain least squares."""
+    from core.fitting import _robust
+
+    rng = np.random.default_rng(4)
+    c, s, p = 8, 12, 5
+    a, b = rng.normal(size=(s * c, p)), rng.normal(size=s * c) * 3
+    x = rng.normal(size=p)
+
+    def cost(v):
+        return _robust(a @ v + b, None, c, 2.0)[0]
+
+    _, rw, jw = _robust(a @ x + b, a, c, 2.0)
+    num = np.array([(cost(x + e) - cost(x - e)) / 2e-6 for e in np.eye(p) * 1e-6])
+    np.testing.assert_allclose(2 * jw.T @ rw, num, rtol=1e-5, atol=1e-6)
+    r = a @ x + b
+    assert _robust(r, a, c, None)[0] == pytest.approx(float(r @ r))
+    # a point 10x off counts far less than in least squares: cost grows like log, not square
+    big = np.zeros(s * c)
+    big[:c] = 10.0
+    assert _robust(big, None, c, 2.0)[0] < 0.1 * float(big @ big)
+
+
+def test_robust_fit_is_not_dragged_by_points_the_model_gets_wrong(trained):
+    """Patches of foreign colour over a few sample points (what the linear model cannot
+    predict: a hand, lips beyond the enrolment's range) pull the least-squares fit away;
+    the per-point Cauchy loss lets the other points decide."""
+    import cv2
+
+    from core.fitting import FitPolicy
+
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    truth = np.array([0.5, -0.4, 0.3, 0.2, -0.3, 0.2, 0.1])
+    img = render_blobs(model, camera, truth, pose).copy()
+    uv = prob.project(np.r_[truth, pose.as_vector()])
+    rng = np.random.default_rng(2)
+    for i in rng.choice(len(uv), size=max(3, len(uv) // 6), replace=False):
+        u, v = (int(round(z)) for z in uv[i])
+        cv2.rectangle(img, (u - 6, v - 6), (u + 6, v + 6),
+                      tuple(int(z) for z in rng.integers(0, 255, 3)), -1)
+    maps = image_maps(img, roi_of(uv, 40), app.sigma, 0)
+    errs = {}
+    for scale in (None, 2.0):
+        res = fit_gauss_newton(prob, maps, 0, np.zeros(7), pose.rotation, pose.translation,
+                               FitPolicy(max_iterations=30, robust_scale=scale,
+                                         pose_sigma_rad=0.001, pose_sigma_mm=0.1),
+                               pose_ref=(pose.rotation, pose.translation))
+        errs[scale] = float(np.sqrt(((model.shape(res.alpha) - model.shape(truth)) ** 2)
+                                    .sum(1).mean()))
+    assert errs[2.0] < 0.6 * errs[None], errs

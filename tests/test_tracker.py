@@ -1,6 +1,8 @@
 """The Tracker on the blob stand-in face: warm-started sequences, occlusion and recovery,
 appearance files. Accuracy on the real synthetic speaker is measured by core/evaluate."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -132,3 +134,58 @@ def test_other_appearance_kinds_track(setup, kind, gain):
     assert all(r.ok for r in res)
     start = rms_mm(model, np.zeros(7), alpha[9] * 0.5)
     assert rms_mm(model, res[9].alpha, alpha[9] * 0.5) < gain * start
+
+
+def test_pose_anchor_centres_the_pose_prior_on_the_average_rig_pose(setup):
+    """With ``pose_anchor_rate`` r the pose prior is centred on the running average of the
+    accepted poses (a head-mounted rig's pose, which a previous-frame prior lets drift);
+    without it, on the previous frame's pose."""
+    model, camera, pose, app = setup
+    for rate in (None, 0.0, 0.5):
+        pol = replace(TOY, pose_anchor_rate=rate)
+        tracker = Tracker(model, app, camera, pol)
+        tracker.reset(pose, np.zeros(7))
+        assert np.allclose(tracker.pose_prior_centre, pose.as_vector())
+        avg = None
+        for i in range(6):
+            p = Pose(pose.rotation, pose.translation + [0.5 * i, 0.0, 0.0])
+            res = tracker.track(render_blobs(model, camera, np.zeros(7), p), i / 25.0)
+            assert res.ok
+            vec = res.pose.as_vector()
+            avg = vec if avg is None else (1 - (rate or 0)) * avg + (rate or 0) * vec
+        want = vec if rate is None else avg
+        np.testing.assert_allclose(tracker.pose_prior_centre, want, atol=1e-9)
+        if rate == 0.0:  # fixed on the first frame
+            assert abs(tracker.pose_prior_centre[3] - pose.translation[0]) < 0.3
+
+
+def test_information_selection_finds_the_points_that_show_a_depth_mode():
+    """A parameter that moves some points a lot along the camera's line of sight (invisible:
+    jaw advance under a frontal camera) and others a little across the image: the paper's
+    largest-displacement rule picks the invisible ones, the information rule the visible."""
+    from core.appearance import informative_points, select_points, visible_points
+    from core.model import FaceModel
+    from tests.blobface import blob_setup
+
+    model, camera, pose = blob_setup()
+    basis = model.basis.copy()
+    rng = np.random.default_rng(1)
+    order = rng.permutation(model.n_points)
+    hidden, shown = order[:6], order[6:12]
+    ray = pose.matrix.T @ np.array([0.0, 0.0, 1.0])  # the optical axis in the head frame
+    across = pose.matrix.T @ np.array([1.0, 0.0, 0.0])
+    basis[6] = 0.0
+    basis[6, hidden] = 6.0 * ray
+    basis[6, shown] = 1.5 * across
+    m = FaceModel(model.mean, basis, model.param_names, model.stats, model.point_names,
+                  model.groups, model.triangles, model.feature_points, {}, "depth")
+    frames = []
+    for _ in range(24):
+        a = rng.normal(size=7) * 0.8
+        frames.append(TrainingFrame(render_blobs(m, camera, a, pose), a, pose))
+    vis = visible_points(m, camera, frames)
+    by_motion = select_points(m, 2, vis)
+    by_info = informative_points(m, camera, frames, vis, by_motion.size, sigma=2.0)
+    assert len(set(hidden) & set(by_motion)) >= 2  # the rule takes the invisible motion
+    assert len(set(shown) & set(by_info)) > len(set(shown) & set(by_motion))
+    assert by_info.size == by_motion.size == len(set(by_info))

@@ -34,8 +34,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="appearance model: la_lin is the paper's; la_quad (default) adds "
                          "quadratic terms and is measurably more accurate (README, Results)")
     tr.add_argument("--sigma", type=float, default=2.5, help="filter scale in px (default 2.5)")
-    tr.add_argument("--per-param", type=int, default=5,
-                    help="points selected per articulatory parameter (la; default 5)")
+    tr.add_argument("--per-param", type=int, default=8,
+                    help="sample points per articulatory parameter (la; default 8)")
+    tr.add_argument("--selection", default="auto",
+                    choices=["auto", "information", "displacement"],
+                    help="la point selection: 'information' picks the points that best "
+                         "constrain the articulation in the training frames (expected RMS "
+                         "3D error), 'displacement' is the paper's rule (largest motion per "
+                         "parameter); auto (default) = information with >= 2(K+1) frames")
     tr.add_argument("--frames", type=int, default=0, help="use only the first N frames")
     tr.set_defaults(func=_train)
 
@@ -102,7 +108,7 @@ def _train(args: argparse.Namespace) -> int:
     _check_size(frames[0].image, camera)
     prog = Progress(1, "training")
     app = train_appearance(model, camera, frames, args.kind, sigma=args.sigma,
-                           per_param=args.per_param)
+                           per_param=args.per_param, selection=args.selection)
     prog.update()
     prog.close()
     app.save(args.output)
