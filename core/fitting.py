@@ -21,9 +21,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core import kernels
 from core.appearance import AppearanceModel, ImageMaps
 from core.camera import Camera, axis_angle, rotation_matrix
 from core.model import FaceModel
+
+
+_NO_W2 = np.zeros((0, 0))
 
 
 @dataclass(frozen=True)
@@ -88,7 +92,7 @@ class Problem:
     """
 
     def __init__(self, model: FaceModel, appearance: AppearanceModel, camera: Camera,
-                 prior: PriorPolicy | None = None) -> None:
+                 prior: PriorPolicy | None = None, jit: bool | None = None) -> None:
         self.model, self.appearance, self.camera = model, appearance, camera
         self.s_mean, self.s_basis = appearance.samples.positions(model)
         self._basis_flat = self.s_basis.reshape(self.s_basis.shape[0], -1)  # (K, S*3)
@@ -101,6 +105,12 @@ class Problem:
         self._tex = appearance.kind.startswith("tex")
         self._quad = appearance.kind.endswith("quad")
         self.estimate_gain = not self._tex  # tex features are z-scored: gain-invariant
+        # la residuals through the compiled kernel (same numbers as the numpy code below)
+        self.jit = (kernels.AVAILABLE if jit is None else jit) and not self._tex
+        self._cw = [np.ascontiguousarray(cw.reshape(-1, self.c), np.float64)
+                    for cw in appearance.channel_weight]
+        self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
+        self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
 
     # -------------------------------------------------------------- geometry
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
@@ -132,6 +142,9 @@ class Problem:
         chroma centred on 128) scales with a global image gain, so exposure and light-level
         changes are one more unknown (P = K + 7 with ``with_gain``) instead of an error.
         """
+        if self.jit:
+            return self._residuals_jit(maps, level_index, alpha, rot, t, jacobian, gain,
+                                       with_gain)
         app = self.appearance
         head, cam = self.sample_points_cam(alpha, rot, t)
         uv, jp = self.camera.project_jacobian(cam, jacobian)
@@ -176,6 +189,18 @@ class Problem:
         jac[~valid] = 0.0
         return r.reshape(-1), jac.reshape(s * c, -1), vf
 
+    def _residuals_jit(self, maps, level_index, alpha, rot, t, jacobian, gain, with_gain):
+        w = self.appearance.weights[level_index]
+        k = self.k
+        cam = self.camera
+        r, jac, valid = kernels.la_residuals(
+            maps.smooth, float(maps.origin[0]), float(maps.origin[1]), float(maps.scale),
+            float(maps.sigma), np.asarray(alpha, np.float64), rot, np.asarray(t, np.float64),
+            self._s_mean, self._basis_sdk, self._intr, cam.dist, w[0], w[1:k + 1],
+            w[k + 1:] if self._quad else _NO_W2, float(gain), self._cw[level_index],
+            bool(jacobian), bool(with_gain and self.estimate_gain))
+        return r, (jac if jacobian else None), float(valid.mean())
+
     def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray,
              robust_scale: float | None = None) -> float:
         """E(theta) for the Nelder-Mead baseline (theta with absolute axis-angle rotation)."""
@@ -193,6 +218,9 @@ def _robust(r: np.ndarray, jac: np.ndarray | None, c: int, scale: float | None
     Jacobian whose Gauss-Newton step minimises it. scale None: plain least squares."""
     if scale is None:
         return float(r @ r), r, jac
+    if kernels.AVAILABLE:
+        cost, rw, jw = kernels.cauchy(r, _NO_W2 if jac is None else jac, c, float(scale))
+        return cost, rw, None if jac is None else jw
     q = (r.reshape(-1, c) ** 2).sum(1)
     s2 = scale * scale
     w = np.repeat(1.0 / np.sqrt(1.0 + q / s2), c)

@@ -140,3 +140,62 @@ def test_robust_fit_is_not_dragged_by_points_the_model_gets_wrong(trained):
         errs[scale] = float(np.sqrt(((model.shape(res.alpha) - model.shape(truth)) ** 2)
                                     .sum(1).mean()))
     assert errs[2.0] < 0.6 * errs[None], errs
+
+
+@pytest.mark.parametrize("kind", ["la_lin", "la_quad"])
+@pytest.mark.parametrize("distorted", [False, True])
+def test_compiled_kernel_gives_the_numpy_reference_numbers(trained, kind, distorted):
+    """core.kernels fuses the la cost into one compiled loop; Problem.residuals' numpy code is
+    the definition. Same residuals, Jacobian (with gain) and valid set, samples off the map
+    included, for la lin and la quad, with and without lens distortion."""
+    from dataclasses import replace
+
+    from core import kernels
+    from core.appearance import TrainingFrame, train_appearance
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba is not installed: only the numpy path exists")
+    model, camera, pose, app = trained
+    if kind == "la_quad":
+        rng = np.random.default_rng(1)
+        frames = []
+        for _ in range(20):
+            a = rng.normal(size=7) * 0.8
+            frames.append(TrainingFrame(render_blobs(model, camera, a, pose), a, pose))
+        app = train_appearance(model, camera, frames, kind, sigma=2.0, levels=(0, 1))
+    if distorted:
+        camera = replace(camera, dist=np.array([0.08, -0.03, 0.002, -0.001, 0.01]))
+    fast, slow = Problem(model, app, camera), Problem(model, app, camera, jit=False)
+    assert fast.jit and not slow.jit
+    alpha = np.array([0.3, -0.2, 0.5, 0.1, -0.4, 0.2, 0.0])
+    img = render_blobs(model, camera, alpha, pose)
+    uv = fast.project(np.r_[alpha, pose.as_vector()])
+    # a map that leaves a quarter of the points outside: they must be invalid on both paths
+    x0, y0, x1, y1 = roi_of(uv, 12)
+    maps = image_maps(img, (x0, y0, (x0 + x1) // 2 + 20, y1), app.sigma, 0)
+    rot = rotation_matrix(pose.rotation + 0.01)
+    for jacobian in (True, False):
+        a = fast.residuals(maps, 0, alpha + 0.05, rot, pose.translation + 0.5, jacobian, 1.07,
+                           True)
+        b = slow.residuals(maps, 0, alpha + 0.05, rot, pose.translation + 0.5, jacobian, 1.07,
+                           True)
+        assert 0.3 < a[2] < 0.95 and a[2] == b[2]
+        np.testing.assert_allclose(a[0], b[0], rtol=1e-9, atol=1e-9)
+        if jacobian:
+            assert a[1].shape == b[1].shape == (a[0].size, 7 + 6 + 1)
+            np.testing.assert_allclose(a[1], b[1], rtol=1e-9, atol=1e-9 * np.abs(b[1]).max())
+
+
+def test_compiled_cauchy_weights_match_their_numpy_definition(monkeypatch):
+    from core import fitting, kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(9)
+    r, jac = rng.normal(size=80) * 3, rng.normal(size=(80, 6))
+    fast = fitting._robust(r, jac, 8, 2.0)
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    slow = fitting._robust(r, jac, 8, 2.0)
+    assert fast[0] == pytest.approx(slow[0], rel=1e-12)
+    np.testing.assert_allclose(fast[1], slow[1], rtol=1e-12)
+    np.testing.assert_allclose(fast[2], slow[2], rtol=1e-12)
