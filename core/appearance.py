@@ -43,16 +43,48 @@ class ImageMaps:
     smooth : (h, w, 3) float32, Gaussian-smoothed Y, Cr, Cb (0..255).
     origin : (x0, y0) of the ROI in image pixels; scale : map px per image px (1 or 1/2^n).
     sigma : smoothing scale in map pixels.
+    source, done, rows, rows_done, taps : set on *lazy* maps (``image_pyramid(lazy=True)``):
+        the unsmoothed YCrCb ROI (uint8), and buffers the compiled cost kernel fills on
+        demand — only the pixels around the sample points are ever smoothed, instead of the
+        whole face. ``smooth`` is then valid only where ``done`` is set; :meth:`dense`
+        completes it (the numpy path does so).
     """
 
     smooth: np.ndarray
     origin: tuple[int, int]
     scale: float
     sigma: float
+    source: np.ndarray | None = None
+    done: np.ndarray | None = None
+    rows: np.ndarray | None = None
+    rows_done: np.ndarray | None = None
+    taps: np.ndarray | None = None
+
+    @property
+    def lazy(self) -> bool:
+        return self.source is not None
+
+    def dense(self) -> np.ndarray:
+        """The fully smoothed map (smooths what a lazy map has not yet)."""
+        if self.source is not None and self.done is not None and not self.done.all():
+            k = self.taps.size if self.taps is not None else 0
+            self.smooth[...] = cv2.GaussianBlur(self.source.astype(np.float32), (k, k),
+                                                self.sigma)
+            self.done[...] = 1
+        return self.smooth
 
     def to_map(self, uv: np.ndarray) -> np.ndarray:
         """Image pixels (M, 2) -> map pixels (M, 2)."""
         return (uv - np.asarray(self.origin)) * self.scale + 0.5 * (self.scale - 1.0)
+
+
+def _lazy_maps(part: np.ndarray, origin: tuple[int, int], scale: float, sigma: float,
+               k: int) -> ImageMaps:
+    h, w = part.shape[:2]
+    src = np.ascontiguousarray(part)
+    return ImageMaps(np.empty((h, w, 3), np.float32), origin, scale, float(sigma), src,
+                     np.zeros((h, w), np.uint8), np.empty((h, w, 3), np.float32),
+                     np.zeros((h, w), np.uint8), cv2.getGaussianKernel(k, sigma).ravel())
 
 
 def image_maps(
@@ -68,12 +100,15 @@ def image_maps(
 
 def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: float,
                   levels: tuple[int, ...],
-                  fine_roi: tuple[int, int, int, int] | None = None) -> dict[int, ImageMaps]:
+                  fine_roi: tuple[int, int, int, int] | None = None,
+                  lazy: bool = False) -> dict[int, ImageMaps]:
     """:func:`image_maps` for several levels from one colour conversion of one ROI.
 
     fine_roi : a smaller ROI for level 0 (inside ``roi``): the coarse levels need the wide
     margin of their wider filters and search, the full-resolution level does not, and its blur
     is the most expensive step of a frame.
+    lazy : level 0 as lazy maps (see :class:`ImageMaps`), smoothed on demand by the compiled
+    kernel: a frame's fit touches a few thousand of its ~150 000 face pixels.
     """
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {image.dtype} {image.shape}")
@@ -96,6 +131,9 @@ def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: floa
             fx1, fy1 = min(int(fine_roi[2]), x1), min(int(fine_roi[3]), y1)
             if fx1 - fx0 >= 8 and fy1 - fy0 >= 8:
                 part, ox, oy = crop[fy0 - y0:fy1 - y0, fx0 - x0:fx1 - x0], fx0, fy0
+        if lazy and level == 0 and min(part.shape[:2]) > k:
+            out[level] = _lazy_maps(part, (ox, oy), 1.0, sigma, k)
+            continue
         smooth = cv2.GaussianBlur(part.astype(np.float32), (k, k), sigma)
         out[level] = ImageMaps(smooth, (ox, oy), 0.5**level, float(sigma))
     return out
@@ -110,7 +148,7 @@ def _interpolate(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, ...]:
     derivatives of those interpolants, so the optimiser's Jacobians are those of the very
     values the cost samples.
     """
-    s = maps.smooth
+    s = maps.dense()
     hh, ww, nc = s.shape
     m = maps.to_map(np.asarray(uv, dtype=np.float64))
     valid = np.isfinite(m).all(1)

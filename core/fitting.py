@@ -28,6 +28,8 @@ from core.model import FaceModel
 
 
 _NO_W2 = np.zeros((0, 0))
+_NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
+             np.zeros((0, 0, 3), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -198,7 +200,9 @@ class Problem:
             float(maps.sigma), np.asarray(alpha, np.float64), rot, np.asarray(t, np.float64),
             self._s_mean, self._basis_sdk, self._intr, cam.dist, w[0], w[1:k + 1],
             w[k + 1:] if self._quad else _NO_W2, float(gain), self._cw[level_index],
-            bool(jacobian), bool(with_gain and self.estimate_gain))
+            bool(jacobian), bool(with_gain and self.estimate_gain),
+            *((maps.source, maps.done, maps.rows, maps.rows_done, maps.taps) if maps.lazy
+              else _NOT_LAZY))
         return r, (jac if jacobian else None), float(valid.mean())
 
     def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray,

@@ -38,9 +38,53 @@ _CHANNEL = np.array([0, 0, 1, 1, 1, 2, 2, 2], np.int64)
 _OFFSET = np.array([0.0, 0.0, 128.0, 0.0, 0.0, 128.0, 0.0, 0.0])
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _reflect(i, n):  # pragma: no cover - compiled
+    """OpenCV's default border (BORDER_REFLECT_101): ... 2 1 | 0 1 2 ... n-1 | n-2 ..."""
+    if i < 0:
+        i = -i
+    if i >= n:
+        i = 2 * n - 2 - i
+    return min(max(i, 0), n - 1)
+
+
+@njit(cache=True, nogil=True)
+def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover - compiled
+    """Gaussian-smooth pixel (y, x) of src into sm (separable: a horizontal pass kept per
+    pixel in rows, then a vertical pass), unless done already."""
+    if done[y, x]:
+        return
+    h, w = src.shape[0], src.shape[1]
+    rad = taps.shape[0] // 2
+    a0 = a1 = a2 = 0.0
+    for j in range(-rad, rad + 1):
+        yy = _reflect(y + j, h)
+        if not rdone[yy, x]:
+            b0 = b1 = b2 = 0.0
+            for i in range(-rad, rad + 1):
+                xx = _reflect(x + i, w)
+                tap = taps[i + rad]
+                b0 += tap * src[yy, xx, 0]
+                b1 += tap * src[yy, xx, 1]
+                b2 += tap * src[yy, xx, 2]
+            rows[yy, x, 0] = b0
+            rows[yy, x, 1] = b1
+            rows[yy, x, 2] = b2
+            rdone[yy, x] = 1
+        tap = taps[j + rad]
+        a0 += tap * rows[yy, x, 0]
+        a1 += tap * rows[yy, x, 1]
+        a2 += tap * rows[yy, x, 2]
+    sm[y, x, 0] = a0
+    sm[y, x, 1] = a1
+    sm[y, x, 2] = a2
+    done[y, x] = 1
+
+
 @njit(cache=True, nogil=True)
 def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist,
-                 w0, w1, w2, gain, cw, want_jac, with_gain):  # pragma: no cover - compiled
+                 w0, w1, w2, gain, cw, want_jac, with_gain, src, done, rows, rdone,
+                 taps):  # pragma: no cover - compiled
     """Weighted la residuals r (S*8,), Jacobian (S*8, P) and valid (S,) at one state.
 
     smooth (h, w, 3) float32 map; (ox, oy, mscale, sigma) its origin, scale and filter scale;
@@ -48,7 +92,10 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
     points' head-frame mean and basis; intr (fx, fy, cx, cy), dist (k1, k2, p1, p2, k3) the
     camera; w0 (S*8,), w1 (K, S*8), w2 (K, S*8) or (0, 0) the appearance model (lin, quad);
     cw (S, 8) feature weights. P = K + 6 (+1 with_gain: d/d gain).
+    src, done, rows, rdone, taps: a lazy map's buffers (see ImageMaps), src of shape
+    (0, 0, 3) for a map smoothed already.
     """
+    lazy = src.shape[0] > 0
     hh, ww = smooth.shape[0], smooth.shape[1]
     s_count = s_mean.shape[0]
     k = basis_sdk.shape[2]
@@ -110,6 +157,13 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
         valid[s] = True
         fx = mx - ix
         fy = my - iy
+        if lazy:  # the 12 pixels the cell's values and central differences read
+            for a in range(2):
+                for b in range(-1, 3):
+                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + a, ix + b)
+            for b in range(2):
+                _smooth_pixel(src, smooth, done, rows, rdone, taps, iy - 1, ix + b)
+                _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + 2, ix + b)
         for ch in range(3):
             for a in range(2):
                 for b in range(2):

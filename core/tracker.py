@@ -139,9 +139,13 @@ class Tracker:
             uv = self.problem.project(theta0)
             sig = self.problem.appearance.sigma
             margin = pol.roi_margin_px + 4 * sig * 2 ** max(levels)
-            fine = roi_of(uv, pol.roi_margin_px + 4 * sig)
+            # lazy level 0 (compiled kernel) smooths only what the fit samples: no need to
+            # shrink its ROI; otherwise a tighter ROI for the costly full-resolution blur
+            lazy = self.problem.jit
+            fine = None if lazy else roi_of(uv, pol.roi_margin_px + 4 * sig)
             cache.update(image_pyramid(image, roi_of(uv, margin), sig,
-                                       tuple(lv for lv in levels if lv not in cache), fine))
+                                       tuple(lv for lv in levels if lv not in cache), fine,
+                                       lazy=lazy))
         for level in levels:
             fit_pol = policy or pol.fit
             if policy is None and level > 0 and pol.coarse_iterations:

@@ -199,3 +199,32 @@ def test_compiled_cauchy_weights_match_their_numpy_definition(monkeypatch):
     assert fast[0] == pytest.approx(slow[0], rel=1e-12)
     np.testing.assert_allclose(fast[1], slow[1], rtol=1e-12)
     np.testing.assert_allclose(fast[2], slow[2], rtol=1e-12)
+
+
+def test_lazy_maps_smooth_on_demand_what_the_full_blur_gives(trained):
+    """Lazy level-0 maps: the kernel smooths only the pixels the samples read, with the same
+    Gaussian and border rule as the full blur — same residuals and Jacobian to float32
+    precision, a small fraction of the map touched, and dense() completes the rest."""
+    from core import kernels
+    from core.appearance import image_pyramid
+
+    if not kernels.AVAILABLE:
+        pytest.skip("numba is not installed")
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    alpha = np.array([0.2, 0.1, -0.3, 0.4, 0.0, -0.2, 0.1])
+    img = render_blobs(model, camera, alpha, pose)
+    roi = roi_of(prob.project(np.r_[alpha, pose.as_vector()]), 30)
+    lazy = image_pyramid(img, roi, app.sigma, (0,), lazy=True)[0]
+    full = image_maps(img, roi, app.sigma, 0)
+    assert lazy.lazy and not full.lazy and lazy.done.sum() == 0
+    rot = rotation_matrix(pose.rotation)
+    a = prob.residuals(lazy, 0, alpha, rot, pose.translation, True, 1.0, True)
+    b = prob.residuals(full, 0, alpha, rot, pose.translation, True, 1.0, True)
+    np.testing.assert_allclose(a[0], b[0], atol=1e-4 * np.abs(b[0]).max())
+    np.testing.assert_allclose(a[1], b[1], atol=1e-4 * np.abs(b[1]).max())
+    touched = lazy.done.mean()
+    assert 0 < touched < 0.2, touched
+    np.testing.assert_allclose(lazy.smooth[lazy.done > 0], full.smooth[lazy.done > 0],
+                               atol=1e-3)
+    np.testing.assert_allclose(lazy.dense(), full.smooth, atol=1e-3)
