@@ -254,3 +254,21 @@ def cauchy(r, jac, c, scale):  # pragma: no cover - compiled
                 for p in range(jac.shape[1]):
                     jw[row, p] = jac[row, p] * w
     return cost, rw, jw
+
+
+def warm_up() -> None:
+    """Compile (or load from the on-disk cache) the kernels for the tracker's argument
+    types, so that a session's first frame does not pay a few seconds of compilation."""
+    if not AVAILABLE:
+        return
+    f8 = np.float64
+    src = np.zeros((20, 20, 3), np.uint8)
+    la_residuals(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
+                 np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
+                 np.zeros((1, 3, 1), f8), np.array([100.0, 100.0, 10.0, 10.0]), np.zeros(5),
+                 np.zeros(8, f8), np.zeros((1, 8), f8), np.zeros((0, 0), f8), 1.0,
+                 np.ones((1, 8), f8), True, True, src, np.zeros((20, 20), np.uint8),
+                 np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8),
+                 np.full(5, 0.2))
+    cauchy(np.zeros(8, f8), np.zeros((8, 2), f8), 8, 2.0)
+    cauchy(np.zeros(8, f8), np.zeros((0, 0), f8), 8, 2.0)

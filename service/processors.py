@@ -105,6 +105,9 @@ class TrackerProcessor:
             pose = Pose(translation=[0.0, 0.0, float(opts.get("distance_mm", 300.0))])
         self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
                                initial_pose=pose, clock=time.perf_counter)
+        from core import kernels
+
+        kernels.warm_up()  # compile (first run) or load the cost kernel before frames flow
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:
