@@ -68,7 +68,12 @@ class FitPolicy:
 
 @dataclass(frozen=True, eq=False)
 class FitResult:
-    """Outcome of one fit: state, cost per residual value, counters, cost of each iteration."""
+    """Outcome of one fit: state, cost, counters, cost of each iteration.
+
+    residual : the data term per residual value — robust (Cauchy) where the fit is, so that a
+    few points the model mispredicts (an articulation beyond the enrolment's range) do not
+    look like a lost face, while an occlusion, which spoils most points, still does.
+    """
 
     alpha: np.ndarray
     rotation: np.ndarray
@@ -327,8 +332,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             converged = True
             break
     n = max(r.size * vf, 1.0)
-    return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
-                     vf, tuple(costs), gain)
+    return FitResult(alpha, axis_angle(rot), t, cost, _robust(r, None, nc, scale)[0] / n, evals,
+                     it, converged, vf, tuple(costs), gain)
 
 
 def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
@@ -358,5 +363,7 @@ def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.nd
     r, _, vf = problem.residuals(maps, li, th[:k], rotation_matrix(th[k:k + 3]), th[k + 3:],
                                  False)
     n = max(r.size * vf, 1.0)
-    return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun), float(r @ r) / n,
-                     int(res.nfev), int(res.nit), bool(res.success), vf)
+    scale = None if problem._tex else pol.robust_scale
+    return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun),
+                     _robust(r, None, problem.c, scale)[0] / n, int(res.nfev), int(res.nit),
+                     bool(res.success), vf)

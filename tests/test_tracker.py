@@ -77,6 +77,39 @@ def test_garbage_frame_is_flagged_as_divergence(setup):
     assert not res.ok and "residual" in res.reason
 
 
+def test_a_few_mispredicted_points_are_tracked_through_but_a_covered_face_is_not(setup):
+    """The divergence test judges the robust residual: foreign patches over an eighth of the
+    sample points (what the linear model cannot predict, e.g. lips beyond the enrolment's
+    range) leave the frame ok and accurate; a patch over most of the face is flagged."""
+    import cv2
+
+    from core.fitting import Problem
+
+    model, camera, pose, app = setup
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(14)
+    for i in range(10):
+        assert tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]).ok
+    prob = Problem(model, app, camera)
+    uv = prob.project(np.r_[alpha[10], pose.as_vector()])
+    img = render_blobs(model, camera, alpha[10], pose).copy()
+    rng = np.random.default_rng(5)
+    for i in rng.choice(len(uv), size=len(uv) // 8, replace=False):
+        u, v = (int(round(z)) for z in uv[i])
+        cv2.rectangle(img, (u - 6, v - 6), (u + 6, v + 6),
+                      tuple(int(z) for z in rng.integers(0, 255, 3)), -1)
+    res = tracker.track(img, t[10])
+    assert res.ok, res.reason
+    assert rms_mm(model, res.alpha, alpha[10]) < 0.3 * rms_mm(model, np.zeros(7), alpha[10])
+    covered = render_blobs(model, camera, alpha[11], pose).copy()
+    x0, y0 = np.floor(uv.min(0)).astype(int) - 10
+    x1, y1 = np.ceil(uv.max(0)).astype(int) + 10
+    cv2.rectangle(covered, (x0, y0), ((x0 + 3 * x1) // 4, y1), (60, 90, 170), -1)
+    cv2.circle(covered, (int(uv[0, 0]), int(uv[0, 1])), 9, (250, 250, 250), -1)
+    res = tracker.track(cv2.GaussianBlur(covered, (0, 0), 1.0), t[11])
+    assert not res.ok and "residual" in res.reason
+
+
 def test_without_initial_pose_the_frame_is_not_ok(setup):
     model, camera, pose, app = setup
     res = Tracker(model, app, camera).track(render_blobs(model, camera, np.zeros(7), pose), 0.0)
