@@ -70,9 +70,10 @@ class FitPolicy:
 class FitResult:
     """Outcome of one fit: state, cost, counters, cost of each iteration.
 
-    residual : the data term per residual value — robust (Cauchy) where the fit is, so that a
-    few points the model mispredicts (an articulation beyond the enrolment's range) do not
-    look like a lost face, while an occlusion, which spoils most points, still does.
+    residual : mean squared (weighted) residual value. robust_residual : the robust (Cauchy)
+    data term per value, where the fit is robust (else = residual): a few points the model
+    mispredicts (an articulation beyond the enrolment's range) barely raise it, an occlusion,
+    which spoils most points, does.
     """
 
     alpha: np.ndarray
@@ -86,6 +87,11 @@ class FitResult:
     valid_fraction: float
     costs: tuple[float, ...] = ()
     gain: float = 1.0
+    robust_residual: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.robust_residual is None:
+            object.__setattr__(self, "robust_residual", self.residual)
 
     @property
     def theta(self) -> np.ndarray:
@@ -332,8 +338,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             converged = True
             break
     n = max(r.size * vf, 1.0)
-    return FitResult(alpha, axis_angle(rot), t, cost, _robust(r, None, nc, scale)[0] / n, evals,
-                     it, converged, vf, tuple(costs), gain)
+    return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
+                     vf, tuple(costs), gain, _robust(r, None, nc, scale)[0] / n)
 
 
 def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
@@ -364,6 +370,6 @@ def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.nd
                                  False)
     n = max(r.size * vf, 1.0)
     scale = None if problem._tex else pol.robust_scale
-    return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun),
-                     _robust(r, None, problem.c, scale)[0] / n, int(res.nfev), int(res.nit),
-                     bool(res.success), vf)
+    return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun), float(r @ r) / n,
+                     int(res.nfev), int(res.nit), bool(res.success), vf,
+                     robust_residual=_robust(r, None, problem.c, scale)[0] / n)

@@ -33,10 +33,10 @@ class TrackingPolicy:
     divergence_factor : a frame whose residual exceeds this many times the running residual
         level (and ``residual_floor``) is not trusted: the tracker retries from the last good
         state and from the neutral articulation; if that fails the frame is marked not ok.
-        The residual is the robust cost per value: judged on raw squares, 4 % of the
-        teleconference frames (articulations beyond the enrolment's range, fitted within
-        0.2-0.9 mm) were flagged for a few mispredicted points; a hand over the mouth still
-        raises it 7x.
+        This test uses the robust residual (its own running level): judged on raw squares,
+        4 % of the teleconference frames (articulations beyond the enrolment's range, fitted
+        within 0.2-0.9 mm) were flagged for a few mispredicted points; a hand over the mouth
+        still raises it 7x.
     fast_path_factor : first fit the full-resolution level alone from the prediction, and keep
         it if its residual is within this factor of the running level (0 = always run every
         level).
@@ -116,7 +116,8 @@ class Tracker:
         self._frame = -1
         self._theta: np.ndarray | None = None
         self._prev: np.ndarray | None = None
-        self._level: float | None = None
+        self._level: float | None = None  # running raw residual (fast path)
+        self._rlevel: float | None = None  # running robust residual (divergence)
         self._gain = 1.0
         self._gap = False
         self._anchor: np.ndarray | None = None
@@ -167,7 +168,8 @@ class Tracker:
         assert result is not None
         return FitResult(result.alpha, result.rotation, result.translation, result.cost,
                          result.residual, evals, result.iterations, result.converged,
-                         result.valid_fraction, result.costs, result.gain)
+                         result.valid_fraction, result.costs, result.gain,
+                         result.robust_residual)
 
     def _search(self, image: np.ndarray, pose: Pose) -> np.ndarray:
         """Coarse grid search of the translation around ``pose`` at the coarsest level."""
@@ -241,8 +243,8 @@ class Tracker:
             fit = min(tries, key=lambda f: f.cost)
             if not self._good(fit):
                 why = ("points left the image" if fit.valid_fraction < pol.min_valid_fraction
-                       else f"residual {fit.residual:.3g} is far above its running level "
-                            f"{self._level or 0:.3g} (occlusion or lost face)")
+                       else f"residual {fit.robust_residual:.3g} is far above its running "
+                            f"level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
         return self._accept(fit, t, t0, evals)
 
@@ -254,7 +256,9 @@ class Tracker:
             return False
         if self._level is None:
             return True
-        return fit.residual <= max(pol.divergence_factor * self._level, pol.residual_floor)
+        assert self._rlevel is not None and fit.robust_residual is not None
+        return fit.robust_residual <= max(pol.divergence_factor * self._rlevel,
+                                          pol.residual_floor)
 
     def _accept(self, fit: FitResult, t: float, t0: float, evals: int,
                 force: bool = False) -> TrackResult:
@@ -270,9 +274,11 @@ class Tracker:
                             else (1 - rate) * self._anchor + rate * pose_vec)
         self._gain = fit.gain
         self._gap = False
-        lvl = fit.residual
+        lvl, rlvl = fit.residual, fit.robust_residual
         self._level = lvl if self._level is None else (
             (1 - pol.level_rate) * self._level + pol.level_rate * lvl)
+        self._rlevel = rlvl if self._rlevel is None else (
+            (1 - pol.level_rate) * self._rlevel + pol.level_rate * rlvl)
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
