@@ -37,6 +37,10 @@ class TrackingPolicy:
         4 % of the teleconference frames (articulations beyond the enrolment's range, fitted
         within 0.2-0.9 mm) were flagged for a few mispredicted points; a hand over the mouth
         still raises it 7x.
+    level_rate, level_clip : the running residual levels follow accepted frames at this rate;
+        the divergence level moves towards at most ``level_clip`` times itself per frame,
+        so a hand sliding in over several frames cannot raise the bar it is judged by (it
+        crept 2.5x and let 9 mm-wrong frames through as ok before the clip).
     fast_path_factor : first fit the full-resolution level alone from the prediction, and keep
         it if its residual is within this factor of the running level (0 = always run every
         level).
@@ -64,6 +68,7 @@ class TrackingPolicy:
     divergence_factor: float = 4.0
     residual_floor: float = 0.5
     level_rate: float = 0.05
+    level_clip: float = 1.5
     min_valid_fraction: float = 0.8
     min_contrast: float = 3.0
     roi_margin_px: float = 24.0
@@ -231,14 +236,24 @@ class Tracker:
         if fit is None:
             fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref)
             evals += fit.evals
+        if self._gap and self._good(fit):
+            # first frame after a gap: the last good state may be far from the face that
+            # reappears (the mouth moved behind the hand); re-initialise too, keep the best
+            neutral = self._theta.copy()
+            neutral[:self.k] = 0.0
+            again = self._fit(image, neutral, pol.reinit_levels, cache, self._retry_policy(),
+                              pose_ref=ref)
+            evals += again.evals
+            if self._good(again) and again.cost < fit.cost:
+                fit = again
         if not self._good(fit):
             tries = [fit]
             if pol.predict and self._prev is not None:
                 tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref))
             neutral = self._theta.copy()
             neutral[:self.k] = 0.0
-            tries.append(self._fit(image, neutral, pol.reinit_levels, {}, pol.reinit_fit,
-                                   refine_gain=False))
+            tries.append(self._fit(image, neutral, pol.reinit_levels, cache,
+                                   self._retry_policy(), pose_ref=ref))
             evals += sum(f.evals for f in tries[1:])
             fit = min(tries, key=lambda f: f.cost)
             if not self._good(fit):
@@ -247,6 +262,13 @@ class Tracker:
                             f"level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
         return self._accept(fit, t, t0, evals)
+
+    def _retry_policy(self) -> FitPolicy:
+        """Re-initialisation fits during a sequence: more iterations, but the same pose
+        prior as every frame, so that their costs compare with the regular fit's."""
+        pol = self.policy
+        return replace(pol.reinit_fit, pose_sigma_rad=pol.fit.pose_sigma_rad,
+                       pose_sigma_mm=pol.fit.pose_sigma_mm)
 
     def _good(self, fit: FitResult) -> bool:
         pol = self.policy
@@ -275,10 +297,14 @@ class Tracker:
         self._gain = fit.gain
         self._gap = False
         lvl, rlvl = fit.residual, fit.robust_residual
-        self._level = lvl if self._level is None else (
-            (1 - pol.level_rate) * self._level + pol.level_rate * lvl)
-        self._rlevel = rlvl if self._rlevel is None else (
-            (1 - pol.level_rate) * self._rlevel + pol.level_rate * rlvl)
+        if self._level is None or self._rlevel is None:
+            self._level, self._rlevel = lvl, rlvl
+        else:
+            self._level += pol.level_rate * (lvl - self._level)
+            # an accepted frame moves the divergence level by at most half its value: an
+            # occluder sliding in over several frames must not raise the bar it is judged by
+            cap = pol.level_clip * self._rlevel
+            self._rlevel += pol.level_rate * (min(rlvl, cap) - self._rlevel)
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
