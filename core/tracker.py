@@ -38,7 +38,8 @@ class TrackingPolicy:
         within 0.2-0.9 mm) were flagged for a few mispredicted points; a hand over the mouth
         still raises it 7x.
     level_rate, level_clip : the running residual levels follow accepted frames at this rate;
-        the divergence level moves towards at most ``level_clip`` times itself per frame,
+        with a robust la fit the divergence level moves towards at most ``level_clip`` times
+        itself per frame,
         so a hand sliding in over several frames cannot raise the bar it is judged by (it
         crept 2.5x and let 9 mm-wrong frames through as ok before the clip).
     fast_path_factor : first fit the full-resolution level alone from the prediction, and keep
@@ -110,6 +111,8 @@ class Tracker:
             fitted[name] = usable
         self.policy = pol = replace(pol, **fitted)  # e.g. a model trained on levels (0, 1)
         self.problem = Problem(model, appearance, camera, self.policy.fit.prior)
+        self._robust = (not appearance.kind.startswith("tex")
+                        and self.policy.fit.robust_scale is not None)
         self.model, self.camera = model, camera
         self.initial_pose = initial_pose
         self.clock = clock
@@ -303,8 +306,11 @@ class Tracker:
             self._level += pol.level_rate * (lvl - self._level)
             # an accepted frame moves the divergence level by at most half its value: an
             # occluder sliding in over several frames must not raise the bar it is judged by
-            cap = pol.level_clip * self._rlevel
-            self._rlevel += pol.level_rate * (min(rlvl, cap) - self._rlevel)
+            # (la models, whose robust residual is calm; tex residuals are least squares and
+            # jumpier: clipped, tex_lin flagged 6 % more teleconference frames)
+            if self._robust:
+                rlvl = min(rlvl, pol.level_clip * self._rlevel)
+            self._rlevel += pol.level_rate * (rlvl - self._rlevel)
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
