@@ -222,3 +222,19 @@ def test_information_selection_finds_the_points_that_show_a_depth_mode():
     assert len(set(hidden) & set(by_motion)) >= 2  # the rule takes the invisible motion
     assert len(set(shown) & set(by_info)) > len(set(shown) & set(by_motion))
     assert by_info.size == by_motion.size == len(set(by_info))
+
+
+def test_a_sudden_exposure_step_is_absorbed_by_the_gain(setup):
+    """A webcam's auto-exposure can step the image gain between two frames: la models
+    estimate the gain, so the frames stay ok and accurate, with the gain following."""
+    model, camera, pose, app = setup
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(16)
+    for i in range(16):
+        img = render_blobs(model, camera, alpha[i], pose)
+        if i >= 10:  # 40 % less contrast around mid grey from frame 10 on
+            img = np.clip(img * 0.6 + 0.4 * 128, 0, 255).astype(np.uint8)
+        res = tracker.track(img, t[i])
+        assert res.ok, (i, res.reason)
+        assert rms_mm(model, res.alpha, alpha[i]) < 0.5
+    assert abs(res.extra["gain"] - 0.6) < 0.05
