@@ -154,7 +154,7 @@ def test_compiled_kernel_gives_the_numpy_reference_numbers(trained, kind, distor
     from core.appearance import TrainingFrame, train_appearance
 
     if not kernels.AVAILABLE:
-        pytest.skip("numba is not installed: only the numpy path exists")
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0): only the numpy path")
     model, camera, pose, app = trained
     if kind == "la_quad":
         rng = np.random.default_rng(1)
@@ -190,7 +190,7 @@ def test_compiled_cauchy_weights_match_their_numpy_definition(monkeypatch):
     from core import fitting, kernels
 
     if not kernels.AVAILABLE:
-        pytest.skip("numba is not installed")
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
     rng = np.random.default_rng(9)
     r, jac = rng.normal(size=80) * 3, rng.normal(size=(80, 6))
     fast = fitting._robust(r, jac, 8, 2.0)
@@ -209,7 +209,7 @@ def test_lazy_maps_smooth_on_demand_what_the_full_blur_gives(trained):
     from core.appearance import image_pyramid
 
     if not kernels.AVAILABLE:
-        pytest.skip("numba is not installed")
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
     model, camera, pose, app = trained
     prob = Problem(model, app, camera)
     alpha = np.array([0.2, 0.1, -0.3, 0.4, 0.0, -0.2, 0.1])
@@ -228,3 +228,15 @@ def test_lazy_maps_smooth_on_demand_what_the_full_blur_gives(trained):
     np.testing.assert_allclose(lazy.smooth[lazy.done > 0], full.smooth[lazy.done > 0],
                                atol=1e-3)
     np.testing.assert_allclose(lazy.dense(), full.smooth, atol=1e-3)
+
+
+def test_the_compiled_kernels_are_what_the_product_runs():
+    """numba is a dependency: unless disabled on purpose, the kernels must import — or the
+    parity tests above would skip silently and the tracker run 2-3x slower."""
+    import os
+
+    from core import kernels
+
+    if os.environ.get("ARTICAST_JIT") == "0":
+        pytest.skip("disabled by ARTICAST_JIT=0")
+    assert kernels.AVAILABLE
