@@ -6,6 +6,10 @@ numba. At ~50 points the numpy version is bound by the overhead of its ~60 array
 (~330 us per evaluation on this project's machine); the fused loop does the same arithmetic
 in a few tens of microseconds. Tests check that both give the same numbers.
 
+Lazy maps (:class:`core.appearance.ImageMaps` made with ``lazy=True``): the kernel also
+Gaussian-smooths the full-resolution image itself, one pixel when a sample first reads it
+(:func:`_smooth_pixel`), instead of the tracker blurring the whole face box every frame.
+
 ``ARTICAST_JIT=0`` in the environment (or numba missing) selects the numpy path.
 Compiled functions are cached on disk (numba's ``cache=True``) so only the first process
 pays the compilation (a few seconds).
