@@ -250,9 +250,37 @@ def select_points(
     return np.array(sorted(chosen), np.int64)
 
 
+def _regress(dmat: np.ndarray, fmat: np.ndarray, ridge: float, constant: bool
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Appearance regression of features (F, D') on regressors (F, D): weights (D, D'), fitted
+    residuals and leave-one-out residuals (e / (1 - h)). Feature weights must reflect how well
+    a feature is *predicted* on frames it was not fitted on, not how well it was fitted.
+    ``constant``: the cst models, the training mean (no leave-one-out correction)."""
+    if constant:
+        w = np.zeros((dmat.shape[1], fmat.shape[1]))
+        w[0] = fmat.mean(0)
+        fitted = fmat - dmat @ w
+        return w, fitted, fitted
+    reg = ridge * len(dmat) * np.diag([0.0] + [1.0] * (dmat.shape[1] - 1))  # intercept free
+    inv = np.linalg.inv(dmat.T @ dmat + reg)
+    w = inv @ (dmat.T @ fmat)
+    fitted = fmat - dmat @ w
+    hat = np.einsum("fi,ij,fj->f", dmat, inv, dmat)
+    return w, fitted, fitted / np.maximum(1.0 - hat, 0.05)[:, None]
+
+
+def _feature_weights(resid: np.ndarray, c: int, floor_min: float) -> np.ndarray:
+    """Inverse residual s.d. per feature (S, C), floored at half the channel's median and at
+    ``floor_min`` so that none dominates the cost."""
+    rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, c)
+    floor = np.maximum(np.median(rms_f, axis=0) * 0.5, floor_min)
+    return 1.0 / np.maximum(rms_f, floor)
+
+
 def informative_points(
     model: FaceModel, camera: Camera, frames: list[TrainingFrame], candidates: np.ndarray,
     n_points: int, sigma: float = 2.5, ridge: float = 1e-2, prior: float = 1.0,
+    noise_floor: float = 1.0,
 ) -> np.ndarray:
     """Point selection by the information the la lin cost carries about alpha (ours, beyond
     the paper's largest-displacement rule).
@@ -284,14 +312,8 @@ def informative_points(
         feats.append(f)
         jacs.append(np.matmul(df, np.matmul(jp, dcam)))  # (S, 8, K)
     fmat = np.stack(feats).reshape(len(frames), -1)  # (F, S*8)
-    reg = ridge * len(frames) * np.diag([0.0] + [1.0] * k)
-    inv = np.linalg.inv(dmat.T @ dmat + reg)
-    w = inv @ dmat.T @ fmat
-    hat = np.einsum("fi,ij,fj->f", dmat, inv, dmat)
-    resid = (fmat - dmat @ w) / np.maximum(1.0 - hat, 0.05)[:, None]
-    rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, 8)
-    floor = np.maximum(np.median(rms_f, axis=0) * 0.5, 1.0)
-    cw = 1.0 / np.maximum(rms_f, floor)  # (S, 8)
+    w, _, loo = _regress(dmat, fmat, ridge, constant=False)
+    cw = _feature_weights(loo, 8, noise_floor)  # (S, 8)
     wk = w[1:].T.reshape(-1, 8, k)  # (S, 8, K) model derivative
     info = np.zeros((cand.size, k, k))
     for jac in jacs:
@@ -503,7 +525,8 @@ def train_appearance(
             selection = "information" if enough else "displacement"
         if selection == "information":
             chosen = informative_points(model, camera, frames, vis,
-                                        n_points or per_param * model.n_params, sigma, ridge)
+                                        n_points or per_param * model.n_params, sigma, ridge,
+                                        noise_floor=noise_floor)
         else:
             chosen = select_points(model, per_param, vis)
         samples = SamplePoints.of_points(chosen)
@@ -528,24 +551,9 @@ def train_appearance(
                 f = (f - f.mean()) / max(f.std(), 1e-6)
             feats.append(f.reshape(-1))
         fmat = np.stack(feats)  # (F, S*C)
-        if not kind.endswith("cst"):
-            reg = ridge * len(frames) * np.diag([0.0] + [1.0] * (n_terms - 1))
-            w = np.linalg.solve(dmat.T @ dmat + reg, dmat.T @ fmat)
-        else:
-            w = np.zeros((n_terms, fmat.shape[1]))
-            w[0] = fmat.mean(0)
+        w, fitted, loo = _regress(dmat, fmat, ridge, kind.endswith("cst"))
         c = 8 if kind.startswith("la") else 1
-        fitted = fmat - dmat @ w
-        resid = fitted
-        if not kind.endswith("cst"):
-            # leave-one-out residuals (e / (1 - h)): weights must reflect how well a feature
-            # is *predicted* on frames it was not fitted on, not how well it was fitted
-            hat = np.einsum("fi,ij,fj->f", dmat, np.linalg.inv(dmat.T @ dmat + reg), dmat)
-            resid = resid / np.maximum(1.0 - hat, 0.05)[:, None]
-        rms_f = np.sqrt((resid**2).mean(0)).reshape(-1, c)
-        floor = np.maximum(np.median(rms_f, axis=0) * 0.5,
-                           noise_floor if kind.startswith("la") else 0.02)
-        cweights.append((1.0 / np.maximum(rms_f, floor)).reshape(-1))
+        cweights.append(_feature_weights(loo, c, noise_floor if c == 8 else 0.02).reshape(-1))
         total = ((fmat - fmat.mean(0)) ** 2).sum()
         explained.append(1.0 - (fitted**2).sum() / total if total > 0 else 0.0)
         weights.append(w)

@@ -10,9 +10,12 @@ prediction, c the per-channel weights. L is the paper's least squares (L(q) = q)
 default, ours: a Cauchy loss per sample point, L(q) = s^2 log(1 + q / s^2) with s = 2 (the
 weighted residuals are ~unit s.d. where the model is right). A point whose appearance the
 linear model gets wrong (lips beyond the enrolment's range, a hand) then stops pulling the
-whole state; measured on the teleconference condition it cuts the la lin mean error by ~20 %. Two optimisers: :func:`fit_gauss_newton` (default:
-Levenberg-Marquardt with analytic Jacobians, rotation updated multiplicatively) and
-:func:`fit_nelder_mead` (the paper's downhill simplex centred on the start, the baseline).
+whole state: on the teleconference condition it cuts the la lin mean error by 9-16 % over
+three speakers (benchmarks/tracking_ablation.py).
+
+Two optimisers: :func:`fit_gauss_newton` (default: Levenberg-Marquardt with analytic
+Jacobians, rotation updated multiplicatively) and :func:`fit_nelder_mead` (the paper's
+downhill simplex centred on the start, the baseline).
 """
 
 from __future__ import annotations
@@ -25,7 +28,6 @@ from core import kernels
 from core.appearance import AppearanceModel, ImageMaps
 from core.camera import Camera, axis_angle, rotation_matrix
 from core.model import FaceModel
-
 
 _NO_W2 = np.zeros((0, 0))
 _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
@@ -202,6 +204,11 @@ class Problem:
         jac[~valid] = 0.0
         return r.reshape(-1), jac.reshape(s * c, -1), vf
 
+    def loss_scale(self, robust_scale: float | None) -> float | None:
+        """The Cauchy scale the data term uses: the policy's for la models; None (least
+        squares) for tex, whose one z-scored value per point measured worse robustly."""
+        return None if self._tex else robust_scale
+
     def _residuals_jit(self, maps, level_index, alpha, rot, t, jacobian, gain, with_gain):
         w = self.appearance.weights[level_index]
         k = self.k
@@ -222,8 +229,7 @@ class Problem:
         a = theta[:self.k]
         r, _, _ = self.residuals(maps, level_index, a, rotation_matrix(theta[self.k:self.k + 3]),
                                  theta[self.k + 3:], jacobian=False)
-        scale = None if self._tex else robust_scale
-        return _robust(r, None, self.c, scale)[0] + self.prior_terms(a)[0]
+        return _robust(r, None, self.c, self.loss_scale(robust_scale))[0] + self.prior_terms(a)[0]
 
 
 def _robust(r: np.ndarray, jac: np.ndarray | None, c: int, scale: float | None
@@ -281,7 +287,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     gain = gain0 = float(gain0)
     lam = pol.lm_lambda
     nc = problem.c
-    scale = None if problem._tex else pol.robust_scale
+    scale = problem.loss_scale(pol.robust_scale)
     r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True, gain, estimate_gain)
     rc, rw, jw = _robust(r, jac, nc, scale)
     prior, g_p, h_p = problem.prior_terms(alpha)
@@ -329,7 +335,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
         lam = max(lam / 10, 1e-7)
         alpha, rot, t, gain = a_new, rot_new, t_new, g_new
-        r, vf, cost, rw, jw = r_new, vf_new, cost_new, rw_new, jw_new
+        r, vf, cost, rc, rw, jw = r_new, vf_new, cost_new, rc_new, rw_new, jw_new
         g_p, h_p, g_pp, h_pp = gp_new, hp_new, gpp_new, hpp_new
         costs.append(cost)
         if (np.abs(step[:k]).max() < pol.tol_alpha
@@ -339,7 +345,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
     n = max(r.size * vf, 1.0)
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
-                     vf, tuple(costs), gain, _robust(r, None, nc, scale)[0] / n)
+                     vf, tuple(costs), gain, rc / n)
 
 
 def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
@@ -362,14 +368,14 @@ def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.nd
     base = np.vstack([np.zeros(p), np.eye(p)])
     base -= base.mean(0)
     simplex = x0 + base * scale * (p + 1) / p
-    res = minimize(lambda th: problem.cost(maps, li, th, pol.robust_scale), x0, method="Nelder-Mead",
+    res = minimize(lambda th: problem.cost(maps, li, th, pol.robust_scale), x0,
+                   method="Nelder-Mead",
                    options={"initial_simplex": simplex, "maxfev": pol.nelder_mead_evals,
                             "xatol": 1e-4, "fatol": 1e-6})
     th = res.x
     r, _, vf = problem.residuals(maps, li, th[:k], rotation_matrix(th[k:k + 3]), th[k + 3:],
                                  False)
     n = max(r.size * vf, 1.0)
-    scale = None if problem._tex else pol.robust_scale
+    rc = _robust(r, None, problem.c, problem.loss_scale(pol.robust_scale))[0]
     return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun), float(r @ r) / n,
-                     int(res.nfev), int(res.nit), bool(res.success), vf,
-                     robust_residual=_robust(r, None, problem.c, scale)[0] / n)
+                     int(res.nfev), int(res.nit), bool(res.success), vf, robust_residual=rc / n)

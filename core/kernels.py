@@ -60,28 +60,19 @@ def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover -
         return
     h, w = src.shape[0], src.shape[1]
     rad = taps.shape[0] // 2
-    a0 = a1 = a2 = 0.0
-    for j in range(-rad, rad + 1):
-        yy = _reflect(y + j, h)
-        if not rdone[yy, x]:
-            b0 = b1 = b2 = 0.0
-            for i in range(-rad, rad + 1):
-                xx = _reflect(x + i, w)
-                tap = taps[i + rad]
-                b0 += tap * src[yy, xx, 0]
-                b1 += tap * src[yy, xx, 1]
-                b2 += tap * src[yy, xx, 2]
-            rows[yy, x, 0] = b0
-            rows[yy, x, 1] = b1
-            rows[yy, x, 2] = b2
-            rdone[yy, x] = 1
-        tap = taps[j + rad]
-        a0 += tap * rows[yy, x, 0]
-        a1 += tap * rows[yy, x, 1]
-        a2 += tap * rows[yy, x, 2]
-    sm[y, x, 0] = a0
-    sm[y, x, 1] = a1
-    sm[y, x, 2] = a2
+    for c in range(3):
+        acc = 0.0
+        for j in range(-rad, rad + 1):
+            yy = _reflect(y + j, h)
+            if not rdone[yy, x]:  # the horizontal pass of this row, all channels, once
+                for cc in range(3):
+                    row = 0.0
+                    for i in range(-rad, rad + 1):
+                        row += taps[i + rad] * src[yy, _reflect(x + i, w), cc]
+                    rows[yy, x, cc] = row
+                rdone[yy, x] = 1
+            acc += taps[j + rad] * rows[yy, x, c]
+        sm[y, x, c] = acc
     done[y, x] = 1
 
 

@@ -39,9 +39,8 @@ class TrackingPolicy:
         still raises it 7x.
     level_rate, level_clip : the running residual levels follow accepted frames at this rate;
         with a robust la fit the divergence level moves towards at most ``level_clip`` times
-        itself per frame,
-        so a hand sliding in over several frames cannot raise the bar it is judged by (it
-        crept 2.5x and let 9 mm-wrong frames through as ok before the clip).
+        itself per frame, so a hand sliding in over several frames cannot raise the bar it is
+        judged by (it crept 2.5x and let 9 mm-wrong frames through as ok before the clip).
     fast_path_factor : first fit the full-resolution level alone from the prediction, and keep
         it if its residual is within this factor of the running level (0 = always run every
         level).
@@ -111,8 +110,7 @@ class Tracker:
             fitted[name] = usable
         self.policy = pol = replace(pol, **fitted)  # e.g. a model trained on levels (0, 1)
         self.problem = Problem(model, appearance, camera, self.policy.fit.prior)
-        self._robust = (not appearance.kind.startswith("tex")
-                        and self.policy.fit.robust_scale is not None)
+        self._robust = self.problem.loss_scale(self.policy.fit.robust_scale) is not None
         self.model, self.camera = model, camera
         self.initial_pose = initial_pose
         self.clock = clock
@@ -242,10 +240,7 @@ class Tracker:
         if self._gap and self._good(fit):
             # first frame after a gap: the last good state may be far from the face that
             # reappears (the mouth moved behind the hand); re-initialise too, keep the best
-            neutral = self._theta.copy()
-            neutral[:self.k] = 0.0
-            again = self._fit(image, neutral, pol.reinit_levels, cache, self._retry_policy(),
-                              pose_ref=ref)
+            again = self._fit_from_neutral(image, cache, ref)
             evals += again.evals
             if self._good(again) and again.cost < fit.cost:
                 fit = again
@@ -253,10 +248,7 @@ class Tracker:
             tries = [fit]
             if pol.predict and self._prev is not None:
                 tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref))
-            neutral = self._theta.copy()
-            neutral[:self.k] = 0.0
-            tries.append(self._fit(image, neutral, pol.reinit_levels, cache,
-                                   self._retry_policy(), pose_ref=ref))
+            tries.append(self._fit_from_neutral(image, cache, ref))
             evals += sum(f.evals for f in tries[1:])
             fit = min(tries, key=lambda f: f.cost)
             if not self._good(fit):
@@ -266,12 +258,18 @@ class Tracker:
                 return self._lost(t, t0, why, evals, fit)
         return self._accept(fit, t, t0, evals)
 
-    def _retry_policy(self) -> FitPolicy:
-        """Re-initialisation fits during a sequence: more iterations, but the same pose
-        prior as every frame, so that their costs compare with the regular fit's."""
+    def _fit_from_neutral(self, image: np.ndarray, cache: dict[int, ImageMaps],
+                          ref: np.ndarray | None) -> FitResult:
+        """Re-initialisation during a sequence: the last pose with the neutral articulation,
+        more iterations, but the same pose prior as every frame, so that its cost compares
+        with the regular fit's."""
+        assert self._theta is not None
         pol = self.policy
-        return replace(pol.reinit_fit, pose_sigma_rad=pol.fit.pose_sigma_rad,
-                       pose_sigma_mm=pol.fit.pose_sigma_mm)
+        neutral = self._theta.copy()
+        neutral[:self.k] = 0.0
+        retry = replace(pol.reinit_fit, pose_sigma_rad=pol.fit.pose_sigma_rad,
+                        pose_sigma_mm=pol.fit.pose_sigma_mm)
+        return self._fit(image, neutral, pol.reinit_levels, cache, retry, pose_ref=ref)
 
     def _good(self, fit: FitResult) -> bool:
         pol = self.policy
@@ -304,10 +302,9 @@ class Tracker:
             self._level, self._rlevel = lvl, rlvl
         else:
             self._level += pol.level_rate * (lvl - self._level)
-            # an accepted frame moves the divergence level by at most half its value: an
-            # occluder sliding in over several frames must not raise the bar it is judged by
-            # (la models, whose robust residual is calm; tex residuals are least squares and
-            # jumpier: clipped, tex_lin flagged 6 % more teleconference frames)
+            # the divergence level moves towards at most level_clip x itself (la only: tex
+            # residuals are least squares and jumpier; clipped, tex_lin flagged 6 % more
+            # teleconference frames)
             if self._robust:
                 rlvl = min(rlvl, pol.level_clip * self._rlevel)
             self._rlevel += pol.level_rate * (rlvl - self._rlevel)
