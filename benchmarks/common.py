@@ -28,7 +28,7 @@ class Server:
     """``articast serve`` in a subprocess on 127.0.0.1, any free port."""
 
     def __init__(self, sources: dict[str, str], *extra: str) -> None:
-        args = [sys.executable, "-m", "service.cli", "serve", "--port", "0", "--json",
+        args = [sys.executable, "-m", "articast.service.cli", "serve", "--port", "0", "--json",
                 "--log-level", "error"]
         for name, uri in sources.items():
             args += ["--source", f"{name}={uri}"]

@@ -19,9 +19,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from core.build import build_model, invert  # noqa: E402
-from core.model import PARAM_NAMES  # noqa: E402
-from core.synthetic import make_corpus  # noqa: E402
+from articast.core.model.build import build_model, invert  # noqa: E402
+from articast.core.model.face import PARAM_NAMES  # noqa: E402
+from articast.core.synthetic import make_corpus  # noqa: E402
 
 
 def one(seed: int) -> dict:

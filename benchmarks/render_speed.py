@@ -23,7 +23,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from core.synthetic import RenderOptions, default_speaker, make_sequence  # noqa: E402
+from articast.core.synthetic import RenderOptions, default_speaker, make_sequence  # noqa: E402
 
 
 def bench(rig: str, frames: int, size: tuple[int, int]) -> dict:

@@ -1,7 +1,7 @@
 """Soak: end to end at 60 fps for a bounded time; fps sustained, server memory flat.
 
     python benchmarks/soak.py --json --seconds 120                      # synthetic speaker
-    python benchmarks/soak.py --json --seconds 120 --source recording   # no core.synthetic
+    python benchmarks/soak.py --json --seconds 120 --source recording   # no articast.core.synthetic
 
 The server runs in a subprocess with the given source; a few subscribers read everything.
 Reports the tracked fps (from /metrics), capture drops, the server's RSS at the start of the

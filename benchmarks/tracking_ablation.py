@@ -29,13 +29,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from core.appearance import train_appearance  # noqa: E402
-from core.build import invert  # noqa: E402
-from core.evaluate import rms_3d  # noqa: E402
-from core.synthetic import RenderOptions, default_speaker, make_sequence  # noqa: E402
-from core.synthetic.enrol import enrolment_frames  # noqa: E402
-from core.synthetic.sequence import default_camera  # noqa: E402
-from core.tracker import Tracker, TrackingPolicy  # noqa: E402
+from articast.core.appearance.models import train_appearance  # noqa: E402
+from articast.core.evaluation.measures import rms_3d  # noqa: E402
+from articast.core.model.build import invert  # noqa: E402
+from articast.core.synthetic import RenderOptions, default_speaker, make_sequence  # noqa: E402
+from articast.core.synthetic.enrol import enrolment_frames  # noqa: E402
+from articast.core.synthetic.sequence import default_camera  # noqa: E402
+from articast.core.tracking.tracker import Tracker, TrackingPolicy  # noqa: E402
 
 PAPER_TRAIN = {"selection": "displacement", "per_param": 5, "ridge": 0.01}
 VARIANTS = {

@@ -35,11 +35,11 @@ def main() -> None:
     args = ap.parse_args()
     cv2.setNumThreads(1)
 
-    from core.appearance import TrainingFrame, train_appearance
-    from core.build import invert
-    from core.evaluate import rms_3d
-    from core.synthetic import RenderOptions, default_speaker, make_sequence
-    from core.tracker import Tracker, TrackingPolicy
+    from articast.core.appearance.models import TrainingFrame, train_appearance
+    from articast.core.evaluation.measures import rms_3d
+    from articast.core.model.build import invert
+    from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
+    from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
     sp = default_speaker(args.seed)
     model = sp.model()
@@ -79,7 +79,7 @@ def main() -> None:
                 "evals_per_frame": float(np.mean([r.evals for r in res])),
                 "rms_mm_mean": float(err.mean()), "peak_heap_mib": memory(policy)}
 
-    from core import kernels
+    from articast.core.tracking import kernels
 
     kernels.warm_up()  # compilation (or loading the on-disk cache) is not a frame's work
     base = TrackingPolicy.for_rig("head")

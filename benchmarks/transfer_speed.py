@@ -18,7 +18,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from core.transfer import apply, barycentric_apply, bind  # noqa: E402
+from articast.core.dense.transfer import apply, barycentric_apply, bind  # noqa: E402
 
 
 def surface_grid(side: int, half: float) -> tuple[np.ndarray, np.ndarray]:

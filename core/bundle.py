@@ -2,7 +2,7 @@
 
 Every file articast writes (face models, corpora, appearance models, dense meshes) is such a
 bundle, so every loader rejects a wrong kind, a wrong version, a truncated file or NaNs with
-one clear :class:`~core.errors.ModelFileError` instead of a numpy traceback.
+one clear :class:`~articast.core.errors.ModelFileError` instead of a numpy traceback.
 No pickles: arrays are loaded with ``allow_pickle=False``.
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import ModelFileError
+from articast.core.errors import ModelFileError
 
 _META_KEY = "__meta__"
 

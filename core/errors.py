@@ -8,7 +8,7 @@
     └── CalibrationError          calibration could not be computed from the given images
 
 A frame that cannot be tracked is *not* an exception: it is a result with ``ok=False``
-and a reason (see :mod:`core.tracker`).
+and a reason (see :mod:`articast.core.tracking.tracker`).
 """
 
 

@@ -17,9 +17,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from core.synthetic import RenderOptions, default_speaker, rest_pose  # noqa: E402
-from core.synthetic.corpus import corpus_controls  # noqa: E402
-from core.synthetic.sequence import default_camera  # noqa: E402
+from articast.core.synthetic import RenderOptions, default_speaker, rest_pose  # noqa: E402
+from articast.core.synthetic.corpus import corpus_controls  # noqa: E402
+from articast.core.synthetic.sequence import default_camera  # noqa: E402
 
 
 def postures(seed: int) -> list[tuple[str, np.ndarray]]:

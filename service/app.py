@@ -1,6 +1,6 @@
 """The FastAPI application: ``WS /ws`` and the HTTP API.
 
-``WS /ws``                     subscribe to sessions (protocol v1, :mod:`service.protocol`)
+``WS /ws``                     subscribe to sessions (protocol v1, :mod:`articast.service.protocol`)
 ``GET /api/sessions``          the sessions and their state
 ``POST /api/sessions``         start one: ``{"name", "source", "model"?, "appearance"?,
                                "camera"?, "processor"?, "wait_for_subscriber"?}``
@@ -29,14 +29,22 @@ from fastapi import FastAPI, HTTPException, Request, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
-from core.errors import ArticastError
-from service import protocol as P
-from service.hub import HubClosed, InMemoryHub
-from service.metrics import render
-from service.session import SessionManager
-from service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
-from service.wire import FrameEvent, ReadyEvent, StatusEvent, error_text, hello, now, status_text
-from service.worker import SessionSpec
+from articast.core.errors import ArticastError
+from articast.service import protocol as P
+from articast.service.hub import HubClosed, InMemoryHub
+from articast.service.metrics import render
+from articast.service.session import SessionManager
+from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
+from articast.service.wire import (
+    FrameEvent,
+    ReadyEvent,
+    StatusEvent,
+    error_text,
+    hello,
+    now,
+    status_text,
+)
+from articast.service.worker import SessionSpec
 
 log = logging.getLogger("articast.app")
 
@@ -243,7 +251,7 @@ class Service:
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
         if config.server.vmc:
-            from service.vmc import VmcSender, parse_host_port
+            from articast.service.vmc import VmcSender, parse_host_port
 
             self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc))
         self.connections: set[Connection] = set()
@@ -341,7 +349,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     app = FastAPI(title="articast", version=str(P.PROTOCOL_VERSION), lifespan=lifespan,
                   docs_url=None, redoc_url=None)
     app.state.service = svc
-    from service.avatar import mount_avatar
+    from articast.service.avatar import mount_avatar
 
     mount_avatar(app)
 

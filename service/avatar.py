@@ -1,14 +1,16 @@
-"""The browser avatar (``clients/web``) served at ``/avatar/`` as static files."""
+"""The browser avatar (``clients/web``, import name ``articast.web``) served at ``/avatar/`` as
+static files."""
 
 from __future__ import annotations
 
+from importlib.resources import files
 from pathlib import Path
 
 from fastapi import FastAPI
 from fastapi.responses import RedirectResponse
 from fastapi.staticfiles import StaticFiles
 
-WEB = Path(__file__).resolve().parent.parent / "clients" / "web"
+WEB = Path(str(files("articast.web")))
 
 
 def mount_avatar(app: FastAPI) -> None:

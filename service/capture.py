@@ -4,9 +4,9 @@
   the replaced frame is counted in :attr:`Capture.dropped` — a slow tracker never builds a
   queue, it just sees the newest frame.
 * ``pace=fast`` playback is lossless: the thread waits until the slot is taken.
-* :class:`~service.sources.SourceUnavailable` (missing, busy, unplugged camera) is reported
+* :class:`~articast.service.sources.SourceUnavailable` (missing, busy, unplugged camera) is reported
   through ``on_status("unavailable", reason)`` and retried with exponential backoff.
-* :class:`~service.sources.SourceError` ends the capture with :attr:`Capture.error` set.
+* :class:`~articast.service.sources.SourceError` ends the capture with :attr:`Capture.error` set.
 """
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ import threading
 import time
 from collections.abc import Callable
 
-from service.settings import CaptureSettings
-from service.sources import Frame, Source, SourceAssets, SourceInfo, SourceUnavailable
+from articast.service.settings import CaptureSettings
+from articast.service.sources import Frame, Source, SourceAssets, SourceInfo, SourceUnavailable
 
 StatusCallback = Callable[[str, str], None]
 

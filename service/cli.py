@@ -11,16 +11,16 @@ import argparse
 import importlib
 import sys
 
-from core.errors import ArticastError
+from articast.core.errors import ArticastError
 
 COMMAND_MODULES = (
-    "service.commands.model",
-    "service.commands.track",
-    "service.commands.evaluate",
-    "service.commands.fap",
-    "service.commands.transfer",
-    "service.commands.synth",
-    "service.commands.serve",
+    "articast.service.commands.model",
+    "articast.service.commands.track",
+    "articast.service.commands.evaluate",
+    "articast.service.commands.fap",
+    "articast.service.commands.transfer",
+    "articast.service.commands.synth",
+    "articast.service.commands.serve",
 )
 
 

@@ -11,15 +11,15 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 class Outputs:
     """Per-frame FAP and ARKit values of one session's model."""
 
     def __init__(self, model: Any) -> None:
-        from core.arkit import ArkitMapper
-        from core.fap import FapEncoder, fapu_from_model
+        from articast.core.outputs.arkit import ArkitMapper
+        from articast.core.outputs.fap import FapEncoder, fapu_from_model
 
         self.model = model
         self.fapu = fapu_from_model(model).as_dict()
@@ -42,7 +42,7 @@ class Outputs:
 
 def make_outputs(desc: dict[str, Any]) -> Outputs | None:
     """Outputs for a session description, or None when its model cannot produce them."""
-    from service.wire import model_from_description
+    from articast.service.wire import model_from_description
 
     model = model_from_description(desc)
     if model is None:

@@ -1,10 +1,12 @@
-"""What turns a frame into a :class:`~core.result.TrackResult`: the ``FrameProcessor`` seam.
+"""What turns a frame into a :class:`~articast.core.tracking.result.TrackResult`: the
+``FrameProcessor`` seam.
 
 A session's ``processor`` option picks one:
 
 ``truth``     pass the source's ground truth through (synthetic speaker, recordings): streams
               exact ground truth to avatars for testing them.
-``tracker``   the real tracker (``core.tracker.Tracker``), one instance per session run.
+``tracker``   the real tracker (``articast.core.tracking.tracker.Tracker``), one instance per
+session run.
 ``auto``      ``truth`` for recordings; otherwise ``tracker`` when it is available, else
               ``truth`` if the source carries ground truth; else a clear error.
 ``pkg.mod:fn``  any callable ``fn(context: ProcessorContext) -> FrameProcessor``.
@@ -20,9 +22,9 @@ import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
-from core.errors import ArticastError, InputError
-from core.result import TrackResult
-from service.sources import Frame, SourceAssets, SourceInfo
+from articast.core.errors import ArticastError, InputError
+from articast.core.tracking.result import TrackResult
+from articast.service.sources import Frame, SourceAssets, SourceInfo
 
 
 class FrameProcessor(Protocol):
@@ -35,8 +37,8 @@ class ProcessorContext:
 
     session: str
     source: SourceInfo
-    model: Any  # core.model.FaceModel | None
-    camera: Any  # core.camera.Camera | None
+    model: Any  # articast.core.model.face.FaceModel | None
+    camera: Any  # articast.core.model.camera.Camera | None
     appearance: Any  # core.appearance.AppearanceModel | None
     options: dict[str, Any]
 
@@ -53,8 +55,8 @@ class TruthProcessor:
             return frame.truth
         import numpy as np
 
-        from core.camera import Pose
-        from core.model import PARAM_NAMES
+        from articast.core.model.camera import Pose
+        from articast.core.model.face import PARAM_NAMES
 
         last = self._last
         return TrackResult(frame.index, frame.t,
@@ -64,7 +66,8 @@ class TruthProcessor:
 
 
 class TrackerProcessor:
-    """Adapter to ``core.tracker.Tracker``: the only place the service touches the tracker.
+    """Adapter to ``articast.core.tracking.tracker.Tracker``: the only place the service
+    touches the tracker.
 
     Session options: ``rig`` ("head" or "desk": the pose prior), ``initial_pose`` (6 numbers,
     or a Pose; the synthetic source supplies its rig's rest pose) or ``distance_mm`` for a
@@ -73,17 +76,17 @@ class TrackerProcessor:
 
     def __init__(self, context: ProcessorContext) -> None:
         try:
-            from core.tracker import Tracker
+            from articast.core.tracking.tracker import Tracker
         except ImportError as exc:
-            raise ArticastError(f"the tracker (core.tracker) is not available: {exc}") from None
+            raise ArticastError(f"the tracker is not available: {exc}") from None
         missing = [n for n in ("model", "appearance", "camera") if getattr(context, n) is None]
         if missing:
             raise InputError(
                 f"session {context.session!r}: tracking needs {', '.join(missing)} "
                 f"(give --{' --'.join(missing)}, or use a source that brings them)"
             )
-        from core.camera import Pose
-        from core.tracker import TrackingPolicy
+        from articast.core.model.camera import Pose
+        from articast.core.tracking.tracker import TrackingPolicy
 
         opts = context.options
         rig = str(opts.get("rig", "head"))
@@ -105,7 +108,7 @@ class TrackerProcessor:
             pose = Pose(translation=[0.0, 0.0, float(opts.get("distance_mm", 300.0))])
         self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
                                initial_pose=pose, clock=time.perf_counter)
-        from core import kernels
+        from articast.core.tracking import kernels
 
         kernels.warm_up()  # compile (first run) or load the cost kernel before frames flow
 
@@ -117,7 +120,7 @@ class TrackerProcessor:
 
 def tracker_available() -> bool:
     try:
-        importlib.import_module("core.tracker")
+        importlib.import_module("articast.core.tracking.tracker")
     except ImportError:
         return False
     return True
@@ -136,7 +139,7 @@ def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProc
         else:
             raise InputError(
                 f"session {context.session!r}: no tracker is available for a {kind} source "
-                "(core.tracker and an appearance model are needed); only sources with ground "
+                "(the tracker and an appearance model are needed); only sources with ground "
                 "truth (synthetic, replay-record) can be served without one"
             )
     if name == "truth":
@@ -157,7 +160,7 @@ def check_processor(name: str, source_kind: str, appearance_given: bool) -> None
     """Fail before serving when ``name`` cannot work for this kind of source (CLI check)."""
     if name in ("auto", "tracker") and source_kind not in ("replay-record", "synthetic"):
         if not tracker_available():
-            raise InputError(f"a {source_kind} source needs the tracker (core.tracker), which "
+            raise InputError(f"a {source_kind} source needs the tracker, which "
                              "is not available in this build")
         if not appearance_given:
             raise InputError(f"tracking a {source_kind} source needs --appearance (and --model)")
@@ -170,21 +173,21 @@ def load_assets(spec_model: str, spec_appearance: str, spec_camera: str,
     """Model, appearance, camera: files given for the session win over the source's own."""
     model, appearance, camera = from_source.model, from_source.appearance, from_source.camera
     if spec_model:
-        from core.model import FaceModel
+        from articast.core.model.face import FaceModel
 
         model = FaceModel.load(spec_model)
     if spec_camera:
-        from core.camera import Camera
+        from articast.core.model.camera import Camera
 
         camera = Camera.load(spec_camera)
     if spec_appearance:
         try:
-            from core.appearance import AppearanceModel
+            from articast.core.appearance.models import AppearanceModel
         except ImportError as exc:
             raise ArticastError(f"appearance models are not available: {exc}") from None
         appearance = AppearanceModel.load(spec_appearance, model)
     if camera is None and source.width and source.height:
-        from core.camera import Camera
+        from articast.core.model.camera import Camera
 
         camera = Camera.default(source.width, source.height)
     return model, appearance, camera

@@ -122,7 +122,8 @@ class Hello(_Message):
     rate: float | None
     param_names: list[str]
     param_stats: ParamStats | None = None
-    camera: dict[str, Any] | None = Field(default=None, description="core.camera.Camera.to_dict")
+    camera: dict[str, Any] | None = Field(
+        default=None, description="articast.core.model.camera.Camera.to_dict")
     geometry: Geometry | None = None
     fapu: dict[str, float] | None = Field(default=None, description="FAPU in mm (MPEG-4)")
     dense_url: str | None = Field(

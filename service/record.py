@@ -18,10 +18,10 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
-from core.model import PARAM_NAMES
-from core.result import TrackResult
-from service.sources import SourceAssets, SourceError
-from service.wire import FrameRecord, model_from_description
+from articast.core.model.face import PARAM_NAMES
+from articast.core.tracking.result import TrackResult
+from articast.service.sources import SourceAssets, SourceError
+from articast.service.wire import FrameRecord, model_from_description
 
 RECORD_FORMAT = "articast-record"
 RECORD_VERSION = 1
@@ -86,7 +86,7 @@ def read_header(path: Path) -> tuple[dict[str, Any], SourceAssets, tuple[str, ..
         model = model_from_description(doc)
         camera = None
         if doc.get("camera"):
-            from core.camera import Camera
+            from articast.core.model.camera import Camera
 
             camera = Camera.from_dict(doc["camera"], where=str(path))
     except (KeyError, TypeError, ValueError) as exc:

@@ -1,7 +1,8 @@
-"""The :class:`~service.hub.Hub` protocol over Redis pub/sub, for more than one machine.
+"""The :class:`~articast.service.hub.Hub` protocol over Redis pub/sub, for more than one machine.
 
 Tracker workers publish on any host; WebSocket gateways subscribe on any host. Each process
-keeps an :class:`~service.hub.InMemoryHub` for its local subscribers (bounded queues, newest
+keeps an :class:`~articast.service.hub.InMemoryHub` for its local subscribers (bounded queues,
+newest
 wins, drops and throttling per subscriber, exactly as in-memory) and bridges it to Redis:
 
 * ``publish`` encodes the message (``codec.encode``) and appends it to a bounded local buffer
@@ -26,7 +27,7 @@ from collections import deque
 from collections.abc import Callable
 from typing import Any, Generic, Protocol, TypeVar
 
-from service.hub import HubClosed, InMemoryHub, MemorySubscription
+from articast.service.hub import HubClosed, InMemoryHub, MemorySubscription
 
 T = TypeVar("T")
 log = logging.getLogger("articast.redis_hub")

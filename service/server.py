@@ -16,7 +16,7 @@ from typing import Any
 import uvicorn
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
-from service.app import ServiceConfig, create_app
+from articast.service.app import ServiceConfig, create_app
 
 ABORT_EXTENSION = "articast.abort"
 """ASGI scope extension: a callable that aborts the connection's transport at once."""

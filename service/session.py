@@ -1,7 +1,8 @@
 """Sessions (one per face) and the manager that runs several, restarts them, and stops them.
 
 A :class:`Session` lives on the server's event loop. It supervises one worker at a time
-(:mod:`service.worker`), turns the worker's messages into hub events (frames, status, ready),
+(:mod:`articast.service.worker`), turns the worker's messages into hub events (frames, status,
+ready),
 and keeps the session's metrics. A crashed worker is restarted with backoff; a session whose
 input is wrong (corrupt file, bad model) is reported ``failed`` once and not restarted; nothing
 a session does can take the server down.
@@ -17,13 +18,13 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
-from service.hub import Hub
-from service.metrics import SessionMetrics
-from service.settings import CaptureSettings, SessionPolicy
-from service.sources import check_uri, parse_uri
-from service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
-from service.worker import ProcessWorker, SessionSpec, ThreadWorker
+from articast.core.errors import InputError
+from articast.service.hub import Hub
+from articast.service.metrics import SessionMetrics
+from articast.service.settings import CaptureSettings, SessionPolicy
+from articast.service.sources import check_uri, parse_uri
+from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
+from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker
 
 log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -42,7 +43,7 @@ class Session:
         self.worker_kind = ""
         self.metrics = SessionMetrics()
         self._mesh: tuple[np.ndarray, np.ndarray] | None = None
-        self.outputs: Any = None  # service.outputs.Outputs when the model has FAP points
+        self.outputs: Any = None  # articast.service.outputs.Outputs when the model has FAP points
         self._dense: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._vmc_model: Any = None
@@ -145,7 +146,7 @@ class Session:
             k = len(desc["param_names"])
             self._mesh = (np.asarray(g["mean"], np.float32),
                           np.asarray(g["basis"], np.float32).reshape(k, -1))
-        from service.outputs import make_outputs
+        from articast.service.outputs import make_outputs
 
         self.outputs = make_outputs(desc)
         if self.outputs is not None:
@@ -164,8 +165,8 @@ class Session:
         if self._dense is None:
             import json
 
-            from core.synthetic.dense import dense_face
-            from service.wire import model_from_description
+            from articast.core.synthetic.dense import dense_face
+            from articast.service.wire import model_from_description
 
             model = model_from_description(self.description or {})
             self._dense = json.dumps(dense_face(model).to_dict()).encode()
@@ -179,8 +180,8 @@ class Session:
                         self._mesh, self.outputs)
         self._m.hub.publish(self.spec.name, ev)
         if self._m.vmc is not None and self._vmc_model is not None:
-            from core.camera import Pose
-            from core.result import TrackResult
+            from articast.core.model.camera import Pose
+            from articast.core.tracking.result import TrackResult
 
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
                               Pose(rec.rotation, rec.translation), bool(rec.quality["ok"]))
@@ -221,7 +222,7 @@ class SessionManager:
         self.capture = capture or CaptureSettings()
         self.policy = policy or SessionPolicy()
         self.record_dir = record_dir
-        self.vmc: Any = None  # service.vmc.VmcSender when the server sends VMC
+        self.vmc: Any = None  # articast.service.vmc.VmcSender when the server sends VMC
         self.sessions: dict[str, Session] = {}
         self._next_sid = 1
         self._thread_owner: Session | None = None

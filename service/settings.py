@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 S = TypeVar("S")
 

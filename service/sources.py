@@ -13,11 +13,11 @@
 ``loop=N`` plays a finite source N times (0 = forever; default 1). ``pace=realtime`` (the
 default) delivers frames at their media time, ``pace=fast`` as fast as the tracker takes them,
 losing none. A source only reads; pacing, looping, retries and the one-frame slot are the
-capture thread's job (:mod:`service.capture`).
+capture thread's job (:mod:`articast.service.capture`).
 
 Errors: :class:`SourceUnavailable` (a camera that is missing, busy or unplugged: retried with
 backoff) and :class:`SourceError` (a wrong URI, a missing, corrupt or unreadable file: reported
-once, never retried). Both are :class:`~core.errors.ArticastError`.
+once, never retried). Both are :class:`~articast.core.errors.ArticastError`.
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from urllib.parse import parse_qsl
 
 import numpy as np
 
-from core.errors import ArticastError, InputError
-from core.result import TrackResult
+from articast.core.errors import ArticastError, InputError
+from articast.core.tracking.result import TrackResult
 
 
 class SourceError(ArticastError):
@@ -82,8 +82,8 @@ class SourceInfo:
 class SourceAssets:
     """What a source brings for tracking and for ``hello`` (synthetic speaker, recordings)."""
 
-    model: Any = None  # core.model.FaceModel
-    camera: Any = None  # core.camera.Camera
+    model: Any = None  # articast.core.model.face.FaceModel
+    camera: Any = None  # articast.core.model.camera.Camera
     appearance: Any = None
     extra: dict[str, Any] = field(default_factory=dict)
 
@@ -343,7 +343,7 @@ class RecordSource(_Finite):
         self._assets = SourceAssets()
 
     def open(self) -> SourceInfo:
-        from service.record import read_header
+        from articast.service.record import read_header
 
         if not self.path.is_file():
             raise SourceError(f"{self.path}: no such file")
@@ -355,7 +355,7 @@ class RecordSource(_Finite):
                           src.get("fps"), None, {"path": str(self.path), "recorded": src})
 
     def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
-        from service.record import parse_frame_line
+        from articast.service.record import parse_frame_line
 
         assert self._lines is not None
         for n, line in self._lines:
@@ -380,13 +380,13 @@ class RecordSource(_Finite):
 
 # ------------------------------------------------------------------------------- synthetic
 class SyntheticSource(_Finite):
-    """The built-in speaker (``core.synthetic``), imported only when a session opens it.
+    """The built-in speaker (``articast.core.synthetic``), imported only when a session opens it.
 
-    Integration seam (to finish after the synthetic speaker lands): ``core.synthetic`` must
+    Integration seam (to finish after the synthetic speaker lands): ``articast.core.synthetic`` must
     expose ``open_stream(seed: int, fps: float) -> stream`` where ``stream`` has ``model``
     (FaceModel), ``camera`` (Camera), ``appearance`` (trained appearance, or None), optional
     ``frame_count`` (None: endless) and ``frames()`` yielding ``(t, image_bgr, truth)``
-    (truth a :class:`~core.result.TrackResult`). Only :meth:`open` touches it.
+    (truth a :class:`~articast.core.tracking.result.TrackResult`). Only :meth:`open` touches it.
     """
 
     def __init__(self, p: SourceURI) -> None:
@@ -398,12 +398,12 @@ class SyntheticSource(_Finite):
 
     def open(self) -> SourceInfo:
         try:
-            import core.synthetic as synthetic
+            import articast.core.synthetic as synthetic
 
             open_stream = synthetic.open_stream  # type: ignore[attr-defined]
         except (ImportError, AttributeError) as exc:
             raise SourceError(
-                "the synthetic speaker (core.synthetic.open_stream) is not available in this "
+                "the synthetic speaker (core.synthetic) is not available in this "
                 f"build: {exc}"
             ) from None
         stream = open_stream(seed=self.seed, fps=self.fps)

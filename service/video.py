@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.ndarray]]:

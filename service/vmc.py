@@ -3,13 +3,15 @@
 One OSC bundle (UDP) per frame, in this order:
 
 * ``/VMC/Ext/Bone/Pos "Head" px py pz qx qy qz qw`` — the head bone's rotation (and offset);
-* ``/VMC/Ext/Blend/Val name value`` for each blendshape (ARKit names, :mod:`core.arkit`);
+* ``/VMC/Ext/Blend/Val name value`` for each blendshape (ARKit names,
+:mod:`articast.core.outputs.arkit`);
 * ``/VMC/Ext/Blend/Apply`` — the receiver applies the values it has received.
 
 **Head pose conversion.** Our pose maps the head frame (x = the speaker's left, y up, z
 forward; right-handed) to the OpenCV camera. The head's rotation relative to a reference
 pose, in the reference head frame, is ``R_rel = R_ref^T R`` (as for the FAPs; the reference is
-:data:`~core.camera.FRONTAL` unless given). Unity is left-handed with a character looking
+:data:`~articast.core.model.camera.FRONTAL` unless given). Unity is left-handed with a
+character looking
 along +z, +y up and +x to the character's right, so Unity's axes are ours with x mirrored,
 ``S = diag(-1, 1, 1)``, and the rotation becomes ``M = S R_rel S`` (a proper rotation),
 sent as a unit quaternion (x, y, z, w). A nod down is then a positive rotation about Unity's
@@ -27,11 +29,11 @@ from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.udp_client import SimpleUDPClient
 
-from core.arkit import ArkitMapper
-from core.camera import FRONTAL, rotation_matrix
-from core.errors import InputError
-from core.model import FaceModel
-from core.result import TrackResult
+from articast.core.errors import InputError
+from articast.core.model.camera import FRONTAL, rotation_matrix
+from articast.core.model.face import FaceModel
+from articast.core.outputs.arkit import ArkitMapper
+from articast.core.tracking.result import TrackResult
 
 DEFAULT_PORT = 39539
 """The VMC protocol's default receiving (Marionette) port."""

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from service import protocol as P
+from articast.service import protocol as P
 
 _MONO_TO_EPOCH = time.time() - time.monotonic()
 
@@ -52,7 +52,7 @@ def describe(model: Any, camera: Any, param_names: tuple[str, ...]) -> dict[str,
 
 def model_from_description(d: dict[str, Any]) -> Any:
     """Rebuild a FaceModel from :func:`describe` output (None without geometry)."""
-    from core.model import FaceModel, ParamStats
+    from articast.core.model.face import FaceModel, ParamStats
 
     g = d.get("geometry")
     if not g:
@@ -123,7 +123,7 @@ class FrameEvent:
     record: FrameRecord
     param_names: list[str]
     mesh_basis: Any = None  # (mean (3N,), basis (K, 3N)) float32 or None
-    outputs: Any = None  # service.outputs.Outputs (fap, arkit) or None
+    outputs: Any = None  # articast.service.outputs.Outputs (fap, arkit) or None
     _cache: dict[View, str | bytes] = field(default_factory=dict)
 
     def encoded(self, view: View) -> str | bytes:

@@ -25,14 +25,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
-from core.errors import ArticastError
-from core.result import TrackResult
-from service.capture import Capture
-from service.processors import ProcessorContext, load_assets, make_processor
-from service.record import Recorder
-from service.settings import CaptureSettings
-from service.sources import make_source
-from service.wire import FrameRecord, describe, epoch
+from articast.core.errors import ArticastError
+from articast.core.tracking.result import TrackResult
+from articast.service.capture import Capture
+from articast.service.processors import ProcessorContext, load_assets, make_processor
+from articast.service.record import Recorder
+from articast.service.settings import CaptureSettings
+from articast.service.sources import make_source
+from articast.service.wire import FrameRecord, describe, epoch
 
 Emit = Callable[[tuple[Any, ...]], None]
 
@@ -90,7 +90,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
                                {**capture.assets.extra, **dict(spec.options)})
         used, processor = make_processor(spec.processor, ctx)
-        from core.model import PARAM_NAMES
+        from articast.core.model.face import PARAM_NAMES
 
         desc = describe(model, camera, tuple(model.param_names) if model else PARAM_NAMES)
         source_info = capture.info.to_dict()

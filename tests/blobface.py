@@ -5,8 +5,8 @@ synthetic speaker (core/synthetic): just enough texture to check Jacobians and c
 import cv2
 import numpy as np
 
-from core.build import build_model
-from core.camera import Camera, Pose
+from articast.core.model.build import build_model
+from articast.core.model.camera import Camera, Pose
 from tests.test_build import grid_corpus
 
 
@@ -20,7 +20,7 @@ def blob_model(seed=0):
     a, b, c = (model.mean[tri[:, i]] for i in range(3))
     flip = np.cross(b - a, c - a)[:, 2] < 0
     tri[flip] = tri[flip][:, [0, 2, 1]]
-    from core.model import FaceModel
+    from articast.core.model.face import FaceModel
 
     return FaceModel(model.mean, model.basis, model.param_names, model.stats, model.point_names,
                      model.groups, tri, model.feature_points, {}, "blob")
@@ -41,7 +41,7 @@ def render_blobs(model, camera, alpha, pose, seed=0):
 
 def blob_trained(seed=5, kind="la_lin", n=30):
     """The blob face with an appearance model trained on n frames of random states."""
-    from core.appearance import TrainingFrame, train_appearance
+    from articast.core.appearance.models import TrainingFrame, train_appearance
 
     model, camera, pose = blob_setup()
     rng = np.random.default_rng(seed)
@@ -59,7 +59,7 @@ def blob_setup():
     model = blob_model()
     camera = Camera.default(480, 360, 36)
     # oblique view (yaw 25 deg, pitch 15 deg) so that depth-only modes (jaw2) are observable
-    from core.camera import FRONTAL, axis_angle, rotation_matrix
+    from articast.core.model.camera import FRONTAL, axis_angle, rotation_matrix
 
     rot = rotation_matrix(np.array([0.26, 0.0, 0.0])) @ rotation_matrix(np.array([0.0, 0.44, 0.0]))
     pose = Pose(rotation=axis_angle(rotation_matrix(FRONTAL) @ rot), translation=[0.0, -10.0, 300.0])

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.model import FaceModel, ParamStats
+from articast.core.model.face import FaceModel, ParamStats
 
 HINGE = np.array([0.0, 0.0, -80.0])
 """Jaw rotation centre (mm, head frame), behind the teeth near the ears' height."""

@@ -12,9 +12,9 @@ from typing import Any
 
 import numpy as np
 
-from core.camera import Camera, Pose
-from core.model import PARAM_NAMES, FaceModel
-from core.result import TrackResult
+from articast.core.model.camera import Camera, Pose
+from articast.core.model.face import PARAM_NAMES, FaceModel
+from articast.core.tracking.result import TrackResult
 
 TIMEOUT = float(os.environ.get("ARTICAST_TEST_TIMEOUT", "1")) * 10.0
 """Generous timeout (s) for any wait in service tests; scale with ARTICAST_TEST_TIMEOUT."""
@@ -37,7 +37,7 @@ def truth(i: int, fps: float) -> TrackResult:
 def write_recording(path: Path, frames: int = 30, fps: float = 30.0,
                     model: FaceModel | None = None) -> list[TrackResult]:
     """A recording as ``serve --record`` writes it (header + one line per frame)."""
-    from service.wire import describe
+    from articast.service.wire import describe
 
     model = model or small_model()
     desc = describe(model, Camera.default(64, 48), model.param_names)
@@ -97,7 +97,7 @@ class ServerThread:
     def __init__(self, config: Any) -> None:
         import uvicorn
 
-        from service.server import bound_socket, uvicorn_config
+        from articast.service.server import bound_socket, uvicorn_config
 
         self.sock = bound_socket("127.0.0.1", 0)
         self.port = self.sock.getsockname()[1]

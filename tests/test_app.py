@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import websockets
 
-from service import protocol as P
-from service.app import ServiceConfig
-from service.capture import Capture
-from service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
-from service.sources import make_source
-from service.worker import SessionSpec
+from articast.service import protocol as P
+from articast.service.app import ServiceConfig
+from articast.service.capture import Capture
+from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
+from articast.service.sources import make_source
+from articast.service.worker import SessionSpec
 from tests.service_helpers import (
     TIMEOUT,
     ImageStats,

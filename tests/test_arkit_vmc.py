@@ -13,12 +13,18 @@ from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_packet import OscPacket
 from pythonosc.osc_server import ThreadingOSCUDPServer
 
-from core.arkit import ARKIT_BLENDSHAPES, ArkitMapper
-from core.camera import FRONTAL, Pose, axis_angle, rotation_matrix
-from core.errors import InputError
-from core.model import FaceModel
-from core.result import TrackResult
-from service.vmc import DEFAULT_PORT, VmcSender, head_bone, parse_host_port, quaternion_xyzw
+from articast.core.errors import InputError
+from articast.core.model.camera import FRONTAL, Pose, axis_angle, rotation_matrix
+from articast.core.model.face import FaceModel
+from articast.core.outputs.arkit import ARKIT_BLENDSHAPES, ArkitMapper
+from articast.core.tracking.result import TrackResult
+from articast.service.vmc import (
+    DEFAULT_PORT,
+    VmcSender,
+    head_bone,
+    parse_host_port,
+    quaternion_xyzw,
+)
 from tests.handmade_face import make_face_model
 
 MODEL = make_face_model()

@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from service.app import ServiceConfig
-from service.settings import ServerSettings
-from service.worker import SessionSpec
+from articast.service.app import ServiceConfig
+from articast.service.settings import ServerSettings
+from articast.service.worker import SessionSpec
 from tests.browser import CHROMIUM, Browser
 from tests.service_helpers import ServerThread
 
@@ -20,9 +20,9 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="chromium is not instal
 
 def jaw_recording(path, jaw1, frames=30):
     """A replayable recording of the synthetic speaker holding jaw1 at a value."""
-    from core.camera import Camera
-    from core.synthetic import default_speaker, rest_pose
-    from service.wire import describe
+    from articast.core.model.camera import Camera
+    from articast.core.synthetic import default_speaker, rest_pose
+    from articast.service.wire import describe
 
     model = default_speaker(0).model()
     desc = describe(model, Camera.default(640, 480), model.param_names)

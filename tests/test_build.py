@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from core.build import Corpus, build_model, invert
-from core.errors import InputError, ModelFileError
-from core.model import PARAM_NAMES
+from articast.core.errors import InputError, ModelFileError
+from articast.core.model.build import Corpus, build_model, invert
+from articast.core.model.face import PARAM_NAMES
 
 
 def grid_corpus(rng, v=40, noise=0.0):
@@ -112,7 +112,7 @@ def test_degenerate_corpora_are_rejected(rng):
 def test_cli_build_model_json(rng, tmp_path, capsys):
     import json
 
-    from service.cli import main
+    from articast.service.cli import main
 
     grid_corpus(rng).save(tmp_path / "c.npz")
     assert main(["build-model", str(tmp_path / "c.npz"), "-o", str(tmp_path / "m.npz"), "--json"]) == 0

@@ -4,8 +4,15 @@ import cv2
 import numpy as np
 import pytest
 
-from core.camera import FRONTAL, Camera, Pose, axis_angle, calibrate_chessboard, rotation_matrix
-from core.errors import CalibrationError, InputError, ModelFileError
+from articast.core.errors import CalibrationError, InputError, ModelFileError
+from articast.core.model.camera import (
+    FRONTAL,
+    Camera,
+    Pose,
+    axis_angle,
+    calibrate_chessboard,
+    rotation_matrix,
+)
 
 DISTORTED = Camera(610.0, 605.0, 322.0, 238.5, 640, 480, np.array([-0.21, 0.08, 1e-3, -2e-3, -0.01]))
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from core.camera import axis_angle, rotation_matrix
+from articast.core.model.camera import axis_angle, rotation_matrix
 
 
 @pytest.mark.parametrize("axis", [[1, 0, 0], [0, -1, 0], [-1, 1, 0], [0.3, -0.2, -0.9]])

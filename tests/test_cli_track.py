@@ -4,7 +4,7 @@ import json
 
 import numpy as np
 
-from service.cli import main
+from articast.service.cli import main
 
 
 def test_train_and_track_a_synthetic_video(tmp_path, capsys):

@@ -9,10 +9,10 @@ import time
 
 import pytest
 
-from clients.python import Client, ClientError, subscribe_sync
-from service.app import ServiceConfig
-from service.settings import ServerSettings
-from service.worker import SessionSpec
+from articast.client import Client, ClientError, subscribe_sync
+from articast.service.app import ServiceConfig
+from articast.service.settings import ServerSettings
+from articast.service.worker import SessionSpec
 from tests.service_helpers import TIMEOUT, ServerThread, write_recording
 
 
@@ -33,7 +33,7 @@ class PortServer(ServerThread):
 
     def __init__(self, cfg, port):
         super().__init__(cfg)
-        from service.server import bound_socket
+        from articast.service.server import bound_socket
 
         self.sock.close()
         self.sock = bound_socket("127.0.0.1", port)
@@ -119,7 +119,7 @@ def test_reconnects_after_the_server_restarts(recording):
 def test_record_cli_writes_a_replayable_file(recording, tmp_path):
     out = tmp_path / "out.jsonl"
     with ServerThread(config(recording, loop=0)) as srv:
-        r = subprocess.run([sys.executable, "-m", "clients.python.record", srv.url, "rec",
+        r = subprocess.run([sys.executable, "-m", "articast.client.record", srv.url, "rec",
                             "-o", str(out), "--frames", "12"], capture_output=True, text=True,
                            timeout=60)
     assert r.returncode == 0, r.stderr
@@ -127,7 +127,7 @@ def test_record_cli_writes_a_replayable_file(recording, tmp_path):
     assert lines[0]["type"] == "header" and len(lines) == 13
     assert all(x["type"] == "frame" and len(x["alpha"]) == 7 for x in lines[1:])
     # the server can serve the client's recording again
-    from service.sources import make_source
+    from articast.service.sources import make_source
 
     src = make_source(f"replay-record:{out}?pace=fast")
     src.open()
@@ -150,7 +150,7 @@ def test_client_imports_without_opencv_fastapi_or_the_tracker():
     code = ("import sys\n"
             "for m in ('cv2', 'fastapi', 'uvicorn', 'core', 'numpy'):\n"
             "    sys.modules[m] = None\n"
-            "import clients.python as c\n"
+            "import articast.client as c\n"
             "print(c.Client.__name__)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr

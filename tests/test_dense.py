@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from core.subdivide import loop_subdivide
-from core.synthetic import default_speaker
-from core.synthetic.dense import dense_face
+from articast.core.dense.subdivide import loop_subdivide
+from articast.core.synthetic import default_speaker
+from articast.core.synthetic.dense import dense_face
 
 
 def test_loop_subdivision_counts_and_smooths():

@@ -2,7 +2,13 @@
 
 import numpy as np
 
-from core.evaluate import jitter_mm, lag_frames, rms_3d, score_sequence, still_pairs
+from articast.core.evaluation.measures import (
+    jitter_mm,
+    lag_frames,
+    rms_3d,
+    score_sequence,
+    still_pairs,
+)
 from tests.blobface import blob_model
 
 

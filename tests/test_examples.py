@@ -5,9 +5,9 @@ from pathlib import Path
 
 import numpy as np
 
-from core.fap import FapEncoder
-from core.fap_io import read_fap
-from core.model import FaceModel
+from articast.core.model.face import FaceModel
+from articast.core.outputs.fap import FapEncoder
+from articast.core.outputs.fap_io import read_fap
 
 EX = Path(__file__).resolve().parent.parent / "docs" / "examples"
 

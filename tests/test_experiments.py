@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from service.cli import main
+from articast.service.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_hand_occlusion_streams_no_nonsense_and_is_recovered_within_three_frames
     (Two regressions this caught: the divergence level crept up with the sliding hand until
     fully covered frames, 9 mm off, passed as ok; and la_cst's first fit after the hand
     settled in a wrong minimum for 4 frames.)"""
-    from core.experiments import EvalConfig, Evaluation
+    from articast.core.evaluation.experiments import EvalConfig, Evaluation
 
     res = Evaluation(EvalConfig(conditions=("occlusion",), models=("la_cst", "la_lin"),
                                 test_sequences=1, test_frames=80)).run()

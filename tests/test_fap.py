@@ -10,9 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.camera import FRONTAL, Pose, axis_angle, rotation_matrix
-from core.errors import InputError
-from core.fap import (
+from articast.core.errors import InputError
+from articast.core.model.camera import FRONTAL, Pose, axis_angle, rotation_matrix
+from articast.core.model.face import FaceModel
+from articast.core.outputs.fap import (
     AU,
     GEOMETRIC_FAPS,
     FapEncoder,
@@ -27,10 +28,9 @@ from core.fap import (
     reconstruct_feature_points,
     write_fap,
 )  # fmt: skip
-from core.fap_table import FAP_BY_NAME, FAP_TABLE, N_FAPS
-from core.model import FaceModel
-from core.result import TrackResult
-from service.cli import main
+from articast.core.outputs.fap_table import FAP_BY_NAME, FAP_TABLE, N_FAPS
+from articast.core.tracking.result import TrackResult
+from articast.service.cli import main
 from tests.handmade_face import make_face_model
 
 MODEL = make_face_model()

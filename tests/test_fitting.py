@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from core.appearance import image_maps, roi_of, sample_la
-from core.camera import rotation_matrix
-from core.fitting import Problem, fit_gauss_newton, fit_nelder_mead
+from articast.core.appearance.maps import image_maps, roi_of, sample_la
+from articast.core.model.camera import rotation_matrix
+from articast.core.tracking.fitting import Problem, fit_gauss_newton, fit_nelder_mead
 from tests.blobface import blob_trained, render_blobs
 
 
@@ -69,14 +69,14 @@ def test_fit_recovers_a_perturbed_state(trained, optimiser):
     roi = roi_of(prob.project(np.r_[np.zeros(7), pose.rotation, start_t]), 40)
     maps = image_maps(img, roi, app.sigma, 0)
     if optimiser == "gn":  # coarse to fine: half resolution first
-        from core.fitting import FitPolicy
+        from articast.core.tracking.fitting import FitPolicy
 
         coarse = fit_gauss_newton(prob, image_maps(img, roi, app.sigma, 1), 1, np.zeros(7),
                                   pose.rotation, start_t, FitPolicy(max_iterations=30))
         res = fit_gauss_newton(prob, maps, 0, coarse.alpha, coarse.rotation, coarse.translation)
         assert coarse.evals + res.evals <= 40  # a cold start, far from the per-frame budget
     else:
-        from core.fitting import FitPolicy
+        from articast.core.tracking.fitting import FitPolicy
 
         res = fit_nelder_mead(prob, maps, 0, np.zeros(7), pose.rotation, start_t,
                               FitPolicy(nelder_mead_evals=3000))
@@ -91,7 +91,7 @@ def test_robust_loss_gradient_and_weights_are_those_of_its_cost():
     """The IRLS residuals/Jacobian give g = J_w^T r_w = half the gradient of the Cauchy cost
     (the least-squares convention of the optimiser), checked by finite differences on a
     random linear residual; None is plain least squares."""
-    from core.fitting import _robust
+    from articast.core.tracking.fitting import _robust
 
     rng = np.random.default_rng(4)
     c, s, p = 8, 12, 5
@@ -118,7 +118,7 @@ def test_robust_fit_is_not_dragged_by_points_the_model_gets_wrong(trained):
     the per-point Cauchy loss lets the other points decide."""
     import cv2
 
-    from core.fitting import FitPolicy
+    from articast.core.tracking.fitting import FitPolicy
 
     model, camera, pose, app = trained
     prob = Problem(model, app, camera)
@@ -145,13 +145,13 @@ def test_robust_fit_is_not_dragged_by_points_the_model_gets_wrong(trained):
 @pytest.mark.parametrize("kind", ["la_lin", "la_quad"])
 @pytest.mark.parametrize("distorted", [False, True])
 def test_compiled_kernel_gives_the_numpy_reference_numbers(trained, kind, distorted):
-    """core.kernels fuses the la cost into one compiled loop; Problem.residuals' numpy code is
+    """articast.core.tracking.kernels fuses the la cost into one compiled loop; Problem.residuals' numpy code is
     the definition. Same residuals, Jacobian (with gain) and valid set, samples off the map
     included, for la lin and la quad, with and without lens distortion."""
     from dataclasses import replace
 
-    from core import kernels
-    from core.appearance import TrainingFrame, train_appearance
+    from articast.core.appearance.models import TrainingFrame, train_appearance
+    from articast.core.tracking import kernels
 
     if not kernels.AVAILABLE:
         pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0): only the numpy path")
@@ -187,7 +187,7 @@ def test_compiled_kernel_gives_the_numpy_reference_numbers(trained, kind, distor
 
 
 def test_compiled_cauchy_weights_match_their_numpy_definition(monkeypatch):
-    from core import fitting, kernels
+    from articast.core.tracking import fitting, kernels
 
     if not kernels.AVAILABLE:
         pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
@@ -205,8 +205,8 @@ def test_lazy_maps_smooth_on_demand_what_the_full_blur_gives(trained):
     """Lazy level-0 maps: the kernel smooths only the pixels the samples read, with the same
     Gaussian and border rule as the full blur — same residuals and Jacobian to float32
     precision, a small fraction of the map touched, and dense() completes the rest."""
-    from core import kernels
-    from core.appearance import image_pyramid
+    from articast.core.appearance.maps import image_pyramid
+    from articast.core.tracking import kernels
 
     if not kernels.AVAILABLE:
         pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
@@ -235,7 +235,7 @@ def test_the_compiled_kernels_are_what_the_product_runs():
     parity tests above would skip silently and the tracker run 2-3x slower."""
     import os
 
-    from core import kernels
+    from articast.core.tracking import kernels
 
     if os.environ.get("ARTICAST_JIT") == "0":
         pytest.skip("disabled by ARTICAST_JIT=0")

@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from service.hub import HubClosed, InMemoryHub
+from articast.service.hub import HubClosed, InMemoryHub
 
 
 def run(coro):
@@ -35,7 +35,7 @@ class Redis:
         self.url = url
 
     def __call__(self):
-        from service.redis_hub import JSONCodec, RedisHub
+        from articast.service.redis_hub import JSONCodec, RedisHub
 
         return RedisHub(self.url, JSONCodec(), prefix=f"test{time.monotonic_ns()}:")
 

@@ -6,9 +6,9 @@ import zipfile
 import numpy as np
 import pytest
 
-from core.bundle import save_bundle
-from core.errors import InputError, ModelFileError
-from core.model import FaceModel, ParamStats
+from articast.core.bundle import save_bundle
+from articast.core.errors import InputError, ModelFileError
+from articast.core.model.face import FaceModel, ParamStats
 
 
 def small_model(rng, n=12, k=7):

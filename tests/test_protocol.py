@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from service import protocol as P
+from articast.service import protocol as P
 
 
 def test_subscribe_defaults_and_round_trip():
@@ -102,7 +102,7 @@ def test_schema_covers_both_directions():
 
 
 def test_protocol_imports_without_numpy_opencv_fastapi():
-    code = ("import sys; import service.protocol; "
+    code = ("import sys; import articast.service.protocol; "
             "bad = [m for m in ('numpy', 'cv2', 'fastapi', 'core') if m in sys.modules]; "
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)

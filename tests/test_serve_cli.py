@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def start(*args):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "error"}
-    p = subprocess.Popen([sys.executable, "-m", "service.cli", *args, "--port", "0", "--json"],
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", *args, "--port", "0", "--json"],
                          cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                          text=True)
     line = p.stdout.readline()
@@ -76,7 +76,7 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
 def test_replay_of_a_corrupt_video_is_one_clear_error(tmp_path):
     bad = tmp_path / "talk.mp4"
     bad.write_bytes(b"not a video at all" * 100)
-    r = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(bad)], cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "articast.service.cli", "replay", str(bad)], cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2
@@ -85,7 +85,7 @@ def test_replay_of_a_corrupt_video_is_one_clear_error(tmp_path):
 
 
 def test_bad_source_option_is_one_clear_error():
-    r = subprocess.run([sys.executable, "-m", "service.cli", "serve", "--source", "nope"],
+    r = subprocess.run([sys.executable, "-m", "articast.service.cli", "serve", "--source", "nope"],
                        cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)},
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "NAME=URI" in r.stderr and "Traceback" not in r.stderr
@@ -96,7 +96,7 @@ def test_replay_without_an_appearance_model_says_so(tmp_path):
     from tests.service_helpers import write_video
 
     write_video(video, frames=3)
-    r = subprocess.run([sys.executable, "-m", "service.cli", "replay", str(video)], cwd=ROOT,
+    r = subprocess.run([sys.executable, "-m", "articast.service.cli", "replay", str(video)], cwd=ROOT,
                        env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
                        text=True, timeout=60)
     assert r.returncode == 2 and "appearance" in r.stderr and "Traceback" not in r.stderr
@@ -143,7 +143,7 @@ def test_the_docker_image_command_is_one_the_cli_accepts():
     import re
     from pathlib import Path
 
-    from service.cli import build_parser
+    from articast.service.cli import build_parser
 
     text = (Path(__file__).resolve().parents[1] / "docker" / "Dockerfile").read_text()
     cmd = json.loads(re.search(r"^CMD (\[.*\])$", text, re.M).group(1))

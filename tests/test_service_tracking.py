@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import websockets
 
-from service.app import ServiceConfig
-from service.cli import main
-from service.settings import ServerSettings
-from service.worker import SessionSpec
+from articast.service.app import ServiceConfig
+from articast.service.cli import main
+from articast.service.settings import ServerSettings
+from articast.service.worker import SessionSpec
 from tests.service_helpers import TIMEOUT, ServerThread
 
 
@@ -104,7 +104,7 @@ def test_serve_sends_vmc_bundles_while_streaming(tmp_path):
     osc = ThreadingOSCUDPServer(("127.0.0.1", 0), disp)
     threading.Thread(target=osc.serve_forever, daemon=True).start()
     try:
-        from core.synthetic import default_speaker
+        from articast.core.synthetic import default_speaker
 
         rec = tmp_path / "talk.jsonl"
         write_recording(rec, frames=20, fps=30, model=default_speaker(0).model())

@@ -4,8 +4,14 @@ import argparse
 
 import pytest
 
-from core.errors import InputError
-from service.settings import HubSettings, ServerSettings, add_arguments, from_args, from_env
+from articast.core.errors import InputError
+from articast.service.settings import (
+    HubSettings,
+    ServerSettings,
+    add_arguments,
+    from_args,
+    from_env,
+)
 
 
 def test_env_then_overrides():

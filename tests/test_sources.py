@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from service.capture import Capture
-from service.settings import CaptureSettings
-from service.sources import SourceError, make_source, parse_uri, probe
+from articast.service.capture import Capture
+from articast.service.settings import CaptureSettings
+from articast.service.sources import SourceError, make_source, parse_uri, probe
 from tests.service_helpers import TIMEOUT, write_recording, write_video
 
 
@@ -143,7 +143,7 @@ def test_missing_camera_is_a_status_with_retries_not_a_crash():
 
 
 def test_synthetic_source_brings_model_camera_appearance_and_truth():
-    from service.sources import make_source
+    from articast.service.sources import make_source
 
     src = make_source("synthetic:seed=0&fps=30")
     info = src.open()
@@ -171,7 +171,7 @@ class FlakyCamera:
         self.reads = 0
 
     def open(self):
-        from service.sources import SourceInfo, SourceUnavailable
+        from articast.service.sources import SourceInfo, SourceUnavailable
 
         self.opens += 1
         if 2 <= self.opens <= 3:
@@ -180,7 +180,7 @@ class FlakyCamera:
         return SourceInfo(self.uri, "fake", True, 8, 6, 100.0)
 
     def read(self):
-        from service.sources import SourceUnavailable
+        from articast.service.sources import SourceUnavailable
 
         self.reads += 1
         if self.opens == 1 and self.reads > 5:
@@ -192,7 +192,7 @@ class FlakyCamera:
         pass
 
     def assets(self):
-        from service.sources import SourceAssets
+        from articast.service.sources import SourceAssets
 
         return SourceAssets()
 

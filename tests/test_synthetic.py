@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from core.build import Corpus, build_model, invert
-from core.camera import FRONTAL, Camera, Pose, rotation_matrix
-from core.errors import InputError
-from core.model import FEATURE_POINTS, PARAM_NAMES, POINT_GROUPS, FaceModel
-from core.synthetic import (
+from articast.core.errors import InputError
+from articast.core.model.build import Corpus, build_model, invert
+from articast.core.model.camera import FRONTAL, Camera, Pose, rotation_matrix
+from articast.core.model.face import FEATURE_POINTS, PARAM_NAMES, POINT_GROUPS, FaceModel
+from articast.core.synthetic import (
     RenderOptions,
     default_speaker,
     make_corpus,
@@ -18,8 +18,8 @@ from core.synthetic import (
     make_sequence,
     rest_pose,
 )
-from core.synthetic.render import rasterize
-from core.synthetic.sequence import default_camera
+from articast.core.synthetic.render import rasterize
+from articast.core.synthetic.sequence import default_camera
 
 OPEN = np.array([2.0, 0.3, -0.3, 0.0, 0.3, 0.0, 0.0])  # /a/
 
@@ -152,7 +152,7 @@ def test_rasterize_culls_back_faces_only_when_asked():
 
 
 def test_rasterize_in_chunks_gives_the_same_image(monkeypatch):
-    import core.synthetic.render as render
+    import articast.core.synthetic.render as render
 
     whole = _render(OPEN)
     monkeypatch.setattr(render, "MAX_SPAN_PIXELS", 5000)
@@ -219,7 +219,7 @@ def test_visibility_hides_the_lower_teeth_behind_closed_lips_and_the_far_cheek()
 
 def rotation_matrix_to_vec(yaw):
     """Axis-angle of a frontal view with the head turned by ``yaw`` (rad) to its left."""
-    from core.camera import axis_angle
+    from articast.core.model.camera import axis_angle
 
     return axis_angle(rotation_matrix(FRONTAL) @ rotation_matrix([0.0, yaw, 0.0]))
 
@@ -294,7 +294,7 @@ def test_sequence_is_smooth_with_exact_still_segments(rig):
 
 
 def test_quintic_path_passes_its_keyframes_with_their_velocities():
-    from core.synthetic.sequence import quintic_path
+    from articast.core.synthetic.sequence import quintic_path
 
     key_t = np.array([0.0, 0.1, 0.25, 0.4])
     key_x = np.array([[0.0], [1.0], [-0.5], [0.2]])
@@ -339,7 +339,7 @@ def test_sequence_rejects_bad_arguments():
 
 # ---------------------------------------------------------------- CLI
 def test_cli_synth_sequence_writes_consistent_files(tmp_path):
-    from service.cli import main
+    from articast.service.cli import main
 
     out = tmp_path / "seq"
     rc = main(["synth", "sequence", "-o", str(out), "--frames", "7", "--size", "160x120",
@@ -371,7 +371,7 @@ def test_cli_synth_sequence_writes_consistent_files(tmp_path):
 
 
 def test_cli_synth_reports_bad_input_clearly(tmp_path, capsys):
-    from service.cli import main
+    from articast.service.cli import main
 
     assert main(["synth", "sequence", "-o", str(tmp_path), "--size", "big"]) == 2
     assert "--size must look like 640x480" in capsys.readouterr().err

@@ -6,10 +6,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from core.appearance import AppearanceModel, TrainingFrame, train_appearance
-from core.camera import Pose
-from core.errors import InputError, ModelFileError
-from core.tracker import Tracker, TrackingPolicy
+from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
+from articast.core.errors import InputError, ModelFileError
+from articast.core.model.camera import Pose
+from articast.core.tracking.tracker import Tracker, TrackingPolicy
 from tests.blobface import blob_trained, render_blobs
 
 # the blob face's features are small discs: the initial search needs a fine grid
@@ -83,7 +83,7 @@ def test_a_few_mispredicted_points_are_tracked_through_but_a_covered_face_is_not
     range) leave the frame ok and accurate; a patch over most of the face is flagged."""
     import cv2
 
-    from core.fitting import Problem
+    from articast.core.tracking.fitting import Problem
 
     model, camera, pose, app = setup
     tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
@@ -196,8 +196,8 @@ def test_information_selection_finds_the_points_that_show_a_depth_mode():
     """A parameter that moves some points a lot along the camera's line of sight (invisible:
     jaw advance under a frontal camera) and others a little across the image: the paper's
     largest-displacement rule picks the invisible ones, the information rule the visible."""
-    from core.appearance import informative_points, select_points, visible_points
-    from core.model import FaceModel
+    from articast.core.appearance.models import informative_points, select_points, visible_points
+    from articast.core.model.face import FaceModel
     from tests.blobface import blob_setup
 
     model, camera, pose = blob_setup()

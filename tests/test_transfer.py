@@ -9,9 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.camera import rotation_matrix
-from core.errors import InputError, ModelFileError
-from core.mesh import (
+from articast.core.dense.mesh import (
     MeshTopology,
     angle_deficits,
     parse_obj,
@@ -19,8 +17,7 @@ from core.mesh import (
     register_icp,
     vertex_normals,
 )  # fmt: skip
-from core.model import FaceModel, ParamStats
-from core.transfer import (
+from articast.core.dense.transfer import (
     Binding,
     apply,
     barycentric_apply,
@@ -29,7 +26,10 @@ from core.transfer import (
     linearity_error,
     register_and_bind,
 )
-from service.cli import main  # fmt: skip
+from articast.core.errors import InputError, ModelFileError
+from articast.core.model.camera import rotation_matrix
+from articast.core.model.face import FaceModel, ParamStats
+from articast.service.cli import main  # fmt: skip
 
 
 def paraboloid(x, y):

@@ -5,10 +5,10 @@ import threading
 
 import numpy as np
 
-from core.camera import Pose
-from core.result import TrackResult
-from service.settings import CaptureSettings
-from service.worker import SessionSpec, _record, run_worker
+from articast.core.model.camera import Pose
+from articast.core.tracking.result import TrackResult
+from articast.service.settings import CaptureSettings
+from articast.service.worker import SessionSpec, _record, run_worker
 from tests.service_helpers import write_recording
 
 

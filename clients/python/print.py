@@ -1,4 +1,4 @@
-"""``python -m clients.python.print URL SESSION`` — one live line per frame: the seven
+"""``python -m articast.client.print URL SESSION`` — one live line per frame: the seven
 articulatory parameters, quality and the measured latency (server send -> received, same host
 clock or NTP-synchronised hosts). Ctrl-C stops."""
 
@@ -8,11 +8,11 @@ import argparse
 import sys
 import time
 
-from clients.python.client import ClientClosed, ClientError, subscribe_sync
+from articast.client.client import ClientClosed, ClientError, subscribe_sync
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m clients.python.print", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m articast.client.print", description=__doc__)
     ap.add_argument("url")
     ap.add_argument("session")
     ap.add_argument("--rate", type=float, default=None, help="max frames per second")

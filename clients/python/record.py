@@ -1,4 +1,4 @@
-"""``python -m clients.python.record URL SESSION -o out.jsonl [--frames N]``
+"""``python -m articast.client.record URL SESSION -o out.jsonl [--frames N]``
 
 Record a session's frames as JSON lines (a header from ``hello``, then one line per frame,
 each flushed: a crash loses at most the frame in flight). The file replays with
@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from clients.python.client import (
+from articast.client.client import (
     ClientClosed,
     ClientError,
     frame_record,
@@ -21,7 +21,7 @@ from clients.python.client import (
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m clients.python.record", description=__doc__,
+    ap = argparse.ArgumentParser(prog="python -m articast.client.record", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("url", help="ws://HOST:PORT/ws")
     ap.add_argument("session")

@@ -9,12 +9,18 @@
 - :mod:`.speaker` - ``SyntheticSpeaker`` / ``default_speaker`` tying them together.
 """
 
-from core.synthetic.corpus import make_corpus
-from core.synthetic.geometry import SpeakerGeometry, make_geometry
-from core.synthetic.render import RenderOptions
-from core.synthetic.sequence import RIGS, Sequence, default_camera, make_sequence, rest_pose
-from core.synthetic.speaker import SyntheticSpeaker, default_speaker
-from core.synthetic.stream import open_stream
+from articast.core.synthetic.corpus import make_corpus
+from articast.core.synthetic.geometry import SpeakerGeometry, make_geometry
+from articast.core.synthetic.render import RenderOptions
+from articast.core.synthetic.sequence import (
+    RIGS,
+    Sequence,
+    default_camera,
+    make_sequence,
+    rest_pose,
+)
+from articast.core.synthetic.speaker import SyntheticSpeaker, default_speaker
+from articast.core.synthetic.stream import open_stream
 
 __all__ = [
     "RIGS",

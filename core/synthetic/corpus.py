@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.build import Corpus
-from core.errors import InputError
-from core.model import PARAM_NAMES
-from core.synthetic.geometry import SpeakerGeometry, make_geometry
+from articast.core.errors import InputError
+from articast.core.model.build import Corpus
+from articast.core.model.face import PARAM_NAMES
+from articast.core.synthetic.geometry import SpeakerGeometry, make_geometry
 
 #: jaw1, lips1, lips2, lips3, lips4, jaw2, lar1 targets of the vowels. lips2/lips3 are the
 #: lips relative to the jaw (open vowels keep the lower lip up, close ones lower it);
@@ -153,7 +153,8 @@ def make_corpus(seed: int = 0, noise_mm: float = 0.3,
     seed : speaker and token variability. noise_mm : RMS 3D measurement error per point (mm),
     drawn iid, isotropic (each coordinate has s.d. ``noise_mm / sqrt(3)``).
     geometry : the speaker (default ``make_geometry(seed)``).
-    Returns a :class:`core.build.Corpus` with ``controls`` (68, 7) and ``control_names``.
+    Returns a :class:`articast.core.model.build.Corpus` with ``controls`` (68, 7) and
+    ``control_names``.
     """
     if not np.isfinite(noise_mm) or noise_mm < 0:
         raise InputError(f"noise_mm must be finite and >= 0, got {noise_mm!r}")

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.model import FaceModel
-from core.subdivide import loop_subdivide
+from articast.core.dense.subdivide import loop_subdivide
+from articast.core.model.face import FaceModel
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,8 +56,8 @@ def dense_face(model: FaceModel, steps: int = 2, seed: int = 0,
     barycentric transfers differ by more than ``outlier_mm`` at +-2 s.d. of any parameter
     follow the barycentric transfer instead.
     """
-    from core.appearance import vertex_normals
-    from core.transfer import barycentric_apply, bind, dense_modes
+    from articast.core.appearance.models import vertex_normals
+    from articast.core.dense.transfer import barycentric_apply, bind, dense_modes
 
     used = np.unique(model.triangles)
     remap = -np.ones(model.n_points, np.int64)
@@ -71,7 +71,7 @@ def dense_face(model: FaceModel, steps: int = 2, seed: int = 0,
                          - barycentric_apply(binding, model.mean - b)) / 2 for b in model.basis])
     probes = np.concatenate([2 * np.eye(model.n_params), -2 * np.eye(model.n_params)])
     gap = np.zeros(len(verts))
-    from core.transfer import apply
+    from articast.core.dense.transfer import apply
 
     for a in probes:
         full = apply(binding, model.shape(a))

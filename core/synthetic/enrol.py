@@ -9,11 +9,11 @@ the difference between 0.5 and 1.6 mm mean RMS error.
 
 from __future__ import annotations
 
-from core.appearance import AppearanceModel, TrainingFrame, train_appearance
-from core.build import invert
-from core.synthetic.render import RenderOptions
-from core.synthetic.sequence import make_sequence
-from core.synthetic.speaker import SyntheticSpeaker
+from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
+from articast.core.model.build import invert
+from articast.core.synthetic.render import RenderOptions
+from articast.core.synthetic.sequence import make_sequence
+from articast.core.synthetic.speaker import SyntheticSpeaker
 
 ENROL_FRAMES = 75
 ENROL_FPS = 6.0
@@ -33,7 +33,7 @@ def enrolment_appearance(speaker: SyntheticSpeaker, rig: str = "head", kind: str
                          frames: list[TrainingFrame] | None = None,
                          **train_options) -> AppearanceModel:
     """The appearance model of ``kind`` trained on the speaker's enrolment frames."""
-    from core.synthetic.sequence import default_camera
+    from articast.core.synthetic.sequence import default_camera
 
     frames = frames if frames is not None else enrolment_frames(speaker, rig)
     return train_appearance(speaker.model(), default_camera(rig), frames, kind, **train_options)

@@ -3,14 +3,16 @@
 The face is a polar grid around the mouth: ring 0 is the inner lip contour, ring 1 the
 lip-contouring beads (mid-vermilion), ring 2 the outer lip contour, rings 3.. are skin, out to
 an outline running over the eyes, the cheeks and under the jaw to the throat. The neutral
-surface is a smooth height field (:mod:`core.synthetic.surface`: lips, nose, chin, nasolabial
+surface is a smooth height field (:mod:`articast.core.synthetic.surface`: lips, nose, chin,
+nasolabial
 folds, jaw border with the under-jaw drop). Extra points: lower incisor edges
 (``lower_teeth``), eye centres and the head rotation centre (in ``rest``, not triangulated).
 
-Frame: head frame of :mod:`core.model` (mm, x speaker's left, y up, z forward, origin at the
+Frame: head frame of :mod:`articast.core.model.face` (mm, x speaker's left, y up, z forward,
+origin at the
 upper incisor edge on the bite plane).
 
-Controls (dimensionless, 0 = rest, order of :data:`core.model.PARAM_NAMES`):
+Controls (dimensionless, 0 = rest, order of :data:`articast.core.model.face.PARAM_NAMES`):
 
 =====  ==================================================================================
 jaw1   jaw rotation about a hinge 80 mm behind and 20 mm above the incisors; 1 = 7 deg open
@@ -36,9 +38,9 @@ from types import MappingProxyType
 
 import numpy as np
 
-from core.errors import InputError
-from core.model import PARAM_NAMES
-from core.synthetic.surface import (
+from articast.core.errors import InputError
+from articast.core.model.face import PARAM_NAMES
+from articast.core.synthetic.surface import (
     arch_z,
     jaw_border_y,
     nasolabial_distance,

@@ -3,8 +3,9 @@
 Scene (head frame, mm): the articulated model mesh (skin, lips), the mouth cavity hanging
 from the inner lip contour, upper teeth fixed to the head, lower teeth moving rigidly with the
 jaw, and a head ellipsoid and neck behind the face so it does not float; a textured wall
-behind everything. Vertices are posed (:class:`core.camera.Pose`) and projected with
-:class:`core.camera.Camera` (distortion included, per vertex); triangles are rasterised in
+behind everything. Vertices are posed (:class:`articast.core.model.camera.Pose`) and projected with
+:class:`articast.core.model.camera.Camera` (distortion included, per vertex); triangles are
+rasterised in
 numpy, vectorised per row span, with a real depth test on 1/z. Attributes (texture
 coordinates and light) are interpolated perspective-correctly; light is ambient + Lambert on
 smooth per-vertex normals.
@@ -19,9 +20,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from core.camera import Camera, Pose
-from core.errors import InputError
-from core.synthetic.scene import Scene
+from articast.core.errors import InputError
+from articast.core.model.camera import Camera, Pose
+from articast.core.synthetic.scene import Scene
 
 OCCLUDERS = ("none", "hand", "black")
 NEAR_MM = 20.0

@@ -15,9 +15,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from core.synthetic.geometry import N_ANGLES, SpeakerGeometry, jaw_transform
-from core.synthetic.surface import ARCH_RADIUS, arch_z
-from core.synthetic.texture import Atlas
+from articast.core.synthetic.geometry import N_ANGLES, SpeakerGeometry, jaw_transform
+from articast.core.synthetic.surface import ARCH_RADIUS, arch_z
+from articast.core.synthetic.texture import Atlas
 
 
 @dataclass(frozen=True, eq=False)
@@ -66,7 +66,7 @@ def _orient(vertices: np.ndarray, tri: np.ndarray, outward: np.ndarray) -> np.nd
 
 
 def _normals(vertices: np.ndarray, tri: np.ndarray) -> np.ndarray:
-    from core.synthetic.render import vertex_normals
+    from articast.core.synthetic.render import vertex_normals
 
     return vertex_normals(vertices, tri)
 

@@ -22,11 +22,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.camera import Camera, Pose, axis_angle, rotation_matrix
-from core.errors import InputError
-from core.model import PARAM_NAMES
-from core.synthetic.corpus import corpus_controls
-from core.synthetic.geometry import SpeakerGeometry, make_geometry
+from articast.core.errors import InputError
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
+from articast.core.model.face import PARAM_NAMES
+from articast.core.synthetic.corpus import corpus_controls
+from articast.core.synthetic.geometry import SpeakerGeometry, make_geometry
 
 RIGS = ("head", "desk")
 HEAD_CENTRE = np.array([0.0, 12.0, -95.0])

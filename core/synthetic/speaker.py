@@ -13,15 +13,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.build import Corpus, VarianceTable, build_model
-from core.camera import Camera, Pose
-from core.errors import InputError
-from core.model import PARAM_NAMES, FaceModel
-from core.synthetic.corpus import make_corpus
-from core.synthetic.geometry import SpeakerGeometry, make_geometry
-from core.synthetic.render import RenderOptions, composite, visible_points
-from core.synthetic.scene import build_scene
-from core.synthetic.texture import Atlas, make_atlas, make_background
+from articast.core.errors import InputError
+from articast.core.model.build import Corpus, VarianceTable, build_model
+from articast.core.model.camera import Camera, Pose
+from articast.core.model.face import PARAM_NAMES, FaceModel
+from articast.core.synthetic.corpus import make_corpus
+from articast.core.synthetic.geometry import SpeakerGeometry, make_geometry
+from articast.core.synthetic.render import RenderOptions, composite, visible_points
+from articast.core.synthetic.scene import build_scene
+from articast.core.synthetic.texture import Atlas, make_atlas, make_background
 
 
 @dataclass(eq=False)
@@ -70,7 +70,7 @@ class SyntheticSpeaker:
         if c.shape != (len(PARAM_NAMES),):
             raise InputError(f"render takes one posture, controls of shape (7,), got {c.shape}")
         if not isinstance(pose, Pose) or not isinstance(camera, Camera):
-            raise InputError("render needs a core.camera.Pose and a core.camera.Camera")
+            raise InputError("render needs a Pose and a Camera (articast.core.model.camera)")
         options = options or RenderOptions()
         atlas = make_atlas(self.seed)
         scene = self._scene(c)

@@ -8,15 +8,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.appearance import AppearanceModel
-from core.build import invert
-from core.camera import Camera, Pose
-from core.model import FaceModel
-from core.result import TrackResult
-from core.synthetic.enrol import enrolment_appearance
-from core.synthetic.render import RenderOptions
-from core.synthetic.sequence import default_camera, make_sequence, rest_pose
-from core.synthetic.speaker import default_speaker
+from articast.core.appearance.models import AppearanceModel
+from articast.core.model.build import invert
+from articast.core.model.camera import Camera, Pose
+from articast.core.model.face import FaceModel
+from articast.core.synthetic.enrol import enrolment_appearance
+from articast.core.synthetic.render import RenderOptions
+from articast.core.synthetic.sequence import default_camera, make_sequence, rest_pose
+from articast.core.synthetic.speaker import default_speaker
+from articast.core.tracking.result import TrackResult
 
 CHUNK_S = 10.0  # each chunk is a fresh sequence of this length; time runs on across chunks
 

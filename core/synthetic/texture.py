@@ -3,7 +3,7 @@
 The atlas holds one rectangle per material. The skin rectangle is addressed by the *neutral*
 head-frame (x, y) of the face (mm), so the texture moves with the tissue; the other
 materials (teeth, mouth cavity, head, neck) are addressed by local coordinates (s, t) in
-[0, 1]^2 given by :mod:`core.synthetic.render`.
+[0, 1]^2 given by :mod:`articast.core.synthetic.render`.
 
 Skin: base tone, low-frequency colour variation (redder cheeks, nose, chin), mottling, pores
 and fine grain; red lips with vertical striations and a darker wet inner band; nostrils;
@@ -18,8 +18,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from core.synthetic.geometry import SpeakerGeometry, make_geometry
-from core.synthetic.surface import nasolabial_distance
+from articast.core.synthetic.geometry import SpeakerGeometry, make_geometry
+from articast.core.synthetic.surface import nasolabial_distance
 
 ATLAS_SIZE = (1024, 1024)  # (height, width) px
 SKIN_PPM = 4.0

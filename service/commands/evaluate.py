@@ -11,7 +11,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from core.experiments import CONDITIONS, MODELS
+    from articast.core.evaluation.experiments import CONDITIONS, MODELS
 
     p = sub.add_parser(
         "evaluate",
@@ -40,8 +40,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
-    from core.errors import InputError
-    from core.experiments import EvalConfig, Evaluation
+    from articast.core.errors import InputError
+    from articast.core.evaluation.experiments import EvalConfig, Evaluation
 
     try:
         cfg = EvalConfig(
@@ -65,7 +65,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     args.output.mkdir(parents=True, exist_ok=True)
     doc = _clean(result.to_json())
     (args.output / "figures.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
-    from service.report import write_report
+    from articast.service.report import write_report
 
     write_report(result, cfg, args.output, time.perf_counter() - t0,
                  " ".join(["articast evaluate"] + sys.argv[2:]))

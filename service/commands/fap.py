@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -54,7 +54,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def read_track(path: Path, param_names: tuple[str, ...]) -> list:
     """TrackResults of a JSON-lines file; blank lines are skipped, anything else must parse."""
-    from core.result import TrackResult
+    from articast.core.tracking.result import TrackResult
 
     try:
         text = path.read_text(encoding="utf-8")
@@ -120,9 +120,9 @@ def track_fps(t: np.ndarray) -> int:
 
 
 def _export_fap(args: argparse.Namespace) -> int:
-    from core.camera import FRONTAL
-    from core.fap import FapEncoder, write_fap
-    from core.model import FaceModel
+    from articast.core.model.camera import FRONTAL
+    from articast.core.model.face import FaceModel
+    from articast.core.outputs.fap import FapEncoder, write_fap
 
     model = FaceModel.load(args.model)
     results = read_track(args.track, model.param_names)

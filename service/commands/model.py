@@ -36,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _build_model(args: argparse.Namespace) -> int:
-    from core.build import Corpus, build_model
+    from articast.core.model.build import Corpus, build_model
 
     corpus = Corpus.load(args.corpus)
     model, table = build_model(corpus)
@@ -53,8 +53,8 @@ def _build_model(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     import cv2
 
-    from core.camera import calibrate_chessboard
-    from core.errors import InputError
+    from articast.core.errors import InputError
+    from articast.core.model.camera import calibrate_chessboard
 
     try:
         cols, rows = (int(v) for v in args.pattern.lower().split("x"))

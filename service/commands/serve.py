@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from service.settings import (
+from articast.service.settings import (
     CaptureSettings,
     HubSettings,
     ServerSettings,
@@ -88,17 +88,17 @@ def _common(p: argparse.ArgumentParser) -> None:
 def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     import os
 
-    from core.errors import InputError
-    from service.app import ServiceConfig
-    from service.server import serve
-    from service.sources import probe
-    from service.worker import SessionSpec
+    from articast.core.errors import InputError
+    from articast.service.app import ServiceConfig
+    from articast.service.server import serve
+    from articast.service.sources import probe
+    from articast.service.worker import SessionSpec
 
     names = [n for n, _ in sources]
     if len(set(names)) != len(names):
         raise InputError(f"session names must differ: {names}")
-    from service.processors import check_processor
-    from service.sources import parse_uri
+    from articast.service.processors import check_processor
+    from articast.service.sources import parse_uri
 
     for _, uri in sources:
         probe(uri)  # a corrupt file or unknown kind: one clear error now, not a server later
@@ -130,7 +130,7 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from service.sources import parse_named
+    from articast.service.sources import parse_named
 
     return _run(args, [parse_named(s) for s in args.source])
 

@@ -92,7 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _parse_size(text: str) -> tuple[int, int]:
-    from core.errors import InputError
+    from articast.core.errors import InputError
 
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -105,7 +105,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 def _parse_range(text: str, n_frames: int) -> tuple[int, int]:
     """'A:B' -> (A, B) frame range; '' -> all frames."""
-    from core.errors import InputError
+    from articast.core.errors import InputError
 
     if not text:
         return 0, n_frames
@@ -119,8 +119,8 @@ def _parse_range(text: str, n_frames: int) -> tuple[int, int]:
 
 
 def _corpus(args: argparse.Namespace) -> int:
-    from core.errors import InputError
-    from core.synthetic import make_corpus
+    from articast.core.errors import InputError
+    from articast.core.synthetic import make_corpus
 
     if args.seed < 0:
         raise InputError(f"--seed must be >= 0, got {args.seed}")
@@ -135,11 +135,11 @@ def _sequence(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from core.build import invert
-    from core.bundle import save_bundle
-    from core.errors import InputError
-    from core.model import PARAM_NAMES
-    from core.synthetic import RenderOptions, default_speaker, make_sequence
+    from articast.core.bundle import save_bundle
+    from articast.core.errors import InputError
+    from articast.core.model.build import invert
+    from articast.core.model.face import PARAM_NAMES
+    from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
 
     width, height = _parse_size(args.size)
     occluded = _parse_range(args.occlude_frames, args.frames) if args.occluder != "none" else None

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -75,8 +75,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def load_states(path: Path, param_names: tuple[str, ...]) -> list:
     """TrackResults of a truth/track JSON-lines file, with line numbers in errors."""
-    from core.result import TrackResult
-    from service.video import read_jsonl
+    from articast.core.tracking.result import TrackResult
+    from articast.service.video import read_jsonl
 
     out = []
     for n, obj in enumerate(read_jsonl(path), 1):
@@ -88,11 +88,11 @@ def load_states(path: Path, param_names: tuple[str, ...]) -> list:
 
 
 def _train(args: argparse.Namespace) -> int:
-    from core.appearance import TrainingFrame, train_appearance
-    from core.camera import Camera
-    from core.model import FaceModel
-    from service.progress import Progress
-    from service.video import iter_video
+    from articast.core.appearance.models import TrainingFrame, train_appearance
+    from articast.core.model.camera import Camera
+    from articast.core.model.face import FaceModel
+    from articast.service.progress import Progress
+    from articast.service.video import iter_video
 
     model = FaceModel.load(args.model)
     camera = Camera.load(args.camera)
@@ -125,7 +125,7 @@ def _check_size(image: np.ndarray, camera) -> None:
 
 
 def _initial_pose(args: argparse.Namespace, param_names):
-    from core.camera import Pose
+    from articast.core.model.camera import Pose
 
     if args.init_pose:
         try:
@@ -144,12 +144,12 @@ def _initial_pose(args: argparse.Namespace, param_names):
 
 
 def _track(args: argparse.Namespace) -> int:
-    from core.appearance import AppearanceModel
-    from core.camera import Camera
-    from core.model import FaceModel
-    from core.tracker import Tracker, TrackingPolicy
-    from service.progress import Progress
-    from service.video import iter_video, video_frame_count
+    from articast.core.appearance.models import AppearanceModel
+    from articast.core.model.camera import Camera
+    from articast.core.model.face import FaceModel
+    from articast.core.tracking.tracker import Tracker, TrackingPolicy
+    from articast.service.progress import Progress
+    from articast.service.video import iter_video, video_frame_count
 
     model = FaceModel.load(args.model)
     app = AppearanceModel.load(args.appearance, model)

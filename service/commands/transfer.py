@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,9 +39,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _bind_dense(args: argparse.Namespace) -> int:
-    from core.mesh import parse_obj
-    from core.model import FaceModel
-    from core.transfer import bind, linearity_error, register_and_bind
+    from articast.core.dense.mesh import parse_obj
+    from articast.core.dense.transfer import bind, linearity_error, register_and_bind
+    from articast.core.model.face import FaceModel
 
     model = FaceModel.load(args.model)
     if len(model.triangles) == 0:

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from core.errors import CalibrationError, InputError, ModelFileError
+from articast.core.errors import CalibrationError, InputError, ModelFileError
 
 CAMERA_KIND = "articast-camera"
 CAMERA_VERSION = 1

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 def loop_subdivide(vertices: np.ndarray, triangles: np.ndarray,

@@ -2,7 +2,8 @@
 
 One :class:`FapSpec` per FAP: number, name, unit (FAPU), uni/bidirectional, positive direction,
 feature point moved and the quantisation step of the reference (binary) encoder. The table is
-data, copied verbatim from the project's cross-checked CSV; :mod:`core.fap` gives it meaning.
+data, copied verbatim from the project's cross-checked CSV; :mod:`articast.core.outputs.fap`
+gives it meaning.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.model import FaceModel
+from articast.core.model.face import FaceModel
 
 
 def rms_3d(model: FaceModel, alpha: np.ndarray, alpha_true: np.ndarray) -> np.ndarray:
@@ -111,7 +111,7 @@ def score_sequence(model: FaceModel, alpha: np.ndarray, ok: np.ndarray, evals: n
 
     The true alpha is the direct inversion of the true points in ``model``.
     """
-    from core.build import invert
+    from articast.core.model.build import invert
 
     alpha_true = invert(model, points_true)
     still = still_pairs(points_true)

@@ -18,8 +18,8 @@ from types import MappingProxyType
 
 import numpy as np
 
-from core.bundle import load_bundle, require, save_bundle
-from core.errors import InputError
+from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.errors import InputError
 
 PARAM_NAMES: tuple[str, ...] = ("jaw1", "lips1", "lips2", "lips3", "lips4", "jaw2", "lar1")
 """The seven articulatory parameters, in the paper's order."""
@@ -193,7 +193,7 @@ class FaceModel:
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model as a versioned bundle (see :mod:`core.bundle`)."""
+        """Write the model as a versioned bundle (see :mod:`articast.core.bundle`)."""
         arrays = {
             "mean": self.mean,
             "basis": self.basis,
@@ -214,7 +214,7 @@ class FaceModel:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> FaceModel:
-        """Read a model file; raises :class:`~core.errors.ModelFileError` on any defect."""
+        """Read a model file; raises :class:`~articast.core.errors.ModelFileError` on any defect."""
         arrays, meta = load_bundle(path, MODEL_KIND, (MODEL_VERSION,))
         for key in ("mean", "basis", "triangles", "stats"):
             require(key in arrays, path, f"missing array {key!r}")

@@ -1,6 +1,7 @@
 """Compiled inner loop of the la cost: sampling, descriptors, residuals and their Jacobian.
 
-:meth:`core.fitting.Problem.residuals` is the definition (numpy, readable, the reference);
+:meth:`articast.core.tracking.fitting.Problem.residuals` is the definition (numpy, readable,
+the reference);
 this is the same computation fused into one pass over the sample points, compiled with
 numba. At ~50 points the numpy version is bound by the overhead of its ~60 array operations
 (~330 us per evaluation on this project's machine); the fused loop does the same arithmetic
@@ -229,7 +230,8 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
 
 @njit(cache=True, nogil=True)
 def cauchy(r, jac, c, scale):  # pragma: no cover - compiled
-    """The per-point Cauchy loss of :func:`core.fitting._robust`: cost, IRLS-weighted
+    """The per-point Cauchy loss of :func:`articast.core.tracking.fitting._robust`: cost,
+    IRLS-weighted
     residuals and Jacobian (jac may have 0 rows: no Jacobian)."""
     n = r.shape[0] // c
     s2 = scale * scale

@@ -28,12 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from core.appearance import AppearanceModel, TrainingFrame, train_appearance
-from core.build import invert
-from core.camera import Pose
-from core.evaluate import lip_aperture, lip_width, rms_3d, score_sequence
-from core.fitting import FitPolicy
-from core.tracker import Tracker, TrackingPolicy
+from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
+from articast.core.evaluation.measures import lip_aperture, lip_width, rms_3d, score_sequence
+from articast.core.model.build import invert
+from articast.core.model.camera import Pose
+from articast.core.tracking.fitting import FitPolicy
+from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
 MODELS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin", "la_lin_nelder_mead")
 CONDITIONS = ("postures", "teleconference", "desk", "noise", "gain", "blur", "light",
@@ -103,7 +103,7 @@ class Evaluation:
 
     def __init__(self, config: EvalConfig, clock: Callable[[], float] | None = None,
                  progress: Callable[[str], None] | None = None) -> None:
-        from core.synthetic import default_speaker
+        from articast.core.synthetic import default_speaker
 
         self.cfg = config
         self.clock = clock
@@ -119,7 +119,7 @@ class Evaluation:
                 for i in range(seq.n_frames)]
 
     def _appearance(self, rig: str, kind: str) -> AppearanceModel:
-        from core.synthetic.enrol import enrolment_appearance, enrolment_frames
+        from articast.core.synthetic.enrol import enrolment_appearance, enrolment_frames
 
         if (rig, kind) not in self._apps:
             if rig not in self._frames:
@@ -133,7 +133,7 @@ class Evaluation:
 
     # ------------------------------------------------------------------ conditions
     def run(self) -> EvalResult:
-        from core import kernels
+        from articast.core.tracking import kernels
 
         kernels.warm_up()  # one-off compilation is not a frame's work (ms_per_frame)
         out = EvalResult()
@@ -145,7 +145,7 @@ class Evaluation:
         return out
 
     def _degrade(self, cond: str, seq_index: int, n: int):
-        from core.synthetic import RenderOptions
+        from articast.core.synthetic import RenderOptions
 
         base = {"seed": 1000 * (seq_index + 1)}
         if cond == "noise":
@@ -165,7 +165,7 @@ class Evaluation:
         return opts
 
     def _sequences(self, cond: str):
-        from core.synthetic import make_sequence
+        from articast.core.synthetic import make_sequence
 
         cfg = self.cfg
         rig = "desk" if cond == "desk" else "head"
@@ -225,7 +225,7 @@ class Evaluation:
         return figs, rmss, series
 
     def _postures(self):
-        from core.synthetic import RenderOptions, default_camera, rest_pose
+        from articast.core.synthetic import RenderOptions, default_camera, rest_pose
 
         corpus = self.speaker.corpus()
         v = corpus.postures.shape[0]

@@ -9,7 +9,8 @@
 The writer produces what all of Xface, Greta, visage and VREng accept: a ``2.1`` header, a name
 without spaces, an integer fps, exactly 68 flags, integer values only, every frame 0..N-1,
 single spaces, FAP 1 and 2 masked out, no comments and no blank lines, ``\\n`` line ends.
-The reader is a validator too: anything else is an :class:`~core.errors.InputError` naming the
+The reader is a validator too: anything else is an :class:`~articast.core.errors.InputError`
+naming the
 line and the reason. Files of other tools that set FAP 1 (4 integers) or FAP 2 (6 integers) are
 read, their values counted and checked but not returned.
 """
@@ -23,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.errors import InputError
-from core.fap_table import N_FAPS
+from articast.core.errors import InputError
+from articast.core.outputs.fap_table import N_FAPS
 
 VERSION = "2.1"
 _INT = re.compile(r"^[+-]?[0-9]+$")

@@ -42,8 +42,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.errors import InputError
-from core.model import FaceModel
+from articast.core.errors import InputError
+from articast.core.model.face import FaceModel
 
 ARKIT_BLENDSHAPES: tuple[str, ...] = (
     "eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",

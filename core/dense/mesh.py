@@ -13,7 +13,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from core.errors import InputError
+from articast.core.errors import InputError
 
 
 class MeshTopology:

@@ -2,7 +2,8 @@
 
 A dense static mesh (a scan, thousands of points) is moved by the tracked sparse mesh:
 
-1. :func:`~core.mesh.register_icp` brings the dense mesh into the sparse mesh's frame.
+1. :func:`~articast.core.dense.mesh.register_icp` brings the dense mesh into the sparse mesh's
+frame.
 2. :func:`bind` attaches every dense point M to one sparse facet ABC: with vertex normals
    N_A, N_B, N_C, find (a, b, c = 1 - a - b) and an offset t with
    ``M = H + t (a N_A + b N_B + c N_C)``, ``H = a A + b B + c C`` (the paper's affine projection;
@@ -46,9 +47,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from core.bundle import load_bundle, require, save_bundle
-from core.errors import InputError
-from core.mesh import (
+from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.dense.mesh import (
     MeshTopology,
     Registration,
     angle_deficits,
@@ -57,7 +57,8 @@ from core.mesh import (
     register_icp,
     vertex_normals,
 )  # fmt: skip
-from core.model import FaceModel
+from articast.core.errors import InputError
+from articast.core.model.face import FaceModel
 
 BINDING_KIND = "dense-binding"
 BINDING_VERSION = 1
@@ -132,7 +133,7 @@ class Binding:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Binding:
-        """Read a binding; :class:`~core.errors.ModelFileError` for any defect."""
+        """Read a binding; :class:`~articast.core.errors.ModelFileError` for any defect."""
         arrays, meta = load_bundle(path, BINDING_KIND, (BINDING_VERSION,))
         for name in _ARRAYS:
             require(name in arrays, path, f"missing array {name!r}")

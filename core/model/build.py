@@ -12,9 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.bundle import load_bundle, require, save_bundle
-from core.errors import InputError
-from core.model import PARAM_NAMES, FaceModel, ParamStats
+from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.errors import InputError
+from articast.core.model.face import PARAM_NAMES, FaceModel, ParamStats
 
 CORPUS_KIND = "posture-corpus"
 CORPUS_VERSION = 1

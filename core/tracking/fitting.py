@@ -24,10 +24,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core import kernels
-from core.appearance import AppearanceModel, ImageMaps
-from core.camera import Camera, axis_angle, rotation_matrix
-from core.model import FaceModel
+from articast.core.appearance.maps import ImageMaps
+from articast.core.appearance.models import AppearanceModel
+from articast.core.model.camera import Camera, axis_angle, rotation_matrix
+from articast.core.model.face import FaceModel
+from articast.core.tracking import kernels
 
 _NO_W2 = np.zeros((0, 0))
 _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),

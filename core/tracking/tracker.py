@@ -1,5 +1,6 @@
 """The per-sequence tracker: warm start, motion prediction, divergence detection and
-re-initialisation around the single-frame fit of :mod:`core.fitting` (METHOD.md §3).
+re-initialisation around the single-frame fit of :mod:`articast.core.tracking.fitting`
+(METHOD.md §3).
 
 Core never reads a clock: pass ``clock`` (e.g. ``time.perf_counter``) to get ms per frame.
 """
@@ -11,11 +12,18 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from core.appearance import AppearanceModel, ImageMaps, image_maps, image_pyramid, roi_of
-from core.camera import Camera, Pose
-from core.fitting import FitPolicy, FitResult, Problem, fit_gauss_newton, fit_nelder_mead
-from core.model import FaceModel
-from core.result import TrackResult
+from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
+from articast.core.appearance.models import AppearanceModel
+from articast.core.model.camera import Camera, Pose
+from articast.core.model.face import FaceModel
+from articast.core.tracking.fitting import (
+    FitPolicy,
+    FitResult,
+    Problem,
+    fit_gauss_newton,
+    fit_nelder_mead,
+)
+from articast.core.tracking.result import TrackResult
 
 OPTIMISERS = ("gauss-newton", "nelder-mead")
 

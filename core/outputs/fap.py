@@ -2,7 +2,8 @@
 
 Units (FAPU) are measured once on the neutral face: the model's mean shape unless another
 neutral posture is given. A geometric FAP is the displacement of its feature point from the
-neutral, along the FAP's positive direction (``core.fap_table``), divided by its unit, rounded
+neutral, along the FAP's positive direction (``articast.core.outputs.fap_table``), divided by
+its unit, rounded
 to the nearest integer. Everything geometric is computed in the **head frame** (x = the
 speaker's own left, y up, z forward), so head motion alone leaves every lip and jaw FAP at 0,
 and "left"/"right" are the face's own sides (``stretch_l_cornerlip`` moves 8.3/2.4 towards +x).
@@ -23,7 +24,8 @@ Choices (also in ``docs/FAP_CHOICES.md``):
   moves both ways; clipping ``open_jaw`` at 0 would lose the closing movements and break the
   reconstruction. Pass a closed-mouth ``neutral_alpha`` if a player needs them non-negative.
 * **Head rotation** (FAPs 48-50) is the head's rotation relative to a reference pose, by
-  default :data:`core.camera.FRONTAL` (a camera facing the face), expressed in the reference
+  default :data:`articast.core.model.camera.FRONTAL` (a camera facing the face), expressed in
+  the reference
   head frame: ``R_rel = R_ref^T R``, decomposed as ``R_rel = R_y(yaw) R_x(pitch) R_z(roll)``
   (intrinsic yaw, then pitch, then roll). With the head axes above, pitch down, yaw to the
   speaker's left and roll to the speaker's right are all positive rotations about +x, +y, +z,
@@ -43,11 +45,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.camera import FRONTAL, rotation_matrix
-from core.errors import InputError
-from core.fap_io import FapSequence, format_fap, parse_fap, read_fap, sanitise_name, write_fap
-from core.fap_table import FAP_TABLE, N_FAPS
-from core.model import FaceModel
+from articast.core.errors import InputError
+from articast.core.model.camera import FRONTAL, rotation_matrix
+from articast.core.model.face import FaceModel
+from articast.core.outputs.fap_io import (
+    FapSequence,
+    format_fap,
+    parse_fap,
+    read_fap,
+    sanitise_name,
+    write_fap,
+)
+from articast.core.outputs.fap_table import FAP_TABLE, N_FAPS
 
 __all__ = [
     "AU", "Fapu", "FapEncoder", "FapSequence", "GEOMETRIC_FAPS", "HEAD_FAPS",
@@ -180,7 +189,8 @@ class FapEncoder:
     ----------
     model : the speaker model; its ``feature_points`` say which points are MPEG-4 points.
     reference_rotation : (3,) axis-angle rad, the head pose whose head FAPs are 0
-        (default :data:`~core.camera.FRONTAL`; the CLI can use a session's first frame).
+        (default :data:`~articast.core.model.camera.FRONTAL`; the CLI can use a session's first
+        frame).
     jaw_relative : lower-lip and chin FAPs relative to the jaw (module docstring).
     neutral_alpha : (K,) posture of the neutral face (default: the mean, alpha = 0).
 

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from core.camera import Pose
+from articast.core.model.camera import Pose
 
 
 @dataclass(frozen=True, eq=False)

@@ -1,0 +1,1 @@
+"""Dense-mesh animation by per-facet affine transfer from the sparse model."""

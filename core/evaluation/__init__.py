@@ -1,0 +1,1 @@
+"""The paper's evaluation measures and protocol on ground truth."""

@@ -1,0 +1,1 @@
+"""Real faces: face detection, landmarks and enrolment of a speaker from a video clip."""

@@ -1,0 +1,1 @@
+"""The speaker model: the linear articulatory face model, its building by guided PCA, the camera."""

@@ -1,0 +1,1 @@
+"""What avatars read: MPEG-4 FAPs and .fap files, ARKit blendshapes."""
