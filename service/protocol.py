@@ -23,6 +23,7 @@ The binary frame layout (little-endian) is described by :data:`BINARY_HEADER` an
 from __future__ import annotations
 
 import json
+import math
 import struct
 from typing import Annotated, Any, Literal
 
@@ -161,6 +162,13 @@ class FrameValues(_Message):
     arkit: dict[str, float] | None = None
 
 
+class Lips(_Message):
+    """Lip measures on the fitted model geometry (mm): inner midpoints, inner corners."""
+
+    aperture_mm: float
+    width_mm: float
+
+
 class Frame(_Message):
     type: Literal["frame"] = "frame"
     session: str
@@ -171,6 +179,9 @@ class Frame(_Message):
     t_tracked: float
     t_sent: float
     values: FrameValues
+    lips: Lips | None = Field(
+        default=None, description="lip aperture and width (mm) on every frame; null when the "
+        "session's model has no inner-lip points")
     quality: Quality
     dropped: int = Field(description="frames this subscriber lost because it read too slowly")
 
@@ -254,11 +265,12 @@ def _short_reason(exc: ValidationError) -> str:
 
 # ----------------------------------------------------------------------------- binary frames
 BINARY_MAGIC = b"AC"
-BINARY_HEADER = struct.Struct("<2sBBHHIIdddddIBxxxffII")
+BINARY_HEADER = struct.Struct("<2sBBHHIIddddffIBxxxffII")
 BINARY_LAYOUT = """Header of a binary frame, 80 bytes, little-endian:
 
 magic "AC", version u8, kind u8 (1 = frame), streams u16 (bit i = STREAMS[i]), sid u16,
-seq u32, frame u32, t f64, t_capture f64, t_tracked f64, t_sent f64, reserved f64,
+seq u32, frame u32, t f64, t_capture f64, t_tracked f64, t_sent f64, lip aperture f32 and
+lip width f32 (mm; NaN when the frame has no lip measures),
 dropped u32, ok u8, 3 pad bytes, residual f32, ms f32, evals u32, iterations u32.
 
 Then, for each stream bit set, in STREAMS order:
@@ -276,6 +288,12 @@ def stream_bits(streams: list[str] | tuple[str, ...]) -> int:
     return sum(1 << STREAMS.index(s) for s in set(streams))
 
 
+def _lip_pair(lips: dict[str, float] | None) -> tuple[float, float]:
+    if not lips:
+        return math.nan, math.nan
+    return float(lips["aperture_mm"]), float(lips["width_mm"])
+
+
 def encode_frame_binary(msg: dict[str, Any], sid: int, param_names: list[str]) -> bytes:
     """Binary encoding of a frame given as the dict of :class:`Frame` (values possibly None).
 
@@ -289,7 +307,8 @@ def encode_frame_binary(msg: dict[str, Any], sid: int, param_names: list[str]) -
         BINARY_HEADER.pack(
             BINARY_MAGIC, PROTOCOL_VERSION, KIND_FRAME, stream_bits(present), sid,
             msg["seq"] & 0xFFFFFFFF, msg["frame"] & 0xFFFFFFFF, msg["t"], msg["t_capture"],
-            msg["t_tracked"], msg["t_sent"], 0.0, msg["dropped"], int(bool(q["ok"])),
+            msg["t_tracked"], msg["t_sent"], *_lip_pair(msg.get("lips")), msg["dropped"],
+            int(bool(q["ok"])),
             q["residual"], q["ms"], q["evals"], q["iterations"],
         )
     ]
@@ -317,8 +336,8 @@ def decode_frame_binary(data: bytes, session_of_sid: dict[int, str],
     """Inverse of :func:`encode_frame_binary` (``param_names`` per sid, from hello)."""
     if len(data) < BINARY_HEADER.size or data[:2] != BINARY_MAGIC:
         raise ProtocolError("bad_message", "not an articast binary frame")
-    (_, version, kind, bits, sid, seq, frame, t, t_capture, t_tracked, t_sent, _, dropped, ok,
-     residual, ms, evals, iterations) = BINARY_HEADER.unpack_from(data)
+    (_, version, kind, bits, sid, seq, frame, t, t_capture, t_tracked, t_sent, aperture, width,
+     dropped, ok, residual, ms, evals, iterations) = BINARY_HEADER.unpack_from(data)
     if version != PROTOCOL_VERSION or kind != KIND_FRAME:
         raise ProtocolError("unsupported_protocol", f"binary version {version} kind {kind}")
     names = param_names.get(sid, [])
@@ -352,6 +371,8 @@ def decode_frame_binary(data: bytes, session_of_sid: dict[int, str],
         session=session_of_sid.get(sid, str(sid)), seq=seq, frame=frame, t=t,
         t_capture=t_capture, t_tracked=t_tracked, t_sent=t_sent,
         values=FrameValues.model_validate(values),
+        lips=(Lips(aperture_mm=aperture, width_mm=width)
+              if math.isfinite(aperture) and math.isfinite(width) else None),
         quality=Quality(ok=bool(ok), residual=residual, ms=ms, evals=evals,
                         iterations=iterations),
         dropped=dropped,

@@ -87,6 +87,7 @@ class FrameRecord:
     translation: tuple[float, ...]
     quality: dict[str, Any]
     source_dropped: int = 0
+    lips: dict[str, float] | None = None
 
     def to_json(self, param_names: list[str]) -> dict[str, Any]:
         """The recording line (a superset of ``TrackResult.to_dict``)."""
@@ -94,7 +95,7 @@ class FrameRecord:
                 "t_capture": self.t_capture, "t_tracked": self.t_tracked,
                 "alpha": dict(zip(param_names, self.alpha, strict=True)),
                 "pose": {"rotation": list(self.rotation), "translation": list(self.translation)},
-                "quality": self.quality}
+                "lips": self.lips, "quality": self.quality}
 
 
 @dataclass(frozen=True)
@@ -166,7 +167,8 @@ class FrameEvent:
         r = self.record
         msg = {"type": "frame", "session": self.session, "seq": r.seq, "frame": r.frame,
                "t": r.t, "t_capture": r.t_capture, "t_tracked": r.t_tracked, "t_sent": now(),
-               "values": self.values(streams), "quality": r.quality, "dropped": 0}
+               "values": self.values(streams), "lips": r.lips, "quality": r.quality,
+               "dropped": 0}
         if encoding == "binary":
             return P.encode_frame_binary(msg, self.sid, self.param_names)
         text = json.dumps(msg, separators=(",", ":"))

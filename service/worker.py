@@ -25,6 +25,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
+import numpy as np
+
 from articast.core.errors import ArticastError
 from articast.core.tracking.result import TrackResult
 from articast.service.capture import Capture
@@ -109,7 +111,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             ms = (time.perf_counter() - t0) * 1000.0
             t_tracked = time.monotonic()
             rec = _record(seq, frame.index, frame.t, epoch(frame.t_capture), epoch(t_tracked),
-                          result, ms, capture.dropped)
+                          result, ms, capture.dropped, model)
             emit(("frame", rec))
             if recorder is not None:
                 recorder.write(rec)
@@ -133,8 +135,12 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
 
 
 def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
-            result: TrackResult, ms: float, source_dropped: int) -> FrameRecord:
-    """A picklable, JSON-safe record: non-finite values never reach the wire (JSON has no NaN)."""
+            result: TrackResult, ms: float, source_dropped: int, model: Any = None
+            ) -> FrameRecord:
+    """A picklable, JSON-safe record: non-finite values never reach the wire (JSON has no NaN).
+
+    Lip measures come from the result, else from ``model`` at the result's alpha (e.g. a
+    ground-truth processor), else None."""
     alpha = [float(a) for a in result.alpha]
     ok, reason = bool(result.ok), str(result.reason)
     if not all(math.isfinite(a) for a in alpha):
@@ -149,7 +155,19 @@ def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
                  "residual": residual if math.isfinite(residual) else -1.0,
                  "evals": int(result.evals), "iterations": int(result.iterations), "ms": ms},
         source_dropped=source_dropped,
+        lips=_lips(result, model, alpha),
     )
+
+
+def _lips(result: TrackResult, model: Any, alpha: list[float]) -> dict[str, float] | None:
+    lips = result.lips
+    if lips is None and model is not None:
+        from articast.core.outputs.lips import lips_dict
+
+        lips = lips_dict(model, np.asarray(alpha))
+    if lips is None or not all(math.isfinite(v) for v in lips.values()):
+        return None
+    return {"aperture_mm": float(lips["aperture_mm"]), "width_mm": float(lips["width_mm"])}
 
 
 # ----------------------------------------------------------------------------- runners

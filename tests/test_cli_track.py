@@ -31,6 +31,16 @@ def test_train_and_track_a_synthetic_video(tmp_path, capsys):
     # jaw opening (the largest mode) follows the truth closely on a compressed video
     assert np.corrcoef(a[:, 0], b[:, 0])[0, 1] > 0.9
     assert np.abs(a[:, 0] - b[:, 0]).mean() < 0.3
+    # every line carries the lip measures of its own alpha, and they follow the true lips
+    from articast.core.model.face import FaceModel
+    from articast.core.outputs.lips import lip_measures
+
+    model = FaceModel.load(tr / "model.npz")
+    ap, wd = lip_measures(model, a)
+    assert np.allclose([r["lips"]["aperture_mm"] for r in track], ap, atol=1e-3)
+    assert np.allclose([r["lips"]["width_mm"] for r in track], wd, atol=1e-3)
+    ap_true, _ = lip_measures(model, b)
+    assert np.corrcoef(ap, ap_true)[0, 1] > 0.9
 
 
 def test_track_errors_are_one_line(tmp_path, capsys):

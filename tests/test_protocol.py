@@ -65,6 +65,17 @@ def test_binary_frame_round_trip():
     assert f.values.mesh == pytest.approx(d["values"]["mesh"])
     assert f.values.fap.values == {"3": 120, "17": -40}
     assert f.quality.residual == pytest.approx(0.25) and f.quality.evals == 40
+    assert f.lips is None  # a frame without lip measures decodes without them
+
+
+def test_binary_frame_carries_lip_measures():
+    d = _frame_dict(articulatory={"jaw1": 0.5})
+    d["lips"] = {"aperture_mm": 12.5, "width_mm": 41.25}
+    f = P.parse_server_message(P.encode_frame_binary(d, 1, ["jaw1"]), {1: "a"}, {1: ["jaw1"]})
+    assert f.lips.aperture_mm == pytest.approx(12.5) and f.lips.width_mm == pytest.approx(41.25)
+    # and the JSON form validates to the same
+    j = P.parse_server_message(json.dumps(d))
+    assert j.lips == P.Lips(aperture_mm=12.5, width_mm=41.25)
 
 
 def test_binary_is_compact_and_dropped_is_patchable():

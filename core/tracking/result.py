@@ -34,6 +34,7 @@ class TrackResult:
     iterations: int = 0
     ms: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    lips: dict[str, float] | None = None
 
     def to_dict(self, param_names: tuple[str, ...]) -> dict[str, Any]:
         """The JSON-lines record of ``articast track`` (and of ground truth files)."""
@@ -42,6 +43,7 @@ class TrackResult:
             "t": float(self.t),
             "alpha": {n: float(v) for n, v in zip(param_names, self.alpha, strict=True)},
             "pose": self.pose.to_dict(),
+            "lips": None if self.lips is None else dict(self.lips),
             "quality": {
                 "ok": bool(self.ok),
                 "reason": self.reason,
@@ -61,4 +63,5 @@ class TrackResult:
             ok=bool(q.get("ok", True)), reason=str(q.get("reason", "")),
             residual=float(q.get("residual", 0.0)), evals=int(q.get("evals", 0)),
             iterations=int(q.get("iterations", 0)), ms=float(q.get("ms", 0.0)),
+            lips=d.get("lips"),
         )

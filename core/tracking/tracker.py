@@ -16,6 +16,7 @@ from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, 
 from articast.core.appearance.models import AppearanceModel
 from articast.core.model.camera import Camera, Pose
 from articast.core.model.face import FaceModel
+from articast.core.outputs.lips import lips_dict
 from articast.core.tracking.fitting import (
     FitPolicy,
     FitResult,
@@ -319,7 +320,7 @@ class Tracker:
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
-                            "gain": fit.gain})
+                            "gain": fit.gain}, lips_dict(self.model, fit.alpha))
 
     def _lost(self, t: float, t0: float, reason: str, evals: int,
               fit: FitResult | None = None) -> TrackResult:
@@ -332,7 +333,8 @@ class Tracker:
             pose = Pose(self._theta[self.k:self.k + 3], self._theta[self.k + 3:])
         return TrackResult(self._frame, t, alpha, pose, False, reason,
                            fit.residual if fit else float("nan"), evals,
-                           fit.iterations if fit else 0, self._ms(t0), {})
+                           fit.iterations if fit else 0, self._ms(t0), {},
+                           lips_dict(self.model, alpha))
 
     def _ms(self, t0: float) -> float:
         return (self.clock() - t0) * 1000.0 if self.clock else 0.0
