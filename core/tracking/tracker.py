@@ -219,7 +219,8 @@ class Tracker:
         cache: dict[int, ImageMaps] = {}
         if self._theta is None:
             if self.initial_pose is None:
-                return self._lost(t, t0, "no initial pose: give one or call reset(pose)", 0)
+                return self._lost(t, t0, "not_started: no initial pose: give one or call "
+                                         "reset(pose)", 0)
             self._theta = self._search(image, self.initial_pose)
             first = self._fit(image, self._theta, pol.init_levels, cache, pol.reinit_fit,
                               refine_gain=False)
@@ -232,7 +233,7 @@ class Tracker:
         x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
         patch = image[y0:y1:4, x0:x1:4, 1]  # green, every 4th pixel: contrast is coarse
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
-            return self._lost(t, t0, "blank frame: no contrast where the face should be", 0)
+            return self._lost(t, t0, "blank: no contrast where the face should be", 0)
         ref = self.pose_prior_centre
         fit = None
         evals = 0
@@ -261,9 +262,10 @@ class Tracker:
             evals += sum(f.evals for f in tries[1:])
             fit = min(tries, key=lambda f: f.cost)
             if not self._good(fit):
-                why = ("points left the image" if fit.valid_fraction < pol.min_valid_fraction
-                       else f"residual {fit.robust_residual:.3g} is far above its running "
-                            f"level {self._rlevel or 0:.3g} (occlusion or lost face)")
+                why = ("left_image: points left the image"
+                       if fit.valid_fraction < pol.min_valid_fraction
+                       else f"diverged: residual {fit.robust_residual:.3g} is far above its "
+                            f"running level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
         return self._accept(fit, t, t0, evals)
 
@@ -296,7 +298,8 @@ class Tracker:
                 force: bool = False) -> TrackResult:
         pol = self.policy
         if force and self._level is None and fit.valid_fraction < pol.min_valid_fraction:
-            return self._lost(t, t0, "initial search did not find the face", evals, fit)
+            return self._lost(t, t0, "no_face: the initial search did not find the face",
+                              evals, fit)
         self._prev = self._theta if not force else None
         self._theta = fit.theta
         rate = pol.pose_anchor_rate
@@ -320,7 +323,8 @@ class Tracker:
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
-                            "gain": fit.gain}, lips_dict(self.model, fit.alpha))
+                            "gain": fit.gain, "robust_residual": fit.robust_residual},
+                           lips_dict(self.model, fit.alpha))
 
     def _lost(self, t: float, t0: float, reason: str, evals: int,
               fit: FitResult | None = None) -> TrackResult:
@@ -333,7 +337,8 @@ class Tracker:
             pose = Pose(self._theta[self.k:self.k + 3], self._theta[self.k + 3:])
         return TrackResult(self._frame, t, alpha, pose, False, reason,
                            fit.residual if fit else float("nan"), evals,
-                           fit.iterations if fit else 0, self._ms(t0), {},
+                           fit.iterations if fit else 0, self._ms(t0),
+                           {"robust_residual": fit.robust_residual} if fit else {},
                            lips_dict(self.model, alpha))
 
     def _ms(self, t0: float) -> float:

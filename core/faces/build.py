@@ -1,0 +1,143 @@
+"""From an enrolment clip's frames and landmarks to a :class:`~articast.core.faces.speaker.Speaker`.
+
+1. :func:`~articast.core.faces.enrol.enrol_geometry`: pose removal, scale, guided PCA.
+2. Each kept frame's head pose from the model shape at its landmark articulation and the
+   landmarks' pixels (PnP).
+3. Training frames chosen for **coverage**: farthest-point sampling in the articulation space,
+   so the appearance model sees the extremes of the clip, not its most common posture (the
+   tracker's p95 tail was articulation beyond the enrolment's range).
+4. la appearance trained at the landmark states, then **refined**: every training frame is
+   fitted by analysis-by-synthesis from its landmark state with that first model (it sees
+   finer than the landmarks), and the appearance is trained again at the fitted states.
+5. The robust residual of the final models on held-out frames: what a live frame of this
+   speaker should look like to the tracker (its 99th percentile bounds ``ok``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
+from articast.core.errors import InputError
+from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry, fit_pose
+from articast.core.faces.speaker import ResidualStats, Speaker
+from articast.core.model.camera import Camera
+from articast.core.model.face import FaceModel
+from articast.core.tracking.tracker import Tracker, TrackingPolicy
+
+
+@dataclass(frozen=True)
+class BuildOptions:
+    """kind : appearance model; train_frames : at most this many training frames; stats_frames
+    : at most this many held-out frames for the residual statistics; refine : refinement
+    rounds (0 = landmark states only)."""
+
+    kind: str = "la_quad"
+    train_frames: int = 90
+    stats_frames: int = 60
+    refine: int = 1
+    sigma: float = 2.5
+
+
+def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.ndarray:
+    """Indices of ``n`` rows of alpha (F, K) by farthest-point sampling (first: the row
+    nearest the median posture unless ``start``)."""
+    a = np.asarray(alpha, np.float64)
+    n = min(int(n), len(a))
+    if start is None:
+        start = int(np.argmin(np.linalg.norm(a - np.median(a, 0), axis=1)))
+    chosen = [start]
+    dist = np.linalg.norm(a - a[start], axis=1)
+    while len(chosen) < n:
+        nxt = int(np.argmax(dist))
+        chosen.append(nxt)
+        dist = np.minimum(dist, np.linalg.norm(a - a[nxt], axis=1))
+    return np.array(chosen)
+
+
+def fit_states(model: FaceModel, appearance: AppearanceModel, camera: Camera, rig: str,
+               frames: Sequence[TrainingFrame]) -> list[tuple[TrainingFrame, float] | None]:
+    """Analysis-by-synthesis fit of each frame from its given state (independently).
+
+    Returns, per frame, the frame at its fitted state and its robust residual, or None where
+    the fit was not ok.
+    """
+    tracker = Tracker(model, appearance, camera, TrackingPolicy.for_rig(rig))
+    out: list[tuple[TrainingFrame, float] | None] = []
+    for fr in frames:
+        tracker.reset(fr.pose, fr.alpha)
+        res = tracker.track(fr.image, 0.0)
+        robust = res.extra.get("robust_residual")
+        if not res.ok or robust is None or not np.isfinite(robust):
+            out.append(None)
+            continue
+        out.append((TrainingFrame(fr.image, res.alpha, res.pose), float(robust)))
+    return out
+
+
+def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np.ndarray,
+                  scheme: LandmarkScheme, camera: Camera, rig: str = "desk",
+                  enrol: EnrolOptions | None = None, options: BuildOptions | None = None,
+                  name: str = "speaker",
+                  progress: Callable[[str], None] | None = None) -> Speaker:
+    """The speaker enrolled from ``images`` (F BGR uint8 frames) and their ``landmarks``
+    (F, L, 3) (``found`` (F,) False where the finder saw no face). The returned speaker's
+    ``report`` lists what was measured, rejected and assumed."""
+    opts = options or BuildOptions()
+    say = progress or (lambda _msg: None)
+    geo = enrol_geometry(landmarks, found, scheme, camera, enrol, name)
+    model = geo.model
+    rejected = dict(geo.rejected)
+    states: list[TrainingFrame] = []
+    kept: list[int] = []
+    for j, f in enumerate(geo.frames):
+        uv = np.asarray(landmarks[f][scheme.points, :2], np.float64)
+        pose = fit_pose(model.shape(geo.alpha[j]), uv, camera)
+        if pose is None:
+            rejected[int(f)] = "head pose could not be solved from the landmarks"
+            continue
+        states.append(TrainingFrame(images[f], geo.alpha[j], pose))
+        kept.append(j)
+    if len(states) < 2 * (model.n_params + 1):
+        raise InputError(f"only {len(states)} usable frames: enrol from a longer clip "
+                         "(20-60 s of reading aloud)")
+    alpha = geo.alpha[kept]
+    order = coverage_order(alpha, len(alpha))
+    n_train = min(opts.train_frames, max(2 * (model.n_params + 1), int(0.6 * len(order))))
+    train = [states[i] for i in order[:n_train]]
+    held = [states[i] for i in order[n_train:n_train + opts.stats_frames]]
+    say(f"training {opts.kind} on {len(train)} frames at their landmark states")
+    app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma)
+    for r in range(opts.refine):
+        fitted = fit_states(model, app, camera, rig, train)
+        good = [f for f, _ in (x for x in fitted if x is not None)]
+        say(f"refinement {r + 1}: {len(good)} of {len(train)} frames fitted; retraining")
+        if len(good) >= 2 * (model.n_params + 1):
+            train = good
+            app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma)
+    check = held or train
+    resid = [x[1] for x in fit_states(model, app, camera, rig, check) if x is not None]
+    if not resid:
+        raise InputError("the trained appearance does not fit any held-out enrolment frame: "
+                         "is the same face in the whole clip?")
+    r = np.array(resid)
+    stats = ResidualStats(float(np.median(r)), float(np.percentile(r, 95)),
+                          float(np.percentile(r, 99)), len(r))
+    report = {
+        "frames": int(len(images)),
+        "frames_used": int(len(states)),
+        "training_frames": len(train),
+        "held_out_frames": len(check) if held else 0,
+        "held_out_fitted": len(resid),
+        "rejected": {str(k): v for k, v in sorted(rejected.items())},
+        "variance_pct": dict(zip(geo.table.names, map(float, geo.table.variance_pct),
+                                 strict=True)),
+        "scale": geo.scale_source,
+        "unobserved": ["lar1"],
+        "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},
+    }
+    return Speaker(model, app, camera, stats, rig, scheme.name, name, report)
+

@@ -1,0 +1,174 @@
+"""Tracking an enrolled speaker in real video: the analysis-by-synthesis tracker per frame,
+the face finder to start, to verify and to recover (ARCHITECTURE.md, "Real speakers").
+
+Per frame the cost is the tracker's. The landmark model runs
+
+- on the first frame and after every loss: detector + landmarks, then the articulation and
+  pose are read off the landmarks (:func:`~articast.core.faces.enrol.state_from_landmarks`)
+  and the tracker starts there;
+- every ``verify_every`` frames, and on any frame the tracker doubts: landmarks only, in a crop
+  grown from the previous landmarks (no detector). No face there -> ``no_face``, and the next
+  frame starts over with the detector. A face far from where the tracker put the mouth ->
+  re-initialised from the landmarks.
+
+``ok`` must mean ok. A frame is not ok, with a reason code first in ``reason``:
+``blank`` (no contrast), ``no_face`` (the finder sees none), ``diverged`` (the tracker's
+robust residual is far above its running level *or* above what the speaker's own enrolment
+clip produced: ``residual_factor`` x its 99th percentile), ``left_image`` (the face left the
+frame), ``not_started``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from articast.core.faces.enrol import LandmarkScheme, state_from_landmarks
+from articast.core.faces.speaker import Speaker
+from articast.core.model.camera import Pose
+from articast.core.outputs.lips import lips_dict
+from articast.core.tracking.result import TrackResult
+from articast.core.tracking.tracker import Tracker, TrackingPolicy
+
+
+class FaceLike(Protocol):
+    landmarks: np.ndarray  # (L, 3) image px + relative depth
+
+
+class FinderLike(Protocol):
+    """What the live tracker needs of :class:`articast.core.faces.finder.FaceFinder`."""
+
+    def find(self, image_bgr: np.ndarray) -> Any: ...
+
+    def track(self, image_bgr: np.ndarray, previous: Any) -> Any: ...
+
+
+@dataclass(frozen=True)
+class LivePolicy:
+    """How often the face finder checks on the tracker, and what the enrolment allows.
+
+    verify_every : frames between two presence checks (landmarks in the previous crop).
+    residual_factor : a frame whose robust residual exceeds this many times the enrolment's
+        99th percentile is ``diverged``, whatever the running level.
+    max_mouth_offset : landmarks' mouth centre farther than this fraction of the mouth width
+        from the tracked one -> re-initialise from the landmarks.
+    """
+
+    verify_every: int = 10
+    residual_factor: float = 3.0
+    max_mouth_offset: float = 0.5
+
+
+class LiveTracker:
+    """Tracks an enrolled speaker frame by frame, judging ``ok`` honestly."""
+
+    def __init__(self, speaker: Speaker, finder: FinderLike, scheme: LandmarkScheme,
+                 policy: LivePolicy | None = None, tracking: TrackingPolicy | None = None,
+                 clock: Callable[[], float] | None = None) -> None:
+        self.speaker, self.finder, self.scheme = speaker, finder, scheme
+        self.policy = policy or LivePolicy()
+        self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera,
+                               tracking or TrackingPolicy.for_rig(speaker.rig), clock=clock)
+        self.clock = clock
+        self._face: Any = None
+        self._since_check = 0
+        self._started = False
+        self._frame = -1
+        self._last: TrackResult | None = None
+        self.finder_calls = 0
+        self._limit = self.policy.residual_factor * speaker.residual.p99
+        m = speaker.model
+        lips = m.groups.get("lip_outer", np.arange(m.n_points))
+        self._mouth = np.asarray(lips)  # model points whose centre is the mouth
+
+    # ------------------------------------------------------------------ helpers
+    def _finder(self, image: np.ndarray, previous: Any = None) -> Any:
+        self.finder_calls += 1
+        if previous is not None:
+            return self.finder.track(image, previous)
+        return self.finder.find(image)
+
+    def _start(self, image: np.ndarray, face: Any) -> bool:
+        state = state_from_landmarks(self.speaker.model, self.scheme, self.speaker.camera,
+                                     face.landmarks)
+        if state is None:
+            return False
+        alpha, pose = state
+        self.tracker.reset(pose, alpha)
+        self._started = True
+        self._face = face
+        self._since_check = 0
+        return True
+
+    def _mouth_offset(self, result: TrackResult, face: Any) -> float:
+        """Distance between the tracked and the landmarks' mouth centre, in mouth widths."""
+        m = self.speaker.model
+        uv = self.speaker.camera.project_head(m.shape(result.alpha)[self._mouth], result.pose)
+        lm = face.landmarks[self.scheme.points[self._mouth], :2]
+        width = float(np.ptp(lm[:, 0])) or 1.0
+        return float(np.linalg.norm(np.nanmean(uv, 0) - lm.mean(0))) / width
+
+    def _not_ok(self, result: TrackResult, reason: str) -> TrackResult:
+        return replace(result, ok=False, reason=reason)
+
+    def _lost(self, t: float, reason: str) -> TrackResult:
+        """A not-ok frame holding the last good state (neutral before any)."""
+        self._started = False
+        self._face = None
+        last = self._last
+        m = self.speaker.model
+        alpha = np.zeros(m.n_params) if last is None else last.alpha
+        pose = Pose() if last is None else last.pose
+        return TrackResult(self._frame, t, alpha, pose, False, reason,
+                           lips=lips_dict(m, alpha))
+
+    # ------------------------------------------------------------------ per frame
+    def track(self, image: np.ndarray, t: float) -> TrackResult:
+        """Fit one frame (BGR uint8) taken at time ``t`` (s)."""
+        self._frame += 1
+        result = self._track(image, t)
+        result = replace(result, frame=self._frame)
+        if result.ok:
+            self._last = result
+        return result
+
+    def _track(self, image: np.ndarray, t: float) -> TrackResult:
+        if float(image[::8, ::8].std()) < self.tracker.policy.min_contrast:
+            return self._lost(t, "blank: the frame has no contrast")
+        if not self._started:
+            face = self._finder(image)
+            if face is None:
+                return self._lost(t, "no_face: the face finder sees no face")
+            if not self._start(image, face):
+                return self._lost(t, "no_face: the landmarks do not fit the speaker")
+        result = self.tracker.track(image, t)
+        result = self._judge(result)
+        self._since_check += 1
+        doubt = not result.ok
+        if doubt or self._since_check >= self.policy.verify_every:
+            self._since_check = 0
+            face = self._finder(image, self._face)
+            if face is None and self._face is not None:
+                face = self._finder(image)  # the crop may have lost it: one full search
+            if face is None:
+                return self._lost(t, "no_face: the face finder sees no face")
+            self._face = face
+            if doubt or self._mouth_offset(result, face) > self.policy.max_mouth_offset:
+                if self._start(image, face):
+                    again = self._judge(self.tracker.track(image, t))
+                    if again.ok or not result.ok:
+                        result = again
+        return result
+
+    def _judge(self, result: TrackResult) -> TrackResult:
+        if not result.ok:
+            return result
+        robust = result.extra.get("robust_residual")
+        if robust is not None and robust > self._limit:
+            return self._not_ok(result, f"diverged: residual {robust:.3g} is above "
+                                        f"{self.policy.residual_factor:g} x the enrolment's "
+                                        f"99th percentile ({self.speaker.residual.p99:.3g})")
+        return result

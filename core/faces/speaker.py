@@ -1,0 +1,124 @@
+"""A speaker folder: the one thing a user carries from ``enroll`` to ``track``, ``serve`` and
+``export-fap``.
+
+::
+
+    SPEAKER_DIR/
+      speaker.json      kind "articast-speaker", version 1: name, rig, landmark scheme,
+                        scale assumption, enrolment statistics of the tracking residual,
+                        enrolment report
+      model.npz         the face model (kind face-model)
+      appearance.npz    the appearance model (kind appearance-model)
+      camera.json       the camera the speaker was enrolled with (kind articast-camera)
+
+The residual statistics are what ``ok`` is judged against on live frames: a frame whose
+robust residual is far above what the enrolment clip itself produced is not the speaker
+(another face, a hand, noise), whatever the running level says.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from articast.core.appearance.models import AppearanceModel
+from articast.core.errors import InputError, ModelFileError
+from articast.core.model.camera import Camera
+from articast.core.model.face import FaceModel
+
+SPEAKER_KIND = "articast-speaker"
+SPEAKER_VERSION = 1
+FILES = ("speaker.json", "model.npz", "appearance.npz", "camera.json")
+
+
+@dataclass(frozen=True)
+class ResidualStats:
+    """Robust residual of the final models on enrolment frames not used for training.
+
+    median, p95, p99 : per-descriptor residual (the tracker's ``robust_residual``).
+    frames : how many frames they summarise.
+    """
+
+    median: float
+    p95: float
+    p99: float
+    frames: int
+
+    def to_dict(self) -> dict[str, float | int]:
+        return {"median": self.median, "p95": self.p95, "p99": self.p99, "frames": self.frames}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], where: str) -> ResidualStats:
+        try:
+            vals = [float(d[k]) for k in ("median", "p95", "p99")]
+            frames = int(d["frames"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"{where}: residual statistics are malformed ({exc})") from None
+        if not all(math.isfinite(v) and v > 0 for v in vals) or frames < 1:
+            raise ModelFileError(f"{where}: residual statistics must be positive numbers")
+        return cls(*vals, frames)
+
+
+@dataclass(frozen=True, eq=False)
+class Speaker:
+    """An enrolled speaker: model, appearance, camera and enrolment statistics."""
+
+    model: FaceModel
+    appearance: AppearanceModel
+    camera: Camera
+    residual: ResidualStats
+    rig: str = "desk"
+    scheme: str = "mediapipe-478"
+    name: str = "speaker"
+    report: dict[str, Any] = field(default_factory=dict)
+
+    def save(self, folder: str | os.PathLike[str]) -> None:
+        """Write the folder (created if needed); speaker.json last, so a folder with it is
+        complete."""
+        d = Path(folder)
+        if d.exists() and not d.is_dir():
+            raise InputError(f"{d}: exists and is not a folder")
+        d.mkdir(parents=True, exist_ok=True)
+        self.model.save(d / "model.npz")
+        self.appearance.save(d / "appearance.npz")
+        self.camera.save(d / "camera.json")
+        meta = {"kind": SPEAKER_KIND, "version": SPEAKER_VERSION, "name": self.name,
+                "rig": self.rig, "scheme": self.scheme, "residual": self.residual.to_dict(),
+                "report": self.report}
+        tmp = d / "speaker.json.tmp"
+        tmp.write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        os.replace(tmp, d / "speaker.json")
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike[str]) -> Speaker:
+        """Load a speaker folder; one clear error naming the folder and what is wrong."""
+        d = Path(folder)
+        if not d.is_dir():
+            raise InputError(f"{d}: not a speaker folder (make one with 'articast enroll')")
+        missing = [f for f in FILES if not (d / f).is_file()]
+        if missing:
+            raise ModelFileError(f"{d}: not a complete speaker folder, missing "
+                                 f"{', '.join(missing)} (make one with 'articast enroll')")
+        where = str(d / "speaker.json")
+        try:
+            meta = json.loads((d / "speaker.json").read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ModelFileError(f"{where}: not readable JSON ({exc})") from None
+        if not isinstance(meta, dict) or meta.get("kind") != SPEAKER_KIND:
+            raise ModelFileError(f"{where}: not an articast speaker file")
+        if meta.get("version") != SPEAKER_VERSION:
+            raise ModelFileError(f"{where}: version {meta.get('version')!r} is not supported "
+                                 f"(this articast reads version {SPEAKER_VERSION})")
+        rig = meta.get("rig")
+        if rig not in ("desk", "head"):
+            raise ModelFileError(f"{where}: rig must be 'desk' or 'head', got {rig!r}")
+        model = FaceModel.load(d / "model.npz")
+        return cls(model, AppearanceModel.load(d / "appearance.npz", model),
+                   Camera.load(d / "camera.json"),
+                   ResidualStats.from_dict(meta.get("residual") or {}, where), rig,
+                   str(meta.get("scheme", "")), str(meta.get("name", "speaker")),
+                   meta.get("report") if isinstance(meta.get("report"), dict) else {})
