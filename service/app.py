@@ -58,7 +58,7 @@ class ServiceConfig:
     sessions: tuple[SessionSpec, ...] = ()
     api_token: str = ""
     """If set, POST and DELETE need ``Authorization: Bearer <token>``."""
-    http_processors: tuple[str, ...] = ("auto", "truth", "tracker")
+    http_processors: tuple[str, ...] = ("auto", "truth", "tracker", "live")
     """Processors a session added over HTTP may name: importing ``module:callable`` on a
     client's word would run the client's choice of code, so only these are accepted."""
 
@@ -72,6 +72,7 @@ class SessionCreate(BaseModel):
     camera: str = ""
     processor: str = "auto"
     wait_for_subscriber: bool = False
+    speaker: str = ""
 
 
 class Subscriber:
@@ -398,7 +399,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                                 f"(allowed: {list(config.http_processors)}; start the server "
                                 "with --processor to allow another)")
         spec = SessionSpec(body.name, body.source, body.model, body.appearance, body.camera,
-                           body.processor, body.wait_for_subscriber)
+                           body.processor, body.wait_for_subscriber, speaker=body.speaker)
         try:
             s = await svc.manager.add(spec)
         except KeyError:

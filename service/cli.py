@@ -14,6 +14,7 @@ import sys
 from articast.core.errors import ArticastError
 
 COMMAND_MODULES = (
+    "articast.service.commands.enroll",
     "articast.service.commands.model",
     "articast.service.commands.track",
     "articast.service.commands.evaluate",

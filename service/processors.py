@@ -41,6 +41,7 @@ class ProcessorContext:
     camera: Any  # articast.core.model.camera.Camera | None
     appearance: Any  # core.appearance.AppearanceModel | None
     options: dict[str, Any]
+    speaker: Any = None  # articast.core.faces.speaker.Speaker | None
 
 
 class TruthProcessor:
@@ -118,6 +119,53 @@ class TrackerProcessor:
         return self.tracker.track(frame.image, frame.t)
 
 
+class LiveProcessor:
+    """An enrolled speaker (``articast enroll``) tracked with the face finder: started,
+    verified and restarted from landmarks (:class:`articast.core.faces.live.LiveTracker`)."""
+
+    def __init__(self, context: ProcessorContext) -> None:
+        from articast.core.faces.finder import FaceFinder
+        from articast.core.faces.live import LiveTracker
+        from articast.core.faces.scheme import mediapipe_scheme
+        from articast.core.tracking import kernels
+        from articast.core.tracking.tracker import TrackingPolicy
+
+        sp = context.speaker
+        rig = str(context.options.get("rig", sp.rig))
+        try:
+            policy = TrackingPolicy.for_rig(rig)
+        except ValueError as exc:
+            raise InputError(f"session {context.session!r}: {exc}") from None
+        self.tracker = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
+                                   tracking=policy, clock=time.perf_counter)
+        kernels.warm_up()
+
+    def process(self, frame: Frame) -> TrackResult:
+        if frame.image is None:
+            raise InputError("this source has no images to track")
+        return self.tracker.track(frame.image, frame.t)
+
+
+def load_speaker(folder: str, source: SourceInfo) -> Any:
+    """The speaker folder, its camera fitted to the source's frame size (same aspect ratio:
+    scaled; another one: a clear error)."""
+    from dataclasses import replace
+
+    from articast.core.faces.speaker import Speaker
+
+    sp = Speaker.load(folder)
+    cam = sp.camera
+    if source.width and source.height and (source.width, source.height) != (cam.width,
+                                                                           cam.height):
+        factor = source.width / cam.width
+        if abs(cam.height * factor - source.height) > 1.0:
+            raise InputError(f"the source's frames are {source.width}x{source.height} but the "
+                             f"speaker was enrolled at {cam.width}x{cam.height} (another "
+                             "aspect ratio): enrol at this size, or set the camera's size")
+        sp = replace(sp, camera=cam.scaled(factor))
+    return sp
+
+
 def tracker_available() -> bool:
     try:
         importlib.import_module("articast.core.tracking.tracker")
@@ -130,7 +178,9 @@ def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProc
     """Build the named processor; returns (the name actually used, processor)."""
     kind = context.source.kind
     if name == "auto":
-        if kind == "replay-record":
+        if context.speaker is not None:
+            name = "live"
+        elif kind == "replay-record":
             name = "truth"
         elif tracker_available() and context.appearance is not None:
             name = "tracker"
@@ -146,6 +196,11 @@ def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProc
         return name, TruthProcessor(context)
     if name == "tracker":
         return name, TrackerProcessor(context)
+    if name == "live":
+        if context.speaker is None:
+            raise InputError(f"session {context.session!r}: the live processor needs a "
+                             "speaker folder (--speaker, from 'articast enroll')")
+        return name, LiveProcessor(context)
     if ":" in name:
         mod, _, attr = name.partition(":")
         try:
@@ -153,7 +208,8 @@ def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProc
         except (ImportError, AttributeError) as exc:
             raise InputError(f"processor {name!r} cannot be imported: {exc}") from None
         return name, factory(context)
-    raise InputError(f"unknown processor {name!r}: auto, truth, tracker or module:callable")
+    raise InputError(f"unknown processor {name!r}: auto, truth, tracker, live or "
+                     "module:callable")
 
 
 def check_processor(name: str, source_kind: str, appearance_given: bool) -> None:
@@ -163,7 +219,8 @@ def check_processor(name: str, source_kind: str, appearance_given: bool) -> None
             raise InputError(f"a {source_kind} source needs the tracker, which "
                              "is not available in this build")
         if not appearance_given:
-            raise InputError(f"tracking a {source_kind} source needs --appearance (and --model)")
+            raise InputError(f"tracking a {source_kind} source needs --speaker DIR (from "
+                             "'articast enroll'), or --appearance and --model")
     if name == "truth" and source_kind not in ("replay-record", "synthetic"):
         raise InputError(f"a {source_kind} source carries no ground truth for --processor truth")
 

@@ -30,7 +30,12 @@ import numpy as np
 from articast.core.errors import ArticastError
 from articast.core.tracking.result import TrackResult
 from articast.service.capture import Capture
-from articast.service.processors import ProcessorContext, load_assets, make_processor
+from articast.service.processors import (
+    ProcessorContext,
+    load_assets,
+    load_speaker,
+    make_processor,
+)
 from articast.service.record import Recorder
 from articast.service.settings import CaptureSettings
 from articast.service.sources import make_source
@@ -52,12 +57,15 @@ class SessionSpec:
     wait_for_subscriber: bool = False
     """Hold the source until the first subscriber arrives (replays that must not be missed)."""
     options: dict[str, Any] = field(default_factory=dict)
+    speaker: str = ""
+    """A speaker folder from ``articast enroll``: model, appearance and camera in one, tracked
+    with the face finder (overrides model/appearance/camera)."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "source": self.source, "model": self.model,
                 "appearance": self.appearance, "camera": self.camera,
                 "processor": self.processor, "wait_for_subscriber": self.wait_for_subscriber,
-                "options": dict(self.options)}
+                "options": dict(self.options), "speaker": self.speaker}
 
 
 class _Event(Protocol):  # what a worker needs of threading.Event
@@ -86,11 +94,15 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         if capture.error is not None:
             raise capture.error
         assert capture.info is not None
-        model, appearance, camera = load_assets(spec.model, spec.appearance, spec.camera,
-                                                capture.assets, capture.info)
+        speaker = load_speaker(spec.speaker, capture.info) if spec.speaker else None
+        if speaker is not None:
+            model, appearance, camera = speaker.model, speaker.appearance, speaker.camera
+        else:
+            model, appearance, camera = load_assets(spec.model, spec.appearance, spec.camera,
+                                                    capture.assets, capture.info)
         # what the source knows (e.g. the synthetic rig and start pose), then the session's own
         ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
-                               {**capture.assets.extra, **dict(spec.options)})
+                               {**capture.assets.extra, **dict(spec.options)}, speaker)
         used, processor = make_processor(spec.processor, ctx)
         from articast.core.model.face import PARAM_NAMES
 

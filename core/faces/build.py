@@ -26,6 +26,7 @@ from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geomet
 from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
+from articast.core.outputs.lips import lip_measures
 from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
 
@@ -123,6 +124,9 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     if not resid:
         raise InputError("the trained appearance does not fit any held-out enrolment frame: "
                          "is the same face in the whole clip?")
+    ap, wd = lip_measures(model, geo.alpha)
+    coverage = {"aperture_mm": [float(np.percentile(ap, 2)), float(np.percentile(ap, 98))],
+                "width_mm": [float(np.percentile(wd, 2)), float(np.percentile(wd, 98))]}
     r = np.array(resid)
     stats = ResidualStats(float(np.median(r)), float(np.percentile(r, 95)),
                           float(np.percentile(r, 99)), len(r))
@@ -136,6 +140,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         "variance_pct": dict(zip(geo.table.names, map(float, geo.table.variance_pct),
                                  strict=True)),
         "scale": geo.scale_source,
+        "coverage": coverage,
         "unobserved": ["lar1"],
         "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},
     }

@@ -56,6 +56,7 @@ class LandmarkScheme:
     mouth_corners : (left, right) model point indices of the outer lip corners.
     lip_inner_corners : (left, right) model point indices of the inner lip corners.
     triangles : (T, 3) model point indices, counter-clockwise seen from the front.
+    fapu_overrides : MPEG-4 units the points cannot measure (e.g. ES0 without eyes), mm.
     """
 
     name: str
@@ -69,6 +70,7 @@ class LandmarkScheme:
     triangles: np.ndarray
     eyes: tuple[int, int] | None = None
     point_names: tuple[str, ...] = ()
+    fapu_overrides: Mapping[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -264,7 +266,8 @@ def enrol_geometry(landmarks: np.ndarray, found: np.ndarray, scheme: LandmarkSch
     pts = (aligned[:, :n] - origin) @ rot.T * mm_ref  # (F, N, 3) mm, head frame
     corpus = Corpus(pts, tuple(f"frame{i}" for i in idx),
                     scheme.point_names or tuple(f"lm{i}" for i in scheme.points),
-                    scheme.groups, scheme.triangles, scheme.feature_points, name=name)
+                    scheme.groups, scheme.triangles, scheme.feature_points,
+                    scheme.fapu_overrides, name=name)
     six, table6 = build_model(corpus, OBSERVABLE)
     model = with_unobserved(six, PARAM_NAMES)
     alpha = invert(model, pts)

@@ -129,8 +129,10 @@ class LiveTracker:
     def track(self, image: np.ndarray, t: float) -> TrackResult:
         """Fit one frame (BGR uint8) taken at time ``t`` (s)."""
         self._frame += 1
+        t0 = self.clock() if self.clock else 0.0
         result = self._track(image, t)
-        result = replace(result, frame=self._frame)
+        ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
+        result = replace(result, frame=self._frame, ms=ms)
         if result.ok:
             self._last = result
         return result

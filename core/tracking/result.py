@@ -49,7 +49,7 @@ class TrackResult:
             "quality": {
                 "ok": bool(self.ok),
                 "reason": self.reason,
-                "residual": float(self.residual),
+                "residual": float(self.residual) if np.isfinite(self.residual) else None,
                 "evals": int(self.evals),
                 "iterations": int(self.iterations),
                 "ms": float(self.ms),
@@ -63,7 +63,8 @@ class TrackResult:
         return cls(
             frame=int(d["frame"]), t=float(d["t"]), alpha=alpha, pose=Pose.from_dict(d["pose"]),
             ok=bool(q.get("ok", True)), reason=str(q.get("reason", "")),
-            residual=float(q.get("residual", 0.0)), evals=int(q.get("evals", 0)),
+            residual=float(q["residual"]) if q.get("residual") is not None else float("nan"),
+            evals=int(q.get("evals", 0)),
             iterations=int(q.get("iterations", 0)), ms=float(q.get("ms", 0.0)),
             lips=d.get("lips"),
         )

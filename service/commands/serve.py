@@ -69,6 +69,9 @@ def _playback(p: argparse.ArgumentParser) -> None:
 
 def _common(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("session")
+    g.add_argument("--speaker", default="",
+                   help="speaker folder from 'articast enroll' for every session (replaces "
+                        "--model, --appearance, --camera)")
     g.add_argument("--model", default="", help="face model (.npz) for every session")
     g.add_argument("--appearance", default="", help="trained appearance (.npz)")
     g.add_argument("--camera", default="", help="camera calibration (.json)")
@@ -102,16 +105,23 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
 
     for _, uri in sources:
         probe(uri)  # a corrupt file or unknown kind: one clear error now, not a server later
-        check_processor(args.processor, parse_uri(uri).kind, bool(args.appearance))
+        check_processor(args.processor, parse_uri(uri).kind,
+                        bool(args.appearance or args.speaker))
+    if args.speaker:
+        from articast.core.faces.speaker import Speaker
+
+        Speaker.load(args.speaker)  # a wrong folder: one clear error now, not a restart loop
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
-                              args.wait_for_subscriber) for n, uri in sources)
+                              args.wait_for_subscriber, speaker=args.speaker)
+                  for n, uri in sources)
     token = args.api_token if args.api_token is not None else os.environ.get(
         "ARTICAST_API_TOKEN", "")
     config = ServiceConfig(
         server=from_args(ServerSettings, args), hub=from_args(HubSettings, args),
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
         sessions=specs, api_token=token,
-        http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", args.processor))))
+        http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", "live",
+                                             args.processor))))
 
     def listening(url: str) -> None:
         http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]

@@ -69,7 +69,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     s.add_argument("-o", "--output", type=Path, required=True, help="output directory")
-    s.add_argument("--seed", type=int, default=0, help="speaker and sequence seed (default 0)")
+    s.add_argument("--seed", type=int, default=0, help="speaker seed (default 0)")
+    s.add_argument("--sentence", type=int, default=None, metavar="SEED",
+                   help="what the speaker says and how the head moves (default: --seed); "
+                        "another value gives the same speaker saying something else, e.g. "
+                        "an enrolment clip and a test clip of one person")
     s.add_argument("--rig", choices=("head", "desk"), default="head",
                    help="camera rig (default head)")
     s.add_argument("--frames", type=int, default=150, help="number of frames (default 150)")
@@ -143,8 +147,9 @@ def _sequence(args: argparse.Namespace) -> int:
 
     width, height = _parse_size(args.size)
     occluded = _parse_range(args.occlude_frames, args.frames) if args.occluder != "none" else None
-    if args.seed < 0:
-        raise InputError(f"--seed must be >= 0, got {args.seed}")
+    sentence = args.seed if args.sentence is None else args.sentence
+    if args.seed < 0 or sentence < 0:
+        raise InputError(f"--seed and --sentence must be >= 0, got {args.seed}, {sentence}")
     if args.frames < 1:
         raise InputError(f"--frames must be >= 1, got {args.frames}")
     if not args.fps > 0:
@@ -160,7 +165,7 @@ def _sequence(args: argparse.Namespace) -> int:
     speaker = default_speaker(args.seed)
     print("building the speaker's model...", file=sys.stderr)
     model = speaker.model()
-    seq = make_sequence(args.seed, args.frames, args.fps, args.rig, args.still_frames,
+    seq = make_sequence(sentence, args.frames, args.fps, args.rig, args.still_frames,
                         size=(width, height), geometry=speaker.geometry)
     alpha = invert(model, seq.points)
 
@@ -177,7 +182,7 @@ def _sequence(args: argparse.Namespace) -> int:
                 hidden = occluded is not None and occluded[0] <= i < occluded[1]
                 opts = RenderOptions(
                     noise_sigma=base.noise_sigma, blur_sigma=base.blur_sigma, gain=base.gain,
-                    occluder=base.occluder if hidden else "none", seed=args.seed * 100_003 + i,
+                    occluder=base.occluder if hidden else "none", seed=sentence * 100_003 + i,
                     light_azimuth_deg=base.light_azimuth_deg + drift,
                 )
                 writer.write(speaker.render(seq.controls[i], seq.pose(i), seq.camera, opts))
@@ -199,7 +204,7 @@ def _sequence(args: argparse.Namespace) -> int:
     save_bundle(out / "truth.npz", "synthetic-truth", 1,
                 {"points": seq.points, "controls": seq.controls, "poses": seq.poses,
                  "times": seq.times, "still": seq.still.astype(np.uint8), "alpha": alpha},
-                {"rig": seq.rig, "fps": seq.fps, "seed": args.seed,
+                {"rig": seq.rig, "fps": seq.fps, "seed": args.seed, "sentence": sentence,
                  "control_names": list(PARAM_NAMES), "point_names": list(model.point_names)})
     model.save(out / "model.npz")
     seq.camera.save(out / "camera.json")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -51,20 +52,31 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Track the speaker's articulatory parameters and head pose in every frame of a "
             "video. Output: one JSON object per line (frame, t, alpha by name, pose, quality), "
-            "flushed as it goes. The first frame starts from --init-pose, or from the first "
+            "flushed as it goes. With --speaker (a folder from 'articast enroll') nothing else "
+            "is needed: the face finder starts the tracker, checks every few frames that the "
+            "face is there, and restarts it after a loss. With --model/--appearance/--camera "
+            "(a bead-lab speaker), the first frame starts from --init-pose, or from the first "
             "state of --init-truth, or else from a search around a frontal face "
-            "--distance-mm in front of the camera."
+            "--distance-mm in front of the camera. A frame that cannot be tracked says so: "
+            "quality.ok false and a reason starting with blank, no_face, diverged or "
+            "left_image."
         ),
     )
-    tk.add_argument("video", type=Path)
-    tk.add_argument("--model", type=Path, required=True)
-    tk.add_argument("--appearance", type=Path, required=True)
-    tk.add_argument("--camera", type=Path, required=True)
+    tk.add_argument("video", type=Path, help="the video to track")
+    tk.add_argument("--speaker", type=Path,
+                    help="speaker folder from 'articast enroll' (replaces --model, "
+                         "--appearance, --camera)")
+    tk.add_argument("--model", type=Path, help="speaker model (.npz), without --speaker")
+    tk.add_argument("--appearance", type=Path,
+                    help="appearance model (.npz, 'articast train-appearance'), without --speaker")
+    tk.add_argument("--camera", type=Path,
+                    help="camera (.json); with --speaker it replaces the enrolment's camera")
     tk.add_argument("-o", "--output", type=Path, required=True, help="track file (.jsonl)")
     tk.add_argument("--optimiser", default="gauss-newton", choices=["gauss-newton", "nelder-mead"],
                     help="gauss-newton (default, analytic Jacobians) or the paper's simplex")
-    tk.add_argument("--rig", default="head", choices=["head", "desk"],
-                    help="head: camera fixed to the head (pose barely moves); desk: free head")
+    tk.add_argument("--rig", choices=["head", "desk"],
+                    help="head: camera fixed to the head (pose barely moves); desk: free head "
+                         "(default: the speaker's enrolment rig, else head)")
     tk.add_argument("--init-pose", help="rx,ry,rz,tx,ty,tz (axis-angle rad, mm)")
     tk.add_argument("--init-truth", type=Path, help="take the first frame's pose from this file")
     tk.add_argument("--distance-mm", type=float, default=300.0,
@@ -143,36 +155,80 @@ def _initial_pose(args: argparse.Namespace, param_names):
     return Pose(translation=[0.0, 0.0, args.distance_mm])
 
 
-def _track(args: argparse.Namespace) -> int:
+def _make_tracker(args: argparse.Namespace):
+    """(tracker with .track(image, t), model, camera) for --speaker or the bead-lab files."""
+    from articast.core.tracking.tracker import Tracker, TrackingPolicy
+
+    if args.speaker:
+        if args.model or args.appearance or args.init_pose or args.init_truth:
+            raise InputError("--speaker replaces --model, --appearance and the --init options")
+        from articast.core.faces.finder import FaceFinder
+        from articast.core.faces.live import LiveTracker
+        from articast.core.faces.scheme import mediapipe_scheme
+        from articast.core.faces.speaker import Speaker
+
+        speaker = Speaker.load(args.speaker)
+        if args.camera:
+            from dataclasses import replace
+
+            from articast.core.model.camera import Camera
+
+            speaker = replace(speaker, camera=Camera.load(args.camera))
+        rig = args.rig or speaker.rig
+        policy = TrackingPolicy.for_rig(rig, optimiser=args.optimiser)
+        live = LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(speaker.rig),
+                           tracking=policy, clock=time.perf_counter)
+        return live, speaker.model, speaker.camera
+    if not (args.model and args.appearance and args.camera):
+        raise InputError("give --speaker DIR (from 'articast enroll'), or all of --model, "
+                         "--appearance and --camera")
     from articast.core.appearance.models import AppearanceModel
     from articast.core.model.camera import Camera
     from articast.core.model.face import FaceModel
-    from articast.core.tracking.tracker import Tracker, TrackingPolicy
-    from articast.service.progress import Progress
-    from articast.service.video import iter_video, video_frame_count
 
     model = FaceModel.load(args.model)
     app = AppearanceModel.load(args.appearance, model)
     camera = Camera.load(args.camera)
-    policy = TrackingPolicy.for_rig(args.rig, optimiser=args.optimiser)
+    rig = args.rig or "head"
+    policy = TrackingPolicy.for_rig(rig, optimiser=args.optimiser)
     if args.optimiser == "nelder-mead":
-        policy = TrackingPolicy.for_rig(args.rig, optimiser=args.optimiser, levels=(0,))
+        policy = TrackingPolicy.for_rig(rig, optimiser=args.optimiser, levels=(0,))
     tracker = Tracker(model, app, camera, policy,
                       _initial_pose(args, model.param_names), clock=time.perf_counter)
-    prog = Progress(video_frame_count(args.video), "tracking", quiet=args.quiet)
+    return tracker, model, camera
+
+
+def _track(args: argparse.Namespace) -> int:
+    from articast.service.progress import Progress
+    from articast.service.video import iter_video, video_frame_count
+
+    if args.output.is_dir():
+        raise InputError(f"{args.output}: is a folder; give a file name for the track")
+    tracker, model, camera = _make_tracker(args)
+    total = video_frame_count(args.video)
+    prog = Progress(total, "tracking", quiet=args.quiet)
     n_ok = n = 0
     ms = []
+    reasons: dict[str, int] = {}
     with open(args.output, "w", encoding="utf-8") as out:
         for i, t, img in iter_video(args.video):
             if i == 0:
                 _check_size(img, camera)
             res = tracker.track(img, t)
-            out.write(json.dumps(res.to_dict(model.param_names)) + "\n")
+            out.write(json.dumps(res.to_dict(model.param_names), allow_nan=False) + "\n")
             out.flush()
             n += 1
             n_ok += res.ok
             ms.append(res.ms)
+            if not res.ok:
+                code = res.reason.split(":", 1)[0]
+                reasons[code] = reasons.get(code, 0) + 1
             prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
     prog.close()
-    print(f"{n} frames tracked ({n_ok} ok), median {np.median(ms):.2f} ms/frame -> {args.output}")
+    if total and n < total * 0.9:
+        print(f"articast track: warning: {args.video} ended early: read {n} of the {total} "
+              "frames its container declares", file=sys.stderr)
+    why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
+    print(f"{n} frames tracked ({n_ok} ok{why}), median {np.median(ms):.2f} ms/frame "
+          f"-> {args.output}")
     return 0

@@ -1,0 +1,179 @@
+"""``articast enroll``: a speaker folder from a short clip of the person reading aloud."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from articast.core.errors import InputError
+
+MIN_SECONDS = 20.0
+MIN_APERTURE_RANGE_MM = 8.0
+MIN_WIDTH_RANGE_MM = 5.0
+DEFAULT_FOV_DEG = 60.0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    en = sub.add_parser(
+        "enroll",
+        help="enrol a real speaker from a 20-60 s clip of them reading aloud",
+        description=(
+            "Build a speaker folder (face model, appearance, camera, enrolment statistics) "
+            "from a video of one person reading aloud in front of any webcam: face landmarks "
+            "per frame (bundled MediaPipe models on onnxruntime), head pose removed, the "
+            "guided PCA of the paper on the landmarks (jaw1 lips1 lips2 lips3 lips4 jaw2; "
+            "lar1, the throat, is not visible to a camera and stays 0), scale in mm from an "
+            "assumed inter-pupillary distance (or mouth width when the eyes are not seen), "
+            "local appearance trained at the landmark states and refined by "
+            "analysis-by-synthesis. Read with open vowels, rounded and spread lips "
+            "(e.g. 'a', 'ee', 'oo', 'p', 'f') so every parameter is covered. Then: "
+            "'articast track VIDEO --speaker DIR' or 'articast serve --source me=... "
+            "--speaker DIR'."
+        ),
+    )
+    en.add_argument("video", type=Path, help="the enrolment clip (any format FFmpeg reads)")
+    en.add_argument("-o", "--output", type=Path, required=True,
+                    help="speaker folder to write (created; files in it are replaced)")
+    en.add_argument("--camera", type=Path,
+                    help="camera calibration (.json, 'articast calibrate'); default: an "
+                         f"undistorted camera with a {DEFAULT_FOV_DEG:g} deg horizontal field "
+                         "of view at the clip's frame size (a typical webcam)")
+    en.add_argument("--rig", choices=["desk", "head"], default="desk",
+                    help="desk: a webcam in front of the speaker, free head (default); head: "
+                         "a head-mounted camera that sees the face from the nose down")
+    en.add_argument("--ipd-mm", type=float, default=63.0,
+                    help="inter-pupillary distance assumed for the scale in mm (desk; adult "
+                         "mean 63, default)")
+    en.add_argument("--mouth-width-mm", type=float, default=50.0,
+                    help="mouth width at rest assumed for the scale in mm when the eyes are not "
+                         "seen (head rig; default 50)")
+    en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
+                    help="appearance model (default la_quad: la_lin plus squared terms)")
+    en.add_argument("--max-frames", type=int, default=600,
+                    help="analyse at most this many frames, evenly spread (default 600)")
+    en.add_argument("--name", default="", help="speaker name (default: the clip's name)")
+    en.add_argument("--json", action="store_true", help="print the report as JSON")
+    en.add_argument("--quiet", action="store_true", help="no progress line")
+    en.set_defaults(func=_enroll)
+
+
+def find_faces(video: Path, max_frames: int, quiet: bool = False):
+    """Frames (strided to at most ``max_frames``), their landmarks (F, 478, 3), found (F,),
+    the clip's duration (s), frame size and the number of frames read."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.service.progress import Progress
+    from articast.service.video import iter_video, video_frame_count
+
+    total = video_frame_count(video)
+    stride = max(1, int(np.ceil(total / max_frames))) if total and max_frames > 0 else 1
+    finder = FaceFinder.load()
+    images, marks, found = [], [], []
+    prev = None
+    prog = Progress(total // stride if total else 0, "landmarks", quiet=quiet)
+    t_last, n_read, size = 0.0, 0, (0, 0)
+    for i, t, img in iter_video(video):
+        n_read, t_last = i + 1, t
+        if i % stride:
+            continue
+        size = (img.shape[1], img.shape[0])
+        face = finder.track(img, prev) if prev is not None else None
+        face = face or finder.find(img)
+        prev = face
+        images.append(img)
+        marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
+        found.append(face is not None)
+        prog.update()
+    prog.close()
+    if total and n_read < total * 0.9:
+        print(f"articast enroll: warning: {video} ended early: read {n_read} of the {total} "
+              "frames its container declares", file=sys.stderr)
+    fps_dt = t_last / max(n_read - 1, 1)
+    return images, np.array(marks), np.array(found, bool), t_last + fps_dt, size, n_read
+
+
+def _enroll(args: argparse.Namespace) -> int:
+    from articast.core.faces.build import BuildOptions, build_speaker
+    from articast.core.faces.enrol import EnrolOptions
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.core.model.camera import Camera
+
+    for name in ("ipd_mm", "mouth_width_mm"):
+        v = getattr(args, name)
+        if not (np.isfinite(v) and 10.0 <= v <= 150.0):
+            raise InputError(f"--{name.replace('_', '-')} must be between 10 and 150 mm")
+    if args.max_frames < 20:
+        raise InputError("--max-frames must be at least 20")
+    if args.output.exists() and not args.output.is_dir():
+        raise InputError(f"{args.output}: exists and is not a folder")
+    camera = Camera.load(args.camera) if args.camera else None
+    images, marks, found, seconds, size, n_read = find_faces(args.video, args.max_frames,
+                                                              args.quiet)
+    if camera is None:
+        camera = Camera.default(size[0], size[1], DEFAULT_FOV_DEG)
+    elif (camera.width, camera.height) != size:
+        raise InputError(f"video frames are {size[0]}x{size[1]} but the camera is calibrated "
+                         f"for {camera.width}x{camera.height}")
+    warnings = []
+    if seconds < MIN_SECONDS:
+        warnings.append(f"the clip is {seconds:.1f} s long: 20-60 s of reading aloud cover "
+                        "the articulation far better")
+    if found.mean() < 0.5:
+        raise InputError(f"{args.video}: a face was found in {found.sum()} of {found.size} "
+                         "analysed frames: is one face in view and lit?")
+    scheme = mediapipe_scheme(args.rig, args.ipd_mm)
+    say = (lambda m: None) if args.quiet else (lambda m: print(f"enroll: {m}", file=sys.stderr))
+    speaker = build_speaker(
+        images, marks, found, scheme, camera, args.rig,
+        EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm),
+        BuildOptions(kind=args.kind), args.name or args.video.stem, say)
+    cov = speaker.report["coverage"]
+    ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
+    wd_range = cov["width_mm"][1] - cov["width_mm"][0]
+    if ap_range < MIN_APERTURE_RANGE_MM:
+        warnings.append(f"the lips opened by {ap_range:.1f} mm at most: read with open "
+                        "vowels ('a') so jaw opening is covered")
+    if wd_range < MIN_WIDTH_RANGE_MM:
+        warnings.append(f"the mouth width varied by {wd_range:.1f} mm only: include spread "
+                        "and rounded vowels ('ee', 'oo')")
+    report = {**speaker.report, "seconds": round(seconds, 2), "frames_read": n_read,
+              "frames_analysed": int(found.size),
+              "camera": "given" if args.camera else f"default ({DEFAULT_FOV_DEG:g} deg)",
+              "warnings": warnings}
+    from dataclasses import replace
+
+    speaker = replace(speaker, report=report)
+    speaker.save(args.output)
+    if args.json:
+        print(json.dumps({"speaker": str(args.output), "residual": speaker.residual.to_dict(),
+                          **report}, indent=1))
+    else:
+        _print_report(args.output, speaker, report)
+    for w in warnings:
+        print(f"articast enroll: warning: {w}", file=sys.stderr)
+    return 0
+
+
+def _print_report(folder: Path, speaker, report: dict) -> None:
+    var = report["variance_pct"]
+    print(f"speaker folder: {folder}")
+    print(f"clip: {report['seconds']:.1f} s, {report['frames_analysed']} frames analysed, "
+          f"{report['frames_used']} used, {len(report['rejected'])} rejected")
+    for why, n in Counter(report["rejected"].values()).most_common():
+        print(f"  rejected {n}: {why}")
+    print("variance explained (%): " + ", ".join(f"{k} {v:.1f}" for k, v in var.items())
+          + f"; total {sum(var.values()):.1f}")
+    print("lar1 (throat) is not visible to the camera: it stays 0")
+    print(f"scale: {report['scale']}; camera: {report['camera']}")
+    cov = report["coverage"]
+    print(f"lip aperture {cov['aperture_mm'][0]:.1f}-{cov['aperture_mm'][1]:.1f} mm, "
+          f"width {cov['width_mm'][0]:.1f}-{cov['width_mm'][1]:.1f} mm "
+          "(2nd-98th percentile of the clip)")
+    r = speaker.residual
+    print(f"appearance: {report['appearance']['kind']}, {report['appearance']['sample_points']} "
+          f"points, trained on {report['training_frames']} frames; residual on "
+          f"{r.frames} held-out frames: median {r.median:.3g}, p99 {r.p99:.3g}")

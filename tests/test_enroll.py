@@ -1,0 +1,125 @@
+"""A real-speaker workflow with nothing but videos: enroll, then track; ok must mean ok.
+
+The synthetic speaker stands in for a person: its videos are rendered, the enrolment sees only
+the video (landmarks from the bundled face models, no ground truth), and the truth is used
+only to check the result.
+"""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from articast.core.errors import ModelFileError
+from articast.core.faces.speaker import Speaker
+from articast.core.model.face import FaceModel
+from articast.core.outputs.lips import lip_measures
+from articast.service.cli import main
+
+
+def _write_video(path, frames, fps=25.0):
+    h, w = frames[0].shape[:2]
+    wr = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+    for f in frames:
+        wr.write(f)
+    wr.release()
+
+
+def _track_lines(path):
+    return [json.loads(x) for x in path.read_text().splitlines()]
+
+
+@pytest.fixture(scope="module")
+def enrolled(tmp_path_factory):
+    """Speaker 4 enrolled from a 20 s desk clip (6 fps) with the README's commands."""
+    d = tmp_path_factory.mktemp("enrol")
+    assert main(["synth", "sequence", "-o", str(d / "clip"), "--seed", "4", "--sentence", "40",
+                 "--rig", "desk", "--frames", "120", "--fps", "6"]) == 0
+    assert main(["enroll", str(d / "clip" / "video.mp4"), "-o", str(d / "speaker"),
+                 "--quiet", "--json"]) == 0
+    assert main(["synth", "sequence", "-o", str(d / "test"), "--seed", "4", "--sentence", "41",
+                 "--rig", "desk", "--frames", "75", "--fps", "25"]) == 0
+    return d
+
+
+def test_enroll_writes_a_speaker_folder_with_the_seven_parameters(enrolled, capsys):
+    sp = Speaker.load(enrolled / "speaker")
+    assert sp.model.param_names == ("jaw1", "lips1", "lips2", "lips3", "lips4", "jaw2", "lar1")
+    assert np.all(sp.model.basis[6] == 0)  # the throat is not observable: lar1 stays 0
+    var = sp.report["variance_pct"]
+    assert var["lar1"] == 0 and sum(var.values()) > 85
+    assert var["jaw1"] > 10 and var["lips1"] > 10  # the two big speech modes are found
+    assert sp.residual.p99 >= sp.residual.median > 0
+    # the scale assumption is stated, and the model is in mm: a plausible mouth
+    assert "63 mm" in sp.report["scale"]
+    ap, wd = lip_measures(sp.model, np.zeros(7))
+    assert 30 < wd < 70 and 0 <= ap < 15
+
+
+def test_track_with_only_the_speaker_folder_follows_the_true_articulation(enrolled, capsys):
+    out = enrolled / "track.jsonl"
+    assert main(["track", str(enrolled / "test" / "video.mp4"), "--speaker",
+                 str(enrolled / "speaker"), "-o", str(out), "--quiet"]) == 0
+    lines = _track_lines(out)
+    assert len(lines) == 75
+    ok = np.array([r["quality"]["ok"] for r in lines])
+    assert ok.mean() >= 0.95
+    truth = _track_lines(enrolled / "test" / "truth.jsonl")
+    true_model = FaceModel.load(enrolled / "test" / "model.npz")
+    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
+    a = np.array([[r["alpha"][n] for n in true_model.param_names] for r in lines])
+    # the enrolled model's parameters mean what the paper's do: jaw opening is jaw opening
+    assert np.corrcoef(a[ok, 0], at[ok, 0])[0, 1] > 0.85
+    # lip aperture in mm follows the true aperture
+    ap = np.array([r["lips"]["aperture_mm"] for r in lines])
+    ap_true, _ = lip_measures(true_model, at)
+    assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
+
+
+@pytest.mark.parametrize("kind", ["noise", "blank"])
+def test_noise_and_blank_videos_are_never_ok(enrolled, tmp_path, kind):
+    rng = np.random.default_rng(0)
+    frames = [(rng.integers(0, 256, (480, 640, 3)) if kind == "noise"
+               else np.full((480, 640, 3), 127)).astype(np.uint8) for _ in range(20)]
+    video = tmp_path / f"{kind}.mp4"
+    _write_video(video, frames)
+    out = tmp_path / "track.jsonl"
+    assert main(["track", str(video), "--speaker", str(enrolled / "speaker"), "-o", str(out),
+                 "--quiet"]) == 0
+    lines = _track_lines(out)
+    assert len(lines) == 20 and not any(r["quality"]["ok"] for r in lines)
+    codes = {r["quality"]["reason"].split(":")[0] for r in lines}
+    assert codes <= {"no_face", "blank", "diverged"}
+    if kind == "blank":
+        assert codes == {"blank"}
+
+
+def test_enroll_on_a_video_without_a_face_is_one_clear_error(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    video = tmp_path / "noise.mp4"
+    _write_video(video, [rng.integers(0, 256, (240, 320, 3), dtype=np.uint8) for _ in range(10)])
+    assert main(["enroll", str(video), "-o", str(tmp_path / "sp"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a face was found in 0 of 10" in err[0]
+    assert not (tmp_path / "sp").exists()
+
+
+def test_a_broken_speaker_folder_is_one_clear_error(enrolled, tmp_path, capsys):
+    with pytest.raises(ModelFileError, match="missing appearance.npz"):
+        d = tmp_path / "partial"
+        d.mkdir()
+        (d / "speaker.json").write_text("{}")
+        (d / "model.npz").write_bytes(b"")
+        (d / "camera.json").write_text("{}")
+        Speaker.load(d)
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for f in ("model.npz", "appearance.npz", "camera.json"):
+        (bad / f).write_bytes((enrolled / "speaker" / f).read_bytes())
+    (bad / "speaker.json").write_text('{"kind": "articast-speaker", "version": 9}')
+    out = tmp_path / "t.jsonl"
+    assert main(["track", str(enrolled / "test" / "video.mp4"), "--speaker", str(bad),
+                 "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "version 9 is not supported" in err[0]
