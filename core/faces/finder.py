@@ -36,14 +36,16 @@ class FinderPolicy:
     detector : thresholds of the face detector.
     scale : ROI side over the face's extent (detection box or landmarks' bounding square).
     min_presence : a face whose landmark presence probability is below this is not a face.
-    refine : after a detection (or a given box), re-crop once from the landmarks found and run
-        the landmarks again, so that ``find`` and ``track`` crop the same way.
+    refine : after a detection (or a given box), re-crop this many times from the landmarks
+        found and run the landmarks again, so that ``find`` lands where ``track`` would (on
+        a still synthetic desk frame, ``track`` after ``find`` moves the lip points by
+        <= 0.9 px with 1 pass, <= 0.55 px with 2).
     """
 
     detector: DetectorPolicy = DetectorPolicy()
     scale: float = 1.5
     min_presence: float = 0.5
-    refine: bool = True
+    refine: int = 2
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,7 +125,9 @@ class FaceFinder:
         else:
             roi = box_roi(box)
         face = self._landmarks_face(image_bgr, roi)
-        if face is not None and self.policy.refine:
+        for _ in range(int(self.policy.refine)):
+            if face is None:
+                break
             face = self.track(image_bgr, face)
         return face
 

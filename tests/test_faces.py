@@ -1,0 +1,155 @@
+"""Face detection and landmarks (articast.core.faces) on the synthetic speaker's renders.
+
+Truth: the speaker's true geometry projected with the sequence's pose and camera; MPEG-4
+feature points of the synthetic model correspond to MediaPipe landmark indices.
+"""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from articast.core.errors import InputError
+from articast.core.faces.detector import detect
+from articast.core.faces.finder import Face, FaceFinder, FinderPolicy, models_dir
+from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
+
+REFERENCE = Path(__file__).parent / "data" / "face_models_reference.npz"
+#: synthetic MPEG-4 feature point -> MediaPipe landmark (person's left = image right)
+MIDPOINTS = {"2.2": 13, "2.3": 14, "8.1": 0, "8.2": 17}
+CORNERS = {"8.3": 291, "8.4": 61, "2.4": 308, "2.5": 78}
+FRAMES = (0, 30, 60, 90, 120)
+
+
+@pytest.fixture(scope="module")
+def finder():
+    return FaceFinder.load()
+
+
+def _render(rig, frames=FRAMES):
+    speaker = default_speaker(0)
+    seq = make_sequence(0, 150, 50.0, rig, size=(640, 480), geometry=speaker.geometry)
+    fp = speaker.geometry.feature_points
+    out = []
+    for i in frames:
+        image = speaker.render(seq.controls[i], seq.pose(i), seq.camera, RenderOptions(seed=i))
+        truth = {k: seq.camera.project(seq.pose(i).transform(seq.points[i][fp[k]]))
+                 for k in (*MIDPOINTS, *CORNERS)}
+        out.append((image, truth))
+    return out
+
+
+@pytest.fixture(scope="module")
+def desk():
+    return _render("desk")
+
+
+@pytest.fixture(scope="module")
+def head():
+    return _render("head", FRAMES[1:4])
+
+
+def _errors(face, truth, pairs):
+    return np.array([np.linalg.norm(face.landmarks[j, :2] - truth[k]) for k, j in pairs.items()])
+
+
+def test_detector_finds_exactly_one_face_on_a_desk_render(finder, desk):
+    for image, truth in desk:
+        found = detect(finder._detector, image)
+        assert len(found) == 1
+        x0, y0, x1, y1 = found[0].box
+        mouth = (truth["8.3"] + truth["8.4"]) / 2
+        assert x0 < mouth[0] < x1 and y0 < mouth[1] < y1
+        # keypoint 3 is the mouth centre
+        assert np.linalg.norm(found[0].keypoints[3] - mouth) < 0.15 * (x1 - x0)
+
+
+@pytest.mark.parametrize("kind", ["noise", "blank", "grey"])
+def test_no_face_on_noise_or_blank_frames(finder, kind):
+    rng = np.random.default_rng(3)
+    image = {"noise": rng.integers(0, 256, (480, 640, 3), dtype=np.uint8),
+             "blank": np.zeros((480, 640, 3), np.uint8),
+             "grey": np.full((480, 640, 3), 128, np.uint8)}[kind]
+    assert detect(finder._detector, image) == []
+    assert finder.find(image) is None
+
+
+def test_lip_landmarks_land_on_the_true_lips_desk(finder, desk):
+    apertures = []
+    for image, truth in desk:
+        face = finder.find(image)
+        assert isinstance(face, Face) and face.landmarks.shape == (478, 3)
+        assert face.score > 0.9
+        assert np.all(_errors(face, truth, MIDPOINTS) < 5.0)  # lips ~53 px wide here
+        assert np.all(_errors(face, truth, CORNERS) < 14.0)
+        apertures.append((np.linalg.norm(face.landmarks[14, :2] - face.landmarks[13, :2]),
+                          np.linalg.norm(truth["2.3"] - truth["2.2"])))
+    est, true = np.array(apertures).T
+    assert np.ptp(true) > 5.0  # the frames do cover different apertures
+    assert np.corrcoef(est, true)[0, 1] > 0.95
+
+
+def test_head_rig_lower_face_found_with_and_without_a_box(finder, head):
+    """A head-mounted camera sees only the lower face: the detector still fires, and the
+    landmarks run on a fixed box (the camera moves with the head) follow the lips too."""
+    fixed = FaceFinder(finder._detector, finder._landmarks, FinderPolicy(refine=0))
+    box = np.array([-80.0, -280.0, 720.0, 520.0])  # 800 px square above the 640x480 frame
+    for image, truth in head:
+        for face in (finder.find(image), fixed.find(image, box=box)):
+            assert face is not None
+            assert np.median(_errors(face, truth, MIDPOINTS)) < 10.0  # lips ~160 px wide
+
+
+def test_track_from_find_gives_the_same_landmarks_on_a_still_frame(finder, desk):
+    for image, _ in desk[:3]:
+        face = finder.find(image)
+        again = finder.track(image, face)
+        assert again is not None
+        lips = [13, 14, 0, 17, 61, 291, 78, 308]
+        assert np.abs(again.landmarks[lips, :2] - face.landmarks[lips, :2]).max() < 1.0
+        assert np.abs(again.landmarks[:, :2] - face.landmarks[:, :2]).max() < 1.5
+
+
+def test_track_loses_the_face_when_it_is_gone(finder, desk):
+    face = finder.find(desk[0][0])
+    assert finder.track(np.zeros((480, 640, 3), np.uint8), face) is None
+
+
+def test_onnx_models_match_the_original_tflite_reference(finder):
+    """Outputs of the ORIGINAL .tflite (stored by tools/convert_face_models.py) on real
+    inputs; the bundled ONNX models must reproduce them within 1e-3."""
+    ref = np.load(REFERENCE)
+    det_in = (ref["detector_input"].astype(np.float32) * (2.0 / 255.0) - 1.0)[None]
+    got = finder._detector.run(None, {finder._detector.get_inputs()[0].name: det_in})
+    for i, out in enumerate(got):
+        assert np.abs(out - ref[f"detector_outputs_{i}"]).max() < 1e-3
+    half = ref["landmarks_input_half"]
+    full = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)
+    lm_in = (full.astype(np.float32) / 255.0)[None]
+    got = finder._landmarks.run(None, {finder._landmarks.get_inputs()[0].name: lm_in})
+    assert len(got) == 3
+    for i, out in enumerate(got):
+        want = ref[f"landmarks_outputs_{i}"]
+        assert out.shape == want.shape
+        assert np.abs(out - want).max() < 1e-3
+
+
+def test_box_must_be_a_proper_box(finder, desk):
+    with pytest.raises(InputError):
+        finder.find(desk[0][0], box=np.array([10.0, 10.0, 5.0, 50.0]))
+    with pytest.raises(InputError):
+        FaceFinder.load(threads=0)
+
+
+def test_canonical_face_is_metric_and_triangulated():
+    canon = np.load(models_dir() / "canonical_face.npz")
+    v, tri = canon["vertices_cm"], canon["triangles"]
+    assert v.shape == (468, 3) and tri.shape[1] == 3 and len(tri) > 800
+    assert tri.min() == 0 and tri.max() == 467
+    assert 8.0 < np.linalg.norm(v[33] - v[263]) < 10.0  # outer eye corners, cm
+    assert 4.0 < np.linalg.norm(v[61] - v[291]) < 6.0  # mouth corners, cm
+    # every vertex is used, and each edge is shared by at most two triangles (a manifold)
+    assert len(np.unique(tri)) == 468
+    edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert counts.max() <= 2
