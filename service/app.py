@@ -215,8 +215,17 @@ class Connection:
         limit = self.svc.config.hub.max_messages_per_s
         if self._refused > 10 * limit:
             log.info("closing a connection sending over %.0f messages/s", limit)
-            with contextlib.suppress(Exception):
+            try:
                 await self.ws.close(1008, f"over {limit:g} messages per second")
+                # read (and drop) what is still in flight until the client's close reply:
+                # closing a socket with unread data resets it and loses our close frame
+                deadline = time.monotonic() + 2.0
+                while time.monotonic() < deadline:
+                    msg = await asyncio.wait_for(self.ws.receive(), deadline - time.monotonic())
+                    if msg["type"] == "websocket.disconnect":
+                        break
+            except Exception as exc:  # noqa: BLE001 - the peer may be gone already
+                log.debug("closing an over-rate connection: %r", exc)
             return True
         t = time.monotonic()
         if t - self._last_refusal_error >= 1.0:

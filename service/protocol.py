@@ -193,7 +193,7 @@ class Status(_Message):
 ErrorCode = Literal[
     "bad_json", "bad_message", "too_large", "binary_not_accepted", "unknown_session",
     "unknown_stream", "unavailable_stream", "unsupported_protocol", "too_many_subscriptions",
-    "not_subscribed", "internal",
+    "not_subscribed", "rate_limited", "internal",
 ]
 
 
