@@ -20,6 +20,7 @@ import numpy as np
 
 from articast.core.errors import InputError
 from articast.service.hub import Hub
+from articast.service.jsonsafe import dumps
 from articast.service.metrics import SessionMetrics
 from articast.service.settings import CaptureSettings, SessionPolicy
 from articast.service.sources import check_uri, parse_uri
@@ -163,13 +164,12 @@ class Session:
         """JSON of the dense face of this session's model (cached; blocking: call from a
         worker thread, as FastAPI does for plain ``def`` routes)."""
         if self._dense is None:
-            import json
 
             from articast.core.synthetic.dense import dense_face
             from articast.service.wire import model_from_description
 
             model = model_from_description(self.description or {})
-            self._dense = json.dumps(dense_face(model).to_dict()).encode()
+            self._dense = dumps(dense_face(model).to_dict()).encode()
         return self._dense
 
     def _on_frame(self, rec: FrameRecord) -> None:

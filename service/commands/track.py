@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
 from articast.core.errors import InputError
+from articast.service.jsonsafe import dumps
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -162,17 +162,23 @@ def _track(args: argparse.Namespace) -> int:
     prog = Progress(video_frame_count(args.video), "tracking", quiet=args.quiet)
     n_ok = n = 0
     ms = []
+    if args.output.is_dir():
+        raise InputError(f"-o {args.output}: is a folder, expected a file name (.jsonl)")
     with open(args.output, "w", encoding="utf-8") as out:
         for i, t, img in iter_video(args.video):
             if i == 0:
                 _check_size(img, camera)
             res = tracker.track(img, t)
-            out.write(json.dumps(res.to_dict(model.param_names)) + "\n")
+            out.write(dumps(res.to_dict(model.param_names)) + "\n")
             out.flush()
             n += 1
             n_ok += res.ok
             ms.append(res.ms)
             prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
     prog.close()
+    if n_ok == 0:  # exit 0 would pass a useless track off as a result
+        raise InputError(f"{args.video}: none of its {n} frames could be tracked (check the "
+                         "camera, model and appearance files, and --init-pose); frames "
+                         f"written with ok=false to {args.output}")
     print(f"{n} frames tracked ({n_ok} ok), median {np.median(ms):.2f} ms/frame -> {args.output}")
     return 0
