@@ -177,7 +177,7 @@ class Frame(_Message):
 
 
 SessionState = Literal[
-    "starting", "running", "unavailable", "restarting", "ended", "failed", "stopped"
+    "starting", "running", "unavailable", "stalled", "restarting", "ended", "failed", "stopped"
 ]
 
 
