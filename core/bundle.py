@@ -8,15 +8,19 @@ No pickles: arrays are loaded with ``allow_pickle=False``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import struct
 import zipfile
+import zlib
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from articast.core.errors import ModelFileError
+from articast.core.errors import ArticastError, ModelFileError
 
 _META_KEY = "__meta__"
 
@@ -57,6 +61,8 @@ def load_bundle(
     """
     path = Path(path)
     where = f"{path}"
+    if path.is_dir():
+        raise ModelFileError(f"{where}: is a folder, expected an articast {kind} file")
     if not path.is_file():
         raise ModelFileError(f"{where}: no such file")
     try:
@@ -68,24 +74,53 @@ def load_bundle(
             arrays = {n: np.array(npz[n]) for n in names if n != _META_KEY}
     except ModelFileError:
         raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, UnicodeDecodeError) as exc:
+    except READ_ERRORS as exc:
         raise ModelFileError(
             f"{where}: cannot read as an articast {kind} file (truncated or not an npz "
             f"archive: {exc.__class__.__name__})"
         ) from None
     if not isinstance(meta, dict) or meta.get("kind") != kind:
         found = meta.get("kind") if isinstance(meta, dict) else None
-        raise ModelFileError(f"{where}: expected an articast {kind} file, found kind {found!r}")
+        shown = repr(found) if found in KNOWN_KINDS else "another kind"
+        raise ModelFileError(f"{where}: expected an articast {kind} file, found {shown}")
     version = meta.get("version")
     if version not in versions:
+        shown = repr(version) if isinstance(version, int) else "an unknown one"
         raise ModelFileError(
-            f"{where}: {kind} format version {version!r} is not supported "
+            f"{where}: {kind} format version {shown} is not supported "
             f"(this articast reads version {', '.join(map(str, versions))})"
         )
     for name, arr in arrays.items():
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise ModelFileError(f"{where}: array {name!r} contains NaN or infinite values")
     return arrays, meta
+
+
+READ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, KeyError,
+               TypeError, IndexError, AttributeError, UnicodeDecodeError, struct.error,
+               NotImplementedError, RuntimeError, OverflowError, RecursionError)
+"""What numpy, zipfile, zlib and json raise on a corrupt or hostile file."""
+
+KNOWN_KINDS = ("face-model", "appearance-model", "posture-corpus", "dense-binding")
+"""Kinds named in an error (anything else a file claims to be is not echoed)."""
+
+
+@contextlib.contextmanager
+def reading(path: str | os.PathLike[str], what: str) -> Iterator[None]:
+    """Turn any decoding error inside the block into one :class:`ModelFileError` line.
+
+    Used around the checks after :func:`load_bundle`: a field of the wrong type or a
+    missing metadata key is a defect of the file, not of articast.
+    """
+    try:
+        yield
+    except ArticastError as exc:
+        if str(path) in str(exc):
+            raise
+        raise ModelFileError(f"{path}: {exc}") from None
+    except READ_ERRORS as exc:
+        detail = f"missing field {exc}" if isinstance(exc, KeyError) else type(exc).__name__
+        raise ModelFileError(f"{path}: malformed {what} file ({detail})") from None
 
 
 def require(cond: bool, path: str | os.PathLike[str], message: str) -> None:

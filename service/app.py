@@ -9,6 +9,11 @@
 ``GET /healthz``               liveness and session states
 ``GET /metrics``               Prometheus text
 
+Access (:mod:`articast.service.security`): every request must name this server in ``Host``
+and, from a browser, come from an allowed ``Origin`` (403 otherwise); with a token configured,
+everything but ``/healthz``, ``/api/protocol`` and the avatar's static files needs it (401);
+the session API (POST/DELETE) needs a token always (403 when none is configured).
+
 Each WebSocket connection has one receive loop (client messages, every bad one answered by an
 ``error``) and one sender task per subscription, which awaits only its own hub queue and its
 own socket: a stalled client stalls nobody else, and one stalled for longer than
@@ -20,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -33,6 +39,7 @@ from articast.core.errors import ArticastError
 from articast.service import protocol as P
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
+from articast.service.security import AccessPolicy, Forbidden
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
 from articast.service.wire import (
@@ -56,8 +63,8 @@ class ServiceConfig:
     capture: CaptureSettings = field(default_factory=CaptureSettings)
     policy: SessionPolicy = field(default_factory=SessionPolicy)
     sessions: tuple[SessionSpec, ...] = ()
-    api_token: str = ""
-    """If set, POST and DELETE need ``Authorization: Bearer <token>``."""
+    access: AccessPolicy = field(default_factory=AccessPolicy)
+    """Token, Host and Origin rules, media roots and devices allowed over HTTP."""
     http_processors: tuple[str, ...] = ("auto", "truth", "tracker", "live")
     """Processors a session added over HTTP may name: importing ``module:callable`` on a
     client's word would run the client's choice of code, so only these are accepted."""
@@ -75,12 +82,57 @@ class SessionCreate(BaseModel):
     speaker: str = ""
 
 
+class MessageBucket:
+    """Token bucket: ``rate`` messages per second on average, bursts up to ``burst``."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate, self.burst = rate, max(1.0, burst)
+        self.tokens, self.t = self.burst, time.monotonic()
+
+    def take(self, t: float) -> bool:
+        if not math.isfinite(self.rate) or self.rate <= 0:
+            return True
+        self.tokens = min(self.burst, self.tokens + (t - self.t) * self.rate)
+        self.t = t
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
+def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
+    """The spec of a session asked for over HTTP, its files resolved inside the media roots.
+
+    Raises :class:`Forbidden` for a device not allowed or a path outside the roots (the same
+    answer whether the path exists or not) and ``HTTPException(400)`` for a malformed URI.
+    """
+    from articast.service.sources import SOURCE_KINDS, parse_uri
+
+    try:
+        p = parse_uri(body.source)
+    except ArticastError as exc:
+        raise HTTPException(400, str(exc)) from None
+    files = {"model": body.model, "appearance": body.appearance, "camera": body.camera,
+             "speaker": body.speaker}
+    access.check_session_files(p.kind, p.target, files)
+    if p.kind in ("file", "images", "replay-record"):
+        query = body.source.partition("?")[2]
+        source = f"{p.kind}:{access.resolve(p.target)}" + (f"?{query}" if query else "")
+    else:
+        source = body.source
+    assert p.kind in SOURCE_KINDS
+    resolved = {k: access.resolve(v) if v else "" for k, v in files.items()}
+    return SessionSpec(body.name, source, resolved["model"], resolved["appearance"],
+                       resolved["camera"], body.processor, body.wait_for_subscriber,
+                       speaker=resolved["speaker"])
+
+
 class Subscriber:
     """One subscription of one connection."""
 
     def __init__(self, conn: Connection, req: P.Subscribe, sub: Any) -> None:
         self.conn, self.req, self.sub = conn, req, sub
-        self.view = (tuple(sorted(req.streams)), req.encoding)
+        self.view = (tuple(sorted(set(req.streams))), req.encoding)
         self.task: asyncio.Task[None] | None = None
         self.counted = False
 
@@ -93,6 +145,10 @@ class Connection:
         self._send_lock = asyncio.Lock()
         self.closed = asyncio.Event()
         self.task: asyncio.Task[Any] | None = None
+        rate = svc.config.hub.max_messages_per_s
+        self._bucket = MessageBucket(rate, 2 * rate)
+        self._refused = 0
+        self._last_refusal_error = 0.0
 
     async def send(self, data: str | bytes) -> None:
         msg = {"type": "websocket.send", "text": data} if isinstance(data, str) else \
@@ -122,6 +178,10 @@ class Connection:
                 msg = await self.ws.receive()
                 if msg["type"] == "websocket.disconnect":
                     return
+                if not self._bucket.take(time.monotonic()):
+                    if await self._over_rate():
+                        return
+                    continue
                 text = msg.get("text")
                 if text is None:
                     await self.error("binary_not_accepted",
@@ -136,6 +196,9 @@ class Connection:
                 except P.ProtocolError as exc:
                     await self.error(exc.code, exc.reason)
                     continue
+                except RecursionError:
+                    await self.error("bad_json", "JSON nested too deeply")
+                    continue
                 if isinstance(req, P.Subscribe):
                     await self.subscribe(req)
                 else:
@@ -145,7 +208,37 @@ class Connection:
                 self._drop(s)
             self.closed.set()
 
+    async def _over_rate(self) -> bool:
+        """A message over the rate limit: dropped, said once a second; True = close now.
+
+        A client far over the limit (ten seconds' worth refused in a row) is closed with
+        1008: parsing even a refused message costs the server, and bystanders come first.
+        """
+        self._refused += 1
+        limit = self.svc.config.hub.max_messages_per_s
+        if self._refused > 10 * limit:
+            log.info("closing a connection sending over %.0f messages/s", limit)
+            try:
+                await self.ws.close(1008, f"over {limit:g} messages per second")
+                # read (and drop) what is still in flight until the client's close reply:
+                # closing a socket with unread data resets it and loses our close frame
+                deadline = time.monotonic() + 2.0
+                while time.monotonic() < deadline:
+                    msg = await asyncio.wait_for(self.ws.receive(), deadline - time.monotonic())
+                    if msg["type"] == "websocket.disconnect":
+                        break
+            except Exception as exc:  # noqa: BLE001 - the peer may be gone already
+                log.debug("closing an over-rate connection: %r", exc)
+            return True
+        t = time.monotonic()
+        if t - self._last_refusal_error >= 1.0:
+            self._last_refusal_error = t
+            await self.error("rate_limited", f"over {limit:g} messages per second: "
+                             "messages dropped")
+        return False
+
     async def subscribe(self, req: P.Subscribe) -> None:
+        self._refused = 0
         svc, name = self.svc, req.session
         session = svc.manager.sessions.get(name)
         if session is None:
@@ -335,6 +428,43 @@ class BodyLimit:
         await self.app(scope, limited, send)
 
 
+class Guard:
+    """ASGI middleware: refuse a foreign ``Host`` (DNS rebinding) or ``Origin`` with 403.
+
+    WebSocket upgrades are refused before the handshake with an HTTP answer (the denial
+    response extension), so a browser page learns nothing but the refusal.
+    """
+
+    def __init__(self, app: Any, access: AccessPolicy) -> None:
+        self.app, self.access = app, access
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
+        host, origin = headers.get("host"), headers.get("origin")
+        reason = ""
+        if not self.access.host_ok(host):
+            reason = "this server does not answer to that Host name (DNS rebinding guard)"
+        elif not self.access.origin_ok(origin, host):
+            reason = "requests from this Origin are not allowed (--allowed-origin)"
+        if reason:
+            await deny(scope, receive, send, 403, reason)
+            return
+        await self.app(scope, receive, send)
+
+
+async def deny(scope: Any, receive: Any, send: Any, status: int, reason: str) -> None:
+    """An HTTP refusal, also before a WebSocket handshake (else close 1008 after it)."""
+    response = JSONResponse({"detail": reason}, status)
+    if scope["type"] == "http" or "websocket.http.response" in scope.get("extensions", {}):
+        await response(scope, receive, send)
+        return
+    await send({"type": "websocket.accept"})
+    await send({"type": "websocket.close", "code": 1008, "reason": reason[:120]})
+
+
 def create_app(config: ServiceConfig | None = None) -> FastAPI:
     config = config or ServiceConfig()
     svc = Service(config)
@@ -355,6 +485,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     mount_avatar(app)
 
     app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes)
+    app.add_middleware(Guard, access=config.access)
 
     @app.exception_handler(BodyTooLarge)
     async def too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
@@ -365,13 +496,33 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         log.exception("internal error on %s", request.url.path)
         return JSONResponse({"detail": "internal error (see the server log)"}, 500)
 
+    access = config.access
+
     def authorise(request: Request) -> None:
-        if config.api_token and request.headers.get("authorization") != \
-                f"Bearer {config.api_token}":
-            raise HTTPException(401, "this server needs Authorization: Bearer <token>")
+        """Reading faces: the token when one is configured."""
+        if not access.token_ok(request.headers.get("authorization"),
+                               request.scope.get("query_string", b"")):
+            raise HTTPException(401, "this server needs a token: Authorization: Bearer TOKEN "
+                                "(or ?token=TOKEN)")
+
+    def authorise_admin(request: Request) -> None:
+        """Starting and stopping sessions: always the token."""
+        if not access.token:
+            raise HTTPException(403, "the session API needs a token: start the server with "
+                                "ARTICAST_TOKEN or --token-file")
+        authorise(request)
+
+    @app.exception_handler(Forbidden)
+    async def forbidden(request: Request, exc: Forbidden) -> JSONResponse:
+        return JSONResponse({"detail": exc.reason}, exc.status)
 
     @app.websocket("/ws")
     async def ws(websocket: WebSocket) -> None:
+        if not access.token_ok(websocket.headers.get("authorization"),
+                               websocket.scope.get("query_string", b"")):
+            await deny(websocket.scope, websocket.receive, websocket.send, 401,
+                       "this server needs a token: Authorization: Bearer TOKEN or ?token=TOKEN")
+            return
         await websocket.accept()
         conn = Connection(websocket, svc)
         conn.task = asyncio.current_task()
@@ -388,18 +539,21 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
                 conn._drop(s)
 
     @app.get("/api/sessions")
-    async def list_sessions() -> list[dict[str, Any]]:
+    async def list_sessions(request: Request) -> list[dict[str, Any]]:
+        authorise(request)
         return [s.to_dict() for s in svc.manager.sessions.values()]
 
     @app.post("/api/sessions", status_code=201)
     async def create_session(body: SessionCreate, request: Request) -> dict[str, Any]:
-        authorise(request)
+        authorise_admin(request)
         if body.processor not in config.http_processors:
             raise HTTPException(400, f"processor {body.processor!r} is not allowed over HTTP "
                                 f"(allowed: {list(config.http_processors)}; start the server "
                                 "with --processor to allow another)")
-        spec = SessionSpec(body.name, body.source, body.model, body.appearance, body.camera,
-                           body.processor, body.wait_for_subscriber, speaker=body.speaker)
+        if len(svc.manager.sessions) >= config.policy.max_sessions:
+            raise HTTPException(429, f"the server runs its maximum of "
+                                f"{config.policy.max_sessions} sessions (--max-sessions)")
+        spec = confined_spec(access, body)
         try:
             s = await svc.manager.add(spec)
         except KeyError:
@@ -410,17 +564,18 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
 
     @app.delete("/api/sessions/{name}")
     async def delete_session(name: str, request: Request) -> dict[str, Any]:
-        authorise(request)
+        authorise_admin(request)
         if name not in svc.manager.sessions:
             raise HTTPException(404, f"no session {name!r}")
         await svc.manager.remove(name)
         return {"name": name, "state": "stopped"}
 
     @app.get("/api/sessions/{name}/dense")
-    def dense_mesh(name: str) -> Response:
+    def dense_mesh(name: str, request: Request) -> Response:
         """The session's dense face mesh and dense modes (METHOD.md §5), built once per model
         (a fraction of a second, in the thread pool) and served as JSON:
         ``{n_points, mean (3M), basis (K*3M), triangles (3T), linearity_error_mm}``."""
+        authorise(request)
         session = svc.manager.sessions.get(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r}")
@@ -433,13 +588,17 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         return P.protocol_schema()
 
     @app.get("/healthz")
-    async def healthz() -> dict[str, Any]:
-        return {"status": "ok", "protocol": P.PROTOCOL_VERSION,
-                "sessions": {n: s.state for n, s in svc.manager.sessions.items()},
-                "connections": len(svc.connections)}
+    async def healthz(request: Request) -> dict[str, Any]:
+        out: dict[str, Any] = {"status": "ok", "protocol": P.PROTOCOL_VERSION}
+        if access.token_ok(request.headers.get("authorization"),
+                           request.scope.get("query_string", b"")):
+            out["sessions"] = {n: s.state for n, s in svc.manager.sessions.items()}
+            out["connections"] = len(svc.connections)
+        return out
 
     @app.get("/metrics", response_class=PlainTextResponse)
-    async def metrics() -> PlainTextResponse:
+    async def metrics(request: Request) -> PlainTextResponse:
+        authorise(request)
         return PlainTextResponse(svc.metrics_text(),
                                  media_type="text/plain; version=0.0.4; charset=utf-8")
 

@@ -52,7 +52,8 @@ class Subscribe(_Message):
 
     type: Literal["subscribe"] = "subscribe"
     session: SessionName
-    streams: list[Stream] = Field(default_factory=lambda: list(DEFAULT_STREAMS), min_length=1)
+    streams: list[Stream] = Field(default_factory=lambda: list(DEFAULT_STREAMS), min_length=1,
+                                 max_length=16)
     rate: float | None = Field(
         default=None, gt=0, le=1000, description="maximum frames per second (None: every frame)"
     )
@@ -187,7 +188,7 @@ class Frame(_Message):
 
 
 SessionState = Literal[
-    "starting", "running", "unavailable", "restarting", "ended", "failed", "stopped"
+    "starting", "running", "unavailable", "stalled", "restarting", "ended", "failed", "stopped"
 ]
 
 
@@ -203,7 +204,7 @@ class Status(_Message):
 ErrorCode = Literal[
     "bad_json", "bad_message", "too_large", "binary_not_accepted", "unknown_session",
     "unknown_stream", "unavailable_stream", "unsupported_protocol", "too_many_subscriptions",
-    "not_subscribed", "internal",
+    "not_subscribed", "rate_limited", "internal",
 ]
 
 
@@ -229,11 +230,21 @@ class ProtocolError(ValueError):
         self.reason = reason
 
 
+MAX_CONTAINERS = 64
+"""Arrays and objects one client message may hold (a subscribe needs two): deeper
+nesting is refused before parsing, with an error, instead of exhausting the stack."""
+
+
 def parse_client_message(text: str | bytes) -> Subscribe | Unsubscribe:
     """Validate one client message; raises :class:`ProtocolError` with a readable reason."""
+    opened = text.count("[") + text.count("{") if isinstance(text, str) else \
+        text.count(b"[") + text.count(b"{")
+    if opened > MAX_CONTAINERS:
+        raise ProtocolError("bad_message", f"a client message has at most {MAX_CONTAINERS} "
+                            "arrays and objects")
     try:
         doc = json.loads(text)
-    except (ValueError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError, RecursionError) as exc:
         raise ProtocolError("bad_json", f"not valid JSON: {exc}") from None
     if not isinstance(doc, dict) or "type" not in doc:
         raise ProtocolError("bad_message", "a message is a JSON object with a 'type' field")
@@ -252,6 +263,9 @@ def parse_client_message(text: str | bytes) -> Subscribe | Unsubscribe:
             "unsupported_protocol",
             f"this server speaks protocol {PROTOCOL_VERSION}, not {msg.protocol}",
         )
+    if isinstance(msg, Subscribe) and len(set(msg.streams)) != len(msg.streams):
+        # ["mesh"] * k must not be k distinct views, each encoded separately
+        msg = msg.model_copy(update={"streams": list(dict.fromkeys(msg.streams))})
     return msg
 
 

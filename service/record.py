@@ -20,6 +20,7 @@ from typing import Any, TextIO
 
 from articast.core.model.face import PARAM_NAMES
 from articast.core.tracking.result import TrackResult
+from articast.service.jsonsafe import dumps
 from articast.service.sources import SourceAssets, SourceError
 from articast.service.wire import FrameRecord, model_from_description
 
@@ -48,7 +49,7 @@ class Recorder:
 
     def _line(self, doc: dict[str, Any]) -> None:
         assert self._fh is not None
-        self._fh.write(json.dumps(doc, separators=(",", ":")) + "\n")
+        self._fh.write(dumps(doc, separators=(",", ":")) + "\n")
         self._fh.flush()
 
     def write(self, record: FrameRecord) -> None:

@@ -8,21 +8,130 @@ to stop, joined with a timeout, processes terminated if they do not).
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import socket
 from collections.abc import Callable
 from typing import Any
 
 import uvicorn
+from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from articast.service.app import ServiceConfig, create_app
 
 ABORT_EXTENSION = "articast.abort"
 """ASGI scope extension: a callable that aborts the connection's transport at once."""
+log = logging.getLogger("articast.server")
 
 
-def websocket_protocol(socket_buffer_bytes: int) -> type[WebSocketsSansIOProtocol]:
+class ClientConnections:
+    """Open TCP connections per client address (both protocols of one connection count once)."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit = limit
+        self.by_address: dict[str, int] = {}
+        self._open: dict[int, str] = {}
+
+    def admit(self, transport: Any) -> bool:
+        key = id(transport)
+        if key in self._open:
+            return True
+        peer = transport.get_extra_info("peername")
+        address = str(peer[0]) if peer else "?"
+        if self.by_address.get(address, 0) >= self.limit:
+            return False
+        self.by_address[address] = self.by_address.get(address, 0) + 1
+        self._open[key] = address
+        return True
+
+    def release(self, transport: Any) -> None:
+        address = self._open.pop(id(transport), None)
+        if address is not None:
+            n = self.by_address[address] - 1
+            if n:
+                self.by_address[address] = n
+            else:
+                del self.by_address[address]
+
+
+def _refuse(transport: Any, status: bytes, text: str) -> None:
+    body = text.encode()
+    transport.write(b"HTTP/1.1 " + status + b"\r\ncontent-type: text/plain; charset=utf-8\r\n"
+                    b"content-length: " + str(len(body)).encode() + b"\r\n"
+                    b"connection: close\r\n\r\n" + body)
+    transport.close()
+
+
+def http_protocol(clients: ClientConnections, max_header_bytes: int,
+                  header_timeout_s: float) -> type[HttpToolsProtocol]:
+    """uvicorn's httptools protocol with three limits uvicorn lacks.
+
+    * connections per client address (``clients``): over it, 503 and close;
+    * the request head (request line + headers) is at most ``max_header_bytes``: 431;
+    * the head must be complete ``header_timeout_s`` after its first byte (or after the
+      connection opened): else the connection is closed. Slowloris (many connections that
+      send a header line now and then) otherwise holds file descriptors for ever.
+    """
+
+    class ArticastHttpProtocol(HttpToolsProtocol):
+        def connection_made(self, transport: Any) -> None:
+            super().connection_made(transport)
+            self._head_bytes = 0
+            self._in_head = True
+            self._head_timer: Any = None
+            if not clients.admit(transport):
+                log.info("refusing a connection from %s: over %d connections",
+                         self.client, clients.limit)
+                _refuse(transport, b"503 Service Unavailable",
+                        "too many connections from this address")
+                return
+            self._arm_head_timer()
+
+        def _arm_head_timer(self) -> None:
+            if self._head_timer is not None:
+                self._head_timer.cancel()
+            self._head_timer = self.loop.call_later(header_timeout_s, self._head_timeout)
+
+        def _head_timeout(self) -> None:
+            self._head_timer = None
+            if self._in_head and not self.transport.is_closing():
+                _refuse(self.transport, b"408 Request Timeout", "request head too slow")
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            if self._head_timer is not None:
+                self._head_timer.cancel()
+            clients.release(self.transport)
+            super().connection_lost(exc)
+
+        def data_received(self, data: bytes) -> None:
+            if self._in_head:
+                self._head_bytes += len(data)
+                if self._head_bytes > max_header_bytes:
+                    self._in_head = False
+                    _refuse(self.transport, b"431 Request Header Fields Too Large",
+                            f"request head over {max_header_bytes} bytes")
+                    return
+            super().data_received(data)
+
+        def on_message_begin(self) -> None:
+            super().on_message_begin()
+            if not self._in_head:  # a next request on a kept-alive connection
+                self._in_head, self._head_bytes = True, 0
+                self._arm_head_timer()
+
+        def on_headers_complete(self) -> None:
+            self._in_head = False
+            if self._head_timer is not None:
+                self._head_timer.cancel()
+                self._head_timer = None
+            super().on_headers_complete()
+
+    return ArticastHttpProtocol
+
+
+def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | None = None
+                       ) -> type[WebSocketsSansIOProtocol]:
     """uvicorn's sans-I/O WebSocket protocol with bounded buffers and an abort handle.
 
     Newest-wins only bounds a slow client's lag if little can pile up *after* the hub queue:
@@ -30,10 +139,25 @@ def websocket_protocol(socket_buffer_bytes: int) -> type[WebSocketsSansIOProtoco
     ``socket_buffer_bytes``, so a client that reads too slowly blocks its own sender (and
     then loses frames in its hub queue) instead of receiving stale frames seconds late.
     ``scope["extensions"]["articast.abort"]`` lets the stall watchdog drop a client that stopped
-    reading without waiting for a closing handshake it can never complete.
+    reading without waiting for a closing handshake it can never complete. An upgrade request
+    the WebSocket parser refuses (a header line over 8 kB, too many headers) is answered with
+    400 and closed (uvicorn leaves it unanswered).
     """
 
     class ArticastWebSocketProtocol(WebSocketsSansIOProtocol):
+        def connection_lost(self, exc: Exception | None) -> None:
+            if clients is not None:
+                clients.release(self.transport)
+            super().connection_lost(exc)
+
+        def data_received(self, data: bytes) -> None:
+            super().data_received(data)
+            if (not self.handshake_initiated and self.conn.handshake_exc is not None
+                    and not self.transport.is_closing()):
+                self.handshake_complete = self.close_sent = True
+                _refuse(self.transport, b"400 Bad Request", "malformed WebSocket upgrade "
+                        "request (a header line over 8 kB or too many headers)")
+
         def connection_made(self, transport: Any) -> None:
             super().connection_made(transport)
             transport.set_write_buffer_limits(high=socket_buffer_bytes)
@@ -52,10 +176,12 @@ def websocket_protocol(socket_buffer_bytes: int) -> type[WebSocketsSansIOProtoco
 
 
 def uvicorn_config(config: ServiceConfig) -> uvicorn.Config:
-    s = config.server
+    s, h = config.server, config.hub
+    clients = ClientConnections(h.max_connections_per_client)
     return uvicorn.Config(
         create_app(config), host=s.host, port=s.port, log_level=s.log_level,
-        ws=websocket_protocol(config.hub.socket_buffer_bytes),
+        http=http_protocol(clients, h.max_header_bytes, h.header_timeout_s),
+        ws=websocket_protocol(h.socket_buffer_bytes, clients),
         ws_max_size=config.hub.ws_max_size,
         # no permessage-deflate: it compresses every message once per connection, which
         # would undo encode-once fan-out (frames are small; loopback and LANs do not need it)
@@ -77,9 +203,28 @@ def bound_socket(host: str, port: int) -> socket.socket:
     return sock
 
 
+def raise_file_limit() -> None:
+    """Soft open-file limit up to the hard one: each connection is a descriptor."""
+    with contextlib.suppress(ImportError, ValueError, OSError):
+        import resource
+
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if hard == resource.RLIM_INFINITY or hard > 65536:
+            hard = 65536
+        if soft < hard:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+
+
 def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = None) -> None:
     """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound."""
-    sock = bound_socket(config.server.host, config.server.port)
+    raise_file_limit()
+    try:
+        sock = bound_socket(config.server.host, config.server.port)
+    except OSError as exc:
+        from articast.core.errors import InputError
+
+        raise InputError(f"cannot listen on {config.server.host}:{config.server.port}: "
+                         f"{exc.strerror or exc}") from None
     host, port = sock.getsockname()[:2]
     if on_listening:
         shown = f"[{host}]" if ":" in host else host

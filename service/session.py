@@ -20,6 +20,7 @@ import numpy as np
 
 from articast.core.errors import InputError
 from articast.service.hub import Hub
+from articast.service.jsonsafe import dumps
 from articast.service.metrics import SessionMetrics
 from articast.service.settings import CaptureSettings, SessionPolicy
 from articast.service.sources import check_uri, parse_uri
@@ -52,6 +53,7 @@ class Session:
         self._stopping = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
         self._loop = asyncio.get_running_loop()
+        self._last_activity = time.monotonic()
 
     # ----------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -95,7 +97,8 @@ class Session:
                 if not self.spec.wait_for_subscriber or self._m.hub.subscriber_count(
                         self.spec.name):
                     worker.go.set()
-                await self._done.wait()
+                self._last_activity = time.monotonic()
+                await self._watch(worker)
             finally:
                 worker.stop()
                 await asyncio.to_thread(worker.join, JOIN_TIMEOUT_S)
@@ -119,6 +122,25 @@ class Session:
             except TimeoutError:
                 delay = min(delay * 2, policy.restart_max_s)
 
+    async def _watch(self, worker: ThreadWorker | ProcessWorker) -> None:
+        """Wait for the worker's end; declare it ``stalled`` and kill it if a running session
+        produces nothing for ``worker_stall_s`` (a hung process, a frozen driver)."""
+        limit = self._m.policy.worker_stall_s
+        while not self._done.is_set():
+            try:
+                await asyncio.wait_for(self._done.wait(), max(0.05, min(1.0, limit / 4))
+                                       if limit > 0 else None)
+            except TimeoutError:
+                quiet = time.monotonic() - self._last_activity
+                if (self.state == "running" and worker.go.is_set() and limit > 0
+                        and quiet > limit and not self._stopping.is_set()):
+                    log.warning("session %s stalled: nothing for %.1f s", self.spec.name, quiet)
+                    self._set_state("stalled", f"no frame for {quiet:.1f} s; restarting the "
+                                    "worker")
+                    self._outcome = ("crashed", f"stalled: no frame for {quiet:.1f} s")
+                    worker.kill()
+                    return
+
     # ----------------------------------------------------------------------- worker messages
     def emit_threadsafe(self, msg: tuple[Any, ...]) -> None:
         """Called by worker threads (and process readers): hand over to the event loop."""
@@ -129,6 +151,7 @@ class Session:
 
     def _on_message(self, msg: tuple[Any, ...]) -> None:
         kind = msg[0]
+        self._last_activity = time.monotonic()
         if kind == "frame":
             self._on_frame(msg[1])
         elif kind == "status":
@@ -163,13 +186,12 @@ class Session:
         """JSON of the dense face of this session's model (cached; blocking: call from a
         worker thread, as FastAPI does for plain ``def`` routes)."""
         if self._dense is None:
-            import json
 
             from articast.core.synthetic.dense import dense_face
             from articast.service.wire import model_from_description
 
             model = model_from_description(self.description or {})
-            self._dense = json.dumps(dense_face(model).to_dict()).encode()
+            self._dense = dumps(dense_face(model).to_dict()).encode()
         return self._dense
 
     def _on_frame(self, rec: FrameRecord) -> None:

@@ -43,6 +43,13 @@ class HubSettings:
     stall_timeout_s: float = _opt(30.0, "disconnect a subscriber whose send is stuck this long")
     socket_buffer_bytes: int = _opt(32768, "bytes buffered per connection after its queue: "
                                     "bounds how stale a slow client's frames can get")
+    max_messages_per_s: float = _opt(20.0, "client messages per second per connection (bursts "
+                                     "of twice that); beyond: dropped with an error, and a "
+                                     "connection far over it is closed (1008)")
+    max_connections_per_client: int = _opt(256, "open TCP connections per client address")
+    max_header_bytes: int = _opt(16384, "largest HTTP request head (request line + headers)")
+    header_timeout_s: float = _opt(10.0, "close a connection whose request head is not "
+                                   "complete this long after it started (slowloris)")
 
 
 @dataclass(frozen=True)
@@ -54,6 +61,9 @@ class SessionPolicy:
     restart_initial_s: float = _opt(0.5, "first wait before restarting a crashed session")
     restart_max_s: float = _opt(30.0, "longest wait between restarts (backoff cap)")
     max_restarts: int = _opt(20, "crashes before a session is declared failed")
+    max_sessions: int = _opt(8, "sessions the server runs at most (POST beyond: 429)")
+    worker_stall_s: float = _opt(10.0, "a running session that produces nothing this long is "
+                                  "declared stalled and its worker restarted (0: never)")
 
 
 @dataclass(frozen=True)

@@ -274,6 +274,11 @@ class FileSource(_Finite):
         else:
             ok, image = self._cap.read()
             if not ok or image is None:
+                declared = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+                if declared and self._n < declared - 1:
+                    raise SourceError(f"{self.path}: the video ended early: read {self._n} of "
+                                      f"the {declared} frames its container declares "
+                                      "(truncated or corrupt file)")
                 return None
         t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0

@@ -28,6 +28,7 @@ def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.nd
     if not cap.isOpened():
         raise InputError(f"{p}: cannot open as a video (unknown or corrupt container)")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
+    declared = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)
     i = 0
     try:
         while True:
@@ -44,6 +45,16 @@ def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.nd
         cap.release()
     if i == 0:
         raise InputError(f"{p}: no frame could be decoded (corrupt or empty video)")
+    check_complete(p, i, declared)
+
+
+def check_complete(path: str | os.PathLike[str], read: int, declared: int) -> None:
+    """A video that stops before the frame count its container declares is truncated or
+    corrupt: an error saying how far it got, never a silent half result (one frame of
+    slack: some containers count one more than they hold)."""
+    if declared and read < declared - 1:
+        raise InputError(f"{path}: the video ended early: read {read} of the {declared} frames "
+                         "its container declares (truncated or corrupt file)")
 
 
 def video_frame_count(path: str | os.PathLike[str]) -> int:
@@ -60,18 +71,29 @@ def video_frame_count(path: str | os.PathLike[str]) -> int:
 def read_jsonl(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
     """Objects of a JSON-lines file; a malformed line is an InputError naming its number."""
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{p}: is a folder, expected a JSON-lines file")
     if not p.is_file():
         raise InputError(f"{p}: no such file")
     out = []
-    with open(p, encoding="utf-8") as fh:
-        for n, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                obj = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise InputError(f"{p}:{n}: not valid JSON ({exc.msg})") from None
-            if not isinstance(obj, dict):
-                raise InputError(f"{p}:{n}: each line must be a JSON object")
-            out.append(obj)
+    n = 0
+    try:
+        with open(p, encoding="utf-8") as fh:
+            for n, line in enumerate(fh, 1):  # noqa: B007 - n names the line in errors
+                if not line.strip():
+                    continue
+                try:
+                    obj = json.loads(line)
+                except json.JSONDecodeError as exc:
+                    raise InputError(f"{p}:{n}: not valid JSON ({exc.msg})") from None
+                except RecursionError:
+                    raise InputError(f"{p}:{n}: JSON nested too deeply") from None
+                if not isinstance(obj, dict):
+                    raise InputError(f"{p}:{n}: each line must be a JSON object")
+                out.append(obj)
+    except UnicodeDecodeError:
+        raise InputError(f"{p}:{n + 1}: not UTF-8 text") from None
+    except OSError as exc:
+        raise InputError(f"{p}: cannot read ({exc.strerror or type(exc).__name__})") from None
     return out
+

@@ -201,6 +201,10 @@ class ThreadWorker:
     def stop(self) -> None:
         self.stop_event.set()
 
+    def kill(self) -> None:
+        """A thread cannot be killed: told to stop, and abandoned if it does not."""
+        self.stop_event.set()
+
     def join(self, timeout: float) -> bool:
         self._thread.join(timeout)
         return not self._thread.is_alive()
@@ -304,6 +308,11 @@ class ProcessWorker:
 
     def stop(self) -> None:
         self.stop_event.set()
+
+    def kill(self) -> None:
+        """SIGKILL: the one signal a stopped (SIGSTOP) or hung process cannot ignore."""
+        if self.process.is_alive():
+            self.process.kill()
 
     def join(self, timeout: float) -> bool:
         self.process.join(timeout)

@@ -103,8 +103,17 @@ class ServerThread:
         self.port = self.sock.getsockname()[1]
         self.server = uvicorn.Server(uvicorn_config(config))
         self.thread = threading.Thread(target=self._run, daemon=True)
-        self.url = f"ws://127.0.0.1:{self.port}/ws"
+        self.token = config.access.token
+        self.url = f"ws://127.0.0.1:{self.port}/ws" + (f"?token={self.token}" if self.token
+                                                      else "")
         self.http = f"http://127.0.0.1:{self.port}"
+        self.headers = {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
+    def client(self) -> Any:
+        """An httpx client of this server, with its token."""
+        import httpx
+
+        return httpx.Client(base_url=self.http, timeout=TIMEOUT, headers=self.headers)
 
     def _run(self) -> None:
         asyncio.run(self.server.serve(sockets=[self.sock]))

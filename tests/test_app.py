@@ -12,6 +12,7 @@ import websockets
 from articast.service import protocol as P
 from articast.service.app import ServiceConfig
 from articast.service.capture import Capture
+from articast.service.security import AccessPolicy
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
 from articast.service.sources import make_source
 from articast.service.worker import SessionSpec
@@ -46,11 +47,14 @@ def server(recording, tmp_path_factory):
     config = ServiceConfig(
         server=ServerSettings(record=str(record_dir), log_level="critical"),
         hub=HubSettings(max_queue=4, max_message_bytes=4096, ws_max_size=65536,
-                        stall_timeout_s=60),
+                        stall_timeout_s=60, max_messages_per_s=1000),
         capture=CaptureSettings(retry_initial_s=0.05, retry_max_s=0.2),
         policy=SessionPolicy(restart_initial_s=0.05, restart_max_s=0.2, max_restarts=3),
         sessions=(SessionSpec("rec", f"replay-record:{recording[0]}?loop=0"),
                   SessionSpec("big", f"replay-record:{big}?loop=0")),
+        access=AccessPolicy(token="test-token",
+                            media_roots=(str(tmp_path_factory.getbasetemp()),),
+                            allowed_devices=("/dev/video97",)),
         http_processors=("auto", "truth", "tests.service_helpers:Crashy",
                          "tests.service_helpers:HardCrash",
                          "tests.service_helpers:ImageStats"),
@@ -177,7 +181,7 @@ def test_a_stalled_subscriber_does_not_slow_the_others(server):
         await stalled.close()
         await fast.close()
     run(go())
-    text = httpx.get(server.http + "/metrics", timeout=TIMEOUT).text
+    text = server.client().get("/metrics").text
     line = [x for x in text.splitlines()
             if x.startswith('articast_subscriber_dropped_total{session="big"}')][0]
     assert int(line.split()[-1]) > 0
@@ -236,7 +240,7 @@ def test_a_message_beyond_the_protocol_limit_closes_with_1009(server):
 
 
 def test_http_errors_are_4xx_with_a_reason(server):
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     cases = [
         c.post("/api/sessions", content=b"{not json", headers={"content-type":
                                                                 "application/json"}),
@@ -246,7 +250,7 @@ def test_http_errors_are_4xx_with_a_reason(server):
         c.post("/api/sessions", json={"name": "x", "source": "file:/no/such.mp4"}),
         c.post("/api/sessions", json={"name": "x", "source": "replay-record:/etc/hostname",
                                       "processor": "os:system"}),
-        c.post("/api/sessions", json={"name": "rec", "source": "file:/no/such.mp4"}),
+        c.post("/api/sessions", json={"name": "rec", "source": "synthetic:seed=1"}),
         c.post("/api/sessions", content=b"\xff" * 10_000,
                headers={"content-type": "application/json"}),
         c.post("/api/sessions", content=(b"x" * 1000 for _ in range(100)),  # chunked
@@ -263,7 +267,7 @@ def test_http_errors_are_4xx_with_a_reason(server):
 
 
 def test_metrics_healthz_and_schema(server):
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     text = c.get("/metrics").text
     for name in ("articast_fps", "articast_frames_total", "articast_send_latency_seconds_bucket",
                  "articast_residual_bucket", "articast_subscriber_dropped_total",
@@ -277,7 +281,7 @@ def test_metrics_healthz_and_schema(server):
 
 # ----------------------------------------------------------------------------- sessions
 def test_start_and_stop_a_session_at_run_time(server, recording):
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     r = c.post("/api/sessions", json={"name": "late",
                                       "source": f"replay-record:{recording[0]}?loop=0"})
     assert r.status_code == 201, r.text
@@ -296,7 +300,7 @@ def test_start_and_stop_a_session_at_run_time(server, recording):
 
 
 def test_a_crashing_session_is_restarted_and_the_server_survives(server, recording):
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     r = c.post("/api/sessions", json={
         "name": "crashy", "source": f"replay-record:{recording[0]}?loop=0",
         "processor": "tests.service_helpers:Crashy"})
@@ -322,7 +326,7 @@ def test_a_crashing_session_is_restarted_and_the_server_survives(server, recordi
 
 
 def test_a_worker_process_that_dies_is_restarted(server, recording):
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     assert c.post("/api/sessions", json={
         "name": "dies", "source": f"replay-record:{recording[0]}?loop=0",
         "processor": "tests.service_helpers:HardCrash"}).status_code == 201
@@ -343,7 +347,7 @@ def test_a_worker_process_that_dies_is_restarted(server, recording):
 def test_corrupt_file_session_fails_once_with_a_clear_error(server, tmp_path):
     bad = tmp_path / "bad.mp4"
     bad.write_bytes(b"garbage" * 1000)
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     assert c.post("/api/sessions", json={"name": "corrupt", "source": f"file:{bad}",
                                          "processor": "truth"}).status_code == 201
     deadline = time.monotonic() + TIMEOUT
@@ -368,7 +372,7 @@ def test_fast_file_replay_gives_the_offline_parameters(server, tmp_path):
         if f is not None:
             offline.append(proc.process(f))
 
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     server.service.config  # noqa: B018 - the server is the module's
     r = c.post("/api/sessions", json={"name": "file", "source": uri, "wait_for_subscriber": True,
                                       "processor": "tests.service_helpers:ImageStats"})
@@ -410,8 +414,7 @@ def test_recording_round_trip(server, recording):
 
 
 def test_two_faces_never_share_a_gil(server):
-    sessions = {s["name"]: s for s in httpx.get(server.http + "/api/sessions",
-                                                timeout=TIMEOUT).json()}
+    sessions = {s["name"]: s for s in server.client().get("/api/sessions").json()}
     kinds = [sessions[n]["worker"] for n in ("rec", "big")]
     assert sorted(kinds) == ["process", "thread"]  # one in the server, the other its own
 
@@ -423,7 +426,7 @@ def test_a_subscriber_stalled_past_the_timeout_is_disconnected(tmp_path):
         server=ServerSettings(log_level="critical"),
         hub=HubSettings(stall_timeout_s=0.5),
         sessions=(SessionSpec("big", f"replay-record:{big}?loop=0"),),
-        api_token="secret",
+        access=AccessPolicy(token="secret"),
     )
 
     async def go(srv):
@@ -448,13 +451,15 @@ def test_a_subscriber_stalled_past_the_timeout_is_disconnected(tmp_path):
         c = httpx.Client(base_url=srv.http, timeout=TIMEOUT)
         bad = c.post("/api/sessions", json={"name": "x", "source": "file:/a"})
         assert bad.status_code == 401 and "Bearer" in bad.json()["detail"]
+        wrong = c.delete("/api/sessions/big", headers={"Authorization": "Bearer secreT"})
+        assert wrong.status_code == 401
         assert c.delete("/api/sessions/big").status_code == 401
         ok = c.delete("/api/sessions/big", headers={"Authorization": "Bearer secret"})
         assert ok.status_code == 200
 
 
 def test_a_missing_camera_is_a_status_not_a_crash(server):
-    c = httpx.Client(base_url=server.http, timeout=TIMEOUT)
+    c = server.client()
     assert c.post("/api/sessions", json={"name": "cam", "source": "v4l2:/dev/video97"}
                   ).status_code == 201
 

@@ -85,8 +85,9 @@ def test_noise_and_blank_videos_are_never_ok(enrolled, tmp_path, kind):
     video = tmp_path / f"{kind}.mp4"
     _write_video(video, frames)
     out = tmp_path / "track.jsonl"
+    # nothing tracked is an error for the command (exit 2, one line), the lines say why
     assert main(["track", str(video), "--speaker", str(enrolled / "speaker"), "-o", str(out),
-                 "--quiet"]) == 0
+                 "--quiet"]) == 2
     lines = _track_lines(out)
     assert len(lines) == 20 and not any(r["quality"]["ok"] for r in lines)
     codes = {r["quality"]["reason"].split(":")[0] for r in lines}

@@ -5,6 +5,13 @@
 import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
 
 const params = new URLSearchParams(location.search);
+// the server's token, if it has one, comes in this page's URL (?token=...) and goes on
+const token = params.get("token");
+const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
+function withToken(url) {
+  if (!token) return url;
+  return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
+}
 const state = (window.articast = {
   frames: 0, connects: 0, connected: false, hello: null, alpha: null, status: "", error: "",
   mesh: "", lastSeq: -1,
@@ -164,7 +171,7 @@ function status(text, bad) { const s = $("status"); s.textContent = text; s.clas
 let times = [], delay = 250;
 async function chooseSession() {
   if (params.get("session")) return params.get("session");
-  const r = await fetch("/api/sessions"); const list = await r.json();
+  const r = await fetch("/api/sessions", { headers: authHeaders }); const list = await r.json();
   if (!list.length) throw new Error("the server has no session");
   return list[0].name;
 }
@@ -180,7 +187,7 @@ async function onHello(h) {
   dense = null;
   if (h.dense_url) {
     try {
-      const d = await (await fetch(h.dense_url)).json();
+      const d = await (await fetch(h.dense_url, { headers: authHeaders })).json();
       dense = new Mesh(new Float32Array(d.mean), new Float32Array(d.basis), d.triangles, k);
       state.mesh = `dense ${dense.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh;
     } catch (e) { console.warn("dense mesh unavailable", e); }
@@ -204,7 +211,7 @@ async function connect() {
   let session;
   try { session = await chooseSession(); } catch (e) { return retry(`no session yet (${e.message})`); }
   const proto = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(params.get("ws") || `${proto}://${location.host}/ws`);
+  const ws = new WebSocket(withToken(params.get("ws") || `${proto}://${location.host}/ws`));
   ws.onopen = () => {
     state.connected = true; state.connects++; delay = 250; status(`connected to ${session}`);
     ws.send(JSON.stringify({ type: "subscribe", session, streams: ["articulatory", "pose"],

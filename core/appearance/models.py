@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from articast.core.appearance.maps import ImageMaps, image_maps, roi_of, sample_la, sample_tex
-from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.errors import InputError
 from articast.core.model.camera import Camera, Pose
 from articast.core.model.face import FaceModel
@@ -247,27 +247,28 @@ class AppearanceModel:
     @classmethod
     def load(cls, path: str | os.PathLike[str], model: FaceModel | None = None) -> AppearanceModel:
         arrays, meta = load_bundle(path, APPEARANCE_KIND, (APPEARANCE_VERSION,))
-        for key in ("index", "weight", "weights", "channel_weight", "explained"):
-            require(key in arrays, path, f"missing array {key!r}")
-        kind = meta.get("appearance_kind")
-        require(kind in KINDS, path, f"unknown appearance kind {kind!r}")
-        idx, w = arrays["index"], arrays["weight"]
-        s = idx.shape[0]
-        require(idx.shape == (s, 3) and w.shape == (s, 3), path, "sample points are malformed")
-        c = 8 if kind.startswith("la") else 1
-        levels = tuple(int(v) for v in meta.get("levels", []))
-        wt = arrays["weights"]
-        require(wt.ndim == 3 and wt.shape[0] == len(levels) and wt.shape[2] == s * c, path,
-                f"weights have shape {wt.shape}, expected ({len(levels)}, K+1, {s * c})")
-        if model is not None:
-            d = 2 * model.n_params + 1 if kind.endswith("quad") else model.n_params + 1
-            require(wt.shape[1] == d, path,
-                    f"weights have {wt.shape[1]} rows, a {kind} model of {model.n_params} "
-                    f"parameters has {d}")
-            require(idx.max() < model.n_points, path,
-                    "sample points index points the face model does not have")
-        return cls(kind, SamplePoints(idx, w), levels, wt, arrays["channel_weight"],
-                   float(meta["sigma"]), arrays["explained"])
+        with reading(path, "appearance"):
+            for key in ("index", "weight", "weights", "channel_weight", "explained"):
+                require(key in arrays, path, f"missing array {key!r}")
+            kind = meta.get("appearance_kind")
+            require(kind in KINDS, path, f"unknown appearance kind {kind!r}")
+            idx, w = arrays["index"], arrays["weight"]
+            s = idx.shape[0]
+            require(idx.shape == (s, 3) and w.shape == (s, 3), path, "sample points are malformed")
+            c = 8 if kind.startswith("la") else 1
+            levels = tuple(int(v) for v in meta.get("levels", []))
+            wt = arrays["weights"]
+            require(wt.ndim == 3 and wt.shape[0] == len(levels) and wt.shape[2] == s * c, path,
+                    f"weights have shape {wt.shape}, expected ({len(levels)}, K+1, {s * c})")
+            if model is not None:
+                d = 2 * model.n_params + 1 if kind.endswith("quad") else model.n_params + 1
+                require(wt.shape[1] == d, path,
+                        f"weights have {wt.shape[1]} rows, a {kind} model of {model.n_params} "
+                        f"parameters has {d}")
+                require(idx.max() < model.n_points, path,
+                        "sample points index points the face model does not have")
+            return cls(kind, SamplePoints(idx, w), levels, wt, arrays["channel_weight"],
+                       float(meta["sigma"]), arrays["explained"])
 
 
 def design(alpha: np.ndarray, kind: str) -> np.ndarray:

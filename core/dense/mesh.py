@@ -7,7 +7,9 @@ clockwise seen from outside (for a face: from the front, +z), so normals point o
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -205,6 +207,15 @@ def _point_to_plane_step(
         np.eye(3) + np.sin(theta) / theta * k + (1 - np.cos(theta)) / theta**2 * (k @ k)
     )
     return rot, centre + t - rot @ centre
+
+
+def load_obj(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`parse_obj` of a file; :class:`InputError` naming the file for any defect."""
+    try:
+        text = Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
+    return parse_obj(text, source=str(path))
 
 
 def parse_obj(text: str, source: str = "<obj>") -> tuple[np.ndarray, np.ndarray]:

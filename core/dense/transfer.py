@@ -47,7 +47,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.dense.mesh import (
     MeshTopology,
     Registration,
@@ -135,26 +135,27 @@ class Binding:
     def load(cls, path: str | os.PathLike[str]) -> Binding:
         """Read a binding; :class:`~articast.core.errors.ModelFileError` for any defect."""
         arrays, meta = load_bundle(path, BINDING_KIND, (BINDING_VERSION,))
-        for name in _ARRAYS:
-            require(name in arrays, path, f"missing array {name!r}")
-        n, t, m = len(arrays["sparse_vertices"]), len(arrays["triangles"]), len(arrays["facet"])
-        shapes = {"sparse_vertices": (n, 3), "triangles": (t, 3), "dense_vertices": (m, 3),
-                  "local": (m, 3), "weights": (m, 3), "offset": (m,), "inside": (m,),
-                  "corner_normals": (t, 3, 3), "curvature": (n,)}
-        for name, shape in shapes.items():
-            require(arrays[name].shape == shape, path,
-                    f"array {name!r} has shape {arrays[name].shape}, expected {shape}")
-        tri, fac = arrays["triangles"], arrays["facet"]
-        require(t > 0 and tri.min() >= 0 and tri.max() < n, path, "triangles index no vertex")
-        require(m == 0 or (fac.min() >= 0 and fac.max() < t), path, "facet indexes no triangle")
-        dtri = arrays["dense_triangles"]
-        require(dtri.ndim == 2 and dtri.shape[1] == 3, path,
-                f"dense_triangles have shape {dtri.shape}, expected (Q, 3)")
-        require(dtri.size == 0 or (dtri.min() >= 0 and dtri.max() < m), path,
-                "dense_triangles index no dense point")
-        lam = meta.get("lambda2")
-        require(isinstance(lam, int | float) and lam > 0, path, "lambda2 must be positive")
-        return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam))
+        with reading(path, "dense binding"):
+            for name in _ARRAYS:
+                require(name in arrays, path, f"missing array {name!r}")
+            n, t, m = len(arrays["sparse_vertices"]), len(arrays["triangles"]), len(arrays["facet"])
+            shapes = {"sparse_vertices": (n, 3), "triangles": (t, 3), "dense_vertices": (m, 3),
+                      "local": (m, 3), "weights": (m, 3), "offset": (m,), "inside": (m,),
+                      "corner_normals": (t, 3, 3), "curvature": (n,)}
+            for name, shape in shapes.items():
+                require(arrays[name].shape == shape, path,
+                        f"array {name!r} has shape {arrays[name].shape}, expected {shape}")
+            tri, fac = arrays["triangles"], arrays["facet"]
+            require(t > 0 and tri.min() >= 0 and tri.max() < n, path, "triangles index no vertex")
+            require(m == 0 or (fac.min() >= 0 and fac.max() < t), path, "facet indexes no triangle")
+            dtri = arrays["dense_triangles"]
+            require(dtri.ndim == 2 and dtri.shape[1] == 3, path,
+                    f"dense_triangles have shape {dtri.shape}, expected (Q, 3)")
+            require(dtri.size == 0 or (dtri.min() >= 0 and dtri.max() < m), path,
+                    "dense_triangles index no dense point")
+            lam = meta.get("lambda2")
+            require(isinstance(lam, int | float) and lam > 0, path, "lambda2 must be positive")
+            return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam))
 
 
 _ARRAYS = ("sparse_vertices", "triangles", "dense_vertices", "facet", "local", "weights",

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.errors import InputError
 from articast.core.model.face import PARAM_NAMES, FaceModel, ParamStats
 
@@ -98,24 +98,25 @@ class Corpus:
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Corpus:
         arrays, meta = load_bundle(path, CORPUS_KIND, (CORPUS_VERSION,))
-        require("postures" in arrays, path, "missing array 'postures'")
-        x = arrays["postures"]
-        require(x.ndim == 3 and x.shape[2] == 3, path,
-                f"postures have shape {x.shape}, expected (V, N, 3)")
-        v, n, _ = x.shape
-        require(len(meta.get("posture_names", [])) == v, path, "posture names do not match")
-        require(len(meta.get("point_names", [])) == n, path, "point names do not match")
-        groups = {g: arrays.get(f"group__{g}", np.zeros(0, np.int64)) for g in meta["groups"]}
-        for g, i in groups.items():
-            require(i.size == 0 or (i.min() >= 0 and i.max() < n), path,
-                    f"group {g!r} indexes points that do not exist")
-        tri = arrays.get("triangles", np.zeros((0, 3), np.int32))
-        require(tri.size == 0 or (tri.min() >= 0 and tri.max() < n), path,
-                "triangles index points that do not exist")
-        return cls(x, tuple(meta["posture_names"]), tuple(meta["point_names"]), groups, tri,
-                   meta.get("feature_points", {}), meta.get("fapu_overrides", {}),
-                   arrays.get("controls"), tuple(meta.get("control_names", [])),
-                   str(meta.get("name", "speaker")))
+        with reading(path, "corpus"):
+            require("postures" in arrays, path, "missing array 'postures'")
+            x = arrays["postures"]
+            require(x.ndim == 3 and x.shape[2] == 3, path,
+                    f"postures have shape {x.shape}, expected (V, N, 3)")
+            v, n, _ = x.shape
+            require(len(meta.get("posture_names", [])) == v, path, "posture names do not match")
+            require(len(meta.get("point_names", [])) == n, path, "point names do not match")
+            groups = {g: arrays.get(f"group__{g}", np.zeros(0, np.int64)) for g in meta["groups"]}
+            for g, i in groups.items():
+                require(i.size == 0 or (i.min() >= 0 and i.max() < n), path,
+                        f"group {g!r} indexes points that do not exist")
+            tri = arrays.get("triangles", np.zeros((0, 3), np.int32))
+            require(tri.size == 0 or (tri.min() >= 0 and tri.max() < n), path,
+                    "triangles index points that do not exist")
+            return cls(x, tuple(meta["posture_names"]), tuple(meta["point_names"]), groups, tri,
+                       meta.get("feature_points", {}), meta.get("fapu_overrides", {}),
+                       arrays.get("controls"), tuple(meta.get("control_names", [])),
+                       str(meta.get("name", "speaker")))
 
 
 @dataclass(frozen=True)

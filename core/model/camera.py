@@ -254,19 +254,31 @@ class Camera:
     @classmethod
     def from_dict(cls, d: dict[str, Any], where: str = "camera") -> Camera:
         try:
-            if d.get("kind", CAMERA_KIND) != CAMERA_KIND:
-                raise ModelFileError(f"{where}: not an articast camera (kind {d.get('kind')!r})")
+            if d.get("kind", CAMERA_KIND) != CAMERA_KIND:  # the other kind is not echoed
+                raise ModelFileError(f"{where}: not an articast camera file (its kind differs)")
             if d.get("version", CAMERA_VERSION) != CAMERA_VERSION:
-                raise ModelFileError(f"{where}: camera version {d.get('version')!r} unsupported")
+                raise ModelFileError(f"{where}: camera format version unsupported (this "
+                                     f"articast reads version {CAMERA_VERSION})")
             k = np.asarray(d["K"], dtype=np.float64)
             if k.shape != (3, 3):
                 raise ModelFileError(f"{where}: K must be 3x3, got shape {k.shape}")
-            return cls(k[0, 0], k[1, 1], k[0, 2], k[1, 2], int(d["width"]), int(d["height"]),
-                       np.asarray(d.get("dist", []), dtype=np.float64))
+            dist = np.asarray(d.get("dist", []), dtype=np.float64)
+            if dist.ndim != 1 or dist.size > 14:
+                raise ModelFileError(f"{where}: dist must be a list of at most 14 numbers")
+            if not (np.all(np.isfinite(k)) and np.all(np.isfinite(dist))):
+                raise ModelFileError(f"{where}: camera K or dist holds NaN or infinite values")
+            width, height = int(d["width"]), int(d["height"])
+            if not (0 < width <= 1 << 16 and 0 < height <= 1 << 16):
+                raise ModelFileError(f"{where}: image size {width}x{height} is not plausible")
+            if not (k[0, 0] > 0 and k[1, 1] > 0):
+                raise ModelFileError(f"{where}: focal lengths in K must be positive")
+            return cls(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height, dist)
         except ModelFileError:
             raise
-        except (KeyError, TypeError, ValueError, InputError) as exc:
-            raise ModelFileError(f"{where}: malformed camera description: {exc}") from None
+        except (KeyError, TypeError, ValueError, OverflowError, InputError) as exc:
+            detail = f"missing field {exc}" if isinstance(exc, KeyError) else \
+                type(exc).__name__
+            raise ModelFileError(f"{where}: malformed camera description ({detail})") from None
 
     def save(self, path: str | os.PathLike[str]) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=2) + "\n")
@@ -277,8 +289,11 @@ class Camera:
             doc = json.loads(Path(path).read_text())
         except FileNotFoundError:
             raise ModelFileError(f"{path}: no such file") from None
-        except (OSError, ValueError) as exc:
-            raise ModelFileError(f"{path}: not a JSON camera file: {exc}") from None
+        except IsADirectoryError:
+            raise ModelFileError(f"{path}: is a folder, expected a camera file (.json)") from None
+        except (OSError, ValueError, RecursionError) as exc:
+            raise ModelFileError(f"{path}: not a JSON camera file ({type(exc).__name__})"
+                                 ) from None
         if not isinstance(doc, dict):
             raise ModelFileError(f"{path}: a camera file holds one JSON object")
         return cls.from_dict(doc, where=str(path))

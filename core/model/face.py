@@ -18,7 +18,7 @@ from types import MappingProxyType
 
 import numpy as np
 
-from articast.core.bundle import load_bundle, require, save_bundle
+from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.errors import InputError
 
 PARAM_NAMES: tuple[str, ...] = ("jaw1", "lips1", "lips2", "lips3", "lips4", "jaw2", "lar1")
@@ -216,42 +216,43 @@ class FaceModel:
     def load(cls, path: str | os.PathLike[str]) -> FaceModel:
         """Read a model file; raises :class:`~articast.core.errors.ModelFileError` on any defect."""
         arrays, meta = load_bundle(path, MODEL_KIND, (MODEL_VERSION,))
-        for key in ("mean", "basis", "triangles", "stats"):
-            require(key in arrays, path, f"missing array {key!r}")
-        mean, basis = arrays["mean"], arrays["basis"]
-        require(mean.ndim == 2 and mean.shape[1] == 3, path, f"mean has shape {mean.shape}, "
-                "expected (N, 3)")
-        n = mean.shape[0]
-        require(basis.ndim == 3 and basis.shape[1:] == (n, 3), path,
-                f"basis has shape {basis.shape}, expected (K, {n}, 3)")
-        k = basis.shape[0]
-        require(arrays["stats"].shape == (4, k), path,
-                f"stats has shape {arrays['stats'].shape}, expected (4, {k})")
-        names = meta.get("param_names", [])
-        require(len(names) == k, path, f"{len(names)} parameter names for {k} basis vectors")
-        pnames = meta.get("point_names", [])
-        require(len(pnames) == n, path, f"{len(pnames)} point names for {n} points")
-        tri = arrays["triangles"]
-        require(tri.ndim == 2 and tri.shape[1] == 3, path, f"triangles have shape {tri.shape}")
-        require(tri.size == 0 or (tri.min() >= 0 and tri.max() < n), path,
-                "triangles index points that do not exist")
-        groups = {g: arrays.get(f"group__{g}", np.zeros(0, np.int64)) for g in meta["groups"]}
-        for g, idx in groups.items():
-            require(idx.size == 0 or (idx.min() >= 0 and idx.max() < n), path,
-                    f"group {g!r} indexes points that do not exist")
-        fp = meta.get("feature_points", {})
-        require(all(0 <= int(i) < n for i in fp.values()), path,
-                "feature points index points that do not exist")
-        s = arrays["stats"]
-        return cls(
-            mean=mean,
-            basis=basis,
-            param_names=tuple(names),
-            stats=ParamStats(s[0], s[1], s[2], s[3]),
-            point_names=tuple(pnames),
-            groups=groups,
-            triangles=tri,
-            feature_points=fp,
-            fapu_overrides=meta.get("fapu_overrides", {}),
-            name=str(meta.get("name", "speaker")),
-        )
+        with reading(path, "face model"):
+            for key in ("mean", "basis", "triangles", "stats"):
+                require(key in arrays, path, f"missing array {key!r}")
+            mean, basis = arrays["mean"], arrays["basis"]
+            require(mean.ndim == 2 and mean.shape[1] == 3, path, f"mean has shape {mean.shape}, "
+                    "expected (N, 3)")
+            n = mean.shape[0]
+            require(basis.ndim == 3 and basis.shape[1:] == (n, 3), path,
+                    f"basis has shape {basis.shape}, expected (K, {n}, 3)")
+            k = basis.shape[0]
+            require(arrays["stats"].shape == (4, k), path,
+                    f"stats has shape {arrays['stats'].shape}, expected (4, {k})")
+            names = meta.get("param_names", [])
+            require(len(names) == k, path, f"{len(names)} parameter names for {k} basis vectors")
+            pnames = meta.get("point_names", [])
+            require(len(pnames) == n, path, f"{len(pnames)} point names for {n} points")
+            tri = arrays["triangles"]
+            require(tri.ndim == 2 and tri.shape[1] == 3, path, f"triangles have shape {tri.shape}")
+            require(tri.size == 0 or (tri.min() >= 0 and tri.max() < n), path,
+                    "triangles index points that do not exist")
+            groups = {g: arrays.get(f"group__{g}", np.zeros(0, np.int64)) for g in meta["groups"]}
+            for g, idx in groups.items():
+                require(idx.size == 0 or (idx.min() >= 0 and idx.max() < n), path,
+                        f"group {g!r} indexes points that do not exist")
+            fp = meta.get("feature_points", {})
+            require(all(0 <= int(i) < n for i in fp.values()), path,
+                    "feature points index points that do not exist")
+            s = arrays["stats"]
+            return cls(
+                mean=mean,
+                basis=basis,
+                param_names=tuple(names),
+                stats=ParamStats(s[0], s[1], s[2], s[3]),
+                point_names=tuple(pnames),
+                groups=groups,
+                triangles=tri,
+                feature_points=fp,
+                fapu_overrides=meta.get("fapu_overrides", {}),
+                name=str(meta.get("name", "speaker")),
+            )

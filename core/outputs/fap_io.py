@@ -112,6 +112,8 @@ def read_fap(path: str | os.PathLike[str], *, allow_comments: bool = False) -> F
         text = path.read_bytes().decode("ascii")
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
     except UnicodeDecodeError as exc:
         line = path.read_bytes()[: exc.start].count(b"\n") + 1
         raise InputError(f"{path}: line {line}: not ASCII text") from None

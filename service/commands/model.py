@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
+
+from articast.service.jsonsafe import dumps
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,7 +43,7 @@ def _build_model(args: argparse.Namespace) -> int:
     model, table = build_model(corpus)
     model.save(args.output)
     if args.json:
-        print(json.dumps(table.to_json(), indent=2))
+        print(dumps(table.to_json(), indent=2))
     else:
         print(f"model of {corpus.postures.shape[1]} points from {corpus.postures.shape[0]} "
               f"postures -> {args.output}\n")

@@ -79,8 +79,9 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="auto | truth | tracker | module:factory (default auto)")
     g.add_argument("--wait-for-subscriber", action="store_true",
                    help="hold each source until its first subscriber arrives")
-    g.add_argument("--api-token", default=None,
-                   help="require 'Authorization: Bearer TOKEN' to add or remove sessions")
+    g.add_argument("--api-token", default=None, help=argparse.SUPPRESS)
+    a = p.add_argument_group("access")
+    add_access_arguments(a)
     add_arguments(p.add_argument_group("server"), ServerSettings)
     add_arguments(p.add_argument_group("fan-out limits"), HubSettings)
     add_arguments(p.add_argument_group("capture"), CaptureSettings)
@@ -88,9 +89,64 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
 
 
-def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
+def add_access_arguments(a: argparse._ArgumentGroup) -> None:
+    a.add_argument("--token-file", default=None, metavar="FILE",
+                   help="read the access token from FILE (else env ARTICAST_TOKEN); clients "
+                   "send it as 'Authorization: Bearer TOKEN' or ?token=TOKEN")
+    a.add_argument("--insecure-no-token", action="store_true", default=None,
+                   help="allow listening on a non-loopback address without a token "
+                   "(anyone reaching the port sees every face; env ARTICAST_INSECURE_NO_TOKEN)")
+    a.add_argument("--allowed-origin", action="append", default=[], metavar="ORIGIN",
+                   help="a browser origin allowed besides this server's own and loopback "
+                   "(e.g. https://app.example; repeatable; env ARTICAST_ALLOWED_ORIGINS, "
+                   "comma-separated)")
+    a.add_argument("--allowed-host", action="append", default=[], metavar="NAME",
+                   help="a Host name this server answers to besides its address and loopback "
+                   "(repeatable; env ARTICAST_ALLOWED_HOSTS, comma-separated; * = any)")
+    a.add_argument("--media-root", action="append", default=[], metavar="DIR",
+                   help="sessions added over HTTP may open files under DIR (repeatable; env "
+                   "ARTICAST_MEDIA_ROOT, ':'-separated; none: no files)")
+    a.add_argument("--allow-device", action="append", default=[], metavar="DEV",
+                   help="sessions added over HTTP may open this camera, e.g. /dev/video0 "
+                   "(repeatable; env ARTICAST_ALLOW_DEVICE, comma-separated)")
+
+
+def access_policy(args: argparse.Namespace, host: str) -> object:
+    """The AccessPolicy of the command line and the environment; refuses unsafe binding."""
     import os
 
+    from articast.core.errors import InputError
+    from articast.service.security import AccessPolicy, is_loopback, load_token
+
+    if getattr(args, "api_token", None) is not None:
+        raise InputError("--api-token is gone: a token on the command line is visible to "
+                         "every user in the process list; set ARTICAST_TOKEN or use "
+                         "--token-file FILE")
+    env = os.environ
+    token = load_token(env, args.token_file or env.get("ARTICAST_TOKEN_FILE", ""))
+    insecure = args.insecure_no_token or env.get("ARTICAST_INSECURE_NO_TOKEN", "").lower() in (
+        "1", "true", "yes", "on")
+    if not token and not is_loopback(host) and not insecure:
+        raise InputError(f"refusing to listen on {host} without a token: set ARTICAST_TOKEN "
+                         "or --token-file FILE (or --insecure-no-token on a trusted network)")
+
+    def listed(values: list[str], key: str, sep: str) -> tuple[str, ...]:
+        extra = [v.strip() for v in env.get(key, "").split(sep) if v.strip()]
+        return tuple(dict.fromkeys([*values, *extra]))
+
+    roots = listed(args.media_root, "ARTICAST_MEDIA_ROOT", os.pathsep)
+    for r in roots:
+        if not os.path.isdir(r):
+            raise InputError(f"--media-root {r}: not a folder")
+    return AccessPolicy(
+        token=token, bind_host=host,
+        allowed_hosts=listed(args.allowed_host, "ARTICAST_ALLOWED_HOSTS", ","),
+        allowed_origins=listed(args.allowed_origin, "ARTICAST_ALLOWED_ORIGINS", ","),
+        media_roots=tuple(os.path.realpath(r) for r in roots),
+        allowed_devices=listed(args.allow_device, "ARTICAST_ALLOW_DEVICE", ","))
+
+
+def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     from articast.core.errors import InputError
     from articast.service.app import ServiceConfig
     from articast.service.server import serve
@@ -114,12 +170,12 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
                               args.wait_for_subscriber, speaker=args.speaker)
                   for n, uri in sources)
-    token = args.api_token if args.api_token is not None else os.environ.get(
-        "ARTICAST_API_TOKEN", "")
+    server = from_args(ServerSettings, args)
+    access = access_policy(args, server.host)
     config = ServiceConfig(
-        server=from_args(ServerSettings, args), hub=from_args(HubSettings, args),
+        server=server, hub=from_args(HubSettings, args),
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
-        sessions=specs, api_token=token,
+        sessions=specs, access=access,  # type: ignore[arg-type]
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", "live",
                                              args.processor))))
 
@@ -134,6 +190,9 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
                   f"  browser avatar: {avatar}\n"
                   f'  subscribe with {{"type": "subscribe", "session": "{first}"}}; '
                   "Ctrl-C stops", flush=True)
+            if access.token:
+                print("  this server needs its token: clients send 'Authorization: Bearer "
+                      "TOKEN'; browsers add token=TOKEN to the avatar URL", flush=True)
 
     serve(config, listening)
     return 0

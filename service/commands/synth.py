@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
+
+from articast.service.jsonsafe import dumps
 
 EPILOG_SEQUENCE = """\
 files written to DIR:
@@ -195,7 +196,7 @@ def _sequence(args: argparse.Namespace) -> int:
                                  zip(PARAM_NAMES, seq.controls[i], strict=True)},
                     "occluded": bool(hidden),
                 }
-                fh.write(json.dumps(record) + "\n")
+                fh.write(dumps(record) + "\n")
                 if (i + 1) % 25 == 0 or i + 1 == seq.n_frames:
                     print(f"\rrendered {i + 1}/{seq.n_frames} frames", end="", file=sys.stderr)
         print("", file=sys.stderr)

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 from articast.core.errors import InputError
+from articast.service.jsonsafe import dumps
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -203,7 +202,7 @@ def _track(args: argparse.Namespace) -> int:
     from articast.service.video import iter_video, video_frame_count
 
     if args.output.is_dir():
-        raise InputError(f"{args.output}: is a folder; give a file name for the track")
+        raise InputError(f"-o {args.output}: is a folder, expected a file name (.jsonl)")
     tracker, model, camera = _make_tracker(args)
     total = video_frame_count(args.video)
     prog = Progress(total, "tracking", quiet=args.quiet)
@@ -215,7 +214,7 @@ def _track(args: argparse.Namespace) -> int:
             if i == 0:
                 _check_size(img, camera)
             res = tracker.track(img, t)
-            out.write(json.dumps(res.to_dict(model.param_names), allow_nan=False) + "\n")
+            out.write(dumps(res.to_dict(model.param_names)) + "\n")
             out.flush()
             n += 1
             n_ok += res.ok
@@ -225,10 +224,13 @@ def _track(args: argparse.Namespace) -> int:
                 reasons[code] = reasons.get(code, 0) + 1
             prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
     prog.close()
-    if total and n < total * 0.9:
-        print(f"articast track: warning: {args.video} ended early: read {n} of the {total} "
-              "frames its container declares", file=sys.stderr)
     why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
+    if n_ok == 0:  # exit 0 would pass a useless track off as a result
+        hint = ("is the enrolled speaker in view?" if args.speaker else "check the camera, "
+                "model and appearance files, and --init-pose")
+        raise InputError(f"{args.video}: none of its {n} frames could be tracked "
+                         f"({why.lstrip(', ')}; {hint}); frames written with ok=false to "
+                         f"{args.output}")
     print(f"{n} frames tracked ({n_ok} ok{why}), median {np.median(ms):.2f} ms/frame "
           f"-> {args.output}")
     return 0

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
 
 from articast.core.errors import InputError
+from articast.service.jsonsafe import dumps
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -39,7 +39,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _bind_dense(args: argparse.Namespace) -> int:
-    from articast.core.dense.mesh import parse_obj
+    from articast.core.dense.mesh import load_obj
     from articast.core.dense.transfer import bind, linearity_error, register_and_bind
     from articast.core.model.face import FaceModel
 
@@ -48,11 +48,7 @@ def _bind_dense(args: argparse.Namespace) -> int:
         raise InputError(f"{args.model}: the model has no triangles to bind a scan to")
     if not (np.isfinite(args.scale) and args.scale > 0):
         raise InputError(f"--scale must be positive, got {args.scale}")
-    try:
-        text = args.scan.read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise InputError(f"{args.scan}: cannot read: {exc}") from None
-    vertices, triangles = parse_obj(text, source=str(args.scan))
+    vertices, triangles = load_obj(args.scan)
     vertices = vertices * args.scale
     options = {"regularisation": args.regularisation}
     report: dict[str, object] = {"dense_points": len(vertices)}
@@ -73,7 +69,7 @@ def _bind_dense(args: argparse.Namespace) -> int:
                   dense_modes_median_error_mm=round(float(np.median(err)), 4),
                   output=str(args.output))
     if args.json:
-        print(json.dumps(report, indent=2))
+        print(dumps(report, indent=2))
     else:
         for key, value in report.items():
             print(f"{key}: {value}")

@@ -1,0 +1,315 @@
+"""Hostile files: every loader fuzzed, every bad file one clear error (issue 11).
+
+A loader given any bytes either returns a valid object or raises an
+:class:`~articast.core.errors.ArticastError` whose message names the file: never another
+exception (which the CLI would show as a traceback). The commands then turn that error into
+one line on stderr and exit status 2.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from articast.core.errors import ArticastError
+from tests.service_helpers import small_model, write_recording, write_video
+
+ROOT = Path(__file__).resolve().parents[1]
+FUZZ = settings(max_examples=int(os.environ.get("ARTICAST_FUZZ_EXAMPLES", "40")),
+                deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture,
+                                                      HealthCheck.too_slow])
+
+
+# ----------------------------------------------------------------------------- valid files
+def _appearance(model):
+    from articast.core.appearance.models import AppearanceModel, SamplePoints
+
+    rng = np.random.default_rng(0)
+    s, k = 5, model.n_params
+    idx = rng.integers(0, model.n_points, (s, 3))
+    return AppearanceModel("la_lin", SamplePoints(idx, np.full((s, 3), 1 / 3)), (0,),
+                           rng.normal(size=(1, k + 1, s * 8)), np.ones((1, s * 8)), 2.5,
+                           np.array([0.9]))
+
+
+def _binding():
+    from articast.core.dense.transfer import Binding
+
+    n, t, m = 4, 2, 3
+    return Binding(sparse_vertices=np.eye(4, 3), triangles=np.array([[0, 1, 2], [1, 2, 3]]),
+                   dense_vertices=np.ones((m, 3)), facet=np.array([0, 1, 0]),
+                   local=np.zeros((m, 3)), weights=np.full((m, 3), 1 / 3), offset=np.zeros(m),
+                   inside=np.ones(m, bool), corner_normals=np.zeros((t, 3, 3)),
+                   curvature=np.zeros(n), lambda2=0.1, dense_triangles=np.array([[0, 1, 2]]))
+
+
+@pytest.fixture(scope="module")
+def valid(tmp_path_factory):
+    from articast.core.model.build import Corpus
+    from articast.core.model.camera import Camera
+
+    d = tmp_path_factory.mktemp("valid")
+    model = small_model()
+    model.save(d / "model.npz")
+    _appearance(model).save(d / "appearance.npz")
+    _binding().save(d / "binding.npz")
+    Camera.default(64, 48).save(d / "camera.json")
+    rng = np.random.default_rng(1)
+    Corpus(rng.normal(size=(6, 12, 3)), tuple(f"v{i}" for i in range(6)),
+           tuple(f"p{i}" for i in range(12)), {"rest": np.arange(12)},
+           np.array([[0, 1, 2]])).save(d / "corpus.npz")
+    write_recording(d / "rec.jsonl", frames=5)
+    shutil.copy(ROOT / "docs/examples/synthetic_sentence.fap", d / "talk.fap")
+    (d / "scan.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    return d
+
+
+def _loaders():
+    from articast.core.appearance.models import AppearanceModel
+    from articast.core.dense.mesh import load_obj
+    from articast.core.dense.transfer import Binding
+    from articast.core.model.build import Corpus
+    from articast.core.model.camera import Camera
+    from articast.core.model.face import FaceModel
+    from articast.core.outputs.fap_io import read_fap
+    from articast.service.record import read_header
+    from articast.service.sources import probe
+    from articast.service.video import read_jsonl
+
+
+    def recording(p):
+        read_header(Path(p))
+        probe(f"replay-record:{p}?pace=fast")
+
+    return {
+        "model.npz": FaceModel.load,
+        "appearance.npz": lambda p: AppearanceModel.load(p, small_model()),
+        "binding.npz": Binding.load,
+        "corpus.npz": Corpus.load,
+        "camera.json": Camera.load,
+        "rec.jsonl": recording,
+        "talk.fap": read_fap,
+        "scan.obj": load_obj,
+        "track.jsonl": read_jsonl,
+    }
+
+
+LOADERS = _loaders()
+
+
+def _mutate(data: bytes, how: str, at: float, value: int) -> bytes:
+    i = int(at * len(data))
+    if how == "truncate":
+        return data[:i]
+    if how == "flip":
+        return data[:i] + bytes([data[i] ^ (value or 1)]) + data[i + 1:] if data else data
+    if how == "insert":
+        return data[:i] + bytes([value]) * 7 + data[i:]
+    return os.urandom(value)  # random bytes
+
+
+def _check(loader, path: Path) -> None:
+    try:
+        loader(path)
+    except ArticastError as exc:
+        msg = str(exc)
+        assert str(path) in msg or path.name in msg, msg
+        assert "\n" not in msg.strip() or len(msg) < 2000
+
+
+@pytest.mark.parametrize("name", sorted(LOADERS))
+def test_every_loader_survives_fuzzed_files(name, valid, tmp_path):
+    source = valid / name if name != "track.jsonl" else valid / "rec.jsonl"
+    data = source.read_bytes()
+    loader = LOADERS[name]
+    loader(source)  # the valid file loads
+
+    @FUZZ
+    @given(how=st.sampled_from(["truncate", "flip", "insert", "random"]),
+           at=st.floats(0, 0.999), value=st.integers(0, 255))
+    def fuzz(how, at, value):
+        path = tmp_path / name
+        path.write_bytes(_mutate(data, how, at, value))
+        _check(loader, path)
+
+    fuzz()
+
+
+@pytest.mark.parametrize("name", sorted(LOADERS))
+def test_empty_files_and_directories_are_clear_errors(name, tmp_path):
+    empty = tmp_path / name
+    empty.write_bytes(b"")
+    folder = tmp_path / "dir" / name
+    folder.mkdir(parents=True)
+    for path in (empty, folder, tmp_path / "missing" / name):
+        try:
+            LOADERS[name](path)
+        except ArticastError as exc:
+            assert path.name in str(exc)
+        else:
+            if path != empty or name not in ("scan.obj", "track.jsonl"):
+                raise AssertionError(f"{path} loaded")
+
+
+def test_non_finite_camera_values_are_refused(valid, tmp_path):
+    from articast.core.model.camera import Camera
+
+    doc = json.loads((valid / "camera.json").read_text())
+    for key in ("K", "dist"):
+        for bad in (float("nan"), float("inf")):
+            d = dict(doc)
+            d[key] = [bad] * len(doc[key]) if doc[key] else [bad]
+            p = tmp_path / f"{key}.json"
+            p.write_text(json.dumps(d))  # json writes NaN/Infinity: Python reads them back
+            with pytest.raises(ArticastError, match="camera"):
+                Camera.load(p)
+    d = dict(doc, kind="secret-contents-of-another-file")
+    (tmp_path / "other.json").write_text(json.dumps(d))
+    with pytest.raises(ArticastError) as e:
+        Camera.load(tmp_path / "other.json")
+    assert "secret-contents" not in str(e.value)  # no echo of the file's contents
+
+
+def test_protocol_parser_fuzzed():
+    from articast.service import protocol as P
+
+    @FUZZ
+    @given(st.one_of(st.text(max_size=300), st.binary(max_size=300),
+                     st.recursive(st.none() | st.booleans() | st.floats() | st.text(max_size=8),
+                                  lambda c: st.lists(c, max_size=4)
+                                  | st.dictionaries(st.text(max_size=8), c, max_size=4),
+                                  max_leaves=30).map(
+                         lambda v: json.dumps({"type": "subscribe", "session": "a",
+                                               "streams": v}))))
+    def fuzz(text):
+        try:
+            P.parse_client_message(text)
+        except P.ProtocolError as exc:
+            assert exc.code and exc.reason
+
+    fuzz()
+    for depth in (100, 1000, 100_000):
+        with pytest.raises(P.ProtocolError):
+            P.parse_client_message("[" * depth + "]" * depth)
+
+
+# ----------------------------------------------------------------------------- videos
+def test_truncated_video_says_it_ended_early(tmp_path):
+    from articast.service.video import iter_video
+
+    good = tmp_path / "good.avi"
+    write_video(good, frames=40)
+    data = good.read_bytes()
+    bad = tmp_path / "cut.avi"
+    bad.write_bytes(data[: len(data) * 2 // 3])
+    with pytest.raises(ArticastError) as e:
+        for _ in iter_video(bad):
+            pass
+    msg = str(e.value)
+    assert "cut.avi" in msg and "ended early" in msg and "of the 40" in msg
+
+
+# ----------------------------------------------------------------------------- the CLI
+def _cli(*args):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    return subprocess.run([sys.executable, "-m", "articast.service.cli", *args], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=120)
+
+
+def _one_line_error(r, *words):
+    assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
+    assert "Traceback" not in r.stderr
+    lines = [x for x in r.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1, r.stderr[-3000:]
+    for w in words:
+        assert w in lines[0], lines[0]
+
+
+def test_hostile_files_through_the_cli(valid, tmp_path):
+    """The CLI's answer to corrupt inputs: one line naming the file, exit 2."""
+    video = tmp_path / "v.avi"
+    write_video(video, frames=30)
+    data = video.read_bytes()
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(data[: len(data) // 2])
+    junk = tmp_path / "junk.mp4"
+    junk.write_bytes(b"\x00\x00\x00\x18ftypmp42" + os.urandom(200_000))
+    nan_cam = tmp_path / "nan.json"
+    doc = json.loads((valid / "camera.json").read_text())
+    doc["dist"] = [float("nan")] * 5
+    nan_cam.write_text(json.dumps(doc))
+    bad_model = tmp_path / "bad.npz"
+    bad_model.write_bytes((valid / "model.npz").read_bytes()[:300])
+    common = ["--model", str(valid / "model.npz"), "--appearance",
+              str(valid / "appearance.npz"), "--camera", str(valid / "camera.json")]
+    out = tmp_path / "o.jsonl"
+    _one_line_error(_cli("track", "--quiet", str(cut), *common, "-o", str(out)), "cut.avi", "ended early")
+    _one_line_error(_cli("track", "--quiet", str(junk), *common, "-o", str(out)), "junk.mp4")
+    _one_line_error(_cli("track", "--quiet", str(video), *common[:4], "--camera", str(nan_cam), "-o",
+                         str(out)), "nan.json")
+    _one_line_error(_cli("track", "--quiet", str(video), "--model", str(bad_model), *common[2:], "-o",
+                         str(out)), "bad.npz")
+    _one_line_error(_cli("track", "--quiet", str(video), *common, "-o", str(tmp_path)), str(tmp_path))
+    _one_line_error(_cli("replay", str(junk)), "junk.mp4")
+    _one_line_error(_cli("replay", str(tmp_path)), str(tmp_path))
+    _one_line_error(_cli("export-fap", str(tmp_path / "nothing.jsonl"), "--model",
+                         str(valid / "model.npz"), "-o", str(tmp_path / "x.fap")),
+                    "nothing.jsonl")
+
+
+def test_serve_marks_a_session_with_a_bad_file_failed_without_restarting(valid, tmp_path):
+    """The same corrupt files counted as crashes in ``serve``: 20 restarts. Now: failed once,
+    with the reason naming the file."""
+    import httpx
+
+    from articast.service.app import ServiceConfig
+    from articast.service.security import AccessPolicy
+    from articast.service.settings import ServerSettings, SessionPolicy
+    from tests.service_helpers import TIMEOUT, ServerThread
+
+    bad_model = tmp_path / "bad.npz"
+    data = (valid / "model.npz").read_bytes()
+    bad_model.write_bytes(data[:40] + bytes([data[40] ^ 0xFF]) + data[41:])
+    video = tmp_path / "v.avi"
+    write_video(video, frames=30)
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(video.read_bytes()[: video.stat().st_size // 2])
+    config = ServiceConfig(
+        server=ServerSettings(log_level="critical"),
+        policy=SessionPolicy(restart_initial_s=0.05, restart_max_s=0.1, max_restarts=20),
+        access=AccessPolicy(token="t", media_roots=(str(tmp_path), str(valid))),
+        http_processors=("auto", "truth", "tests.service_helpers:ImageStats"))
+    cases = {
+        "model": ({"source": f"file:{video}", "model": str(bad_model),
+                   "processor": "tests.service_helpers:ImageStats"}, "bad.npz"),
+        "camera": ({"source": f"replay-record:{valid / 'rec.jsonl'}", "camera": str(bad_model),
+                    "processor": "truth"}, "bad.npz"),
+        "cut": ({"source": f"file:{cut}?pace=fast", "processor": "tests.service_helpers:ImageStats"},
+                "ended early"),
+    }
+    with ServerThread(config) as srv:
+        c = srv.client()
+        for name, (body, _) in cases.items():
+            r = c.post("/api/sessions", json={"name": name, **body})
+            assert r.status_code == 201, r.text
+        import time
+
+        deadline = time.monotonic() + 3 * TIMEOUT
+        while True:
+            states = {s["name"]: s for s in c.get("/api/sessions").json()}
+            if all(states[n]["state"] in ("failed", "ended") for n in cases):
+                break
+            assert time.monotonic() < deadline, states
+            time.sleep(0.1)
+        for name, (_, word) in cases.items():
+            s = states[name]
+            assert s["state"] == "failed" and s["restarts"] == 0, s
+            assert word in s["detail"] and "Traceback" not in s["detail"], s
+        assert httpx.get(srv.http + "/healthz", timeout=TIMEOUT).json()["status"] == "ok"
