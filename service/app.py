@@ -21,7 +21,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -245,8 +245,11 @@ class Connection:
 class Service:
     """What the app holds: the hub, the sessions, the open connections."""
 
-    def __init__(self, config: ServiceConfig) -> None:
+    def __init__(self, config: ServiceConfig,
+                 on_live: Callable[[], None] | None = None) -> None:
         self.config = config
+        self.on_live = on_live
+        self._announce_task: asyncio.Task[None] | None = None
         self.hub: InMemoryHub[Any] = InMemoryHub()
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
@@ -271,6 +274,18 @@ class Service:
         for spec in self.config.sessions:
             await self.manager.add(spec)
         self._watchdog = asyncio.create_task(self._watch(), name="stall watchdog")
+        if self.on_live is not None:
+            self._announce_task = asyncio.create_task(self._announce(), name="announce")
+
+    async def _announce(self) -> None:
+        """Call ``on_live`` once every initial session streams (its first frame is on the
+        hub) or has said why it cannot (a session held for its first subscriber counts as
+        ready): a URL printed then shows a moving face, not an empty page."""
+        waits = [s.settled.wait() for s in self.manager.sessions.values()
+                 if not s.spec.wait_for_subscriber]
+        await asyncio.gather(*waits)
+        assert self.on_live is not None
+        self.on_live()
 
     async def _watch(self) -> None:
         limit = self.config.hub.stall_timeout_s
@@ -286,6 +301,8 @@ class Service:
     async def stop(self) -> None:
         if self._watchdog:
             self._watchdog.cancel()
+        if self._announce_task:
+            self._announce_task.cancel()
         await self.manager.close(self.config.server.shutdown_timeout_s)
         self.hub.close()
 
@@ -334,9 +351,12 @@ class BodyLimit:
         await self.app(scope, limited, send)
 
 
-def create_app(config: ServiceConfig | None = None) -> FastAPI:
+def create_app(config: ServiceConfig | None = None,
+               on_live: Callable[[], None] | None = None) -> FastAPI:
+    """The app. ``on_live()`` is called once the initial sessions stream (see
+    :meth:`Service._announce`)."""
     config = config or ServiceConfig()
-    svc = Service(config)
+    svc = Service(config, on_live)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:

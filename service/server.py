@@ -51,10 +51,11 @@ def websocket_protocol(socket_buffer_bytes: int) -> type[WebSocketsSansIOProtoco
     return ArticastWebSocketProtocol
 
 
-def uvicorn_config(config: ServiceConfig) -> uvicorn.Config:
+def uvicorn_config(config: ServiceConfig,
+                   on_live: Callable[[], None] | None = None) -> uvicorn.Config:
     s = config.server
     return uvicorn.Config(
-        create_app(config), host=s.host, port=s.port, log_level=s.log_level,
+        create_app(config, on_live), host=s.host, port=s.port, log_level=s.log_level,
         ws=websocket_protocol(config.hub.socket_buffer_bytes),
         ws_max_size=config.hub.ws_max_size,
         # no permessage-deflate: it compresses every message once per connection, which
@@ -78,11 +79,13 @@ def bound_socket(host: str, port: int) -> socket.socket:
 
 
 def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = None) -> None:
-    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound."""
+    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound
+    and the initial sessions stream (their first frame is out, or they said why not), so a
+    URL printed then never shows an empty page."""
     sock = bound_socket(config.server.host, config.server.port)
     host, port = sock.getsockname()[:2]
-    if on_listening:
-        shown = f"[{host}]" if ":" in host else host
-        on_listening(f"ws://{shown}:{port}/ws")
-    server = uvicorn.Server(uvicorn_config(config))
+    shown = f"[{host}]" if ":" in host else host
+    url = f"ws://{shown}:{port}/ws"
+    live = None if on_listening is None else (lambda: on_listening(url))
+    server = uvicorn.Server(uvicorn_config(config, live))
     server.run(sockets=[sock])

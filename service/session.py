@@ -29,6 +29,9 @@ from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker
 log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 TERMINAL = ("ended", "failed", "stopped")
+PROBLEMS = ("unavailable", "failed")
+"""States logged on the console at the default level (warning), with their reason (a crash
+is logged where the restart is decided)."""
 JOIN_TIMEOUT_S = 5.0
 """How long a stopped worker may take to finish its frame before its process is terminated."""
 
@@ -48,6 +51,9 @@ class Session:
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._vmc_model: Any = None
         self._done = asyncio.Event()
+        self.settled = asyncio.Event()
+        """Set at the first frame, or when the session reports a problem (unavailable,
+        failed, ended, restarting): what ``serve`` waits for before printing its URL."""
         self._outcome: tuple[str, str] = ("", "")
         self._stopping = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -179,6 +185,7 @@ class Session:
         ev = FrameEvent(self.spec.name, self.sid, rec, self.description["param_names"],
                         self._mesh, self.outputs)
         self._m.hub.publish(self.spec.name, ev)
+        self.settled.set()
         if self._m.vmc is not None and self._vmc_model is not None:
             from articast.core.model.camera import Pose
             from articast.core.tracking.result import TrackResult
@@ -201,7 +208,14 @@ class Session:
             return
         if (state, detail) == (self.state, self.detail):
             return
+        previous = self.state
         self.state, self.detail = state, detail
+        if state in PROBLEMS and previous != state:
+            log.warning("session %s: %s%s", self.spec.name, state, f": {detail}" if detail else "")
+        elif state == "running" and previous in PROBLEMS:
+            log.warning("session %s: running again", self.spec.name)
+        if state in PROBLEMS or state in TERMINAL or state == "restarting":
+            self.settled.set()
         self._m.hub.publish(self.spec.name, StatusEvent(self.spec.name, state, detail, now()))
 
     def to_dict(self) -> dict[str, Any]:

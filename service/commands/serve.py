@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from articast.service.settings import (
@@ -112,6 +113,14 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
         sessions=specs, api_token=token,
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", args.processor))))
+
+    import logging
+
+    logging.basicConfig(level=config.server.log_level.upper(),
+                        format="articast %(levelname)s: %(message)s")
+    if names and not args.json:
+        print(f"articast: starting {', '.join(names)}; the URL follows once the face streams",
+              file=sys.stderr, flush=True)
 
     def listening(url: str) -> None:
         http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]
