@@ -2,12 +2,18 @@
 // streamed articulatory parameters (x = mean + sum_k alpha_k basis_k, the dense modes when the
 // server offers them), shades it with WebGL, shows the parameters, pose, latency and fps, and
 // reconnects by itself. No network but the articast server; no build step.
+//
+// Newest frame only: a message only replaces `latest`; one requestAnimationFrame loop draws
+// it (and updates the panel) at most once per display frame. However slow the machine, nothing
+// queues in the page: frames that arrive between two display frames are counted, not drawn.
+// Latency shown = capture -> on screen (wall clock; the server's `t_capture`).
 import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
 
 const params = new URLSearchParams(location.search);
 const state = (window.articast = {
-  frames: 0, connects: 0, connected: false, hello: null, alpha: null, status: "", error: "",
-  mesh: "", lastSeq: -1,
+  frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
+  error: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null,
+  latencies: [], // capture -> on screen, ms, one per drawn frame (the last 20 000)
 });
 const $ = (id) => document.getElementById(id);
 const canvas = $("canvas");
@@ -161,7 +167,7 @@ function showBars(alpha) {
 function status(text, bad) { const s = $("status"); s.textContent = text; s.className = bad ? "bad" : "good"; state.status = text; }
 
 // ----------------------------------------------------------------------------- connection
-let times = [], delay = 250;
+let delay = 250;
 async function chooseSession() {
   if (params.get("session")) return params.get("session");
   const r = await fetch("/api/sessions"); const list = await r.json();
@@ -186,27 +192,48 @@ async function onHello(h) {
     } catch (e) { console.warn("dense mesh unavailable", e); }
   }
 }
-function onFrame(f) {
+let latest = null, rateMark = { t: 0, frames: 0 };
+function onFrame(f) { // cheap: the drawing happens in draw(), once per display frame
+  latest = f; state.frames++; state.lastSeq = f.seq;
+}
+function draw(now) {
+  requestAnimationFrame(draw);
+  if (now - rateMark.t >= 1000) { // received frames per second, over the last second
+    if (rateMark.t) state.fps = (state.frames - rateMark.frames) * 1000 / (now - rateMark.t);
+    rateMark = { t: now, frames: state.frames };
+    $("fps").textContent = state.connected ? state.fps.toFixed(1) : "–";
+  }
+  const f = latest;
+  if (!f || !state.hello) return;
+  latest = null;
   const names = state.hello.param_names, a = f.values.articulatory || {};
-  state.alpha = names.map((n) => a[n] || 0); state.frames++; state.lastSeq = f.seq;
+  state.alpha = names.map((n) => a[n] || 0);
   if (f.values.pose) { pose = f.values.pose; if (!firstRot && f.quality.ok) firstRot = rotationFromAxisAngle(pose.rotation); }
   showBars(state.alpha);
-  const now = performance.now(); times.push(now); while (times.length > 30) times.shift();
-  if (times.length > 1) $("fps").textContent = (1000 * (times.length - 1) / (now - times[0])).toFixed(1);
-  // latency: server send time to arrival, on the wall clock (same host, or NTP-synced hosts)
-  $("latency").textContent = `${Math.max(0, Date.now() / 1000 - f.t_sent) * 1000 | 0} ms`;
   $("quality").textContent = f.quality.ok ? `ok, ${f.quality.evals} evals` : `not ok: ${f.quality.reason}`;
   $("quality").className = f.quality.ok ? "good" : "bad";
   if (pose) $("pose").textContent = pose.translation.map((v) => v.toFixed(0)).join(", ") + " mm";
-  requestAnimationFrame(render);
+  render();
+  state.rendered++;
+  // end to end: captured on the server -> drawn here (same host, or NTP-synced hosts)
+  const ms = Math.max(0, Date.now() - f.t_capture * 1000);
+  state.latencyMs = ms; state.latencies.push(ms);
+  if (state.latencies.length > 20000) state.latencies.splice(0, 10000);
+  $("latency").textContent = `${ms | 0} ms`;
+  overlay("");
+}
+function overlay(text) { // what the view says while there is no face to show
+  const o = $("overlay");
+  if (o.textContent !== text) o.textContent = text;
+  o.hidden = !text;
 }
 async function connect() {
   let session;
   try { session = await chooseSession(); } catch (e) { return retry(`no session yet (${e.message})`); }
-  const proto = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(params.get("ws") || `${proto}://${location.host}/ws`);
+  const ws = new WebSocket(socketUrl());
   ws.onopen = () => {
     state.connected = true; state.connects++; delay = 250; status(`connected to ${session}`);
+    if (!state.rendered) overlay(`waiting for the first frame of ${session}…`);
     ws.send(JSON.stringify({ type: "subscribe", session, streams: ["articulatory", "pose"],
                              rate: params.get("rate") ? Number(params.get("rate")) : null }));
   };
@@ -214,14 +241,25 @@ async function connect() {
     const m = JSON.parse(ev.data);
     if (m.type === "hello") await onHello(m);
     else if (m.type === "frame" && state.hello) onFrame(m);
-    else if (m.type === "status") status(`${m.session}: ${m.state} ${m.detail || ""}`, m.state !== "running");
+    else if (m.type === "status") {
+      const text = `${m.session}: ${m.state} ${m.detail || ""}`;
+      status(text, m.state !== "running");
+      if (!state.rendered || m.state !== "running") overlay(m.state === "running" ? "" : text);
+    }
     else if (m.type === "error") { state.error = m.reason; status(`error: ${m.reason}`, true); }
   };
   ws.onclose = () => { state.connected = false; retry("disconnected"); };
 }
+function socketUrl() { // the one place the WebSocket URL is built
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  return params.get("ws") || `${proto}://${location.host}/ws`;
+}
 function retry(why) {
   status(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s`, true);
+  overlay(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s…`);
   setTimeout(connect, delay); delay = Math.min(delay * 2, 5000);
 }
 if (!gl) status("WebGL is not available in this browser", true);
+overlay("connecting to the articast server…");
+requestAnimationFrame(draw);
 connect();
