@@ -256,7 +256,8 @@ class Service:
         if config.server.vmc:
             from articast.service.vmc import VmcSender, parse_host_port
 
-            self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc))
+            self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc),
+                                         names=config.server.vmc_names)
         self.connections: set[Connection] = set()
         self._watchdog: asyncio.Task[None] | None = None
 
@@ -434,6 +435,16 @@ def create_app(config: ServiceConfig | None = None,
             raise HTTPException(404, f"no session {name!r}")
         await svc.manager.remove(name)
         return {"name": name, "state": "stopped"}
+
+    @app.post("/api/sessions/{name}/recentre")
+    async def recentre_session(name: str, request: Request) -> dict[str, Any]:
+        """Take the session's next good frame as the speaker's neutral head pose."""
+        authorise(request)
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r}")
+        session.recentre()
+        return {"name": name, "recentred": True}
 
     @app.get("/api/sessions/{name}/dense")
     def dense_mesh(name: str) -> Response:

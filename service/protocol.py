@@ -141,9 +141,19 @@ class Quality(_Message):
     ms: float = 0.0
 
 
+class RelativePose(_Message):
+    rotation: list[float] = Field(min_length=3, max_length=3,
+                                  description="axis-angle, rad: R_n^T R")
+    translation: list[float] = Field(min_length=3, max_length=3,
+                                     description="mm, neutral head frame: R_n^T (t - t_n)")
+
+
 class PoseValue(_Message):
     rotation: list[float] = Field(min_length=3, max_length=3, description="axis-angle, rad")
     translation: list[float] = Field(min_length=3, max_length=3, description="mm, head->camera")
+    head: RelativePose | None = Field(
+        default=None, description="the head relative to the speaker's neutral pose (first good "
+        "frame, or the first after a re-centre); JSON encoding only")
 
 
 class FapValue(_Message):

@@ -50,6 +50,10 @@ class Session:
         self._dense: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._vmc_model: Any = None
+        self.neutral: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        """The speaker's neutral head pose (rotation, translation): the first good frame, or
+        the first after :meth:`recentre`. The streamed relative pose, the VMC head and the
+        head FAPs are relative to it."""
         self._done = asyncio.Event()
         self.settled = asyncio.Event()
         """Set at the first frame, or when the session reports a problem (unavailable,
@@ -155,6 +159,7 @@ class Session:
         from articast.service.outputs import make_outputs
 
         self.outputs = make_outputs(desc)
+        self.neutral = None
         if self.outputs is not None:
             desc["fapu"] = self.outputs.fapu
         self._dense = None
@@ -164,6 +169,13 @@ class Session:
             desc["dense_url"] = f"/api/sessions/{self.spec.name}/dense"
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
         self._set_state("running", "")
+
+    def recentre(self) -> None:
+        """Take the next good frame as the speaker's neutral head pose (streamed relative
+        pose, VMC head, head FAPs)."""
+        self.neutral = None
+        if self.outputs is not None:
+            self.outputs.recentre()
 
     def dense_json(self) -> bytes:
         """JSON of the dense face of this session's model (cached; blocking: call from a
@@ -182,8 +194,10 @@ class Session:
         if self.description is None:
             return
         m = self.metrics
+        if self.neutral is None and rec.quality["ok"]:
+            self.neutral = (rec.rotation, rec.translation)
         ev = FrameEvent(self.spec.name, self.sid, rec, self.description["param_names"],
-                        self._mesh, self.outputs)
+                        self._mesh, self.outputs, self.neutral)
         self._m.hub.publish(self.spec.name, ev)
         self.settled.set()
         if self._m.vmc is not None and self._vmc_model is not None:
@@ -192,7 +206,8 @@ class Session:
 
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
                               Pose(rec.rotation, rec.translation), bool(rec.quality["ok"]))
-            self._m.vmc.send(res, self._vmc_model)  # UDP, never blocks
+            neutral = None if self.neutral is None else Pose(*self.neutral)
+            self._m.vmc.send(res, self._vmc_model, neutral=neutral)  # UDP, never blocks
         t = now()
         m.publish_latency.observe(t - rec.t_tracked)
         m.track_latency.observe(rec.t_tracked - rec.t_capture)

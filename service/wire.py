@@ -97,6 +97,19 @@ class FrameRecord:
                 "quality": self.quality}
 
 
+def relative_pose(rotation: Any, translation: Any, neutral_rotation: Any,
+                  neutral_translation: Any) -> dict[str, list[float]]:
+    """The head relative to the speaker's neutral pose, in the neutral head frame:
+    rotation ``R_n^T R`` (axis-angle, rad) and translation ``R_n^T (t - t_n)`` (mm)."""
+    from articast.core.model.camera import axis_angle, rotation_matrix
+
+    rn = rotation_matrix(np.asarray(neutral_rotation, float))
+    rel = rn.T @ rotation_matrix(np.asarray(rotation, float))
+    shift = rn.T @ (np.asarray(translation, float) - np.asarray(neutral_translation, float))
+    return {"rotation": [float(v) for v in axis_angle(rel)],
+            "translation": [float(v) for v in shift]}
+
+
 @dataclass(frozen=True)
 class StatusEvent:
     session: str
@@ -124,6 +137,7 @@ class FrameEvent:
     param_names: list[str]
     mesh_basis: Any = None  # (mean (3N,), basis (K, 3N)) float32 or None
     outputs: Any = None  # articast.service.outputs.Outputs (fap, arkit) or None
+    neutral: Any = None  # the session's neutral head pose (rotation, translation) or None
     _cache: dict[View, str | bytes] = field(default_factory=dict)
 
     def encoded(self, view: View) -> str | bytes:
@@ -149,6 +163,8 @@ class FrameEvent:
             v["articulatory"] = dict(zip(self.param_names, r.alpha, strict=True))
         if "pose" in streams:
             v["pose"] = {"rotation": list(r.rotation), "translation": list(r.translation)}
+            if self.neutral is not None:
+                v["pose"]["head"] = relative_pose(r.rotation, r.translation, *self.neutral)
         if "mesh" in streams and self.mesh_basis is not None:
             mean, basis = self.mesh_basis
             v["mesh"] = (mean + np.asarray(r.alpha, np.float32) @ basis).tolist()

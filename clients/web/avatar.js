@@ -117,8 +117,11 @@ function render() {
   gl.clearColor(0.19, 0.2, 0.23, 1); gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
   // the head frame: x = speaker's left (the viewer's right), y up, z towards the viewer
   let rot = [1, 0, 0, 0, 1, 0, 0, 0, 1];
-  if ($("headpose").checked && pose && firstRot) {
-    // head rotation relative to the first frame, in the head frame: R0^T R
+  if ($("headpose").checked && pose && pose.head) {
+    // the server's head pose relative to the speaker's neutral (R_n^T R, in the head frame)
+    rot = rotationFromAxisAngle(pose.head.rotation);
+  } else if ($("headpose").checked && pose && firstRot) {
+    // an older server: relative to the first frame seen here, R0^T R
     rot = mat3Mul(transpose3(firstRot), rotationFromAxisAngle(pose.rotation));
   }
   const model = mat4FromRot(rot, centre);
