@@ -1,6 +1,6 @@
 """The FastAPI application: ``WS /ws`` and the HTTP API.
 
-``WS /ws``                     subscribe to sessions (protocol v1, :mod:`articast.service.protocol`)
+``WS /ws``                     subscribe to sessions (protocol v1, :mod:`articast.client.protocol`)
 ``GET /api/sessions``          the sessions and their state
 ``POST /api/sessions``         start one: ``{"name", "source", "model"?, "appearance"?,
                                "camera"?, "processor"?, "wait_for_subscriber"?}``
@@ -29,8 +29,8 @@ from fastapi import FastAPI, HTTPException, Request, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from articast.client import protocol as P
 from articast.core.errors import ArticastError
-from articast.service import protocol as P
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
 from articast.service.session import SessionManager

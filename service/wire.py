@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from articast.service import protocol as P
+from articast.client import protocol as P
 
 _MONO_TO_EPOCH = time.time() - time.monotonic()
 
