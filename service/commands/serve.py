@@ -47,16 +47,22 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     _common(d)
     d.set_defaults(func=_demo)
 
-    r = sub.add_parser("replay", help="serve a recorded video through the tracker",
-                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    r.add_argument("video", type=Path)
+    r = sub.add_parser(
+        "replay", help="serve a recorded video through the tracker",
+        description="Track a video file as if it were a camera and stream it (one session, "
+        "named after the file). Give the speaker's --model, --appearance and --camera.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    r.add_argument("video", type=Path, help="video file to track and stream")
     _playback(r)
     _common(r)
     r.set_defaults(func=_replay)
 
-    rr = sub.add_parser("replay-record", help="serve a recording made by serve --record",
-                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    rr.add_argument("recording", type=Path)
+    rr = sub.add_parser(
+        "replay-record", help="serve a recording made by serve --record",
+        description="Stream a recording (serve --record, or python -m articast.client.record) "
+        "again, with the same hello and frames at their recorded times: no tracking, no "
+        "camera.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rr.add_argument("recording", type=Path, help="recording (.jsonl)")
     _playback(rr)
     _common(rr)
     rr.set_defaults(func=_replay_record)
@@ -64,7 +70,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 def _playback(p: argparse.ArgumentParser) -> None:
     p.add_argument("--name", help="session name (default: the file name)")
-    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime")
+    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
+                   help="realtime (default): frames at their media time; fast: as fast as "
+                   "they are taken, none lost")
     p.add_argument("--loop", type=int, default=1, help="times to play (0 = forever)")
 
 

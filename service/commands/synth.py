@@ -70,6 +70,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     s.add_argument("-o", "--output", type=Path, required=True, help="output directory")
     s.add_argument("--seed", type=int, default=0, help="speaker and sequence seed (default 0)")
+    s.add_argument("--sentence", type=int, default=None, metavar="SEED",
+                   help="what the speaker says: another sequence seed for the same speaker "
+                   "(default: --seed), e.g. to enrol and test one speaker on different speech")
     s.add_argument("--rig", choices=("head", "desk"), default="head",
                    help="camera rig (default head)")
     s.add_argument("--frames", type=int, default=150, help="number of frames (default 150)")
@@ -160,7 +163,10 @@ def _sequence(args: argparse.Namespace) -> int:
     speaker = default_speaker(args.seed)
     print("building the speaker's model...", file=sys.stderr)
     model = speaker.model()
-    seq = make_sequence(args.seed, args.frames, args.fps, args.rig, args.still_frames,
+    sentence = args.seed if args.sentence is None else args.sentence
+    if sentence < 0:
+        raise InputError(f"--sentence must be >= 0, got {sentence}")
+    seq = make_sequence(sentence, args.frames, args.fps, args.rig, args.still_frames,
                         size=(width, height), geometry=speaker.geometry)
     alpha = invert(model, seq.points)
 
@@ -177,7 +183,7 @@ def _sequence(args: argparse.Namespace) -> int:
                 hidden = occluded is not None and occluded[0] <= i < occluded[1]
                 opts = RenderOptions(
                     noise_sigma=base.noise_sigma, blur_sigma=base.blur_sigma, gain=base.gain,
-                    occluder=base.occluder if hidden else "none", seed=args.seed * 100_003 + i,
+                    occluder=base.occluder if hidden else "none", seed=sentence * 100_003 + i,
                     light_azimuth_deg=base.light_azimuth_deg + drift,
                 )
                 writer.write(speaker.render(seq.controls[i], seq.pose(i), seq.camera, opts))
@@ -199,7 +205,7 @@ def _sequence(args: argparse.Namespace) -> int:
     save_bundle(out / "truth.npz", "synthetic-truth", 1,
                 {"points": seq.points, "controls": seq.controls, "poses": seq.poses,
                  "times": seq.times, "still": seq.still.astype(np.uint8), "alpha": alpha},
-                {"rig": seq.rig, "fps": seq.fps, "seed": args.seed,
+                {"rig": seq.rig, "fps": seq.fps, "seed": args.seed, "sentence": sentence,
                  "control_names": list(PARAM_NAMES), "point_names": list(model.point_names)})
     model.save(out / "model.npz")
     seq.camera.save(out / "camera.json")

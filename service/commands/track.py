@@ -24,7 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "what 'articast synth sequence' writes and what 'articast track' produces."
         ),
     )
-    tr.add_argument("video", type=Path)
+    tr.add_argument("video", type=Path,
+                    help="enrolment video (any format OpenCV reads), frame i matching line i "
+                    "of --truth")
     tr.add_argument("--truth", type=Path, required=True, help="states per frame (JSON lines)")
     tr.add_argument("--model", type=Path, required=True, help="speaker model (.npz)")
     tr.add_argument("--camera", type=Path, required=True, help="camera (.json)")
@@ -56,10 +58,13 @@ def register(sub: argparse._SubParsersAction) -> None:
             "--distance-mm in front of the camera."
         ),
     )
-    tk.add_argument("video", type=Path)
-    tk.add_argument("--model", type=Path, required=True)
-    tk.add_argument("--appearance", type=Path, required=True)
-    tk.add_argument("--camera", type=Path, required=True)
+    tk.add_argument("video", type=Path, help="video to track (any format OpenCV reads)")
+    tk.add_argument("--model", type=Path, required=True,
+                    help="speaker model (.npz, from build-model or synth sequence)")
+    tk.add_argument("--appearance", type=Path, required=True,
+                    help="the speaker's trained appearance (.npz, from train-appearance)")
+    tk.add_argument("--camera", type=Path, required=True,
+                    help="camera calibration (.json, from calibrate or synth sequence)")
     tk.add_argument("-o", "--output", type=Path, required=True, help="track file (.jsonl)")
     tk.add_argument("--optimiser", default="gauss-newton", choices=["gauss-newton", "nelder-mead"],
                     help="gauss-newton (default, analytic Jacobians) or the paper's simplex")
