@@ -3,7 +3,7 @@
 ``WS /ws``                     subscribe to sessions (protocol v1, :mod:`articast.client.protocol`)
 ``GET /api/sessions``          the sessions and their state
 ``POST /api/sessions``         start one: ``{"name", "source", "model"?, "appearance"?,
-                               "camera"?, "processor"?, "wait_for_subscriber"?}``
+                               "camera"?, "processor"?, "wait_for_subscriber"?, "preview"?}``
 ``DELETE /api/sessions/{name}`` stop one
 ``GET /api/protocol``          the JSON Schema of the protocol
 ``GET /healthz``               liveness and session states
@@ -72,6 +72,7 @@ class SessionCreate(BaseModel):
     camera: str = ""
     processor: str = "auto"
     wait_for_subscriber: bool = False
+    preview: bool = False
 
 
 class Subscriber:
@@ -419,7 +420,7 @@ def create_app(config: ServiceConfig | None = None,
                                 f"(allowed: {list(config.http_processors)}; start the server "
                                 "with --processor to allow another)")
         spec = SessionSpec(body.name, body.source, body.model, body.appearance, body.camera,
-                           body.processor, body.wait_for_subscriber)
+                           body.processor, body.wait_for_subscriber, preview=body.preview)
         try:
             s = await svc.manager.add(spec)
         except KeyError:
@@ -445,6 +446,21 @@ def create_app(config: ServiceConfig | None = None,
             raise HTTPException(404, f"no session {name!r}")
         session.recentre()
         return {"name": name, "recentred": True}
+
+    @app.get("/api/sessions/{name}/preview.jpg")
+    async def preview(name: str) -> Response:
+        """The newest tracking preview of a session that opted in (404 otherwise)."""
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r}")
+        if not session.spec.preview:
+            raise HTTPException(404, f"session {name!r} has no preview (off by default for "
+                                "privacy: start it with --preview or \"preview\": true)")
+        if session.preview is None:
+            raise HTTPException(409, f"session {name!r} has no preview frame yet")
+        seq, jpeg = session.preview
+        return Response(jpeg, media_type="image/jpeg",
+                        headers={"Cache-Control": "no-store", "X-Articast-Seq": str(seq)})
 
     @app.get("/api/sessions/{name}/dense")
     def dense_mesh(name: str) -> Response:

@@ -50,6 +50,8 @@ class Session:
         self._dense: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._vmc_model: Any = None
+        self.preview: tuple[int, bytes] | None = None
+        """(seq, JPEG) of the newest preview frame, when the session opted in."""
         self.neutral: tuple[tuple[float, ...], tuple[float, ...]] | None = None
         """The speaker's neutral head pose (rotation, translation): the first good frame, or
         the first after :meth:`recentre`. The streamed relative pose, the VMC head and the
@@ -143,6 +145,8 @@ class Session:
             self._on_frame(msg[1])
         elif kind == "status":
             self._set_state(msg[1], msg[2])
+        elif kind == "preview":
+            self.preview = (msg[1], msg[2])
         elif kind == "ready":
             self._on_ready(msg[1], msg[2], msg[3])
         elif kind == "done":
@@ -167,6 +171,8 @@ class Session:
             self._vmc_model = self.outputs.model
         if g:
             desc["dense_url"] = f"/api/sessions/{self.spec.name}/dense"
+        if self.spec.preview:
+            desc["preview_url"] = f"/api/sessions/{self.spec.name}/preview.jpg"
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
         self._set_state("running", "")
 

@@ -201,6 +201,7 @@ def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] |
         geometry=desc["geometry"] if sub.geometry else None,
         fapu=desc.get("fapu"),
         dense_url=desc.get("dense_url"),
+        preview_url=desc.get("preview_url"),
         source=P.SourceDescription(**source) if source else None,
         state=state,
     )

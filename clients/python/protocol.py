@@ -128,6 +128,9 @@ class Hello(_Message):
     fapu: dict[str, float] | None = Field(default=None, description="FAPU in mm (MPEG-4)")
     dense_url: str | None = Field(
         default=None, description="HTTP path of the dense face mesh and its modes (JSON)")
+    preview_url: str | None = Field(
+        default=None, description="HTTP path of the newest tracking preview (JPEG: the tracked "
+        "video with the fitted mesh, a few per second); only when the session opted in")
     source: SourceDescription | None = None
     state: str = "running"
 

@@ -177,8 +177,24 @@ async function chooseSession() {
   if (!list.length) throw new Error("the server has no session");
   return list[0].name;
 }
+// the server's tracking preview (opt-in per session): newest JPEG only, at most 5 per second
+let previewUrl = null, previewTimer = null;
+function startPreview(url) {
+  previewUrl = url; $("previewbox").hidden = !url; state.previews = state.previews || 0;
+  if (!url || previewTimer) return;
+  const img = $("preview");
+  const next = () => {
+    if (!previewUrl) { previewTimer = null; return; }
+    const t0 = performance.now();
+    img.onload = () => { state.previews++; previewTimer = setTimeout(next, Math.max(0, 200 - (performance.now() - t0))); };
+    img.onerror = () => { previewTimer = setTimeout(next, 1000); };
+    img.src = `${previewUrl}?n=${state.previews}`;
+  };
+  previewTimer = setTimeout(next, 0);
+}
 async function onHello(h) {
   state.hello = h; firstRot = null;
+  startPreview(h.preview_url || null);
   $("session").textContent = h.session; setupBars(h.param_names);
   const g = h.geometry; if (!g) { status("this session has no face model", true); return; }
   const k = h.param_names.length;

@@ -85,6 +85,10 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="auto | truth | tracker | module:factory (default auto)")
     g.add_argument("--wait-for-subscriber", action="store_true",
                    help="hold each source until its first subscriber arrives")
+    g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
+                   help="serve a small, low-rate preview of the tracked video with the fitted "
+                   "mesh (GET /api/sessions/NAME/preview.jpg; the browser avatar shows it). "
+                   "Off by default for privacy; on for the synthetic demo")
     g.add_argument("--api-token", default=None,
                    help="require 'Authorization: Bearer TOKEN' to add or remove sessions")
     add_arguments(p.add_argument_group("server"), ServerSettings)
@@ -112,8 +116,9 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     for _, uri in sources:
         probe(uri)  # a corrupt file or unknown kind: one clear error now, not a server later
         check_processor(args.processor, parse_uri(uri).kind, bool(args.appearance))
+    preview = bool(args.preview) if args.preview is not None else args.func is _demo
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
-                              args.wait_for_subscriber) for n, uri in sources)
+                              args.wait_for_subscriber, preview=preview) for n, uri in sources)
     token = args.api_token if args.api_token is not None else os.environ.get(
         "ARTICAST_API_TOKEN", "")
     config = ServiceConfig(
