@@ -25,7 +25,7 @@ from common import Server, make_recording, percentile
 async def reader(url: str, clock: Any, out: dict, lat: list[float], encoding: str) -> None:
     import websockets
 
-    from articast.service.protocol import BINARY_HEADER
+    from articast.client.protocol import BINARY_HEADER
 
     async with websockets.connect(url, max_size=2**22, compression=None,
                                   open_timeout=120, close_timeout=1) as ws:

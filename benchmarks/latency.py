@@ -28,7 +28,7 @@ async def ws_subscriber(url: str, encoding: str, clock: list[float], lat: list[f
                         drops: list[int]) -> None:
     import websockets
 
-    from articast.service.protocol import BINARY_HEADER
+    from articast.client.protocol import BINARY_HEADER
 
     async with websockets.connect(url, max_size=2**22, compression=None,
                                   close_timeout=1) as ws:

@@ -17,7 +17,7 @@ import struct
 import time
 from typing import Any
 
-from articast.service.protocol import BINARY_HEADER
+from articast.client.protocol import BINARY_HEADER
 
 
 def _mask(payload: bytes) -> bytes:

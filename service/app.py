@@ -1,9 +1,9 @@
 """The FastAPI application: ``WS /ws`` and the HTTP API.
 
-``WS /ws``                     subscribe to sessions (protocol v1, :mod:`articast.service.protocol`)
+``WS /ws``                     subscribe to sessions (protocol v1, :mod:`articast.client.protocol`)
 ``GET /api/sessions``          the sessions and their state
 ``POST /api/sessions``         start one: ``{"name", "source", "model"?, "appearance"?,
-                               "camera"?, "processor"?, "wait_for_subscriber"?}``
+                               "camera"?, "processor"?, "wait_for_subscriber"?, "preview"?}``
 ``DELETE /api/sessions/{name}`` stop one
 ``GET /api/protocol``          the JSON Schema of the protocol
 ``GET /healthz``               liveness and session states
@@ -27,7 +27,7 @@ import contextlib
 import logging
 import math
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,8 +35,8 @@ from fastapi import FastAPI, HTTPException, Request, WebSocket
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
+from articast.client import protocol as P
 from articast.core.errors import ArticastError
-from articast.service import protocol as P
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
 from articast.service.security import AccessPolicy, Forbidden
@@ -80,6 +80,7 @@ class SessionCreate(BaseModel):
     processor: str = "auto"
     wait_for_subscriber: bool = False
     speaker: str = ""
+    preview: bool = False
 
 
 class MessageBucket:
@@ -124,7 +125,7 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
     resolved = {k: access.resolve(v) if v else "" for k, v in files.items()}
     return SessionSpec(body.name, source, resolved["model"], resolved["appearance"],
                        resolved["camera"], body.processor, body.wait_for_subscriber,
-                       speaker=resolved["speaker"])
+                       speaker=resolved["speaker"], preview=body.preview)
 
 
 class Subscriber:
@@ -339,15 +340,19 @@ class Connection:
 class Service:
     """What the app holds: the hub, the sessions, the open connections."""
 
-    def __init__(self, config: ServiceConfig) -> None:
+    def __init__(self, config: ServiceConfig,
+                 on_live: Callable[[], None] | None = None) -> None:
         self.config = config
+        self.on_live = on_live
+        self._announce_task: asyncio.Task[None] | None = None
         self.hub: InMemoryHub[Any] = InMemoryHub()
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
         if config.server.vmc:
             from articast.service.vmc import VmcSender, parse_host_port
 
-            self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc))
+            self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc),
+                                         names=config.server.vmc_names)
         self.connections: set[Connection] = set()
         self._watchdog: asyncio.Task[None] | None = None
 
@@ -365,6 +370,18 @@ class Service:
         for spec in self.config.sessions:
             await self.manager.add(spec)
         self._watchdog = asyncio.create_task(self._watch(), name="stall watchdog")
+        if self.on_live is not None:
+            self._announce_task = asyncio.create_task(self._announce(), name="announce")
+
+    async def _announce(self) -> None:
+        """Call ``on_live`` once every initial session streams (its first frame is on the
+        hub) or has said why it cannot (a session held for its first subscriber counts as
+        ready): a URL printed then shows a moving face, not an empty page."""
+        waits = [s.settled.wait() for s in self.manager.sessions.values()
+                 if not s.spec.wait_for_subscriber]
+        await asyncio.gather(*waits)
+        assert self.on_live is not None
+        self.on_live()
 
     async def _watch(self) -> None:
         limit = self.config.hub.stall_timeout_s
@@ -380,6 +397,8 @@ class Service:
     async def stop(self) -> None:
         if self._watchdog:
             self._watchdog.cancel()
+        if self._announce_task:
+            self._announce_task.cancel()
         await self.manager.close(self.config.server.shutdown_timeout_s)
         self.hub.close()
 
@@ -465,9 +484,12 @@ async def deny(scope: Any, receive: Any, send: Any, status: int, reason: str) ->
     await send({"type": "websocket.close", "code": 1008, "reason": reason[:120]})
 
 
-def create_app(config: ServiceConfig | None = None) -> FastAPI:
+def create_app(config: ServiceConfig | None = None,
+               on_live: Callable[[], None] | None = None) -> FastAPI:
+    """The app. ``on_live()`` is called once the initial sessions stream (see
+    :meth:`Service._announce`)."""
     config = config or ServiceConfig()
-    svc = Service(config)
+    svc = Service(config, on_live)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -569,6 +591,31 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
             raise HTTPException(404, f"no session {name!r}")
         await svc.manager.remove(name)
         return {"name": name, "state": "stopped"}
+
+    @app.post("/api/sessions/{name}/recentre")
+    async def recentre_session(name: str, request: Request) -> dict[str, Any]:
+        """Take the session's next good frame as the speaker's neutral head pose."""
+        authorise(request)
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r}")
+        session.recentre()
+        return {"name": name, "recentred": True}
+
+    @app.get("/api/sessions/{name}/preview.jpg")
+    async def preview(name: str) -> Response:
+        """The newest tracking preview of a session that opted in (404 otherwise)."""
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r}")
+        if not session.spec.preview:
+            raise HTTPException(404, f"session {name!r} has no preview (off by default for "
+                                "privacy: start it with --preview or \"preview\": true)")
+        if session.preview is None:
+            raise HTTPException(409, f"session {name!r} has no preview frame yet")
+        seq, jpeg = session.preview
+        return Response(jpeg, media_type="image/jpeg",
+                        headers={"Cache-Control": "no-store", "X-Articast-Seq": str(seq)})
 
     @app.get("/api/sessions/{name}/dense")
     def dense_mesh(name: str, request: Request) -> Response:

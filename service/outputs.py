@@ -36,6 +36,10 @@ class Outputs:
         values = self._fap.frame_dict(alpha, np.concatenate([rotation, translation]))
         return {"values": values, "mask": sorted(int(k) for k in values)}
 
+    def recentre(self) -> None:
+        """The next good frame becomes the head FAPs' reference (as the session's neutral)."""
+        self._fap = None
+
     def arkit_weights(self, alpha: np.ndarray) -> dict[str, float]:
         return self.arkit.weights_dict(np.asarray(alpha))
 

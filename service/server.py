@@ -175,11 +175,12 @@ def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | No
     return ArticastWebSocketProtocol
 
 
-def uvicorn_config(config: ServiceConfig) -> uvicorn.Config:
+def uvicorn_config(config: ServiceConfig,
+                   on_live: Callable[[], None] | None = None) -> uvicorn.Config:
     s, h = config.server, config.hub
     clients = ClientConnections(h.max_connections_per_client)
     return uvicorn.Config(
-        create_app(config), host=s.host, port=s.port, log_level=s.log_level,
+        create_app(config, on_live), host=s.host, port=s.port, log_level=s.log_level,
         http=http_protocol(clients, h.max_header_bytes, h.header_timeout_s),
         ws=websocket_protocol(h.socket_buffer_bytes, clients),
         ws_max_size=config.hub.ws_max_size,
@@ -216,7 +217,9 @@ def raise_file_limit() -> None:
 
 
 def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = None) -> None:
-    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound."""
+    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound
+    and the initial sessions stream (their first frame is out, or they said why not), so a
+    URL printed then never shows an empty page."""
     raise_file_limit()
     try:
         sock = bound_socket(config.server.host, config.server.port)
@@ -226,8 +229,8 @@ def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = No
         raise InputError(f"cannot listen on {config.server.host}:{config.server.port}: "
                          f"{exc.strerror or exc}") from None
     host, port = sock.getsockname()[:2]
-    if on_listening:
-        shown = f"[{host}]" if ":" in host else host
-        on_listening(f"ws://{shown}:{port}/ws")
-    server = uvicorn.Server(uvicorn_config(config))
+    shown = f"[{host}]" if ":" in host else host
+    url = f"ws://{shown}:{port}/ws"
+    live = None if on_listening is None else (lambda: on_listening(url))
+    server = uvicorn.Server(uvicorn_config(config, live))
     server.run(sockets=[sock])

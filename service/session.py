@@ -30,6 +30,9 @@ from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker
 log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 TERMINAL = ("ended", "failed", "stopped")
+PROBLEMS = ("unavailable", "failed")
+"""States logged on the console at the default level (warning), with their reason (a crash
+is logged where the restart is decided)."""
 JOIN_TIMEOUT_S = 5.0
 """How long a stopped worker may take to finish its frame before its process is terminated."""
 
@@ -48,7 +51,16 @@ class Session:
         self._dense: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._vmc_model: Any = None
+        self.preview: tuple[int, bytes] | None = None
+        """(seq, JPEG) of the newest preview frame, when the session opted in."""
+        self.neutral: tuple[tuple[float, ...], tuple[float, ...]] | None = None
+        """The speaker's neutral head pose (rotation, translation): the first good frame, or
+        the first after :meth:`recentre`. The streamed relative pose, the VMC head and the
+        head FAPs are relative to it."""
         self._done = asyncio.Event()
+        self.settled = asyncio.Event()
+        """Set at the first frame, or when the session reports a problem (unavailable,
+        failed, ended, restarting): what ``serve`` waits for before printing its URL."""
         self._outcome: tuple[str, str] = ("", "")
         self._stopping = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -156,6 +168,8 @@ class Session:
             self._on_frame(msg[1])
         elif kind == "status":
             self._set_state(msg[1], msg[2])
+        elif kind == "preview":
+            self.preview = (msg[1], msg[2])
         elif kind == "ready":
             self._on_ready(msg[1], msg[2], msg[3])
         elif kind == "done":
@@ -172,6 +186,7 @@ class Session:
         from articast.service.outputs import make_outputs
 
         self.outputs = make_outputs(desc)
+        self.neutral = None
         if self.outputs is not None:
             desc["fapu"] = self.outputs.fapu
         self._dense = None
@@ -179,8 +194,17 @@ class Session:
             self._vmc_model = self.outputs.model
         if g:
             desc["dense_url"] = f"/api/sessions/{self.spec.name}/dense"
+        if self.spec.preview:
+            desc["preview_url"] = f"/api/sessions/{self.spec.name}/preview.jpg"
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
         self._set_state("running", "")
+
+    def recentre(self) -> None:
+        """Take the next good frame as the speaker's neutral head pose (streamed relative
+        pose, VMC head, head FAPs)."""
+        self.neutral = None
+        if self.outputs is not None:
+            self.outputs.recentre()
 
     def dense_json(self) -> bytes:
         """JSON of the dense face of this session's model (cached; blocking: call from a
@@ -198,16 +222,20 @@ class Session:
         if self.description is None:
             return
         m = self.metrics
+        if self.neutral is None and rec.quality["ok"]:
+            self.neutral = (rec.rotation, rec.translation)
         ev = FrameEvent(self.spec.name, self.sid, rec, self.description["param_names"],
-                        self._mesh, self.outputs)
+                        self._mesh, self.outputs, self.neutral)
         self._m.hub.publish(self.spec.name, ev)
+        self.settled.set()
         if self._m.vmc is not None and self._vmc_model is not None:
             from articast.core.model.camera import Pose
             from articast.core.tracking.result import TrackResult
 
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
                               Pose(rec.rotation, rec.translation), bool(rec.quality["ok"]))
-            self._m.vmc.send(res, self._vmc_model)  # UDP, never blocks
+            neutral = None if self.neutral is None else Pose(*self.neutral)
+            self._m.vmc.send(res, self._vmc_model, neutral=neutral)  # UDP, never blocks
         t = now()
         m.publish_latency.observe(t - rec.t_tracked)
         m.track_latency.observe(rec.t_tracked - rec.t_capture)
@@ -223,7 +251,14 @@ class Session:
             return
         if (state, detail) == (self.state, self.detail):
             return
+        previous = self.state
         self.state, self.detail = state, detail
+        if state in PROBLEMS and previous != state:
+            log.warning("session %s: %s%s", self.spec.name, state, f": {detail}" if detail else "")
+        elif state == "running" and previous in PROBLEMS:
+            log.warning("session %s: running again", self.spec.name)
+        if state in PROBLEMS or state in TERMINAL or state == "restarting":
+            self.settled.set()
         self._m.hub.publish(self.spec.name, StatusEvent(self.spec.name, state, detail, now()))
 
     def to_dict(self) -> dict[str, Any]:

@@ -75,6 +75,9 @@ class ServerSettings:
     log_level: str = _opt("warning", "uvicorn and articast log level")
     vmc: str = _opt("", "also send every session's mouth/jaw ARKit blendshapes and head pose "
                         "over the VMC protocol (OSC/UDP) to HOST[:PORT] (default port 39539)")
+    vmc_names: str = _opt("perfect-sync", "VMC blendshape names: perfect-sync (UpperCamel, "
+                          "JawOpen: perfect-sync VRM avatars) or arkit (lowerCamel, jawOpen); "
+                          "the VRM vowels A I U E O are sent either way")
 
 
 def from_env(cls: type[S], env: Mapping[str, str] | None = None, **overrides: Any) -> S:

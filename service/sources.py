@@ -387,8 +387,7 @@ class RecordSource(_Finite):
 class SyntheticSource(_Finite):
     """The built-in speaker (``articast.core.synthetic``), imported only when a session opens it.
 
-    Integration seam (to finish after the synthetic speaker lands): ``articast.core.synthetic`` must
-    expose ``open_stream(seed: int, fps: float) -> stream`` where ``stream`` has ``model``
+    ``articast.core.synthetic.open_stream(seed, fps, cache_dir=...)`` gives a stream with ``model``
     (FaceModel), ``camera`` (Camera), ``appearance`` (trained appearance, or None), optional
     ``frame_count`` (None: endless) and ``frames()`` yielding ``(t, image_bgr, truth)``
     (truth a :class:`~articast.core.tracking.result.TrackResult`). Only :meth:`open` touches it.
@@ -411,7 +410,7 @@ class SyntheticSource(_Finite):
                 "the synthetic speaker (core.synthetic) is not available in this "
                 f"build: {exc}"
             ) from None
-        stream = open_stream(seed=self.seed, fps=self.fps)
+        stream = open_stream(seed=self.seed, fps=self.fps, cache_dir=cache_dir())
         extra = {k: getattr(stream, k) for k in ("initial_pose", "rig") if hasattr(stream, k)}
         self._assets = SourceAssets(stream.model, stream.camera,
                                     getattr(stream, "appearance", None), extra)
@@ -430,6 +429,17 @@ class SyntheticSource(_Finite):
 
     def assets(self) -> SourceAssets:
         return self._assets
+
+
+def cache_dir() -> Path | None:
+    """Where trained assets of the synthetic speaker are kept between runs:
+    ``$ARTICAST_CACHE_DIR`` (``off``: no cache), else ``$XDG_CACHE_HOME/articast``, else
+    ``~/.cache/articast``."""
+    env = os.environ.get("ARTICAST_CACHE_DIR", "")
+    if env:
+        return None if env.lower() in ("off", "none", "0") else Path(env).expanduser()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "articast"
 
 
 _PLAYBACK = ("pace", "loop")

@@ -1,27 +1,47 @@
 """Send the tracked face to VMC-protocol receivers (VSeeFace, VNyan, Warudo, EVMC4U in Unity).
 
-One OSC bundle (UDP) per frame, in this order:
+One OSC bundle (UDP) per frame, laid out as the common senders lay theirs out and as a
+reference receiver (EVMC4U's ``ExternalReceiver``) parses them: every argument typed as the
+receiver checks it (``i`` int32, ``f`` float32, ``s`` string):
 
-* ``/VMC/Ext/Bone/Pos "Head" px py pz qx qy qz qw`` — the head bone's rotation (and offset);
-* ``/VMC/Ext/Blend/Val name value`` for each blendshape (ARKit names,
-:mod:`articast.core.outputs.arkit`);
-* ``/VMC/Ext/Blend/Apply`` — the receiver applies the values it has received.
+===================================================  =========================================
+``/VMC/Ext/OK 1``                                    availability (1: a model is loaded and
+                                                     tracking)
+``/VMC/Ext/T t``                                     sender time, s since the sender started
+``/VMC/Ext/Root/Pos "root" 0 0 0 0 0 0 1``           the avatar's root stays where it is
+``/VMC/Ext/Bone/Pos "Head" px py pz qx qy qz qw``    the head, relative to the speaker's
+                                                     neutral pose
+``/VMC/Ext/Blend/Val name value`` ...                ARKit mouth/jaw shapes, then the VRM
+                                                     vowels ``A I U E O``
+``/VMC/Ext/Blend/Apply``                             the receiver applies the values
+===================================================  =========================================
 
-**Head pose conversion.** Our pose maps the head frame (x = the speaker's left, y up, z
-forward; right-handed) to the OpenCV camera. The head's rotation relative to a reference
-pose, in the reference head frame, is ``R_rel = R_ref^T R`` (as for the FAPs; the reference is
-:data:`~articast.core.model.camera.FRONTAL` unless given). Unity is left-handed with a
-character looking
-along +z, +y up and +x to the character's right, so Unity's axes are ours with x mirrored,
-``S = diag(-1, 1, 1)``, and the rotation becomes ``M = S R_rel S`` (a proper rotation),
-sent as a unit quaternion (x, y, z, w). A nod down is then a positive rotation about Unity's
-+x and a turn to the speaker's left a negative rotation about Unity's +y, as Unity expects.
-The position is the head origin's displacement from the reference translation (by default the
-first frame sent), in the same axes, in metres; many receivers use only the rotation.
-Mirroring the avatar (a "selfie view") is left to the receiver.
+**Blend names.** ``names="perfect-sync"`` (default, ``serve --vmc-names perfect-sync``): the
+ARKit names in UpperCamel (``JawOpen``, ``MouthSmileLeft``), the names of the 52 clips of a
+"perfect sync" VRM avatar (the convention VSeeFace and others follow); ``names="arkit"``:
+Apple's lowerCamel (``jawOpen``). Only the shapes the model drives are sent
+(:attr:`~articast.core.outputs.arkit.ArkitMapper.populated`), so other trackers' eye or brow
+values on the same receiver are not overwritten. The vowel presets ``A I U E O`` (what an
+ordinary VRM avatar has) come from :mod:`articast.core.outputs.vowels`; VRM 1.0 receivers
+map them to ``aa ih ou ee oh`` themselves.
+
+**Head pose.** Our pose maps the head frame (x = the speaker's left, y up, z forward;
+right-handed) to the OpenCV camera. The head's rotation relative to the speaker's neutral
+pose, in the neutral head frame, is ``R_rel = R_n^T R``; the neutral is the session's (the
+first good frame, or the first after ``POST /api/sessions/{name}/recentre``), so a speaker at
+rest reads 0 whatever the camera's angle. Unity is left-handed with a character looking along
++z, +y up and +x to the character's right, so Unity's axes are ours with x mirrored,
+``S = diag(-1, 1, 1)``, and the rotation becomes ``M = S R_rel S`` (a proper rotation), sent
+as a unit quaternion (x, y, z, w). A nod down is then a positive rotation about Unity's +x and
+a turn to the speaker's left a negative rotation about Unity's +y, as Unity expects. The
+position is the head origin's displacement from the neutral, in the same axes, in metres;
+many receivers use only the rotation. Mirroring the avatar (a "selfie view") is left to the
+receiver.
 """
 
 from __future__ import annotations
+
+import time
 
 import numpy as np
 from pythonosc.osc_bundle import OscBundle
@@ -30,9 +50,10 @@ from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.udp_client import SimpleUDPClient
 
 from articast.core.errors import InputError
-from articast.core.model.camera import FRONTAL, rotation_matrix
+from articast.core.model.camera import Pose, rotation_matrix
 from articast.core.model.face import FaceModel
 from articast.core.outputs.arkit import ArkitMapper
+from articast.core.outputs.vowels import VowelMapper
 from articast.core.tracking.result import TrackResult
 
 DEFAULT_PORT = 39539
@@ -81,13 +102,20 @@ def _message(address: str, *args: object) -> object:
     return b.build()
 
 
+NAME_STYLES = ("perfect-sync", "arkit")
+
+
+def blend_name(arkit_name: str, style: str) -> str:
+    """``jawOpen`` -> ``JawOpen`` (perfect-sync) or ``jawOpen`` (arkit)."""
+    return arkit_name[0].upper() + arkit_name[1:] if style == "perfect-sync" else arkit_name
+
+
 class VmcSender:
     """Send one VMC bundle per tracked frame to ``host:port`` over UDP.
 
-    reference_rotation : (3,) axis-angle rad of the pose sent as "no rotation" (FRONTAL).
-    reference_translation : (3,) mm, default: the translation of the first frame sent.
-    populated_only : send only the blendshapes the model drives (default), so other trackers'
-        eye or brow values on the same receiver are not overwritten with zeros.
+    names : ``"perfect-sync"`` (UpperCamel ARKit names, default) or ``"arkit"`` (lowerCamel).
+    populated_only : send only the blendshapes the model drives (default).
+    vowels : also send the VRM vowel presets ``A I U E O`` (default).
     """
 
     def __init__(
@@ -95,50 +123,68 @@ class VmcSender:
         host: str = "127.0.0.1",
         port: int = DEFAULT_PORT,
         *,
-        reference_rotation: np.ndarray = FRONTAL,
-        reference_translation: np.ndarray | None = None,
+        names: str = "perfect-sync",
         populated_only: bool = True,
+        vowels: bool = True,
     ) -> None:
         if not 0 < int(port) < 65536:
             raise InputError(f"VMC port must be in 1..65535, got {port}")
+        if names not in NAME_STYLES:
+            raise InputError(f"VMC names must be one of {', '.join(NAME_STYLES)}, got {names!r}")
         self.address = (host, int(port))
-        self.reference_rotation = np.asarray(reference_rotation, dtype=np.float64)
-        self.reference_translation = (
-            None if reference_translation is None else np.asarray(reference_translation, float)
-        )
+        self.names = names
         self.populated_only = populated_only
+        self.vowels = vowels
         self._client = SimpleUDPClient(host, int(port))
-        self._mapper: ArkitMapper | None = None
+        self._mappers: tuple[FaceModel, ArkitMapper, VowelMapper | None] | None = None
+        self._t0 = time.monotonic()
         self.frames_sent = 0
         self.frames_dropped = 0
         self.last_error = ""
 
-    def _mapper_for(self, model: FaceModel) -> ArkitMapper:
-        if self._mapper is None or self._mapper.model is not model:
-            self._mapper = ArkitMapper(model)
-        return self._mapper
+    def _mappers_for(self, model: FaceModel) -> tuple[ArkitMapper, VowelMapper | None]:
+        if self._mappers is None or self._mappers[0] is not model:
+            try:
+                vowels = VowelMapper(model) if self.vowels else None
+            except InputError:  # a model without the lip feature points: no vowels
+                vowels = None
+            self._mappers = (model, ArkitMapper(model), vowels)
+        return self._mappers[1], self._mappers[2]
 
-    def bundle(self, result: TrackResult, model: FaceModel) -> OscBundle:
-        """The OSC bundle of one frame (no I/O)."""
-        if self.reference_translation is None:
-            self.reference_translation = np.array(result.pose.translation, dtype=np.float64)
+    def bundle(self, result: TrackResult, model: FaceModel, *, neutral: Pose | None = None,
+               t: float = 0.0) -> OscBundle:
+        """The OSC bundle of one frame (no I/O).
+
+        neutral : the speaker's neutral head pose (None: this frame's, i.e. no rotation).
+        t : sender time, s (``/VMC/Ext/T``).
+        """
+        ref = neutral if neutral is not None else result.pose
         pos, quat = head_bone(result.pose.rotation, result.pose.translation,
-                              self.reference_rotation, self.reference_translation)
+                              np.asarray(ref.rotation, float), np.asarray(ref.translation, float))
         builder = OscBundleBuilder(IMMEDIATELY)
+        builder.add_content(_message("/VMC/Ext/OK", 1))
+        builder.add_content(_message("/VMC/Ext/T", float(t)))
+        builder.add_content(_message("/VMC/Ext/Root/Pos", "root", 0.0, 0.0, 0.0,
+                                     0.0, 0.0, 0.0, 1.0))
         builder.add_content(_message("/VMC/Ext/Bone/Pos", "Head",
                                      *(float(v) for v in pos), *(float(v) for v in quat)))
-        weights = self._mapper_for(model).weights_dict(
-            result.alpha, populated_only=self.populated_only)
+        arkit, vowels = self._mappers_for(model)
+        weights = arkit.weights_dict(result.alpha, populated_only=self.populated_only)
         for name, value in weights.items():
-            builder.add_content(_message("/VMC/Ext/Blend/Val", name, float(value)))
+            builder.add_content(_message("/VMC/Ext/Blend/Val", blend_name(name, self.names),
+                                         float(value)))
+        if vowels is not None:
+            for name, value in vowels.weights_dict(result.alpha).items():
+                builder.add_content(_message("/VMC/Ext/Blend/Val", name, float(value)))
         builder.add_content(_message("/VMC/Ext/Blend/Apply"))
         return builder.build()
 
-    def send(self, result: TrackResult, model: FaceModel) -> bool:
+    def send(self, result: TrackResult, model: FaceModel, *,
+             neutral: Pose | None = None) -> bool:
         """Send the frame's bundle; never blocks. Returns False (and counts the frame in
         :attr:`frames_dropped`, keeping :attr:`last_error`) if the OS refused the datagram,
         e.g. a full send buffer or an unreachable network: a live stream goes on."""
-        packet = self.bundle(result, model)
+        packet = self.bundle(result, model, neutral=neutral, t=time.monotonic() - self._t0)
         try:
             self._client.send(packet)
         except OSError as exc:  # includes BlockingIOError on the non-blocking socket

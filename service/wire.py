@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from articast.service import protocol as P
+from articast.client import protocol as P
 
 _MONO_TO_EPOCH = time.time() - time.monotonic()
 
@@ -98,6 +98,19 @@ class FrameRecord:
                 "lips": self.lips, "quality": self.quality}
 
 
+def relative_pose(rotation: Any, translation: Any, neutral_rotation: Any,
+                  neutral_translation: Any) -> dict[str, list[float]]:
+    """The head relative to the speaker's neutral pose, in the neutral head frame:
+    rotation ``R_n^T R`` (axis-angle, rad) and translation ``R_n^T (t - t_n)`` (mm)."""
+    from articast.core.model.camera import axis_angle, rotation_matrix
+
+    rn = rotation_matrix(np.asarray(neutral_rotation, float))
+    rel = rn.T @ rotation_matrix(np.asarray(rotation, float))
+    shift = rn.T @ (np.asarray(translation, float) - np.asarray(neutral_translation, float))
+    return {"rotation": [float(v) for v in axis_angle(rel)],
+            "translation": [float(v) for v in shift]}
+
+
 @dataclass(frozen=True)
 class StatusEvent:
     session: str
@@ -125,6 +138,7 @@ class FrameEvent:
     param_names: list[str]
     mesh_basis: Any = None  # (mean (3N,), basis (K, 3N)) float32 or None
     outputs: Any = None  # articast.service.outputs.Outputs (fap, arkit) or None
+    neutral: Any = None  # the session's neutral head pose (rotation, translation) or None
     _cache: dict[View, str | bytes] = field(default_factory=dict)
 
     def encoded(self, view: View) -> str | bytes:
@@ -150,6 +164,8 @@ class FrameEvent:
             v["articulatory"] = dict(zip(self.param_names, r.alpha, strict=True))
         if "pose" in streams:
             v["pose"] = {"rotation": list(r.rotation), "translation": list(r.translation)}
+            if self.neutral is not None:
+                v["pose"]["head"] = relative_pose(r.rotation, r.translation, *self.neutral)
         if "mesh" in streams and self.mesh_basis is not None:
             mean, basis = self.mesh_basis
             v["mesh"] = (mean + np.asarray(r.alpha, np.float32) @ basis).tolist()
@@ -187,6 +203,7 @@ def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] |
         geometry=desc["geometry"] if sub.geometry else None,
         fapu=desc.get("fapu"),
         dense_url=desc.get("dense_url"),
+        preview_url=desc.get("preview_url"),
         source=P.SourceDescription(**source) if source else None,
         state=state,
     )

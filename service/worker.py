@@ -7,6 +7,7 @@ tuples:
 ``("status", state, detail)``           source state changes (``unavailable``, ``running``)
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
+``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
 ``("done", outcome, detail)``           last message: ``ended``, ``failed`` (bad input, not
                                         restarted), ``crashed`` (restarted) or ``stopped``
 
@@ -30,6 +31,7 @@ import numpy as np
 from articast.core.errors import ArticastError
 from articast.core.tracking.result import TrackResult
 from articast.service.capture import Capture
+from articast.service.preview import PreviewPolicy, render_preview
 from articast.service.processors import (
     ProcessorContext,
     load_assets,
@@ -60,12 +62,16 @@ class SessionSpec:
     speaker: str = ""
     """A speaker folder from ``articast enroll``: model, appearance and camera in one, tracked
     with the face finder (overrides model/appearance/camera)."""
+    preview: bool = False
+    """Encode a small, low-rate JPEG preview of the tracked video with the fitted mesh
+    (:mod:`articast.service.preview`). Off by default: it is a picture of a face."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "source": self.source, "model": self.model,
                 "appearance": self.appearance, "camera": self.camera,
                 "processor": self.processor, "wait_for_subscriber": self.wait_for_subscriber,
-                "options": dict(self.options), "speaker": self.speaker}
+                "options": dict(self.options), "speaker": self.speaker,
+                "preview": self.preview}
 
 
 class _Event(Protocol):  # what a worker needs of threading.Event
@@ -112,6 +118,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         if record_dir:
             recorder = Recorder(record_dir, spec.name, desc, source_info)
         seq = 0
+        preview_policy, next_preview = PreviewPolicy(), 0.0
         while not stop.is_set():
             frame = capture.get(timeout=0.1)
             if frame is None:
@@ -125,6 +132,10 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             rec = _record(seq, frame.index, frame.t, epoch(frame.t_capture), epoch(t_tracked),
                           result, ms, capture.dropped, model)
             emit(("frame", rec))
+            if spec.preview and frame.image is not None and time.monotonic() >= next_preview:
+                next_preview = time.monotonic() + 1.0 / preview_policy.rate_hz
+                emit(("preview", seq, render_preview(frame.image, model, camera, result,
+                                                     preview_policy)))
             if recorder is not None:
                 recorder.write(rec)
             seq += 1

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import websockets
 
-from articast.service import protocol as P
+from articast.client import protocol as P
 from articast.service.app import ServiceConfig
 from articast.service.capture import Capture
 from articast.service.security import AccessPolicy

@@ -183,7 +183,7 @@ def test_vmc_sender_one_bundle_per_frame_to_a_real_osc_server(osc_server):
     ]
     with VmcSender(*server.server_address) as sender:
         for i, r in enumerate(results):  # one at a time: the threaded server may reorder
-            assert sender.send(r, MODEL)
+            assert sender.send(r, MODEL, neutral=results[0].pose)
             with rec.cond:
                 assert rec.cond.wait_for(lambda i=i: len(rec.packets) > i, TIMEOUT)
     time.sleep(0.05)
@@ -192,17 +192,22 @@ def test_vmc_sender_one_bundle_per_frame_to_a_real_osc_server(osc_server):
     for is_bundle, msgs in rec.packets:
         assert is_bundle
         addresses = [a for a, _ in msgs]
-        assert addresses[0] == "/VMC/Ext/Bone/Pos" and addresses[-1] == "/VMC/Ext/Blend/Apply"
-        assert set(addresses[1:-1]) == {"/VMC/Ext/Blend/Val"}
-        name, *pose = msgs[0][1]
+        assert addresses[:4] == ["/VMC/Ext/OK", "/VMC/Ext/T", "/VMC/Ext/Root/Pos",
+                                 "/VMC/Ext/Bone/Pos"]
+        assert addresses[-1] == "/VMC/Ext/Blend/Apply"
+        assert set(addresses[4:-1]) == {"/VMC/Ext/Blend/Val"}
+        name, *pose = msgs[3][1]
         assert name == "Head" and len(pose) == 7
         pitch.append(pose[3])  # quaternion x: nodding down over the sequence
-        values = dict(args for a, args in msgs if a == "/VMC/Ext/Blend/Val")
-        assert set(values) <= set(ARKIT_BLENDSHAPES) and "jawOpen" in values
+        values = {k: v for (k, v) in (args for a, args in msgs if a == "/VMC/Ext/Blend/Val")
+                  if k not in ("A", "I", "U", "E", "O")}
+        # perfect-sync names by default: ARKit's with the first letter capitalised
+        arkit = {n[0].upper() + n[1:] for n in ARKIT_BLENDSHAPES}
+        assert set(values) <= arkit and "JawOpen" in values
         assert all(0.0 <= v <= 1.0 for v in values.values())
-        jaw_open.append(values["jawOpen"])
+        jaw_open.append(values["JawOpen"])
     assert np.all(np.diff(jaw_open) > 0) and jaw_open[-1] > 0.9 and jaw_open[0] < 0.1
-    assert np.all(np.diff(pitch) > 0)
+    assert np.all(np.diff(pitch) > 0) and pitch[0] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_vmc_sender_refuses_a_bad_port():

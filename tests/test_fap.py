@@ -265,8 +265,19 @@ def test_writer_refuses_what_players_would_misread():
         format_fap(values, bad_mask, 25, "x")
     with pytest.raises(InputError, match="must be integers"):
         format_fap(values + 0.5, mask, 25, "x")
-    with pytest.raises(InputError, match="positive whole number"):
-        format_fap(values, mask, 29.97, "x")
+    with pytest.raises(InputError, match="fps must be a positive number"):
+        format_fap(values, mask, 0, "x")
+    with pytest.raises(InputError, match="fps must be a positive number"):
+        format_fap(values, mask, float("nan"), "x")
+
+
+@pytest.mark.parametrize("fps, text", [(25, "25"), (29.97, "29.97"), (30000 / 1001, "29.97"),
+                                       (59.94, "59.94"), (12.5, "12.5"), (23.976, "23.976")])
+def test_real_frame_rates_are_kept(fps, text):
+    values, mask = np.zeros((2, N_FAPS), np.int64), np.zeros(N_FAPS, bool)
+    header = format_fap(values, mask, fps, "x").splitlines()[0]
+    assert header.split()[2] == text
+    assert parse_fap(format_fap(values, mask, fps, "x")).fps == float(text)
 
 
 def _valid_text() -> list[str]:
@@ -370,6 +381,25 @@ def test_export_fap_writes_held_frames_at_the_track_rate(tmp_path, capsys):
         [np.r_[FRONTAL + [0, 0.02 * (2 if i == 3 else i), 0], 0, 0, 400] for i in range(6)]))
     np.testing.assert_array_equal(seq.values[:, seq.mask[0]], expected[:, seq.mask[0]])
     assert "1 of 6 track frames not ok" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("jitter_ms", [0.0, 0.5])
+def test_export_fap_keeps_an_ntsc_track_at_29_97(tmp_path, jitter_ms):
+    """A 29.97 fps track (time stamps exact, or rounded to the millisecond as containers give
+    them) is one .fap frame per record at 29.97, not resampled to 30."""
+    args = _track(tmp_path, n=90, fps=30000 / 1001, not_ok=())
+    assert main(args) == 0
+    exact = parse_fap((tmp_path / "out.fap").read_text())
+    if jitter_ms:
+        rows = [json.loads(line) for line in (tmp_path / "t.jsonl").read_text().splitlines()]
+        for r in rows:
+            r["t"] = round(r["t"], 3)
+        (tmp_path / "t.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+        assert main(args) == 0
+    seq = parse_fap((tmp_path / "out.fap").read_text())
+    assert seq.fps == 29.97 and seq.n_frames == 90
+    np.testing.assert_array_equal(seq.values, exact.values)  # every record once, in order
+    assert len(np.unique(seq.values[:, 2])) == 90  # open_jaw changes every frame
 
 
 def test_export_fap_resamples_to_a_given_fps(tmp_path):

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from articast.service import protocol as P
+from articast.client import protocol as P
 
 
 def test_subscribe_defaults_and_round_trip():
@@ -113,8 +113,9 @@ def test_schema_covers_both_directions():
 
 
 def test_protocol_imports_without_numpy_opencv_fastapi():
-    code = ("import sys; import articast.service.protocol; "
-            "bad = [m for m in ('numpy', 'cv2', 'fastapi', 'core') if m in sys.modules]; "
+    code = ("import sys; import articast.client.protocol; import articast.client; "
+            "bad = [m for m in ('numpy', 'cv2', 'fastapi', 'core', 'articast.service', "
+            "'articast.core') if m in sys.modules]; "
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stdout + r.stderr

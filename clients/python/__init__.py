@@ -1,7 +1,9 @@
 """articast Python client: subscribe to a session and receive typed frames.
 
-Needs only ``websockets`` and ``pydantic`` (the wire schema is ``articast.service.protocol``, which
-imports nothing else): no OpenCV, FastAPI or tracker. See docs/CLIENTS.md.
+Needs only ``websockets`` and ``pydantic``: no numpy, OpenCV, FastAPI or tracker. The wire schema
+lives here (:mod:`articast.client.protocol`) and the server imports it from here, so both sides
+share one definition and the client never imports the server. It installs on its own as the
+``articast-client`` distribution (``pip install clients/python``). See docs/CLIENTS.md.
 """
 
 from articast.client.client import Client, ClientClosed, ClientError, subscribe_sync

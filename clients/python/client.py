@@ -23,7 +23,7 @@ from typing import Any
 
 import websockets
 
-from articast.service import protocol as P
+from articast.client import protocol as P
 
 
 class ClientClosed(Exception):

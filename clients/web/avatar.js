@@ -2,6 +2,11 @@
 // streamed articulatory parameters (x = mean + sum_k alpha_k basis_k, the dense modes when the
 // server offers them), shades it with WebGL, shows the parameters, pose, latency and fps, and
 // reconnects by itself. No network but the articast server; no build step.
+//
+// Newest frame only: a message only replaces `latest`; one requestAnimationFrame loop draws
+// it (and updates the panel) at most once per display frame. However slow the machine, nothing
+// queues in the page: frames that arrive between two display frames are counted, not drawn.
+// Latency shown = capture -> on screen (wall clock; the server's `t_capture`).
 import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
 
 const params = new URLSearchParams(location.search);
@@ -13,8 +18,9 @@ function withToken(url) {
   return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
 }
 const state = (window.articast = {
-  frames: 0, connects: 0, connected: false, hello: null, alpha: null, status: "", error: "",
-  mesh: "", lastSeq: -1,
+  frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
+  error: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null,
+  latencies: [], // capture -> on screen, ms, one per drawn frame (the last 20 000)
 });
 const $ = (id) => document.getElementById(id);
 const canvas = $("canvas");
@@ -118,8 +124,11 @@ function render() {
   gl.clearColor(0.19, 0.2, 0.23, 1); gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
   // the head frame: x = speaker's left (the viewer's right), y up, z towards the viewer
   let rot = [1, 0, 0, 0, 1, 0, 0, 0, 1];
-  if ($("headpose").checked && pose && firstRot) {
-    // head rotation relative to the first frame, in the head frame: R0^T R
+  if ($("headpose").checked && pose && pose.head) {
+    // the server's head pose relative to the speaker's neutral (R_n^T R, in the head frame)
+    rot = rotationFromAxisAngle(pose.head.rotation);
+  } else if ($("headpose").checked && pose && firstRot) {
+    // an older server: relative to the first frame seen here, R0^T R
     rot = mat3Mul(transpose3(firstRot), rotationFromAxisAngle(pose.rotation));
   }
   const model = mat4FromRot(rot, centre);
@@ -168,15 +177,31 @@ function showBars(alpha) {
 function status(text, bad) { const s = $("status"); s.textContent = text; s.className = bad ? "bad" : "good"; state.status = text; }
 
 // ----------------------------------------------------------------------------- connection
-let times = [], delay = 250;
+let delay = 250;
 async function chooseSession() {
   if (params.get("session")) return params.get("session");
   const r = await fetch("/api/sessions", { headers: authHeaders }); const list = await r.json();
   if (!list.length) throw new Error("the server has no session");
   return list[0].name;
 }
+// the server's tracking preview (opt-in per session): newest JPEG only, at most 5 per second
+let previewUrl = null, previewTimer = null;
+function startPreview(url) {
+  previewUrl = url; $("previewbox").hidden = !url; state.previews = state.previews || 0;
+  if (!url || previewTimer) return;
+  const img = $("preview");
+  const next = () => {
+    if (!previewUrl) { previewTimer = null; return; }
+    const t0 = performance.now();
+    img.onload = () => { state.previews++; previewTimer = setTimeout(next, Math.max(0, 200 - (performance.now() - t0))); };
+    img.onerror = () => { previewTimer = setTimeout(next, 1000); };
+    img.src = `${previewUrl}?n=${state.previews}`;
+  };
+  previewTimer = setTimeout(next, 0);
+}
 async function onHello(h) {
   state.hello = h; firstRot = null;
+  startPreview(h.preview_url || null);
   $("session").textContent = h.session; setupBars(h.param_names);
   const g = h.geometry; if (!g) { status("this session has no face model", true); return; }
   const k = h.param_names.length;
@@ -193,27 +218,48 @@ async function onHello(h) {
     } catch (e) { console.warn("dense mesh unavailable", e); }
   }
 }
-function onFrame(f) {
+let latest = null, rateMark = { t: 0, frames: 0 };
+function onFrame(f) { // cheap: the drawing happens in draw(), once per display frame
+  latest = f; state.frames++; state.lastSeq = f.seq;
+}
+function draw(now) {
+  requestAnimationFrame(draw);
+  if (now - rateMark.t >= 1000) { // received frames per second, over the last second
+    if (rateMark.t) state.fps = (state.frames - rateMark.frames) * 1000 / (now - rateMark.t);
+    rateMark = { t: now, frames: state.frames };
+    $("fps").textContent = state.connected ? state.fps.toFixed(1) : "–";
+  }
+  const f = latest;
+  if (!f || !state.hello) return;
+  latest = null;
   const names = state.hello.param_names, a = f.values.articulatory || {};
-  state.alpha = names.map((n) => a[n] || 0); state.frames++; state.lastSeq = f.seq;
+  state.alpha = names.map((n) => a[n] || 0);
   if (f.values.pose) { pose = f.values.pose; if (!firstRot && f.quality.ok) firstRot = rotationFromAxisAngle(pose.rotation); }
   showBars(state.alpha);
-  const now = performance.now(); times.push(now); while (times.length > 30) times.shift();
-  if (times.length > 1) $("fps").textContent = (1000 * (times.length - 1) / (now - times[0])).toFixed(1);
-  // latency: server send time to arrival, on the wall clock (same host, or NTP-synced hosts)
-  $("latency").textContent = `${Math.max(0, Date.now() / 1000 - f.t_sent) * 1000 | 0} ms`;
   $("quality").textContent = f.quality.ok ? `ok, ${f.quality.evals} evals` : `not ok: ${f.quality.reason}`;
   $("quality").className = f.quality.ok ? "good" : "bad";
   if (pose) $("pose").textContent = pose.translation.map((v) => v.toFixed(0)).join(", ") + " mm";
-  requestAnimationFrame(render);
+  render();
+  state.rendered++;
+  // end to end: captured on the server -> drawn here (same host, or NTP-synced hosts)
+  const ms = Math.max(0, Date.now() - f.t_capture * 1000);
+  state.latencyMs = ms; state.latencies.push(ms);
+  if (state.latencies.length > 20000) state.latencies.splice(0, 10000);
+  $("latency").textContent = `${ms | 0} ms`;
+  overlay("");
+}
+function overlay(text) { // what the view says while there is no face to show
+  const o = $("overlay");
+  if (o.textContent !== text) o.textContent = text;
+  o.hidden = !text;
 }
 async function connect() {
   let session;
   try { session = await chooseSession(); } catch (e) { return retry(`no session yet (${e.message})`); }
-  const proto = location.protocol === "https:" ? "wss" : "ws";
-  const ws = new WebSocket(withToken(params.get("ws") || `${proto}://${location.host}/ws`));
+  const ws = new WebSocket(socketUrl());
   ws.onopen = () => {
     state.connected = true; state.connects++; delay = 250; status(`connected to ${session}`);
+    if (!state.rendered) overlay(`waiting for the first frame of ${session}…`);
     ws.send(JSON.stringify({ type: "subscribe", session, streams: ["articulatory", "pose"],
                              rate: params.get("rate") ? Number(params.get("rate")) : null }));
   };
@@ -221,14 +267,25 @@ async function connect() {
     const m = JSON.parse(ev.data);
     if (m.type === "hello") await onHello(m);
     else if (m.type === "frame" && state.hello) onFrame(m);
-    else if (m.type === "status") status(`${m.session}: ${m.state} ${m.detail || ""}`, m.state !== "running");
+    else if (m.type === "status") {
+      const text = `${m.session}: ${m.state} ${m.detail || ""}`;
+      status(text, m.state !== "running");
+      if (!state.rendered || m.state !== "running") overlay(m.state === "running" ? "" : text);
+    }
     else if (m.type === "error") { state.error = m.reason; status(`error: ${m.reason}`, true); }
   };
   ws.onclose = () => { state.connected = false; retry("disconnected"); };
 }
+function socketUrl() { // the one place the WebSocket URL is built
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  return withToken(params.get("ws") || `${proto}://${location.host}/ws`);
+}
 function retry(why) {
   status(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s`, true);
+  overlay(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s…`);
   setTimeout(connect, delay); delay = Math.min(delay * 2, 5000);
 }
 if (!gl) status("WebGL is not available in this browser", true);
+overlay("connecting to the articast server…");
+requestAnimationFrame(draw);
 connect();

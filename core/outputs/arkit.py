@@ -23,6 +23,10 @@ mouthLowerDown L/R   outer lower lip (8.7 / 8.8) down relative to the jaw (jawOp
 mouthUpperUp L/R     outer upper lip (8.5 / 8.6) up
 mouthRollUpper/Lower visible lip height (8.1 - 2.2 / 2.3 - 8.2) shrinking: the lip rolls in
 mouthShrugLower      outer lower lip middle 8.2 up relative to the jaw
+mouthShrugUpper      outer upper lip middle 8.1 up
+mouthDimple L/R      corner (8.3 / 8.4) pulled back (-z)
+mouthPress L/R       outer lips (8.5 / 8.6 down, 8.7 / 8.8 up relative to the jaw) pressed
+                     together on that side
 mouthFunnel/Pucker   rounding (corners narrowing + lips protruding), split by the lip opening:
                      funnel = rounding x openness, pucker = rounding x (1 - openness)
 ==================== ===========================================================================
@@ -87,6 +91,11 @@ MEASURES: dict[str, list[Term]] = {
     "mouthRollUpper": [("8.1", "y", -1.0), ("2.2", "y", 1.0)],
     "mouthRollLower": [("2.3", "y", -1.0), ("8.2", "y", 1.0)],
     "mouthShrugLower": [("8.2", "y", 1.0), ("2.1", "y", -1.0)],
+    "mouthShrugUpper": [("8.1", "y", 1.0)],
+    "mouthDimpleLeft": [("8.3", "z", -1.0)],
+    "mouthDimpleRight": [("8.4", "z", -1.0)],
+    "mouthPressLeft": [("8.5", "y", -1.0), ("8.7", "y", 1.0), ("2.1", "y", -1.0)],
+    "mouthPressRight": [("8.6", "y", -1.0), ("8.8", "y", 1.0), ("2.1", "y", -1.0)],
 }
 """Linear measures (mm) of the directly measured shapes: sums of coefficient x displacement."""
 
@@ -97,6 +106,29 @@ ROUNDING: list[Term] = [
 OPENNESS: list[Term] = [("2.2", "y", 1.0), ("2.3", "y", -1.0)]
 """Inner lip aperture change (mm)."""
 TWO_SIDED = ("jawOpen",)
+
+
+def measure_gradient(model: FaceModel, terms: list[Term]) -> np.ndarray:
+    """(K,) mm per unit of each parameter of a linear measure (sum of coefficient x
+    displacement of labelled feature points, head frame)."""
+    w = np.zeros(3 * model.n_points)
+    for p, ax, c in terms:
+        w[3 * model.point(p) + _AXIS[ax]] += c
+    return model.basis.reshape(model.n_params, -1) @ w
+
+
+def full_scale(model: FaceModel, g: np.ndarray, *, two_sided: bool,
+               min_full_scale_mm: float = 2.0) -> tuple[float, float]:
+    """(lo, hi) mm of a measure with gradient ``g`` (K,): root-sum-square over parameters of
+    its largest negative / positive excursions within the training range [min_k, max_k]
+    (``lo = 0`` unless ``two_sided``; ``hi = inf`` when nothing moves it up)."""
+    s = model.stats
+    ends = np.stack([g * s.min, g * s.max])  # (2, K) measure at each parameter's extremes
+    hi = float(np.sqrt(np.sum(np.clip(ends.max(0), 0, None) ** 2)))
+    lo = -float(np.sqrt(np.sum(np.clip(-ends.min(0), 0, None) ** 2))) if two_sided else 0.0
+    if hi < 1e-9:  # nothing moves the measure this way: stays at 0
+        return lo, np.inf
+    return lo, max(hi, lo + min_full_scale_mm)
 
 
 class ArkitMapper:
@@ -145,14 +177,8 @@ class ArkitMapper:
         return all(p in self.model.feature_points for p, _, _ in terms)
 
     def _calibration(self, g: np.ndarray, *, two_sided: bool) -> tuple[float, float]:
-        """(lo, hi) mm: RSS over parameters of the largest excursions in the training range."""
-        s = self.model.stats
-        ends = np.stack([g * s.min, g * s.max])  # (2, K) measure at each parameter's extremes
-        hi = float(np.sqrt(np.sum(np.clip(ends.max(0), 0, None) ** 2)))
-        lo = -float(np.sqrt(np.sum(np.clip(-ends.min(0), 0, None) ** 2))) if two_sided else 0.0
-        if hi < 1e-9:  # nothing moves the measure this way: stays at 0
-            return lo, np.inf
-        return lo, max(hi, lo + self.min_full_scale_mm)
+        return full_scale(self.model, g, two_sided=two_sided,
+                          min_full_scale_mm=self.min_full_scale_mm)
 
     def _from_measures(self, m: np.ndarray) -> np.ndarray:
         """Measures (F, B) mm -> weights (F, 52)."""

@@ -7,7 +7,9 @@
     0 512 -40 31 ...            frame number, then the values of the flagged FAPs in FAP order
 
 The writer produces what all of Xface, Greta, visage and VREng accept: a ``2.1`` header, a name
-without spaces, an integer fps, exactly 68 flags, integer values only, every frame 0..N-1,
+without spaces, the fps (a whole number when the rate is one; a real rate such as NTSC's 29.97
+as a decimal with at most 3 places, which Xface reads as a float: ``float fps; input >> fps``
+in ``FAPFile::open``), exactly 68 flags, integer values only, every frame 0..N-1,
 single spaces, FAP 1 and 2 masked out, no comments and no blank lines, ``\\n`` line ends.
 The reader is a validator too: anything else is an :class:`~articast.core.errors.InputError`
 naming the
@@ -59,6 +61,15 @@ def sanitise_name(name: str) -> str:
     return clean or "articast"
 
 
+def fps_text(fps: float) -> str:
+    """The header's fps: ``25`` for a whole rate, ``29.97`` for NTSC (at most 3 decimals)."""
+    f = float(fps)
+    if not (np.isfinite(f) and f >= 0.001):
+        raise InputError(f"fps must be a positive number, got {fps}")
+    r = round(f, 3)
+    return str(int(r)) if r == int(r) else f"{r:.3f}".rstrip("0")
+
+
 def format_fap(
     values: np.ndarray, mask: np.ndarray, fps: float, name: str
 ) -> str:
@@ -66,7 +77,7 @@ def format_fap(
 
     values : (F, 68) integers (FAP units; non-integral numbers are refused, round first).
     mask : (68,) or (F, 68) bool, which FAPs each frame carries; FAP 1 and 2 must be False.
-    fps : a positive whole number (players parse it as an integer). name : sanitised.
+    fps : frames per second, positive (written by :func:`fps_text`). name : sanitised.
     """
     vals = np.asarray(values)
     if vals.ndim != 2 or vals.shape[1] != N_FAPS or vals.shape[0] < 1:
@@ -82,10 +93,7 @@ def format_fap(
         raise InputError(f"mask must have shape ({N_FAPS},) or {vals.shape}, got {np.shape(mask)}")
     if m[:, :2].any():
         raise InputError("FAP 1 (viseme) and 2 (expression) must be masked out")
-    f = float(fps)
-    if not (np.isfinite(f) and f >= 1 and f == round(f)):
-        raise InputError(f"fps must be a positive whole number for .fap players, got {fps}")
-    lines = [f"{VERSION} {sanitise_name(name)} {int(f)} {vals.shape[0]}"]
+    lines = [f"{VERSION} {sanitise_name(name)} {fps_text(fps)} {vals.shape[0]}"]
     for i in range(vals.shape[0]):
         lines.append(" ".join("1" if b else "0" for b in m[i]))
         lines.append(" ".join([str(i)] + [str(v) for v in vals[i][m[i]]]))

@@ -1,14 +1,27 @@
 """An endless talking stream of the synthetic speaker, for the service's ``synthetic:``
-source: model, camera, a trained appearance model, and frames with their ground truth."""
+source: model, camera, a trained appearance model, and frames with their ground truth.
+
+Building the speaker's model (~0.4 s) and training its appearance on 75 rendered enrolment
+frames (~8 s) is what made ``articast demo`` slow to start. Both are deterministic functions of
+the seed, the rig, the appearance kind and this package's code, so :func:`open_stream` keeps
+them in ``cache_dir`` (the service passes ``$ARTICAST_CACHE_DIR`` or ``~/.cache/articast``):
+one folder per key, whose name carries a digest of the source of every module that shapes them
+(:func:`asset_key`). A changed module is a new key: stale assets are never loaded, and the
+first start after the change trains again (once).
+"""
 
 from __future__ import annotations
 
+import hashlib
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from articast.core.appearance.models import AppearanceModel
+from articast.core.errors import ArticastError
 from articast.core.model.build import invert
 from articast.core.model.camera import Camera, Pose
 from articast.core.model.face import FaceModel
@@ -50,9 +63,51 @@ class SyntheticStream:
             self._chunk += 1
 
 
-def open_stream(seed: int = 0, fps: float = 30.0, rig: str = "head",
-                kind: str = "la_quad") -> SyntheticStream:
-    """The stream of speaker ``seed``; trains its appearance model first (a few seconds)."""
+_CORE = Path(__file__).resolve().parent.parent
+_SHAPING = ("synthetic", "model", "appearance")
+"""Sub-packages of ``articast.core`` whose code determines the cached model and appearance."""
+
+
+def asset_key(seed: int, rig: str, kind: str) -> str:
+    """Name of the cache folder of speaker ``seed``'s model and ``kind`` appearance on ``rig``:
+    the inputs plus a digest of the source of every module in :data:`_SHAPING`."""
+    digest = hashlib.sha256()
+    for sub in _SHAPING:
+        for path in sorted((_CORE / sub).glob("*.py")):
+            digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    return f"synthetic-{int(seed)}-{rig}-{kind}-{digest.hexdigest()[:16]}"
+
+
+def speaker_assets(seed: int, rig: str = "head", kind: str = "la_quad",
+                   cache_dir: str | os.PathLike[str] | None = None
+                   ) -> tuple[FaceModel, AppearanceModel]:
+    """Speaker ``seed``'s model and trained appearance, from ``cache_dir`` when it has them
+    (else built, trained and saved there; ``None``: no cache). A cache that cannot be written
+    (read-only, full disk) only costs the next start the same training again."""
+    folder = Path(cache_dir) / asset_key(seed, rig, kind) if cache_dir is not None else None
+    if folder is not None and (folder / "appearance.npz").is_file():
+        try:
+            model = FaceModel.load(folder / "model.npz")
+            return model, AppearanceModel.load(folder / "appearance.npz", model)
+        except ArticastError:
+            pass  # a damaged cache entry: rebuild it below
     speaker = default_speaker(seed)
-    return SyntheticStream(seed, float(fps), rig, speaker.model(), default_camera(rig),
-                           enrolment_appearance(speaker, rig, kind), rest_pose(rig))
+    model = speaker.model()
+    appearance = enrolment_appearance(speaker, rig, kind)
+    if folder is not None:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            model.save(folder / "model.npz")
+            appearance.save(folder / "appearance.npz")  # written last: marks a whole entry
+        except OSError:
+            pass
+    return model, appearance
+
+
+def open_stream(seed: int = 0, fps: float = 30.0, rig: str = "head", kind: str = "la_quad",
+                cache_dir: str | os.PathLike[str] | None = None) -> SyntheticStream:
+    """The stream of speaker ``seed``: its model and trained appearance come from
+    ``cache_dir`` when there (:func:`speaker_assets`), else are built first (~8 s)."""
+    model, appearance = speaker_assets(seed, rig, kind, cache_dir)
+    return SyntheticStream(seed, float(fps), rig, model, default_camera(rig), appearance,
+                           rest_pose(rig))

@@ -7,8 +7,9 @@ Policy, as documented in ``--help``:
   (alpha = 0, head at the reference pose) is held;
 * the ``.fap`` frames are a uniform grid at ``--fps`` starting at the first record's time; each
   grid frame takes the latest record at or before its time (sample and hold), so dropped
-  frames and jitter keep the timing right. By default fps is the rounded inverse of the median
-  time step of the track, and then every record is one ``.fap`` frame when the track is regular.
+  frames and jitter keep the timing right. By default fps is the track's real rate
+  (:func:`track_fps`: 29.97 stays 29.97), and then every record is one ``.fap`` frame when the
+  track is regular.
   A track without a time span (all time stamps equal) needs ``--fps`` and gives one ``.fap``
   frame per record.
 """
@@ -40,8 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", type=Path, required=True, help="speaker model (.npz) that was "
                    "tracked; its feature-point labels define the FAPs")
     p.add_argument("-o", "--output", type=Path, required=True, help=".fap file to write")
-    p.add_argument("--fps", type=int, help="frame rate of the .fap file (default: from the "
-                   "track's time stamps)")
+    p.add_argument("--fps", type=float, help="frame rate of the .fap file (default: the "
+                   "track's real rate from its time stamps, e.g. 29.97)")
     p.add_argument("--name", help="name in the .fap header (default: the output file name; "
                    "spaces become _)")
     p.add_argument("--head-reference", choices=("frontal", "first"), default="frontal",
@@ -105,24 +106,41 @@ def grid_indices(t: np.ndarray, fps: float) -> np.ndarray:
     """For a uniform grid at ``fps`` from ``t[0]`` to ``t[-1]``, the latest record index (G,)."""
     n = int(np.floor((t[-1] - t[0]) * fps + 0.5)) + 1
     grid = t[0] + np.arange(n) / fps
-    tol = 1e-6 / fps
+    tol = min(1e-3, 0.25 / fps)  # container time stamps are rounded to the millisecond
     return np.clip(np.searchsorted(t, grid + tol, side="right") - 1, 0, len(t) - 1)
 
 
-def track_fps(t: np.ndarray) -> int:
-    """Rounded inverse of the median positive time step; :class:`InputError` if none."""
+STANDARD_RATES = tuple(sorted({float(n) for n in range(1, 241)}
+                              | {n * 1000 / 1001 for n in (24, 30, 48, 60, 120, 240)}))
+"""Rates a measured one snaps to: whole numbers and the NTSC family (23.976, 29.97, 59.94...)."""
+
+
+def track_fps(t: np.ndarray) -> float:
+    """The track's real frame rate (29.97 stays 29.97).
+
+    The inverse of the mean time step over the steps within 25 % of the median one (gaps from
+    dropped frames left out; the millisecond rounding of container time stamps averages away),
+    snapped to the nearest of :data:`STANDARD_RATES` when within what 2 ms of time-stamp error
+    over the track's span allows, else kept to 3 decimals. :class:`InputError` if no step.
+    """
     dt = np.diff(t)
     dt = dt[dt > 0]
     if dt.size == 0:
         raise InputError("cannot infer fps from the time stamps (one frame, or all at the "
                          "same time): pass --fps")
-    return max(1, int(round(1.0 / float(np.median(dt)))))
+    med = float(np.median(dt))
+    steps = dt[np.abs(dt - med) <= 0.25 * med]
+    fps = 1.0 / float(np.mean(steps))
+    tolerance = fps * 0.002 / float(np.sum(steps)) + 1e-9
+    nearest = min(STANDARD_RATES, key=lambda r: abs(r - fps))
+    return nearest if abs(nearest - fps) <= tolerance else round(fps, 3)
 
 
 def _export_fap(args: argparse.Namespace) -> int:
     from articast.core.model.camera import FRONTAL
     from articast.core.model.face import FaceModel
     from articast.core.outputs.fap import FapEncoder, write_fap
+    from articast.core.outputs.fap_io import fps_text
 
     model = FaceModel.load(args.model)
     results = read_track(args.track, model.param_names)
@@ -137,14 +155,14 @@ def _export_fap(args: argparse.Namespace) -> int:
         reference = pose[int(np.argmax(ok)), :3]
     neutral_pose = np.concatenate([reference, pose[0, 3:]])
     alpha, pose = hold_last_good(alpha, pose, ok, neutral_pose)
-    if args.fps is not None and args.fps < 1:
-        raise InputError(f"--fps must be a positive integer, got {args.fps}")
+    if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
+        raise InputError(f"--fps must be a positive number, got {args.fps}")
     fps = args.fps if args.fps is not None else track_fps(t)
     # no usable time span (one record, or time stamps all equal): one .fap frame per record
     idx = grid_indices(t, fps) if t[-1] > t[0] else np.arange(len(t))
     encoder = FapEncoder(model, reference_rotation=reference, jaw_relative=not args.absolute_lips)
     values, mask = encoder.values(alpha[idx], pose[idx])
     write_fap(args.output, values, mask, fps, args.name)
-    print(f"{len(idx)} frames at {fps} fps ({int((~ok).sum())} of {len(ok)} track frames "
+    print(f"{len(idx)} frames at {fps_text(fps)} fps ({int((~ok).sum())} of {len(ok)} track frames "
           f"not ok, held) -> {args.output}")
     return 0

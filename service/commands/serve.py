@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from articast.service.settings import (
@@ -46,16 +47,22 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     _common(d)
     d.set_defaults(func=_demo)
 
-    r = sub.add_parser("replay", help="serve a recorded video through the tracker",
-                       epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    r.add_argument("video", type=Path)
+    r = sub.add_parser(
+        "replay", help="serve a recorded video through the tracker",
+        description="Track a video file as if it were a camera and stream it (one session, "
+        "named after the file). Give the speaker's --model, --appearance and --camera.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    r.add_argument("video", type=Path, help="video file to track and stream")
     _playback(r)
     _common(r)
     r.set_defaults(func=_replay)
 
-    rr = sub.add_parser("replay-record", help="serve a recording made by serve --record",
-                        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    rr.add_argument("recording", type=Path)
+    rr = sub.add_parser(
+        "replay-record", help="serve a recording made by serve --record",
+        description="Stream a recording (serve --record, or python -m articast.client.record) "
+        "again, with the same hello and frames at their recorded times: no tracking, no "
+        "camera.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rr.add_argument("recording", type=Path, help="recording (.jsonl)")
     _playback(rr)
     _common(rr)
     rr.set_defaults(func=_replay_record)
@@ -63,7 +70,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
 def _playback(p: argparse.ArgumentParser) -> None:
     p.add_argument("--name", help="session name (default: the file name)")
-    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime")
+    p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
+                   help="realtime (default): frames at their media time; fast: as fast as "
+                   "they are taken, none lost")
     p.add_argument("--loop", type=int, default=1, help="times to play (0 = forever)")
 
 
@@ -79,6 +88,10 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="auto | truth | tracker | module:factory (default auto)")
     g.add_argument("--wait-for-subscriber", action="store_true",
                    help="hold each source until its first subscriber arrives")
+    g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
+                   help="serve a small, low-rate preview of the tracked video with the fitted "
+                   "mesh (GET /api/sessions/NAME/preview.jpg; the browser avatar shows it). "
+                   "Off by default for privacy; on for the synthetic demo")
     g.add_argument("--api-token", default=None, help=argparse.SUPPRESS)
     a = p.add_argument_group("access")
     add_access_arguments(a)
@@ -167,8 +180,9 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         from articast.core.faces.speaker import Speaker
 
         Speaker.load(args.speaker)  # a wrong folder: one clear error now, not a restart loop
+    preview = bool(args.preview) if args.preview is not None else args.func is _demo
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
-                              args.wait_for_subscriber, speaker=args.speaker)
+                              args.wait_for_subscriber, speaker=args.speaker, preview=preview)
                   for n, uri in sources)
     server = from_args(ServerSettings, args)
     access = access_policy(args, server.host)
@@ -178,6 +192,14 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         sessions=specs, access=access,  # type: ignore[arg-type]
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", "live",
                                              args.processor))))
+
+    import logging
+
+    logging.basicConfig(level=config.server.log_level.upper(),
+                        format="articast %(levelname)s: %(message)s")
+    if names and not args.json:
+        print(f"articast: starting {', '.join(names)}; the URL follows once the face streams",
+              file=sys.stderr, flush=True)
 
     def listening(url: str) -> None:
         http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]

@@ -24,7 +24,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "what 'articast synth sequence' writes and what 'articast track' produces."
         ),
     )
-    tr.add_argument("video", type=Path)
+    tr.add_argument("video", type=Path,
+                    help="enrolment video (any format OpenCV reads), frame i matching line i "
+                    "of --truth")
     tr.add_argument("--truth", type=Path, required=True, help="states per frame (JSON lines)")
     tr.add_argument("--model", type=Path, required=True, help="speaker model (.npz)")
     tr.add_argument("--camera", type=Path, required=True, help="camera (.json)")

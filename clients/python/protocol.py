@@ -130,6 +130,9 @@ class Hello(_Message):
     fapu: dict[str, float] | None = Field(default=None, description="FAPU in mm (MPEG-4)")
     dense_url: str | None = Field(
         default=None, description="HTTP path of the dense face mesh and its modes (JSON)")
+    preview_url: str | None = Field(
+        default=None, description="HTTP path of the newest tracking preview (JPEG: the tracked "
+        "video with the fitted mesh, a few per second); only when the session opted in")
     source: SourceDescription | None = None
     state: str = "running"
 
@@ -143,9 +146,19 @@ class Quality(_Message):
     ms: float = 0.0
 
 
+class RelativePose(_Message):
+    rotation: list[float] = Field(min_length=3, max_length=3,
+                                  description="axis-angle, rad: R_n^T R")
+    translation: list[float] = Field(min_length=3, max_length=3,
+                                     description="mm, neutral head frame: R_n^T (t - t_n)")
+
+
 class PoseValue(_Message):
     rotation: list[float] = Field(min_length=3, max_length=3, description="axis-angle, rad")
     translation: list[float] = Field(min_length=3, max_length=3, description="mm, head->camera")
+    head: RelativePose | None = Field(
+        default=None, description="the head relative to the speaker's neutral pose (first good "
+        "frame, or the first after a re-centre); JSON encoding only")
 
 
 class FapValue(_Message):

@@ -1,0 +1,124 @@
+"""The browser avatar keeps up: real headless, software-rendered Chromium (SwiftShader) against a
+real ``articast replay-record`` server streaming the synthetic speaker at 60 Hz for 60 s.
+
+What the issue asks, measured over the whole minute (not on a lucky moment):
+
+* latency, capture on the server -> drawn in the page (the page's own figure, one value per
+  drawn frame, wall clock on one host), stays at or under 200 ms: the median and the 95th
+  percentile of the run, and the median of the last 5 s (a page that falls behind grows
+  without limit, so its end is where a queue shows; the issue's report was 0.4 s growing to
+  37-80 s);
+* the page's frame counter matches the server's rate: frames received / frames the server
+  published over the same window, within 3 %, and the page's own fps readout (median of its
+  samples) within 10 % of the server's rate;
+* the page draws at most one frame per display frame (drawn <= received, and <= 61 per s).
+
+Why the full 60 s: growth without bound is what failed before, and it showed only after tens
+of seconds. The minute costs ~70 s of CI time (one Chromium, one server); the duration can be
+scaled down for a quick local run with ``ARTICAST_AVATAR_SECONDS`` (default 60).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+
+from tests.browser import CHROMIUM, Browser
+
+pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed "
+                                "(.ci/run installs Debian's chromium)")
+
+FPS = 60.0
+SECONDS = float(os.environ.get("ARTICAST_AVATAR_SECONDS", "60"))
+
+
+def talking_recording(path, fps=FPS, frames=240):
+    """A replayable recording of the synthetic speaker talking (jaw and lips moving) at fps."""
+    from articast.core.model.camera import Camera
+    from articast.core.synthetic import default_speaker, rest_pose
+    from articast.service.wire import describe
+
+    model = default_speaker(1).model()
+    desc = describe(model, Camera.default(640, 480), model.param_names)
+    pose = rest_pose("head").to_dict()
+    with path.open("w") as fh:
+        fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
+                             "session": "talk", "source": {"kind": "test", "fps": fps},
+                             **desc}) + "\n")
+        for i in range(frames):
+            alpha = {n: float(np.sin(2 * np.pi * (i / fps) * (1 + k / 3)))
+                     for k, n in enumerate(model.param_names)}
+            fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / fps,
+                                 "alpha": alpha, "pose": pose,
+                                 "quality": {"ok": True, "reason": "", "residual": 0.0,
+                                             "evals": 0, "iterations": 0, "ms": 0.0}}) + "\n")
+    return path
+
+
+def server_frames(http, name):
+    with urllib.request.urlopen(f"{http}/api/sessions", timeout=10) as r:
+        return next(s for s in json.load(r) if s["name"] == name)
+
+
+@pytest.fixture()
+def server(tmp_path):
+    rec = talking_recording(tmp_path / "talk.jsonl")
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "replay-record", str(rec), "--loop", "0",
+         "--port", "0", "--json", "--name", "talk"],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    try:
+        line = proc.stdout.readline()  # printed once the session streams
+        assert line, "the server did not start"
+        yield json.loads(line)
+    finally:
+        proc.terminate()
+        proc.wait(20)
+
+
+def test_avatar_keeps_up_with_60_hz_for_a_minute(server):
+    http = server["avatar"].split("/avatar/")[0]
+    with Browser(server["avatar"]) as b:
+        b.wait_for("window.articast.rendered > 30", 60)
+        b.wait_for("window.articast.mesh.startsWith('dense')", 60)  # the full dense face
+        time.sleep(2.0)  # settle after the dense face arrived
+        t0 = time.monotonic()
+        page0 = b.evaluate("window.articast.frames")
+        drawn0 = b.evaluate("window.articast.rendered")
+        server0 = server_frames(http, "talk")["frames"]
+        skip = b.evaluate("window.articast.latencies.length")
+        fps_readouts = []
+        while time.monotonic() - t0 < SECONDS:
+            time.sleep(min(5.0, SECONDS / 4))
+            fps_readouts.append(b.evaluate("window.articast.fps"))
+        elapsed = time.monotonic() - t0
+        page1 = b.evaluate("window.articast.frames")
+        drawn1 = b.evaluate("window.articast.rendered")
+        server1 = server_frames(http, "talk")
+        lat = np.array(b.evaluate(f"window.articast.latencies.slice({skip})"), float)
+        assert b.evaluate("window.articast.connects") == 1  # never lost the connection
+
+    server_rate = (server1["frames"] - server0) / elapsed
+    page_rate = (page1 - page0) / elapsed
+    drawn_rate = (drawn1 - drawn0) / elapsed
+    tail = lat[-int(5 * min(drawn_rate, FPS)):]
+    report = (f"server {server_rate:.1f} Hz, page received {page_rate:.1f} Hz, drew "
+              f"{drawn_rate:.1f} Hz, latency median {np.median(lat):.0f} ms, p95 "
+              f"{np.percentile(lat, 95):.0f} ms, last 5 s median {np.median(tail):.0f} ms, "
+              f"fps readouts {fps_readouts}")
+    print(report)
+    assert server_rate > 0.9 * FPS, report  # the input really was ~60 Hz
+    assert abs(page_rate / server_rate - 1) < 0.03, report  # frame counter = server's rate
+    # the readout (received per second, sampled every few seconds) tracks the server's rate;
+    # single one-second windows dip when a loaded machine stalls the page, so the median
+    assert abs(np.median(fps_readouts) / server_rate - 1) < 0.1, report
+    assert drawn1 - drawn0 <= page1 - page0 + 1, report  # never more draws than frames
+    assert drawn_rate <= 61, report  # one draw per display frame at most
+    assert len(lat) > 0.3 * SECONDS * FPS, report  # it did draw, most display frames
+    assert np.median(lat) <= 200 and np.percentile(lat, 95) <= 200, report
+    assert np.median(tail) <= 200, report

@@ -1,0 +1,61 @@
+"""The instant demo: the synthetic speaker's trained assets are cached on disk (keyed by the code
+that shapes them), and ``articast demo`` prints its URL only once the face streams.
+The start-up time itself is measured by ``benchmarks/demo_start.py`` (not a timed test)."""
+
+import json
+import os
+import subprocess
+import sys
+import urllib.request
+
+import numpy as np
+
+from articast.core.synthetic.stream import asset_key, open_stream, speaker_assets
+
+
+def test_assets_are_cached_and_reloaded_identically(tmp_path):
+    model, app = speaker_assets(1, "head", "la_quad", tmp_path)
+    folder = tmp_path / asset_key(1, "head", "la_quad")
+    stamp = (folder / "appearance.npz").stat().st_mtime_ns
+    model2, app2 = speaker_assets(1, "head", "la_quad", tmp_path)
+    assert (folder / "appearance.npz").stat().st_mtime_ns == stamp  # loaded, not retrained
+    np.testing.assert_array_equal(model2.mean, model.mean)
+    np.testing.assert_array_equal(model2.basis, model.basis)
+    np.testing.assert_array_equal(app2.weights, app.weights)
+    np.testing.assert_array_equal(app2.samples.index, app.samples.index)
+    # the stream tracks with what was cached
+    stream = open_stream(1, 30.0, cache_dir=tmp_path)
+    np.testing.assert_array_equal(stream.appearance.weights, app.weights)
+    # a damaged entry is rebuilt, not fatal
+    (folder / "appearance.npz").write_bytes(b"not an npz")
+    _, app3 = speaker_assets(1, "head", "la_quad", tmp_path)
+    np.testing.assert_allclose(app3.weights, app.weights)
+
+
+def test_key_follows_inputs_and_code():
+    keys = {asset_key(1, "head", "la_quad"), asset_key(2, "head", "la_quad"),
+            asset_key(1, "desk", "la_quad"), asset_key(1, "head", "la_lin")}
+    assert len(keys) == 4
+    assert asset_key(1, "head", "la_quad") == asset_key(1, "head", "la_quad")
+
+
+def test_demo_prints_its_url_once_the_face_streams(tmp_path):
+    speaker_assets(1, "head", "la_quad", tmp_path)  # what a first run leaves in the cache
+    env = {**os.environ, "ARTICAST_CACHE_DIR": str(tmp_path)}
+    proc = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "demo", "--port", "0",
+                             "--json"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=env)
+    try:
+        line = proc.stdout.readline()
+        assert line, proc.stderr.read()
+        info = json.loads(line)
+        http = info["url"].replace("ws://", "http://").rsplit("/ws", 1)[0]
+        with urllib.request.urlopen(f"{http}/api/sessions", timeout=10) as r:
+            demo = json.load(r)[0]
+        assert demo["state"] == "running" and demo["frames"] >= 1, demo
+        assert info["avatar"] == f"{http}/avatar/?session=demo"
+        with urllib.request.urlopen(info["avatar"], timeout=10) as r:  # the page is served
+            assert b'id="overlay"' in r.read()
+    finally:
+        proc.terminate()
+        proc.wait(30)

@@ -1,0 +1,179 @@
+"""VMC as receivers expect it, checked with python-osc as the independent parser, and the VRM
+vowel presets A I U E O following the synthetic speaker's vowels."""
+
+import json
+import threading
+import time
+import urllib.request
+
+import numpy as np
+import pytest
+from pythonosc.dispatcher import Dispatcher
+from pythonosc.osc_bundle import OscBundle
+from pythonosc.osc_packet import OscPacket
+from pythonosc.osc_server import ThreadingOSCUDPServer
+
+from articast.core.model.build import invert
+from articast.core.model.camera import Camera
+from articast.core.outputs.vowels import VOWELS, VowelMapper
+from articast.core.synthetic import default_speaker, rest_pose
+from articast.service.app import ServiceConfig
+from articast.service.settings import ServerSettings
+from articast.service.wire import describe
+from articast.service.worker import SessionSpec
+from tests.service_helpers import TIMEOUT, ServerThread
+
+
+def vowel_states(seed):
+    sp = default_speaker(seed)
+    corpus, model = sp.corpus(), sp.model()
+    alpha = invert(model, corpus.postures)
+    names = list(corpus.posture_names)
+    return model, {v: alpha[names.index(v)] for v in ("a", "e", "i", "o", "u", "rest")}
+
+
+def test_vowels_of_the_demo_speaker():
+    model, states = vowel_states(1)
+    mapper = VowelMapper(model)
+    for v in "aeiou":
+        w = mapper.weights_dict(states[v])
+        assert max(w, key=w.get) == v.upper(), (v, w)
+        assert w[v.upper()] > 0.5, (v, w)
+        assert all(0.0 <= x <= 1.0 for x in w.values()) and sum(w.values()) <= 1.0 + 1e-9
+    assert sum(mapper.weights_dict(states["rest"]).values()) < 0.05  # closed mouth: no vowel
+
+
+def test_vowels_of_held_out_speakers():
+    """Prototypes were set on seeds 0-9; seeds 10-29 are new speakers to them."""
+    hits = {v: 0 for v in "aeiou"}
+    for seed in range(10, 30):
+        model, states = vowel_states(seed)
+        mapper = VowelMapper(model)
+        for v in "aeiou":
+            w = mapper.weights_dict(states[v])
+            hits[v] += max(w, key=w.get) == v.upper()
+        assert sum(mapper.weights_dict(states["rest"]).values()) < 0.1
+    assert hits["a"] == 20 and hits["u"] >= 18, hits
+    assert sum(hits.values()) >= 80, hits  # 83 when written
+
+
+class Bundles(Dispatcher):
+    """Every datagram parsed by python-osc: (is_bundle, [(address, args)])."""
+
+    def __init__(self):
+        super().__init__()
+        self.packets = []
+        self.lock = threading.Lock()
+
+    def call_handlers_for_packet(self, data, client_address):
+        msgs = [(m.message.address, tuple(m.message.params)) for m in OscPacket(data).messages]
+        with self.lock:
+            self.packets.append((OscBundle.dgram_is_bundle(data), msgs))
+        return super().call_handlers_for_packet(data, client_address)
+
+
+@pytest.fixture
+def receiver():
+    rec = Bundles()
+    server = ThreadingOSCUDPServer(("127.0.0.1", 0), rec)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield server.server_address, rec
+    server.shutdown()
+    server.server_close()
+    thread.join(TIMEOUT)
+
+
+HOLD = 12  # frames per vowel
+
+
+def vowel_recording(path, model, states, fps=30.0):
+    """The speaker holding rest, a, e, i, o, u in turn, head at the rig's rest pose (pitched
+    6.5 degrees towards a frontal camera's axis, as in the issue's report)."""
+    desc = describe(model, Camera.default(640, 480), model.param_names)
+    pose = rest_pose("head").to_dict()
+    order = ["rest", "a", "e", "i", "o", "u"]
+    with path.open("w") as fh:
+        fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
+                             "session": "v", "source": {"kind": "test", "fps": fps},
+                             **desc}) + "\n")
+        for i in range(HOLD * len(order)):
+            a = states[order[i // HOLD]]
+            fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / fps,
+                                 "alpha": dict(zip(model.param_names, map(float, a))),
+                                 "pose": pose, "quality": {"ok": True, "reason": "",
+                                 "residual": 0.0, "evals": 0, "iterations": 0, "ms": 0.0}})
+                     + "\n")
+    return order
+
+
+@pytest.mark.parametrize("style", ["perfect-sync", "arkit"])
+def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
+    address, rec = receiver
+    model, states = vowel_states(1)
+    order = vowel_recording(tmp_path / "v.jsonl", model, states)
+    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=1",
+                       wait_for_subscriber=False)
+    config = ServiceConfig(server=ServerSettings(log_level="critical",
+                                                 vmc=f"{address[0]}:{address[1]}",
+                                                 vmc_names=style), sessions=(spec,))
+    n = HOLD * len(order)
+    with ServerThread(config) as srv:
+        deadline = time.monotonic() + 4 * TIMEOUT
+        while len(rec.packets) < n and time.monotonic() < deadline:
+            time.sleep(0.05)
+        with urllib.request.urlopen(urllib.request.Request(
+                f"{srv.http}/api/sessions/v/recentre", method="POST"), timeout=10) as r:
+            assert json.load(r) == {"name": "v", "recentred": True}
+    time.sleep(0.1)
+    with rec.lock:
+        packets = list(rec.packets)
+    assert len(packets) == n  # one bundle per frame, none lost on loopback
+    jaw = "JawOpen" if style == "perfect-sync" else "jawOpen"
+    dominant, times = [], []
+    for is_bundle, msgs in packets:
+        assert is_bundle
+        addr = [a for a, _ in msgs]
+        assert addr[:4] == ["/VMC/Ext/OK", "/VMC/Ext/T", "/VMC/Ext/Root/Pos", "/VMC/Ext/Bone/Pos"]
+        assert addr[-1] == "/VMC/Ext/Blend/Apply"
+        ok, t, root, head = (args for _, args in msgs[:4])
+        assert ok == (1,) and isinstance(ok[0], int)
+        assert len(t) == 1 and isinstance(t[0], float)
+        times.append(t[0])
+        assert root[0] == "root" and root[1:] == (0.0,) * 6 + (1.0,)
+        assert head[0] == "Head" and len(head) == 8
+        # at rest relative to the speaker's neutral: no rotation (not the rig's 6.5 degrees)
+        np.testing.assert_allclose(head[4:], [0, 0, 0, 1], atol=1e-6)
+        blends = dict(args for a, args in msgs if a == "/VMC/Ext/Blend/Val")
+        assert jaw in blends and set(VOWELS) <= set(blends)
+        assert all(isinstance(v, float) and 0.0 <= v <= 1.0 for v in blends.values())
+        names = set(blends) - set(VOWELS)
+        assert all(n[0].isupper() for n in names) == (style == "perfect-sync")
+        w = {v: blends[v] for v in VOWELS}
+        dominant.append(max(w, key=w.get) if sum(w.values()) > 0.5 else "-")
+    assert np.all(np.diff(times) >= 0)
+    for k, v in enumerate(order):  # the held vowel drives its preset (the sender's order)
+        seg = dominant[k * HOLD:(k + 1) * HOLD]
+        assert seg == ["-" if v == "rest" else v.upper()] * HOLD, (v, seg)
+
+
+def test_streamed_pose_is_relative_to_the_neutral(tmp_path):
+    from websockets.sync.client import connect
+
+    model, states = vowel_states(1)
+    vowel_recording(tmp_path / "v.jsonl", model, states)
+    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=0",
+                       wait_for_subscriber=True)
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
+    with ServerThread(config) as srv, connect(srv.url, open_timeout=TIMEOUT) as ws:
+        ws.send(json.dumps({"type": "subscribe", "session": "v", "streams": ["pose"]}))
+        frames = []
+        while len(frames) < 3:
+            m = json.loads(ws.recv(timeout=TIMEOUT))
+            if m["type"] == "frame":
+                frames.append(m)
+    for f in frames:
+        pose = f["values"]["pose"]
+        np.testing.assert_allclose(pose["rotation"], rest_pose("head").rotation, atol=1e-9)
+        np.testing.assert_allclose(pose["head"]["rotation"], 0.0, atol=1e-9)
+        np.testing.assert_allclose(pose["head"]["translation"], 0.0, atol=1e-9)
