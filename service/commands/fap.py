@@ -38,7 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("track", type=Path, help="tracked sequence (.jsonl, one frame per line)")
-    p.add_argument("--model", type=Path, required=True, help="speaker model (.npz) that was "
+    p.add_argument("--speaker", type=Path, help="speaker folder (from 'articast enroll') that "
+                   "was tracked; or --model")
+    p.add_argument("--model", type=Path, help="speaker model (.npz) that was "
                    "tracked; its feature-point labels define the FAPs")
     p.add_argument("-o", "--output", type=Path, required=True, help=".fap file to write")
     p.add_argument("--fps", type=float, help="frame rate of the .fap file (default: the "
@@ -142,7 +144,9 @@ def _export_fap(args: argparse.Namespace) -> int:
     from articast.core.outputs.fap import FapEncoder, write_fap
     from articast.core.outputs.fap_io import fps_text
 
-    model = FaceModel.load(args.model)
+    if bool(args.speaker) == bool(args.model):
+        raise InputError("give the tracked speaker: --speaker DIR or --model M (one of them)")
+    model = FaceModel.load(args.model or args.speaker / "model.npz")
     results = read_track(args.track, model.param_names)
     alpha = np.array([r.alpha for r in results])
     pose = np.array([r.pose.as_vector() for r in results])

@@ -92,7 +92,9 @@ def _common(p: argparse.ArgumentParser) -> None:
                    help="serve a small, low-rate preview of the tracked video with the fitted "
                    "mesh (GET /api/sessions/NAME/preview.jpg; the browser avatar shows it). "
                    "Off by default for privacy; on for the synthetic demo")
-    g.add_argument("--api-token", default=None, help=argparse.SUPPRESS)
+    g.add_argument("--api-token", default=None, metavar="REMOVED",
+                   help="removed: a token on the command line is visible in the process list; "
+                        "set ARTICAST_TOKEN or use --token-file")
     a = p.add_argument_group("access")
     add_access_arguments(a)
     add_arguments(p.add_argument_group("server"), ServerSettings)
