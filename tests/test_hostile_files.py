@@ -178,7 +178,7 @@ def test_non_finite_camera_values_are_refused(valid, tmp_path):
 
 
 def test_protocol_parser_fuzzed():
-    from articast.service import protocol as P
+    from articast.client import protocol as P
 
     @FUZZ
     @given(st.one_of(st.text(max_size=300), st.binary(max_size=300),

@@ -305,20 +305,18 @@ def fit_pose(shape: np.ndarray, uv: np.ndarray, camera: Camera, init: Pose | Non
         return None
     obj = np.ascontiguousarray(shape[ok], np.float64)
     img = np.ascontiguousarray(uv[ok], np.float64)
-    start = init or Pose()
-    rvec = np.array(start.rotation, np.float64).reshape(3, 1)
-    tvec = np.array(start.translation, np.float64).reshape(3, 1)
+    dist = np.asarray(camera.dist, np.float64)
     if init is None:
-        # a frontal face in front of the camera: depth from the apparent size
-        size_mm = float(np.ptp(obj[:, 0])) or 1.0
-        size_px = float(np.ptp(img[:, 0])) or 1.0
-        z = camera.fx * size_mm / size_px
-        c = img.mean(0)
-        tvec = np.array([[(c[0] - camera.cx) * z / camera.fx],
-                         [(c[1] - camera.cy) * z / camera.fy], [z]])
-    done, rvec, tvec = cv2.solvePnP(obj, img, camera.K, np.asarray(camera.dist, np.float64),
-                                    rvec, tvec, useExtrinsicGuess=True,
-                                    flags=cv2.SOLVEPNP_ITERATIVE)
+        # global solution first (no local minimum of a mirrored or far-away face), then the
+        # iterative refinement of the reprojection error from it
+        done, rvec, tvec = cv2.solvePnP(obj, img, camera.K, dist, flags=cv2.SOLVEPNP_SQPNP)
+        if not done:
+            return None
+    else:
+        rvec = np.array(init.rotation, np.float64).reshape(3, 1)
+        tvec = np.array(init.translation, np.float64).reshape(3, 1)
+    done, rvec, tvec = cv2.solvePnP(obj, img, camera.K, dist, rvec, tvec,
+                                    useExtrinsicGuess=True, flags=cv2.SOLVEPNP_ITERATIVE)
     if not done or not np.all(np.isfinite(rvec)) or float(tvec[2, 0]) <= 0:
         return None
     return Pose(rvec.ravel(), tvec.ravel())

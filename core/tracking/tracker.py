@@ -140,6 +140,18 @@ class Tracker:
             a = np.zeros(self.k) if alpha is None else np.asarray(alpha, np.float64)
             self._theta = np.concatenate([a, pose.as_vector()])
 
+    def restart(self, pose: Pose, alpha: np.ndarray) -> None:
+        """Continue the sequence from another state (e.g. read off face landmarks): no
+        velocity across it, but the running residual levels are kept, so the next frame is
+        judged as every other frame (:meth:`reset` forgets them)."""
+        if self._level is None:
+            self.reset(pose, alpha)
+            return
+        self._theta = np.concatenate([np.asarray(alpha, np.float64), pose.as_vector()])
+        self._prev = None
+        if self._anchor is not None:
+            self._anchor = pose.as_vector()
+
     @property
     def pose_prior_centre(self) -> np.ndarray | None:
         """Pose (6,) the next frame's pose prior is centred on (None before a start)."""

@@ -1,0 +1,193 @@
+"""Real faces: enrol on the first part of each clip, track the held-out rest, and compare with
+the landmark model run on every frame (an independent method), in the same run.
+
+    python tools/fetch_real_clips.py            # once: the clips into ~/.cache/articast/clips
+    python benchmarks/real_clips.py --json [--grid docs/real_clips]
+
+Per clip (held-out frames only):
+- ``ok``: fraction of frames the tracker marks ok;
+- ``aperture_r``: correlation of the tracker's lip aperture (mm, ``lips.aperture_mm``) with
+  the landmarks' (inner-lip midpoints 13-14 over the outer lip width, image px);
+- ``jitter_pct_width``: RMS of the aperture about its linear trend inside the still windows,
+  in % of the outer lip width, for the tracker and for the landmark model; the windows are the
+  10 % of 0.4 s windows where the mouth's image changes least (chosen from pixels, not from
+  either method's output);
+- speed: ms per frame of the whole live path (tracker + its landmark calls) against the
+  landmark model alone on every frame, one thread each, frames upscaled to 640x480 (the clips
+  are 360x288 and 400x300; a webcam gives 640x480), and their ratio (target <= 0.7).
+
+A grid of held-out frames with the fitted mesh drawn on them is written with ``--grid DIR``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from face_landmarks_clips import aperture, jitter, mouth_patch, still_windows  # noqa: E402
+
+from articast.core.faces.build import build_speaker  # noqa: E402
+from articast.core.faces.finder import FaceFinder  # noqa: E402
+from articast.core.faces.live import LiveTracker  # noqa: E402
+from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
+from articast.core.model.camera import Camera  # noqa: E402
+from articast.core.outputs.lips import lip_measures  # noqa: E402
+from articast.core.tracking import kernels  # noqa: E402
+
+CLIPS = {  # name: (enrolment seconds, at most this many held-out seconds)
+    "franck": (40.0, 60.0),
+    "cap12": (25.0, 28.0),
+    "cap13": (18.0, 13.0),
+}
+SIZE = (640, 480)
+WINDOW_S = 0.4
+
+
+def read_frames(path: Path) -> tuple[list[np.ndarray], float]:
+    cap = cv2.VideoCapture(str(path))
+    fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.resize(f, SIZE, interpolation=cv2.INTER_LINEAR))
+    cap.release()
+    return frames, fps
+
+
+def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
+                          ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Landmarks per frame (NaN where none), found, ms per frame (the landmark model alone,
+    with its own tracking policy: detector only when lost)."""
+    marks, found, prev = [], [], None
+    t0 = time.perf_counter()
+    for f in frames:
+        face = finder.track(f, prev) if prev is not None else None
+        face = face or finder.find(f)
+        prev = face
+        marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
+        found.append(face is not None)
+    ms = (time.perf_counter() - t0) * 1000 / max(len(frames), 1)
+    return np.array(marks), np.array(found), ms
+
+
+def run_clip(name: str, path: Path, grid: Path | None) -> dict:
+    frames, fps = read_frames(path)
+    enrol_s, test_s = CLIPS[name]
+    n_enrol = int(enrol_s * fps)
+    held = frames[n_enrol:n_enrol + int(test_s * fps)]
+    finder = FaceFinder.load(threads=1)
+    camera = Camera.default(*SIZE, 60.0)
+    # enrolment: the first part, every other frame (as `articast enroll` strides long clips)
+    enrol = frames[:n_enrol:2]
+    marks, found, _ = landmarks_every_frame(finder, enrol)
+    speaker = build_speaker(enrol, marks, found, mediapipe_scheme("desk"), camera, "desk")
+    kernels.warm_up()
+    # the landmark model alone on every held-out frame (the independent reference and the
+    # speed baseline), then the live path on the same frames, in the same process
+    lm, lm_found, lm_ms = landmarks_every_frame(FaceFinder.load(threads=1), held)
+    live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme("desk"),
+                       clock=time.perf_counter)
+    results = []
+    t0 = time.perf_counter()
+    for i, f in enumerate(held):
+        results.append(live.track(f, i / fps))
+    live_ms = (time.perf_counter() - t0) * 1000 / max(len(held), 1)
+    ok = np.array([r.ok for r in results])
+    alpha = np.array([r.alpha for r in results])
+    ap_mm, _ = lip_measures(speaker.model, alpha)
+    m = speaker.model
+    outer = np.linalg.norm(m.shape(alpha)[:, m.point("8.3")] - m.shape(alpha)[:, m.point("8.4")],
+                           axis=-1)
+    ap_lm = np.array([aperture(x)[0] if np.isfinite(x).all() else np.nan for x in lm])
+    grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in held]
+    motion, prev = [], None
+    for g, x in zip(grey, lm, strict=True):
+        if not np.isfinite(x).all():
+            motion.append(np.nan)
+            prev = None
+            continue
+        patch = mouth_patch(g, x)
+        motion.append(np.abs(patch - prev).mean() if prev is not None else np.nan)
+        prev = patch
+    windows = still_windows(np.array(motion), max(3, int(round(WINDOW_S * fps))))
+    both = ok & np.isfinite(ap_lm)
+    out = {
+        "clip": name, "fps": round(fps, 3), "enrol_frames": len(enrol),
+        "held_out_frames": len(held), "ok": round(float(ok.mean()), 4),
+        "reasons": _reasons(results),
+        "aperture_r": round(float(np.corrcoef(ap_mm[both], ap_lm[both])[0, 1]), 4),
+        "jitter_pct_width": {"tracker": round(jitter(np.where(ok, ap_mm / outer, np.nan),
+                                                     windows), 3),
+                             "landmarks": round(jitter(ap_lm, windows), 3)},
+        "still_windows": len(windows),
+        "ms_per_frame": {"live": round(live_ms, 2), "landmarks_every_frame": round(lm_ms, 2)},
+        "speed_ratio": round(live_ms / lm_ms, 3),
+        "finder_calls_per_frame": round(live.finder_calls / max(len(held), 1), 3),
+        "restarts": live.restarts,
+        "variance_pct": {k: round(v, 1) for k, v in speaker.report["variance_pct"].items()},
+        "residual_p99": round(speaker.residual.p99, 4),
+    }
+    if grid is not None:
+        _write_grid(grid / f"{name}.png", held, results, speaker)
+    return out
+
+
+def _reasons(results) -> dict[str, int]:
+    out: dict[str, int] = {}
+    for r in results:
+        if not r.ok:
+            code = r.reason.split(":", 1)[0]
+            out[code] = out.get(code, 0) + 1
+    return out
+
+
+def _write_grid(path: Path, frames, results, speaker, n: int = 9, width: int = 320) -> None:
+    """``n`` evenly spread held-out frames, each with the fitted mesh drawn (green: ok)."""
+    from articast.service.preview import PreviewPolicy, render_preview
+
+    idx = np.linspace(0, len(frames) - 1, n).round().astype(int)
+    tiles = []
+    for i in idx:
+        jpg = render_preview(frames[i], speaker.model, speaker.camera, results[i],
+                             PreviewPolicy(width=width, quality=85))
+        tile = cv2.imdecode(np.frombuffer(jpg, np.uint8), cv2.IMREAD_COLOR)
+        ap = results[i].lips["aperture_mm"] if results[i].lips else float("nan")
+        cv2.putText(tile, f"#{i} aperture {ap:.1f} mm", (6, 18), cv2.FONT_HERSHEY_SIMPLEX,
+                    0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    rows = [np.hstack(tiles[r:r + 3]) for r in range(0, len(tiles), 3)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.vstack(rows))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--cache", type=Path, default=Path.home() / ".cache/articast/clips")
+    ap.add_argument("--only", nargs="*", default=list(CLIPS))
+    ap.add_argument("--grid", type=Path, help="write an overlay grid per clip here")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    rows = []
+    for name in args.only:
+        path = next(iter(args.cache.glob(f"{name}.*")), None)
+        if path is None:
+            sys.exit(f"{name}: not in {args.cache}: run python tools/fetch_real_clips.py")
+        row = run_clip(name, path, args.grid)
+        rows.append(row)
+        if not args.json:
+            print(row, flush=True)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()
