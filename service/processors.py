@@ -125,15 +125,14 @@ class LiveProcessor:
 
     def __init__(self, context: ProcessorContext) -> None:
         from articast.core.faces.finder import FaceFinder
-        from articast.core.faces.live import LiveTracker
+        from articast.core.faces.live import LiveTracker, live_policy
         from articast.core.faces.scheme import mediapipe_scheme
         from articast.core.tracking import kernels
-        from articast.core.tracking.tracker import TrackingPolicy
 
         sp = context.speaker
         rig = str(context.options.get("rig", sp.rig))
         try:
-            policy = TrackingPolicy.for_rig(rig)
+            policy = live_policy(rig)
         except ValueError as exc:
             raise InputError(f"session {context.session!r}: {exc}") from None
         self.tracker = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),

@@ -67,6 +67,20 @@ class LivePolicy:
     max_depth_drift: float = 0.3
 
 
+LIVE_ALPHA_SIGMA = 0.5
+"""Motion prior of live tracking (training s.d. per frame, see ``FitPolicy.alpha_sigma``): on
+a 31 s webcam clip it brought the still-mouth jitter of the lip aperture from 0.25 to 0.18 %
+of the mouth width (the landmark model: 0.21 %) at the same agreement with the landmarks."""
+
+
+def live_policy(rig: str, **changes: Any) -> TrackingPolicy:
+    """The tracking policy of a live speaker on ``rig``: the rig's, plus the motion prior."""
+    pol = TrackingPolicy.for_rig(rig, **changes)
+    if pol.fit.alpha_sigma is None:
+        pol = replace(pol, fit=replace(pol.fit, alpha_sigma=LIVE_ALPHA_SIGMA))
+    return pol
+
+
 class LiveTracker:
     """Tracks an enrolled speaker frame by frame, judging ``ok`` honestly."""
 
@@ -76,7 +90,7 @@ class LiveTracker:
         self.speaker, self.finder, self.scheme = speaker, finder, scheme
         self.policy = policy or LivePolicy()
         self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera,
-                               tracking or TrackingPolicy.for_rig(speaker.rig), clock=clock)
+                               tracking or live_policy(speaker.rig), clock=clock)
         self.clock = clock
         self._face: Any = None
         self._since_check = 0

@@ -67,6 +67,10 @@ class FitPolicy:
     # per-point Cauchy loss scale on the weighted residual norm, la models (None: least
     # squares; tex models always: one z-scored value per point, measured worse robustly)
     robust_scale: float | None = 2.0
+    # s.d. (training s.d. units) of the articulation's departure from its prediction, per
+    # frame: a Gaussian motion prior (None: none). It damps what the image does not pin down
+    # (noise on a still mouth); where the image is clear the data term wins.
+    alpha_sigma: float | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,10 +274,12 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                      rotation0: np.ndarray, translation0: np.ndarray,
                      policy: FitPolicy | None = None,
                      pose_ref: tuple[np.ndarray, np.ndarray] | None = None,
-                     gain0: float = 1.0, estimate_gain: bool = False) -> FitResult:
+                     gain0: float = 1.0, estimate_gain: bool = False,
+                     alpha_ref: np.ndarray | None = None) -> FitResult:
     """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level.
 
     pose_ref : (rotation (3,), translation (3,)) the pose prior is centred on, if any.
+    alpha_ref : (K,) the articulation the motion prior (``policy.alpha_sigma``) is centred on.
     gain0, estimate_gain : the image gain of la models and whether to refine it. Far from the
         solution, shrinking the gain is a cheap way to shrink a misaligned residual, so the
         tracker refines it only in the final fine-level fit of a frame.
@@ -294,13 +300,15 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     prior, g_p, h_p = problem.prior_terms(alpha)
     pp, g_pp, h_pp = _pose_prior(pol, rot, t, ref)
     wg = 1.0 / pol.gain_sigma**2
-    cost = rc + prior + pp
+    wa = 0.0 if alpha_ref is None or pol.alpha_sigma is None else 1.0 / pol.alpha_sigma**2
+    a_ref = np.zeros(k) if alpha_ref is None else np.asarray(alpha_ref, np.float64)
+    cost = rc + prior + pp + wa * float((alpha - a_ref) @ (alpha - a_ref))
     evals, costs, converged, it = 1, [cost], False, 0
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
         h = jw.T @ jw
         g = jw.T @ rw
-        h[np.arange(k), np.arange(k)] += h_p / 2
-        g[:k] += g_p / 2
+        h[np.arange(k), np.arange(k)] += h_p / 2 + wa
+        g[:k] += g_p / 2 + wa * (alpha - a_ref)
         h[k:k + 6, k:k + 6] += h_pp / 2
         g[k:k + 6] += g_pp / 2
         if h.shape[0] > k + 6:  # gain prior around its start value
@@ -325,7 +333,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             prior_new, gp_new, hp_new = problem.prior_terms(a_new)
             pp_new, gpp_new, hpp_new = _pose_prior(pol, rot_new, t_new, ref)
             cost_new = (rc_new + prior_new + pp_new
-                        + wg * (g_new - gain0) ** 2 * (step.size > k + 6))
+                        + wg * (g_new - gain0) ** 2 * (step.size > k + 6)
+                        + wa * float((a_new - a_ref) @ (a_new - a_ref)))
             evals += 1
             if cost_new <= cost or lam > 1e6:
                 accepted = cost_new <= cost

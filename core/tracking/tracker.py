@@ -162,7 +162,8 @@ class Tracker:
     # ------------------------------------------------------------------ fitting
     def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
              cache: dict[int, ImageMaps], policy: FitPolicy | None = None,
-             pose_ref: np.ndarray | None = None, refine_gain: bool = True) -> FitResult:
+             pose_ref: np.ndarray | None = None, refine_gain: bool = True,
+             alpha_ref: np.ndarray | None = None) -> FitResult:
         pol = self.policy
         theta = theta0
         result: FitResult | None = None
@@ -189,7 +190,8 @@ class Tracker:
             else:
                 ref = None if pose_ref is None else (pose_ref[:3], pose_ref[3:])
                 result = fit_gauss_newton(*args, pose_ref=ref, gain0=self._gain,
-                                          estimate_gain=(level == 0 and refine_gain))
+                                          estimate_gain=(level == 0 and refine_gain),
+                                          alpha_ref=alpha_ref)
             evals += result.evals
             theta = result.theta
         assert result is not None
@@ -252,12 +254,13 @@ class Tracker:
         if pol.fast_path_factor and self._level is not None and self._prev is not None:
             # most frames are easy: try the full-resolution fit from the prediction alone, and
             # pay for coarse-to-fine only when its residual says the motion was not predicted
-            quick = self._fit(image, theta0, (0,), cache, pose_ref=ref)
+            quick = self._fit(image, theta0, (0,), cache, pose_ref=ref, alpha_ref=theta0[:self.k])
             evals += quick.evals
             if self._good(quick) and quick.residual <= pol.fast_path_factor * self._level:
                 fit = quick
         if fit is None:
-            fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref)
+            fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref,
+                            alpha_ref=theta0[:self.k])
             evals += fit.evals
         if self._gap and self._good(fit):
             # first frame after a gap: the last good state may be far from the face that

@@ -164,7 +164,7 @@ def _make_tracker(args: argparse.Namespace):
         if args.model or args.appearance or args.init_pose or args.init_truth:
             raise InputError("--speaker replaces --model, --appearance and the --init options")
         from articast.core.faces.finder import FaceFinder
-        from articast.core.faces.live import LiveTracker
+        from articast.core.faces.live import LiveTracker, live_policy
         from articast.core.faces.scheme import mediapipe_scheme
         from articast.core.faces.speaker import Speaker
 
@@ -176,7 +176,7 @@ def _make_tracker(args: argparse.Namespace):
 
             speaker = replace(speaker, camera=Camera.load(args.camera))
         rig = args.rig or speaker.rig
-        policy = TrackingPolicy.for_rig(rig, optimiser=args.optimiser)
+        policy = live_policy(rig, optimiser=args.optimiser)
         live = LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(speaker.rig),
                            tracking=policy, clock=time.perf_counter)
         return live, speaker.model, speaker.camera
