@@ -124,3 +124,48 @@ def test_a_broken_speaker_folder_is_one_clear_error(enrolled, tmp_path, capsys):
                  "-o", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "version 9 is not supported" in err[0]
+
+
+def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp_path):
+    """serve --speaker: the live processor starts from landmarks; every frame carries lips;
+    the same frames as the offline track (fast pace, nothing dropped)."""
+    import asyncio
+
+    import websockets
+
+    from articast.service.app import ServiceConfig
+    from articast.service.settings import ServerSettings
+    from articast.service.worker import SessionSpec
+    from tests.service_helpers import TIMEOUT, ServerThread
+
+    async def collect(url):
+        frames, hello = [], None
+        async with websockets.connect(url, max_size=2**24, close_timeout=1) as ws:
+            await ws.send(json.dumps({"type": "subscribe", "session": "me",
+                                      "streams": ["articulatory", "pose"], "queue": 256}))
+            while True:
+                m = json.loads(await asyncio.wait_for(ws.recv(), 20 * TIMEOUT))
+                if m["type"] == "hello":
+                    hello = m
+                elif m["type"] == "frame":
+                    frames.append(m)
+                elif m["type"] == "status" and m["state"] in ("ended", "failed"):
+                    assert m["state"] == "ended", m
+                    return hello, frames
+
+    video = enrolled / "test" / "video.mp4"
+    spec = SessionSpec("me", f"file:{video}?pace=fast", wait_for_subscriber=True,
+                       speaker=str(enrolled / "speaker"))
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
+    with ServerThread(config) as srv:
+        hello, frames = asyncio.run(collect(srv.url))
+    assert hello["param_names"][6] == "lar1" and len(frames) == 75
+    ok = np.array([f["quality"]["ok"] for f in frames])
+    assert ok.mean() >= 0.95
+    ap = np.array([f["lips"]["aperture_mm"] for f in frames])
+    truth = _track_lines(enrolled / "test" / "truth.jsonl")
+    true_model = FaceModel.load(enrolled / "test" / "model.npz")
+    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
+    ap_true, _ = lip_measures(true_model, at)
+    assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
+    assert all(f["lips"]["width_mm"] > 20 for f in frames)
