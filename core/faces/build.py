@@ -89,6 +89,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     ``report`` lists what was measured, rejected and assumed."""
     opts = options or BuildOptions()
     say = progress or (lambda _msg: None)
+    enrol = enrol or EnrolOptions(fixed_pose=(rig == "head"))
     geo = enrol_geometry(landmarks, found, scheme, camera, enrol, name)
     model = geo.model
     rejected = dict(geo.rejected)

@@ -83,6 +83,7 @@ class EnrolOptions:
     outlier_mad : a frame whose stable-point misfit exceeds the median by this many MADs
         (and 2 % of the reference size) is rejected.
     iterations : generalised Procrustes iterations.
+    fixed_pose : one head pose for the whole clip (a head-mounted camera), see :func:`align`.
     """
 
     ipd_mm: float = 63.0
@@ -91,6 +92,7 @@ class EnrolOptions:
     outlier_mad: float = 6.0
     iterations: int = 4
     use_eyes: bool = True
+    fixed_pose: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,13 +139,22 @@ def to_head_axes(landmarks: np.ndarray) -> np.ndarray:
     return np.asarray(landmarks, np.float64) @ _TO_HEAD
 
 
-def align(shapes: np.ndarray, stable: np.ndarray, iterations: int = 4
+def align(shapes: np.ndarray, stable: np.ndarray, iterations: int = 4, fixed: bool = False
           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Generalised Procrustes alignment on the stable points.
 
     shapes : (F, N, 3) in head axes. Returns aligned (F, N, 3) in the reference's units, the
     reference (N, 3), and the per-frame RMS misfit of the stable points (F,) in those units.
+    fixed : the camera does not move on the head (a head-mounted camera): one similarity for
+        every frame, from the median shape, instead of one per frame — a per-frame fit on the
+        few stable points a head-mounted camera sees (the nose) turns landmark noise into
+        rotations that the lips' lever arm amplifies.
     """
+    if fixed:
+        ref = np.median(shapes, axis=0)
+        aligned = shapes
+        misfit = np.sqrt(((aligned[:, stable] - ref[stable]) ** 2).sum(-1).mean(-1))
+        return aligned, ref, misfit
     ref = shapes[len(shapes) // 2]
     aligned = shapes
     for _ in range(max(1, iterations)):
@@ -206,7 +217,7 @@ def unproject(landmarks: np.ndarray, camera: Camera, mm_per_px: np.ndarray) -> n
 
 
 def _shapes_mm(lm: np.ndarray, keep: np.ndarray, stable: np.ndarray, camera: Camera,
-               reference: np.ndarray | None, iterations: int
+               reference: np.ndarray | None, iterations: int, fixed: bool = False
                ) -> tuple[np.ndarray, np.ndarray]:
     """Perspective shapes in head axes (F, M, 3) and their pixel size (F,), two passes: a
     weak-perspective alignment gives each frame's scale, hence its depth."""
@@ -216,6 +227,8 @@ def _shapes_mm(lm: np.ndarray, keep: np.ndarray, stable: np.ndarray, camera: Cam
     else:
         ref = reference
     scale = np.array([similarity(x[stable], ref[stable])[0] for x in weak])
+    if fixed:
+        scale = np.full_like(scale, np.median(scale))
     if reference is None:  # reference units -> mm: one px of the middle frame ~ 0.5 mm
         scale = scale / np.median(scale) * 0.5
     return to_head_axes(unproject(lm[:, keep], camera, scale)), scale
@@ -246,9 +259,10 @@ def enrol_geometry(landmarks: np.ndarray, found: np.ndarray, scheme: LandmarkSch
     n = scheme.points.size
     mm = 1.0
     for _ in range(2):  # the second pass undoes perspective at the assumed scale
-        shapes, _ = _shapes_mm(lm[idx], keep, scheme.stable, camera, None, opts.iterations)
+        shapes, _ = _shapes_mm(lm[idx], keep, scheme.stable, camera, None, opts.iterations,
+                               opts.fixed_pose)
         shapes = shapes * mm
-        aligned, ref, misfit = align(shapes, scheme.stable, opts.iterations)
+        aligned, ref, misfit = align(shapes, scheme.stable, opts.iterations, opts.fixed_pose)
         mm_ref, rot, origin, source = _frame_to_head(ref[:n], scheme, opts,
                                                      ref[n:] if eyes else None)
         mm *= mm_ref
@@ -260,7 +274,7 @@ def enrol_geometry(landmarks: np.ndarray, found: np.ndarray, scheme: LandmarkSch
     if good.sum() < len(OBSERVABLE) + 2:
         raise InputError(f"{good.sum()} frames fit a common head pose: too few to enrol")
     idx, aligned = idx[good], aligned[good]
-    aligned, ref, _ = align(aligned, scheme.stable, opts.iterations)
+    aligned, ref, _ = align(aligned, scheme.stable, opts.iterations, opts.fixed_pose)
     mm_ref, rot, origin, source = _frame_to_head(ref[:n], scheme, opts,
                                                  ref[n:] if eyes else None)
     pts = (aligned[:, :n] - origin) @ rot.T * mm_ref  # (F, N, 3) mm, head frame

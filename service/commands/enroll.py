@@ -129,7 +129,8 @@ def _enroll(args: argparse.Namespace) -> int:
     say = (lambda m: None) if args.quiet else (lambda m: print(f"enroll: {m}", file=sys.stderr))
     speaker = build_speaker(
         images, marks, found, scheme, camera, args.rig,
-        EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm),
+        EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm,
+                     fixed_pose=(args.rig == "head")),
         BuildOptions(kind=args.kind), args.name or args.video.stem, say)
     cov = speaker.report["coverage"]
     ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
