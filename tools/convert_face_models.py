@@ -178,6 +178,39 @@ def convert(tflite: bytes, out: Path) -> None:
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
 
+def store_float16(path: Path) -> int:
+    """Store the float32 initializers that float16 holds exactly as float16 + a Cast.
+
+    The originals' weights are float16 (expanded exactly to float32 by DEQUANTIZE); tf2onnx
+    folds them to float32. Storing them back as float16 halves the files; onnxruntime folds
+    the Casts when it loads the model, so outputs and speed are unchanged. Returns how many
+    initializers were stored as float16.
+    """
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    model = onnx.load(str(path))
+    graph = model.graph
+    casts, inits = [], []
+    for init in graph.initializer:
+        a = numpy_helper.to_array(init)
+        exact = a.dtype == np.float32 and a.size > 16 and np.array_equal(
+            a.astype(np.float16).astype(np.float32), a)
+        if exact:
+            inits.append(numpy_helper.from_array(a.astype(np.float16), f"{init.name}__f16"))
+            casts.append(helper.make_node("Cast", [f"{init.name}__f16"], [init.name],
+                                          to=TensorProto.FLOAT))
+        else:
+            inits.append(init)
+    nodes = casts + list(graph.node)
+    del graph.initializer[:], graph.node[:]
+    graph.initializer.extend(inits)
+    graph.node.extend(nodes)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return len(casts)
+
+
 def run_tflite(tflite: bytes, x: np.ndarray) -> list[np.ndarray]:
     try:
         from ai_edge_litert.interpreter import Interpreter
@@ -255,8 +288,8 @@ def notice(originals: dict[str, bytes], diffs: dict[str, float]) -> str:
 The files in this folder are derived from Google's MediaPipe FaceLandmarker models
 (Copyright Google LLC), licensed under the Apache License, Version 2.0 (see LICENSE, taken
 from the mediapipe wheel). They were converted from TFLite to ONNX by
-tools/convert_face_models.py with tf2onnx (opset 17); weights were not changed beyond the
-exact float16 -> float32 expansion of the landmark model's weights.
+tools/convert_face_models.py with tf2onnx (opset 17). The weights are the originals': float16
+in the .tflite files, stored as float16 here too (each followed by an exact Cast to float32).
 
 - face_detector.onnx       <- face_landmarker.task / face_detector.tflite (BlazeFace short range)
 - face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
@@ -289,6 +322,8 @@ def main(argv: list[str] | None = None) -> None:
     det, lm = MODELS / "face_detector.onnx", MODELS / "face_landmarks_v2.onnx"
     convert(originals["face_detector.tflite"], det)
     convert(originals["face_landmarks_detector.tflite"], lm)
+    for path in (det, lm):
+        print(f"{path.name}: {store_float16(path)} weight tensors stored as float16 (exact)")
 
     inputs = real_inputs(det, lm)
     diffs = {}

@@ -111,8 +111,13 @@ class FaceFinder:
         box : optional (4,) px x0, y0, x1, y1 in the image frame. When given, the detector
             is skipped and the landmarks run on the upright square of side max(width,
             height) centred on the box (the box is the crop, not the face: use it for views
-            the detector cannot see, e.g. the whole frame of a head-mounted camera that sees
-            only the lower face, or a square grown from a known mouth region).
+            the detector cannot see, or to skip it where the face does not move in the
+            frame). Head-mounted camera (the synthetic ``head`` rig, lower face filling the
+            frame): the detector does fire there, but a fixed box, e.g. the 800 px square
+            ``(-80, -280, 720, 520)`` above a 640x480 frame, with ``FinderPolicy(refine=0)``
+            and ``find`` on every frame (the camera moves with the head) gives a 3.6x
+            smaller still-frame jitter of the lip aperture than ``track`` (0.16 % vs 0.58 %
+            of the lip width) at the same lip accuracy (~7.5 px on lips ~160 px wide).
 
         Returns
         -------
