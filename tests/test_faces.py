@@ -79,6 +79,8 @@ def test_lip_landmarks_land_on_the_true_lips_desk(finder, desk):
     for image, truth in desk:
         face = finder.find(image)
         assert isinstance(face, Face) and face.landmarks.shape == (478, 3)
+        assert not face.landmarks.flags.writeable  # a frozen record, as the tracker keeps it
+        assert np.all(face.box[:2] <= face.landmarks[:, :2].min(axis=0))
         assert face.score > 0.9
         assert np.all(_errors(face, truth, MIDPOINTS) < 5.0)  # lips ~53 px wide here
         assert np.all(_errors(face, truth, CORNERS) < 14.0)

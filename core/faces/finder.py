@@ -63,6 +63,17 @@ class Face:
     landmarks: np.ndarray
     score: float
 
+    def __post_init__(self) -> None:
+        box = np.array(self.box, dtype=np.float64).reshape(-1)
+        landmarks = np.array(self.landmarks, dtype=np.float64)
+        if box.shape != (4,) or landmarks.ndim != 2 or landmarks.shape[1] != 3:
+            raise InputError(f"a face needs box (4,) and landmarks (N, 3), got {box.shape} "
+                             f"and {landmarks.shape}")
+        for name, value in (("box", box), ("landmarks", landmarks)):
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
+        object.__setattr__(self, "score", float(self.score))
+
 
 class FaceFinder:
     """Detector and landmark sessions, loaded once.
