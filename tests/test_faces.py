@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from articast.core.errors import InputError
+from articast.core.faces.canonical import canonical_face
 from articast.core.faces.detector import detect
-from articast.core.faces.finder import Face, FaceFinder, FinderPolicy, models_dir
+from articast.core.faces.finder import Face, FaceFinder, FinderPolicy
 from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
 
 REFERENCE = Path(__file__).parent / "data" / "face_models_reference.npz"
@@ -144,14 +145,32 @@ def test_box_must_be_a_proper_box(finder, desk):
 
 
 def test_canonical_face_is_metric_and_triangulated():
-    canon = np.load(models_dir() / "canonical_face.npz")
-    v, tri = canon["vertices_cm"], canon["triangles"]
+    canon = canonical_face()
+    v, tri = canon.vertices_mm, canon.triangles
     assert v.shape == (468, 3) and tri.shape[1] == 3 and len(tri) > 800
     assert tri.min() == 0 and tri.max() == 467
-    assert 8.0 < np.linalg.norm(v[33] - v[263]) < 10.0  # outer eye corners, cm
-    assert 4.0 < np.linalg.norm(v[61] - v[291]) < 6.0  # mouth corners, cm
+    assert 80.0 < np.linalg.norm(v[33] - v[263]) < 100.0  # outer eye corners, mm
+    assert 40.0 < np.linalg.norm(v[61] - v[291]) < 60.0  # mouth corners, mm
+    # the articast head frame: x to the person's left, y up, z forward
+    assert v[263, 0] > 0 > v[33, 0] and v[10, 1] > v[152, 1]
+    assert v[1, 2] > np.percentile(v[:, 2], 99)  # the nose tip is in front
     # every vertex is used, and each edge is shared by at most two triangles (a manifold)
     assert len(np.unique(tri)) == 468
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     assert counts.max() <= 2
+    a = v[tri]
+    facing = np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])[:, 2] > 0
+    assert facing.mean() > 0.95  # counter-clockwise seen from +z
+
+
+def test_lip_contours_run_corner_to_corner_through_the_midpoints():
+    canon = canonical_face()
+    ends = {"outer": (61, 291), "inner": (78, 308)}
+    for name, mid in (("lips_outer_upper", 0), ("lips_outer_lower", 17),
+                      ("lips_inner_upper", 13), ("lips_inner_lower", 14)):
+        c = canon.contours[name]
+        assert (c[0], c[-1]) == ends[name.split("_")[1]] and mid in c
+        pairs = {tuple(sorted(e)) for e in canon.edges["lips"].tolist()}
+        assert all(tuple(sorted(p)) in pairs for p in zip(c[:-1], c[1:]))
+        assert np.all(np.diff(canon.vertices_mm[c, 0]) > 0)  # right corner -> left corner

