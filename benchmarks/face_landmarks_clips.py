@@ -48,7 +48,7 @@ def sessions(face_models: Path, threads: int) -> dict[str, FaceFinder]:
         if (face_models / file).is_file():
             lm = ort.InferenceSession(str(face_models / file), opts,
                                       providers=["CPUExecutionProvider"])
-            finders[name] = FaceFinder(v2._detector, lm, v2.policy)
+            finders[name] = FaceFinder(v2.detector_session, lm, v2.policy)
     return finders
 
 

@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> None:
         for rig in ("desk", "head"):
             box = HEAD_BOX if (args.box and rig == "head") else None
             used = finder if box is None else FaceFinder(
-                finder._detector, finder._landmarks, FinderPolicy(refine=0))
+                finder.detector_session, finder.landmarks_session, FinderPolicy(refine=0))
             print(f"{rig:5s} {name:34s} {evaluate(used, rig, box)}")
 
 

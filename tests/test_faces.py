@@ -11,7 +11,6 @@ import pytest
 
 from articast.core.errors import InputError
 from articast.core.faces.canonical import canonical_face
-from articast.core.faces.detector import detect
 from articast.core.faces.finder import Face, FaceFinder, FinderPolicy
 from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
 
@@ -56,7 +55,7 @@ def _errors(face, truth, pairs):
 
 def test_detector_finds_exactly_one_face_on_a_desk_render(finder, desk):
     for image, truth in desk:
-        found = detect(finder._detector, image)
+        found = finder.detect(image)
         assert len(found) == 1
         x0, y0, x1, y1 = found[0].box
         mouth = (truth["8.3"] + truth["8.4"]) / 2
@@ -71,7 +70,7 @@ def test_no_face_on_noise_or_blank_frames(finder, kind):
     image = {"noise": rng.integers(0, 256, (480, 640, 3), dtype=np.uint8),
              "blank": np.zeros((480, 640, 3), np.uint8),
              "grey": np.full((480, 640, 3), 128, np.uint8)}[kind]
-    assert detect(finder._detector, image) == []
+    assert finder.detect(image) == []
     assert finder.find(image) is None
 
 
@@ -95,7 +94,7 @@ def test_lip_landmarks_land_on_the_true_lips_desk(finder, desk):
 def test_head_rig_lower_face_found_with_and_without_a_box(finder, head):
     """A head-mounted camera sees only the lower face: the detector still fires, and the
     landmarks run on a fixed box (the camera moves with the head) follow the lips too."""
-    fixed = FaceFinder(finder._detector, finder._landmarks, FinderPolicy(refine=0))
+    fixed = FaceFinder(finder.detector_session, finder.landmarks_session, FinderPolicy(refine=0))
     box = np.array([-80.0, -280.0, 720.0, 520.0])  # 800 px square above the 640x480 frame
     for image, truth in head:
         for face in (finder.find(image), fixed.find(image, box=box)):
@@ -123,13 +122,13 @@ def test_onnx_models_match_the_original_tflite_reference(finder):
     inputs; the bundled ONNX models must reproduce them within 1e-3."""
     ref = np.load(REFERENCE)
     det_in = (ref["detector_input"].astype(np.float32) * (2.0 / 255.0) - 1.0)[None]
-    got = finder._detector.run(None, {finder._detector.get_inputs()[0].name: det_in})
+    got = finder.detector_session.run(None, {finder.detector_session.get_inputs()[0].name: det_in})
     for i, out in enumerate(got):
         assert np.abs(out - ref[f"detector_outputs_{i}"]).max() < 1e-3
     half = ref["landmarks_input_half"]
     full = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)
     lm_in = (full.astype(np.float32) / 255.0)[None]
-    got = finder._landmarks.run(None, {finder._landmarks.get_inputs()[0].name: lm_in})
+    got = finder.landmarks_session.run(None, {finder.landmarks_session.get_inputs()[0].name: lm_in})
     assert len(got) == 3
     for i, out in enumerate(got):
         want = ref[f"landmarks_outputs_{i}"]

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from articast.core.errors import InputError, ModelFileError
-from articast.core.faces.detector import DetectorPolicy, detect
+from articast.core.faces.detector import Detection, DetectorPolicy, detect
 from articast.core.faces.landmarks import Roi, landmarks_in_roi, roi_from_landmarks
 
 DETECTOR_FILE = "face_detector.onnx"
@@ -114,7 +114,21 @@ class FaceFinder:
                                                  providers=["CPUExecutionProvider"]))
         return cls(sessions[0], sessions[1], policy)
 
+    @property
+    def detector_session(self):
+        """The detector's onnxruntime session (NHWC 128x128 input)."""
+        return self._detector
+
+    @property
+    def landmarks_session(self):
+        """The landmark model's onnxruntime session (NHWC 256x256 input)."""
+        return self._landmarks
+
     # ------------------------------------------------------------------ per frame
+    def detect(self, image_bgr: np.ndarray) -> list[Detection]:
+        """All faces the detector sees in ``image_bgr`` (H, W, 3) uint8 BGR, best first."""
+        return detect(self._detector, image_bgr, self.policy.detector)
+
     def find(self, image_bgr: np.ndarray, *, box: np.ndarray | None = None) -> Face | None:
         """Find the most confident face, running the detector.
 
@@ -157,7 +171,7 @@ class FaceFinder:
 
     # ------------------------------------------------------------------ helpers
     def _detection_roi(self, image_bgr: np.ndarray) -> Roi | None:
-        found = detect(self._detector, image_bgr, self.policy.detector)
+        found = self.detect(image_bgr)
         if not found:
             return None
         best = found[0]
