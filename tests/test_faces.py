@@ -6,6 +6,7 @@ feature points of the synthetic model correspond to MediaPipe landmark indices.
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -103,13 +104,33 @@ def test_head_rig_lower_face_found_with_and_without_a_box(finder, head):
 
 
 def test_track_from_find_gives_the_same_landmarks_on_a_still_frame(finder, desk):
+    """Re-cropping from the landmarks on every frame (keep_roi=0) lands where find did."""
+    recrop = FaceFinder(finder.detector_session, finder.landmarks_session,
+                        FinderPolicy(keep_roi=0.0))
     for image, _ in desk[:3]:
-        face = finder.find(image)
-        again = finder.track(image, face)
+        face = recrop.find(image)
+        again = recrop.track(image, face)
+        assert again.roi is not face.roi
         assert again is not None
         lips = [13, 14, 0, 17, 61, 291, 78, 308]
         assert np.abs(again.landmarks[lips, :2] - face.landmarks[lips, :2]).max() < 1.0
         assert np.abs(again.landmarks[:, :2] - face.landmarks[:, :2]).max() < 1.5
+
+
+def test_track_keeps_a_still_crop_and_follows_a_moving_face(finder, desk):
+    image = desk[0][0]
+    face = finder.find(image)
+    still = finder.track(image, face)
+    assert still.roi is face.roi and np.array_equal(still.landmarks, face.landmarks)
+    shift = np.float32([[1, 0, 40], [0, 1, 12]])  # the face moves 40 px right, 12 px down
+    moved_image = cv2.warpAffine(image, shift, (640, 480), borderMode=cv2.BORDER_REPLICATE)
+    moved = finder.track(moved_image, still)  # found in the crop of the previous frame
+    lips = [13, 14, 0, 17, 61, 291]
+    assert np.abs(moved.landmarks[lips, :2] - face.landmarks[lips, :2] - [40, 12]).max() < 2.0
+    followed = finder.track(moved_image, moved)  # the crop now follows the face
+    assert followed.roi is not still.roi
+    assert np.abs(followed.roi.centre - still.roi.centre - [40, 12]).max() < 6.0  # side 240
+    assert np.abs(followed.landmarks[lips, :2] - face.landmarks[lips, :2] - [40, 12]).max() < 1.0
 
 
 def test_track_loses_the_face_when_it_is_gone(finder, desk):
