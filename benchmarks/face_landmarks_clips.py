@@ -10,8 +10,9 @@ Measures, per model:
   to the corner line 61 -> 291) over the outer lip width |61 - 291|; its 1/50/99th
   percentiles and the fraction of frames where it is below -2 % (lips crossing: implausible);
 - jitter: on *still* windows chosen from the image alone (the same for every model: the 10 %
-  of 0.4 s windows with the least frame-to-frame change of the grey mouth patch), the RMS
-  of the aperture about its linear trend in each window, in % of the outer lip width;
+  of 0.4 s windows with the least frame-to-frame change of the grey mouth patch, the patch
+  placed once per window), the RMS of the aperture about its linear trend in each window,
+  in % of the outer lip width;
 - agreement: correlation of the aperture series of each model with v2's;
 - ms: mean time of one ``track`` call (one landmark network run), one thread.
 
@@ -48,7 +49,7 @@ def sessions(face_models: Path, threads: int) -> dict[str, FaceFinder]:
         if (face_models / file).is_file():
             lm = ort.InferenceSession(str(face_models / file), opts,
                                       providers=["CPUExecutionProvider"])
-            finders[name] = FaceFinder(v2._detector, lm, v2.policy)
+            finders[name] = FaceFinder(v2.detector_session, lm, v2.policy)
     return finders
 
 
@@ -74,15 +75,15 @@ def mouth_patch(grey: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
 def run_clip(path: Path, finders: dict[str, FaceFinder], max_frames: int) -> dict:
     cap = cv2.VideoCapture(str(path))
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    length = window_frames(fps)
     state = {name: None for name in finders}
     series = {name: [] for name in finders}
     timing = {name: [] for name in finders}
-    motion, prev_patch, n = [], None, 0
+    motion, prev_grey, anchor, n = [], None, None, 0
     while n < max_frames:
         ok, frame = cap.read()
         if not ok:
             break
-        n += 1
         for name, finder in finders.items():
             face = None
             if state[name] is not None:
@@ -93,15 +94,24 @@ def run_clip(path: Path, finders: dict[str, FaceFinder], max_frames: int) -> dic
                 face = finder.find(frame)
             state[name] = face
             series[name].append(aperture(face.landmarks) if face is not None else (np.nan,) * 2)
+        # image change of the mouth patch, the patch fixed within each window (so that the
+        # choice of still windows does not depend on any model's jitter)
+        grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         ref = state[next(iter(finders))]
-        if ref is not None:
-            patch = mouth_patch(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY), ref.landmarks)
-            motion.append(np.abs(patch - prev_patch).mean() if prev_patch is not None else np.nan)
-            prev_patch = patch
+        if n % length == 0:
+            anchor = ref.landmarks if ref is not None else None
+        if anchor is not None and prev_grey is not None:
+            change = mouth_patch(grey, anchor) - mouth_patch(prev_grey, anchor)
+            motion.append(float(np.abs(change).mean()))
         else:
             motion.append(np.nan)
-            prev_patch = None
+        prev_grey = grey
+        n += 1
     return summarise(series, timing, np.array(motion), fps, n)
+
+
+def window_frames(fps: float) -> int:
+    return max(3, int(round(WINDOW_S * fps)))
 
 
 def still_windows(motion: np.ndarray, length: int) -> list[slice]:
@@ -128,7 +138,7 @@ def jitter(ap: np.ndarray, windows: list[slice]) -> float:
 
 
 def summarise(series, timing, motion, fps, n) -> dict:
-    windows = still_windows(motion, max(3, int(round(WINDOW_S * fps))))
+    windows = still_windows(motion, window_frames(fps))
     ref = np.array(series[next(iter(series))])[:, 0]
     out = {"frames": n, "fps": fps, "still_windows": len(windows), "models": {}}
     for name, s in series.items():

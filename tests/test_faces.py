@@ -6,12 +6,13 @@ feature points of the synthetic model correspond to MediaPipe landmark indices.
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from articast.core.errors import InputError
-from articast.core.faces.detector import detect
-from articast.core.faces.finder import Face, FaceFinder, FinderPolicy, models_dir
+from articast.core.faces.canonical import canonical_face
+from articast.core.faces.finder import Face, FaceFinder, FinderPolicy
 from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
 
 REFERENCE = Path(__file__).parent / "data" / "face_models_reference.npz"
@@ -55,7 +56,7 @@ def _errors(face, truth, pairs):
 
 def test_detector_finds_exactly_one_face_on_a_desk_render(finder, desk):
     for image, truth in desk:
-        found = detect(finder._detector, image)
+        found = finder.detect(image)
         assert len(found) == 1
         x0, y0, x1, y1 = found[0].box
         mouth = (truth["8.3"] + truth["8.4"]) / 2
@@ -70,7 +71,7 @@ def test_no_face_on_noise_or_blank_frames(finder, kind):
     image = {"noise": rng.integers(0, 256, (480, 640, 3), dtype=np.uint8),
              "blank": np.zeros((480, 640, 3), np.uint8),
              "grey": np.full((480, 640, 3), 128, np.uint8)}[kind]
-    assert detect(finder._detector, image) == []
+    assert finder.detect(image) == []
     assert finder.find(image) is None
 
 
@@ -79,6 +80,8 @@ def test_lip_landmarks_land_on_the_true_lips_desk(finder, desk):
     for image, truth in desk:
         face = finder.find(image)
         assert isinstance(face, Face) and face.landmarks.shape == (478, 3)
+        assert not face.landmarks.flags.writeable  # a frozen record, as the tracker keeps it
+        assert np.all(face.box[:2] <= face.landmarks[:, :2].min(axis=0))
         assert face.score > 0.9
         assert np.all(_errors(face, truth, MIDPOINTS) < 5.0)  # lips ~53 px wide here
         assert np.all(_errors(face, truth, CORNERS) < 14.0)
@@ -92,7 +95,7 @@ def test_lip_landmarks_land_on_the_true_lips_desk(finder, desk):
 def test_head_rig_lower_face_found_with_and_without_a_box(finder, head):
     """A head-mounted camera sees only the lower face: the detector still fires, and the
     landmarks run on a fixed box (the camera moves with the head) follow the lips too."""
-    fixed = FaceFinder(finder._detector, finder._landmarks, FinderPolicy(refine=0))
+    fixed = FaceFinder(finder.detector_session, finder.landmarks_session, FinderPolicy(refine=0))
     box = np.array([-80.0, -280.0, 720.0, 520.0])  # 800 px square above the 640x480 frame
     for image, truth in head:
         for face in (finder.find(image), fixed.find(image, box=box)):
@@ -101,13 +104,33 @@ def test_head_rig_lower_face_found_with_and_without_a_box(finder, head):
 
 
 def test_track_from_find_gives_the_same_landmarks_on_a_still_frame(finder, desk):
+    """Re-cropping from the landmarks on every frame (keep_roi=0) lands where find did."""
+    recrop = FaceFinder(finder.detector_session, finder.landmarks_session,
+                        FinderPolicy(keep_roi=0.0))
     for image, _ in desk[:3]:
-        face = finder.find(image)
-        again = finder.track(image, face)
+        face = recrop.find(image)
+        again = recrop.track(image, face)
+        assert again.roi is not face.roi
         assert again is not None
         lips = [13, 14, 0, 17, 61, 291, 78, 308]
         assert np.abs(again.landmarks[lips, :2] - face.landmarks[lips, :2]).max() < 1.0
         assert np.abs(again.landmarks[:, :2] - face.landmarks[:, :2]).max() < 1.5
+
+
+def test_track_keeps_a_still_crop_and_follows_a_moving_face(finder, desk):
+    image = desk[0][0]
+    face = finder.find(image)
+    still = finder.track(image, face)
+    assert still.roi is face.roi and np.array_equal(still.landmarks, face.landmarks)
+    shift = np.float32([[1, 0, 40], [0, 1, 12]])  # the face moves 40 px right, 12 px down
+    moved_image = cv2.warpAffine(image, shift, (640, 480), borderMode=cv2.BORDER_REPLICATE)
+    moved = finder.track(moved_image, still)  # found in the crop of the previous frame
+    lips = [13, 14, 0, 17, 61, 291]
+    assert np.abs(moved.landmarks[lips, :2] - face.landmarks[lips, :2] - [40, 12]).max() < 2.0
+    followed = finder.track(moved_image, moved)  # the crop now follows the face
+    assert followed.roi is not still.roi
+    assert np.abs(followed.roi.centre - still.roi.centre - [40, 12]).max() < 6.0  # side 240
+    assert np.abs(followed.landmarks[lips, :2] - face.landmarks[lips, :2] - [40, 12]).max() < 1.0
 
 
 def test_track_loses_the_face_when_it_is_gone(finder, desk):
@@ -120,13 +143,13 @@ def test_onnx_models_match_the_original_tflite_reference(finder):
     inputs; the bundled ONNX models must reproduce them within 1e-3."""
     ref = np.load(REFERENCE)
     det_in = (ref["detector_input"].astype(np.float32) * (2.0 / 255.0) - 1.0)[None]
-    got = finder._detector.run(None, {finder._detector.get_inputs()[0].name: det_in})
+    got = finder.detector_session.run(None, {finder.detector_session.get_inputs()[0].name: det_in})
     for i, out in enumerate(got):
         assert np.abs(out - ref[f"detector_outputs_{i}"]).max() < 1e-3
     half = ref["landmarks_input_half"]
     full = np.repeat(np.repeat(half, 2, axis=0), 2, axis=1)
     lm_in = (full.astype(np.float32) / 255.0)[None]
-    got = finder._landmarks.run(None, {finder._landmarks.get_inputs()[0].name: lm_in})
+    got = finder.landmarks_session.run(None, {finder.landmarks_session.get_inputs()[0].name: lm_in})
     assert len(got) == 3
     for i, out in enumerate(got):
         want = ref[f"landmarks_outputs_{i}"]
@@ -142,14 +165,32 @@ def test_box_must_be_a_proper_box(finder, desk):
 
 
 def test_canonical_face_is_metric_and_triangulated():
-    canon = np.load(models_dir() / "canonical_face.npz")
-    v, tri = canon["vertices_cm"], canon["triangles"]
+    canon = canonical_face()
+    v, tri = canon.vertices_mm, canon.triangles
     assert v.shape == (468, 3) and tri.shape[1] == 3 and len(tri) > 800
     assert tri.min() == 0 and tri.max() == 467
-    assert 8.0 < np.linalg.norm(v[33] - v[263]) < 10.0  # outer eye corners, cm
-    assert 4.0 < np.linalg.norm(v[61] - v[291]) < 6.0  # mouth corners, cm
+    assert 80.0 < np.linalg.norm(v[33] - v[263]) < 100.0  # outer eye corners, mm
+    assert 40.0 < np.linalg.norm(v[61] - v[291]) < 60.0  # mouth corners, mm
+    # the articast head frame: x to the person's left, y up, z forward
+    assert v[263, 0] > 0 > v[33, 0] and v[10, 1] > v[152, 1]
+    assert v[1, 2] > np.percentile(v[:, 2], 99)  # the nose tip is in front
     # every vertex is used, and each edge is shared by at most two triangles (a manifold)
     assert len(np.unique(tri)) == 468
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), axis=1)
     _, counts = np.unique(edges, axis=0, return_counts=True)
     assert counts.max() <= 2
+    a = v[tri]
+    facing = np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0])[:, 2] > 0
+    assert facing.mean() > 0.95  # counter-clockwise seen from +z
+
+
+def test_lip_contours_run_corner_to_corner_through_the_midpoints():
+    canon = canonical_face()
+    ends = {"outer": (61, 291), "inner": (78, 308)}
+    for name, mid in (("lips_outer_upper", 0), ("lips_outer_lower", 17),
+                      ("lips_inner_upper", 13), ("lips_inner_lower", 14)):
+        c = canon.contours[name]
+        assert (c[0], c[-1]) == ends[name.split("_")[1]] and mid in c
+        pairs = {tuple(sorted(e)) for e in canon.edges["lips"].tolist()}
+        assert all(tuple(sorted(p)) in pairs for p in zip(c[:-1], c[1:]))
+        assert np.all(np.diff(canon.vertices_mm[c, 0]) > 0)  # right corner -> left corner

