@@ -65,6 +65,12 @@ class ServiceConfig:
     sessions: tuple[SessionSpec, ...] = ()
     access: AccessPolicy = field(default_factory=AccessPolicy)
     """Token, Host and Origin rules, media roots and devices allowed over HTTP."""
+    hub_url: str = ""
+    """"" = the in-memory hub; ``redis://HOST:PORT/DB`` = Redis (sessions of every worker)."""
+    role: str = "serve"
+    """``serve`` (sessions here, and subscribers) or ``gateway`` (subscribers only)."""
+    hub_prefix: str = "articast:"
+    """Redis key and channel prefix (several deployments may share one Redis)."""
     http_processors: tuple[str, ...] = ("auto", "truth", "tracker")
     """Processors a session added over HTTP may name: importing ``module:callable`` on a
     client's word would run the client's choice of code, so only these are accepted."""
@@ -237,10 +243,10 @@ class Connection:
     async def subscribe(self, req: P.Subscribe) -> None:
         self._refused = 0
         svc, name = self.svc, req.session
-        session = svc.manager.sessions.get(name)
+        session = svc.lookup(name)
         if session is None:
             await self.error("unknown_session", f"no session {name!r}; sessions: "
-                             f"{sorted(svc.manager.sessions)}", name)
+                             f"{svc.session_names()[:20]}", name)
             return
         bad = [s for s in req.streams if s in ("fap", "arkit")]
         if bad and session.description is not None and session.outputs is None:
@@ -262,7 +268,8 @@ class Connection:
         sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
         s = Subscriber(self, req, sub)
         self.subs[name] = s
-        session.subscriber_arrived()
+        local = svc.manager.sessions.get(name)
+        (local or session).subscriber_arrived()
         s.task = asyncio.create_task(self._pump(s), name=f"pump {name}")
 
     async def unsubscribe(self, name: str) -> None:
@@ -279,11 +286,11 @@ class Connection:
             s.task.cancel()
 
     def _hello(self, s: Subscriber) -> str | None:
-        session = self.svc.manager.sessions.get(s.req.session)
+        session = self.svc.lookup(s.req.session)
         if session is None or session.description is None:
             return None
         streams = [x for x in s.req.streams if x != "mesh" or session.description["geometry"]]
-        return hello(session.spec.name, session.sid, session.description, session.source_info,
+        return hello(s.req.session, session.sid, session.description, session.source_info,
                      s.req, session.state, streams)
 
     async def _pump(self, s: Subscriber) -> None:
@@ -291,7 +298,7 @@ class Connection:
         name = s.req.session
         helloed = False
         try:
-            session = self.svc.manager.sessions.get(name)
+            session = self.svc.lookup(name)
             if session is not None:
                 text = self._hello(s)
                 if text is not None:
@@ -310,7 +317,7 @@ class Connection:
                         await self.send(text)
                         helloed = True
                     await self.send(ev.for_subscriber(s.view, s.sub.dropped))
-                    session = self.svc.manager.sessions.get(name)
+                    session = self.svc.lookup(name)
                     if session is not None:
                         session.metrics.send_latency.observe(now() - ev.record.t_tracked)
                 elif isinstance(ev, ReadyEvent):
@@ -338,9 +345,11 @@ class Service:
 
     def __init__(self, config: ServiceConfig) -> None:
         self.config = config
-        self.hub: InMemoryHub[Any] = InMemoryHub()
+        self.hub: Any = InMemoryHub()  # a RedisHub replaces it in start() with --hub redis://
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
+        self.directory: Any = None  # articast.service.remote.Directory on Redis
+        self._remote: list[Any] = []
         if config.server.vmc:
             from articast.service.vmc import VmcSender, parse_host_port
 
@@ -348,17 +357,46 @@ class Service:
         self.connections: set[Connection] = set()
         self._watchdog: asyncio.Task[None] | None = None
 
+    def lookup(self, name: str) -> Any:
+        """The session a subscriber means: local, or (on Redis) any worker's."""
+        if self.directory is not None:
+            return self.directory.get(name)
+        return self.manager.sessions.get(name)
+
+    def session_names(self) -> list[str]:
+        names = set(self.manager.sessions)
+        if self.directory is not None:
+            names |= set(self.directory.sessions)
+        return sorted(names)
+
+    def session_dicts(self) -> list[dict[str, Any]]:
+        out = [s.to_dict() for s in self.manager.sessions.values()]
+        if self.directory is not None:
+            out += [s.to_dict(self.hub.subscriber_count(n))
+                    for n, s in sorted(self.directory.sessions.items())
+                    if n not in self.manager.sessions]
+        return out
+
+    def states(self) -> dict[str, str]:
+        out = {n: s.state for n, s in self.manager.sessions.items()}
+        if self.directory is not None:
+            for n, s in self.directory.sessions.items():
+                out.setdefault(n, s.state)
+        return out
+
     def subscriber_total(self) -> int:
         return sum(len(c.subs) for c in self.connections)
 
     def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""
-        session = self.manager.sessions.get(s.req.session)
+        session = self.lookup(s.req.session)
         if session is not None and not s.counted:
             session.metrics.subscriber_dropped += s.sub.dropped
         s.counted = True
 
     async def start(self) -> None:
+        if self.config.hub_url:
+            await self._start_redis()
         for spec in self.config.sessions:
             await self.manager.add(spec)
         self._watchdog = asyncio.create_task(self._watch(), name="stall watchdog")
@@ -374,10 +412,32 @@ class Service:
                     c.sending_since = 0.0
                     c.abort()
 
+    async def _start_redis(self) -> None:
+        from articast.service.redis_hub import RedisHub
+        from articast.service.remote import Announcer, Directory, EventCodec, Poller
+
+        self.directory = Directory()
+        codec = EventCodec(self.directory, self.manager.sessions.get)
+        self.hub = self.manager.hub = RedisHub(self.config.hub_url, codec,
+                                               prefix=self.config.hub_prefix)
+        key = self.config.hub_prefix + "sessions"
+        poller = Poller(self.hub.redis, key, self.directory, self.hub.publish_local)
+        poller.start()
+        self._remote.append(poller)
+        if self.config.role == "serve":
+            announcer = Announcer(self.hub.redis, key, lambda: self.manager.sessions)
+            announcer.start()
+            self._remote.append(announcer)
+
     async def stop(self) -> None:
         if self._watchdog:
             self._watchdog.cancel()
         await self.manager.close(self.config.server.shutdown_timeout_s)
+        for r in self._remote:
+            if asyncio.iscoroutinefunction(r.close):
+                await r.close()
+            else:
+                r.close()
         self.hub.close()
 
     def metrics_text(self) -> str:
@@ -387,9 +447,11 @@ class Service:
             for name, sub in c.subs.items():
                 subs[name] = subs.get(name, 0) + 1
                 live_dropped[name] = live_dropped.get(name, 0) + sub.sub.dropped
+        every = dict(self.directory.sessions) if self.directory is not None else {}
+        every.update(self.manager.sessions)
         rows = {name: (sess.metrics, subs.get(name, 0), sess.up,
                        sess.metrics.subscriber_dropped + live_dropped.get(name, 0))
-                for name, sess in self.manager.sessions.items()}
+                for name, sess in every.items()}
         return render(rows, len(self.connections))
 
 
@@ -538,11 +600,14 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
     @app.get("/api/sessions")
     async def list_sessions(request: Request) -> list[dict[str, Any]]:
         authorise(request)
-        return [s.to_dict() for s in svc.manager.sessions.values()]
+        return svc.session_dicts()
 
     @app.post("/api/sessions", status_code=201)
     async def create_session(body: SessionCreate, request: Request) -> dict[str, Any]:
         authorise_admin(request)
+        if config.role == "gateway":
+            raise HTTPException(409, "this is a gateway: sessions run in 'articast "
+                                "track-worker' processes")
         if body.processor not in config.http_processors:
             raise HTTPException(400, f"processor {body.processor!r} is not allowed over HTTP "
                                 f"(allowed: {list(config.http_processors)}; start the server "
@@ -573,7 +638,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         (a fraction of a second, in the thread pool) and served as JSON:
         ``{n_points, mean (3M), basis (K*3M), triangles (3T), linearity_error_mm}``."""
         authorise(request)
-        session = svc.manager.sessions.get(name)
+        session = svc.lookup(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r}")
         if session.description is None or not session.description.get("geometry"):
@@ -589,7 +654,7 @@ def create_app(config: ServiceConfig | None = None) -> FastAPI:
         out: dict[str, Any] = {"status": "ok", "protocol": P.PROTOCOL_VERSION}
         if access.token_ok(request.headers.get("authorization"),
                            request.scope.get("query_string", b"")):
-            out["sessions"] = {n: s.state for n, s in svc.manager.sessions.items()}
+            out["sessions"] = svc.states()
             out["connections"] = len(svc.connections)
         return out
 
