@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import os
 import time
 from collections.abc import Callable
 from typing import Any
@@ -35,6 +36,7 @@ from articast.service.metrics import SessionMetrics
 from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
 
 log = logging.getLogger("articast.remote")
+HOST = os.uname().nodename if hasattr(os, "uname") else ""
 HEARTBEAT_S = 1.0
 """Workers rewrite their sessions' entries this often; gateways poll as often."""
 STALE_S = 5.0
@@ -47,7 +49,8 @@ def session_info(s: Any) -> dict[str, Any]:
     """What a gateway needs of a local :class:`~articast.service.session.Session`."""
     return {"name": s.spec.name, "sid": s.sid, "state": s.state, "detail": s.detail,
             "description": s.description, "source": s.source_info, "processor": s.processor,
-            "worker": s.worker_kind, "restarts": s.metrics.restarts, "t": now()}
+            "worker": s.worker_kind, "restarts": s.metrics.restarts, "t": now(),
+            "host": HOST}
 
 
 class RemoteSession:

@@ -147,6 +147,12 @@ def test_hello_and_frames_through_redis_and_recovery_after_a_redis_restart(deplo
         http = urls[0].replace("ws://", "http://").rsplit("/ws", 1)[0]
         listed = httpx.get(http + "/api/sessions", timeout=TIMEOUT).json()
         assert [s["name"] for s in listed] == ["alice"] and listed[0]["state"] == "running"
+        # the worker container's HEALTHCHECK (docker/compose.yaml) passes
+        env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+        health = subprocess.run([sys.executable, "-m", "articast.service.healthcheck",
+                                 "--worker"], env={**env, "ARTICAST_HUB": redis.url},
+                                capture_output=True, text=True, timeout=60)
+        assert health.returncode == 0, health.stderr
 
         t_down = time.time()
         redis.stop()

@@ -224,6 +224,8 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     from articast.service.sources import probe
     from articast.service.worker import SessionSpec
 
+    server = from_args(ServerSettings, args)
+    access = access_policy(args, server.host)  # before probing: refuse fast and cheaply
     names = [n for n, _ in sources]
     if len(set(names)) != len(names):
         raise InputError(f"session names must differ: {names}")
@@ -235,8 +237,6 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         check_processor(args.processor, parse_uri(uri).kind, bool(args.appearance))
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
                               args.wait_for_subscriber) for n, uri in sources)
-    server = from_args(ServerSettings, args)
-    access = access_policy(args, server.host)
     config = ServiceConfig(
         server=server, hub=from_args(HubSettings, args),
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
