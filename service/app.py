@@ -505,7 +505,8 @@ class Guard:
         host, origin = headers.get("host"), headers.get("origin")
         reason = ""
         if not self.access.host_ok(host):
-            reason = "this server does not answer to that Host name (DNS rebinding guard)"
+            reason = ("this server does not answer to that Host name (DNS rebinding guard; "
+                      "its operator can allow it with --allowed-host)")
         elif not self.access.origin_ok(origin, host):
             reason = "requests from this Origin are not allowed (--allowed-origin)"
         if reason:
