@@ -7,7 +7,9 @@ track-worker`` replaying a 30 fps recording, two ``articast gateway``), subscrib
 over the gateways in client processes (lean binary clients). Phases:
 
 1. steady state for ``--seconds``: per-subscriber rate, drops seen by subscribers that keep
-   up, added latency (tracked in the worker -> bytes at the subscriber) p50/p99;
+   up, added latency (tracked in the worker -> bytes at the subscriber) p50/p99, and the
+   gateways' own view (tracked -> written to the subscriber's socket, from their
+   ``articast_send_latency_seconds`` histograms: bucket bounds);
 2. Redis killed, down for ``--outage`` s, started again (empty): recovery time = from the
    restart until a subscriber receives a frame again (max and p99 over subscribers, and how
    many recovered within 5 s); ``stale_frames`` = frames received after the restart that
@@ -189,6 +191,33 @@ def articast(*args: str) -> subprocess.Popen:
                             env=env, stdout=subprocess.PIPE, text=True)
 
 
+def send_buckets(http: str) -> dict[str, int]:
+    """The gateway's cumulative send-latency histogram (tracked -> written to a socket)."""
+    import httpx
+
+    out = {}
+    for line in httpx.get(http + "/metrics", timeout=10).text.splitlines():
+        if line.startswith("articast_send_latency_seconds_bucket{"):
+            le = line.split('le="')[1].split('"')[0]
+            out[le] = out.get(le, 0) + int(float(line.split()[-1]))
+    return out
+
+
+def bucket_quantile(before: list[dict[str, int]], after: list[dict[str, int]], q: float) -> str:
+    """Upper bound (ms) of the histogram bucket holding quantile ``q`` of the window."""
+    total: dict[str, int] = {}
+    for b, a in zip(before, after, strict=True):
+        for le, n in a.items():
+            total[le] = total.get(le, 0) + n - b.get(le, 0)
+    if not total or not total.get("+Inf"):
+        return "n/a"
+    need = q * total["+Inf"]
+    for le in sorted((k for k in total if k != "+Inf"), key=float):
+        if total[le] >= need:
+            return f"<= {float(le) * 1000:g}"
+    return "> 1000"
+
+
 def cpu_s(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as fh:
         f = fh.read().rsplit(")", 1)[1].split()
@@ -241,9 +270,12 @@ def main() -> None:
         time.sleep(3.0)
         t0 = time.time()
         clock[STEADY0], clock[STEADY1] = t0, t0 + args.seconds
+        https = [u.replace("ws://", "http://").rsplit("/ws", 1)[0] for u in urls]
         cpu0 = {p.pid: cpu_s(p.pid) for p in procs}
+        hist0 = [send_buckets(h) for h in https]
         time.sleep(args.seconds)
         cpu = {p.pid: (cpu_s(p.pid) - cpu0[p.pid]) / args.seconds for p in procs}
+        hist1 = [send_buckets(h) for h in https]
         clock[DOWN] = time.time()
         redis.send_signal(signal.SIGKILL)
         redis.wait()
@@ -276,6 +308,8 @@ def main() -> None:
         "frames_missed": sum(s - g for s, g in zip(span, got, strict=True)),
         "drops": sum(d for o in outs for d in o["dropped"]),
         "p50_ms": round(percentile(lat, 50), 2), "p99_ms": round(percentile(lat, 99), 2),
+        "gateway_send_p50_ms": bucket_quantile(hist0, hist1, 0.50),
+        "gateway_send_p99_ms": bucket_quantile(hist0, hist1, 0.99),
         "cpu_cores": {"worker": round(cpu[procs[0].pid], 2),
                       "gateways": [round(cpu[p.pid], 2) for p in procs[1:]]},
         "redis_outage_s": args.outage,
