@@ -68,9 +68,11 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
     finally:
         p2.send_signal(signal.SIGTERM)
         p2.wait(TIMEOUT * 2)
-    recorded = {json.loads(x)["frame"] % 40: json.loads(x)["alpha"] for x in lines[1:41]}
+    # the replay numbers frames by their line in the recording (which, on a loaded machine,
+    # may have skipped source frames: the capture keeps only the newest)
+    by_line = [json.loads(x)["alpha"] for x in lines[1:]]
     for f in again:
-        assert f["values"]["articulatory"] == pytest.approx(recorded[f["frame"] % 40])
+        assert f["values"]["articulatory"] == pytest.approx(by_line[f["frame"] % len(by_line)])
 
 
 def test_replay_of_a_corrupt_video_is_one_clear_error(tmp_path):
