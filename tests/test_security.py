@@ -373,3 +373,38 @@ def test_port_in_use_is_one_line():
         r = _cli("demo", "--port", str(port))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and str(port) in r.stderr
+
+
+# ----------------------------------------------------------------------------- the policy itself
+@pytest.mark.parametrize("bind,token,host,ok", [
+    ("127.0.0.1", "", "127.0.0.1:8765", True),
+    ("127.0.0.1", "", "localhost:8765", True),
+    ("127.0.0.1", "", "[::1]:8765", True),
+    ("127.0.0.1", "", "evil.example:8765", False),
+    ("127.0.0.1", "", "127.0.0.1.evil.example", False),
+    ("192.168.1.5", "t", "192.168.1.5:8765", True),
+    ("192.168.1.5", "t", "other.example", False),
+    ("0.0.0.0", "t", "anything.example", True),   # a token guards every route then
+    ("0.0.0.0", "", "anything.example", False),   # --insecure-no-token: loopback names only
+])
+def test_host_rules(bind, token, host, ok):
+    assert AccessPolicy(token=token, bind_host=bind).host_ok(host) is ok
+
+
+@pytest.mark.parametrize("origin,ok", [
+    (None, True), ("http://127.0.0.1:9999", True), ("http://localhost", True),
+    ("http://[::1]:3000", True), ("http://srv.example:8765", True),
+    ("http://evil.example", False), ("null", False), ("file://", False),
+    ("https://app.example", True),
+])
+def test_origin_rules(origin, ok):
+    policy = AccessPolicy(allowed_origins=("https://app.example",))
+    assert policy.origin_ok(origin, "srv.example:8765") is ok
+
+
+def test_token_rules():
+    p = AccessPolicy(token="abc")
+    assert p.token_ok("Bearer abc") and p.token_ok("bearer abc") and p.token_ok(None, b"token=abc")
+    assert not p.token_ok(None) and not p.token_ok("Bearer abd") and not p.token_ok("abc")
+    assert not p.token_ok("Bearer ", b"x=abc") and "abc" not in repr(p)
+    assert AccessPolicy().token_ok(None)  # no token configured
