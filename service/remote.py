@@ -214,6 +214,8 @@ class EventCodec:
             s = self.directory.get(name)
             if s is not None:
                 s.state, s.detail = doc["state"], doc["detail"]
+                if s.state == "stopped":  # removed by its worker: forget it now
+                    self.directory.sessions.pop(name, None)
             return StatusEvent(name, doc["state"], doc["detail"], doc["t"])
         if kind == "r":
             if doc.get("info"):
