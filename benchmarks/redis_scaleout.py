@@ -272,9 +272,13 @@ def main() -> None:
         clock[STEADY0], clock[STEADY1] = t0, t0 + args.seconds
         https = [u.replace("ws://", "http://").rsplit("/ws", 1)[0] for u in urls]
         cpu0 = {p.pid: cpu_s(p.pid) for p in procs}
+        ccpu0 = {c.pid: cpu_s(c.pid) for c in clients}
+        load0 = os.getloadavg()[0]
         hist0 = [send_buckets(h) for h in https]
         time.sleep(args.seconds)
         cpu = {p.pid: (cpu_s(p.pid) - cpu0[p.pid]) / args.seconds for p in procs}
+        ccpu = [(cpu_s(c.pid) - ccpu0[c.pid]) / args.seconds for c in clients]
+        load = (load0 + os.getloadavg()[0]) / 2
         hist1 = [send_buckets(h) for h in https]
         clock[DOWN] = time.time()
         redis.send_signal(signal.SIGKILL)
@@ -311,7 +315,9 @@ def main() -> None:
         "gateway_send_p50_ms": bucket_quantile(hist0, hist1, 0.50),
         "gateway_send_p99_ms": bucket_quantile(hist0, hist1, 0.99),
         "cpu_cores": {"worker": round(cpu[procs[0].pid], 2),
-                      "gateways": [round(cpu[p.pid], 2) for p in procs[1:]]},
+                      "gateways": [round(cpu[p.pid], 2) for p in procs[1:]],
+                      "client_processes": [round(c, 2) for c in ccpu]},
+        "machine_cores": os.cpu_count(), "load_average": round(load, 1),
         "redis_outage_s": args.outage,
         "recovered": len(finite), "recovered_within_5s": sum(b <= 5.0 for b in finite),
         "recovery_p50_s": round(percentile(finite, 50), 3),
