@@ -37,6 +37,8 @@ from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEve
 
 log = logging.getLogger("articast.remote")
 HOST = os.uname().nodename if hasattr(os, "uname") else ""
+RUN = f"{HOST}:{os.getpid()}:{time.time():.3f}"
+"""This process's identity in announcements: a restarted worker is a new run (new hello)."""
 HEARTBEAT_S = 1.0
 """Workers rewrite their sessions' entries this often; gateways poll as often."""
 STALE_S = 5.0
@@ -50,7 +52,7 @@ def session_info(s: Any) -> dict[str, Any]:
     return {"name": s.spec.name, "sid": s.sid, "state": s.state, "detail": s.detail,
             "description": s.description, "source": s.source_info, "processor": s.processor,
             "worker": s.worker_kind, "restarts": s.metrics.restarts, "t": now(),
-            "host": HOST}
+            "host": HOST, "run": RUN}
 
 
 class RemoteSession:
@@ -58,7 +60,7 @@ class RemoteSession:
 
     def __init__(self, name: str) -> None:
         self.name = name
-        self.sid = 0
+        self.sid, self.run = 0, ""
         self.state, self.detail = "starting", ""
         self.description: dict[str, Any] | None = None
         self.source_info: dict[str, Any] | None = None
@@ -84,12 +86,12 @@ class RemoteSession:
         self.source_info, self.processor = info.get("source"), str(info.get("processor", ""))
         self.worker_kind, self.restarts = str(info.get("worker", "")), int(
             info.get("restarts", 0))
-        desc, sid = info.get("description"), int(info.get("sid", 0))
-        if desc is None or (sid == self.sid and self.description is not None):
+        desc, sid, run = info.get("description"), int(info.get("sid", 0)), str(info.get("run", ""))
+        if desc is None or ((sid, run) == (self.sid, self.run) and self.description is not None):
             return False
         from articast.service.outputs import make_outputs
 
-        self.sid, self.description, self._dense = sid, desc, None
+        self.sid, self.run, self.description, self._dense = sid, run, desc, None
         g = desc.get("geometry")
         self.mesh = None
         if g:

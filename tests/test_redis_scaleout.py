@@ -209,3 +209,43 @@ def test_roles_refuse_a_missing_or_wrong_hub():
         p = articast(*args)
         out, err = p.communicate(timeout=60)
         assert p.returncode == 2 and "--hub" in err and "Traceback" not in err, err
+
+
+def test_a_killed_worker_is_reported_and_its_replacement_streams_again(tmp_path):
+    """kill -9 of a track-worker: its session becomes ``unavailable`` on the gateway (no
+    heartbeat); a new worker for the same session brings a new hello, then frames."""
+    rec = tmp_path / "rec.jsonl"
+    write_recording(rec, frames=60, fps=30)
+    redis = Redis()
+    redis.start()
+    source = f"alice=replay-record:{rec}?loop=0"
+    procs = [articast("track-worker", "--hub", redis.url, "--json", "--source", source)]
+    try:
+        first_line(procs[0])
+        g = articast("gateway", "--hub", redis.url, "--port", "0", "--json")
+        procs.append(g)
+        url = first_line(g)["url"]
+
+        async def go():
+            ws, first = await subscriber(url)
+            if first["type"] != "hello":
+                await next_of(ws, "hello")
+            await next_of(ws, "frame")
+            procs[0].kill()
+            procs[0].wait(TIMEOUT)
+            while True:
+                m = await next_of(ws, "status")
+                if m["state"] == "unavailable":
+                    assert "worker" in m["detail"]
+                    break
+            procs.append(articast("track-worker", "--hub", redis.url, "--json",
+                                  "--source", source))
+            await next_of(ws, "hello")
+            await next_of(ws, "frame")
+            await ws.close()
+
+        asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+    finally:
+        for p in procs:
+            stop(p)
+        redis.stop()
