@@ -408,3 +408,26 @@ def test_token_rules():
     assert not p.token_ok(None) and not p.token_ok("Bearer abd") and not p.token_ok("abc")
     assert not p.token_ok("Bearer ", b"x=abc") and "abc" not in repr(p)
     assert AccessPolicy().token_ok(None)  # no token configured
+
+
+def test_insecure_no_token_is_an_explicit_choice(tmp_path, monkeypatch):
+    from articast.core.errors import InputError
+    from articast.service.cli import build_parser
+    from articast.service.commands.serve import access_policy
+
+    for k in ("ARTICAST_TOKEN", "ARTICAST_API_TOKEN", "ARTICAST_TOKEN_FILE",
+              "ARTICAST_INSECURE_NO_TOKEN"):
+        monkeypatch.delenv(k, raising=False)
+    args = build_parser().parse_args(["demo", "--host", "0.0.0.0"])
+    with pytest.raises(InputError, match="without a token"):
+        access_policy(args, "0.0.0.0")
+    args = build_parser().parse_args(["demo", "--host", "0.0.0.0", "--insecure-no-token"])
+    assert access_policy(args, "0.0.0.0").token == ""
+    (tmp_path / "t").write_text("from-file\n")
+    monkeypatch.setenv("ARTICAST_TOKEN_FILE", str(tmp_path / "t"))
+    args = build_parser().parse_args(["demo", "--host", "0.0.0.0", "--media-root", str(tmp_path)])
+    policy = access_policy(args, "0.0.0.0")
+    assert policy.token == "from-file" and policy.media_roots == (str(tmp_path.resolve()),)
+    args = build_parser().parse_args(["demo", "--media-root", str(tmp_path / "nope")])
+    with pytest.raises(InputError, match="not a folder"):
+        access_policy(args, "127.0.0.1")
