@@ -25,7 +25,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import math
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -39,6 +38,7 @@ from articast.client import protocol as P
 from articast.core.errors import ArticastError
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
+from articast.service.middleware import BodyLimit, BodyTooLarge, Guard, MessageBucket, deny
 from articast.service.security import AccessPolicy, Forbidden
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
@@ -65,6 +65,12 @@ class ServiceConfig:
     sessions: tuple[SessionSpec, ...] = ()
     access: AccessPolicy = field(default_factory=AccessPolicy)
     """Token, Host and Origin rules, media roots and devices allowed over HTTP."""
+    hub_url: str = ""
+    """"" = the in-memory hub; ``redis://HOST:PORT/DB`` = Redis (sessions of every worker)."""
+    role: str = "serve"
+    """``serve`` (sessions here, and subscribers) or ``gateway`` (subscribers only)."""
+    hub_prefix: str = "articast:"
+    """Redis key and channel prefix (several deployments may share one Redis)."""
     http_processors: tuple[str, ...] = ("auto", "truth", "tracker", "live")
     """Processors a session added over HTTP may name: importing ``module:callable`` on a
     client's word would run the client's choice of code, so only these are accepted."""
@@ -81,24 +87,6 @@ class SessionCreate(BaseModel):
     wait_for_subscriber: bool = False
     speaker: str = ""
     preview: bool = False
-
-
-class MessageBucket:
-    """Token bucket: ``rate`` messages per second on average, bursts up to ``burst``."""
-
-    def __init__(self, rate: float, burst: float) -> None:
-        self.rate, self.burst = rate, max(1.0, burst)
-        self.tokens, self.t = self.burst, time.monotonic()
-
-    def take(self, t: float) -> bool:
-        if not math.isfinite(self.rate) or self.rate <= 0:
-            return True
-        self.tokens = min(self.burst, self.tokens + (t - self.t) * self.rate)
-        self.t = t
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
 
 
 def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
@@ -241,10 +229,10 @@ class Connection:
     async def subscribe(self, req: P.Subscribe) -> None:
         self._refused = 0
         svc, name = self.svc, req.session
-        session = svc.manager.sessions.get(name)
+        session = svc.lookup(name)
         if session is None:
             await self.error("unknown_session", f"no session {name!r}; sessions: "
-                             f"{sorted(svc.manager.sessions)}", name)
+                             f"{svc.session_names()[:20]}", name)
             return
         bad = [s for s in req.streams if s in ("fap", "arkit")]
         if bad and session.description is not None and session.outputs is None:
@@ -266,7 +254,8 @@ class Connection:
         sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
         s = Subscriber(self, req, sub)
         self.subs[name] = s
-        session.subscriber_arrived()
+        local = svc.manager.sessions.get(name)
+        (local or session).subscriber_arrived()
         s.task = asyncio.create_task(self._pump(s), name=f"pump {name}")
 
     async def unsubscribe(self, name: str) -> None:
@@ -283,11 +272,11 @@ class Connection:
             s.task.cancel()
 
     def _hello(self, s: Subscriber) -> str | None:
-        session = self.svc.manager.sessions.get(s.req.session)
+        session = self.svc.lookup(s.req.session)
         if session is None or session.description is None:
             return None
         streams = [x for x in s.req.streams if x != "mesh" or session.description["geometry"]]
-        return hello(session.spec.name, session.sid, session.description, session.source_info,
+        return hello(s.req.session, session.sid, session.description, session.source_info,
                      s.req, session.state, streams)
 
     async def _pump(self, s: Subscriber) -> None:
@@ -295,7 +284,7 @@ class Connection:
         name = s.req.session
         helloed = False
         try:
-            session = self.svc.manager.sessions.get(name)
+            session = self.svc.lookup(name)
             if session is not None:
                 text = self._hello(s)
                 if text is not None:
@@ -314,7 +303,7 @@ class Connection:
                         await self.send(text)
                         helloed = True
                     await self.send(ev.for_subscriber(s.view, s.sub.dropped))
-                    session = self.svc.manager.sessions.get(name)
+                    session = self.svc.lookup(name)
                     if session is not None:
                         session.metrics.send_latency.observe(now() - ev.record.t_tracked)
                 elif isinstance(ev, ReadyEvent):
@@ -345,9 +334,11 @@ class Service:
         self.config = config
         self.on_live = on_live
         self._announce_task: asyncio.Task[None] | None = None
-        self.hub: InMemoryHub[Any] = InMemoryHub()
+        self.hub: Any = InMemoryHub()  # a RedisHub replaces it in start() with --hub redis://
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
+        self.directory: Any = None  # articast.service.remote.Directory on Redis
+        self._remote: list[Any] = []
         if config.server.vmc:
             from articast.service.vmc import VmcSender, parse_host_port
 
@@ -356,17 +347,46 @@ class Service:
         self.connections: set[Connection] = set()
         self._watchdog: asyncio.Task[None] | None = None
 
+    def lookup(self, name: str) -> Any:
+        """The session a subscriber means: local, or (on Redis) any worker's."""
+        if self.directory is not None:
+            return self.directory.get(name)
+        return self.manager.sessions.get(name)
+
+    def session_names(self) -> list[str]:
+        names = set(self.manager.sessions)
+        if self.directory is not None:
+            names |= set(self.directory.sessions)
+        return sorted(names)
+
+    def session_dicts(self) -> list[dict[str, Any]]:
+        out = [s.to_dict() for s in self.manager.sessions.values()]
+        if self.directory is not None:
+            out += [s.to_dict(self.hub.subscriber_count(n))
+                    for n, s in sorted(self.directory.sessions.items())
+                    if n not in self.manager.sessions]
+        return out
+
+    def states(self) -> dict[str, str]:
+        out = {n: s.state for n, s in self.manager.sessions.items()}
+        if self.directory is not None:
+            for n, s in self.directory.sessions.items():
+                out.setdefault(n, s.state)
+        return out
+
     def subscriber_total(self) -> int:
         return sum(len(c.subs) for c in self.connections)
 
     def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""
-        session = self.manager.sessions.get(s.req.session)
+        session = self.lookup(s.req.session)
         if session is not None and not s.counted:
             session.metrics.subscriber_dropped += s.sub.dropped
         s.counted = True
 
     async def start(self) -> None:
+        if self.config.hub_url:
+            await self._start_redis()
         for spec in self.config.sessions:
             await self.manager.add(spec)
         self._watchdog = asyncio.create_task(self._watch(), name="stall watchdog")
@@ -394,12 +414,34 @@ class Service:
                     c.sending_since = 0.0
                     c.abort()
 
+    async def _start_redis(self) -> None:
+        from articast.service.redis_hub import RedisHub
+        from articast.service.remote import Announcer, Directory, EventCodec, Poller
+
+        self.directory = Directory()
+        codec = EventCodec(self.directory, self.manager.sessions.get)
+        self.hub = self.manager.hub = RedisHub(self.config.hub_url, codec,
+                                               prefix=self.config.hub_prefix)
+        key = self.config.hub_prefix + "sessions"
+        poller = Poller(self.hub.redis, key, self.directory, self.hub.publish_local)
+        poller.start()
+        self._remote.append(poller)
+        if self.config.role == "serve":
+            announcer = Announcer(self.hub.redis, key, lambda: self.manager.sessions)
+            announcer.start()
+            self._remote.append(announcer)
+
     async def stop(self) -> None:
         if self._watchdog:
             self._watchdog.cancel()
         if self._announce_task:
             self._announce_task.cancel()
         await self.manager.close(self.config.server.shutdown_timeout_s)
+        for r in self._remote:
+            if asyncio.iscoroutinefunction(r.close):
+                await r.close()
+            else:
+                r.close()
         self.hub.close()
 
     def metrics_text(self) -> str:
@@ -409,79 +451,12 @@ class Service:
             for name, sub in c.subs.items():
                 subs[name] = subs.get(name, 0) + 1
                 live_dropped[name] = live_dropped.get(name, 0) + sub.sub.dropped
+        every = dict(self.directory.sessions) if self.directory is not None else {}
+        every.update(self.manager.sessions)
         rows = {name: (sess.metrics, subs.get(name, 0), sess.up,
                        sess.metrics.subscriber_dropped + live_dropped.get(name, 0))
-                for name, sess in self.manager.sessions.items()}
+                for name, sess in every.items()}
         return render(rows, len(self.connections))
-
-
-class BodyTooLarge(Exception):
-    pass
-
-
-class BodyLimit:
-    """ASGI middleware: HTTP bodies over ``limit`` bytes get 413, declared or chunked."""
-
-    def __init__(self, app: Any, limit: int) -> None:
-        self.app, self.limit = app, limit
-
-    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        length = dict(scope["headers"]).get(b"content-length")
-        if length is not None and (not length.isdigit() or int(length) > self.limit):
-            await JSONResponse({"detail": f"request body over {self.limit} bytes or "
-                                "malformed length"}, 413)(scope, receive, send)
-            return
-        seen = 0
-
-        async def limited() -> Any:
-            nonlocal seen
-            msg = await receive()
-            seen += len(msg.get("body", b""))
-            if seen > self.limit:
-                raise BodyTooLarge(f"request body over {self.limit} bytes")
-            return msg
-
-        await self.app(scope, limited, send)
-
-
-class Guard:
-    """ASGI middleware: refuse a foreign ``Host`` (DNS rebinding) or ``Origin`` with 403.
-
-    WebSocket upgrades are refused before the handshake with an HTTP answer (the denial
-    response extension), so a browser page learns nothing but the refusal.
-    """
-
-    def __init__(self, app: Any, access: AccessPolicy) -> None:
-        self.app, self.access = app, access
-
-    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
-        if scope["type"] not in ("http", "websocket"):
-            await self.app(scope, receive, send)
-            return
-        headers = {k.decode("latin-1"): v.decode("latin-1") for k, v in scope["headers"]}
-        host, origin = headers.get("host"), headers.get("origin")
-        reason = ""
-        if not self.access.host_ok(host):
-            reason = "this server does not answer to that Host name (DNS rebinding guard)"
-        elif not self.access.origin_ok(origin, host):
-            reason = "requests from this Origin are not allowed (--allowed-origin)"
-        if reason:
-            await deny(scope, receive, send, 403, reason)
-            return
-        await self.app(scope, receive, send)
-
-
-async def deny(scope: Any, receive: Any, send: Any, status: int, reason: str) -> None:
-    """An HTTP refusal, also before a WebSocket handshake (else close 1008 after it)."""
-    response = JSONResponse({"detail": reason}, status)
-    if scope["type"] == "http" or "websocket.http.response" in scope.get("extensions", {}):
-        await response(scope, receive, send)
-        return
-    await send({"type": "websocket.accept"})
-    await send({"type": "websocket.close", "code": 1008, "reason": reason[:120]})
 
 
 def create_app(config: ServiceConfig | None = None,
@@ -563,11 +538,14 @@ def create_app(config: ServiceConfig | None = None,
     @app.get("/api/sessions")
     async def list_sessions(request: Request) -> list[dict[str, Any]]:
         authorise(request)
-        return [s.to_dict() for s in svc.manager.sessions.values()]
+        return svc.session_dicts()
 
     @app.post("/api/sessions", status_code=201)
     async def create_session(body: SessionCreate, request: Request) -> dict[str, Any]:
         authorise_admin(request)
+        if config.role == "gateway":
+            raise HTTPException(409, "this is a gateway: sessions run in 'articast "
+                                "track-worker' processes")
         if body.processor not in config.http_processors:
             raise HTTPException(400, f"processor {body.processor!r} is not allowed over HTTP "
                                 f"(allowed: {list(config.http_processors)}; start the server "
@@ -623,7 +601,7 @@ def create_app(config: ServiceConfig | None = None,
         (a fraction of a second, in the thread pool) and served as JSON:
         ``{n_points, mean (3M), basis (K*3M), triangles (3T), linearity_error_mm}``."""
         authorise(request)
-        session = svc.manager.sessions.get(name)
+        session = svc.lookup(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r}")
         if session.description is None or not session.description.get("geometry"):
@@ -639,7 +617,7 @@ def create_app(config: ServiceConfig | None = None,
         out: dict[str, Any] = {"status": "ok", "protocol": P.PROTOCOL_VERSION}
         if access.token_ok(request.headers.get("authorization"),
                            request.scope.get("query_string", b"")):
-            out["sessions"] = {n: s.state for n, s in svc.manager.sessions.items()}
+            out["sessions"] = svc.states()
             out["connections"] = len(svc.connections)
         return out
 

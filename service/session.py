@@ -88,6 +88,8 @@ class Session:
 
     def subscriber_arrived(self) -> None:
         if self._worker is not None:
+            if not self._worker.go.is_set():
+                self._last_activity = time.monotonic()  # the stall clock starts now
             self._worker.go.set()
 
     async def _supervise(self) -> None:

@@ -274,11 +274,14 @@ class FileSource(_Finite):
         else:
             ok, image = self._cap.read()
             if not ok or image is None:
-                declared = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-                if declared and self._n < declared - 1:
-                    raise SourceError(f"{self.path}: the video ended early: read {self._n} of "
-                                      f"the {declared} frames its container declares "
-                                      "(truncated or corrupt file)")
+                from articast.core.errors import InputError
+                from articast.service.video import check_complete
+
+                try:
+                    check_complete(self.path, self._n, int(self._cap.get(
+                        cv2.CAP_PROP_FRAME_COUNT) or 0))
+                except InputError as exc:
+                    raise SourceError(str(exc)) from None
                 return None
         t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0

@@ -100,3 +100,21 @@ def test_page_reconnects_on_its_own(sessions):
             second.__exit__(None, None, None)
     finally:
         b.close()
+
+
+def test_with_a_token_the_avatar_passes_it_on_from_its_url(sessions):
+    """A server with a token: the page given ``&token=`` in its URL lists the sessions, fetches
+    the dense face and streams (it passes the token on); without it, it cannot connect."""
+    from articast.service.security import AccessPolicy
+
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=sessions[:1],
+                           access=AccessPolicy(token="browser-token"))
+    with ServerThread(config) as srv:
+        url = f"http://127.0.0.1:{srv.port}/avatar/"
+        with Browser(url + "?token=browser-token") as b:  # no session: it asks the API
+            b.wait_for("window.articast.frames > 5", 60)
+            b.wait_for("window.articast.mesh.startsWith('dense')", 60)
+        with Browser(url + "?session=closed&token=wrong") as b:
+            time.sleep(2.0)
+            assert b.evaluate("window.articast.frames") == 0
+            assert b.evaluate("window.articast.connected") is False

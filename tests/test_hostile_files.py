@@ -313,3 +313,24 @@ def test_serve_marks_a_session_with_a_bad_file_failed_without_restarting(valid, 
             assert s["state"] == "failed" and s["restarts"] == 0, s
             assert word in s["detail"] and "Traceback" not in s["detail"], s
         assert httpx.get(srv.http + "/healthz", timeout=TIMEOUT).json()["status"] == "ok"
+
+
+def test_no_nan_or_infinity_in_json_written():
+    """``track`` wrote NaN into its JSON lines (the stream wrote -1 for the same case)."""
+    from articast.core.model.camera import Pose
+    from articast.core.tracking.result import TrackResult
+    from articast.service.jsonsafe import dumps
+
+    nan = float("nan")
+    res = TrackResult(3, 0.1, np.array([nan, 1.0, np.inf]), Pose(), ok=False, residual=nan)
+    text = dumps(res.to_dict(("a", "b", "c")))
+    doc = json.loads(text, parse_constant=lambda c: pytest.fail(f"{c} in {text}"))
+    assert doc["quality"]["residual"] == -1.0 and doc["alpha"] == {"a": None, "b": 1.0, "c": None}
+    with pytest.raises(ValueError):  # a writer that forgot dumps() cannot slip one through
+        json.dumps(float("nan"), allow_nan=False)
+    # every JSON writer of the service goes through dumps()
+    offenders = [str(p.relative_to(ROOT)) for p in (ROOT / "service").rglob("*.py")
+                 if "json.dumps(" in p.read_text() and p.name not in (
+                     "jsonsafe.py", "protocol.py", "redis_hub.py", "wire.py", "evaluate.py",
+                     "serve.py", "healthcheck.py")]
+    assert offenders == [], offenders

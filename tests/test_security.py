@@ -376,3 +376,61 @@ def test_port_in_use_is_one_line():
     errors = [x for x in r.stderr.strip().splitlines() if not x.startswith("articast: starting")]
     assert len(errors) == 1 and errors[0].startswith("articast demo: error:")
     assert str(port) in errors[0]
+
+
+# ----------------------------------------------------------------------------- the policy itself
+@pytest.mark.parametrize("bind,token,host,ok", [
+    ("127.0.0.1", "", "127.0.0.1:8765", True),
+    ("127.0.0.1", "", "localhost:8765", True),
+    ("127.0.0.1", "", "[::1]:8765", True),
+    ("127.0.0.1", "", "evil.example:8765", False),
+    ("127.0.0.1", "", "127.0.0.1.evil.example", False),
+    ("192.168.1.5", "t", "192.168.1.5:8765", True),
+    ("192.168.1.5", "t", "other.example", False),
+    ("0.0.0.0", "t", "anything.example", True),   # a token guards every route then
+    ("0.0.0.0", "", "anything.example", False),   # --insecure-no-token: loopback names only
+])
+def test_host_rules(bind, token, host, ok):
+    assert AccessPolicy(token=token, bind_host=bind).host_ok(host) is ok
+
+
+@pytest.mark.parametrize("origin,ok", [
+    (None, True), ("http://127.0.0.1:9999", True), ("http://localhost", True),
+    ("http://[::1]:3000", True), ("http://srv.example:8765", True),
+    ("http://evil.example", False), ("null", False), ("file://", False),
+    ("https://app.example", True),
+])
+def test_origin_rules(origin, ok):
+    policy = AccessPolicy(allowed_origins=("https://app.example",))
+    assert policy.origin_ok(origin, "srv.example:8765") is ok
+
+
+def test_token_rules():
+    p = AccessPolicy(token="abc")
+    assert p.token_ok("Bearer abc") and p.token_ok("bearer abc") and p.token_ok(None, b"token=abc")
+    assert not p.token_ok(None) and not p.token_ok("Bearer abd") and not p.token_ok("abc")
+    assert not p.token_ok("Bearer ", b"x=abc") and "abc" not in repr(p)
+    assert AccessPolicy().token_ok(None)  # no token configured
+
+
+def test_insecure_no_token_is_an_explicit_choice(tmp_path, monkeypatch):
+    from articast.core.errors import InputError
+    from articast.service.cli import build_parser
+    from articast.service.commands.serve import access_policy
+
+    for k in ("ARTICAST_TOKEN", "ARTICAST_API_TOKEN", "ARTICAST_TOKEN_FILE",
+              "ARTICAST_INSECURE_NO_TOKEN"):
+        monkeypatch.delenv(k, raising=False)
+    args = build_parser().parse_args(["demo", "--host", "0.0.0.0"])
+    with pytest.raises(InputError, match="without a token"):
+        access_policy(args, "0.0.0.0")
+    args = build_parser().parse_args(["demo", "--host", "0.0.0.0", "--insecure-no-token"])
+    assert access_policy(args, "0.0.0.0").token == ""
+    (tmp_path / "t").write_text("from-file\n")
+    monkeypatch.setenv("ARTICAST_TOKEN_FILE", str(tmp_path / "t"))
+    args = build_parser().parse_args(["demo", "--host", "0.0.0.0", "--media-root", str(tmp_path)])
+    policy = access_policy(args, "0.0.0.0")
+    assert policy.token == "from-file" and policy.media_roots == (str(tmp_path.resolve()),)
+    args = build_parser().parse_args(["demo", "--media-root", str(tmp_path / "nope")])
+    with pytest.raises(InputError, match="not a folder"):
+        access_policy(args, "127.0.0.1")

@@ -68,9 +68,11 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
     finally:
         p2.send_signal(signal.SIGTERM)
         p2.wait(TIMEOUT * 2)
-    recorded = {json.loads(x)["frame"] % 40: json.loads(x)["alpha"] for x in lines[1:41]}
+    # the replay numbers frames by their line in the recording (which, on a loaded machine,
+    # may have skipped source frames: the capture keeps only the newest)
+    by_line = [json.loads(x)["alpha"] for x in lines[1:]]
     for f in again:
-        assert f["values"]["articulatory"] == pytest.approx(recorded[f["frame"] % 40])
+        assert f["values"]["articulatory"] == pytest.approx(by_line[f["frame"] % len(by_line)])
 
 
 def test_replay_of_a_corrupt_video_is_one_clear_error(tmp_path):
@@ -134,20 +136,3 @@ def test_sigterm_with_subscribers_connected(tmp_path):
     assert took < TIMEOUT and code in (0, -signal.SIGTERM)
     err = p.stderr.read()
     assert "Traceback" not in err and "leaked" not in err, err
-
-
-def test_the_docker_image_command_is_one_the_cli_accepts():
-    """docker/Dockerfile's CMD (and the warm-up its build runs) must parse: a flag the CLI
-    does not know makes the container exit at start."""
-    import json
-    import re
-    from pathlib import Path
-
-    from articast.service.cli import build_parser
-
-    text = (Path(__file__).resolve().parents[1] / "docker" / "Dockerfile").read_text()
-    cmd = json.loads(re.search(r"^CMD (\[.*\])$", text, re.M).group(1))
-    assert cmd[0] == "articast"
-    args = build_parser().parse_args(cmd[1:])
-    assert args.command == "demo" and args.host == "0.0.0.0"
-    assert "kernels.warm_up()" in text

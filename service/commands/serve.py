@@ -67,6 +67,82 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     _common(rr)
     rr.set_defaults(func=_replay_record)
 
+    w = sub.add_parser(
+        "track-worker", help="track faces and publish them to Redis (serves no socket)",
+        description="The capture + tracking role of a deployment on Redis: one session per "
+        "--source, published on the hub; 'articast gateway' processes serve the subscribers. "
+        "Reconnects to Redis by itself.", formatter_class=argparse.RawDescriptionHelpFormatter)
+    w.add_argument("--source", action="append", default=[], metavar="NAME=URI",
+                   help="a session, as for 'serve' (repeat for several faces)")
+    _hub_argument(w, required=True)
+    g = w.add_argument_group("session")
+    g.add_argument("--speaker", default="",
+                   help="speaker folder from 'articast enroll' for every session (replaces "
+                        "--model, --appearance, --camera)")
+    g.add_argument("--model", default="", help="face model (.npz) for every session")
+    g.add_argument("--appearance", default="", help="trained appearance (.npz)")
+    g.add_argument("--camera", default="", help="camera calibration (.json)")
+    g.add_argument("--processor", default="auto",
+                   help="auto | truth | tracker | module:factory (default auto)")
+    g.add_argument("--record", default=None, help="write every session's frames as JSONL "
+                   "into this folder")
+    add_arguments(w.add_argument_group("capture"), CaptureSettings)
+    add_arguments(w.add_argument_group("sessions"), SessionPolicy)
+    w.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    w.set_defaults(func=_track_worker)
+
+    gw = sub.add_parser(
+        "gateway", help="serve WebSocket subscribers from Redis (tracks nothing)",
+        description="The subscriber-facing role of a deployment on Redis: serves every "
+        "session any 'articast track-worker' publishes. Reconnects to Redis by itself.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    _hub_argument(gw, required=True)
+    add_access_arguments(gw.add_argument_group("access"))
+    add_arguments(gw.add_argument_group("server"), ServerSettings, skip=("record", "vmc"))
+    add_arguments(gw.add_argument_group("fan-out limits"), HubSettings)
+    gw.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    gw.set_defaults(func=_gateway)
+
+
+def _hub_argument(p: argparse.ArgumentParser, required: bool = False) -> None:
+    p.add_argument("--hub", default=None, required=False, metavar="URL",
+                   help="redis://HOST:PORT/DB: sessions and subscribers meet in Redis "
+                   + ("(required; env ARTICAST_HUB)" if required else
+                      "(default: the in-memory hub of this process; env ARTICAST_HUB)"))
+    p.add_argument("--hub-prefix", default=None, metavar="PREFIX",
+                   help="Redis key/channel prefix (default articast:; env ARTICAST_HUB_PREFIX)")
+
+
+def hub_url(args: argparse.Namespace, required: bool = False) -> str:
+    import os
+
+    from articast.core.errors import InputError
+
+    url = args.hub if args.hub is not None else os.environ.get("ARTICAST_HUB", "")
+    if not url:
+        if required:
+            raise InputError("--hub redis://HOST:PORT/DB is required (or env ARTICAST_HUB)")
+        return ""
+    if url in ("memory", "memory:"):
+        if required:
+            raise InputError("this role needs a Redis hub: --hub redis://HOST:PORT/DB")
+        return ""
+    if not url.startswith(("redis://", "rediss://", "unix://")):
+        raise InputError(f"--hub {url!r}: expected redis://HOST:PORT/DB (or rediss://, "
+                         "unix://)")
+    try:
+        import redis  # noqa: F401
+    except ImportError:
+        raise InputError("--hub redis:// needs the redis package: pip install "
+                         "'articast[redis]'") from None
+    return url
+
+
+def hub_prefix(args: argparse.Namespace) -> str:
+    import os
+
+    return args.hub_prefix or os.environ.get("ARTICAST_HUB_PREFIX", "") or "articast:"
+
 
 def _playback(p: argparse.ArgumentParser) -> None:
     p.add_argument("--name", help="session name (default: the file name)")
@@ -97,6 +173,7 @@ def _common(p: argparse.ArgumentParser) -> None:
                         "set ARTICAST_TOKEN or use --token-file")
     a = p.add_argument_group("access")
     add_access_arguments(a)
+    _hub_argument(p)
     add_arguments(p.add_argument_group("server"), ServerSettings)
     add_arguments(p.add_argument_group("fan-out limits"), HubSettings)
     add_arguments(p.add_argument_group("capture"), CaptureSettings)
@@ -168,6 +245,8 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     from articast.service.sources import probe
     from articast.service.worker import SessionSpec
 
+    server = from_args(ServerSettings, args)
+    access = access_policy(args, server.host)  # before probing: refuse fast and cheaply
     names = [n for n, _ in sources]
     if len(set(names)) != len(names):
         raise InputError(f"session names must differ: {names}")
@@ -186,12 +265,11 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
                               args.wait_for_subscriber, speaker=args.speaker, preview=preview)
                   for n, uri in sources)
-    server = from_args(ServerSettings, args)
-    access = access_policy(args, server.host)
     config = ServiceConfig(
         server=server, hub=from_args(HubSettings, args),
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
         sessions=specs, access=access,  # type: ignore[arg-type]
+        hub_url=hub_url(args), hub_prefix=hub_prefix(args),
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", "live",
                                              args.processor))))
 
@@ -246,3 +324,76 @@ def _replay(args: argparse.Namespace) -> int:
 def _replay_record(args: argparse.Namespace) -> int:
     uri = f"replay-record:{args.recording}?pace={args.pace}&loop={args.loop}"
     return _run(args, [(_name(args, args.recording), uri)])
+
+
+def _gateway(args: argparse.Namespace) -> int:
+    from articast.service.app import ServiceConfig
+    from articast.service.server import serve
+
+    server = from_args(ServerSettings, args)
+    url = hub_url(args, required=True)
+    config = ServiceConfig(server=server, hub=from_args(HubSettings, args),
+                           access=access_policy(args, server.host),  # type: ignore[arg-type]
+                           hub_url=url, hub_prefix=hub_prefix(args), role="gateway")
+
+    def listening(ws_url: str) -> None:
+        if args.json:
+            print(json.dumps({"url": ws_url, "hub": _safe_url(url)}), flush=True)
+        else:
+            print(f"articast gateway: serving the sessions of {_safe_url(url)} at {ws_url}; "
+                  "Ctrl-C stops", flush=True)
+
+    serve(config, listening)
+    return 0
+
+
+def _safe_url(url: str) -> str:
+    """A Redis URL without its password (never printed)."""
+    from urllib.parse import urlsplit, urlunsplit
+
+    p = urlsplit(url)
+    if p.password:
+        netloc = f"{p.username or ''}:***@{p.hostname}" + (f":{p.port}" if p.port else "")
+        return urlunsplit(p._replace(netloc=netloc))
+    return url
+
+
+def _track_worker(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from articast.core.errors import InputError
+    from articast.service.processors import check_processor
+    from articast.service.sources import parse_named, parse_uri, probe
+    from articast.service.worker import SessionSpec
+
+    url = hub_url(args, required=True)
+    sources = [parse_named(s) for s in args.source]
+    if not sources:
+        raise InputError("give at least one --source NAME=URI")
+    names = [n for n, _ in sources]
+    if len(set(names)) != len(names):
+        raise InputError(f"session names must differ: {names}")
+    for _, uri in sources:
+        probe(uri)
+        check_processor(args.processor, parse_uri(uri).kind,
+                        bool(args.appearance or args.speaker))
+    if args.speaker:
+        from articast.core.faces.speaker import Speaker
+
+        Speaker.load(args.speaker)  # a wrong folder: one clear error now
+    specs = [SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
+                         speaker=args.speaker)
+             for n, uri in sources]
+    from articast.service.worker_role import run_track_worker
+
+    def started() -> None:
+        if args.json:
+            print(json.dumps({"hub": _safe_url(url), "sessions": names}), flush=True)
+        else:
+            print(f"articast track-worker: publishing {', '.join(names)} to {_safe_url(url)}; "
+                  "Ctrl-C stops", flush=True)
+
+    asyncio.run(run_track_worker(url, hub_prefix(args), specs,
+                                 from_args(CaptureSettings, args),
+                                 from_args(SessionPolicy, args), args.record or "", started))
+    return 0
