@@ -49,7 +49,7 @@ class TrackResult:
             "quality": {
                 "ok": bool(self.ok),
                 "reason": self.reason,
-                "residual": float(self.residual) if np.isfinite(self.residual) else None,
+                "residual": float(self.residual),
                 "evals": int(self.evals),
                 "iterations": int(self.iterations),
                 "ms": float(self.ms),
