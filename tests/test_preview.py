@@ -85,7 +85,7 @@ def test_the_avatar_page_shows_the_preview(server):
     with Browser(f"{server.http}/avatar/?session=shown") as b:
         b.wait_for("(window.articast.previews || 0) > 2", 60)
         assert b.evaluate("document.getElementById('previewbox').hidden") is False
-        assert b.evaluate("document.getElementById('preview').naturalWidth") == 320
+        b.wait_for("document.getElementById('preview').naturalWidth === 320", 30)
     with Browser(f"{server.http}/avatar/?session=private") as b:
         b.wait_for("window.articast.rendered > 3", 60)
         assert b.evaluate("document.getElementById('previewbox').hidden") is True
