@@ -191,3 +191,20 @@ def test_streamed_pose_is_relative_to_the_neutral(tmp_path):
         np.testing.assert_allclose(pose["rotation"], rest_pose("head").rotation, atol=1e-9)
         np.testing.assert_allclose(pose["head"]["rotation"], 0.0, atol=1e-9)
         np.testing.assert_allclose(pose["head"]["translation"], 0.0, atol=1e-9)
+
+
+def test_every_arkit_mouth_and_jaw_shape_is_driven():
+    from articast.core.outputs.arkit import ARKIT_BLENDSHAPES, ArkitMapper
+
+    model = default_speaker(1).model()
+    mouth_jaw = {n for n in ARKIT_BLENDSHAPES if n.startswith(("mouth", "jaw"))}
+    mapper = ArkitMapper(model)
+    assert set(mapper.populated) == mouth_jaw
+    # each one really moves within the speaker's range (not a constant 0; the sideways jaw
+    # shifts are the smallest: ~0.3 mm, 0.13-0.16 of the 2 mm minimum full scale)
+    rng = np.random.default_rng(0)
+    s = model.stats
+    alpha = rng.uniform(s.min, s.max, size=(400, model.n_params))
+    w = mapper.weights(alpha)
+    idx = [ARKIT_BLENDSHAPES.index(n) for n in sorted(mouth_jaw)]
+    assert np.all(w[:, idx].max(0) > 0.05), dict(zip(sorted(mouth_jaw), w[:, idx].max(0)))
