@@ -59,3 +59,26 @@ def test_demo_prints_its_url_once_the_face_streams(tmp_path):
     finally:
         proc.terminate()
         proc.wait(30)
+
+
+def test_a_source_that_cannot_open_is_logged_on_the_console():
+    """At the default log level, with the reason; and the URL is still printed."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "serve", "--port", "0", "--json",
+         "--source", "cam=v4l2:/dev/video99", "--processor", "tests.service_helpers:ImageStats"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root)
+    try:
+        line = proc.stdout.readline()  # printed once the session has said why it cannot run
+        assert json.loads(line)["sessions"] == ["cam"]
+        err = ""
+        while "unavailable" not in err:
+            err = proc.stderr.readline()
+            assert err, "no warning on the console"
+        assert "session cam: unavailable: /dev/video99" in err and "no such device" in err
+        assert "Traceback" not in err
+    finally:
+        proc.terminate()
+        proc.wait(30)
