@@ -174,7 +174,8 @@ class FrameEvent:
             alpha = np.asarray(r.alpha)
             if "fap" in streams:
                 v["fap"] = self.outputs.fap(alpha, np.asarray(r.rotation),
-                                            np.asarray(r.translation), bool(r.quality["ok"]))
+                                            np.asarray(r.translation), bool(r.quality["ok"]),
+                                            None if self.neutral is None else self.neutral[0])
             if "arkit" in streams:
                 v["arkit"] = self.outputs.arkit_weights(alpha)
         return v

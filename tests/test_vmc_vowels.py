@@ -87,11 +87,17 @@ def receiver():
 HOLD = 12  # frames per vowel
 
 
-def vowel_recording(path, model, states, fps=30.0):
+def vowel_recording(path, model, states, fps=30.0, nod_from=None):
     """The speaker holding rest, a, e, i, o, u in turn, head at the rig's rest pose (pitched
-    6.5 degrees towards a frontal camera's axis, as in the issue's report)."""
+    6.5 degrees towards a frontal camera's axis, as in the issue's report); from frame
+    ``nod_from`` on, the head is nodded down by 0.1 rad."""
+    from articast.core.model.camera import Pose, axis_angle, rotation_matrix
+
     desc = describe(model, Camera.default(640, 480), model.param_names)
-    pose = rest_pose("head").to_dict()
+    rest = rest_pose("head")
+    nodded = Pose(axis_angle(rotation_matrix(rest.rotation) @ rotation_matrix([0.1, 0, 0])),
+                  rest.translation).to_dict()
+    rest = rest.to_dict()
     order = ["rest", "a", "e", "i", "o", "u"]
     with path.open("w") as fh:
         fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
@@ -99,6 +105,7 @@ def vowel_recording(path, model, states, fps=30.0):
                              **desc}) + "\n")
         for i in range(HOLD * len(order)):
             a = states[order[i // HOLD]]
+            pose = nodded if nod_from is not None and i >= nod_from else rest
             fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / fps,
                                  "alpha": dict(zip(model.param_names, map(float, a))),
                                  "pose": pose, "quality": {"ok": True, "reason": "",
@@ -171,26 +178,42 @@ def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
     assert all(r[1] >= HOLD // 3 for r in runs) and sum(r[1] for r in runs) == published, runs
 
 
-def test_streamed_pose_is_relative_to_the_neutral(tmp_path):
+def test_streamed_pose_is_relative_to_the_neutral_and_recentres(tmp_path):
     from websockets.sync.client import connect
 
     model, states = vowel_states(1)
-    vowel_recording(tmp_path / "v.jsonl", model, states)
-    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=0",
+    vowel_recording(tmp_path / "v.jsonl", model, states, nod_from=20)
+    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=1",
                        wait_for_subscriber=True)
     config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
-    with ServerThread(config) as srv, connect(srv.url, open_timeout=TIMEOUT) as ws:
-        ws.send(json.dumps({"type": "subscribe", "session": "v", "streams": ["pose"]}))
-        frames = []
-        while len(frames) < 3:
+
+    def frames(ws, until):
+        while True:
             m = json.loads(ws.recv(timeout=TIMEOUT))
             if m["type"] == "frame":
-                frames.append(m)
-    for f in frames:
+                yield m
+                if until(m):
+                    return
+
+    with ServerThread(config) as srv, connect(srv.url, open_timeout=TIMEOUT) as ws:
+        ws.send(json.dumps({"type": "subscribe", "session": "v", "streams": ["pose"]}))
+        got = list(frames(ws, lambda m: m["frame"] >= 30))
+        with urllib.request.urlopen(urllib.request.Request(
+                f"{srv.http}/api/sessions/v/recentre", method="POST"), timeout=10) as r:
+            assert r.status == 200
+        after = list(frames(ws, lambda m: m["frame"] >= 60))
+    for f in got:
         pose = f["values"]["pose"]
-        np.testing.assert_allclose(pose["rotation"], rest_pose("head").rotation, atol=1e-9)
-        np.testing.assert_allclose(pose["head"]["rotation"], 0.0, atol=1e-9)
-        np.testing.assert_allclose(pose["head"]["translation"], 0.0, atol=1e-9)
+        nod = 0.1 if f["frame"] >= 20 else 0.0
+        np.testing.assert_allclose(pose["head"]["rotation"], [nod, 0, 0], atol=1e-6)
+        np.testing.assert_allclose(pose["head"]["translation"], 0.0, atol=1e-6)
+        if f["frame"] < 20:  # the camera-frame pose is the rig's, 6.5 degrees off frontal
+            np.testing.assert_allclose(pose["rotation"], rest_pose("head").rotation, atol=1e-9)
+    # after the re-centre, the nodded head is the new neutral
+    late = [f for f in after if f["frame"] >= 40]
+    assert late
+    for f in late:
+        np.testing.assert_allclose(f["values"]["pose"]["head"]["rotation"], 0.0, atol=1e-6)
 
 
 def test_every_arkit_mouth_and_jaw_shape_is_driven():
