@@ -23,6 +23,11 @@ def test_assets_are_cached_and_reloaded_identically(tmp_path):
     np.testing.assert_array_equal(model2.basis, model.basis)
     np.testing.assert_array_equal(app2.weights, app.weights)
     np.testing.assert_array_equal(app2.samples.index, app.samples.index)
+    # the texture atlas comes from the cache, identical to a built one
+    from articast.core.synthetic import texture
+
+    assert (folder / "atlas.npy").is_file() and 1 in texture._PRESET_ATLASES
+    np.testing.assert_array_equal(texture.make_atlas(1).image, texture._make_atlas(1).image)
     # the stream tracks with what was cached
     stream = open_stream(1, 30.0, cache_dir=tmp_path)
     np.testing.assert_array_equal(stream.appearance.weights, app.weights)
