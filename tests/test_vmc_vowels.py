@@ -19,9 +19,11 @@ from articast.core.outputs.vowels import VOWELS, VowelMapper
 from articast.core.synthetic import default_speaker, rest_pose
 from articast.service.app import ServiceConfig
 from articast.service.settings import ServerSettings
+from articast.service.vmc import MAX_DATAGRAM
 from articast.service.wire import describe
 from articast.service.worker import SessionSpec
 from tests.service_helpers import TIMEOUT, ServerThread
+from tests.test_arkit_vmc import vmc_frames
 
 
 def vowel_states(seed):
@@ -69,6 +71,7 @@ class Bundles(Dispatcher):
         msgs = [(m.message.address, tuple(m.message.params)) for m in OscPacket(data).messages]
         with self.lock:
             self.packets.append((OscBundle.dgram_is_bundle(data), msgs))
+            self.largest = max(getattr(self, "largest", 0), len(data))
         return super().call_handlers_for_packet(data, client_address)
 
 
@@ -131,7 +134,8 @@ def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
         while session.state != "ended" and time.monotonic() < deadline:
             time.sleep(0.05)
         vmc = srv.service.manager.vmc
-        while len(rec.packets) < vmc.frames_sent and time.monotonic() < deadline:
+        while (len(vmc_frames(list(rec.packets))) < vmc.frames_sent
+               and time.monotonic() < deadline):
             time.sleep(0.05)
         published = session.metrics.frames
         with urllib.request.urlopen(urllib.request.Request(
@@ -139,15 +143,15 @@ def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
             assert json.load(r) == {"name": "v", "recentred": True}
     time.sleep(0.1)
     with rec.lock:
-        packets = list(rec.packets)
+        packets = vmc_frames(rec.packets)
+        assert rec.largest <= MAX_DATAGRAM  # every bundle fits one Ethernet frame
     # one bundle per published frame, every one received (realtime pacing: under load the
     # capture may skip a frame, which is then neither published nor sent)
     assert vmc.frames_sent + vmc.frames_dropped == published and vmc.frames_dropped == 0
     assert len(packets) == published and published >= n // 2
     jaw = "JawOpen" if style == "perfect-sync" else "jawOpen"
     dominant, times = [], []
-    for is_bundle, msgs in packets:
-        assert is_bundle
+    for msgs in packets:
         addr = [a for a, _ in msgs]
         assert addr[:4] == ["/VMC/Ext/OK", "/VMC/Ext/T", "/VMC/Ext/Root/Pos", "/VMC/Ext/Bone/Pos"]
         assert addr[-1] == "/VMC/Ext/Blend/Apply"
