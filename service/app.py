@@ -581,8 +581,10 @@ def create_app(config: ServiceConfig | None = None,
         return {"name": name, "recentred": True}
 
     @app.get("/api/sessions/{name}/preview.jpg")
-    async def preview(name: str) -> Response:
-        """The newest tracking preview of a session that opted in (404 otherwise)."""
+    async def preview(name: str, request: Request) -> Response:
+        """The newest tracking preview of a session that opted in (404 otherwise): a picture
+        of a face, so the token is needed like for subscribing."""
+        authorise(request)
         session = svc.manager.sessions.get(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r}")

@@ -25,13 +25,21 @@ class Outputs:
         self.fapu = fapu_from_model(model).as_dict()
         self._fap_cls = FapEncoder
         self._fap: Any = None
+        self._fap_ref: tuple[float, ...] = ()
         self.arkit = ArkitMapper(model)
 
     def fap(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
-            ok: bool) -> dict[str, Any]:
+            ok: bool, neutral_rotation: Any = None) -> dict[str, Any]:
+        """FAPs of one frame; the head FAPs are relative to ``neutral_rotation`` (the
+        session's neutral head pose), or without one to the first good frame seen here."""
+        if neutral_rotation is not None and (self._fap is None
+                                             or tuple(neutral_rotation) != self._fap_ref):
+            self._fap_ref = tuple(neutral_rotation)
+            self._fap = self._fap_cls(self.model, reference_rotation=np.asarray(self._fap_ref))
         if self._fap is None:
             if not ok:  # no reference head pose yet: nothing sensible to say
                 return {"values": {}, "mask": []}
+            self._fap_ref = tuple(float(v) for v in rotation)
             self._fap = self._fap_cls(self.model, reference_rotation=np.asarray(rotation))
         values = self._fap.frame_dict(alpha, np.concatenate([rotation, translation]))
         return {"values": values, "mask": sorted(int(k) for k in values)}

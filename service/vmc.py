@@ -1,8 +1,10 @@
 """Send the tracked face to VMC-protocol receivers (VSeeFace, VNyan, Warudo, EVMC4U in Unity).
 
-One OSC bundle (UDP) per frame, laid out as the common senders lay theirs out and as a
-reference receiver (EVMC4U's ``ExternalReceiver``) parses them: every argument typed as the
-receiver checks it (``i`` int32, ``f`` float32, ``s`` string):
+OSC bundles (UDP) per frame, laid out as the common senders lay theirs out and as a reference
+receiver (EVMC4U's ``ExternalReceiver``) parses them, every argument typed as the receiver
+checks it (``i`` int32, ``f`` float32, ``s`` string). A frame is split into bundles of at most
+:data:`MAX_DATAGRAM` bytes (two for the synthetic speaker: ~1.7 kB in all), each starting with
+``/VMC/Ext/OK`` and ``/VMC/Ext/T``; in order:
 
 ===================================================  =========================================
 ``/VMC/Ext/OK 1``                                    availability (1: a model is loaded and
@@ -42,6 +44,7 @@ receiver.
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 from pythonosc.osc_bundle import OscBundle
@@ -55,6 +58,10 @@ from articast.core.model.face import FaceModel
 from articast.core.outputs.arkit import ArkitMapper
 from articast.core.outputs.vowels import VowelMapper
 from articast.core.tracking.result import TrackResult
+
+MAX_DATAGRAM = 1400
+"""Largest bundle sent, bytes: under a 1500-byte Ethernet MTU with IP and UDP headers."""
+_BUNDLE_HEADER = 16  # "#bundle\0" and the time tag
 
 DEFAULT_PORT = 39539
 """The VMC protocol's default receiving (Marionette) port."""
@@ -151,9 +158,12 @@ class VmcSender:
             self._mappers = (model, ArkitMapper(model), vowels)
         return self._mappers[1], self._mappers[2]
 
-    def bundle(self, result: TrackResult, model: FaceModel, *, neutral: Pose | None = None,
-               t: float = 0.0) -> OscBundle:
-        """The OSC bundle of one frame (no I/O).
+    def bundles(self, result: TrackResult, model: FaceModel, *, neutral: Pose | None = None,
+                t: float = 0.0) -> list[OscBundle]:
+        """The OSC bundles of one frame (no I/O): each fits one Ethernet frame
+        (:data:`MAX_DATAGRAM` bytes, so no IP fragment can be lost on a LAN) and starts with
+        ``/VMC/Ext/OK`` and ``/VMC/Ext/T``; the root and the head come first, the blend
+        values next, ``/VMC/Ext/Blend/Apply`` last (receivers keep values until Apply).
 
         neutral : the speaker's neutral head pose (None: this frame's, i.e. no rotation).
         t : sender time, s (``/VMC/Ext/T``).
@@ -161,32 +171,46 @@ class VmcSender:
         ref = neutral if neutral is not None else result.pose
         pos, quat = head_bone(result.pose.rotation, result.pose.translation,
                               np.asarray(ref.rotation, float), np.asarray(ref.translation, float))
-        builder = OscBundleBuilder(IMMEDIATELY)
-        builder.add_content(_message("/VMC/Ext/OK", 1))
-        builder.add_content(_message("/VMC/Ext/T", float(t)))
-        builder.add_content(_message("/VMC/Ext/Root/Pos", "root", 0.0, 0.0, 0.0,
-                                     0.0, 0.0, 0.0, 1.0))
-        builder.add_content(_message("/VMC/Ext/Bone/Pos", "Head",
-                                     *(float(v) for v in pos), *(float(v) for v in quat)))
+        messages = [
+            _message("/VMC/Ext/Root/Pos", "root", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0),
+            _message("/VMC/Ext/Bone/Pos", "Head", *(float(v) for v in pos),
+                     *(float(v) for v in quat)),
+        ]
         arkit, vowels = self._mappers_for(model)
         weights = arkit.weights_dict(result.alpha, populated_only=self.populated_only)
         for name, value in weights.items():
-            builder.add_content(_message("/VMC/Ext/Blend/Val", blend_name(name, self.names),
-                                         float(value)))
+            messages.append(_message("/VMC/Ext/Blend/Val", blend_name(name, self.names),
+                                     float(value)))
         if vowels is not None:
             for name, value in vowels.weights_dict(result.alpha).items():
-                builder.add_content(_message("/VMC/Ext/Blend/Val", name, float(value)))
-        builder.add_content(_message("/VMC/Ext/Blend/Apply"))
-        return builder.build()
+                messages.append(_message("/VMC/Ext/Blend/Val", name, float(value)))
+        messages.append(_message("/VMC/Ext/Blend/Apply"))
+        head = [_message("/VMC/Ext/OK", 1), _message("/VMC/Ext/T", float(t))]
+        groups: list[list[Any]] = [[]]
+        size = _BUNDLE_HEADER + sum(4 + m.size for m in head)
+        for m in messages:
+            if groups[-1] and size + 4 + m.size > MAX_DATAGRAM:
+                groups.append([])
+                size = _BUNDLE_HEADER + sum(4 + h.size for h in head)
+            groups[-1].append(m)
+            size += 4 + m.size
+        out = []
+        for group in groups:
+            builder = OscBundleBuilder(IMMEDIATELY)
+            for m in (*head, *group):
+                builder.add_content(m)
+            out.append(builder.build())
+        return out
 
     def send(self, result: TrackResult, model: FaceModel, *,
              neutral: Pose | None = None) -> bool:
-        """Send the frame's bundle; never blocks. Returns False (and counts the frame in
-        :attr:`frames_dropped`, keeping :attr:`last_error`) if the OS refused the datagram,
+        """Send the frame's bundles; never blocks. Returns False (and counts the frame in
+        :attr:`frames_dropped`, keeping :attr:`last_error`) if the OS refused a datagram,
         e.g. a full send buffer or an unreachable network: a live stream goes on."""
-        packet = self.bundle(result, model, neutral=neutral, t=time.monotonic() - self._t0)
+        packets = self.bundles(result, model, neutral=neutral, t=time.monotonic() - self._t0)
         try:
-            self._client.send(packet)
+            for packet in packets:
+                self._client.send(packet)
         except OSError as exc:  # includes BlockingIOError on the non-blocking socket
             self.frames_dropped += 1
             self.last_error = f"{exc.__class__.__name__}: {exc}"

@@ -46,6 +46,7 @@ def describe(model: Any, camera: Any, param_names: tuple[str, ...]) -> dict[str,
             "triangles": model.triangles.ravel().tolist(),
             "point_names": list(model.point_names),
             "feature_points": dict(model.feature_points),
+            "groups": {g: [int(i) for i in idx] for g, idx in model.groups.items()},
         }
     return d
 
@@ -68,6 +69,7 @@ def model_from_description(d: dict[str, Any]) -> Any:
         point_names=tuple(g.get("point_names") or ()),
         triangles=np.asarray(g.get("triangles") or [], np.int32).reshape(-1, 3),
         feature_points=g.get("feature_points") or {},
+        groups={k: np.asarray(v, np.int64) for k, v in (g.get("groups") or {}).items()},
         name=g.get("name", "speaker"),
     )
 
@@ -173,7 +175,8 @@ class FrameEvent:
             alpha = np.asarray(r.alpha)
             if "fap" in streams:
                 v["fap"] = self.outputs.fap(alpha, np.asarray(r.rotation),
-                                            np.asarray(r.translation), bool(r.quality["ok"]))
+                                            np.asarray(r.translation), bool(r.quality["ok"]),
+                                            None if self.neutral is None else self.neutral[0])
             if "arkit" in streams:
                 v["arkit"] = self.outputs.arkit_weights(alpha)
         return v

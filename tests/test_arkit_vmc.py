@@ -20,6 +20,7 @@ from articast.core.outputs.arkit import ARKIT_BLENDSHAPES, ArkitMapper
 from articast.core.tracking.result import TrackResult
 from articast.service.vmc import (
     DEFAULT_PORT,
+    MAX_DATAGRAM,
     VmcSender,
     head_bone,
     parse_host_port,
@@ -156,8 +157,26 @@ class RecordingDispatcher(Dispatcher):
         msgs = [(m.message.address, tuple(m.message.params)) for m in OscPacket(data).messages]
         with self.cond:
             self.packets.append((OscBundle.dgram_is_bundle(data), msgs))
+            self.largest = max(getattr(self, "largest", 0), len(data))
             self.cond.notify_all()
         return super().call_handlers_for_packet(data, client_address)
+
+
+def vmc_frames(packets):
+    """Datagrams [(is_bundle, [(address, args)])] -> one message list per frame, in time
+    order. Each bundle must start with /VMC/Ext/OK and /VMC/Ext/T; a frame's bundles share
+    its T (a threaded receiver may swap them: the root/head one goes first, Apply's last)."""
+    by_t = {}
+    for is_bundle, msgs in packets:
+        assert is_bundle
+        assert [a for a, _ in msgs[:2]] == ["/VMC/Ext/OK", "/VMC/Ext/T"], msgs[:2]
+        by_t.setdefault(msgs[1][1][0], []).append(msgs)
+    frames = []
+    for t in sorted(by_t):
+        parts = sorted(by_t[t], key=lambda m: (m[2][0] != "/VMC/Ext/Root/Pos",
+                                               m[-1][0] == "/VMC/Ext/Blend/Apply"))
+        frames.append(parts[0][:2] + [m for p in parts for m in p[2:]])
+    return frames
 
 
 @pytest.fixture
@@ -172,7 +191,7 @@ def osc_server():
     thread.join(TIMEOUT)
 
 
-def test_vmc_sender_one_bundle_per_frame_to_a_real_osc_server(osc_server):
+def test_vmc_sender_bundles_per_frame_to_a_real_osc_server(osc_server):
     server, rec = osc_server
     jaw = np.linspace(-2.0, 3.0, 12)
     results = [
@@ -182,15 +201,19 @@ def test_vmc_sender_one_bundle_per_frame_to_a_real_osc_server(osc_server):
         for i, a in enumerate(jaw)
     ]
     with VmcSender(*server.server_address) as sender:
-        for i, r in enumerate(results):  # one at a time: the threaded server may reorder
+        expected = 0
+        for r in results:  # one at a time: the threaded server may reorder
+            expected += len(sender.bundles(r, MODEL, neutral=results[0].pose))
             assert sender.send(r, MODEL, neutral=results[0].pose)
             with rec.cond:
-                assert rec.cond.wait_for(lambda i=i: len(rec.packets) > i, TIMEOUT)
+                assert rec.cond.wait_for(lambda n=expected: len(rec.packets) >= n, TIMEOUT)
     time.sleep(0.05)
-    assert len(rec.packets) == len(results) and sender.frames_sent == len(results)
+    assert len(rec.packets) == expected > len(results)  # split: each under one MTU
+    assert rec.largest <= MAX_DATAGRAM
+    frames = vmc_frames(rec.packets)
+    assert len(frames) == len(results) and sender.frames_sent == len(results)
     jaw_open, pitch = [], []
-    for is_bundle, msgs in rec.packets:
-        assert is_bundle
+    for msgs in frames:
         addresses = [a for a, _ in msgs]
         assert addresses[:4] == ["/VMC/Ext/OK", "/VMC/Ext/T", "/VMC/Ext/Root/Pos",
                                  "/VMC/Ext/Bone/Pos"]

@@ -23,6 +23,11 @@ def test_assets_are_cached_and_reloaded_identically(tmp_path):
     np.testing.assert_array_equal(model2.basis, model.basis)
     np.testing.assert_array_equal(app2.weights, app.weights)
     np.testing.assert_array_equal(app2.samples.index, app.samples.index)
+    # the texture atlas comes from the cache, identical to a built one
+    from articast.core.synthetic import texture
+
+    assert (folder / "atlas.npy").is_file() and 1 in texture._PRESET_ATLASES
+    np.testing.assert_array_equal(texture.make_atlas(1).image, texture._make_atlas(1).image)
     # the stream tracks with what was cached
     stream = open_stream(1, 30.0, cache_dir=tmp_path)
     np.testing.assert_array_equal(stream.appearance.weights, app.weights)
@@ -56,6 +61,29 @@ def test_demo_prints_its_url_once_the_face_streams(tmp_path):
         assert info["avatar"] == f"{http}/avatar/?session=demo"
         with urllib.request.urlopen(info["avatar"], timeout=10) as r:  # the page is served
             assert b'id="overlay"' in r.read()
+    finally:
+        proc.terminate()
+        proc.wait(30)
+
+
+def test_a_source_that_cannot_open_is_logged_on_the_console():
+    """At the default log level, with the reason; and the URL is still printed."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "serve", "--port", "0", "--json",
+         "--source", "cam=v4l2:/dev/video99", "--processor", "tests.service_helpers:ImageStats"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root)
+    try:
+        line = proc.stdout.readline()  # printed once the session has said why it cannot run
+        assert json.loads(line)["sessions"] == ["cam"]
+        err = ""
+        while "unavailable" not in err:
+            err = proc.stderr.readline()
+            assert err, "no warning on the console"
+        assert "session cam: unavailable: /dev/video99" in err and "no such device" in err
+        assert "Traceback" not in err
     finally:
         proc.terminate()
         proc.wait(30)

@@ -85,7 +85,24 @@ def test_the_avatar_page_shows_the_preview(server):
     with Browser(f"{server.http}/avatar/?session=shown") as b:
         b.wait_for("(window.articast.previews || 0) > 2", 60)
         assert b.evaluate("document.getElementById('previewbox').hidden") is False
-        assert b.evaluate("document.getElementById('preview').naturalWidth") == 320
+        b.wait_for("document.getElementById('preview').naturalWidth === 320", 30)
     with Browser(f"{server.http}/avatar/?session=private") as b:
         b.wait_for("window.articast.rendered > 3", 60)
         assert b.evaluate("document.getElementById('previewbox').hidden") is True
+
+
+def test_with_a_token_the_preview_needs_it():
+    """A preview is a picture of a face: nobody without the token sees it."""
+    from articast.service.security import AccessPolicy
+
+    config = ServiceConfig(server=ServerSettings(log_level="critical"),
+                           sessions=(SessionSpec("shown", "synthetic:seed=1&fps=15&loop=0",
+                                                 preview=True),),
+                           access=AccessPolicy(token="s3cret"))
+    with ServerThread(config) as srv:
+        url = f"{srv.http}/api/sessions/shown/preview.jpg"
+        with pytest.raises(urllib.error.HTTPError) as e:
+            get(url)
+        assert e.value.code == 401
+        status, headers, body = wait_for_preview(url + "?token=s3cret")
+        assert status == 200 and body[:2] == b"\xff\xd8"

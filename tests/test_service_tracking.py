@@ -117,10 +117,10 @@ def test_serve_sends_vmc_bundles_while_streaming(tmp_path):
             import time
 
             deadline = time.monotonic() + TIMEOUT
-            while len({n for n, _ in got if n == "jawOpen"}) == 0 and time.monotonic() < deadline:
+            while len({n for n, _ in got if n == "JawOpen"}) == 0 and time.monotonic() < deadline:
                 time.sleep(0.05)
     finally:
         osc.shutdown()
     assert frames
     names = {n for n, _ in got}
-    assert "jawOpen" in names and all(0.0 <= v <= 1.0 for _, v in got)
+    assert "JawOpen" in names and all(0.0 <= v <= 1.0 for _, v in got)

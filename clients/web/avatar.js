@@ -27,12 +27,16 @@ const canvas = $("canvas");
 const gl = canvas.getContext("webgl", { preserveDrawingBuffer: true, antialias: true });
 
 // ----------------------------------------------------------------------------- rendering
-const VS = `attribute vec3 p; attribute vec3 n; uniform mat4 mvp; uniform mat3 rot;
-varying vec3 vn; void main() { vn = rot * n; gl_Position = mvp * vec4(p, 1.0); }`;
-const FS = `precision mediump float; varying vec3 vn; uniform vec3 colour; uniform float unlit;
+// per-point labels of the dense face (hello's dense mesh): 0 skin, 1 lips, 2 teeth, 3 mouth
+const VS = `attribute vec3 p; attribute vec3 n; attribute float lab; uniform mat4 mvp;
+uniform mat3 rot; uniform vec3 colour; varying vec3 vn; varying vec3 vc;
+void main() { vn = rot * n; gl_Position = mvp * vec4(p, 1.0);
+  vc = lab < 0.5 ? colour : lab < 1.5 ? vec3(0.72, 0.33, 0.36)
+     : lab < 2.5 ? vec3(0.93, 0.92, 0.86) : vec3(0.22, 0.05, 0.07); }`;
+const FS = `precision mediump float; varying vec3 vn; varying vec3 vc; uniform float unlit;
 void main() { vec3 l = normalize(vec3(-0.3, 0.4, 1.0));
-  float d = max(dot(normalize(vn), l), 0.0);
-  gl_FragColor = vec4(colour * mix(0.35 + 0.75 * d, 1.0, unlit), 1.0); }`;
+  float d = abs(dot(normalize(vn), l));
+  gl_FragColor = vec4(vc * mix(0.35 + 0.75 * d, 1.0, unlit), 1.0); }`;
 
 function shader(type, src) {
   const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);
@@ -46,6 +50,7 @@ if (gl) {
   gl.attachShader(prog, shader(gl.FRAGMENT_SHADER, FS));
   gl.linkProgram(prog);
   loc = { p: gl.getAttribLocation(prog, "p"), n: gl.getAttribLocation(prog, "n"),
+          lab: gl.getAttribLocation(prog, "lab"),
           mvp: gl.getUniformLocation(prog, "mvp"), rot: gl.getUniformLocation(prog, "rot"),
           colour: gl.getUniformLocation(prog, "colour"), unlit: gl.getUniformLocation(prog, "unlit") };
   gl.enable(gl.DEPTH_TEST);
@@ -53,8 +58,9 @@ if (gl) {
 
 class Mesh {
   // mean: Float32Array(3M), basis: Float32Array(K*3M), triangles: array of indices
-  constructor(mean, basis, triangles, k) {
+  constructor(mean, basis, triangles, k, labels) {
     this.mean = mean; this.basis = basis; this.k = k; this.m = mean.length / 3;
+    this.labels = labels && labels.length === this.m ? new Float32Array(labels) : null;
     this.tri = new Uint32Array(triangles);
     this.pos = new Float32Array(mean.length); this.nrm = new Float32Array(mean.length);
     const edges = new Set();
@@ -67,6 +73,10 @@ class Mesh {
     let i = 0; for (const e of edges) { this.lines[i++] = Math.floor(e / 1e6); this.lines[i++] = e % 1e6; }
     if (gl) {
       this.pb = gl.createBuffer(); this.nb = gl.createBuffer();
+      if (this.labels) {
+        this.labb = gl.createBuffer(); gl.bindBuffer(gl.ARRAY_BUFFER, this.labb);
+        gl.bufferData(gl.ARRAY_BUFFER, this.labels, gl.STATIC_DRAW);
+      }
       this.ib = gl.createBuffer(); gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.ib);
       gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, this.tri, gl.STATIC_DRAW);
       this.lb = gl.createBuffer(); gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.lb);
@@ -101,6 +111,10 @@ class Mesh {
     gl.enableVertexAttribArray(loc.p); gl.vertexAttribPointer(loc.p, 3, gl.FLOAT, false, 0, 0);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.nb); gl.bufferData(gl.ARRAY_BUFFER, this.nrm, gl.DYNAMIC_DRAW);
     gl.enableVertexAttribArray(loc.n); gl.vertexAttribPointer(loc.n, 3, gl.FLOAT, false, 0, 0);
+    if (this.labels && !wire) {
+      gl.bindBuffer(gl.ARRAY_BUFFER, this.labb);
+      gl.enableVertexAttribArray(loc.lab); gl.vertexAttribPointer(loc.lab, 1, gl.FLOAT, false, 0, 0);
+    } else { gl.disableVertexAttribArray(loc.lab); gl.vertexAttrib1f(loc.lab, 0); }
     gl.uniformMatrix4fv(loc.mvp, false, mvp); gl.uniformMatrix3fv(loc.rot, false, rot);
     gl.uniform3fv(loc.colour, colour); gl.uniform1f(loc.unlit, wire ? 1 : 0);
     if (wire) {
@@ -195,7 +209,7 @@ function startPreview(url) {
     const t0 = performance.now();
     img.onload = () => { state.previews++; previewTimer = setTimeout(next, Math.max(0, 200 - (performance.now() - t0))); };
     img.onerror = () => { previewTimer = setTimeout(next, 1000); };
-    img.src = `${previewUrl}?n=${state.previews}`;
+    img.src = withToken(`${previewUrl}?n=${state.previews}`);
   };
   previewTimer = setTimeout(next, 0);
 }
@@ -213,7 +227,7 @@ async function onHello(h) {
   if (h.dense_url) {
     try {
       const d = await (await fetch(h.dense_url, { headers: authHeaders })).json();
-      dense = new Mesh(new Float32Array(d.mean), new Float32Array(d.basis), d.triangles, k);
+      dense = new Mesh(new Float32Array(d.mean), new Float32Array(d.basis), d.triangles, k, d.labels);
       state.mesh = `dense ${dense.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh;
     } catch (e) { console.warn("dense mesh unavailable", e); }
   }

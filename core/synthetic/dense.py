@@ -19,19 +19,27 @@ from articast.core.model.face import FaceModel
 
 @dataclass(frozen=True, eq=False)
 class DenseFace:
-    """mean (M, 3) mm, modes (K, M, 3) mm per unit alpha, triangles (T, 3), and the largest
-    gap (mm) between the linear dense modes and per-frame transfer over training postures."""
+    """mean (M, 3) mm, modes (K, M, 3) mm per unit alpha, triangles (T, 3), the largest
+    gap (mm) between the linear dense modes and per-frame transfer over training postures,
+    and labels (M,) uint8 per point (:data:`~articast.core.dense.mouth.LABELS`: skin, lips,
+    teeth, mouth; the teeth and mouth cavity are added points, :mod:`articast.core.dense.mouth`).
+    """
 
     mean: np.ndarray
     modes: np.ndarray
     triangles: np.ndarray
     linearity_error_mm: float
+    labels: np.ndarray | None = None
 
     def to_dict(self) -> dict:
+        from articast.core.dense.mouth import LABELS
+
+        labels = self.labels if self.labels is not None else np.zeros(len(self.mean), np.uint8)
         return {"n_points": int(len(self.mean)),
                 "mean": self.mean.astype(np.float32).ravel().tolist(),
                 "basis": self.modes.astype(np.float32).ravel().tolist(),
                 "triangles": self.triangles.ravel().tolist(),
+                "labels": labels.tolist(), "label_names": list(LABELS),
                 "linearity_error_mm": self.linearity_error_mm}
 
 
@@ -85,4 +93,10 @@ def dense_face(model: FaceModel, steps: int = 2, seed: int = 0,
     exact[:, out] = np.stack([barycentric_apply(binding, model.shape(a)) + verts - b_mean
                               for a in probes])[:, out]
     err = float(np.linalg.norm(lin - exact, axis=-1).max())
-    return DenseFace(mean, modes, tris, err)
+    from articast.core.dense.mouth import lip_labels, mouth_parts
+
+    labels = lip_labels(model, binding.facet)
+    verts_m, modes_m, tris_m, labels_m = mouth_parts(model)
+    return DenseFace(np.concatenate([mean, verts_m]), np.concatenate([modes, modes_m], axis=1),
+                     np.concatenate([tris, tris_m + len(mean)]), err,
+                     np.concatenate([labels, labels_m]))

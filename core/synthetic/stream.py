@@ -7,7 +7,8 @@ the seed, the rig, the appearance kind and this package's code, so :func:`open_s
 them in ``cache_dir`` (the service passes ``$ARTICAST_CACHE_DIR`` or ``~/.cache/articast``):
 one folder per key, whose name carries a digest of the source of every module that shapes them
 (:func:`asset_key`). A changed module is a new key: stale assets are never loaded, and the
-first start after the change trains again (once).
+first start after the change trains again (once). The speaker's texture atlas (~0.4 s to
+build at the first rendered frame) is kept there too.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from articast.core.appearance.models import AppearanceModel
-from articast.core.errors import ArticastError
+from articast.core.errors import ArticastError, InputError
 from articast.core.model.build import invert
 from articast.core.model.camera import Camera, Pose
 from articast.core.model.face import FaceModel
@@ -29,6 +30,7 @@ from articast.core.synthetic.enrol import enrolment_appearance
 from articast.core.synthetic.render import RenderOptions
 from articast.core.synthetic.sequence import default_camera, make_sequence, rest_pose
 from articast.core.synthetic.speaker import default_speaker
+from articast.core.synthetic.texture import make_atlas, preset_atlas
 from articast.core.tracking.result import TrackResult
 
 CHUNK_S = 10.0  # each chunk is a fresh sequence of this length; time runs on across chunks
@@ -88,7 +90,9 @@ def speaker_assets(seed: int, rig: str = "head", kind: str = "la_quad",
     if folder is not None and (folder / "appearance.npz").is_file():
         try:
             model = FaceModel.load(folder / "model.npz")
-            return model, AppearanceModel.load(folder / "appearance.npz", model)
+            appearance = AppearanceModel.load(folder / "appearance.npz", model)
+            _load_atlas(seed, folder / "atlas.npy")
+            return model, appearance
         except ArticastError:
             pass  # a damaged cache entry: rebuild it below
     speaker = default_speaker(seed)
@@ -98,10 +102,22 @@ def speaker_assets(seed: int, rig: str = "head", kind: str = "la_quad",
         try:
             folder.mkdir(parents=True, exist_ok=True)
             model.save(folder / "model.npz")
+            tmp = folder / "atlas.tmp.npy"
+            np.save(tmp, make_atlas(seed).image)
+            os.replace(tmp, folder / "atlas.npy")
             appearance.save(folder / "appearance.npz")  # written last: marks a whole entry
         except OSError:
             pass
     return model, appearance
+
+
+def _load_atlas(seed: int, path: Path) -> None:
+    """Use the cached texture atlas (rendering's first frame would build it, ~0.4 s); an
+    entry without one (or a damaged one) only costs that time."""
+    try:
+        preset_atlas(seed, np.load(path, allow_pickle=False))
+    except (OSError, ValueError, InputError):
+        pass
 
 
 def open_stream(seed: int = 0, fps: float = 30.0, rig: str = "head", kind: str = "la_quad",
