@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections import Counter
 from pathlib import Path
@@ -11,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from articast.core.errors import InputError
+from articast.service.jsonsafe import dumps
 
 MIN_SECONDS = 20.0
 MIN_APERTURE_RANGE_MM = 8.0
@@ -150,8 +150,8 @@ def _enroll(args: argparse.Namespace) -> int:
     speaker = replace(speaker, report=report)
     speaker.save(args.output)
     if args.json:
-        print(json.dumps({"speaker": str(args.output), "residual": speaker.residual.to_dict(),
-                          **report}, indent=1))
+        print(dumps({"speaker": str(args.output), "residual": speaker.residual.to_dict(),
+                     **report}, indent=1))
     else:
         _print_report(args.output, speaker, report)
     for w in warnings:
