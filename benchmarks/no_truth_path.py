@@ -21,33 +21,27 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
-from articast.core.dense.mesh import register_icp
-from articast.core.dense.transfer import apply, bind
-from articast.core.faces.build import build_speaker
-from articast.core.faces.enrol import similarity
-from articast.core.faces.finder import FaceFinder
-from articast.core.faces.live import LiveTracker
-from articast.core.faces.scheme import mediapipe_scheme
-from articast.core.model.build import invert
-from articast.core.outputs.lips import lip_measures
-from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_clips import landmarks_every_frame  # noqa: E402
+
+from articast.core.dense.mesh import register_icp  # noqa: E402
+from articast.core.dense.transfer import apply, bind  # noqa: E402
+from articast.core.faces.build import build_speaker  # noqa: E402
+from articast.core.faces.enrol import similarity  # noqa: E402
+from articast.core.faces.finder import FaceFinder  # noqa: E402
+from articast.core.faces.live import LiveTracker  # noqa: E402
+from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
+from articast.core.model.build import invert  # noqa: E402
+from articast.core.outputs.lips import lip_measures  # noqa: E402
+from articast.core.synthetic import RenderOptions, default_speaker, make_sequence  # noqa: E402
 
 LABELS = ("2.1", "2.2", "2.3", "2.4", "2.5", "8.1", "8.2", "8.3", "8.4", "9.15")
-
-
-def landmarks(finder: FaceFinder, images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    marks, found, prev = [], [], None
-    for im in images:
-        face = finder.track(im, prev) if prev is not None else None
-        face = face or finder.find(im)
-        prev = face
-        marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
-        found.append(face is not None)
-    return np.array(marks), np.array(found)
 
 
 def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, points: np.ndarray,
@@ -84,7 +78,7 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150) ->
     enrol = make_sequence(seed * 100 + 11, enrol_frames, 12.0, rig, geometry=sp.geometry)
     imgs = [sp.render(enrol.controls[i], enrol.pose(i), enrol.camera,
                       RenderOptions(seed=10_000 + i)) for i in range(enrol.n_frames)]
-    marks, found = landmarks(finder, imgs)
+    marks, found, _ = landmarks_every_frame(finder, imgs)
     t0 = time.perf_counter()
     speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig)
     build_s = time.perf_counter() - t0

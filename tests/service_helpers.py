@@ -148,3 +148,26 @@ class HardCrash:
         if self.n == 3:
             os._exit(3)
         return frame.truth
+
+
+async def collect(url, session, streams, until_end=True, n=None):
+    """(hello, frames) of one subscription until the session ends (or ``n`` frames)."""
+    import websockets
+
+    frames, hello = [], None
+    async with websockets.connect(url, max_size=2**24, close_timeout=1) as ws:
+        await ws.send(json.dumps({"type": "subscribe", "session": session, "streams": streams,
+                                  "queue": 256}))
+        while True:
+            m = json.loads(await asyncio.wait_for(ws.recv(), 20 * TIMEOUT))
+            if m["type"] == "hello":
+                hello = m
+            elif m["type"] == "frame":
+                frames.append(m)
+                if n and len(frames) >= n:
+                    return hello, frames
+            elif m["type"] == "status" and m["state"] in ("ended", "failed"):
+                assert m["state"] == "ended", m
+                return hello, frames
+            elif m["type"] == "error":
+                raise AssertionError(m)

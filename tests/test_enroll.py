@@ -131,34 +131,17 @@ def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp
     the same frames as the offline track (fast pace, nothing dropped)."""
     import asyncio
 
-    import websockets
-
     from articast.service.app import ServiceConfig
     from articast.service.settings import ServerSettings
     from articast.service.worker import SessionSpec
-    from tests.service_helpers import TIMEOUT, ServerThread
-
-    async def collect(url):
-        frames, hello = [], None
-        async with websockets.connect(url, max_size=2**24, close_timeout=1) as ws:
-            await ws.send(json.dumps({"type": "subscribe", "session": "me",
-                                      "streams": ["articulatory", "pose"], "queue": 256}))
-            while True:
-                m = json.loads(await asyncio.wait_for(ws.recv(), 20 * TIMEOUT))
-                if m["type"] == "hello":
-                    hello = m
-                elif m["type"] == "frame":
-                    frames.append(m)
-                elif m["type"] == "status" and m["state"] in ("ended", "failed"):
-                    assert m["state"] == "ended", m
-                    return hello, frames
+    from tests.service_helpers import ServerThread, collect
 
     video = enrolled / "test" / "video.mp4"
     spec = SessionSpec("me", f"file:{video}?pace=fast", wait_for_subscriber=True,
                        speaker=str(enrolled / "speaker"))
     config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
     with ServerThread(config) as srv:
-        hello, frames = asyncio.run(collect(srv.url))
+        hello, frames = asyncio.run(collect(srv.url, "me", ["articulatory", "pose"]))
     assert hello["param_names"][6] == "lar1" and len(frames) == 75
     ok = np.array([f["quality"]["ok"] for f in frames])
     assert ok.mean() >= 0.95

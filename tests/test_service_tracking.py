@@ -6,13 +6,12 @@ import json
 
 import numpy as np
 import pytest
-import websockets
 
 from articast.service.app import ServiceConfig
 from articast.service.cli import main
 from articast.service.settings import ServerSettings
 from articast.service.worker import SessionSpec
-from tests.service_helpers import TIMEOUT, ServerThread
+from tests.service_helpers import TIMEOUT, ServerThread, collect
 
 
 @pytest.fixture(scope="module")
@@ -25,26 +24,6 @@ def synthetic_files(tmp_path_factory):
                  str(d / "train/truth.jsonl"), "--model", str(d / "train/model.npz"), "--camera",
                  str(d / "train/camera.json"), "-o", str(d / "app.npz")]) == 0
     return d
-
-
-async def collect(url, session, streams, until_end=True, n=None):
-    frames, hello = [], None
-    async with websockets.connect(url, max_size=2**24, close_timeout=1) as ws:
-        await ws.send(json.dumps({"type": "subscribe", "session": session, "streams": streams,
-                                  "queue": 256}))
-        while True:
-            m = json.loads(await asyncio.wait_for(ws.recv(), 20 * TIMEOUT))
-            if m["type"] == "hello":
-                hello = m
-            elif m["type"] == "frame":
-                frames.append(m)
-                if n and len(frames) >= n:
-                    return hello, frames
-            elif m["type"] == "status" and m["state"] in ("ended", "failed"):
-                assert m["state"] == "ended", m
-                return hello, frames
-            elif m["type"] == "error":
-                raise AssertionError(m)
 
 
 def test_fast_replay_equals_offline_track_and_streams_fap(synthetic_files, tmp_path):

@@ -75,15 +75,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     w.add_argument("--source", action="append", default=[], metavar="NAME=URI",
                    help="a session, as for 'serve' (repeat for several faces)")
     _hub_argument(w, required=True)
-    g = w.add_argument_group("session")
-    g.add_argument("--speaker", default="",
-                   help="speaker folder from 'articast enroll' for every session (replaces "
-                        "--model, --appearance, --camera)")
-    g.add_argument("--model", default="", help="face model (.npz) for every session")
-    g.add_argument("--appearance", default="", help="trained appearance (.npz)")
-    g.add_argument("--camera", default="", help="camera calibration (.json)")
-    g.add_argument("--processor", default="auto",
-                   help="auto | truth | tracker | module:factory (default auto)")
+    g = _session_files(w)
     g.add_argument("--record", default=None, help="write every session's frames as JSONL "
                    "into this folder")
     add_arguments(w.add_argument_group("capture"), CaptureSettings)
@@ -152,7 +144,8 @@ def _playback(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop", type=int, default=1, help="times to play (0 = forever)")
 
 
-def _common(p: argparse.ArgumentParser) -> None:
+def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
+    """The "session" option group: what every session tracks with (serve and track-worker)."""
     g = p.add_argument_group("session")
     g.add_argument("--speaker", default="",
                    help="speaker folder from 'articast enroll' for every session (replaces "
@@ -161,7 +154,12 @@ def _common(p: argparse.ArgumentParser) -> None:
     g.add_argument("--appearance", default="", help="trained appearance (.npz)")
     g.add_argument("--camera", default="", help="camera calibration (.json)")
     g.add_argument("--processor", default="auto",
-                   help="auto | truth | tracker | module:factory (default auto)")
+                   help="auto | truth | tracker | live | module:factory (default auto)")
+    return g
+
+
+def _common(p: argparse.ArgumentParser) -> None:
+    g = _session_files(p)
     g.add_argument("--wait-for-subscriber", action="store_true",
                    help="hold each source until its first subscriber arrives")
     g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
