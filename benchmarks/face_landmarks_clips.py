@@ -110,6 +110,24 @@ def run_clip(path: Path, finders: dict[str, FaceFinder], max_frames: int) -> dic
     return summarise(series, timing, np.array(motion), fps, n)
 
 
+def mouth_motion(greys: list[np.ndarray], landmarks: list[np.ndarray | None], length: int
+                 ) -> np.ndarray:
+    """Per-frame image change of the mouth patch, the patch fixed within each window of
+    ``length`` frames (placed by the landmarks of the window's first frame), so that the choice
+    of still windows depends on pixels, not on any model's jitter."""
+    motion, anchor, prev = [], None, None
+    for n, (grey, lm) in enumerate(zip(greys, landmarks, strict=True)):
+        if n % length == 0:
+            anchor = lm
+        if anchor is not None and prev is not None:
+            change = mouth_patch(grey, anchor) - mouth_patch(prev, anchor)
+            motion.append(float(np.abs(change).mean()))
+        else:
+            motion.append(np.nan)
+        prev = grey
+    return np.array(motion)
+
+
 def window_frames(fps: float) -> int:
     return max(3, int(round(WINDOW_S * fps)))
 

@@ -100,6 +100,12 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150) ->
         lips[key] = {"r": round(float(np.corrcoef(e[ok], tr[ok])[0, 1]), 3),
                      "slope": round(float(np.polyfit(tr[ok], e[ok], 1)[0]), 3),
                      "mean_abs_mm": round(float(np.abs(e - tr)[ok].mean()), 2)}
+    # lag: the shift (frames) that best aligns the tracked aperture with the true one
+    a0, b0 = ap - ap.mean(), apt - apt.mean()
+    shifts = range(-5, 6)
+    score = [float(np.dot(a0[max(s, 0):len(a0) + min(s, 0)], b0[max(-s, 0):len(b0) - max(s, 0)]))
+             for s in shifts]
+    lips["lag_frames"] = int(list(shifts)[int(np.argmax(score))])
     still = test.still_segments()
     rest = slice(*still[0]) if still else slice(0, 1)
     surf = surface_error(speaker.model, alpha, ok, true_model, test.points, rest)

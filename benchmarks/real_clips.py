@@ -31,11 +31,17 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from face_landmarks_clips import aperture, jitter, mouth_patch, still_windows  # noqa: E402
+from face_landmarks_clips import (  # noqa: E402
+    aperture,
+    jitter,
+    mouth_motion,
+    still_windows,
+    window_frames,
+)
 
 from articast.core.faces.build import build_speaker  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
-from articast.core.faces.live import LiveTracker  # noqa: E402
+from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.model.camera import Camera  # noqa: E402
 from articast.core.outputs.lips import lip_measures  # noqa: E402
@@ -47,7 +53,6 @@ CLIPS = {  # name: (enrolment seconds, at most this many held-out seconds)
     "cap13": (18.0, 13.0),
 }
 SIZE = (640, 480)
-WINDOW_S = 0.4
 
 
 def read_frames(path: Path) -> tuple[list[np.ndarray], float]:
@@ -79,7 +84,8 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
     return np.array(marks), np.array(found), ms
 
 
-def run_clip(name: str, path: Path, grid: Path | None) -> dict:
+def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None
+             ) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -95,7 +101,7 @@ def run_clip(name: str, path: Path, grid: Path | None) -> dict:
     # speed baseline), then the live path on the same frames, in the same process
     lm, lm_found, lm_ms = landmarks_every_frame(FaceFinder.load(threads=1), held)
     live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme("desk"),
-                       clock=time.perf_counter)
+                       live_policy, clock=time.perf_counter)
     results = []
     t0 = time.perf_counter()
     for i, f in enumerate(held):
@@ -109,16 +115,9 @@ def run_clip(name: str, path: Path, grid: Path | None) -> dict:
                            axis=-1)
     ap_lm = np.array([aperture(x)[0] if np.isfinite(x).all() else np.nan for x in lm])
     grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in held]
-    motion, prev = [], None
-    for g, x in zip(grey, lm, strict=True):
-        if not np.isfinite(x).all():
-            motion.append(np.nan)
-            prev = None
-            continue
-        patch = mouth_patch(g, x)
-        motion.append(np.abs(patch - prev).mean() if prev is not None else np.nan)
-        prev = patch
-    windows = still_windows(np.array(motion), max(3, int(round(WINDOW_S * fps))))
+    length = window_frames(fps)
+    motion = mouth_motion(grey, [x if np.isfinite(x).all() else None for x in lm], length)
+    windows = still_windows(motion, length)
     both = ok & np.isfinite(ap_lm)
     out = {
         "clip": name, "fps": round(fps, 3), "enrol_frames": len(enrol),

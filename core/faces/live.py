@@ -21,7 +21,7 @@ frame), ``not_started``.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -30,6 +30,7 @@ from articast.core.faces.enrol import LandmarkScheme, state_from_landmarks
 from articast.core.faces.speaker import Speaker
 from articast.core.model.camera import Pose
 from articast.core.outputs.lips import lips_dict
+from articast.core.tracking.filters import OneEuroFilter, OneEuroPolicy
 from articast.core.tracking.result import TrackResult
 from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
@@ -60,11 +61,15 @@ class LivePolicy:
         webcam clip, its residual low. The landmarks' own depth is off by up to 28 % on wide
         open mouths, hence the margin. (Their lip aperture, read through the model, is biased
         by several mm on some faces: it is not used to judge the tracker.)
+    smoothing : One Euro filter of the articulation streamed (None: the raw fits). The fit
+        itself is not filtered: the next frame starts from the raw state, which
+        ``extra["alpha_raw"]`` keeps. Reset after any frame that is not ok.
     """
 
     verify_every: int = 10
     residual_factor: float = 3.0
     max_depth_drift: float = 0.3
+    smoothing: OneEuroPolicy | None = field(default_factory=OneEuroPolicy)
 
 
 LIVE_ALPHA_SIGMA = 0.5
@@ -97,6 +102,8 @@ class LiveTracker:
         self._started = False
         self._frame = -1
         self._last: TrackResult | None = None
+        sm = self.policy.smoothing
+        self._filter = OneEuroFilter(sm) if sm is not None else None
         self.finder_calls = 0
         self.restarts = 0  # tracker (re-)starts from landmarks
         self._limit = self.policy.residual_factor * speaker.residual.p99
@@ -163,6 +170,13 @@ class LiveTracker:
         result = self._track(image, t)
         ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
         result = replace(result, frame=self._frame, ms=ms)
+        if self._filter is not None:
+            if result.ok:
+                smooth = self._filter(result.alpha, t)
+                result = replace(result, alpha=smooth, lips=lips_dict(self.speaker.model, smooth),
+                                 extra={**result.extra, "alpha_raw": result.alpha})
+            else:
+                self._filter.reset()
         if result.ok:
             self._last = result
         return result
