@@ -41,7 +41,7 @@ async def reader(url: str, clock: Any, out: dict, lat: list[float], encoding: st
                 break
             if isinstance(data, bytes):  # header only: what a lean client reads first
                 h = BINARY_HEADER.unpack_from(data)
-                seq, t_tracked, drop = h[5], h[9], h[12]
+                seq, t_tracked, drop = h[5], h[9], h[13]
             else:
                 m = json.loads(data)
                 if m["type"] != "frame":

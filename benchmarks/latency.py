@@ -40,7 +40,7 @@ async def ws_subscriber(url: str, encoding: str, clock: list[float], lat: list[f
             now = time.time()
             if isinstance(data, bytes):
                 h = BINARY_HEADER.unpack_from(data)
-                t_tracked, dropped = h[9], h[12]
+                t_tracked, dropped = h[9], h[13]
             else:
                 m = json.loads(data)
                 if m["type"] != "frame":

@@ -92,7 +92,7 @@ class LeanSubscriber(asyncio.Protocol):
 
     def _frame(self, buf: bytearray, off: int) -> None:
         h = BINARY_HEADER.unpack_from(buf, off)
-        self._count(h[5], h[9], h[12])
+        self._count(h[5], h[9], h[13])  # seq, t_tracked, dropped
 
     def _text(self, data: bytes) -> None:
         if data.startswith(b'{"type":"frame"'):
