@@ -152,3 +152,52 @@ def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp
     ap_true, _ = lip_measures(true_model, at)
     assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
     assert all(f["lips"]["width_mm"] > 20 for f in frames)
+
+
+def test_a_face_that_leaves_is_reported_within_a_few_frames_and_picked_up_again(enrolled):
+    """The face finder checks on the tracker every 10 frames: a scene without the face (the
+    speaker's background, textured, not blank) is no longer ok within 10 frames, and tracking
+    is ok again soon after the face returns."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig))
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    h, w = frames[0].shape[:2]
+    # the background without the face: the frame's left margin, stretched over the frame
+    empty = cv2.resize(frames[0][:, : w // 6], (w, h), interpolation=cv2.INTER_LINEAR)
+    seq = frames[:30] + [empty] * 20 + frames[30:60]
+    ok = np.array([live.track(img, i / 25).ok for i, img in enumerate(seq)])
+    assert ok[:30].all()
+    gone = np.flatnonzero(~ok[30:50])
+    assert gone.size and gone[0] <= 10 and not ok[40:50].any()
+    back = np.flatnonzero(ok[50:])
+    assert back.size and back[0] <= 10 and ok[50 + back[0]:].mean() > 0.9
+
+
+def test_a_head_mounted_camera_enrols_and_tracks_the_lower_face(tmp_path):
+    """The head rig sees the face from the nose down (no eyes): scale from the assumed mouth
+    width, one head pose for the clip; the lips are still followed."""
+    assert main(["synth", "sequence", "-o", str(tmp_path / "clip"), "--seed", "5",
+                 "--sentence", "50", "--rig", "head", "--frames", "200", "--fps", "10"]) == 0
+    assert main(["enroll", str(tmp_path / "clip" / "video.mp4"), "-o", str(tmp_path / "sp"),
+                 "--rig", "head", "--quiet", "--json"]) == 0
+    sp = Speaker.load(tmp_path / "sp")
+    assert sp.rig == "head" and "mouth width 50 mm" in sp.report["scale"]
+    assert main(["synth", "sequence", "-o", str(tmp_path / "test"), "--seed", "5",
+                 "--sentence", "51", "--rig", "head", "--frames", "60", "--fps", "25"]) == 0
+    out = tmp_path / "t.jsonl"
+    assert main(["track", str(tmp_path / "test" / "video.mp4"), "--speaker",
+                 str(tmp_path / "sp"), "-o", str(out), "--quiet"]) == 0
+    lines = _track_lines(out)
+    ok = np.array([r["quality"]["ok"] for r in lines])
+    assert ok.mean() >= 0.95
+    true_model = FaceModel.load(tmp_path / "test" / "model.npz")
+    truth = _track_lines(tmp_path / "test" / "truth.jsonl")
+    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
+    ap_true, _ = lip_measures(true_model, at)
+    ap = np.array([r["lips"]["aperture_mm"] for r in lines])
+    assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.85
