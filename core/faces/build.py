@@ -22,7 +22,8 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
 from articast.core.errors import InputError
-from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry, fit_pose
+from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
+from articast.core.faces.fit import fit_pose
 from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel

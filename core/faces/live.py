@@ -8,8 +8,10 @@ Per frame the cost is the tracker's. The landmark model runs
   and the tracker starts there;
 - every ``verify_every`` frames, and on any frame the tracker doubts: landmarks only, in a crop
   grown from the previous landmarks (no detector). No face there -> ``no_face``, and the next
-  frame starts over with the detector. A face far from where the tracker put the mouth ->
-  re-initialised from the landmarks.
+  frame starts over with the detector. A tracked head whose depth is far from the landmarks'
+  -> restarted from them (keeping the running residual levels).
+
+The streamed articulation passes a One Euro filter (the fit itself does not).
 
 ``ok`` must mean ok. A frame is not ok, with a reason code first in ``reason``:
 ``blank`` (no contrast), ``no_face`` (the finder sees none), ``diverged`` (the tracker's
@@ -26,7 +28,8 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from articast.core.faces.enrol import LandmarkScheme, state_from_landmarks
+from articast.core.faces.enrol import LandmarkScheme
+from articast.core.faces.fit import state_from_landmarks
 from articast.core.faces.speaker import Speaker
 from articast.core.model.camera import Pose
 from articast.core.outputs.lips import lips_dict
@@ -35,14 +38,10 @@ from articast.core.tracking.result import TrackResult
 from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
 
-class FaceLike(Protocol):
-    landmarks: np.ndarray  # (L, 3) image px + relative depth
-
-
 class FinderLike(Protocol):
     """What the live tracker needs of :class:`articast.core.faces.finder.FaceFinder`."""
 
-    def find(self, image_bgr: np.ndarray) -> Any: ...
+    def find(self, image_bgr: np.ndarray) -> Any: ...  # a Face (.landmarks (L, 3)) or None
 
     def track(self, image_bgr: np.ndarray, previous: Any) -> Any: ...
 
@@ -107,9 +106,6 @@ class LiveTracker:
         self.finder_calls = 0
         self.restarts = 0  # tracker (re-)starts from landmarks
         self._limit = self.policy.residual_factor * speaker.residual.p99
-        m = speaker.model
-        lips = m.groups.get("lip_outer", np.arange(m.n_points))
-        self._mouth = np.asarray(lips)  # model points whose centre is the mouth
 
     # ------------------------------------------------------------------ helpers
     def _finder(self, image: np.ndarray, previous: Any = None) -> Any:
@@ -118,7 +114,7 @@ class LiveTracker:
             return self.finder.track(image, previous)
         return self.finder.find(image)
 
-    def _start(self, image: np.ndarray, face: Any, keep_levels: bool = False) -> bool:
+    def _start(self, face: Any, keep_levels: bool = False) -> bool:
         state = state_from_landmarks(self.speaker.model, self.scheme, self.speaker.camera,
                                      face.landmarks)
         if state is None:
@@ -134,19 +130,14 @@ class LiveTracker:
         self._since_check = 0
         return True
 
-    def drift(self, result: TrackResult, face: Any) -> tuple[float, float] | None:
-        """(relative depth difference, lip aperture difference in mm) between the tracked
-        state and the state read off the landmarks; None if the landmarks give none."""
+    def depth_drift(self, result: TrackResult, face: Any) -> float | None:
+        """Relative difference between the tracked head's depth and the depth read off the
+        landmarks; None if the landmarks give none."""
         state = state_from_landmarks(self.speaker.model, self.scheme, self.speaker.camera,
                                      face.landmarks)
         if state is None:
             return None
-        alpha, pose = state
-        depth = float(result.pose.translation[2] / pose.translation[2] - 1.0)
-        lips = lips_dict(self.speaker.model, alpha)
-        if lips is None or result.lips is None:
-            return depth, 0.0
-        return depth, float(result.lips["aperture_mm"] - lips["aperture_mm"])
+        return float(result.pose.translation[2] / state[1].translation[2] - 1.0)
 
     def _not_ok(self, result: TrackResult, reason: str) -> TrackResult:
         return replace(result, ok=False, reason=reason)
@@ -188,7 +179,7 @@ class LiveTracker:
             face = self._finder(image)
             if face is None:
                 return self._lost(t, "no_face: the face finder sees no face")
-            if not self._start(image, face):
+            if not self._start(face):
                 return self._lost(t, "no_face: the landmarks do not fit the speaker")
         result = self.tracker.track(image, t)
         result = self._judge(result)
@@ -202,10 +193,10 @@ class LiveTracker:
             if face is None:
                 return self._lost(t, "no_face: the face finder sees no face")
             self._face = face
-            drift = self.drift(result, face)
-            far = drift is not None and abs(drift[0]) > self.policy.max_depth_drift
+            drift = self.depth_drift(result, face)
+            far = drift is not None and abs(drift) > self.policy.max_depth_drift
             if doubt or far:
-                if self._start(image, face, keep_levels=True):
+                if self._start(face, keep_levels=True):
                     again = self._judge(self.tracker.track(image, t))
                     if again.ok or not result.ok:
                         result = again
