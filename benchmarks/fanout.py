@@ -25,7 +25,7 @@ from common import Server, make_recording, percentile
 async def reader(url: str, clock: Any, out: dict, lat: list[float], encoding: str) -> None:
     import websockets
 
-    from articast.client.protocol import BINARY_HEADER
+    from articast.client.protocol import frame_header
 
     async with websockets.connect(url, max_size=2**22, compression=None,
                                   open_timeout=120, close_timeout=1) as ws:
@@ -40,8 +40,8 @@ async def reader(url: str, clock: Any, out: dict, lat: list[float], encoding: st
             if now >= t_stop:
                 break
             if isinstance(data, bytes):  # header only: what a lean client reads first
-                h = BINARY_HEADER.unpack_from(data)
-                seq, t_tracked, drop = h[5], h[9], h[13]
+                h = frame_header(data)
+                seq, t_tracked, drop = h.seq, h.t_tracked, h.dropped
             else:
                 m = json.loads(data)
                 if m["type"] != "frame":

@@ -28,7 +28,7 @@ async def ws_subscriber(url: str, encoding: str, clock: list[float], lat: list[f
                         drops: list[int]) -> None:
     import websockets
 
-    from articast.client.protocol import BINARY_HEADER
+    from articast.client.protocol import frame_header
 
     async with websockets.connect(url, max_size=2**22, compression=None,
                                   close_timeout=1) as ws:
@@ -39,8 +39,8 @@ async def ws_subscriber(url: str, encoding: str, clock: list[float], lat: list[f
             data = await ws.recv()
             now = time.time()
             if isinstance(data, bytes):
-                h = BINARY_HEADER.unpack_from(data)
-                t_tracked, dropped = h[9], h[13]
+                h = frame_header(data)
+                t_tracked, dropped = h.t_tracked, h.dropped
             else:
                 m = json.loads(data)
                 if m["type"] != "frame":

@@ -17,7 +17,7 @@ import struct
 import time
 from typing import Any
 
-from articast.client.protocol import BINARY_HEADER
+from articast.client.protocol import frame_header
 
 
 def _mask(payload: bytes) -> bytes:
@@ -91,8 +91,8 @@ class LeanSubscriber(asyncio.Protocol):
         del buf[:off]
 
     def _frame(self, buf: bytearray, off: int) -> None:
-        h = BINARY_HEADER.unpack_from(buf, off)
-        self._count(h[5], h[9], h[13])  # seq, t_tracked, dropped
+        h = frame_header(buf, off)
+        self._count(h.seq, h.t_tracked, h.dropped)
 
     def _text(self, data: bytes) -> None:
         if data.startswith(b'{"type":"frame"'):

@@ -37,7 +37,7 @@ from typing import Any
 from common import ROOT, make_recording, percentile
 from leanclient import client_frame
 
-from articast.client.protocol import BINARY_HEADER
+from articast.client.protocol import frame_header
 
 # shared clock (wall time): [steady start, steady end, redis down, redis up, end]
 STEADY0, STEADY1, DOWN, UP, END = range(5)
@@ -96,8 +96,8 @@ class Sub(asyncio.Protocol):
                 break
             opcode = b0 & 0x0F
             if opcode == 2:
-                hd = BINARY_HEADER.unpack_from(buf, off + h)
-                self._frame(hd[5], hd[9], hd[13])  # seq, t_tracked, dropped
+                hd = frame_header(buf, off + h)
+                self._frame(hd.seq, hd.t_tracked, hd.dropped)
             elif opcode == 1 and not self.connected.done() and b'"hello"' in buf[off:off + h + n]:
                 self.connected.set_result(None)
             elif opcode == 8:

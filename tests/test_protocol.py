@@ -119,3 +119,12 @@ def test_protocol_imports_without_numpy_opencv_fastapi():
             "print(bad); sys.exit(1 if bad else 0)")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_frame_header_names_every_field():
+    d = _frame_dict(articulatory={"jaw1": 0.5})
+    d["lips"] = {"aperture_mm": 3.0, "width_mm": 48.0}
+    h = P.frame_header(P.encode_frame_binary(d, 4, ["jaw1"]))
+    assert (h.magic, h.sid, h.seq, h.frame, h.dropped, h.evals) == (b"AC", 4, 7, 9, 3, 40)
+    assert h.t_tracked == d["t_tracked"] and h.lip_width_mm == 48.0 and h.ok == 1
+    assert len(P.FrameHeader._fields) == len(P.BINARY_HEADER.unpack_from(b"\0" * 80))

@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import math
 import struct
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, NamedTuple
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
@@ -296,6 +296,35 @@ def _short_reason(exc: ValidationError) -> str:
 # ----------------------------------------------------------------------------- binary frames
 BINARY_MAGIC = b"AC"
 BINARY_HEADER = struct.Struct("<2sBBHHIIddddffIBxxxffII")
+
+
+class FrameHeader(NamedTuple):
+    """The fields of :data:`BINARY_HEADER`, by name (unpack with :func:`frame_header`)."""
+
+    magic: bytes
+    version: int
+    kind: int
+    streams: int
+    sid: int
+    seq: int
+    frame: int
+    t: float
+    t_capture: float
+    t_tracked: float
+    t_sent: float
+    lip_aperture_mm: float
+    lip_width_mm: float
+    dropped: int
+    ok: int
+    residual: float
+    ms: float
+    evals: int
+    iterations: int
+
+
+def frame_header(data: bytes | bytearray | memoryview, offset: int = 0) -> FrameHeader:
+    """The header of a binary frame at ``offset``, fields by name (no index to get wrong)."""
+    return FrameHeader._make(BINARY_HEADER.unpack_from(data, offset))
 BINARY_LAYOUT = """Header of a binary frame, 80 bytes, little-endian:
 
 magic "AC", version u8, kind u8 (1 = frame), streams u16 (bit i = STREAMS[i]), sid u16,
@@ -367,7 +396,7 @@ def decode_frame_binary(data: bytes, session_of_sid: dict[int, str],
     if len(data) < BINARY_HEADER.size or data[:2] != BINARY_MAGIC:
         raise ProtocolError("bad_message", "not an articast binary frame")
     (_, version, kind, bits, sid, seq, frame, t, t_capture, t_tracked, t_sent, aperture, width,
-     dropped, ok, residual, ms, evals, iterations) = BINARY_HEADER.unpack_from(data)
+     dropped, ok, residual, ms, evals, iterations) = frame_header(data)
     if version != PROTOCOL_VERSION or kind != KIND_FRAME:
         raise ProtocolError("unsupported_protocol", f"binary version {version} kind {kind}")
     names = param_names.get(sid, [])
