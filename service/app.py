@@ -237,7 +237,8 @@ class Connection:
         bad = [s for s in req.streams if s in ("fap", "arkit")]
         if bad and session.description is not None and session.outputs is None:
             await self.error("unavailable_stream", f"session {name!r} does not produce "
-                             f"{bad}: its model labels no MPEG-4 feature points", name)
+                             f"{bad}: its model lacks the MPEG-4 feature points or units they need",
+                             name)
             return
         if name in self.subs:
             self._drop(self.subs.pop(name))

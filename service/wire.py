@@ -46,6 +46,7 @@ def describe(model: Any, camera: Any, param_names: tuple[str, ...]) -> dict[str,
             "triangles": model.triangles.ravel().tolist(),
             "point_names": list(model.point_names),
             "feature_points": dict(model.feature_points),
+            "fapu_overrides": {k: float(v) for k, v in model.fapu_overrides.items()},
             "groups": {g: [int(i) for i in idx] for g, idx in model.groups.items()},
         }
     return d
@@ -70,6 +71,7 @@ def model_from_description(d: dict[str, Any]) -> Any:
         triangles=np.asarray(g.get("triangles") or [], np.int32).reshape(-1, 3),
         feature_points=g.get("feature_points") or {},
         groups={k: np.asarray(v, np.int64) for k, v in (g.get("groups") or {}).items()},
+        fapu_overrides=g.get("fapu_overrides") or {},
         name=g.get("name", "speaker"),
     )
 

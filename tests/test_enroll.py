@@ -141,7 +141,8 @@ def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp
                        speaker=str(enrolled / "speaker"))
     config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
     with ServerThread(config) as srv:
-        hello, frames = asyncio.run(collect(srv.url, "me", ["articulatory", "pose"]))
+        hello, frames = asyncio.run(collect(srv.url, "me",
+                                            ["articulatory", "pose", "fap", "arkit"]))
     assert hello["param_names"][6] == "lar1" and len(frames) == 75
     ok = np.array([f["quality"]["ok"] for f in frames])
     assert ok.mean() >= 0.95
@@ -152,6 +153,11 @@ def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp
     ap_true, _ = lip_measures(true_model, at)
     assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
     assert all(f["lips"]["width_mm"] > 20 for f in frames)
+    # FAPs and blendshapes from an enrolled model (ES0/ENS0 from the stated eye distance)
+    assert hello["fapu"]["ES0"] == 63.0
+    jaw = np.array([f["values"]["arkit"]["jawOpen"] for f in frames])
+    assert np.corrcoef(jaw[ok], ap_true[ok])[0, 1] > 0.8
+    assert any(f["values"]["fap"]["values"] for f in frames)
 
 
 def test_a_face_that_leaves_is_reported_within_a_few_frames_and_picked_up_again(enrolled):

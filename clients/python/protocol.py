@@ -100,6 +100,9 @@ class Geometry(_Message):
     triangles: list[int]
     point_names: list[str] = Field(default_factory=list)
     feature_points: dict[str, int] = Field(default_factory=dict)
+    fapu_overrides: dict[str, float] = Field(
+        default_factory=dict, description="MPEG-4 units (mm) the points cannot measure, e.g. "
+        "ES0 of a model without eyes")
     groups: dict[str, list[int]] = Field(
         default_factory=dict, description="named point groups (upper_lip, lip_inner, "
         "lower_teeth...): point indices")
