@@ -32,6 +32,27 @@ def client_frame(text: str) -> bytes:
     return head + _mask(data)
 
 
+def server_frames(buf: bytearray) -> tuple[list[tuple[int, int, int]], int]:
+    """The complete (unmasked) WebSocket frames at the start of ``buf``: a list of (opcode,
+    payload start, payload end), and how many bytes they take (the caller drops them)."""
+    out, off = [], 0
+    while len(buf) - off >= 2:
+        n, h = buf[off + 1] & 0x7F, 2
+        if n == 126:
+            if len(buf) - off < 4:
+                break
+            n, h = struct.unpack_from("!H", buf, off + 2)[0], 4
+        elif n == 127:
+            if len(buf) - off < 10:
+                break
+            n, h = struct.unpack_from("!Q", buf, off + 2)[0], 10
+        if len(buf) - off < h + n:
+            break
+        out.append((buf[off] & 0x0F, off + h, off + h + n))
+        off += h + n
+    return out, off
+
+
 class LeanSubscriber(asyncio.Protocol):
     def __init__(self, subscribe: dict[str, Any], clock: Any, stats: dict,
                  sample_every: int = 10) -> None:
@@ -65,30 +86,15 @@ class LeanSubscriber(asyncio.Protocol):
             self.upgraded = True
             self.transport.write(client_frame(json.dumps(self.subscribe)))
             self.connected.set_result(None)
-        buf = self.buf
-        off = 0
-        while len(buf) - off >= 2:
-            b0, b1 = buf[off], buf[off + 1]
-            n, h = b1 & 0x7F, 2
-            if n == 126:
-                if len(buf) - off < 4:
-                    break
-                n, h = struct.unpack_from("!H", buf, off + 2)[0], 4
-            elif n == 127:
-                if len(buf) - off < 10:
-                    break
-                n, h = struct.unpack_from("!Q", buf, off + 2)[0], 10
-            if len(buf) - off < h + n:
-                break
-            opcode = b0 & 0x0F
+        frames, used = server_frames(self.buf)
+        for opcode, start, end in frames:
             if opcode == 2:
-                self._frame(buf, off + h)
+                self._frame(self.buf, start)
             elif opcode == 1:
-                self._text(bytes(buf[off + h: off + h + n]))
+                self._text(bytes(self.buf[start:end]))
             elif opcode == 8:
                 self._finish()
-            off += h + n
-        del buf[:off]
+        del self.buf[:used]
 
     def _frame(self, buf: bytearray, off: int) -> None:
         h = frame_header(buf, off)

@@ -28,14 +28,13 @@ import multiprocessing as mp
 import os
 import signal
 import socket
-import struct
 import subprocess
 import sys
 import time
 from typing import Any
 
 from common import ROOT, make_recording, percentile
-from leanclient import client_frame
+from leanclient import client_frame, server_frames
 
 from articast.client.protocol import frame_header
 
@@ -80,30 +79,16 @@ class Sub(asyncio.Protocol):
             self.transport.write(client_frame(json.dumps({
                 "type": "subscribe", "session": "bench", "streams": ["articulatory", "pose"],
                 "encoding": "binary", "geometry": False})))
-        buf, off = self.buf, 0
-        while len(buf) - off >= 2:
-            b0, b1 = buf[off], buf[off + 1]
-            n, h = b1 & 0x7F, 2
-            if n == 126:
-                if len(buf) - off < 4:
-                    break
-                n, h = struct.unpack_from("!H", buf, off + 2)[0], 4
-            elif n == 127:
-                if len(buf) - off < 10:
-                    break
-                n, h = struct.unpack_from("!Q", buf, off + 2)[0], 10
-            if len(buf) - off < h + n:
-                break
-            opcode = b0 & 0x0F
+        frames, used = server_frames(self.buf)
+        for opcode, start, end in frames:
             if opcode == 2:
-                hd = frame_header(buf, off + h)
+                hd = frame_header(self.buf, start)
                 self._frame(hd.seq, hd.t_tracked, hd.dropped)
-            elif opcode == 1 and not self.connected.done() and b'"hello"' in buf[off:off + h + n]:
+            elif opcode == 1 and not self.connected.done() and b'"hello"' in self.buf[start:end]:
                 self.connected.set_result(None)
             elif opcode == 8:
                 self._finish()
-            off += h + n
-        del buf[:off]
+        del self.buf[:used]
 
     def _frame(self, seq: int, t_tracked: float, drop: int) -> None:
         now = time.time()
