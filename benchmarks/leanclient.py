@@ -32,6 +32,14 @@ def client_frame(text: str) -> bytes:
     return head + _mask(data)
 
 
+def upgrade_request(path: str = "/ws") -> bytes:
+    """The client's WebSocket upgrade request (HTTP/1.1, loopback)."""
+    key = base64.b64encode(os.urandom(16)).decode()
+    return (f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
+            f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n").encode()
+
+
 def server_frames(buf: bytearray) -> tuple[list[tuple[int, int, int]], int]:
     """The complete (unmasked) WebSocket frames at the start of ``buf``: a list of (opcode,
     payload start, payload end), and how many bytes they take (the caller drops them)."""
@@ -71,10 +79,7 @@ class LeanSubscriber(asyncio.Protocol):
 
     def connection_made(self, transport: Any) -> None:
         self.transport = transport
-        key = base64.b64encode(os.urandom(16)).decode()
-        transport.write((f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
-                         f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
-                         "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+        transport.write(upgrade_request())
 
     def data_received(self, data: bytes) -> None:
         self.buf += data

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import base64
 import json
 import multiprocessing as mp
 import os
@@ -34,7 +33,7 @@ import time
 from typing import Any
 
 from common import ROOT, make_recording, percentile
-from leanclient import client_frame, server_frames
+from leanclient import client_frame, server_frames, upgrade_request
 
 from articast.client.protocol import frame_header
 
@@ -60,10 +59,7 @@ class Sub(asyncio.Protocol):
 
     def connection_made(self, transport: Any) -> None:
         self.transport = transport
-        key = base64.b64encode(os.urandom(16)).decode()
-        transport.write((f"GET /ws HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
-                         f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
-                         "Sec-WebSocket-Version: 13\r\n\r\n").encode())
+        transport.write(upgrade_request())
 
     def data_received(self, data: bytes) -> None:
         self.buf += data
