@@ -224,6 +224,36 @@ def test_information_selection_finds_the_points_that_show_a_depth_mode():
     assert by_info.size == by_motion.size == len(set(by_info))
 
 
+def test_information_selection_with_an_unknown_pose_keeps_points_that_pin_the_head():
+    """Points the articulation never moves tell nothing about alpha if the head pose is known,
+    so the plain information rule leaves them out; when the pose is estimated with alpha (a
+    desk camera), a point's motion is only informative relative to points that fix the head,
+    and the pose-marginalised rule takes some of them (the nose and eyes of a real face)."""
+    from articast.core.appearance.models import informative_points, visible_points
+    from articast.core.model.face import FaceModel
+    from tests.blobface import blob_setup
+
+    model, camera, pose = blob_setup()
+    rng = np.random.default_rng(3)
+    rigid = rng.permutation(model.n_points)[:10]
+    basis = model.basis.copy()
+    basis[:, rigid] = 0.0
+    m = FaceModel(model.mean, basis, model.param_names, model.stats, model.point_names,
+                  model.groups, model.triangles, model.feature_points, {}, "rigid")
+    frames = []
+    for _ in range(30):
+        a = rng.normal(size=7) * 0.8
+        p = Pose(pose.rotation + rng.normal(size=3) * 0.02,
+                 pose.translation + rng.normal(size=3) * 3)
+        frames.append(TrainingFrame(render_blobs(m, camera, a, p), a, p))
+    vis = visible_points(m, camera, frames)
+    known = informative_points(m, camera, frames, vis, 14, sigma=2.0)
+    unknown = informative_points(m, camera, frames, vis, 14, sigma=2.0, pose_sigma=(0.003, 0.5))
+    assert not set(rigid) & set(known)
+    assert len(set(rigid) & set(unknown)) >= 2
+    assert unknown.size == 14 == len(set(unknown))
+
+
 def test_a_sudden_exposure_step_is_absorbed_by_the_gain(setup):
     """A webcam's auto-exposure can step the image gain between two frames: la models
     estimate the gain, so the frames stay ok and accurate, with the gain following."""

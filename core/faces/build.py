@@ -28,7 +28,7 @@ from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lip_measures
-from articast.core.tracking.tracker import Tracker, TrackingPolicy
+from articast.core.tracking.tracker import POSE_SIGMA, Tracker, TrackingPolicy
 
 
 @dataclass(frozen=True)
@@ -113,14 +113,16 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     train = [states[i] for i in order[:n_train]]
     held = [states[i] for i in order[n_train:n_train + opts.stats_frames]]
     say(f"training {opts.kind} on {len(train)} frames at their landmark states")
-    app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma)
+    app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma,
+                                    pose_sigma=POSE_SIGMA[rig])
     for r in range(opts.refine):
         fitted = fit_states(model, app, camera, rig, train)
         good = [f for f, _ in (x for x in fitted if x is not None)]
         say(f"refinement {r + 1}: {len(good)} of {len(train)} frames fitted; retraining")
         if len(good) >= 2 * (model.n_params + 1):
             train = good
-            app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma)
+            app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma,
+                                    pose_sigma=POSE_SIGMA[rig])
     check = held or train
     resid = [x[1] for x in fit_states(model, app, camera, rig, check) if x is not None]
     if not resid:

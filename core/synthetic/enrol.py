@@ -34,6 +34,8 @@ def enrolment_appearance(speaker: SyntheticSpeaker, rig: str = "head", kind: str
                          **train_options) -> AppearanceModel:
     """The appearance model of ``kind`` trained on the speaker's enrolment frames."""
     from articast.core.synthetic.sequence import default_camera
+    from articast.core.tracking.tracker import POSE_SIGMA
 
     frames = frames if frames is not None else enrolment_frames(speaker, rig)
+    train_options.setdefault("pose_sigma", POSE_SIGMA[rig])
     return train_appearance(speaker.model(), default_camera(rig), frames, kind, **train_options)

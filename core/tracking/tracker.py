@@ -29,6 +29,11 @@ from articast.core.tracking.result import TrackResult
 OPTIMISERS = ("gauss-newton", "nelder-mead")
 
 
+# s.d. of the head's motion between frames, (rad, mm), per camera rig: the fit's pose prior,
+# and the pose uncertainty the la point selection plans for (train_appearance(pose_sigma=)).
+POSE_SIGMA: dict[str, tuple[float, float]] = {"head": (0.001, 0.1), "desk": (0.003, 0.5)}
+
+
 @dataclass(frozen=True)
 class TrackingPolicy:
     """How a sequence is tracked.
@@ -93,10 +98,9 @@ class TrackingPolicy:
     def for_rig(cls, rig: str, **changes) -> TrackingPolicy:
         """The policy for a camera rig: "head" (camera fixed to the head: the pose moves by
         at most ~0.1 mm / 1 mrad between frames) or "desk" (free head motion)."""
-        sigmas = {"head": (0.001, 0.1), "desk": (0.003, 0.5)}
-        if rig not in sigmas:
-            raise ValueError(f"rig must be one of {sorted(sigmas)}, got {rig!r}")
-        sr, st = sigmas[rig]
+        if rig not in POSE_SIGMA:
+            raise ValueError(f"rig must be one of {sorted(POSE_SIGMA)}, got {rig!r}")
+        sr, st = POSE_SIGMA[rig]
         fit = changes.pop("fit", FitPolicy(pose_sigma_rad=sr, pose_sigma_mm=st))
         changes.setdefault("pose_anchor_rate", 0.02 if rig == "head" else None)
         return cls(fit=fit, **changes)

@@ -36,8 +36,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="appearance model: la_lin is the paper's; la_quad (default) adds "
                          "quadratic terms and is measurably more accurate (README, Results)")
     tr.add_argument("--sigma", type=float, default=2.5, help="filter scale in px (default 2.5)")
-    tr.add_argument("--per-param", type=int, default=8,
-                    help="sample points per articulatory parameter (la; default 8)")
+    tr.add_argument("--per-param", type=int, default=12,
+                    help="sample points per articulatory parameter (la; default 12)")
+    tr.add_argument("--rig", choices=["head", "desk"], default="desk",
+                    help="how the camera moves relative to the head: the information "
+                         "selection plans for the head pose the tracker will estimate "
+                         "(desk, default: free head motion; head: a head-mounted camera)")
     tr.add_argument("--selection", default="auto",
                     choices=["auto", "information", "displacement"],
                     help="la point selection: 'information' picks the points that best "
@@ -104,6 +108,7 @@ def _train(args: argparse.Namespace) -> int:
     from articast.core.appearance.models import TrainingFrame, train_appearance
     from articast.core.model.camera import Camera
     from articast.core.model.face import FaceModel
+    from articast.core.tracking.tracker import POSE_SIGMA
     from articast.service.progress import Progress
     from articast.service.video import iter_video
 
@@ -121,7 +126,8 @@ def _train(args: argparse.Namespace) -> int:
     _check_size(frames[0].image, camera)
     prog = Progress(1, "training")
     app = train_appearance(model, camera, frames, args.kind, sigma=args.sigma,
-                           per_param=args.per_param, selection=args.selection)
+                           per_param=args.per_param, selection=args.selection,
+                           pose_sigma=POSE_SIGMA[args.rig])
     prog.update()
     prog.close()
     app.save(args.output)
