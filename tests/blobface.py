@@ -26,9 +26,17 @@ def blob_model(seed=0):
                      model.groups, tri, model.feature_points, {}, "blob")
 
 
-def render_blobs(model, camera, alpha, pose, seed=0):
+def render_blobs(model, camera, alpha, pose, seed=0, shading=0.0):
+    """shading > 0: each disc is a facet with its own normal, lit by a light fixed to the
+    camera (Lambert), so its brightness changes as the head turns."""
     rng = np.random.default_rng(seed)
     colours = rng.integers(30, 225, size=(model.n_points, 3))
+    if shading:
+        normals = rng.normal(size=(model.n_points, 3)) * [0.5, 0.5, 0.0] + [0.0, 0.0, 1.0]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        light = np.array([-0.4, -0.3, -0.87])  # towards the light, camera frame
+        lit = np.clip((normals @ pose.matrix.T) @ light, 0.0, None)
+        colours = np.clip(colours * (1.0 - shading + shading * 1.6 * lit[:, None]), 0, 255)
     img = np.full((camera.height, camera.width, 3), 90, np.uint8)
     # a smooth background gradient so derivatives are not all zero away from blobs
     img[:] += (np.linspace(0, 40, camera.width)[None, :, None]).astype(np.uint8)

@@ -25,13 +25,16 @@ import numpy as np
 from articast.core.appearance.maps import ImageMaps, image_maps, roi_of, sample_la, sample_tex
 from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.errors import InputError
-from articast.core.model.camera import Camera, Pose
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
 from articast.core.model.face import FaceModel
 
 APPEARANCE_KIND = "appearance-model"
 APPEARANCE_VERSION = 1
 KINDS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin")
 SELECTIONS = ("auto", "information", "displacement")
+# rotation regressors of la models with rotation terms are in units of 3 degrees, so that the
+# ridge penalises them like the articulation's (which is in training s.d.)
+ROTATION_SCALE = float(np.radians(3.0))
 
 
 # --------------------------------------------------------------------------- sample points
@@ -232,6 +235,10 @@ class AppearanceModel:
     channel_weight : (L, S*C) per-feature cost weights (inverse residual s.d. in training).
     sigma : smoothing scale in pixels of each level (image px x 2**level).
     explained : (L,) fraction of the feature variance explained on the training frames.
+    rotation_weights : (L, 3, S*C) or None: la models trained with ``rotation_terms`` also
+    predict ``rotation_terms(R) @ rotation_weights``, how the features change as the head
+    turns (shading, foreshortening) around ``rotation_ref`` (axis-angle, the training
+    frames' central pose).
     """
 
     kind: str
@@ -241,6 +248,15 @@ class AppearanceModel:
     channel_weight: np.ndarray
     sigma: float
     explained: np.ndarray
+    rotation_weights: np.ndarray | None = None
+    rotation_ref: np.ndarray | None = None
+
+    def rotation_terms(self, rot: np.ndarray) -> np.ndarray | None:
+        """The rotation regressors (3,) of a head rotation matrix: the rotation away from the
+        training frames' reference, in units of :data:`ROTATION_SCALE` (None: no such terms)."""
+        if self.rotation_weights is None or self.rotation_ref is None:
+            return None
+        return axis_angle(rot @ rotation_matrix(self.rotation_ref).T) / ROTATION_SCALE
 
     @property
     def n_channels(self) -> int:
@@ -260,11 +276,15 @@ class AppearanceModel:
             raise InputError(f"appearance model has no pyramid level {level}") from None
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        save_bundle(path, APPEARANCE_KIND, APPEARANCE_VERSION, {
-            "index": self.samples.index, "weight": self.samples.weight,
-            "weights": self.weights, "channel_weight": self.channel_weight,
-            "explained": self.explained,
-        }, {"appearance_kind": self.kind, "levels": list(self.levels), "sigma": self.sigma})
+        arrays = {"index": self.samples.index, "weight": self.samples.weight,
+                  "weights": self.weights, "channel_weight": self.channel_weight,
+                  "explained": self.explained}
+        if self.rotation_weights is not None and self.rotation_ref is not None:
+            arrays["rotation_weights"] = self.rotation_weights
+            arrays["rotation_ref"] = self.rotation_ref
+        save_bundle(path, APPEARANCE_KIND, APPEARANCE_VERSION, arrays,
+                    {"appearance_kind": self.kind, "levels": list(self.levels),
+                     "sigma": self.sigma})
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], model: FaceModel | None = None) -> AppearanceModel:
@@ -289,8 +309,16 @@ class AppearanceModel:
                         f"parameters has {d}")
                 require(idx.max() < model.n_points, path,
                         "sample points index points the face model does not have")
+            rw, rref = arrays.get("rotation_weights"), arrays.get("rotation_ref")
+            require((rw is None) == (rref is None), path,
+                    "rotation_weights and rotation_ref come together")
+            if rw is not None:
+                require(kind.startswith("la") and rw.shape == (len(levels), 3, s * c)
+                        and rref.shape == (3,) and np.all(np.isfinite(rref)), path,
+                        f"rotation terms have shape {rw.shape}, expected "
+                        f"({len(levels)}, 3, {s * c}) on a la model")
             return cls(kind, SamplePoints(idx, w), levels, wt, arrays["channel_weight"],
-                       float(meta["sigma"]), arrays["explained"])
+                       float(meta["sigma"]), arrays["explained"], rw, rref)
 
 
 def design(alpha: np.ndarray, kind: str) -> np.ndarray:
@@ -340,6 +368,7 @@ def train_appearance(
     selection: str = "auto",
     n_points: int | None = None,
     pose_sigma: tuple[float, float] | None = None,
+    rotation_terms: bool = False,
 ) -> AppearanceModel:
     """Fit an appearance model by least squares on frames with known state.
 
@@ -361,9 +390,16 @@ def train_appearance(
     ``per_param``: 12 points per parameter (84 for 7): on the synthetic speaker, 84 points
     instead of 56 took the desk condition from 0.79 to 0.70 mm and the head rig from 0.47 to
     0.45 (la lin, speaker 0), at 1.5x the points' arithmetic.
+    ``rotation_terms`` (la_lin, la_quad): the features are also regressed on the head's
+    rotation away from the training frames' mean rotation (3 more rows,
+    :attr:`AppearanceModel.rotation_weights`): under a light fixed to the camera, a head
+    that turns changes its shading, which a model of the articulation alone reads as
+    articulation. For cameras that do not move with the head (desk).
     """
     if kind not in KINDS:
         raise InputError(f"appearance kind must be one of {KINDS}, got {kind!r}")
+    if rotation_terms and kind not in ("la_lin", "la_quad"):
+        raise InputError(f"rotation terms are for la_lin and la_quad models, not {kind}")
     n_terms = design(np.zeros((1, model.n_params)), kind).shape[1]
     if len(frames) < (2 if kind.endswith("cst") else n_terms + 1):
         raise InputError(f"{len(frames)} training frames are too few for {kind}")
@@ -392,6 +428,13 @@ def train_appearance(
     s_mean, s_basis = samples.positions(model)
     alphas = np.stack([np.asarray(f.alpha, np.float64) for f in frames])
     dmat = design(alphas, kind)
+    n_design = dmat.shape[1]
+    rot_ref = None
+    if rotation_terms:
+        rot_ref = mean_rotation([f.pose.matrix for f in frames])
+        ref_m = rotation_matrix(rot_ref)
+        rot_cols = np.stack([axis_angle(f.pose.matrix @ ref_m.T) for f in frames])
+        dmat = np.concatenate([dmat, rot_cols / ROTATION_SCALE], axis=1)
     weights, cweights, explained = [], [], []
     for level in levels:
         feats = []
@@ -410,5 +453,16 @@ def train_appearance(
         total = ((fmat - fmat.mean(0)) ** 2).sum()
         explained.append(1.0 - (fitted**2).sum() / total if total > 0 else 0.0)
         weights.append(w)
-    return AppearanceModel(kind, samples, tuple(levels), np.stack(weights), np.stack(cweights),
-                           float(sigma), np.array(explained))
+    wts = np.stack(weights)
+    return AppearanceModel(kind, samples, tuple(levels), wts[:, :n_design], np.stack(cweights),
+                           float(sigma), np.array(explained),
+                           wts[:, n_design:] if rotation_terms else None, rot_ref)
+
+
+def mean_rotation(matrices: list[np.ndarray]) -> np.ndarray:
+    """The chordal mean of rotation matrices, as an axis-angle (3,)."""
+    u, _, vt = np.linalg.svd(np.mean(matrices, axis=0))
+    m = u @ vt
+    if np.linalg.det(m) < 0:
+        m = u @ np.diag([1.0, 1.0, -1.0]) @ vt
+    return axis_angle(m)

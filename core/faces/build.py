@@ -113,8 +113,10 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     train = [states[i] for i in order[:n_train]]
     held = [states[i] for i in order[n_train:n_train + opts.stats_frames]]
     say(f"training {opts.kind} on {len(train)} frames at their landmark states")
+    # a desk camera sees the head turn under a light fixed to the room: shading follows
+    rotate = rig == "desk" and opts.kind in ("la_lin", "la_quad")
     app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma,
-                                    pose_sigma=POSE_SIGMA[rig])
+                           pose_sigma=POSE_SIGMA[rig], rotation_terms=rotate)
     for r in range(opts.refine):
         fitted = fit_states(model, app, camera, rig, train)
         good = [f for f, _ in (x for x in fitted if x is not None)]
@@ -122,7 +124,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         if len(good) >= 2 * (model.n_params + 1):
             train = good
             app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma,
-                                    pose_sigma=POSE_SIGMA[rig])
+                           pose_sigma=POSE_SIGMA[rig], rotation_terms=rotate)
     check = held or train
     resid = [x[1] for x in fit_states(model, app, camera, rig, check) if x is not None]
     if not resid:

@@ -38,4 +38,5 @@ def enrolment_appearance(speaker: SyntheticSpeaker, rig: str = "head", kind: str
 
     frames = frames if frames is not None else enrolment_frames(speaker, rig)
     train_options.setdefault("pose_sigma", POSE_SIGMA[rig])
+    train_options.setdefault("rotation_terms", rig == "desk" and kind in ("la_lin", "la_quad"))
     return train_appearance(speaker.model(), default_camera(rig), frames, kind, **train_options)

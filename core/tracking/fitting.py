@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from articast.core.appearance.maps import ImageMaps
-from articast.core.appearance.models import AppearanceModel
+from articast.core.appearance.models import ROTATION_SCALE, AppearanceModel
 from articast.core.model.camera import Camera, axis_angle, rotation_matrix
 from articast.core.model.face import FaceModel
 from articast.core.tracking import kernels
@@ -129,6 +129,7 @@ class Problem:
         self.jit = (kernels.AVAILABLE if jit is None else jit) and not self._tex
         self._cw = [np.ascontiguousarray(cw.reshape(-1, self.c), np.float64)
                     for cw in appearance.channel_weight]
+        self._cw_flat = [cw.reshape(-1) for cw in self._cw]
         self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
 
@@ -163,8 +164,24 @@ class Problem:
         changes are one more unknown (P = K + 7 with ``with_gain``) instead of an error.
         """
         if self.jit:
-            return self._residuals_jit(maps, level_index, alpha, rot, t, jacobian, gain,
-                                       with_gain)
+            r, jac, valid = self._residuals_jit(maps, level_index, alpha, rot, t, jacobian,
+                                                gain, with_gain)
+        else:
+            r, jac, valid = self._residuals_numpy(maps, level_index, alpha, rot, t, jacobian,
+                                                  gain, with_gain)
+        om = self.appearance.rotation_terms(rot)
+        if om is not None:  # la with rotation terms: f(alpha) + om @ Wr
+            wr = self.appearance.rotation_weights[level_index] * self._cw_flat[level_index]
+            wr = wr * np.repeat(valid, self.c)[None]
+            r = r - gain * (om @ wr)
+            if jac is not None:
+                # d(om)/d(rotation increment) ~ I / scale: the head turns by a few degrees
+                jac[:, self.k:self.k + 3] -= gain * wr.T / ROTATION_SCALE
+                if jac.shape[1] > self.k + 6:
+                    jac[:, self.k + 6] -= om @ wr
+        return r, jac, float(valid.mean())
+
+    def _residuals_numpy(self, maps, level_index, alpha, rot, t, jacobian, gain, with_gain):
         app = self.appearance
         head, cam = self.sample_points_cam(alpha, rot, t)
         uv, jp = self.camera.project_jacobian(cam, jacobian)
@@ -183,9 +200,8 @@ class Problem:
         pred = pred.reshape(s, c)
         r = (feats - gain * pred) * cw
         r[~valid] = 0.0
-        vf = float(valid.mean())
         if not jacobian:
-            return r.reshape(-1), None, vf
+            return r.reshape(-1), None, valid
         # d(cam)/d(alpha) = R basis ; d(cam)/d(delta) = -[R head]x ; d(cam)/d(t) = I
         rh = head @ rot.T
         with_gain = with_gain and self.estimate_gain
@@ -207,7 +223,7 @@ class Problem:
             jac[:, :, k + 6] = -pred
         jac *= cw[:, :, None]
         jac[~valid] = 0.0
-        return r.reshape(-1), jac.reshape(s * c, -1), vf
+        return r.reshape(-1), jac.reshape(s * c, -1), valid
 
     def loss_scale(self, robust_scale: float | None) -> float | None:
         """The Cauchy scale the data term uses: the policy's for la models; None (least
@@ -226,7 +242,7 @@ class Problem:
             bool(jacobian), bool(with_gain and self.estimate_gain),
             *((maps.source, maps.done, maps.rows, maps.rows_done, maps.taps) if maps.lazy
               else _NOT_LAZY))
-        return r, (jac if jacobian else None), float(valid.mean())
+        return r, (jac if jacobian else None), np.asarray(valid, bool)
 
     def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray,
              robust_scale: float | None = None) -> float:

@@ -40,8 +40,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="sample points per articulatory parameter (la; default 12)")
     tr.add_argument("--rig", choices=["head", "desk"], default="desk",
                     help="how the camera moves relative to the head: the information "
-                         "selection plans for the head pose the tracker will estimate "
-                         "(desk, default: free head motion; head: a head-mounted camera)")
+                         "selection plans for the head pose the tracker will estimate, and "
+                         "on a desk camera (default: free head motion) la models also learn "
+                         "how the face's shading changes as the head turns; head: a "
+                         "head-mounted camera")
     tr.add_argument("--selection", default="auto",
                     choices=["auto", "information", "displacement"],
                     help="la point selection: 'information' picks the points that best "
@@ -127,7 +129,9 @@ def _train(args: argparse.Namespace) -> int:
     prog = Progress(1, "training")
     app = train_appearance(model, camera, frames, args.kind, sigma=args.sigma,
                            per_param=args.per_param, selection=args.selection,
-                           pose_sigma=POSE_SIGMA[args.rig])
+                           pose_sigma=POSE_SIGMA[args.rig],
+                           rotation_terms=args.rig == "desk" and args.kind in ("la_lin",
+                                                                               "la_quad"))
     prog.update()
     prog.close()
     app.save(args.output)
