@@ -268,3 +268,21 @@ def test_a_sudden_exposure_step_is_absorbed_by_the_gain(setup):
         assert res.ok, (i, res.reason)
         assert rms_mm(model, res.alpha, alpha[i]) < 0.5
     assert abs(res.extra["gain"] - 0.6) < 0.05
+
+
+def test_filter_scale_is_the_same_size_on_the_face_at_any_distance():
+    """la filters are sized on the face (0.7 mm), not in pixels: a face twice as far gets
+    half the scale, down to a floor where sensor noise would dominate."""
+    from articast.core.appearance.models import SIGMA_MIN_PX, face_sigma
+    from tests.blobface import blob_setup
+
+    _, camera, pose = blob_setup()
+
+    def at(depth):
+        p = Pose(pose.rotation, [0.0, 0.0, depth])
+        return face_sigma(camera, [TrainingFrame(np.zeros((2, 2, 3), np.uint8), np.zeros(7), p)])
+
+    near, far = at(100.0), at(200.0)
+    assert near == pytest.approx(2 * far) and far > SIGMA_MIN_PX
+    assert at(5000.0) == SIGMA_MIN_PX
+    assert at(200.0) * 200.0 / camera.fx == pytest.approx(0.7)

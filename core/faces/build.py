@@ -41,7 +41,10 @@ class BuildOptions:
     train_frames: int = 90
     stats_frames: int = 60
     refine: int = 1
-    sigma: float = 2.5
+    # filter scale, px. Not train_appearance's face_sigma (0.7 mm on the face, 1.25 px on a
+    # webcam face): real video is compressed, and on cap13 filters that small took the
+    # still-mouth jitter from 0.43 to 2.85 % of the mouth width (franck 0.067 -> 0.107).
+    sigma: float | None = 2.5
 
 
 def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.ndarray:

@@ -35,15 +35,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                     choices=["la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin"],
                     help="appearance model: la_lin is the paper's; la_quad (default) adds "
                          "quadratic terms and is measurably more accurate (README, Results)")
-    tr.add_argument("--sigma", type=float, default=2.5, help="filter scale in px (default 2.5)")
+    tr.add_argument("--sigma", type=float, default=None,
+                    help="filter scale in px (default: 0.7 mm on the face at the training "
+                         "frames' depth, at least 1.25 px; 2.5 px on a head-mounted camera)")
     tr.add_argument("--per-param", type=int, default=12,
                     help="sample points per articulatory parameter (la; default 12)")
-    tr.add_argument("--rig", choices=["head", "desk"], default="desk",
-                    help="how the camera moves relative to the head: the information "
-                         "selection plans for the head pose the tracker will estimate, and "
-                         "on a desk camera (default: free head motion) la models also learn "
-                         "how the face's shading changes as the head turns; head: a "
-                         "head-mounted camera")
+    tr.add_argument("--rig", choices=["head", "desk"], default="head",
+                    help="how the camera moves relative to the head, as 'track --rig': "
+                         "head (default: a head-mounted camera) or desk (free head motion). "
+                         "The point selection plans for the head pose the tracker will "
+                         "estimate, and on a desk la models also learn how the face's "
+                         "shading changes as the head turns")
     tr.add_argument("--selection", default="auto",
                     choices=["auto", "information", "displacement"],
                     help="la point selection: 'information' picks the points that best "
