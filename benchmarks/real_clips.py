@@ -6,8 +6,12 @@ the landmark model run on every frame (an independent method), in the same run.
 
 Per clip (held-out frames only):
 - ``ok``: fraction of frames the tracker marks ok;
-- ``aperture_r``: correlation of the tracker's lip aperture (mm, ``lips.aperture_mm``) with
-  the landmarks' (inner-lip midpoints 13-14 over the outer lip width, image px);
+- ``aperture_r``: correlation of the tracker's lip aperture with the landmarks', both as a
+  fraction of the same method's outer lip width (the landmarks: inner-lip midpoints 13-14
+  over corners 61-291, image px; the tracker: ``lips.aperture_mm`` over the fitted model's
+  outer corners 8.3-8.4). The ratio is what the image shows without a scale; comparing the
+  tracker's mm with the landmarks' ratio (``aperture_mm_r``, the figure before) mixed in the
+  lips' width changes (spread and rounded lips, a laugh);
 - ``jitter_pct_width``: RMS of the aperture about its linear trend inside the still windows,
   in % of the outer lip width, for the tracker and for the landmark model; the windows are the
   10 % of 0.4 s windows where the mouth's image changes least (chosen from pixels, not from
@@ -84,8 +88,8 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
     return np.array(marks), np.array(found), ms
 
 
-def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None
-             ) -> dict:
+def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
+             series: Path | None = None) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -123,7 +127,8 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
         "clip": name, "fps": round(fps, 3), "enrol_frames": len(enrol),
         "held_out_frames": len(held), "ok": round(float(ok.mean()), 4),
         "reasons": _reasons(results),
-        "aperture_r": round(float(np.corrcoef(ap_mm[both], ap_lm[both])[0, 1]), 4),
+        "aperture_r": round(float(np.corrcoef((ap_mm / outer)[both], ap_lm[both])[0, 1]), 4),
+        "aperture_mm_r": round(float(np.corrcoef(ap_mm[both], ap_lm[both])[0, 1]), 4),
         "jitter_pct_width": {"tracker": round(jitter(np.where(ok, ap_mm / outer, np.nan),
                                                      windows), 3),
                              "landmarks": round(jitter(ap_lm, windows), 3)},
@@ -137,6 +142,13 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     }
     if grid is not None:
         _write_grid(grid / f"{name}.png", held, results, speaker)
+    if series is not None:  # per-frame series, to see where the two methods part
+        series.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(series / f"{name}.npz", ok=ok, alpha=alpha,
+                            aperture_mm=ap_mm, outer_width_mm=outer, landmarks_ratio=ap_lm,
+                            inner_midpoints_mm=m.shape(alpha)[:, [m.point("2.2"),
+                                                                  m.point("2.3")]],
+                            fps=fps)
     return out
 
 
@@ -202,6 +214,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache/articast/clips")
     ap.add_argument("--only", nargs="*", default=list(CLIPS))
     ap.add_argument("--grid", type=Path, help="write an overlay grid per clip here")
+    ap.add_argument("--series", type=Path,
+                    help="write each clip's per-frame series (tracker and landmarks) here")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
@@ -209,7 +223,7 @@ def main(argv: list[str] | None = None) -> None:
         path = next(iter(args.cache.glob(f"{name}.*")), None)
         if path is None:
             sys.exit(f"{name}: not in {args.cache}: run python tools/fetch_real_clips.py")
-        row = run_clip(name, path, args.grid)
+        row = run_clip(name, path, args.grid, series=args.series)
         rows.append(row)
         if not args.json:
             print(row, flush=True)
