@@ -323,7 +323,7 @@ class Tracker:
                        else f"diverged: residual {fit.robust_residual:.3g} is far above its "
                             f"running level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
-        return self._accept(fit, t, t0, evals, occluded=self.occlusion(fit.point_q))
+        return self._accept(fit, t, t0, evals, occluded=self.occlusion(fit.point_q, fit.gain))
 
     def _fit_from_neutral(self, image: np.ndarray, cache: dict[int, ImageMaps],
                           ref: np.ndarray | None) -> FitResult:
@@ -350,15 +350,21 @@ class Tracker:
         return fit.robust_residual <= max(pol.divergence_factor * self._rlevel,
                                           pol.residual_floor)
 
-    def occlusion(self, q: np.ndarray | None) -> str | None:
+    def occlusion(self, q: np.ndarray | None, gain: float = 1.0) -> str | None:
         """The ``occluded`` reason for a fit whose per-point residuals ``q`` (S,) show that
         the part of the face the articulation moves no longer looks like the speaker, else
-        None (see ``TrackingPolicy.occlusion_q``). Cheap: a few array operations over S."""
+        None (see ``TrackingPolicy.occlusion_q``). Cheap: a few array operations over S.
+
+        gain : the fit's image gain. The model's mispredictions grow with it (the weights
+        whiten residuals at the enrolment's exposure), so q is judged divided by gain^2
+        when the image is brighter: at gain 1.2 a clean frame's worst lip points crossed
+        the threshold."""
         pol = self.policy
         if (pol.occlusion_q is None or q is None or self._qlevel is None
                 or not self.problem.appearance.kind.startswith("la")):
             return None  # (tex: one z-scored value per point, another scale)
         judged = self._judged & (q > 0)  # q = 0: outside the image
+        q = q / max(1.0, gain) ** 2
         limit = np.maximum(pol.occlusion_q, pol.occlusion_factor
                            * np.maximum(self._qlevel, pol.occlusion_floor))
         out = judged & (q > limit)
