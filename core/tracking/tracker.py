@@ -373,8 +373,8 @@ class Tracker:
                 self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
             return None
         return (f"occluded: {n_out} of {int(judged.sum())} sample points on the lips, jaw and "
-                f"chin no longer look like the face (a hand or an object over it?); tracked "
-                f"through, not streamed")
+                f"chin no longer look like the face (a hand or an object over them, or the fit "
+                f"is wrong there); tracked through, not streamed")
 
     def _update_point_levels(self, q: np.ndarray | None) -> None:
         if q is None:
