@@ -85,6 +85,15 @@ class TrackingPolicy:
         the mouth, and frames 2-4 mm wrong passed; scaling the threshold by the frame's
         median residual ratio -- a hand raises that too (1.5-2x), and hid frames 3.5 mm
         wrong. Neither changed the clean clips.
+    occlusion_frames : frames in a row that must show the outliers before they are flagged
+        (the first ones are streamed ok, their levels left alone). 2: an inner-lip point
+        mispredicted for one frame as the mouth opens fast (teeth appearing) reached q = 816
+        with three others above 250 on a clean rendered clip, the fit within 1 mm; a hand
+        stays. The cost: a hand's first frame is streamed, which on ``hand_slide`` is still
+        within ~0.6 mm.
+    occlusion_stay_q : once flagged, a frame stays ``occluded`` (until a frame is ok) while one
+        judged point is above this: after a diverged frame under the hand, fits 3.7 mm
+        wrong with a single point at q = 200-260 were streamed ok.
     occlusion_rate : the per-point running levels follow frames that are ok at this rate
         (moving towards at most ``level_clip`` x themselves per frame).
     min_valid_fraction : below this fraction of sample points inside the image: not ok.
@@ -116,6 +125,8 @@ class TrackingPolicy:
     occlusion_floor: float = 4.0
     occlusion_points: int = 2
     occlusion_span_mm: float = 60.0
+    occlusion_frames: int = 2
+    occlusion_stay_q: float = 150.0
     occlusion_moving: float = 0.2
     occlusion_rate: float = 0.05
 
@@ -173,6 +184,8 @@ class Tracker:
         self._level: float | None = None  # running raw residual (fast path)
         self._rlevel: float | None = None  # running robust residual (divergence)
         self._qlevel: np.ndarray | None = None  # running residual per sample point (occlusion)
+        self._suspect = 0  # frames in a row with outliers (occlusion)
+        self._occluding = False  # inside an occlusion: flagged since the last ok frame
         self._held: tuple[np.ndarray, Pose] | None = None  # last state streamed as ok
         self._gain = 1.0
         self._gap = False
@@ -323,7 +336,12 @@ class Tracker:
                        else f"diverged: residual {fit.robust_residual:.3g} is far above its "
                             f"running level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
-        return self._accept(fit, t, t0, evals, occluded=self.occlusion(fit.point_q, fit.gain))
+        occluded = self.occlusion(fit.point_q, fit.gain, staying=self._occluding)
+        self._suspect = self._suspect + 1 if occluded else 0
+        if occluded and not self._occluding and self._suspect < self.policy.occlusion_frames:
+            return self._accept(fit, t, t0, evals, keep_point_levels=True)
+        self._occluding = occluded is not None
+        return self._accept(fit, t, t0, evals, occluded=occluded)
 
     def _fit_from_neutral(self, image: np.ndarray, cache: dict[int, ImageMaps],
                           ref: np.ndarray | None) -> FitResult:
@@ -350,7 +368,8 @@ class Tracker:
         return fit.robust_residual <= max(pol.divergence_factor * self._rlevel,
                                           pol.residual_floor)
 
-    def occlusion(self, q: np.ndarray | None, gain: float = 1.0) -> str | None:
+    def occlusion(self, q: np.ndarray | None, gain: float = 1.0,
+                  staying: bool = False) -> str | None:
         """The ``occluded`` reason for a fit whose per-point residuals ``q`` (S,) show that
         the part of the face the articulation moves no longer looks like the speaker, else
         None (see ``TrackingPolicy.occlusion_q``). Cheap: a few array operations over S.
@@ -358,17 +377,22 @@ class Tracker:
         gain : the fit's image gain. The model's mispredictions grow with it (the weights
         whiten residuals at the enrolment's exposure), so q is judged divided by gain^2
         when the image is brighter: at gain 1.2 a clean frame's worst lip points crossed
-        the threshold."""
+        the threshold.
+        staying : inside an occlusion (the previous frames occluded, or lost since): one
+        point above ``occlusion_stay_q`` keeps the frame occluded."""
         pol = self.policy
         if (pol.occlusion_q is None or q is None or self._qlevel is None
                 or not self.problem.appearance.kind.startswith("la")):
             return None  # (tex: one z-scored value per point, another scale)
         judged = self._judged & (q > 0)  # q = 0: outside the image
         q = q / max(1.0, gain) ** 2
-        limit = np.maximum(pol.occlusion_q, pol.occlusion_factor
-                           * np.maximum(self._qlevel, pol.occlusion_floor))
+        limit = np.maximum(pol.occlusion_stay_q if staying else pol.occlusion_q,
+                           pol.occlusion_factor * np.maximum(self._qlevel, pol.occlusion_floor))
         out = judged & (q > limit)
         n_out = int(np.count_nonzero(out))
+        if staying and n_out:
+            return (f"occluded: still {n_out} of {int(judged.sum())} sample points on the lips, "
+                    f"jaw and chin unlike the face; tracked through, not streamed")
         if n_out < pol.occlusion_points or (
                 self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
             return None
@@ -389,7 +413,8 @@ class Tracker:
                                           - lv[seen])
 
     def _accept(self, fit: FitResult, t: float, t0: float, evals: int,
-                force: bool = False, occluded: str | None = None) -> TrackResult:
+                force: bool = False, occluded: str | None = None,
+                keep_point_levels: bool = False) -> TrackResult:
         pol = self.policy
         if occluded is not None:
             # keep tracking from the robust fit (its state seeds the next frame), but judge
@@ -426,7 +451,8 @@ class Tracker:
             if self._robust:
                 rlvl = min(rlvl, pol.level_clip * self._rlevel)
             self._rlevel += pol.level_rate * (rlvl - self._rlevel)
-        self._update_point_levels(fit.point_q)
+        if not keep_point_levels:
+            self._update_point_levels(fit.point_q)
         self._held = (fit.alpha.copy(), Pose(fit.rotation, fit.translation))
         return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
