@@ -79,9 +79,9 @@ def test_a_hand_sliding_over_the_chin_is_flagged_occluded_not_streamed_wrong(spe
 @pytest.mark.parametrize("rig,seq_seed", [("head", 2), ("head", 3), ("desk", 2)])
 def test_clean_sequences_have_no_occluded_frame_where_the_fit_is_right(speaker, head_app, rig,
                                                                        seq_seed):
-    """No hand, no occluded frame -- except where the fit itself went wrong on the lips (desk
-    sequence 2, frame 41: 4.3 mm off, streamed ok without the test): that frame should not
-    be ok either way; the test must not flag an accurate one."""
+    """No hand, no occluded frame -- except where the fit itself went wrong on the lips (on an
+    earlier main, desk sequence 2 frame 41 was 4.3 mm off, streamed ok without the test, and
+    flagged): such a frame should not be ok either way; an accurate one must not be flagged."""
     app = head_app if rig == "head" else enrolment_appearance(
         speaker, "desk", "la_lin", enrolment_frames(speaker, "desk", 1, 75, 6.0))
     res, _ = track(speaker, app, rig, seq_seed, 150, lambda i: RenderOptions(seed=1000 + i))
