@@ -16,6 +16,12 @@ Conditions (all with ground truth):
   after the gap it took to be ok and as accurate as before it (error within 1.5 x the median
   of the 10 frames before the gap, twice the sequence's median, or 1 mm);
   ``recovery_frames_ok`` until it is marked ok again.
+- ``hand_slide``: the teleconference condition with a hand sliding in over frames 60-79, from
+  below the chin (sequence 1) or from below and to the side (sequence 2), to rest over the
+  mouth until frame 89. Its first frames cover only a few sample points (the chin, a lip
+  corner), which the robust fit tracks through, sometimes wrongly: the occlusion test
+  (``TrackingPolicy.occlusion_q``) is what flags them. Same figures as ``occlusion``, over
+  frames 60-89.
 
 No files and no clock here: ``clock`` (e.g. time.perf_counter) is passed in for ms per frame.
 """
@@ -37,8 +43,13 @@ from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
 MODELS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin", "la_lin_nelder_mead")
 CONDITIONS = ("postures", "teleconference", "desk", "noise", "gain", "blur", "light",
-              "occlusion")
+              "occlusion", "hand_slide")
 OCCLUSION = (60, 70)  # [start, stop) frames of the occlusion in the occlusion condition
+HAND_SLIDE = (60, 90)  # [start, stop) frames of the hand in the hand_slide condition
+HAND_SLIDE_IN = 20  # frames the hand takes to reach the mouth
+# where the sliding hand starts, in mouth widths from the mouth centre (x right, y down)
+HAND_SLIDE_FROM = ((0.0, 1.6), (1.8, 1.2))
+OCCLUDED = {"occlusion": OCCLUSION, "hand_slide": HAND_SLIDE}
 
 
 @dataclass(frozen=True)
@@ -161,6 +172,11 @@ class Evaluation:
                 extra["light_azimuth_deg"] = -20.0 + 30.0 * i / max(n - 1, 1)
             if cond == "occlusion" and OCCLUSION[0] <= i < OCCLUSION[1]:
                 extra["occluder"] = "hand" if seq_index % 2 == 0 else "black"
+            if cond == "hand_slide" and HAND_SLIDE[0] <= i < HAND_SLIDE[1]:
+                left = max(0.0, 1.0 - (i - HAND_SLIDE[0]) / HAND_SLIDE_IN)
+                start = HAND_SLIDE_FROM[seq_index % 2]
+                extra["occluder"] = "hand"
+                extra["occluder_shift"] = (start[0] * left, start[1] * left)
             return RenderOptions(**{**base, "seed": base["seed"] + i, **extra})
         return opts
 
@@ -193,8 +209,8 @@ class Evaluation:
                 sc = score_sequence(self.model, alpha, ok, np.array([r.evals for r in res]),
                                     np.array([r.ms for r in res]), seq.points[:n])
                 scored = np.ones(n, bool)
-                if cond == "occlusion":
-                    a, b = OCCLUSION
+                if cond in OCCLUDED:
+                    a, b = OCCLUDED[cond]
                     scored[a:min(b, n)] = False
                     flagged.append(float(np.mean(~ok[a:b])) if n > a else float("nan"))
                     inside = sc.rms_mm[a:b][ok[a:b]]  # occluded frames streamed as ok
@@ -215,7 +231,7 @@ class Evaluation:
                                        lip_aperture(self.model, alpha),
                                        lip_aperture(self.model, alpha_true)))
             figs[name] = _merge(scores)
-            if cond == "occlusion":
+            if cond in OCCLUDED:
                 figs[name]["flagged_fraction"] = float(np.mean(flagged))
                 figs[name]["occluded_ok_rms_mm_max"] = float(np.max(streamed))
                 figs[name]["recovery_frames"] = float(np.max(recov))

@@ -16,8 +16,10 @@ The streamed articulation passes a One Euro filter (the fit itself does not).
 ``ok`` must mean ok. A frame is not ok, with a reason code first in ``reason``:
 ``blank`` (no contrast), ``no_face`` (the finder sees none), ``diverged`` (the tracker's
 robust residual is far above its running level *or* above what the speaker's own enrolment
-clip produced: ``residual_factor`` x its 99th percentile), ``left_image`` (the face left the
-frame), ``not_started``.
+clip produced: ``residual_factor`` x its 99th percentile), ``occluded`` (a part of the face
+the articulation moves, e.g. the chin or the mouth, fits far worse than usual: a hand; the
+tracker keeps tracking through it, see ``TrackingPolicy.occlusion_factor``), ``left_image``
+(the face left the frame), ``not_started``.
 """
 
 from __future__ import annotations
@@ -184,7 +186,10 @@ class LiveTracker:
         result = self.tracker.track(image, t)
         result = self._judge(result)
         self._since_check += 1
-        doubt = not result.ok
+        # an occluded frame is tracked through (robust fit, no restart): the landmarks of a
+        # face behind a hand are no better than the fit, and restarting from them every
+        # frame would cost a landmark call per frame for as long as the hand stays
+        doubt = not result.ok and not result.reason.startswith("occluded")
         if doubt or self._since_check >= self.policy.verify_every:
             self._since_check = 0
             face = self._finder(image, self._face)

@@ -80,7 +80,9 @@ class FitResult:
     residual : mean squared (weighted) residual value. robust_residual : the robust (Cauchy)
     data term per value, where the fit is robust (else = residual): a few points the model
     mispredicts (an articulation beyond the enrolment's range) barely raise it, an occlusion,
-    which spoils most points, does.
+    which spoils most points, does. point_q : per sample point, the squared norm of its
+    weighted residual over its C values (the Cauchy weight of the point is
+    1 / sqrt(1 + point_q / scale^2)).
     """
 
     alpha: np.ndarray
@@ -95,6 +97,9 @@ class FitResult:
     costs: tuple[float, ...] = ()
     gain: float = 1.0
     robust_residual: float | None = None
+    # (S,) squared weighted residual norm of each sample point at the solution (0 where the
+    # point falls outside the image): the per-point evidence the occlusion test reads
+    point_q: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.robust_residual is None:
@@ -270,6 +275,11 @@ def _robust(r: np.ndarray, jac: np.ndarray | None, c: int, scale: float | None
     return cost, r * w, None if jac is None else jac * w[:, None]
 
 
+def _point_q(r: np.ndarray, c: int) -> np.ndarray:
+    """Squared weighted residual norm per sample point (S,) from the residuals (S*C,)."""
+    return np.einsum("sc,sc->s", r.reshape(-1, c), r.reshape(-1, c))
+
+
 def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
                 ref: tuple[np.ndarray, np.ndarray] | None) -> tuple[float, np.ndarray, np.ndarray]:
     """Cost, gradient (6,) and Gauss-Newton Hessian (6, 6) of the pose prior."""
@@ -371,7 +381,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
     n = max(r.size * vf, 1.0)
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
-                     vf, tuple(costs), gain, rc / n)
+                     vf, tuple(costs), gain, rc / n, _point_q(r, nc))
 
 
 def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,
@@ -404,4 +414,5 @@ def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.nd
     n = max(r.size * vf, 1.0)
     rc = _robust(r, None, problem.c, problem.loss_scale(pol.robust_scale))[0]
     return FitResult(th[:k], th[k:k + 3], th[k + 3:], float(res.fun), float(r @ r) / n,
-                     int(res.nfev), int(res.nit), bool(res.success), vf, robust_residual=rc / n)
+                     int(res.nfev), int(res.nit), bool(res.success), vf, robust_residual=rc / n,
+                     point_q=_point_q(r, problem.c))

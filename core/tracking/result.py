@@ -18,8 +18,8 @@ class TrackResult:
     pose : head pose, head -> camera.
     ok : False when the frame could not be tracked (occlusion, divergence, lost face); then
         ``reason`` says why and alpha/pose hold the last good state, not a guess. The reason
-        starts with a code word: ``blank``, ``no_face``, ``diverged``, ``left_image``,
-        ``not_started``, then ``:`` and a sentence for people.
+        starts with a code word: ``blank``, ``no_face``, ``diverged``, ``occluded``,
+        ``left_image``, ``not_started``, then ``:`` and a sentence for people.
     residual : cost per descriptor value at the solution (lower is better).
     evals : cost evaluations spent; iterations : optimiser iterations; ms : wall time spent
         (measured by the caller and passed in: core never reads a clock).

@@ -57,6 +57,9 @@ def _evaluate(args: argparse.Namespace) -> int:
     if cfg.test_frames < 80 and "occlusion" in cfg.conditions:
         raise InputError("the occlusion condition needs --frames of at least 80 "
                          "(the hand covers frames 60-69)")
+    if cfg.test_frames < 100 and "hand_slide" in cfg.conditions:
+        raise InputError("the hand_slide condition needs --frames of at least 100 "
+                         "(the hand covers frames 60-89)")
     t0 = time.perf_counter()
     def log(message: str) -> None:
         print(message, file=sys.stderr, flush=True)

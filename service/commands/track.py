@@ -67,8 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "(a bead-lab speaker), the first frame starts from --init-pose, or from the first "
             "state of --init-truth, or else from a search around a frontal face "
             "--distance-mm in front of the camera. A frame that cannot be tracked says so: "
-            "quality.ok false and a reason starting with blank, no_face, diverged or "
-            "left_image."
+            "quality.ok false and a reason starting with blank, no_face, diverged, occluded "
+            "or left_image."
         ),
     )
     tk.add_argument("video", type=Path, help="the video to track")
