@@ -144,6 +144,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         "variance_pct": dict(zip(geo.table.names, map(float, geo.table.variance_pct),
                                  strict=True)),
         "scale": geo.scale_source,
+        "depth": enrol.depth,
         "coverage": coverage,
         "unobserved": ["lar1"],
         "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},
