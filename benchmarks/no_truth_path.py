@@ -40,7 +40,7 @@ from real_clips import landmarks_every_frame  # noqa: E402
 
 from articast.core.dense.mesh import register_icp  # noqa: E402
 from articast.core.dense.transfer import apply, bind  # noqa: E402
-from articast.core.faces.build import build_speaker  # noqa: E402
+from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
 from articast.core.faces.enrol import DEPTHS, EnrolOptions, similarity  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
@@ -87,7 +87,7 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
 
 
 def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
-        depth: str | None = None) -> dict:
+        depth: str | None = None, flow: bool = True) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
@@ -98,7 +98,8 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
     t0 = time.perf_counter()
     opts = EnrolOptions(fixed_pose=(rig == "head"),
                         **({"depth": depth} if depth is not None else {}))
-    speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig, opts)
+    speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig, opts,
+                            BuildOptions(flow=flow))
     build_s = time.perf_counter() - t0
     test = make_sequence(seed * 100 + 12, test_frames, 50.0, rig, geometry=sp.geometry)
     live = LiveTracker(speaker, finder, mediapipe_scheme(rig), clock=time.perf_counter)
@@ -130,7 +131,7 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
     return {"rig": rig, "seed": seed, "ok": round(float(ok.mean()), 3), "param_r": param_r,
             "lips": lips, **{k: round(v, 3) if isinstance(v, float) else v
                              for k, v in surf.items()},
-            "depth": opts.depth, "enrol_build_s": round(build_s, 1),
+            "depth": opts.depth, "flow": flow, "enrol_build_s": round(build_s, 1),
             "ms_per_frame_median": round(float(np.median([r.ms for r in res])), 2)}
 
 
@@ -140,12 +141,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     ap.add_argument("--depth", choices=list(DEPTHS), default=None,
                     help="enrolment depth option (default: the enrolment's default)")
+    ap.add_argument("--no-flow", dest="flow", action="store_false",
+                    help="enrol on the landmarks' own pixels (no optical-flow refinement)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
     for rig in args.rigs:
         for seed in args.seeds:
-            row = run(rig, seed, depth=args.depth)
+            row = run(rig, seed, depth=args.depth, flow=args.flow)
             rows.append(row)
             if not args.json:
                 print(row, flush=True)

@@ -56,6 +56,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="each frame's depth: rigid (default) the head's, posed on the pixels "
                          "of the nose and upper face; landmarks: the landmark model's own "
                          "per-point guess")
+    en.add_argument("--no-flow", dest="flow", action="store_false",
+                    help="use the landmarks' own pixels (default: refined by optical flow, "
+                         "frame to frame, pulled back to the landmarks)")
     en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
                     help="appearance model (default la_quad: la_lin plus squared terms)")
     en.add_argument("--max-frames", type=int, default=600,
@@ -135,7 +138,7 @@ def _enroll(args: argparse.Namespace) -> int:
         images, marks, found, scheme, camera, args.rig,
         EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm,
                      fixed_pose=(args.rig == "head"), depth=args.depth),
-        BuildOptions(kind=args.kind), args.name or args.video.stem, say)
+        BuildOptions(kind=args.kind, flow=args.flow), args.name or args.video.stem, say)
     cov = speaker.report["coverage"]
     ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
     wd_range = cov["width_mm"][1] - cov["width_mm"][0]
