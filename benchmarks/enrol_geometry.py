@@ -15,9 +15,12 @@ runs the landmark model on it, and reports, on the enrolment frames themselves:
   the landmarks by the true surface points they are bound to (``oracle``: true pixels and
   depth, the ceiling of the pipeline; ``oracle_pixels``: true pixels, landmark depth, rigid
   depth option);
-- ``--lk``: the landmarks' pixels refined by pyramidal Lucas-Kanade (frame to frame, forward-
-  backward check, pulled back to the landmarks by 10 % a frame) as a variant, and the RMS of
-  each frame-to-frame 2D displacement against the bound truth's for landmarks and LK.
+- ``feature_offset_mm``: mean distance of the labelled feature points from their true
+  counterparts at the mean posture after the binding's similarity, and after its ICP;
+- ``--lk``: the landmarks' pixels refined by optical flow as enrolment does by default
+  (core/faces/flow.py: pyramidal Lucas-Kanade frame to frame, forward-backward check, pulled
+  back to the landmarks by 10 % a frame), rigid depth, as a variant; and the RMS of each
+  frame-to-frame 2D displacement against the bound truth's, for the landmarks and the flow.
 """
 
 from __future__ import annotations
@@ -27,7 +30,6 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -38,6 +40,7 @@ from articast.core.dense.mesh import register_icp  # noqa: E402
 from articast.core.dense.transfer import apply, bind  # noqa: E402
 from articast.core.faces.enrol import EnrolOptions, enrol_geometry, similarity  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
+from articast.core.faces.flow import refine_pixels  # noqa: E402
 from articast.core.faces.scheme import FEATURE_LANDMARKS, mediapipe_scheme  # noqa: E402
 from articast.core.model.build import invert  # noqa: E402
 from articast.core.synthetic import RenderOptions, default_speaker, make_sequence  # noqa: E402
@@ -67,22 +70,6 @@ def _evaluate(geo, true_model, points) -> dict:
                               for c in range(3)]}
 
 
-def _lk(grey, marks, ids, gain=0.1, win=15):
-    crit = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
-    lk = {"winSize": (win, win), "maxLevel": 3, "criteria": crit}
-    p = marks.copy()
-    for k in range(1, len(grey)):
-        prev = p[k - 1, ids, :2].astype(np.float32).reshape(-1, 1, 2)
-        q, st, _ = cv2.calcOpticalFlowPyrLK(grey[k - 1], grey[k], prev, None, **lk)
-        b, st2, _ = cv2.calcOpticalFlowPyrLK(grey[k], grey[k - 1], q, None, **lk)
-        q, b = q.reshape(-1, 2), b.reshape(-1, 2)
-        good = ((st.ravel() == 1) & (st2.ravel() == 1)
-                & (np.linalg.norm(b - prev.reshape(-1, 2), axis=1) < 1.0))
-        pred = np.where(good[:, None], q, marks[k, ids, :2])
-        p[k, ids, :2] = (1 - gain) * pred + gain * marks[k, ids, :2]
-    return p
-
-
 def run(rig: str, seed: int, lk: bool = False) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
@@ -107,8 +94,16 @@ def run(rig: str, seed: int, lk: bool = False) -> dict:
         out["variants"][depth] = _evaluate(enrol(marks, depth), true_model, seq.points)
     # the landmarks replaced by the true surface points they are bound to
     geo = enrol(marks, "landmarks")
-    _, _, binding = _binding(geo.model, geo.model.shape(geo.alpha), true_model,
-                             seq.points[geo.frames])
+    ge = geo.model.shape(geo.alpha)
+    (s, r, t), reg, binding = _binding(geo.model, ge, true_model, seq.points[geo.frames])
+    rest_t = seq.points[geo.frames].mean(0)
+    labels = [x for x in geo.model.feature_points if x in true_model.feature_points]
+    sim = s * ge.mean(0)[[geo.model.point(x) for x in labels]] @ r.T + t
+    true_pts = rest_t[[true_model.point(x) for x in labels]]
+    out["feature_offset_mm"] = {
+        "similarity": round(float(np.linalg.norm(sim - true_pts, axis=1).mean()), 2),
+        "similarity_icp": round(float(np.linalg.norm(reg.apply(sim) - true_pts, axis=1).mean()),
+                                2)}
     oracle = marks.copy()
     for f in range(seq.n_frames):
         pc = seq.pose(f).transform(apply(binding, seq.points[f]))
@@ -120,8 +115,7 @@ def run(rig: str, seed: int, lk: bool = False) -> dict:
     pix[:, scheme.points, :2] = oracle[:, scheme.points, :2]
     out["variants"]["oracle_pixels"] = _evaluate(enrol(pix, "rigid"), true_model, seq.points)
     if lk:
-        grey = [cv2.cvtColor(im, cv2.COLOR_BGR2GRAY) for im in imgs]
-        refined = _lk(grey, marks, scheme.points)
+        refined = refine_pixels(imgs, marks, found, scheme.points)
         out["variants"]["lk_rigid"] = _evaluate(enrol(refined, "rigid"), true_model, seq.points)
         ids = scheme.points
         true_d = np.diff(oracle[:, ids, :2], axis=0)
