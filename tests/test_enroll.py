@@ -246,26 +246,28 @@ def test_enrolled_geometry_follows_the_pixels_not_the_landmarkers_depth(enrolled
 
 
 def test_optical_flow_refines_landmark_pixels_that_under_read_the_motion():
-    """A textured face patch moves; the 'landmarks' read 70 % of its motion plus noise (the
-    kind of slope a landmark model's prior gives). The refined pixels follow the image."""
+    """A textured face moves; the 'landmarks' read 70 % of its motion plus noise (the kind of
+    slope a landmark model's prior gives). The refined pixels follow the image."""
     import cv2
 
     from articast.core.faces.flow import refine_pixels
 
     rng = np.random.default_rng(3)
     texture = cv2.GaussianBlur(rng.uniform(0, 255, (240, 240)).astype(np.float32), (0, 0), 2.0)
-    n_frames, pts = 60, np.array([[100.0, 100.0], [140.0, 110.0], [120.0, 140.0]])
+    # three points inside, two marking the face's extent (its size bounds the flow's deviation)
+    pts = np.array([[100.0, 100.0], [140.0, 110.0], [120.0, 140.0], [40.0, 40.0], [200, 200]])
+    n_frames = 60
     t = np.arange(n_frames)  # a syllable-like motion: a period of ~12 frames (1 s at 12 fps)
     shift = np.stack([8 * np.sin(t / 2), 5 * np.sin(t / 2.6)], 1)
     frames = [cv2.warpAffine(texture, np.float32([[1, 0, dx], [0, 1, dy]]), (240, 240))
               .clip(0, 255).astype(np.uint8) for dx, dy in shift]
-    true = pts[None] + shift[:, None]
-    marks = np.zeros((n_frames, 5, 3))
-    marks[:, 1:4, :2] = pts[None] + 0.7 * shift[:, None] + rng.normal(0, 0.5, (n_frames, 3, 2))
+    true = pts[None, :3] + shift[:, None]
+    marks = np.zeros((n_frames, 7, 3))
+    marks[:, 1:6, :2] = pts[None] + 0.7 * shift[:, None] + rng.normal(0, 0.5, (n_frames, 5, 2))
     found = np.ones(n_frames, bool)
     found[30] = False  # a frame without a face: the flow restarts from the landmarks after it
-    out = refine_pixels(frames, marks, found, np.array([1, 2, 3]))
-    assert np.array_equal(out[:, [0, 4]], marks[:, [0, 4]])  # other landmarks untouched
+    out = refine_pixels(frames, marks, found, np.arange(1, 6))
+    assert np.array_equal(out[:, [0, 6]], marks[:, [0, 6]])  # other landmarks untouched
     assert np.array_equal(out[..., 2], marks[..., 2])  # depth untouched
     assert np.array_equal(out[30], marks[30])
 
@@ -274,5 +276,11 @@ def test_optical_flow_refines_landmark_pixels_that_under_read_the_motion():
 
     assert error(marks) > 1.5
     assert error(out) < 0.5 * error(marks)
-    slope = np.polyfit(shift[:, 0], out[:, 1:4, 0].mean(1) - pts[:, 0].mean(), 1)[0]
+    slope = np.polyfit(shift[:, 0], out[:, 1:4, 0].mean(1) - pts[:3, 0].mean(), 1)[0]
     assert slope > 0.9
+    # a flow that lands far from its landmark (here: the image does not move at all while
+    # the landmarks jump by a fifth of the face) is not trusted
+    still = refine_pixels([frames[0]] * 3, np.stack([marks[0], marks[0] + [[32, 0, 0]],
+                                                     marks[0] + [[32, 0, 0]]]),
+                          np.ones(3, bool), np.arange(1, 6))
+    assert np.allclose(still[1:, 1:6, :2], marks[0, 1:6, :2] + [32, 0])

@@ -15,13 +15,18 @@ import numpy as np
 
 FB_MAX_PX = 1.0
 """A point whose backward flow misses its start by more than this keeps the landmark's pixel."""
+MAX_DEV = 0.05
+"""Default ``max_dev`` of :func:`refine_pixels`."""
 
 
 def refine_pixels(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np.ndarray,
-                  points: np.ndarray, gain: float = 0.1, window: int = 15) -> np.ndarray:
+                  points: np.ndarray, gain: float = 0.1, window: int = 15,
+                  max_dev: float = MAX_DEV) -> np.ndarray:
     """``landmarks`` (F, L, 3) with the pixels of ``points`` (landmark indices) refined.
 
     images : F BGR or grey frames; found : (F,) bool. Depth and other landmarks unchanged.
+    max_dev : a point whose flow lands farther than this fraction of the face's size (the
+        larger side of the points' box) from its landmark restarts from the landmark.
     """
     out = np.array(landmarks, np.float64)
     ids = np.asarray(points, np.int64)
@@ -45,6 +50,8 @@ def refine_pixels(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
             ok = ((st.ravel() == 1) & (st2.ravel() == 1)
                   & (np.linalg.norm(back - start.reshape(-1, 2), axis=1) < FB_MAX_PX))
             mark = landmarks[f, ids, :2]
+            size = float(np.ptp(mark, axis=0).max())
+            ok &= np.linalg.norm(fwd - mark, axis=1) <= max_dev * size
             out[f, ids, :2] = np.where(ok[:, None], (1 - gain) * fwd + gain * mark, mark)
         prev_img = g
     return out
