@@ -87,7 +87,7 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
 
 
 def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
-        depth: str | None = None, flow: bool = True) -> dict:
+        depth: str | None = None, flow: bool = False) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
@@ -141,8 +141,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     ap.add_argument("--depth", choices=list(DEPTHS), default=None,
                     help="enrolment depth option (default: the enrolment's default)")
-    ap.add_argument("--no-flow", dest="flow", action="store_false",
-                    help="enrol on the landmarks' own pixels (no optical-flow refinement)")
+    ap.add_argument("--flow", action="store_true",
+                    help="enrol with the landmarks' pixels refined by optical flow (off by "
+                         "default: see docs/REAL_SPEAKERS.md)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []

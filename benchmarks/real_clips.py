@@ -86,7 +86,7 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
 
 
 def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
-             depth: str | None = None, flow: bool = True) -> dict:
+             depth: str | None = None, flow: bool = False) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -210,8 +210,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--grid", type=Path, help="write an overlay grid per clip here")
     ap.add_argument("--depth", choices=list(DEPTHS), default=None,
                     help="enrolment depth option (default: the enrolment's default)")
-    ap.add_argument("--no-flow", dest="flow", action="store_false",
-                    help="enrol on the landmarks' own pixels (no optical-flow refinement)")
+    ap.add_argument("--flow", action="store_true",
+                    help="enrol with the landmarks' pixels refined by optical flow (off by "
+                         "default: see docs/REAL_SPEAKERS.md)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []

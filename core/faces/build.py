@@ -44,7 +44,7 @@ class BuildOptions:
     stats_frames: int = 60
     refine: int = 1
     sigma: float = 2.5
-    flow: bool = True
+    flow: bool = False
 
 
 def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.ndarray:

@@ -56,9 +56,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="each frame's depth: rigid (default) the head's, posed on the pixels "
                          "of the nose and upper face; landmarks: the landmark model's own "
                          "per-point guess")
-    en.add_argument("--no-flow", dest="flow", action="store_false",
-                    help="use the landmarks' own pixels (default: refined by optical flow, "
-                         "frame to frame, pulled back to the landmarks)")
+    en.add_argument("--flow", action="store_true",
+                    help="refine the landmarks' pixels by optical flow, frame to frame, pulled "
+                         "back to the landmarks (off by default: it helped a rendered face, "
+                         "not the real clips)")
     en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
                     help="appearance model (default la_quad: la_lin plus squared terms)")
     en.add_argument("--max-frames", type=int, default=600,
