@@ -17,9 +17,10 @@ runs the landmark model on it, and reports, on the enrolment frames themselves:
   depth option);
 - ``feature_offset_mm``: mean distance of the labelled feature points from their true
   counterparts at the mean posture after the binding's similarity, and after its ICP;
-- ``--lk``: the landmarks' pixels refined by optical flow as enrolment does by default
+- ``--lk``: the landmarks' pixels refined by optical flow as ``articast enroll --flow`` does
   (core/faces/flow.py: pyramidal Lucas-Kanade frame to frame, forward-backward check, pulled
-  back to the landmarks by 10 % a frame), rigid depth, as a variant; and the RMS of each
+  back to the landmarks by 10 % a frame, restarted from them past 5 % of the face), rigid
+  depth, as a variant; and the RMS of each
   frame-to-frame 2D displacement against the bound truth's, for the landmarks and the flow.
 """
 
