@@ -20,8 +20,8 @@ runs the landmark model on it, and reports, on the enrolment frames themselves:
 - ``--lk``: the landmarks' pixels refined by optical flow as ``articast enroll --flow`` does
   (core/faces/flow.py: pyramidal Lucas-Kanade frame to frame, forward-backward check, pulled
   back to the landmarks by 10 % a frame, restarted from them past 5 % of the face), rigid
-  depth, as a variant; and the RMS of each
-  frame-to-frame 2D displacement against the bound truth's, for the landmarks and the flow.
+  depth, as a variant; and the RMS of each frame-to-frame 2D displacement against the bound
+  truth's, for the landmarks and the flow.
 """
 
 from __future__ import annotations
