@@ -15,6 +15,14 @@ Per rig and speaker:
   ``rms_motion_mm`` the same after removing each point's mean offset (what a per-point
   definition difference between the landmarks and the true model contributes), ``scale``
   the similarity's scale (the error of the assumed inter-pupillary distance or mouth width).
+  The ICP step slides the enrolled face over the true surface by several mm where the two
+  faces' proportions differ, so a landmark can be bound to skin beside the point it follows
+  (whose motion differs: a lip corner bound to the cheek); hence also
+- ``feature_rms_mm``: RMS 3D error at the MPEG-4 feature points both models label (lips, chin,
+  nose: direct correspondences, no binding) after the same similarity, no ICP, and
+  ``feature_rms_motion_mm`` after removing each point's mean offset.
+- ``--depth``: the enrolment's depth option (core/faces/enrol.py ``EnrolOptions.depth``), to
+  compare with the landmarks' own depth.
 """
 
 from __future__ import annotations
@@ -32,8 +40,8 @@ from real_clips import landmarks_every_frame  # noqa: E402
 
 from articast.core.dense.mesh import register_icp  # noqa: E402
 from articast.core.dense.transfer import apply, bind  # noqa: E402
-from articast.core.faces.build import build_speaker  # noqa: E402
-from articast.core.faces.enrol import similarity  # noqa: E402
+from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
+from articast.core.faces.enrol import DEPTHS, EnrolOptions, similarity  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -66,12 +74,20 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
     rms = np.sqrt((diff**2).sum(-1).mean(-1))
     bias = diff[ok].mean(0)
     motion = np.sqrt(((diff - bias) ** 2).sum(-1).mean(-1))
+    common = [x for x in model_e.feature_points if x in true_model.feature_points]
+    fd = (s * ge[:, [model_e.point(x) for x in common]] @ r.T + t
+          - points[:, [true_model.point(x) for x in common]])
+    f_rms = np.sqrt((fd**2).sum(-1).mean(-1))
+    f_motion = np.sqrt(((fd - fd[ok].mean(0)) ** 2).sum(-1).mean(-1))
     return {"rms_mm": float(rms[ok].mean()), "rms_mm_p95": float(np.percentile(rms[ok], 95)),
+            "feature_rms_mm": float(f_rms[ok].mean()),
+            "feature_rms_motion_mm": float(f_motion[ok].mean()), "feature_points": len(common),
             "rms_motion_mm": float(motion[ok].mean()), "scale": float(s),
             "points_bound": int(near.sum()), "points": int(near.size)}
 
 
-def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150) -> dict:
+def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
+        depth: str | None = None, flow: bool = False) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
@@ -80,7 +96,10 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150) ->
                       RenderOptions(seed=10_000 + i)) for i in range(enrol.n_frames)]
     marks, found, _ = landmarks_every_frame(finder, imgs)
     t0 = time.perf_counter()
-    speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig)
+    opts = EnrolOptions(fixed_pose=(rig == "head"),
+                        **({"depth": depth} if depth is not None else {}))
+    speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig, opts,
+                            BuildOptions(flow=flow))
     build_s = time.perf_counter() - t0
     test = make_sequence(seed * 100 + 12, test_frames, 50.0, rig, geometry=sp.geometry)
     live = LiveTracker(speaker, finder, mediapipe_scheme(rig), clock=time.perf_counter)
@@ -112,7 +131,7 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150) ->
     return {"rig": rig, "seed": seed, "ok": round(float(ok.mean()), 3), "param_r": param_r,
             "lips": lips, **{k: round(v, 3) if isinstance(v, float) else v
                              for k, v in surf.items()},
-            "enrol_build_s": round(build_s, 1),
+            "depth": opts.depth, "flow": flow, "enrol_build_s": round(build_s, 1),
             "ms_per_frame_median": round(float(np.median([r.ms for r in res])), 2)}
 
 
@@ -120,12 +139,17 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rigs", nargs="*", default=["desk", "head"])
     ap.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
+    ap.add_argument("--depth", choices=list(DEPTHS), default=None,
+                    help="enrolment depth option (default: the enrolment's default)")
+    ap.add_argument("--flow", action="store_true",
+                    help="enrol with the landmarks' pixels refined by optical flow (off by "
+                         "default: see docs/REAL_SPEAKERS.md)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
     for rig in args.rigs:
         for seed in args.seeds:
-            row = run(rig, seed)
+            row = run(rig, seed, depth=args.depth, flow=args.flow)
             rows.append(row)
             if not args.json:
                 print(row, flush=True)

@@ -43,7 +43,8 @@ from face_landmarks_clips import (  # noqa: E402
     window_frames,
 )
 
-from articast.core.faces.build import build_speaker  # noqa: E402
+from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
+from articast.core.faces.enrol import DEPTHS, EnrolOptions  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -89,7 +90,8 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
 
 
 def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
-             series: Path | None = None) -> dict:
+             series: Path | None = None, depth: str | None = None,
+             flow: bool = False) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -99,7 +101,11 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     # enrolment: the first part, every other frame (as `articast enroll` strides long clips)
     enrol = frames[:n_enrol:2]
     marks, found, _ = landmarks_every_frame(finder, enrol)
-    speaker = build_speaker(enrol, marks, found, mediapipe_scheme("desk"), camera, "desk")
+    opts = EnrolOptions(**({"depth": depth} if depth is not None else {}))
+    t0 = time.perf_counter()
+    speaker = build_speaker(enrol, marks, found, mediapipe_scheme("desk"), camera, "desk", opts,
+                            BuildOptions(flow=flow))
+    build_s = time.perf_counter() - t0
     kernels.warm_up()
     # the landmark model alone on every held-out frame (the independent reference and the
     # speed baseline), then the live path on the same frames, in the same process
@@ -139,6 +145,7 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
         "restarts": live.restarts,
         "variance_pct": {k: round(v, 1) for k, v in speaker.report["variance_pct"].items()},
         "residual_p99": round(speaker.residual.p99, 4),
+        "enrol_build_s": round(build_s, 1), "depth": opts.depth, "flow": flow,
     }
     if grid is not None:
         _write_grid(grid / f"{name}.png", held, results, speaker)
@@ -216,6 +223,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--grid", type=Path, help="write an overlay grid per clip here")
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-frame series (tracker and landmarks) here")
+    ap.add_argument("--depth", choices=list(DEPTHS), default=None,
+                    help="enrolment depth option (default: the enrolment's default)")
+    ap.add_argument("--flow", action="store_true",
+                    help="enrol with the landmarks' pixels refined by optical flow (off by "
+                         "default: see docs/REAL_SPEAKERS.md)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
@@ -223,7 +235,8 @@ def main(argv: list[str] | None = None) -> None:
         path = next(iter(args.cache.glob(f"{name}.*")), None)
         if path is None:
             sys.exit(f"{name}: not in {args.cache}: run python tools/fetch_real_clips.py")
-        row = run_clip(name, path, args.grid, series=args.series)
+        row = run_clip(name, path, args.grid, series=args.series, depth=args.depth,
+                       flow=args.flow)
         rows.append(row)
         if not args.json:
             print(row, flush=True)

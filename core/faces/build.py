@@ -24,6 +24,7 @@ from articast.core.appearance.models import AppearanceModel, TrainingFrame, trai
 from articast.core.errors import InputError
 from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
 from articast.core.faces.fit import fit_pose
+from articast.core.faces.flow import refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
@@ -35,7 +36,8 @@ from articast.core.tracking.tracker import POSE_SIGMA, Tracker, TrackingPolicy
 class BuildOptions:
     """kind : appearance model; train_frames : at most this many training frames; stats_frames
     : at most this many held-out frames for the residual statistics; refine : refinement
-    rounds (0 = landmark states only)."""
+    rounds (0 = landmark states only); flow : the model points' pixels refined by optical flow
+    before the geometry (:func:`~articast.core.faces.flow.refine_pixels`)."""
 
     kind: str = "la_quad"
     train_frames: int = 90
@@ -45,6 +47,7 @@ class BuildOptions:
     # webcam face): real video is compressed, and on cap13 filters that small took the
     # still-mouth jitter from 0.43 to 2.85 % of the mouth width (franck 0.067 -> 0.107).
     sigma: float | None = 2.5
+    flow: bool = False
 
 
 def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.ndarray:
@@ -94,6 +97,9 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     opts = options or BuildOptions()
     say = progress or (lambda _msg: None)
     enrol = enrol or EnrolOptions(fixed_pose=(rig == "head"))
+    if opts.flow:
+        say("refining the landmarks' pixels by optical flow")
+        landmarks = refine_pixels(images, landmarks, found, scheme.points)
     geo = enrol_geometry(landmarks, found, scheme, camera, enrol, name)
     model = geo.model
     rejected = dict(geo.rejected)
@@ -149,6 +155,8 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         "variance_pct": dict(zip(geo.table.names, map(float, geo.table.variance_pct),
                                  strict=True)),
         "scale": geo.scale_source,
+        "depth": enrol.depth,
+        "pixels": "landmarks refined by optical flow" if opts.flow else "landmarks",
         "coverage": coverage,
         "unobserved": ["lar1"],
         "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},

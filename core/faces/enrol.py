@@ -28,6 +28,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from articast.core.errors import InputError
@@ -37,6 +38,8 @@ from articast.core.model.face import PARAM_NAMES, FaceModel, ParamStats
 
 OBSERVABLE = PARAM_NAMES[:6]
 """Parameters a face-landmark enrolment can determine; lar1 (throat) is not among them."""
+DEPTHS = ("rigid", "landmarks")
+"""Where an enrolment takes each frame's depth from (:class:`EnrolOptions` ``depth``)."""
 
 # camera axes (x right, y down, z away) -> head axes (x speaker's left, y up, z out of face)
 _TO_HEAD = np.diag([1.0, -1.0, -1.0])
@@ -83,6 +86,13 @@ class EnrolOptions:
         (and 2 % of the reference size) is rejected.
     iterations : generalised Procrustes iterations.
     fixed_pose : one head pose for the whole clip (a head-mounted camera), see :func:`align`.
+    depth : where each frame's depth comes from. A camera sees pixels; the landmarker's depth
+        is its guess. "rigid" (default): the reference shape (the median of the aligned
+        frames) posed on each frame's stable points by their pixels (PnP), every point
+        back-projected along its pixel's ray at the posed reference's depth (see
+        :func:`rigid_depth`): the head's rotation moves the depth, the landmarker's
+        per-frame guesses (articulation, noise) do not. "landmarks": the landmarks' depth as
+        given (the head pose from it too).
     """
 
     ipd_mm: float = 63.0
@@ -92,6 +102,7 @@ class EnrolOptions:
     iterations: int = 4
     use_eyes: bool = True
     fixed_pose: bool = False
+    depth: str = "rigid"
 
 
 @dataclass(frozen=True, eq=False)
@@ -215,6 +226,38 @@ def unproject(landmarks: np.ndarray, camera: Camera, mm_per_px: np.ndarray) -> n
     return np.stack([x, y, depth], -1)
 
 
+def rigid_depth(uv: np.ndarray, shapes: np.ndarray, ref: np.ndarray, stable: np.ndarray,
+                camera: Camera, fixed: bool = False) -> np.ndarray:
+    """Each frame's shape with the depth the rigid head gives it, the pixels kept.
+
+    uv : (F, M, 2) px of the points; shapes : (F, M, 3) their back-projection (head axes,
+    camera-centred, any common unit); ref : (M, 3) the reference shape in that unit. Per frame,
+    the head's pose is solved from the *pixels* of the stable points against ``ref`` (PnP;
+    with ``fixed`` one pose, ``ref``'s own), each point takes the depth of the posed ``ref``
+    and is back-projected along its pixel's ray at that depth: the head's rotation moves the
+    depth, the landmarker's per-frame depth guesses (articulation, noise) do not.
+    """
+    k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    obj = np.ascontiguousarray(ref @ _TO_HEAD, np.float64)  # camera axes
+    out = np.empty_like(shapes)
+    for f, x in enumerate(shapes):
+        cam = x @ _TO_HEAD
+        depth = obj[:, 2]
+        if not fixed:
+            img = np.ascontiguousarray(uv[f][stable], np.float64)
+            done, rvec, tvec = cv2.solvePnP(obj[stable], img, k, None, flags=cv2.SOLVEPNP_SQPNP)
+            if done:
+                done, rvec, tvec = cv2.solvePnP(obj[stable], img, k, None, rvec, tvec, True,
+                                                cv2.SOLVEPNP_ITERATIVE)
+            if not done or not np.all(np.isfinite(tvec)):
+                out[f] = x
+                continue
+            depth = (obj @ cv2.Rodrigues(rvec)[0].T + tvec.ravel())[:, 2]
+        ratio = depth / cam[:, 2]
+        out[f] = np.column_stack([cam[:, 0] * ratio, cam[:, 1] * ratio, depth]) @ _TO_HEAD
+    return out
+
+
 def _shapes_mm(lm: np.ndarray, keep: np.ndarray, stable: np.ndarray, camera: Camera,
                reference: np.ndarray | None, iterations: int, fixed: bool = False
                ) -> tuple[np.ndarray, np.ndarray]:
@@ -256,6 +299,8 @@ def enrol_geometry(landmarks: np.ndarray, found: np.ndarray, scheme: LandmarkSch
     eyes = scheme.eyes if opts.use_eyes else None
     keep = np.concatenate([scheme.points, list(eyes)]) if eyes else scheme.points
     n = scheme.points.size
+    if opts.depth not in DEPTHS:
+        raise InputError(f"depth must be one of {DEPTHS}, got {opts.depth!r}")
     mm = 1.0
     for _ in range(2):  # the second pass undoes perspective at the assumed scale
         shapes, _ = _shapes_mm(lm[idx], keep, scheme.stable, camera, None, opts.iterations,
@@ -274,6 +319,12 @@ def enrol_geometry(landmarks: np.ndarray, found: np.ndarray, scheme: LandmarkSch
         raise InputError(f"{good.sum()} frames fit a common head pose: too few to enrol")
     idx, aligned = idx[good], aligned[good]
     aligned, ref, _ = align(aligned, scheme.stable, opts.iterations, opts.fixed_pose)
+    if opts.depth == "rigid":
+        # the reference is the median of the frames: their depth guesses averaged; each frame
+        # keeps its pixels and takes the depth of that reference posed as its head
+        shapes = rigid_depth(lm[idx][:, keep, :2], shapes[good], ref, scheme.stable, camera,
+                             opts.fixed_pose)
+        aligned, ref, _ = align(shapes, scheme.stable, opts.iterations, opts.fixed_pose)
     mm_ref, rot, origin, source = _frame_to_head(ref[:n], scheme, opts,
                                                  ref[n:] if eyes else None)
     pts = (aligned[:, :n] - origin) @ rot.T * mm_ref  # (F, N, 3) mm, head frame

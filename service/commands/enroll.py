@@ -52,6 +52,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     en.add_argument("--mouth-width-mm", type=float, default=50.0,
                     help="mouth width at rest assumed for the scale in mm when the eyes are not "
                          "seen (head rig; default 50)")
+    en.add_argument("--depth", choices=["rigid", "landmarks"], default="rigid",
+                    help="each frame's depth: rigid (default) the head's, posed on the pixels "
+                         "of the nose and upper face; landmarks: the landmark model's own "
+                         "per-point guess")
+    en.add_argument("--flow", action="store_true",
+                    help="refine the landmarks' pixels by optical flow, frame to frame, pulled "
+                         "back to the landmarks (off by default: it helped a rendered face, "
+                         "not the real clips)")
     en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
                     help="appearance model (default la_quad: la_lin plus squared terms)")
     en.add_argument("--max-frames", type=int, default=600,
@@ -130,8 +138,8 @@ def _enroll(args: argparse.Namespace) -> int:
     speaker = build_speaker(
         images, marks, found, scheme, camera, args.rig,
         EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm,
-                     fixed_pose=(args.rig == "head")),
-        BuildOptions(kind=args.kind), args.name or args.video.stem, say)
+                     fixed_pose=(args.rig == "head"), depth=args.depth),
+        BuildOptions(kind=args.kind, flow=args.flow), args.name or args.video.stem, say)
     cov = speaker.report["coverage"]
     ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
     wd_range = cov["width_mm"][1] - cov["width_mm"][0]
