@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -256,7 +257,11 @@ class AppearanceModel:
         training frames' reference, in units of :data:`ROTATION_SCALE` (None: no such terms)."""
         if self.rotation_weights is None or self.rotation_ref is None:
             return None
-        return axis_angle(rot @ rotation_matrix(self.rotation_ref).T) / ROTATION_SCALE
+        return axis_angle(rot @ self._rotation_ref_matrix.T) / ROTATION_SCALE
+
+    @cached_property
+    def _rotation_ref_matrix(self) -> np.ndarray:
+        return rotation_matrix(self.rotation_ref)
 
     @property
     def n_channels(self) -> int:

@@ -135,6 +135,9 @@ class Problem:
         self._cw = [np.ascontiguousarray(cw.reshape(-1, self.c), np.float64)
                     for cw in appearance.channel_weight]
         self._cw_flat = [cw.reshape(-1) for cw in self._cw]
+        rw = appearance.rotation_weights  # weighted once, not per evaluation
+        self._rot_w = [] if rw is None else [w * cw for w, cw in zip(rw, self._cw_flat,
+                                                                      strict=True)]
         self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
 
@@ -176,8 +179,9 @@ class Problem:
                                                   gain, with_gain)
         om = self.appearance.rotation_terms(rot)
         if om is not None:  # la with rotation terms: f(alpha) + om @ Wr
-            wr = self.appearance.rotation_weights[level_index] * self._cw_flat[level_index]
-            wr = wr * np.repeat(valid, self.c)[None]
+            wr = self._rot_w[level_index]
+            if not valid.all():  # invalid samples contribute 0
+                wr = wr * np.repeat(valid, self.c)[None]
             r = r - gain * (om @ wr)
             if jac is not None:
                 # d(om)/d(rotation increment) ~ I / scale: the head turns by a few degrees
