@@ -36,12 +36,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_clips import landmarks_every_frame  # noqa: E402
+from real_clips import add_enrol_options, landmarks_every_frame  # noqa: E402
 
 from articast.core.dense.mesh import register_icp  # noqa: E402
 from articast.core.dense.transfer import apply, bind  # noqa: E402
 from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
-from articast.core.faces.enrol import DEPTHS, EnrolOptions, similarity  # noqa: E402
+from articast.core.faces.enrol import EnrolOptions, similarity  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -139,11 +139,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rigs", nargs="*", default=["desk", "head"])
     ap.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
-    ap.add_argument("--depth", choices=list(DEPTHS), default=None,
-                    help="enrolment depth option (default: the enrolment's default)")
-    ap.add_argument("--flow", action="store_true",
-                    help="enrol with the landmarks' pixels refined by optical flow (off by "
-                         "default: see docs/REAL_SPEAKERS.md)")
+    add_enrol_options(ap)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []

@@ -216,6 +216,15 @@ def _write_grid(path: Path, frames, results, speaker, n: int = 9) -> None:
     cv2.imwrite(str(path), np.vstack(rows))
 
 
+def add_enrol_options(ap: argparse.ArgumentParser) -> None:
+    """The enrolment variants the real-clip and no-truth benchmarks compare."""
+    ap.add_argument("--depth", choices=list(DEPTHS), default=None,
+                    help="enrolment depth option (default: the enrolment's default)")
+    ap.add_argument("--flow", action="store_true",
+                    help="enrol with the landmarks' pixels refined by optical flow (off by "
+                         "default: see docs/REAL_SPEAKERS.md)")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache/articast/clips")
@@ -223,11 +232,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--grid", type=Path, help="write an overlay grid per clip here")
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-frame series (tracker and landmarks) here")
-    ap.add_argument("--depth", choices=list(DEPTHS), default=None,
-                    help="enrolment depth option (default: the enrolment's default)")
-    ap.add_argument("--flow", action="store_true",
-                    help="enrol with the landmarks' pixels refined by optical flow (off by "
-                         "default: see docs/REAL_SPEAKERS.md)")
+    add_enrol_options(ap)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
