@@ -87,7 +87,7 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
 
 
 def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
-        depth: str | None = None, flow: bool = False) -> dict:
+        depth: str | None = None, flow: bool | None = None) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
@@ -131,7 +131,8 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
     return {"rig": rig, "seed": seed, "ok": round(float(ok.mean()), 3), "param_r": param_r,
             "lips": lips, **{k: round(v, 3) if isinstance(v, float) else v
                              for k, v in surf.items()},
-            "depth": opts.depth, "flow": flow, "enrol_build_s": round(build_s, 1),
+            "depth": opts.depth, "flow": speaker.report["pixels"] != "landmarks",
+            "enrol_build_s": round(build_s, 1),
             "ms_per_frame_median": round(float(np.median([r.ms for r in res])), 2)}
 
 

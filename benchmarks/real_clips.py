@@ -91,7 +91,7 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
 
 def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
              series: Path | None = None, depth: str | None = None,
-             flow: bool = False) -> dict:
+             flow: bool | None = None) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -145,7 +145,8 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
         "restarts": live.restarts,
         "variance_pct": {k: round(v, 1) for k, v in speaker.report["variance_pct"].items()},
         "residual_p99": round(speaker.residual.p99, 4),
-        "enrol_build_s": round(build_s, 1), "depth": opts.depth, "flow": flow,
+        "enrol_build_s": round(build_s, 1), "depth": opts.depth,
+        "flow": speaker.report["pixels"] != "landmarks",
     }
     if grid is not None:
         _write_grid(grid / f"{name}.png", held, results, speaker)
@@ -220,9 +221,10 @@ def add_enrol_options(ap: argparse.ArgumentParser) -> None:
     """The enrolment variants the real-clip and no-truth benchmarks compare."""
     ap.add_argument("--depth", choices=list(DEPTHS), default=None,
                     help="enrolment depth option (default: the enrolment's default)")
-    ap.add_argument("--flow", action="store_true",
-                    help="enrol with the landmarks' pixels refined by optical flow (off by "
-                         "default: see docs/REAL_SPEAKERS.md)")
+    ap.add_argument("--flow", action=argparse.BooleanOptionalAction, default=None,
+                    help="enrol with (--flow) or without (--no-flow) the landmarks' pixels "
+                         "refined by optical flow (default: the rig's, core/faces/flow.py "
+                         "BY_RIG: on for head, off for desk; see docs/REAL_SPEAKERS.md)")
 
 
 def main(argv: list[str] | None = None) -> None:
