@@ -273,6 +273,11 @@ def test_enrolled_geometry_follows_the_pixels_not_the_landmarkers_depth(enrolled
     at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])[geo.frames]
     r = [np.corrcoef(geo.alpha[:, k], at[:, k])[0, 1] for k in range(4)]
     assert r[0] > 0.93 and r[1] > 0.95 and min(r) > 0.8, r
+    # the option that keeps the upper lip off jaw1 (off by default) reaches the guided PCA
+    upper = geo.model.group("upper_lip")
+    assert np.abs(geo.model.basis[0, upper]).max() > 0
+    kept = enrol_geometry(marks, found, scheme, camera, EnrolOptions(jaw_moves_upper_lip=False))
+    assert np.all(kept.model.basis[0, upper] == 0) and np.abs(kept.model.basis[3, upper]).max() > 0
 
 
 def test_optical_flow_refines_landmark_pixels_that_under_read_the_motion():
