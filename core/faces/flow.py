@@ -22,9 +22,10 @@ BY_RIG = {"desk": False, "head": True}
 Head-mounted camera: on. The landmarker's pixels of the lower face seen from 22 cm under-read
 the lips' small motions: on the rendered speaker (benchmarks/no_truth_path.py --rigs head,
 speakers 0-2) the tracked lips2 went from 0.84 / 0.79 / 0.87 to 0.95 / 0.91 / 0.93 and lips3
-from 0.93 / 0.89 / 0.71 to 0.98 / 0.95 / 0.83 with the flow. Desk camera: off. It helped the rendered desk speaker less, and the real webcam
-clips not at all (franck's aperture agreement 0.89 with it, 0.90 without; cap13 0.96, 0.99).
-There are no real head-mounted clips to check the head default against."""
+from 0.93 / 0.89 / 0.71 to 0.98 / 0.95 / 0.83 with the flow. Desk camera: off. It helped the
+rendered desk speaker less, and the real webcam clips not at all (franck's aperture agreement
+0.89 with it, 0.90 without; cap13 0.96, 0.99). There are no real head-mounted clips to check
+the head default against."""
 
 
 def default_for(rig: str) -> bool:
