@@ -87,7 +87,8 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
 
 
 def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
-        depth: str | None = None, flow: bool = False) -> dict:
+        depth: str | None = None, flow: bool | None = None,
+        upper_lip_off_jaw: bool = False) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
@@ -96,7 +97,7 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
                       RenderOptions(seed=10_000 + i)) for i in range(enrol.n_frames)]
     marks, found, _ = landmarks_every_frame(finder, imgs)
     t0 = time.perf_counter()
-    opts = EnrolOptions(fixed_pose=(rig == "head"),
+    opts = EnrolOptions(fixed_pose=(rig == "head"), jaw_moves_upper_lip=not upper_lip_off_jaw,
                         **({"depth": depth} if depth is not None else {}))
     speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig, opts,
                             BuildOptions(flow=flow))
@@ -131,7 +132,9 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
     return {"rig": rig, "seed": seed, "ok": round(float(ok.mean()), 3), "param_r": param_r,
             "lips": lips, **{k: round(v, 3) if isinstance(v, float) else v
                              for k, v in surf.items()},
-            "depth": opts.depth, "flow": flow, "enrol_build_s": round(build_s, 1),
+            "depth": opts.depth, "flow": speaker.report["pixels"] != "landmarks",
+            "upper_lip_off_jaw": not opts.jaw_moves_upper_lip,
+            "enrol_build_s": round(build_s, 1),
             "ms_per_frame_median": round(float(np.median([r.ms for r in res])), 2)}
 
 
@@ -145,7 +148,8 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for rig in args.rigs:
         for seed in args.seeds:
-            row = run(rig, seed, depth=args.depth, flow=args.flow)
+            row = run(rig, seed, depth=args.depth, flow=args.flow,
+                      upper_lip_off_jaw=args.upper_lip_off_jaw)
             rows.append(row)
             if not args.json:
                 print(row, flush=True)

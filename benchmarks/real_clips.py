@@ -91,7 +91,7 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
 
 def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
              series: Path | None = None, depth: str | None = None,
-             flow: bool = False) -> dict:
+             flow: bool | None = None, upper_lip_off_jaw: bool = False) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -101,7 +101,8 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     # enrolment: the first part, every other frame (as `articast enroll` strides long clips)
     enrol = frames[:n_enrol:2]
     marks, found, _ = landmarks_every_frame(finder, enrol)
-    opts = EnrolOptions(**({"depth": depth} if depth is not None else {}))
+    opts = EnrolOptions(jaw_moves_upper_lip=not upper_lip_off_jaw,
+                        **({"depth": depth} if depth is not None else {}))
     t0 = time.perf_counter()
     speaker = build_speaker(enrol, marks, found, mediapipe_scheme("desk"), camera, "desk", opts,
                             BuildOptions(flow=flow))
@@ -145,7 +146,8 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
         "restarts": live.restarts,
         "variance_pct": {k: round(v, 1) for k, v in speaker.report["variance_pct"].items()},
         "residual_p99": round(speaker.residual.p99, 4),
-        "enrol_build_s": round(build_s, 1), "depth": opts.depth, "flow": flow,
+        "enrol_build_s": round(build_s, 1), "depth": opts.depth,
+        "flow": speaker.report["pixels"] != "landmarks",
     }
     if grid is not None:
         _write_grid(grid / f"{name}.png", held, results, speaker)
@@ -220,9 +222,13 @@ def add_enrol_options(ap: argparse.ArgumentParser) -> None:
     """The enrolment variants the real-clip and no-truth benchmarks compare."""
     ap.add_argument("--depth", choices=list(DEPTHS), default=None,
                     help="enrolment depth option (default: the enrolment's default)")
-    ap.add_argument("--flow", action="store_true",
-                    help="enrol with the landmarks' pixels refined by optical flow (off by "
-                         "default: see docs/REAL_SPEAKERS.md)")
+    ap.add_argument("--flow", action=argparse.BooleanOptionalAction, default=None,
+                    help="enrol with (--flow) or without (--no-flow) the landmarks' pixels "
+                         "refined by optical flow (default: the rig's, core/faces/flow.py "
+                         "BY_RIG: on for head, off for desk; see docs/REAL_SPEAKERS.md)")
+    ap.add_argument("--upper-lip-off-jaw", action="store_true",
+                    help="enrol with the upper lip kept off jaw1's basis (EnrolOptions "
+                         "jaw_moves_upper_lip=False; off by default: see docs/REAL_SPEAKERS.md)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -241,7 +247,7 @@ def main(argv: list[str] | None = None) -> None:
         if path is None:
             sys.exit(f"{name}: not in {args.cache}: run python tools/fetch_real_clips.py")
         row = run_clip(name, path, args.grid, series=args.series, depth=args.depth,
-                       flow=args.flow)
+                       flow=args.flow, upper_lip_off_jaw=args.upper_lip_off_jaw)
         rows.append(row)
         if not args.json:
             print(row, flush=True)

@@ -121,3 +121,30 @@ def test_cli_build_model_json(rng, tmp_path, capsys):
     assert doc["cumulative"] == pytest.approx(100.0, abs=1e-6)
     assert main(["build-model", str(tmp_path / "nope.npz"), "-o", str(tmp_path / "m.npz")]) == 2
     assert "no such file" in capsys.readouterr().err
+
+
+def test_groups_kept_off_a_parameter_stay_for_the_ones_after_it(rng):
+    """An upper lip that moves with the jaw in the corpus (coarticulation) is regressed into
+    jaw1 and leaves lips3 only what the jaw does not explain; kept off jaw1 (``unmoved``),
+    jaw1's basis does not move the upper lip and lips3 follows the upper lip's own control."""
+    corpus = grid_corpus(rng, v=80, noise=0.05)
+    modes_jaw_ul = corpus.controls.copy()
+    modes_jaw_ul[:, 3] = 0.8 * modes_jaw_ul[:, 0] + 0.6 * modes_jaw_ul[:, 3]
+    # the postures rebuilt with the upper lip's control following the jaw's
+    upper = corpus.groups["upper_lip"]
+    postures = corpus.postures.copy()
+    postures[:, upper, 1] += -2.0 * (modes_jaw_ul[:, 3] - corpus.controls[:, 3])[:, None]
+    coupled = Corpus(postures, corpus.posture_names, corpus.point_names, corpus.groups,
+                     corpus.triangles, corpus.feature_points, controls=modes_jaw_ul,
+                     control_names=PARAM_NAMES)
+    plain, _ = build_model(coupled)
+    kept, _ = build_model(coupled, unmoved={"jaw1": ("upper_lip",)})
+    assert np.all(kept.basis[0, upper] == 0)
+    assert np.abs(plain.basis[0, upper, 1]).mean() > 0.5  # the jaw carried the upper lip
+
+    def r_lips3(model):
+        return np.corrcoef(invert(model, postures)[:, 3], modes_jaw_ul[:, 3])[0, 1]
+
+    assert r_lips3(kept) > 0.9  # 0.95 (lips1 takes some of the upper lip first)
+    assert r_lips3(plain) < 0.7  # 0.46
+    np.testing.assert_array_equal(build_model(coupled, unmoved={})[0].basis, plain.basis)

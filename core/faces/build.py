@@ -24,7 +24,7 @@ from articast.core.appearance.models import AppearanceModel, TrainingFrame, trai
 from articast.core.errors import InputError
 from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
 from articast.core.faces.fit import fit_pose
-from articast.core.faces.flow import refine_pixels
+from articast.core.faces.flow import default_for, refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
@@ -37,7 +37,8 @@ class BuildOptions:
     """kind : appearance model; train_frames : at most this many training frames; stats_frames
     : at most this many held-out frames for the residual statistics; refine : refinement
     rounds (0 = landmark states only); flow : the model points' pixels refined by optical flow
-    before the geometry (:func:`~articast.core.faces.flow.refine_pixels`)."""
+    before the geometry (:func:`~articast.core.faces.flow.refine_pixels`); None: the rig's
+    default (:data:`~articast.core.faces.flow.BY_RIG`: on for a head-mounted camera)."""
 
     kind: str = "la_quad"
     train_frames: int = 90
@@ -47,7 +48,7 @@ class BuildOptions:
     # webcam face): real video is compressed, and on cap13 filters that small took the
     # still-mouth jitter from 0.43 to 2.85 % of the mouth width (franck 0.067 -> 0.107).
     sigma: float | None = 2.5
-    flow: bool = False
+    flow: bool | None = None
 
 
 def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.ndarray:
@@ -97,7 +98,8 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     opts = options or BuildOptions()
     say = progress or (lambda _msg: None)
     enrol = enrol or EnrolOptions(fixed_pose=(rig == "head"))
-    if opts.flow:
+    flow = default_for(rig) if opts.flow is None else opts.flow
+    if flow:
         say("refining the landmarks' pixels by optical flow")
         landmarks = refine_pixels(images, landmarks, found, scheme.points)
     geo = enrol_geometry(landmarks, found, scheme, camera, enrol, name)
@@ -156,7 +158,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
                                  strict=True)),
         "scale": geo.scale_source,
         "depth": enrol.depth,
-        "pixels": "landmarks refined by optical flow" if opts.flow else "landmarks",
+        "pixels": "landmarks refined by optical flow" if flow else "landmarks",
         "coverage": coverage,
         "unobserved": ["lar1"],
         "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},

@@ -93,6 +93,13 @@ class EnrolOptions:
         :func:`rigid_depth`): the head's rotation moves the depth, the landmarker's
         per-frame guesses (articulation, noise) do not. "landmarks": the landmarks' depth as
         given (the head pose from it too).
+    jaw_moves_upper_lip : jaw1's basis regressed on every point (default, as the guided PCA
+        does). False: the upper lip's rows kept off jaw1 (the upper lip hangs from the skull;
+        what the corpus shows of it moving with the jaw is coarticulation and the landmark
+        model's coupling of the lips), so that motion stays in the residual for lips1-lips3.
+        Measured on the rendered head rig (docs/REAL_SPEAKERS.md): it took speaker 2's tracked
+        lips3 from 0.83 to 0.91 (the tracker had read a jaw opening as lips3 < 0), but cost
+        lips4 on speakers 3-5 (0.91-0.93 -> 0.82-0.91) and was mixed on the desk: off.
     """
 
     ipd_mm: float = 63.0
@@ -103,6 +110,11 @@ class EnrolOptions:
     use_eyes: bool = True
     fixed_pose: bool = False
     depth: str = "rigid"
+    jaw_moves_upper_lip: bool = True
+
+
+JAW_UNMOVED = {"jaw1": ("upper_lip",)}
+"""What the guided PCA keeps off jaw1 with :class:`EnrolOptions` ``jaw_moves_upper_lip`` False."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -332,7 +344,8 @@ def enrol_geometry(landmarks: np.ndarray, found: np.ndarray, scheme: LandmarkSch
                     scheme.point_names or tuple(f"lm{i}" for i in scheme.points),
                     scheme.groups, scheme.triangles, scheme.feature_points,
                     scheme.fapu_overrides, name=name)
-    six, table6 = build_model(corpus, OBSERVABLE)
+    six, table6 = build_model(corpus, OBSERVABLE,
+                              None if opts.jaw_moves_upper_lip else JAW_UNMOVED)
     model = with_unobserved(six, PARAM_NAMES)
     alpha = invert(model, pts)
     table = VarianceTable(PARAM_NAMES, np.append(table6.variance_pct, 0.0),

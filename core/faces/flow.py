@@ -17,6 +17,20 @@ FB_MAX_PX = 1.0
 """A point whose backward flow misses its start by more than this keeps the landmark's pixel."""
 MAX_DEV = 0.05
 """Default ``max_dev`` of :func:`refine_pixels`."""
+BY_RIG = {"desk": False, "head": True}
+"""Whether an enrolment refines the pixels by default, per rig (measured, docs/REAL_SPEAKERS.md).
+Head-mounted camera: on. The landmarker's pixels of the lower face seen from 22 cm under-read
+the lips' small motions: on the rendered speaker (benchmarks/no_truth_path.py --rigs head,
+speakers 0-2) the tracked lips2 went from 0.84 / 0.79 / 0.87 to 0.95 / 0.91 / 0.93 and lips3
+from 0.93 / 0.89 / 0.71 to 0.98 / 0.95 / 0.83 with the flow. Desk camera: off. It helped the
+rendered desk speaker less, and the real webcam clips not at all (franck's aperture agreement
+0.89 with it, 0.90 without; cap13 0.96, 0.99). There are no real head-mounted clips to check
+the head default against."""
+
+
+def default_for(rig: str) -> bool:
+    """Whether an enrolment for ``rig`` refines the pixels unless told (:data:`BY_RIG`)."""
+    return BY_RIG.get(rig, False)
 
 
 def refine_pixels(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np.ndarray,

@@ -187,13 +187,17 @@ def _sign(name: str, b: np.ndarray, groups: Mapping[str, np.ndarray], mean: np.n
 
 
 def build_model(
-    corpus: Corpus, names: tuple[str, ...] = PARAM_NAMES
+    corpus: Corpus, names: tuple[str, ...] = PARAM_NAMES,
+    unmoved: Mapping[str, tuple[str, ...]] | None = None,
 ) -> tuple[FaceModel, VarianceTable]:
     """Guided iterative PCA of ``corpus`` -> (model, variance table).
 
     For each parameter in order: first principal component of the residual restricted to its
     guide subset, centred and scaled to unit variance; the whole residual is regressed on it
     and deflated.
+    unmoved : parameter name -> point groups its basis does not move (their regression on the
+        parameter is set to zero, so their motion stays in the residual for the parameters
+        after it); none by default.
     """
     x = corpus.postures
     v, n, _ = x.shape
@@ -214,6 +218,9 @@ def build_model(
         p = sub @ vt[0]
         p = (p - p.mean()) / p.std()
         b = r.T @ p / (p @ p)
+        for g in (unmoved or {}).get(name, ()):
+            rows = corpus.groups.get(g, np.zeros(0, np.int64))
+            b.reshape(n, 3)[rows] = 0.0
         sgn = _sign(name, b.reshape(n, 3), corpus.groups, mean)
         p, b = p * sgn, b * sgn
         before = float((r**2).sum())

@@ -56,10 +56,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="each frame's depth: rigid (default) the head's, posed on the pixels "
                          "of the nose and upper face; landmarks: the landmark model's own "
                          "per-point guess")
-    en.add_argument("--flow", action="store_true",
+    en.add_argument("--flow", action=argparse.BooleanOptionalAction, default=None,
                     help="refine the landmarks' pixels by optical flow, frame to frame, pulled "
-                         "back to the landmarks (off by default: it helped a rendered face, "
-                         "not the real clips)")
+                         "back to the landmarks (default: on with --rig head, where it helped "
+                         "the rendered face's lips; off on a desk camera, where it did not "
+                         "help the real clips)")
     en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
                     help="appearance model (default la_quad: la_lin plus squared terms)")
     en.add_argument("--max-frames", type=int, default=600,
