@@ -32,6 +32,7 @@ import numpy as np
 
 from articast.core.faces.enrol import LandmarkScheme
 from articast.core.faces.fit import state_from_landmarks
+from articast.core.faces.motion import FaceMotion, MotionPolicy, translation_after
 from articast.core.faces.speaker import Speaker
 from articast.core.model.camera import Pose
 from articast.core.outputs.lips import lips_dict
@@ -65,12 +66,18 @@ class LivePolicy:
     smoothing : One Euro filter of the articulation streamed (None: the raw fits). The fit
         itself is not filtered: the next frame starts from the raw state, which
         ``extra["alpha_raw"]`` keeps. Reset after any frame that is not ok.
+    motion : sparse optical flow of the upper face from the previous frame
+        (:mod:`articast.core.faces.motion`; None: off): the head's translation it implies (its
+        change of distance above all, which the appearance fit hardly sees) is where each
+        frame's fit starts and centres its pose prior. Without it, on cap12 the head came 30 %
+        closer between two checks, the tracked depth moved 5 % and the lips "opened" by 7 mm.
     """
 
     verify_every: int = 10
     residual_factor: float = 3.0
     max_depth_drift: float = 0.3
     smoothing: OneEuroPolicy | None = field(default_factory=OneEuroPolicy)
+    motion: MotionPolicy | None = field(default_factory=MotionPolicy)
 
 
 LIVE_ALPHA_SIGMA = 0.5
@@ -105,6 +112,8 @@ class LiveTracker:
         self._last: TrackResult | None = None
         sm = self.policy.smoothing
         self._filter = OneEuroFilter(sm) if sm is not None else None
+        mo = self.policy.motion
+        self._motion = FaceMotion(mo) if mo is not None else None
         self.finder_calls = 0
         self.restarts = 0  # tracker (re-)starts from landmarks
         self._limit = self.policy.residual_factor * speaker.residual.p99
@@ -148,6 +157,8 @@ class LiveTracker:
         """A not-ok frame holding the last good state (neutral before any)."""
         self._started = False
         self._face = None
+        if self._motion is not None:
+            self._motion.reset()
         last = self._last
         m = self.speaker.model
         alpha = np.zeros(m.n_params) if last is None else last.alpha
@@ -177,13 +188,20 @@ class LiveTracker:
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
         if float(image[::8, ::8].std()) < self.tracker.policy.min_contrast:
             return self._lost(t, "blank: the frame has no contrast")
+        hint = None
+        if self._motion is not None:  # before a (re)start: the features come from the last fit
+            pose = self.tracker.pose if self._started else None
+            similarity = self._motion.step(image, self.tracker.rigid_uv() if self._started
+                                           else None)
+            if similarity is not None and pose is not None:
+                hint = translation_after(similarity, pose.translation, self.speaker.camera)
         if not self._started:
             face = self._finder(image)
             if face is None:
                 return self._lost(t, "no_face: the face finder sees no face")
             if not self._start(face):
                 return self._lost(t, "no_face: the landmarks do not fit the speaker")
-        result = self.tracker.track(image, t)
+        result = self.tracker.track(image, t, translation_hint=hint)
         result = self._judge(result)
         self._since_check += 1
         # an occluded frame is tracked through (robust fit, no restart): the landmarks of a

@@ -207,6 +207,18 @@ class Tracker:
             self._anchor = pose.as_vector()
 
     @property
+    def pose(self) -> Pose | None:
+        """The head's pose at the last fitted frame (None before a start)."""
+        return None if self._theta is None else Pose.from_vector(self._theta[self.k:])
+
+    def rigid_uv(self) -> np.ndarray | None:
+        """Image positions (P, 2) of the sample points no articulation moves (eyes, brows,
+        nose), at the last fitted state (None before a start)."""
+        if self._theta is None:
+            return None
+        return self.problem.project(self._theta)[~self._judged]
+
+    @property
     def pose_prior_centre(self) -> np.ndarray | None:
         """Pose (6,) the next frame's pose prior is centred on (None before a start)."""
         if self._anchor is not None:
@@ -279,8 +291,14 @@ class Tracker:
         return best
 
     # ------------------------------------------------------------------ per frame
-    def track(self, image: np.ndarray, t: float) -> TrackResult:
-        """Fit one frame (BGR uint8) taken at time ``t`` (s)."""
+    def track(self, image: np.ndarray, t: float,
+              translation_hint: np.ndarray | None = None) -> TrackResult:
+        """Fit one frame (BGR uint8) taken at time ``t`` (s).
+
+        translation_hint : the head's translation (3,) mm on this frame as measured by other
+            means (the face's image motion since the last frame,
+            :mod:`articast.core.faces.motion`): the fit starts there, and the pose prior's
+            translation is centred there instead of on the last pose (not with an anchor)."""
         t0 = self.clock() if self.clock else 0.0
         self._frame += 1
         pol = self.policy
@@ -296,6 +314,9 @@ class Tracker:
         theta0 = self._theta
         if pol.predict and self._prev is not None:
             theta0 = self._theta + pol.velocity_gain * (self._theta - self._prev)
+        if translation_hint is not None:
+            theta0 = theta0.copy()
+            theta0[self.k + 3:] = translation_hint
         uv = self.problem.project(theta0)
         roi = roi_of(uv, pol.roi_margin_px)
         x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
@@ -303,6 +324,8 @@ class Tracker:
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
             return self._lost(t, t0, "blank: no contrast where the face should be", 0)
         ref = self.pose_prior_centre
+        if translation_hint is not None and ref is not None and self._anchor is None:
+            ref[3:] = translation_hint
         fit = None
         evals = 0
         if pol.fast_path_factor and self._level is not None and self._prev is not None:
