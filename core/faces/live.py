@@ -32,7 +32,7 @@ import numpy as np
 
 from articast.core.faces.enrol import LandmarkScheme
 from articast.core.faces.fit import state_from_landmarks
-from articast.core.faces.motion import FaceMotion, MotionPolicy, translation_after
+from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.model.camera import Pose
 from articast.core.outputs.lips import lips_dict
@@ -66,11 +66,12 @@ class LivePolicy:
     smoothing : One Euro filter of the articulation streamed (None: the raw fits). The fit
         itself is not filtered: the next frame starts from the raw state, which
         ``extra["alpha_raw"]`` keeps. Reset after any frame that is not ok.
-    motion : sparse optical flow of the upper face from the previous frame
-        (:mod:`articast.core.faces.motion`; None: off): the head's translation it implies (its
-        change of distance above all, which the appearance fit hardly sees) is where each
-        frame's fit starts and centres its pose prior. Without it, on cap12 the head came 30 %
-        closer between two checks, the tracked depth moved 5 % and the lips "opened" by 7 mm.
+    motion : sparse optical flow of the face's rigid points from the previous frame, and the
+        head pose it implies by PnP (:mod:`articast.core.faces.motion`; None: off): its
+        translation (the change of distance above all, which the appearance fit hardly sees)
+        is where each frame's fit starts and centres its pose prior. Without it, on cap12 the
+        head came 30 % closer between two checks, the tracked depth moved 5 % and the lips
+        "opened" by 7 mm.
     """
 
     verify_every: int = 10
@@ -113,7 +114,8 @@ class LiveTracker:
         sm = self.policy.smoothing
         self._filter = OneEuroFilter(sm) if sm is not None else None
         mo = self.policy.motion
-        self._motion = FaceMotion(mo) if mo is not None else None
+        self._motion = (FaceMotion(speaker.model, speaker.camera, mo) if mo is not None
+                        else None)
         self.finder_calls = 0
         self.restarts = 0  # tracker (re-)starts from landmarks
         self._limit = self.policy.residual_factor * speaker.residual.p99
@@ -189,12 +191,10 @@ class LiveTracker:
         if float(image[::8, ::8].std()) < self.tracker.policy.min_contrast:
             return self._lost(t, "blank: the frame has no contrast")
         hint = None
-        if self._motion is not None:  # before a (re)start: the features come from the last fit
-            pose = self.tracker.pose if self._started else None
-            similarity = self._motion.step(image, self.tracker.rigid_uv() if self._started
-                                           else None)
-            if similarity is not None and pose is not None:
-                hint = translation_after(similarity, pose.translation, self.speaker.camera)
+        if self._motion is not None:  # from the last fit, before any (re)start
+            state = self.tracker.state if self._started else None
+            moved = self._motion.step(image, *(state or (None, None)))
+            hint = None if moved is None else moved.translation
         if not self._started:
             face = self._finder(image)
             if face is None:

@@ -1,15 +1,18 @@
-"""The face's image motion between two consecutive frames, from sparse optical flow: a cheap
-measure of the head's change of distance that the live tracker's fit cannot see by itself.
+"""The head's motion between two consecutive frames, from sparse optical flow of the face's
+rigid points: a cheap measure of its change of distance, which the appearance fit hardly sees.
 
-On a desk camera the appearance fit barely observes the head's depth: a face that grows in the
-image is explained as well by lips that open as by a head that comes closer, and the fit's
-pose prior (``POSE_SIGMA``, 0.5 mm per frame) holds the depth back. On the real clip cap12 the
-head came 30 % closer in 1.4 s while the tracked depth moved 5 %, and the lips "opened" by
-7 mm. The points of the upper face (eyes, brows, nose: no articulation moves them) are carried
-from the previous frame by pyramidal Lucas-Kanade with a forward-backward check; a robust
-similarity (RANSAC) between their two positions gives the face's change of scale and image
-position, hence the head's new translation, which the tracker starts from and centres its
-pose prior on (:meth:`articast.core.tracking.tracker.Tracker.track`, ``translation_hint``).
+On a desk camera a face that grows in the image is explained by the la fit as well by lips
+that open as by a head that comes closer, and the fit's pose prior (``POSE_SIGMA``, 0.5 mm per
+frame, centred on the last pose) holds the depth back. On the real clip cap12 the head came
+30 % closer in 1.4 s while the tracked depth moved 5 %, and the lips "opened" by 7 mm.
+
+Here the model's rigid points on the front of the face (forehead, brows, eyes, nose: no
+articulation moves them by more than ``rigid_motion`` of the largest motion) are projected
+with the last fitted state, carried into this frame by pyramidal Lucas-Kanade with a
+forward-backward check, and the head pose that takes their 3D positions (head frame) to where
+they went is solved by Gauss-Newton from the last pose, with a prior on the rotation's change.
+Perspective separates a turn of the head from a change of distance, which a 2D similarity of
+the face's features did not: on cap13 its scale read a turn as the head going 12 % farther.
 """
 
 from __future__ import annotations
@@ -19,111 +22,148 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from articast.core.model.camera import Camera
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
+from articast.core.model.face import FaceModel
 
 
 @dataclass(frozen=True)
 class MotionPolicy:
-    """Sparse flow of the upper face.
+    """Sparse flow of the face's rigid points and the pose it implies.
 
-    max_points, min_points : features tracked; fewer survivors than ``min_points`` -> no
-        estimate this frame, and new features are found (Shi-Tomasi, in the box of the face's
-        rigid points, grown by ``box_margin`` of its size, except downwards).
+    rigid_motion : a model point is rigid when its largest displacement over the training range
+        of every parameter is at most this fraction of the largest of any point.
+    front_mm : ... and it lies within this depth (head frame, mm) of the face's front (the
+        sides of the head are on the silhouette, against the background).
     window, levels : Lucas-Kanade window (px) and pyramid levels.
     fb_max_px : a point whose backward flow misses its start by more than this is dropped.
-    ransac_px : RANSAC inlier threshold of the similarity (px).
-    max_scale_step : a frame-to-frame scale change beyond this fraction is not believed (no
-        estimate: the tracker predicts by itself).
+    min_points : fewer points left (after the flow, then after PnP's outliers) -> no estimate.
+    outlier_px : after a first solution, points reprojected farther than this (and 3 x the
+        median) are dropped and it is solved again.
+    sigma_px, rotation_sigma, iterations : the pose solution's reprojection s.d. (px), the s.d.
+        of the head's rotation between frames (rad; the desk rig's fit uses the same), the
+        Gauss-Newton iterations.
+    median_of : the translation's step is the median of the last this many frames' steps.
+    max_depth_step : a change of distance beyond this fraction in one frame is not believed.
     """
 
-    max_points: int = 40
-    min_points: int = 12
+    rigid_motion: float = 0.1
+    front_mm: float = 40.0
     window: int = 15
     levels: int = 2
     fb_max_px: float = 0.5
-    ransac_px: float = 1.0
-    max_scale_step: float = 0.1
-    box_margin: float = 0.3
-    quality: float = 0.01
+    min_points: int = 12
+    outlier_px: float = 1.0
+    sigma_px: float = 0.3
+    rotation_sigma: float = 0.003
+    iterations: int = 5
+    median_of: int = 3
+    max_depth_step: float = 0.1
+
+
+def rigid_points(model: FaceModel, policy: MotionPolicy) -> np.ndarray:
+    """Indices of the model's rigid points on the front of the face (see ``MotionPolicy``)."""
+    spread = model.stats.max - model.stats.min
+    motion = np.linalg.norm(model.basis * spread[:, None, None], axis=2).max(0)
+    rest = model.shape(np.zeros(model.n_params))
+    front = rest[:, 2] >= rest[:, 2].max() - policy.front_mm
+    return np.flatnonzero((motion <= policy.rigid_motion * motion.max()) & front)
 
 
 class FaceMotion:
-    """Carries features of the upper face from frame to frame (one stream's state)."""
+    """The head's pose on each frame from the last fitted state and the image motion since
+    the previous frame (one stream's state: the previous frame's grey image)."""
 
-    def __init__(self, policy: MotionPolicy | None = None) -> None:
+    def __init__(self, model: FaceModel, camera: Camera, policy: MotionPolicy | None = None
+                 ) -> None:
         self.policy = policy or MotionPolicy()
+        self.model, self.camera = model, camera
+        self.ids = rigid_points(model, self.policy)
+        self._k = np.asarray(camera.K, np.float64)
+        self._dist = np.asarray(camera.dist, np.float64)
         self.reset()
 
     def reset(self) -> None:
         self._grey: np.ndarray | None = None
-        self._pts: np.ndarray | None = None  # (N, 1, 2) float32, in the previous frame
+        self._steps: list[np.ndarray] = []
 
-    def step(self, image: np.ndarray, box_uv: np.ndarray | None) -> np.ndarray | None:
-        """This frame's similarity from the previous frame's image, (2, 3) ``A`` with
-        ``u_now = A[:, :2] @ u_before + A[:, 2]`` (its scale: ``sqrt(det(A[:, :2]))``), or None
-        (first frame, too few points, an implausible step).
-
-        box_uv : image positions (P, 2) of the face's rigid points on the previous frame (e.g.
-            the last fit projected): new features are looked for in their box when too few
-            are left; None: no new features.
-        """
+    def step(self, image: np.ndarray, alpha: np.ndarray | None, pose: Pose | None
+             ) -> Pose | None:
+        """The head's pose on ``image`` given its state (``alpha``, ``pose``) on the previous
+        frame given to ``step``, or None (no previous frame or state, too few points tracked,
+        an implausible step). Keeps ``image`` for the next call."""
         pol = self.policy
         grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        prev, pts = self._grey, self._pts
-        self._grey = grey
-        out = None
-        if prev is not None and pts is not None and len(pts) >= pol.min_points:
-            lk = {"winSize": (pol.window, pol.window), "maxLevel": pol.levels,
-                  "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
-            fwd, st, _ = cv2.calcOpticalFlowPyrLK(prev, grey, pts, None, **lk)
-            back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, prev, fwd, None, **lk)
-            good = ((st.ravel() == 1) & (st2.ravel() == 1)
-                    & (np.linalg.norm((back - pts).reshape(-1, 2), axis=1) < pol.fb_max_px))
-            if good.sum() >= pol.min_points:
-                a, inl = cv2.estimateAffinePartial2D(
-                    pts[good], fwd[good], method=cv2.RANSAC,
-                    ransacReprojThreshold=pol.ransac_px, maxIters=200, confidence=0.99)
-                if a is not None and inl is not None:
-                    keep = np.flatnonzero(good)[inl.ravel() == 1]
-                    scale = float(np.sqrt(abs(np.linalg.det(a[:, :2]))))
-                    if len(keep) >= pol.min_points and abs(scale - 1) <= pol.max_scale_step:
-                        out = a
-                    self._pts = fwd[keep]
-                else:
-                    self._pts = None
-            else:
-                self._pts = fwd[good]
-        if (self._pts is None or len(self._pts) < pol.min_points) and box_uv is not None:
-            self._pts = self._features(grey, box_uv)
-        return out
-
-    def _features(self, grey: np.ndarray, box_uv: np.ndarray) -> np.ndarray | None:
-        pol = self.policy
+        prev, self._grey = self._grey, grey
+        if prev is None or alpha is None or pose is None or len(self.ids) < pol.min_points:
+            return None
+        x = self.model.shape(np.asarray(alpha, np.float64))[self.ids]
+        uv = self.camera.project_head(x, pose)
         h, w = grey.shape
-        lo, hi = np.nanmin(box_uv, 0), np.nanmax(box_uv, 0)
-        if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        inside = (np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1)
+                  & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1))
+        if inside.sum() < pol.min_points:
             return None
-        pad = pol.box_margin * (hi - lo)  # not below: the upper lip is just there
-        x0, y0 = np.maximum(np.floor(lo - pad), 0).astype(int)
-        x1, y1 = np.minimum(np.ceil([hi[0] + pad[0], hi[1]]), [w, h]).astype(int)
-        if x1 - x0 < 2 * pol.window or y1 - y0 < 2 * pol.window:
+        x, start = x[inside], uv[inside].astype(np.float32).reshape(-1, 1, 2)
+        lk = {"winSize": (pol.window, pol.window), "maxLevel": pol.levels,
+              "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
+        fwd, st, _ = cv2.calcOpticalFlowPyrLK(prev, grey, start, None, **lk)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, prev, fwd, None, **lk)
+        good = ((st.ravel() == 1) & (st2.ravel() == 1)
+                & (np.linalg.norm((back - start).reshape(-1, 2), axis=1) < pol.fb_max_px))
+        if good.sum() < pol.min_points:
             return None
-        pts = cv2.goodFeaturesToTrack(grey[y0:y1, x0:x1], pol.max_points, pol.quality,
-                                      max(3.0, 0.05 * float(x1 - x0)), blockSize=5)
-        if pts is None:
+        new = self._solve(x[good], fwd[good].reshape(-1, 2).astype(np.float64), pose)
+        if new is None:
             return None
-        return (pts.reshape(-1, 1, 2) + np.float32([x0, y0])).astype(np.float32)
+        if abs(new.translation[2] / pose.translation[2] - 1.0) > pol.max_depth_step:
+            return None
+        # the translation moves by the median of the last few frames' steps: one frame's step
+        # can be off by several mm (compression artefacts, a blink), a head's approach lasts
+        self._steps = (self._steps + [new.translation - pose.translation])[-pol.median_of:]
+        step = np.median(np.array(self._steps), axis=0)
+        return Pose(new.rotation, pose.translation + step)
 
-
-def translation_after(similarity: np.ndarray, translation: np.ndarray,
-                      camera: Camera) -> np.ndarray:
-    """The head's translation (3,) mm on this frame, from its last one and the face's image
-    similarity since then: the distance divides by the image scale (a pinhole image's size
-    goes as 1 / depth), and the head's origin goes where the similarity takes its image."""
-    t = np.asarray(translation, np.float64)
-    scale = float(np.sqrt(abs(np.linalg.det(similarity[:, :2]))))
-    uv = camera.project(t[None])[0]
-    shift = similarity[:, :2] @ uv + similarity[:, 2] - uv
-    z = t[2] / scale
-    return np.array([t[0] / scale + shift[0] * z / camera.fx,
-                     t[1] / scale + shift[1] * z / camera.fy, z])
+    def _solve(self, obj: np.ndarray, img: np.ndarray, pose: Pose) -> Pose | None:
+        """The pose taking head-frame points ``obj`` (M, 3) to pixels ``img`` (M, 2): Gauss-Newton
+        from ``pose`` on the reprojection error (``sigma_px``) and a Gaussian prior on the
+        rotation's change (``rotation_sigma``: the points span a few cm, so alone they trade
+        a small turn for a shift and a change of distance, mm per mrad); the points reprojected
+        farther than ``outlier_px`` (and 3 x the median) are dropped once and it is solved
+        again."""
+        pol = self.policy
+        r0 = pose.matrix
+        dr, t = np.zeros(3), np.array(pose.translation, np.float64)
+        wr = (pol.sigma_px / pol.rotation_sigma) ** 2
+        for attempt in range(2):
+            for _ in range(pol.iterations):
+                rx = rotation_matrix(dr) @ r0
+                xr = obj @ rx.T
+                uv, jac = self.camera.project_jacobian(xr + t)
+                e = (uv - img).reshape(-1)
+                j = np.empty((len(obj), 2, 6))
+                skew = np.zeros((len(obj), 3, 3))  # d(R x)/d(dr) = -[R x]_x
+                skew[:, 0, 1], skew[:, 0, 2] = xr[:, 2], -xr[:, 1]
+                skew[:, 1, 0], skew[:, 1, 2] = -xr[:, 2], xr[:, 0]
+                skew[:, 2, 0], skew[:, 2, 1] = xr[:, 1], -xr[:, 0]
+                j[:, :, :3] = jac @ skew
+                j[:, :, 3:] = jac
+                j = j.reshape(-1, 6)
+                h = j.T @ j
+                h[np.arange(3), np.arange(3)] += wr
+                g = j.T @ e
+                g[:3] += wr * dr
+                step = np.linalg.solve(h, -g)
+                dr, t = dr + step[:3], t + step[3:]
+                if np.abs(step[3:]).max() < 1e-3:
+                    break
+            if not np.all(np.isfinite(t)):
+                return None
+            uv = self.camera.project((obj @ (rotation_matrix(dr) @ r0).T) + t)
+            err = np.linalg.norm(uv - img, axis=1)
+            keep = err <= max(pol.outlier_px, 3.0 * float(np.median(err)))
+            if keep.all() or attempt:
+                break
+            if keep.sum() < pol.min_points:
+                return None
+            obj, img = obj[keep], img[keep]
+        return Pose(axis_angle(rotation_matrix(dr) @ r0), t)

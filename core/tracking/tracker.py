@@ -207,16 +207,12 @@ class Tracker:
             self._anchor = pose.as_vector()
 
     @property
-    def pose(self) -> Pose | None:
-        """The head's pose at the last fitted frame (None before a start)."""
-        return None if self._theta is None else Pose.from_vector(self._theta[self.k:])
-
-    def rigid_uv(self) -> np.ndarray | None:
-        """Image positions (P, 2) of the sample points no articulation moves (eyes, brows,
-        nose), at the last fitted state (None before a start)."""
+    def state(self) -> tuple[np.ndarray, Pose] | None:
+        """The articulation (K,) and head pose the next frame starts from (the last fit, or
+        the state of a reset), None before a start."""
         if self._theta is None:
             return None
-        return self.problem.project(self._theta)[~self._judged]
+        return self._theta[:self.k].copy(), Pose.from_vector(self._theta[self.k:])
 
     @property
     def pose_prior_centre(self) -> np.ndarray | None:
