@@ -103,11 +103,21 @@ class FaceMotion:
                   & (uv[:, 1] >= 0) & (uv[:, 1] <= h - 1))
         if inside.sum() < pol.min_points:
             return None
-        x, start = x[inside], uv[inside].astype(np.float32).reshape(-1, 1, 2)
+        x, uv = x[inside], uv[inside]
+        # the flow on the points' box only (grown by what the coarsest level's window can
+        # reach): opencv builds the pyramids of the images it is given, the whole frame cost
+        # 1.6 ms per call
+        pad = pol.window * 2 ** pol.levels
+        x0, y0 = np.maximum(np.floor(uv.min(0) - pad), 0).astype(int)
+        x1, y1 = np.minimum(np.ceil(uv.max(0) + pad) + 1, [w, h]).astype(int)
+        a, b = prev[y0:y1, x0:x1], grey[y0:y1, x0:x1]
+        start = (uv - [x0, y0]).astype(np.float32).reshape(-1, 1, 2)
         lk = {"winSize": (pol.window, pol.window), "maxLevel": pol.levels,
               "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
-        fwd, st, _ = cv2.calcOpticalFlowPyrLK(prev, grey, start, None, **lk)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(grey, prev, fwd, None, **lk)
+        fwd, st, _ = cv2.calcOpticalFlowPyrLK(a, b, start, None, **lk)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, fwd, None, **lk)
+        fwd, back = fwd + np.float32([x0, y0]), back + np.float32([x0, y0])
+        start = start + np.float32([x0, y0])
         good = ((st.ravel() == 1) & (st2.ravel() == 1)
                 & (np.linalg.norm((back - start).reshape(-1, 2), axis=1) < pol.fb_max_px))
         if good.sum() < pol.min_points:
