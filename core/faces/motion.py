@@ -9,7 +9,7 @@ frame, centred on the last pose) holds the depth back. On the real clip cap12 th
 Here the model's rigid points on the front of the face (forehead, brows, eyes, nose: no
 articulation moves them by more than ``rigid_motion`` of the largest motion) are projected
 with the last fitted state, carried into this frame by pyramidal Lucas-Kanade with a
-forward-backward check, and the head pose that takes their 3D positions (head frame) to where
+per-frame outlier pass, and the head pose that takes their 3D positions (head frame) to where
 they went is solved by Gauss-Newton from the last pose, with a prior on the rotation's change.
 Perspective separates a turn of the head from a change of distance, which a 2D similarity of
 the face's features did not: on cap13 its scale read a turn as the head going 12 % farther.
@@ -35,7 +35,9 @@ class MotionPolicy:
     front_mm : ... and it lies within this depth (head frame, mm) of the face's front (the
         sides of the head are on the silhouette, against the background).
     window, levels : Lucas-Kanade window (px) and pyramid levels.
-    fb_max_px : a point whose backward flow misses its start by more than this is dropped.
+    fb_max_px : a point whose backward flow misses its start by more than this is dropped
+        (None: no backward flow; the PnP's outlier pass does the job: on cap12 and cap13 the
+        same figures within their noise, at half the flow's cost).
     min_points : fewer points left (after the flow, then after PnP's outliers) -> no estimate.
     outlier_px : after a first solution, points reprojected farther than this (and 3 x the
         median) are dropped and it is solved again.
@@ -50,12 +52,12 @@ class MotionPolicy:
     front_mm: float = 40.0
     window: int = 15
     levels: int = 2
-    fb_max_px: float = 0.5
+    fb_max_px: float | None = None
     min_points: int = 12
     outlier_px: float = 1.0
     sigma_px: float = 0.3
     rotation_sigma: float = 0.003
-    iterations: int = 5
+    iterations: int = 3
     median_of: int = 3
     max_depth_step: float = 0.1
 
@@ -115,11 +117,12 @@ class FaceMotion:
         lk = {"winSize": (pol.window, pol.window), "maxLevel": pol.levels,
               "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)}
         fwd, st, _ = cv2.calcOpticalFlowPyrLK(a, b, start, None, **lk)
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, fwd, None, **lk)
-        fwd, back = fwd + np.float32([x0, y0]), back + np.float32([x0, y0])
-        start = start + np.float32([x0, y0])
-        good = ((st.ravel() == 1) & (st2.ravel() == 1)
-                & (np.linalg.norm((back - start).reshape(-1, 2), axis=1) < pol.fb_max_px))
+        good = st.ravel() == 1
+        if pol.fb_max_px is not None:
+            back, st2, _ = cv2.calcOpticalFlowPyrLK(b, a, fwd, None, **lk)
+            good &= (st2.ravel() == 1) & (
+                np.linalg.norm((back - start).reshape(-1, 2), axis=1) < pol.fb_max_px)
+        fwd = fwd + np.float32([x0, y0])
         if good.sum() < pol.min_points:
             return None
         new = self._solve(x[good], fwd[good].reshape(-1, 2).astype(np.float64), pose)
@@ -164,7 +167,7 @@ class FaceMotion:
                 g[:3] += wr * dr
                 step = np.linalg.solve(h, -g)
                 dr, t = dr + step[:3], t + step[3:]
-                if np.abs(step[3:]).max() < 1e-3:
+                if np.abs(step[3:]).max() < 0.01:
                     break
             if not np.all(np.isfinite(t)):
                 return None
