@@ -1,7 +1,11 @@
 """Tracking an enrolled speaker in real video: the analysis-by-synthesis tracker per frame,
 the face finder to start, to verify and to recover (ARCHITECTURE.md, "Real speakers").
 
-Per frame the cost is the tracker's. The landmark model runs
+Per frame the cost is the tracker's, plus a sparse optical flow of the face's rigid points
+(:mod:`articast.core.faces.motion`, ~1 ms): the head's translation it implies is where the
+fit starts and centres its pose prior, so that a head coming closer or going away between
+two landmark calls is followed (the appearance alone hardly sees the distance).
+The landmark model runs
 
 - on the first frame and after every loss: detector + landmarks, then the articulation and
   pose are read off the landmarks (:func:`~articast.core.faces.enrol.state_from_landmarks`)
