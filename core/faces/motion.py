@@ -80,8 +80,6 @@ class FaceMotion:
         self.policy = policy or MotionPolicy()
         self.model, self.camera = model, camera
         self.ids = rigid_points(model, self.policy)
-        self._k = np.asarray(camera.K, np.float64)
-        self._dist = np.asarray(camera.dist, np.float64)
         self.reset()
 
     def reset(self) -> None:
@@ -124,11 +122,11 @@ class FaceMotion:
                 np.linalg.norm((back - start).reshape(-1, 2), axis=1) < pol.fb_max_px)
         fwd = fwd + np.float32([x0, y0])
         if good.sum() < pol.min_points:
+            self._steps = []
             return None
         new = self._solve(x[good], fwd[good].reshape(-1, 2).astype(np.float64), pose)
-        if new is None:
-            return None
-        if abs(new.translation[2] / pose.translation[2] - 1.0) > pol.max_depth_step:
+        if new is None or abs(new.translation[2] / pose.translation[2] - 1.0) > pol.max_depth_step:
+            self._steps = []  # (on cap12 and cap13: never) no stale step in the next median
             return None
         # the translation moves by the median of the last few frames' steps: one frame's step
         # can be off by several mm (compression artefacts, a blink), a head's approach lasts
