@@ -75,7 +75,7 @@ class LivePolicy:
         translation (the change of distance above all, which the appearance fit hardly sees)
         is where each frame's fit starts and centres its pose prior. Without it, on cap12 the
         head came 30 % closer between two checks, the tracked depth moved 5 % and the lips
-        "opened" by 7 mm.
+        "opened" by 7 mm. Not used with a pose anchor (a head-mounted camera).
     """
 
     verify_every: int = 10
@@ -117,8 +117,9 @@ class LiveTracker:
         self._last: TrackResult | None = None
         sm = self.policy.smoothing
         self._filter = OneEuroFilter(sm) if sm is not None else None
-        mo = self.policy.motion
-        self._motion = (FaceMotion(speaker.model, speaker.camera, mo) if mo is not None
+        mo = self.policy.motion  # (not on a head-mounted camera: its pose is anchored)
+        self._motion = (FaceMotion(speaker.model, speaker.camera, mo)
+                        if mo is not None and self.tracker.policy.pose_anchor_rate is None
                         else None)
         self.finder_calls = 0
         self.restarts = 0  # tracker (re-)starts from landmarks

@@ -294,7 +294,8 @@ class Tracker:
         translation_hint : the head's translation (3,) mm on this frame as measured by other
             means (the face's image motion since the last frame,
             :mod:`articast.core.faces.motion`): the fit starts there, and the pose prior's
-            translation is centred there instead of on the last pose (not with an anchor)."""
+            translation is centred there instead of on the last pose. Ignored with a pose
+            anchor (``pose_anchor_rate``: a head-mounted camera)."""
         t0 = self.clock() if self.clock else 0.0
         self._frame += 1
         pol = self.policy
@@ -310,6 +311,8 @@ class Tracker:
         theta0 = self._theta
         if pol.predict and self._prev is not None:
             theta0 = self._theta + pol.velocity_gain * (self._theta - self._prev)
+        if pol.pose_anchor_rate is not None:
+            translation_hint = None  # a head-mounted camera: the pose is held to its anchor
         if translation_hint is not None:
             theta0 = theta0.copy()
             theta0[self.k + 3:] = translation_hint
@@ -320,7 +323,7 @@ class Tracker:
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
             return self._lost(t, t0, "blank: no contrast where the face should be", 0)
         ref = self.pose_prior_centre
-        if translation_hint is not None and ref is not None and self._anchor is None:
+        if translation_hint is not None and ref is not None:
             ref[3:] = translation_hint
         fit = None
         evals = 0
