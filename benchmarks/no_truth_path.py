@@ -43,7 +43,7 @@ from articast.core.dense.transfer import apply, bind  # noqa: E402
 from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
 from articast.core.faces.enrol import EnrolOptions, similarity  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
-from articast.core.faces.live import LiveTracker  # noqa: E402
+from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.model.build import invert  # noqa: E402
 from articast.core.outputs.lips import lip_measures  # noqa: E402
@@ -88,7 +88,7 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
 
 def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
         depth: str | None = None, flow: bool | None = None,
-        upper_lip_off_jaw: bool = False) -> dict:
+        upper_lip_off_jaw: bool = False, motion: bool = True) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
@@ -103,7 +103,8 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
                             BuildOptions(flow=flow))
     build_s = time.perf_counter() - t0
     test = make_sequence(seed * 100 + 12, test_frames, 50.0, rig, geometry=sp.geometry)
-    live = LiveTracker(speaker, finder, mediapipe_scheme(rig), clock=time.perf_counter)
+    live = LiveTracker(speaker, finder, mediapipe_scheme(rig),
+                       None if motion else LivePolicy(motion=None), clock=time.perf_counter)
     res = [live.track(sp.render(test.controls[i], test.pose(i), test.camera,
                                 RenderOptions(seed=20_000 + i)), float(test.times[i]))
            for i in range(test.n_frames)]
@@ -133,7 +134,7 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
             "lips": lips, **{k: round(v, 3) if isinstance(v, float) else v
                              for k, v in surf.items()},
             "depth": opts.depth, "flow": speaker.report["pixels"] != "landmarks",
-            "upper_lip_off_jaw": not opts.jaw_moves_upper_lip,
+            "upper_lip_off_jaw": not opts.jaw_moves_upper_lip, "motion": motion,
             "enrol_build_s": round(build_s, 1),
             "ms_per_frame_median": round(float(np.median([r.ms for r in res])), 2)}
 
@@ -143,13 +144,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--rigs", nargs="*", default=["desk", "head"])
     ap.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2])
     add_enrol_options(ap)
+    ap.add_argument("--no-motion", action="store_true",
+                    help="live tracking without the upper face's optical flow")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
     for rig in args.rigs:
         for seed in args.seeds:
             row = run(rig, seed, depth=args.depth, flow=args.flow,
-                      upper_lip_off_jaw=args.upper_lip_off_jaw)
+                      upper_lip_off_jaw=args.upper_lip_off_jaw, motion=not args.no_motion)
             rows.append(row)
             if not args.json:
                 print(row, flush=True)

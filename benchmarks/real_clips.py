@@ -239,14 +239,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-frame series (tracker and landmarks) here")
     add_enrol_options(ap)
+    ap.add_argument("--no-motion", action="store_true",
+                    help="live tracking without the upper face's optical flow (LivePolicy.motion "
+                         "None: the tracker predicts the head's translation by itself)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    live = LivePolicy(motion=None) if args.no_motion else None
     rows = []
     for name in args.only:
         path = next(iter(args.cache.glob(f"{name}.*")), None)
         if path is None:
             sys.exit(f"{name}: not in {args.cache}: run python tools/fetch_real_clips.py")
-        row = run_clip(name, path, args.grid, series=args.series, depth=args.depth,
+        row = run_clip(name, path, args.grid, live, series=args.series, depth=args.depth,
                        flow=args.flow, upper_lip_off_jaw=args.upper_lip_off_jaw)
         rows.append(row)
         if not args.json:

@@ -207,6 +207,14 @@ class Tracker:
             self._anchor = pose.as_vector()
 
     @property
+    def state(self) -> tuple[np.ndarray, Pose] | None:
+        """The articulation (K,) and head pose the next frame starts from (the last fit, or
+        the state of a reset), None before a start."""
+        if self._theta is None:
+            return None
+        return self._theta[:self.k].copy(), Pose.from_vector(self._theta[self.k:])
+
+    @property
     def pose_prior_centre(self) -> np.ndarray | None:
         """Pose (6,) the next frame's pose prior is centred on (None before a start)."""
         if self._anchor is not None:
@@ -279,8 +287,15 @@ class Tracker:
         return best
 
     # ------------------------------------------------------------------ per frame
-    def track(self, image: np.ndarray, t: float) -> TrackResult:
-        """Fit one frame (BGR uint8) taken at time ``t`` (s)."""
+    def track(self, image: np.ndarray, t: float,
+              translation_hint: np.ndarray | None = None) -> TrackResult:
+        """Fit one frame (BGR uint8) taken at time ``t`` (s).
+
+        translation_hint : the head's translation (3,) mm on this frame as measured by other
+            means (the face's image motion since the last frame,
+            :mod:`articast.core.faces.motion`): the fit starts there, and the pose prior's
+            translation is centred there instead of on the last pose. Ignored with a pose
+            anchor (``pose_anchor_rate``: a head-mounted camera)."""
         t0 = self.clock() if self.clock else 0.0
         self._frame += 1
         pol = self.policy
@@ -296,6 +311,11 @@ class Tracker:
         theta0 = self._theta
         if pol.predict and self._prev is not None:
             theta0 = self._theta + pol.velocity_gain * (self._theta - self._prev)
+        if pol.pose_anchor_rate is not None:
+            translation_hint = None  # a head-mounted camera: the pose is held to its anchor
+        if translation_hint is not None:
+            theta0 = theta0.copy()
+            theta0[self.k + 3:] = translation_hint
         uv = self.problem.project(theta0)
         roi = roi_of(uv, pol.roi_margin_px)
         x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
@@ -303,6 +323,8 @@ class Tracker:
         if patch.size == 0 or float(patch.std()) < pol.min_contrast:
             return self._lost(t, t0, "blank: no contrast where the face should be", 0)
         ref = self.pose_prior_centre
+        if translation_hint is not None and ref is not None:
+            ref[3:] = translation_hint
         fit = None
         evals = 0
         if pol.fast_path_factor and self._level is not None and self._prev is not None:
