@@ -40,11 +40,7 @@ class BuildOptions:
     before the geometry (:func:`~articast.core.faces.flow.refine_pixels`); None: the rig's
     default (:data:`~articast.core.faces.flow.BY_RIG`: on for a head-mounted camera)."""
 
-    # la_lin, the paper's model: on the real clips' held-out parts it agreed better with the
-    # landmarks than la_quad (franck 0.919 vs 0.904, cap13 0.996 vs 0.991) and restarted 1
-    # time instead of 16 on franck; on the rendered speaker (no-truth path, desk and head,
-    # speakers 0-2) the two are within 0.02 on every parameter (docs/REAL_SPEAKERS.md)
-    kind: str = "la_lin"
+    kind: str = "la_quad"
     train_frames: int = 90
     stats_frames: int = 60
     refine: int = 1

@@ -61,9 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "back to the landmarks (default: on with --rig head, where it helped "
                          "the rendered face's lips; off on a desk camera, where it did not "
                          "help the real clips)")
-    en.add_argument("--kind", default="la_lin", choices=["la_lin", "la_quad"],
-                    help="appearance model (default la_lin, the paper's; la_quad adds squared "
-                         "terms: measured no better on real clips, docs/REAL_SPEAKERS.md)")
+    en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
+                    help="appearance model (default la_quad: la_lin plus squared terms)")
     en.add_argument("--max-frames", type=int, default=600,
                     help="analyse at most this many frames, evenly spread (default 600)")
     en.add_argument("--name", default="", help="speaker name (default: the clip's name)")
