@@ -187,25 +187,31 @@ def test_a_face_that_leaves_is_reported_within_a_few_frames_and_picked_up_again(
     assert back.size and back[0] <= 10 and ok[50 + back[0]:].mean() > 0.9
 
 
-def test_a_head_mounted_camera_enrols_and_tracks_the_lower_face(tmp_path):
-    """The head rig sees the face from the nose down (no eyes): scale from the assumed mouth
-    width, one head pose for the clip; the lips are still followed."""
-    assert main(["synth", "sequence", "-o", str(tmp_path / "clip"), "--seed", "5",
+def _head_clip_enrolled_and_tracked(tmp_path, seed: int):
+    """A rendered head-rig clip (seed, sentence 50) enrolled with ``--rig head``, then another
+    sentence (51) tracked: (speaker, track lines, ok mask, truth lines)."""
+    assert main(["synth", "sequence", "-o", str(tmp_path / "clip"), "--seed", str(seed),
                  "--sentence", "50", "--rig", "head", "--frames", "200", "--fps", "10"]) == 0
     assert main(["enroll", str(tmp_path / "clip" / "video.mp4"), "-o", str(tmp_path / "sp"),
                  "--rig", "head", "--quiet", "--json"]) == 0
     sp = Speaker.load(tmp_path / "sp")
-    assert sp.rig == "head" and "mouth width 50 mm" in sp.report["scale"]
-    assert main(["synth", "sequence", "-o", str(tmp_path / "test"), "--seed", "5",
+    assert main(["synth", "sequence", "-o", str(tmp_path / "test"), "--seed", str(seed),
                  "--sentence", "51", "--rig", "head", "--frames", "60", "--fps", "25"]) == 0
     out = tmp_path / "t.jsonl"
     assert main(["track", str(tmp_path / "test" / "video.mp4"), "--speaker",
                  str(tmp_path / "sp"), "-o", str(out), "--quiet"]) == 0
     lines = _track_lines(out)
     ok = np.array([r["quality"]["ok"] for r in lines])
+    return sp, lines, ok, _track_lines(tmp_path / "test" / "truth.jsonl")
+
+
+def test_a_head_mounted_camera_enrols_and_tracks_the_lower_face(tmp_path):
+    """The head rig sees the face from the nose down (no eyes): scale from the assumed mouth
+    width, one head pose for the clip; the lips are still followed."""
+    sp, lines, ok, truth = _head_clip_enrolled_and_tracked(tmp_path, 5)
+    assert sp.rig == "head" and "mouth width 50 mm" in sp.report["scale"]
     assert ok.mean() >= 0.95
     true_model = FaceModel.load(tmp_path / "test" / "model.npz")
-    truth = _track_lines(tmp_path / "test" / "truth.jsonl")
     at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
     ap_true, _ = lip_measures(true_model, at)
     ap = np.array([r["lips"]["aperture_mm"] for r in lines])
@@ -217,21 +223,9 @@ def test_a_head_mounted_camera_enrols_from_pixels_refined_by_the_flow(tmp_path):
     motions; a head-mounted enrolment refines them by optical flow by default, and the tracked
     lips2 and lips3 follow the truth (this clip: 0.96 and 0.96 with the flow, 0.82 and 0.95
     with the landmarks' pixels, ``--no-flow``)."""
-    assert main(["synth", "sequence", "-o", str(tmp_path / "clip"), "--seed", "8",
-                 "--sentence", "50", "--rig", "head", "--frames", "200", "--fps", "10"]) == 0
-    assert main(["enroll", str(tmp_path / "clip" / "video.mp4"), "-o", str(tmp_path / "sp"),
-                 "--rig", "head", "--quiet", "--json"]) == 0
-    sp = Speaker.load(tmp_path / "sp")
+    sp, lines, ok, truth = _head_clip_enrolled_and_tracked(tmp_path, 8)
     assert sp.report["pixels"] == "landmarks refined by optical flow"
-    assert main(["synth", "sequence", "-o", str(tmp_path / "test"), "--seed", "8",
-                 "--sentence", "51", "--rig", "head", "--frames", "60", "--fps", "25"]) == 0
-    out = tmp_path / "t.jsonl"
-    assert main(["track", str(tmp_path / "test" / "video.mp4"), "--speaker",
-                 str(tmp_path / "sp"), "-o", str(out), "--quiet"]) == 0
-    lines = _track_lines(out)
-    ok = np.array([r["quality"]["ok"] for r in lines])
     assert ok.mean() >= 0.95
-    truth = _track_lines(tmp_path / "test" / "truth.jsonl")
     names = ("jaw1", "lips1", "lips2", "lips3")
     at = np.array([[r["alpha"][n] for n in names] for r in truth])[ok]
     a = np.array([[r["alpha"][n] for n in names] for r in lines])[ok]
