@@ -27,7 +27,7 @@ from articast.core.appearance.maps import ImageMaps, image_maps, roi_of, sample_
 from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.errors import InputError
 from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
-from articast.core.model.face import FaceModel
+from articast.core.model.face import FaceModel, range_motion
 
 APPEARANCE_KIND = "appearance-model"
 APPEARANCE_VERSION = 1
@@ -78,12 +78,11 @@ def select_points(
     whose displacement under its basis vector over the training range is largest; merged and
     de-duplicated. ``candidates`` restricts the choice (e.g. visible points, no markers).
     """
-    spread = model.stats.max - model.stats.min
     allowed = np.arange(model.n_points) if candidates is None else np.asarray(candidates)
+    motion = range_motion(model.basis[:, allowed], model.stats)
     chosen: set[int] = set()
     for k in range(model.n_params):
-        motion = np.linalg.norm(model.basis[k, allowed], axis=1) * spread[k]
-        chosen.update(int(i) for i in allowed[np.argsort(-motion)[:per_param]])
+        chosen.update(int(i) for i in allowed[np.argsort(-motion[k])[:per_param]])
     return np.array(sorted(chosen), np.int64)
 
 

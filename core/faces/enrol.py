@@ -249,7 +249,7 @@ def rigid_depth(uv: np.ndarray, shapes: np.ndarray, ref: np.ndarray, stable: np.
     and is back-projected along its pixel's ray at that depth: the head's rotation moves the
     depth, the landmarker's per-frame depth guesses (articulation, noise) do not.
     """
-    k = np.array([[camera.fx, 0.0, camera.cx], [0.0, camera.fy, camera.cy], [0.0, 0.0, 1.0]])
+    k = camera.K
     obj = np.ascontiguousarray(ref @ _TO_HEAD, np.float64)  # camera axes
     out = np.empty_like(shapes)
     for f, x in enumerate(shapes):

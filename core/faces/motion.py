@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 
 from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
-from articast.core.model.face import FaceModel
+from articast.core.model.face import FaceModel, range_motion
 
 
 @dataclass(frozen=True)
@@ -64,8 +64,7 @@ class MotionPolicy:
 
 def rigid_points(model: FaceModel, policy: MotionPolicy) -> np.ndarray:
     """Indices of the model's rigid points on the front of the face (see ``MotionPolicy``)."""
-    spread = model.stats.max - model.stats.min
-    motion = np.linalg.norm(model.basis * spread[:, None, None], axis=2).max(0)
+    motion = range_motion(model.basis, model.stats).max(0)
     rest = model.shape(np.zeros(model.n_params))
     front = rest[:, 2] >= rest[:, 2].max() - policy.front_mm
     return np.flatnonzero((motion <= policy.rigid_motion * motion.max()) & front)
@@ -80,6 +79,7 @@ class FaceMotion:
         self.policy = policy or MotionPolicy()
         self.model, self.camera = model, camera
         self.ids = rigid_points(model, self.policy)
+        self._mean, self._basis = model.mean[self.ids], model.basis[:, self.ids]  # per frame
         self.reset()
 
     def reset(self) -> None:
@@ -96,7 +96,7 @@ class FaceMotion:
         prev, self._grey = self._grey, grey
         if prev is None or alpha is None or pose is None or len(self.ids) < pol.min_points:
             return None
-        x = self.model.shape(np.asarray(alpha, np.float64))[self.ids]
+        x = self._mean + np.einsum("k,kpc->pc", np.asarray(alpha, np.float64), self._basis)
         uv = self.camera.project_head(x, pose)
         h, w = grey.shape
         inside = (np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] <= w - 1)

@@ -74,6 +74,13 @@ class ParamStats:
         return cls(scores.mean(0), scores.std(0), scores.min(0), scores.max(0))
 
 
+def range_motion(basis: np.ndarray, stats: ParamStats) -> np.ndarray:
+    """(K, P): how far (mm) each of P points moves under each parameter over its training
+    range (max - min), from their basis (K, P, 3). What the point selection, the occlusion
+    test and the rigid points of the live flow each judge a point by."""
+    return np.linalg.norm(basis, axis=2) * (stats.max - stats.min)[:, None]
+
+
 @dataclass(frozen=True, eq=False)
 class FaceModel:
     """A linear articulatory model.

@@ -15,7 +15,7 @@ import numpy as np
 from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
 from articast.core.appearance.models import AppearanceModel
 from articast.core.model.camera import Camera, Pose
-from articast.core.model.face import FaceModel
+from articast.core.model.face import FaceModel, range_motion
 from articast.core.outputs.lips import lips_dict
 from articast.core.tracking.fitting import (
     FitPolicy,
@@ -169,8 +169,7 @@ class Tracker:
         self.clock = clock
         self.k = model.n_params
         # the occlusion test's points: those the articulation moves
-        spread = model.stats.max - model.stats.min
-        motion = np.linalg.norm(self.problem.s_basis * spread[:, None, None], axis=2).max(0)
+        motion = range_motion(self.problem.s_basis, model.stats).max(0)
         self._judged = motion >= pol.occlusion_moving * motion.max()
         pts = self.problem.s_mean
         self._span = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= pol.occlusion_span_mm
