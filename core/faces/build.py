@@ -29,7 +29,7 @@ from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lip_measures
-from articast.core.tracking.tracker import POSE_SIGMA, Tracker, TrackingPolicy
+from articast.core.tracking.tracker import Tracker, TrackingPolicy, appearance_options
 
 
 @dataclass(frozen=True)
@@ -124,10 +124,8 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     train = [states[i] for i in order[:n_train]]
     held = [states[i] for i in order[n_train:n_train + opts.stats_frames]]
     say(f"training {opts.kind} on {len(train)} frames at their landmark states")
-    # a desk camera sees the head turn under a light fixed to the room: shading follows
-    rotate = rig == "desk" and opts.kind in ("la_lin", "la_quad")
-    app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma,
-                           pose_sigma=POSE_SIGMA[rig], rotation_terms=rotate)
+    rig_opts = appearance_options(rig, opts.kind)
+    app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma, **rig_opts)
     for r in range(opts.refine):
         fitted = fit_states(model, app, camera, rig, train)
         good = [f for f, _ in (x for x in fitted if x is not None)]
@@ -135,7 +133,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         if len(good) >= 2 * (model.n_params + 1):
             train = good
             app = train_appearance(model, camera, train, opts.kind, sigma=opts.sigma,
-                           pose_sigma=POSE_SIGMA[rig], rotation_terms=rotate)
+                                   **rig_opts)
     check = held or train
     resid = [x[1] for x in fit_states(model, app, camera, rig, check) if x is not None]
     if not resid:

@@ -34,9 +34,8 @@ def enrolment_appearance(speaker: SyntheticSpeaker, rig: str = "head", kind: str
                          **train_options) -> AppearanceModel:
     """The appearance model of ``kind`` trained on the speaker's enrolment frames."""
     from articast.core.synthetic.sequence import default_camera
-    from articast.core.tracking.tracker import POSE_SIGMA
+    from articast.core.tracking.tracker import appearance_options
 
     frames = frames if frames is not None else enrolment_frames(speaker, rig)
-    train_options.setdefault("pose_sigma", POSE_SIGMA[rig])
-    train_options.setdefault("rotation_terms", rig == "desk" and kind in ("la_lin", "la_quad"))
+    train_options = {**appearance_options(rig, kind), **train_options}
     return train_appearance(speaker.model(), default_camera(rig), frames, kind, **train_options)

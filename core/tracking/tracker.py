@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -32,6 +33,16 @@ OPTIMISERS = ("gauss-newton", "nelder-mead")
 # s.d. of the head's motion between frames, (rad, mm), per camera rig: the fit's pose prior,
 # and the pose uncertainty the la point selection plans for (train_appearance(pose_sigma=)).
 POSE_SIGMA: dict[str, tuple[float, float]] = {"head": (0.001, 0.1), "desk": (0.003, 0.5)}
+
+
+def appearance_options(rig: str, kind: str) -> dict[str, Any]:
+    """``train_appearance`` options for a camera rig: the head-pose uncertainty the point
+    selection plans for (:data:`POSE_SIGMA`), and, on a desk camera, rotation terms for la_lin
+    and la_quad (a head turning under a light fixed to the room changes its shading)."""
+    if rig not in POSE_SIGMA:
+        raise ValueError(f"rig must be one of {sorted(POSE_SIGMA)}, got {rig!r}")
+    return {"pose_sigma": POSE_SIGMA[rig],
+            "rotation_terms": rig == "desk" and kind in ("la_lin", "la_quad")}
 
 
 @dataclass(frozen=True)

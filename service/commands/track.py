@@ -112,7 +112,7 @@ def _train(args: argparse.Namespace) -> int:
     from articast.core.appearance.models import TrainingFrame, train_appearance
     from articast.core.model.camera import Camera
     from articast.core.model.face import FaceModel
-    from articast.core.tracking.tracker import POSE_SIGMA
+    from articast.core.tracking.tracker import appearance_options
     from articast.service.progress import Progress
     from articast.service.video import iter_video
 
@@ -131,9 +131,7 @@ def _train(args: argparse.Namespace) -> int:
     prog = Progress(1, "training")
     app = train_appearance(model, camera, frames, args.kind, sigma=args.sigma,
                            per_param=args.per_param, selection=args.selection,
-                           pose_sigma=POSE_SIGMA[args.rig],
-                           rotation_terms=args.rig == "desk" and args.kind in ("la_lin",
-                                                                               "la_quad"))
+                           **appearance_options(args.rig, args.kind))
     prog.update()
     prog.close()
     app.save(args.output)
