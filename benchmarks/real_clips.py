@@ -91,7 +91,8 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
 
 def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
              series: Path | None = None, depth: str | None = None,
-             flow: bool | None = None, upper_lip_off_jaw: bool = False) -> dict:
+             flow: bool | None = None, upper_lip_off_jaw: bool = False,
+             enrol_with_held: int | None = None) -> dict:
     frames, fps = read_frames(path)
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
@@ -101,6 +102,11 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     # enrolment: the first part, every other frame (as `articast enroll` strides long clips)
     enrol = frames[:n_enrol:2]
     marks, found, _ = landmarks_every_frame(finder, enrol)
+    if enrol_with_held:  # a diagnosis, not a held-out measure: see --enrol-with-held
+        extra = held[::enrol_with_held]
+        more, more_found, _ = landmarks_every_frame(finder, extra)
+        enrol, marks = enrol + extra, np.concatenate([marks, np.nan_to_num(more)])
+        found = np.concatenate([found, more_found])
     opts = EnrolOptions(jaw_moves_upper_lip=not upper_lip_off_jaw,
                         **({"depth": depth} if depth is not None else {}))
     t0 = time.perf_counter()
@@ -148,6 +154,7 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
         "residual_p99": round(speaker.residual.p99, 4),
         "enrol_build_s": round(build_s, 1), "depth": opts.depth,
         "flow": speaker.report["pixels"] != "landmarks",
+        "enrol_with_held": enrol_with_held,
     }
     if grid is not None:
         _write_grid(grid / f"{name}.png", held, results, speaker)
@@ -242,6 +249,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-motion", action="store_true",
                     help="live tracking without the upper face's optical flow (LivePolicy.motion "
                          "None: the tracker predicts the head's translation by itself)")
+    ap.add_argument("--enrol-with-held", type=int, metavar="N",
+                    help="diagnosis: also enrol on every Nth held-out frame (so the figures "
+                         "are no longer held out): how far an appearance that had seen the "
+                         "test part's conditions would agree (docs/REAL_SPEAKERS.md, franck)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     live = LivePolicy(motion=None) if args.no_motion else None
@@ -251,7 +262,8 @@ def main(argv: list[str] | None = None) -> None:
         if path is None:
             sys.exit(f"{name}: not in {args.cache}: run python tools/fetch_real_clips.py")
         row = run_clip(name, path, args.grid, live, series=args.series, depth=args.depth,
-                       flow=args.flow, upper_lip_off_jaw=args.upper_lip_off_jaw)
+                       flow=args.flow, upper_lip_off_jaw=args.upper_lip_off_jaw,
+                       enrol_with_held=args.enrol_with_held)
         rows.append(row)
         if not args.json:
             print(row, flush=True)

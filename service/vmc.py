@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from pythonosc.osc_bundle import OscBundle
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
+from pythonosc.osc_message import OscMessage
 from pythonosc.osc_message_builder import OscMessageBuilder
 from pythonosc.udp_client import SimpleUDPClient
 
@@ -76,14 +77,14 @@ def quaternion_xyzw(rot: np.ndarray) -> np.ndarray:
     tr = np.trace(m)
     if tr > 0:
         s = 2.0 * np.sqrt(tr + 1.0)
-        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, s / 4]
+        q = np.array([(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s,
+                      (m[1, 0] - m[0, 1]) / s, s / 4])
     else:
         i = int(np.argmax(np.diag(m)))
         j, k = (i + 1) % 3, (i + 2) % 3
         s = 2.0 * np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
-        q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+        q = np.array([0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s])
         q[i], q[j], q[k] = s / 4, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
-    q = np.array(q)
     q /= np.linalg.norm(q)
     return -q if q[3] < 0 else q
 
@@ -102,7 +103,7 @@ def head_bone(
     return offset / 1000.0, quaternion_xyzw(unity)
 
 
-def _message(address: str, *args: object) -> object:
+def _message(address: str, *args: str | int | float) -> OscMessage:
     b = OscMessageBuilder(address=address)
     for a in args:
         b.add_arg(a)

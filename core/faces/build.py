@@ -142,9 +142,9 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     ap, wd = lip_measures(model, geo.alpha)
     coverage = {"aperture_mm": [float(np.percentile(ap, 2)), float(np.percentile(ap, 98))],
                 "width_mm": [float(np.percentile(wd, 2)), float(np.percentile(wd, 98))]}
-    r = np.array(resid)
-    stats = ResidualStats(float(np.median(r)), float(np.percentile(r, 95)),
-                          float(np.percentile(r, 99)), len(r))
+    held_resid = np.array(resid)
+    stats = ResidualStats(float(np.median(held_resid)), float(np.percentile(held_resid, 95)),
+                          float(np.percentile(held_resid, 99)), len(held_resid))
     report = {
         "frames": int(len(images)),
         "frames_used": int(len(states)),

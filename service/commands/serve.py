@@ -6,6 +6,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from articast.service.settings import (
     CaptureSettings,
@@ -15,6 +16,9 @@ from articast.service.settings import (
     add_arguments,
     from_args,
 )
+
+if TYPE_CHECKING:
+    from articast.service.security import AccessPolicy
 
 EPILOG = """\
 Clients connect to ws://HOST:PORT/ws and send
@@ -201,7 +205,7 @@ def add_access_arguments(a: argparse._ArgumentGroup) -> None:
                    "(repeatable; env ARTICAST_ALLOW_DEVICE, comma-separated)")
 
 
-def access_policy(args: argparse.Namespace, host: str) -> object:
+def access_policy(args: argparse.Namespace, host: str) -> AccessPolicy:
     """The AccessPolicy of the command line and the environment; refuses unsafe binding."""
     import os
 
@@ -266,7 +270,7 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
     config = ServiceConfig(
         server=server, hub=from_args(HubSettings, args),
         capture=from_args(CaptureSettings, args), policy=from_args(SessionPolicy, args),
-        sessions=specs, access=access,  # type: ignore[arg-type]
+        sessions=specs, access=access,
         hub_url=hub_url(args), hub_prefix=hub_prefix(args),
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", "live",
                                              args.processor))))
@@ -331,7 +335,7 @@ def _gateway(args: argparse.Namespace) -> int:
     server = from_args(ServerSettings, args)
     url = hub_url(args, required=True)
     config = ServiceConfig(server=server, hub=from_args(HubSettings, args),
-                           access=access_policy(args, server.host),  # type: ignore[arg-type]
+                           access=access_policy(args, server.host),
                            hub_url=url, hub_prefix=hub_prefix(args), role="gateway")
 
     def listening(ws_url: str) -> None:
