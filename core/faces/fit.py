@@ -13,7 +13,7 @@ import numpy as np
 
 from articast.core.faces.enrol import LandmarkScheme, similarity, to_head_axes
 from articast.core.model.build import invert
-from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix, turn_jacobian
 from articast.core.model.face import FaceModel
 
 
@@ -101,11 +101,7 @@ def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np
         rb = np.einsum("ij,knj->kni", rot, model.basis)  # (K, N, 3)
         d_alpha = np.einsum("nij,knj->nik", jac, rb)  # (N, 2, K)
         rx = pc - tr
-        skew = np.zeros((len(rx), 3, 3))
-        skew[:, 0, 1], skew[:, 0, 2] = rx[:, 2], -rx[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = -rx[:, 2], rx[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = rx[:, 1], -rx[:, 0]
-        d_rot = np.einsum("nij,njk->nik", jac, skew)
+        d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(rx))
         full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(len(uv) * 2, -1)
         ok = np.isfinite(full).all(1) & np.isfinite(r)
         jj, rr = full[ok], r[ok]

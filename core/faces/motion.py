@@ -22,7 +22,13 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
+from articast.core.model.camera import (
+    Camera,
+    Pose,
+    axis_angle,
+    rotation_matrix,
+    turn_jacobian,
+)
 from articast.core.model.face import FaceModel, range_motion
 
 
@@ -152,11 +158,7 @@ class FaceMotion:
                 uv, jac = self.camera.project_jacobian(xr + t)
                 e = (uv - img).reshape(-1)
                 j = np.empty((len(obj), 2, 6))
-                skew = np.zeros((len(obj), 3, 3))  # d(R x)/d(dr) = -[R x]_x
-                skew[:, 0, 1], skew[:, 0, 2] = xr[:, 2], -xr[:, 1]
-                skew[:, 1, 0], skew[:, 1, 2] = -xr[:, 2], xr[:, 0]
-                skew[:, 2, 0], skew[:, 2, 1] = xr[:, 1], -xr[:, 0]
-                j[:, :, :3] = jac @ skew
+                j[:, :, :3] = jac @ turn_jacobian(xr)
                 j[:, :, 3:] = jac
                 j = j.reshape(-1, 6)
                 h = j.T @ j

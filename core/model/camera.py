@@ -61,6 +61,18 @@ def rotation_matrix(r: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * k + b * (k @ k)
 
 
+def turn_jacobian(points: np.ndarray) -> np.ndarray:
+    """(N, 3, 3): d p / d omega of rotated points p = R x (N, 3) under a rotation increment on
+    the left, R <- rotation_matrix(omega) R, at omega = 0: -[p]_x (the Gauss-Newton pose
+    fits' rotation columns)."""
+    p = np.asarray(points, np.float64)
+    out = np.zeros((len(p), 3, 3))
+    out[:, 0, 1], out[:, 0, 2] = p[:, 2], -p[:, 1]
+    out[:, 1, 0], out[:, 1, 2] = -p[:, 2], p[:, 0]
+    out[:, 2, 0], out[:, 2, 1] = p[:, 1], -p[:, 0]
+    return out
+
+
 def axis_angle(rot: np.ndarray) -> np.ndarray:
     """Inverse of :func:`rotation_matrix` for one (3, 3) matrix -> (3,) rad."""
     rot = np.asarray(rot, dtype=np.float64)

@@ -26,7 +26,7 @@ import numpy as np
 
 from articast.core.appearance.maps import ImageMaps
 from articast.core.appearance.models import ROTATION_SCALE, AppearanceModel
-from articast.core.model.camera import Camera, axis_angle, rotation_matrix
+from articast.core.model.camera import Camera, axis_angle, rotation_matrix, turn_jacobian
 from articast.core.model.face import FaceModel
 from articast.core.tracking import kernels
 
@@ -216,9 +216,7 @@ class Problem:
         with_gain = with_gain and self.estimate_gain
         dcam = np.zeros((s, 3, k + 6 + int(with_gain)))
         dcam[:, :, :k] = np.matmul(rot, self._basis_sdk)
-        dcam[:, 0, k + 1], dcam[:, 0, k + 2] = rh[:, 2], -rh[:, 1]
-        dcam[:, 1, k], dcam[:, 1, k + 2] = -rh[:, 2], rh[:, 0]
-        dcam[:, 2, k], dcam[:, 2, k + 1] = rh[:, 1], -rh[:, 0]
+        dcam[:, :, k:k + 3] = turn_jacobian(rh)
         dcam[:, 0, k + 3] = dcam[:, 1, k + 4] = dcam[:, 2, k + 5] = 1.0
         duv = np.matmul(jp, dcam)  # (S, 2, P)
         jac = np.matmul(dfeats, duv)  # (S, C, P)
