@@ -101,7 +101,8 @@ READ_ERRORS = (zipfile.BadZipFile, zlib.error, EOFError, OSError, ValueError, Ke
                NotImplementedError, RuntimeError, OverflowError, RecursionError)
 """What numpy, zipfile, zlib and json raise on a corrupt or hostile file."""
 
-KNOWN_KINDS = ("face-model", "appearance-model", "posture-corpus", "dense-binding")
+KNOWN_KINDS = ("face-model", "appearance-model", "posture-corpus", "dense-binding",
+               "landmark-observation")
 """Kinds named in an error (anything else a file claims to be is not echoed)."""
 
 

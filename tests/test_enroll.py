@@ -313,3 +313,73 @@ def test_optical_flow_refines_landmark_pixels_that_under_read_the_motion():
                                                      marks[0] + [[32, 0, 0]]]),
                           np.ones(3, bool), np.arange(1, 6))
     assert np.allclose(still[1:, 1:6, :2], marks[0, 1:6, :2] + [32, 0])
+
+
+def test_a_desk_enrolment_learns_how_the_live_reader_sees_the_face(enrolled):
+    """Fused live tracking reads FaceMesh v1 every frame: the enrolment learns, from the same
+    clip, where that network puts this face's points (a linear observation model), how far
+    its readings stray (each point's own s.d. and the errors they share) and the motion
+    model's process noise (its defaults here: the 6 fps clip is too sparse to learn it)."""
+    from articast.core.tracking.kalman import MotionNoise
+
+    sp = Speaker.load(enrolled / "speaker")
+    assert (enrolled / "speaker" / "points_v1.npz").is_file()
+    pm = sp.points
+    assert pm is not None and pm.network == "v1"
+    assert pm.mean.shape == sp.model.mean.shape and len(pm.modes) > 0
+    assert 0.1 < float(np.median(pm.sigma_mm)) < 3.0
+    assert sp.motion_noise is not None
+    assert np.allclose(sp.motion_noise.q, MotionNoise.default(7).q)
+    assert sp.report["reader"]["network"] == "v1"
+
+
+def _fused(sp):
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    return LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig))
+
+
+def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
+    """A state knocked off the face (as a missed fast turn would leave it): the reading is
+    far from the motion model's prediction, the state restarts from the face finder, and the
+    lips are followed again within two frames."""
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    truth = _track_lines(enrolled / "test" / "truth.jsonl")
+    true_model = FaceModel.load(enrolled / "test" / "model.npz")
+    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
+    ap_true, _ = lip_measures(true_model, at)
+    live = _fused(sp)
+    assert live.fusion is not None
+    res = [live.track(img, i / 25) for i, img in enumerate(frames[:30])]
+    assert live.finder_calls >= 29  # the reader, every frame
+    kf = live.kalman
+    kf.t = kf.t + np.array([60.0, 0.0, 120.0])  # 6 cm aside, 12 cm further
+    kf.alpha = kf.alpha + 3.0
+    restarts = live.restarts
+    res += [live.track(img, (30 + i) / 25) for i, img in enumerate(frames[30:])]
+    assert live.restarts == restarts + 1
+    ok = np.array([r.ok for r in res])
+    assert ok[32:].all()
+    ap = np.array([r.lips["aperture_mm"] for r in res])
+    assert np.corrcoef(ap[32:], ap_true[32:])[0, 1] > 0.9
+
+
+def test_a_speaker_enrolled_before_the_reader_is_tracked_as_before(enrolled, tmp_path):
+    import shutil
+
+    old = tmp_path / "old"
+    shutil.copytree(enrolled / "speaker", old)
+    (old / "points_v1.npz").unlink()
+    sp = Speaker.load(old)
+    live = _fused(sp)
+    assert sp.points is None and live.fusion is None
+    from articast.service.video import iter_video
+
+    ok = [live.track(img, i / 25).ok for i, (_, _, img) in
+          enumerate(iter_video(enrolled / "test" / "video.mp4")) if i < 20]
+    assert all(ok) and live.finder_calls <= 3

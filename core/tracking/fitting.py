@@ -29,6 +29,7 @@ from articast.core.appearance.models import ROTATION_SCALE, AppearanceModel
 from articast.core.model.camera import Camera, axis_angle, rotation_matrix, turn_jacobian
 from articast.core.model.face import FaceModel
 from articast.core.tracking import kernels
+from articast.core.tracking.points import PointTerm
 
 _NO_W2 = np.zeros((0, 0))
 _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
@@ -71,6 +72,31 @@ class FitPolicy:
     # frame: a Gaussian motion prior (None: none). It damps what the image does not pin down
     # (noise on a still mouth); where the image is clear the data term wins.
     alpha_sigma: float | None = None
+    # Levenberg-Marquardt: rejected trial steps (each one an evaluation) before the fit stops
+    # as converged (None: until the damping exceeds 1e6). At a minimum every trial is
+    # rejected: a fused live fit spent 10 of its 14 evaluations there on some frames.
+    max_rejections: int | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class StatePrior:
+    """A Gaussian prior on the whole state (a motion model's prediction): ``alpha`` (K,),
+    ``rotation`` (3, 3) matrix, ``translation`` (3,), and ``information`` (K + 6, K + 6), the
+    inverse covariance of (alpha, rotation increment on the left, translation)."""
+
+    alpha: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    information: np.ndarray
+
+    def terms(self, alpha: np.ndarray, rot: np.ndarray, t: np.ndarray
+              ) -> tuple[float, np.ndarray, np.ndarray]:
+        """Cost, gradient (K + 6,) and Gauss-Newton Hessian (K + 6, K + 6) at a state."""
+        d = rot @ self.rotation.T
+        d_rot = 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
+        e = np.concatenate([alpha - self.alpha, d_rot, t - self.translation])
+        le = self.information @ e
+        return float(e @ le), 2.0 * le, 2.0 * self.information
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,6 +126,10 @@ class FitResult:
     # (S,) squared weighted residual norm of each sample point at the solution (0 where the
     # point falls outside the image): the per-point evidence the occlusion test reads
     point_q: np.ndarray | None = None
+    # (K + 6, K + 6) the data terms' Gauss-Newton information about (alpha, rotation
+    # increment, translation) at the solution (the image gain marginalised out), without the
+    # priors: what the frame told, for a motion model's update
+    information: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.robust_residual is None:
@@ -303,7 +333,10 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                      policy: FitPolicy | None = None,
                      pose_ref: tuple[np.ndarray, np.ndarray] | None = None,
                      gain0: float = 1.0, estimate_gain: bool = False,
-                     alpha_ref: np.ndarray | None = None) -> FitResult:
+                     alpha_ref: np.ndarray | None = None,
+                     points: PointTerm | None = None,
+                     state_prior: StatePrior | None = None,
+                     appearance_weight: float = 1.0) -> FitResult:
     """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level.
 
     pose_ref : (rotation (3,), translation (3,)) the pose prior is centred on, if any.
@@ -311,6 +344,12 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     gain0, estimate_gain : the image gain of la models and whether to refine it. Far from the
         solution, shrinking the gain is a cheap way to shrink a misaligned residual, so the
         tracker refines it only in the final fine-level fit of a frame.
+    points : landmark readings of this frame (:class:`~articast.core.tracking.points.PointTerm`),
+        a second data term beside the appearance (Cauchy per point).
+    state_prior : a Gaussian prior on the whole state (a motion model's prediction); with it,
+        give no ``pose_ref`` / ``alpha_ref`` (it replaces both).
+    appearance_weight : the appearance term's weight (0: the landmarks and priors alone; the
+        appearance is then not sampled at all).
     """
     pol = policy or FitPolicy()
     ref = None if pose_ref is None else (rotation_matrix(pose_ref[0]), np.asarray(pose_ref[1]))
@@ -323,28 +362,63 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     lam = pol.lm_lambda
     nc = problem.c
     scale = problem.loss_scale(pol.robust_scale)
-    r, jac, vf = problem.residuals(maps, li, alpha, rot, t, True, gain, estimate_gain)
-    rc, rw, jw = _robust(r, jac, nc, scale)
-    prior, g_p, h_p = problem.prior_terms(alpha)
-    pp, g_pp, h_pp = _pose_prior(pol, rot, t, ref)
     wg = 1.0 / pol.gain_sigma**2
     wa = 0.0 if alpha_ref is None or pol.alpha_sigma is None else 1.0 / pol.alpha_sigma**2
     a_ref = np.zeros(k) if alpha_ref is None else np.asarray(alpha_ref, np.float64)
-    cost = rc + prior + pp + wa * float((alpha - a_ref) @ (alpha - a_ref))
+    use_app = appearance_weight > 0
+    sw = float(np.sqrt(appearance_weight))
+    with_gain = estimate_gain and use_app
+
+    def evaluate(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray, g_: float):
+        """Everything at one state: the total cost, the data rows (whitened, IRLS-weighted)
+        and the priors' gradient and Hessian."""
+        if use_app:
+            r_, jac_, vf_ = problem.residuals(maps, li, a_, rot_, t_, True, g_, with_gain)
+            rc_, rw_, jw_ = _robust(r_, jac_, nc, scale)
+            rc_, rw_, jw_ = appearance_weight * rc_, sw * rw_, sw * jw_
+        else:
+            r_, vf_, rc_ = np.zeros(0), 1.0, 0.0
+            rw_, jw_ = np.zeros(0), np.zeros((0, k + 6))
+        pc_ = 0.0
+        g_s, h_s = np.zeros(k + 6), np.zeros((k + 6, k + 6))
+        if points is not None and points.n_points:
+            pr, pj = points.residuals(a_, rot_, t_, True)
+            pc_, prw, pjw = _robust(pr, pj, 2, points.scale)
+            shared_c, shared_g, shared_h = points.shared(prw, pjw)
+            pc_ -= shared_c  # the errors the landmarks share count once
+            g_s -= 2.0 * shared_g
+            h_s -= 2.0 * shared_h
+            if jw_.shape[1] > k + 6:  # the landmarks do not see the image gain
+                pjw = np.hstack([pjw, np.zeros((len(pjw), jw_.shape[1] - k - 6))])
+            rw_, jw_ = np.concatenate([rw_, prw]), np.vstack([jw_, pjw])
+        prior_, g_p_, h_p_ = problem.prior_terms(a_)
+        sp_ = 0.0
+        if state_prior is not None:
+            sp_, g_sp, h_sp = state_prior.terms(a_, rot_, t_)
+            g_s, h_s = g_s + g_sp, h_s + h_sp
+        pp_, g_pp_, h_pp_ = _pose_prior(pol, rot_, t_, ref)
+        g_s[k:] += g_pp_
+        h_s[k:, k:] += h_pp_
+        cost_ = (rc_ + pc_ + prior_ + pp_ + sp_ + wa * float((a_ - a_ref) @ (a_ - a_ref))
+                 + wg * (g_ - gain0) ** 2 * with_gain)
+        return cost_, (r_, vf_, rc_, rw_, jw_, g_p_, h_p_, g_s, h_s)
+
+    cost, (r, vf, rc, rw, jw, g_p, h_p, g_s, h_s) = evaluate(alpha, rot, t, gain)
     evals, costs, converged, it = 1, [cost], False, 0
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
         h = jw.T @ jw
         g = jw.T @ rw
         h[np.arange(k), np.arange(k)] += h_p / 2 + wa
         g[:k] += g_p / 2 + wa * (alpha - a_ref)
-        h[k:k + 6, k:k + 6] += h_pp / 2
-        g[k:k + 6] += g_pp / 2
+        h[:k + 6, :k + 6] += h_s / 2
+        g[:k + 6] += g_s / 2
         if h.shape[0] > k + 6:  # gain prior around its start value
             h[k + 6, k + 6] += wg
             g[k + 6] += wg * (gain - gain0)
         diag = np.diag(h).copy()
         diag[diag <= 0] = 1.0
         accepted = False
+        rejected = 0
         while not accepted:
             try:
                 step = -np.linalg.solve(h + lam * np.diag(diag), g)
@@ -355,17 +429,13 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             rot_new = rotation_matrix(step[k:k + 3]) @ rot
             t_new = t + step[k + 3:k + 6]
             g_new = float(np.clip(gain + step[k + 6], 0.2, 5.0)) if step.size > k + 6 else gain
-            r_new, jac_new, vf_new = problem.residuals(maps, li, a_new, rot_new, t_new, True,
-                                                       g_new, estimate_gain)
-            rc_new, rw_new, jw_new = _robust(r_new, jac_new, nc, scale)
-            prior_new, gp_new, hp_new = problem.prior_terms(a_new)
-            pp_new, gpp_new, hpp_new = _pose_prior(pol, rot_new, t_new, ref)
-            cost_new = (rc_new + prior_new + pp_new
-                        + wg * (g_new - gain0) ** 2 * (step.size > k + 6)
-                        + wa * float((a_new - a_ref) @ (a_new - a_ref)))
+            cost_new, terms_new = evaluate(a_new, rot_new, t_new, g_new)
             evals += 1
             if cost_new <= cost or lam > 1e6:
                 accepted = cost_new <= cost
+                break
+            rejected += 1
+            if pol.max_rejections is not None and rejected >= pol.max_rejections:
                 break
             lam *= 10
         if not accepted:
@@ -373,17 +443,33 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
         lam = max(lam / 10, 1e-7)
         alpha, rot, t, gain = a_new, rot_new, t_new, g_new
-        r, vf, cost, rc, rw, jw = r_new, vf_new, cost_new, rc_new, rw_new, jw_new
-        g_p, h_p, g_pp, h_pp = gp_new, hp_new, gpp_new, hpp_new
+        cost = cost_new
+        r, vf, rc, rw, jw, g_p, h_p, g_s, h_s = terms_new
         costs.append(cost)
         if (np.abs(step[:k]).max() < pol.tol_alpha
                 and np.abs(step[k:k + 3]).max() < pol.tol_rotation
                 and np.abs(step[k + 3:k + 6]).max() < pol.tol_translation_mm):
             converged = True
             break
+    hd = jw.T @ jw
+    if points is not None and points.n_points:
+        shared_h = points.shared(rw[-2 * points.n_points:], jw[-2 * points.n_points:, :k + 6])[2]
+        hd[:k + 6, :k + 6] -= shared_h
+    info = _marginal_information(hd, k + 6, wg)
     n = max(r.size * vf, 1.0)
-    return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n, evals, it, converged,
-                     vf, tuple(costs), gain, rc / n, _point_q(r, nc))
+    rc_n = rc / max(appearance_weight, 1e-12) / n if use_app else 0.0
+    return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n if use_app else 0.0,
+                     evals, it, converged, vf, tuple(costs), gain, rc_n,
+                     _point_q(r, nc) if use_app else None, info)
+
+
+def _marginal_information(h: np.ndarray, p: int, wg: float) -> np.ndarray:
+    """The information about the first ``p`` unknowns, the others (the image gain, with its
+    prior ``wg``) marginalised out (Schur complement)."""
+    if h.shape[0] == p:
+        return h
+    hgg = h[p:, p:] + wg * np.eye(h.shape[0] - p)
+    return h[:p, :p] - h[:p, p:] @ np.linalg.solve(hgg, h[p:, :p])
 
 
 def fit_nelder_mead(problem: Problem, maps: ImageMaps, level: int, alpha0: np.ndarray,

@@ -253,6 +253,56 @@ def cauchy(r, jac, c, scale):  # pragma: no cover - compiled
     return cost, rw, jw
 
 
+@njit(cache=True, nogil=True)
+def point_residuals(mean, basis_mk, alpha, rot, t, intr, inv_sigma, uv,
+                    jacobian):  # pragma: no cover - compiled
+    """The landmark term of :meth:`articast.core.tracking.points.PointTerm.residuals` for a
+    camera without distortion: whitened reprojection residuals (2M,) of the points
+    mean + basis_mk @ alpha (M, 3) posed by (rot, t), and their Jacobian (2M, K + 6) w.r.t.
+    (alpha, rotation increment on the left, translation); 0 rows without ``jacobian``."""
+    m, k = mean.shape[0], alpha.shape[0]
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    r = np.empty(2 * m)
+    jac = np.zeros((2 * m if jacobian else 0, k + 6))
+    for i in range(m):
+        hx, hy, hz = mean[i, 0], mean[i, 1], mean[i, 2]
+        for kk in range(k):
+            hx += alpha[kk] * basis_mk[i, 0, kk]
+            hy += alpha[kk] * basis_mk[i, 1, kk]
+            hz += alpha[kk] * basis_mk[i, 2, kk]
+        p0 = rot[0, 0] * hx + rot[0, 1] * hy + rot[0, 2] * hz
+        p1 = rot[1, 0] * hx + rot[1, 1] * hy + rot[1, 2] * hz
+        p2 = rot[2, 0] * hx + rot[2, 1] * hy + rot[2, 2] * hz
+        x, y, z = p0 + t[0], p1 + t[1], p2 + t[2]
+        iz = 1.0 / z
+        w = inv_sigma[i]
+        r[2 * i] = (fx * x * iz + cx - uv[i, 0]) * w
+        r[2 * i + 1] = (fy * y * iz + cy - uv[i, 1]) * w
+        if not jacobian:
+            continue
+        a0, a2 = fx * iz * w, -fx * x * iz * iz * w  # d u / d (x, z), whitened
+        b1, b2 = fy * iz * w, -fy * y * iz * iz * w  # d v / d (y, z)
+        for kk in range(k):
+            bx, by, bz = basis_mk[i, 0, kk], basis_mk[i, 1, kk], basis_mk[i, 2, kk]
+            rx = rot[0, 0] * bx + rot[0, 1] * by + rot[0, 2] * bz
+            ry = rot[1, 0] * bx + rot[1, 1] * by + rot[1, 2] * bz
+            rz = rot[2, 0] * bx + rot[2, 1] * by + rot[2, 2] * bz
+            jac[2 * i, kk] = a0 * rx + a2 * rz
+            jac[2 * i + 1, kk] = b1 * ry + b2 * rz
+        # d(cam)/d(omega) = -[p]x: omega0 (0, -p2, p1), omega1 (p2, 0, -p0), omega2 (-p1, p0, 0)
+        jac[2 * i, k] = a2 * p1
+        jac[2 * i + 1, k] = -b1 * p2 + b2 * p1
+        jac[2 * i, k + 1] = a0 * p2 - a2 * p0
+        jac[2 * i + 1, k + 1] = -b2 * p0
+        jac[2 * i, k + 2] = -a0 * p1
+        jac[2 * i + 1, k + 2] = b1 * p0
+        jac[2 * i, k + 3] = a0
+        jac[2 * i, k + 5] = a2
+        jac[2 * i + 1, k + 4] = b1
+        jac[2 * i + 1, k + 5] = b2
+    return r, jac
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
     types, so that a session's first frame does not pay a few seconds of compilation."""
@@ -268,4 +318,9 @@ def warm_up() -> None:
                  np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8),
                  np.full(5, 0.2))
     cauchy(np.zeros(8, f8), np.zeros((8, 2), f8), 8, 2.0)
+    for jacobian in (True, False):
+        point_residuals(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8),
+                        np.eye(3), np.array([0.0, 0.0, 100.0]),
+                        np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
+                        jacobian)
     cauchy(np.zeros(8, f8), np.zeros((0, 0), f8), 8, 2.0)

@@ -15,16 +15,18 @@ import numpy as np
 
 from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
 from articast.core.appearance.models import AppearanceModel
-from articast.core.model.camera import Camera, Pose
+from articast.core.model.camera import Camera, Pose, axis_angle
 from articast.core.model.face import FaceModel, range_motion
 from articast.core.outputs.lips import lips_dict
 from articast.core.tracking.fitting import (
     FitPolicy,
     FitResult,
     Problem,
+    StatePrior,
     fit_gauss_newton,
     fit_nelder_mead,
 )
+from articast.core.tracking.points import PointTerm
 from articast.core.tracking.result import TrackResult
 
 OPTIMISERS = ("gauss-newton", "nelder-mead")
@@ -43,6 +45,25 @@ def appearance_options(rig: str, kind: str) -> dict[str, Any]:
         raise ValueError(f"rig must be one of {sorted(POSE_SIGMA)}, got {rig!r}")
     return {"pose_sigma": POSE_SIGMA[rig],
             "rotation_terms": rig == "desk" and kind in ("la_lin", "la_quad")}
+
+
+@dataclass(frozen=True, eq=False)
+class Evidence:
+    """What a frame's fit uses besides the image's local appearance (all optional).
+
+    points : the frame's landmark readings as a fit term
+        (:class:`~articast.core.tracking.points.PointTerm`).
+    prior : a motion model's prediction of the whole state
+        (:class:`~articast.core.tracking.fitting.StatePrior`); it replaces the tracker's own
+        constant-velocity prediction, pose prior and articulation prior.
+    appearance_weight : the appearance term's weight (0: not sampled).
+    levels : pyramid levels to fit (None: the policy's, with its fast path).
+    """
+
+    points: PointTerm | None = None
+    prior: StatePrior | None = None
+    appearance_weight: float = 1.0
+    levels: tuple[int, ...] | None = None
 
 
 @dataclass(frozen=True)
@@ -235,8 +256,10 @@ class Tracker:
     def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
              cache: dict[int, ImageMaps], policy: FitPolicy | None = None,
              pose_ref: np.ndarray | None = None, refine_gain: bool = True,
-             alpha_ref: np.ndarray | None = None) -> FitResult:
+             alpha_ref: np.ndarray | None = None, evidence: Evidence | None = None
+             ) -> FitResult:
         pol = self.policy
+        ev = evidence or Evidence()
         theta = theta0
         result: FitResult | None = None
         evals = 0
@@ -263,14 +286,16 @@ class Tracker:
                 ref = None if pose_ref is None else (pose_ref[:3], pose_ref[3:])
                 result = fit_gauss_newton(*args, pose_ref=ref, gain0=self._gain,
                                           estimate_gain=(level == 0 and refine_gain),
-                                          alpha_ref=alpha_ref)
+                                          alpha_ref=alpha_ref, points=ev.points,
+                                          state_prior=ev.prior,
+                                          appearance_weight=ev.appearance_weight)
             evals += result.evals
             theta = result.theta
         assert result is not None
         return FitResult(result.alpha, result.rotation, result.translation, result.cost,
                          result.residual, evals, result.iterations, result.converged,
                          result.valid_fraction, result.costs, result.gain,
-                         result.robust_residual, result.point_q)
+                         result.robust_residual, result.point_q, result.information)
 
     def _search(self, image: np.ndarray, pose: Pose) -> np.ndarray:
         """Coarse grid search of the translation around ``pose`` at the coarsest level."""
@@ -298,15 +323,19 @@ class Tracker:
 
     # ------------------------------------------------------------------ per frame
     def track(self, image: np.ndarray, t: float,
-              translation_hint: np.ndarray | None = None) -> TrackResult:
+              translation_hint: np.ndarray | None = None,
+              evidence: Evidence | None = None) -> TrackResult:
         """Fit one frame (BGR uint8) taken at time ``t`` (s).
 
         translation_hint : the head's translation (3,) mm on this frame as measured by other
             means (the face's image motion since the last frame,
             :mod:`articast.core.faces.motion`): the fit starts there, and the pose prior's
             translation is centred there instead of on the last pose. Ignored with a pose
-            anchor (``pose_anchor_rate``: a head-mounted camera)."""
+            anchor (``pose_anchor_rate``: a head-mounted camera).
+        evidence : the frame's landmark readings and a motion model's prediction
+            (:class:`Evidence`): the fit starts at the prediction and uses both."""
         t0 = self.clock() if self.clock else 0.0
+        ev = evidence
         self._frame += 1
         pol = self.policy
         cache: dict[int, ImageMaps] = {}
@@ -326,6 +355,9 @@ class Tracker:
         if translation_hint is not None:
             theta0 = theta0.copy()
             theta0[self.k + 3:] = translation_hint
+        if ev is not None and ev.prior is not None:
+            pr = ev.prior
+            theta0 = np.concatenate([pr.alpha, axis_angle(pr.rotation), pr.translation])
         uv = self.problem.project(theta0)
         roi = roi_of(uv, pol.roi_margin_px)
         x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
@@ -335,31 +367,41 @@ class Tracker:
         ref = self.pose_prior_centre
         if translation_hint is not None and ref is not None:
             ref[3:] = translation_hint
+        a_ref: np.ndarray | None = theta0[:self.k]
+        if ev is not None and ev.prior is not None:
+            ref = a_ref = None  # the motion model's prior replaces both
         fit = None
         evals = 0
-        if pol.fast_path_factor and self._level is not None and self._prev is not None:
+        levels = pol.levels if ev is None or ev.levels is None else ev.levels
+        if (pol.fast_path_factor and self._level is not None and self._prev is not None
+                and levels != (0,)):
             # most frames are easy: try the full-resolution fit from the prediction alone, and
             # pay for coarse-to-fine only when its residual says the motion was not predicted
-            quick = self._fit(image, theta0, (0,), cache, pose_ref=ref, alpha_ref=theta0[:self.k])
+            quick = self._fit(image, theta0, (0,), cache, pose_ref=ref, alpha_ref=a_ref,
+                              evidence=ev)
             evals += quick.evals
             if self._good(quick) and quick.residual <= pol.fast_path_factor * self._level:
                 fit = quick
         if fit is None:
-            fit = self._fit(image, theta0, pol.levels, cache, pose_ref=ref,
-                            alpha_ref=theta0[:self.k])
+            fit = self._fit(image, theta0, levels, cache, pose_ref=ref, alpha_ref=a_ref,
+                            evidence=ev)
             evals += fit.evals
         if self._gap and self._good(fit):
             # first frame after a gap: the last good state may be far from the face that
             # reappears (the mouth moved behind the hand); re-initialise too, keep the best
-            again = self._fit_from_neutral(image, cache, ref)
+            again = self._fit_from_neutral(image, cache, ref, ev)
             evals += again.evals
             if self._good(again) and again.cost < fit.cost:
                 fit = again
         if not self._good(fit):
             tries = [fit]
-            if pol.predict and self._prev is not None:
-                tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref))
-            tries.append(self._fit_from_neutral(image, cache, ref))
+            # (with landmark readings every start lands where they put it: no retry)
+            landmarks = ev is not None and ev.points is not None
+            if pol.predict and self._prev is not None and not landmarks:
+                tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref,
+                                       evidence=ev))
+            if not landmarks:
+                tries.append(self._fit_from_neutral(image, cache, ref, ev))
             evals += sum(f.evals for f in tries[1:])
             fit = min(tries, key=lambda f: f.cost)
             if not self._good(fit):
@@ -376,7 +418,8 @@ class Tracker:
         return self._accept(fit, t, t0, evals, occluded=occluded)
 
     def _fit_from_neutral(self, image: np.ndarray, cache: dict[int, ImageMaps],
-                          ref: np.ndarray | None) -> FitResult:
+                          ref: np.ndarray | None, evidence: Evidence | None = None
+                          ) -> FitResult:
         """Re-initialisation during a sequence: the last pose with the neutral articulation,
         more iterations, but the same pose prior as every frame, so that its cost compares
         with the regular fit's."""
@@ -386,7 +429,8 @@ class Tracker:
         neutral[:self.k] = 0.0
         retry = replace(pol.reinit_fit, pose_sigma_rad=pol.fit.pose_sigma_rad,
                         pose_sigma_mm=pol.fit.pose_sigma_mm)
-        return self._fit(image, neutral, pol.reinit_levels, cache, retry, pose_ref=ref)
+        return self._fit(image, neutral, pol.reinit_levels, cache, retry, pose_ref=ref,
+                         evidence=evidence)
 
     def _good(self, fit: FitResult) -> bool:
         pol = self.policy
@@ -458,7 +502,8 @@ class Tracker:
                                fit.residual, evals, fit.iterations, self._ms(t0),
                                {"converged": fit.converged, "robust_residual":
                                 fit.robust_residual, "point_q": fit.point_q,
-                                "alpha_fit": fit.alpha.copy()},
+                                "alpha_fit": fit.alpha.copy(), "theta_fit": fit.theta,
+                                "information": fit.information},
                                lips_dict(self.model, alpha))
         if force and self._level is None and fit.valid_fraction < pol.min_valid_fraction:
             return self._lost(t, t0, "no_face: the initial search did not find the face",
@@ -490,7 +535,7 @@ class Tracker:
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
                             "gain": fit.gain, "robust_residual": fit.robust_residual,
-                            "point_q": fit.point_q},
+                            "point_q": fit.point_q, "information": fit.information},
                            lips_dict(self.model, fit.alpha))
 
     def _lost(self, t: float, t0: float, reason: str, evals: int,

@@ -64,36 +64,48 @@ def register(sub: argparse._SubParsersAction) -> None:
     en.add_argument("--kind", default="la_quad", choices=["la_lin", "la_quad"],
                     help="appearance model (default la_quad: la_lin plus squared terms)")
     en.add_argument("--max-frames", type=int, default=600,
-                    help="analyse at most this many frames, evenly spread (default 600)")
+                    help="analyse at most this many frames, evenly spread (default 600; a longer "
+                         "clip adds 100 consecutive frames from its middle for the motion model)")
     en.add_argument("--name", default="", help="speaker name (default: the clip's name)")
     en.add_argument("--json", action="store_true", help="print the report as JSON")
     en.add_argument("--quiet", action="store_true", help="no progress line")
     en.set_defaults(func=_enroll)
 
 
-def find_faces(video: Path, max_frames: int, quiet: bool = False):
-    """Frames (strided to at most ``max_frames``), their landmarks (F, 478, 3), found (F,),
-    the clip's duration (s), frame size and the number of frames read."""
-    from articast.core.faces.finder import FaceFinder
+CONSECUTIVE_RUN = 100
+"""Consecutive frames analysed besides the strided ones (4 s at 25 fps)."""
+
+
+def find_faces(video: Path, max_frames: int, quiet: bool = False, read: bool = True):
+    """Frames (strided to at most ``max_frames``, plus a run of consecutive frames from the
+    middle of a long clip: the motion model learns from frame-to-frame motion,
+    :func:`~articast.core.tracking.kalman.process_noise`), their landmarks (F, 478, 3), found
+    (F,), the clip's duration (s), frame size, the number of frames read, the live reader's
+    landmarks of the same frames (F, 468, 3; None unless ``read``) and when each frame was
+    taken (F,) s."""
+    from articast.core.faces.finder import FaceFinder, read_every_frame
     from articast.service.progress import Progress
     from articast.service.video import iter_video, video_frame_count
 
     total = video_frame_count(video)
     stride = max(1, int(np.ceil(total / max_frames))) if total and max_frames > 0 else 1
+    run = range(total // 2, total // 2 + CONSECUTIVE_RUN) if stride > 1 else range(0)
     finder = FaceFinder.load()
-    images, marks, found = [], [], []
+    images, marks, found, faces, times = [], [], [], [], []
     prev = None
-    prog = Progress(total // stride if total else 0, "landmarks", quiet=quiet)
+    prog = Progress(total // stride + len(run) if total else 0, "landmarks", quiet=quiet)
     t_last, n_read, size = 0.0, 0, (0, 0)
     for i, t, img in iter_video(video):
         n_read, t_last = i + 1, t
-        if i % stride:
+        if i % stride and i not in run:
             continue
+        times.append(t)
         size = (img.shape[1], img.shape[0])
         face = finder.track(img, prev) if prev is not None else None
         face = face or finder.find(img)
         prev = face
         images.append(img)
+        faces.append(face)
         marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
         found.append(face is not None)
         prog.update()
@@ -102,7 +114,14 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False):
         print(f"articast enroll: warning: {video} ended early: read {n_read} of the {total} "
               "frames its container declares", file=sys.stderr)
     fps_dt = t_last / max(n_read - 1, 1)
-    return images, np.array(marks), np.array(found, bool), t_last + fps_dt, size, n_read
+    readings = None
+    if read:
+        reader = FaceFinder.load(landmarks="v1")
+        prog = Progress(len(images), "reader landmarks", quiet=quiet)
+        readings = read_every_frame(reader, images, faces, progress=prog.update)
+        prog.close()
+    return (images, np.array(marks), np.array(found, bool), t_last + fps_dt, size, n_read,
+            readings, np.array(times))
 
 
 def _enroll(args: argparse.Namespace) -> int:
@@ -120,8 +139,10 @@ def _enroll(args: argparse.Namespace) -> int:
     if args.output.exists() and not args.output.is_dir():
         raise InputError(f"{args.output}: exists and is not a folder")
     camera = Camera.load(args.camera) if args.camera else None
-    images, marks, found, seconds, size, n_read = find_faces(args.video, args.max_frames,
-                                                              args.quiet)
+    # fused live tracking reads FaceMesh v1 every frame on a desk camera (not on a
+    # head-mounted one: core/faces/live.py LivePolicy.fusion)
+    images, marks, found, seconds, size, n_read, readings, times = find_faces(
+        args.video, args.max_frames, args.quiet, read=args.rig == "desk")
     if camera is None:
         camera = Camera.default(size[0], size[1], DEFAULT_FOV_DEG)
     elif (camera.width, camera.height) != size:
@@ -140,7 +161,8 @@ def _enroll(args: argparse.Namespace) -> int:
         images, marks, found, scheme, camera, args.rig,
         EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm,
                      fixed_pose=(args.rig == "head"), depth=args.depth),
-        BuildOptions(kind=args.kind, flow=args.flow), args.name or args.video.stem, say)
+        BuildOptions(kind=args.kind, flow=args.flow), args.name or args.video.stem, say,
+        readings=readings, times=times)
     cov = speaker.report["coverage"]
     ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
     wd_range = cov["width_mm"][1] - cov["width_mm"][0]

@@ -1,0 +1,183 @@
+"""A motion model for the tracked state: constant velocity with white-noise acceleration, the
+frame's fit as the measurement (an iterated extended Kalman filter).
+
+State: the articulation alpha (K) and the head pose (rotation increment on the left of a
+reference rotation, translation mm) -- n = K + 6 -- and their velocities. Each frame:
+
+1. :meth:`ConstantVelocity.predict` moves the state by its velocity over ``dt`` and widens
+   its covariance by the process noise ``q`` (per unit, per s^3: how fast each unknown's
+   velocity may change; learned from the enrolment clip, :func:`process_noise`);
+2. the frame is fitted with the prediction as a Gaussian prior on the whole state
+   (:class:`~articast.core.tracking.fitting.StatePrior`: this is the filter's update, solved
+   by the same Gauss-Newton that reads the image and the landmarks);
+3. :meth:`ConstantVelocity.update` takes the fitted state and the information the frame's
+   data carried about it: the velocities follow through their covariance with the state.
+
+No lag is added by the filter itself beyond what the data leave undetermined: where the
+frame's evidence is strong its fit is the state; where it is weak (a still mouth between
+noisy readings) the prediction holds it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from articast.core.model.camera import axis_angle, rotation_matrix
+from articast.core.tracking.fitting import StatePrior
+
+
+def _vee(d: np.ndarray) -> np.ndarray:
+    return 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
+
+
+@dataclass(frozen=True)
+class MotionNoise:
+    """Process noise: spectral density of the acceleration of each unknown (alpha units, rad,
+    mm per s^2, squared, per Hz), and the initial velocity uncertainty (per s)."""
+
+    q: np.ndarray
+    initial_velocity_sd: np.ndarray
+
+    @classmethod
+    def default(cls, k: int) -> MotionNoise:
+        # speech: articulation crossing ~2 training s.d. in ~0.1 s; a head turning at ~1 rad/s
+        # and moving ~300 mm/s at most, accelerating within ~0.2 s
+        q = np.concatenate([np.full(k, 2000.0), np.full(3, 5.0), np.full(3, 2e5)])
+        v0 = np.concatenate([np.full(k, 10.0), np.full(3, 0.5), np.full(3, 200.0)])
+        return cls(q, v0)
+
+
+MAX_PERIOD_S = 0.05
+"""The motion model holds over short horizons only (speech is bounded: over longer lags its
+second differences stop growing like a random walk's), so process noise is learned only from
+frames at least this close (20 fps and up); a clip sampled more sparsely keeps the defaults."""
+
+
+def process_noise(alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                  times: np.ndarray, floor: MotionNoise | None = None) -> MotionNoise:
+    """The acceleration noise of each unknown from an enrolment sequence: alpha (F, K),
+    rotation (F, 3) axis-angle, translation (F, 3) at ``times`` (F,) s (increasing; gaps
+    allowed). A white-noise acceleration of density q gives second differences over h s of
+    variance (2/3) q h^3; measurement noise of s.d. s adds 6 s^2: both are solved for, per
+    unknown, from second differences over one and two frame periods (equally spaced triples
+    only; robust variances, so the landmarks' outliers stay out). The defaults
+    (:meth:`MotionNoise.default`) where the frames are further apart than
+    :data:`MAX_PERIOD_S` or too few; ``floor`` (default: the defaults / 100) keeps a still
+    enrolment clip from freezing the filter, and nothing is learned above the defaults."""
+    k = alpha.shape[1]
+    base = MotionNoise.default(k)
+    lo = (floor or MotionNoise(base.q / 100.0, base.initial_velocity_sd)).q
+    t = np.asarray(times, np.float64)
+    steps = np.diff(t)
+    if len(t) < 10 or not np.any(steps > 0):
+        return base
+    period = float(np.min(steps[steps > 0]))
+    if period > MAX_PERIOD_S:
+        return base
+    rots = rotation_matrix(np.asarray(rotation))
+    ref = rots[0]
+    turn = np.array([axis_angle(r @ ref.T) for r in rots])
+    x = np.hstack([alpha, turn, translation])
+    rows, vals = [], []
+    for lag in (1, 2):
+        h = lag * period
+        tol = 0.25 * period
+        i = np.arange(len(t))
+        # triples (a, b, c) with t_b - t_a = t_c - t_b = h: searched by time
+        b = np.searchsorted(t, t + h - tol)
+        c = np.searchsorted(t, t + 2 * h - tol)
+        ok = ((b < len(t)) & (c < len(t)))
+        ok[ok] &= (np.abs(t[b[ok]] - t[i[ok]] - h) < tol) & (np.abs(t[c[ok]] - t[i[ok]] - 2 * h)
+                                                              < tol)
+        if ok.sum() < 8:
+            break
+        d = x[c[ok]] - 2 * x[b[ok]] + x[i[ok]]
+        var = (1.4826 * np.median(np.abs(d - np.median(d, 0)), 0)) ** 2
+        rows.append([2.0 / 3.0 * h**3, 6.0])
+        vals.append(var)
+    if len(rows) < 2:
+        return base
+    sol = np.linalg.lstsq(np.array(rows), np.array(vals), rcond=None)[0]  # q, s^2 per unknown
+    return MotionNoise(np.clip(sol[0], lo, base.q), base.initial_velocity_sd)
+
+
+class ConstantVelocity:
+    """The filter; call :meth:`start` on a first state, then per frame :meth:`predict`, fit with
+    :meth:`prior`, :meth:`update`."""
+
+    def __init__(self, k: int, noise: MotionNoise | None = None) -> None:
+        self.k, self.n = k, k + 6
+        self.noise = noise or MotionNoise.default(k)
+        self.started = False
+
+    def start(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+              information: np.ndarray | None = None) -> None:
+        """(Re)start at a state with zero velocity. information : (n, n) what is known of the
+        state (None: a weak prior, 1 unit / 0.05 rad / 20 mm)."""
+        n = self.n
+        self.alpha = np.array(alpha, np.float64)
+        self.rot = rotation_matrix(np.asarray(rotation, np.float64))
+        self.t = np.array(translation, np.float64)
+        self.v = np.zeros(n)
+        p = np.zeros((2 * n, 2 * n))
+        if information is None:
+            sd = np.concatenate([np.full(self.k, 1.0), np.full(3, 0.05), np.full(3, 20.0)])
+            p[:n, :n] = np.diag(sd**2)
+        else:
+            p[:n, :n] = np.linalg.pinv(information + 1e-9 * np.eye(n))
+        p[n:, n:] = np.diag(self.noise.initial_velocity_sd**2)
+        self.p = p
+        self.started = True
+        self._pred: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def predict(self, dt: float) -> StatePrior:
+        """Move the state by its velocity over ``dt`` s; returns the prediction as a prior."""
+        n = self.n
+        dt = float(np.clip(dt, 1e-3, 1.0))
+        f = np.eye(2 * n)
+        f[:n, n:] = dt * np.eye(n)
+        q = self.noise.q
+        qm = np.zeros((2 * n, 2 * n))
+        i = np.arange(n)
+        qm[i, i] = q * dt**3 / 3.0
+        qm[i, n + i] = qm[n + i, i] = q * dt**2 / 2.0
+        qm[n + i, n + i] = q * dt
+        p = f @ self.p @ f.T + qm
+        k = self.k
+        alpha = self.alpha + dt * self.v[:k]
+        rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
+        t = self.t + dt * self.v[k + 3:]
+        self._pred = (alpha, rot, t, p)
+        pxx = p[:n, :n]
+        return StatePrior(alpha, rot, t, np.linalg.inv(pxx + 1e-12 * np.eye(n)))
+
+    def update(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+               information: np.ndarray | None) -> None:
+        """The frame's fitted state (the fit used :meth:`predict`'s prior) and its data
+        information (n, n) (None: the frame told nothing: keep the prediction's covariance)."""
+        assert self._pred is not None, "predict() first"
+        a_p, r_p, t_p, p = self._pred
+        n = self.n
+        r_f = rotation_matrix(np.asarray(rotation, np.float64))
+        e = np.concatenate([np.asarray(alpha) - a_p, _vee(r_f @ r_p.T),
+                            np.asarray(translation) - t_p])
+        pxx = p[:n, :n]
+        gain = np.linalg.solve(pxx + 1e-12 * np.eye(n), p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1
+        v = self.v + (gain @ e)[n:]
+        if information is None:
+            post = pxx
+        else:
+            post = np.linalg.inv(np.linalg.inv(pxx + 1e-12 * np.eye(n)) + information)
+        self.p = p - gain @ (pxx - post) @ gain.T
+        self.p = 0.5 * (self.p + self.p.T)
+        self.alpha, self.rot, self.t, self.v = (np.array(alpha, np.float64), r_f,
+                                                np.array(translation, np.float64), v)
+        self._pred = None
+
+    def hold(self) -> None:
+        """A frame without a fit: keep the prediction as the state (velocity kept)."""
+        assert self._pred is not None, "predict() first"
+        self.alpha, self.rot, self.t, self.p = self._pred
+        self._pred = None

@@ -1,0 +1,248 @@
+"""Landmark evidence in the per-frame fit: a linear observation model of how a landmark
+network reads the speaker's face, and the whitened reprojection term it gives the fit.
+
+A landmark network does not place its points where the speaker's model puts its own: FaceMesh
+v1 never quite closes a mouth and reads openings ~25 % small (docs/FACES.md), and every
+network has its own per-point offsets on a given face. So the live fit does not compare the
+network's pixels with the model's points; it compares them with what the network *would
+read* at a state, learned at enrolment from the same clip (:func:`learn_point_model`)::
+
+    X_i(alpha) = m_i + sum_k alpha_k B_ik          (head frame, mm)
+    uv_i = project(R X_i + t)
+
+with m and B regressed on the enrolment frames' states (the model's own points as the prior
+of the regression), and each point's residual s.d. (mm on the face) as its uncertainty. The
+term's residuals are ``(uv_i(theta) - observed_i) / sigma_px_i`` with a Cauchy loss per point,
+so a point the network loses (a hand, an extreme turn) stops pulling the fit.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from articast.core.bundle import load_bundle, reading, require, save_bundle
+from articast.core.errors import ModelFileError
+from articast.core.model.camera import Camera, Pose, turn_jacobian
+from articast.core.model.face import FaceModel
+from articast.core.tracking import kernels
+
+POINT_MODEL_KIND = "landmark-observation"
+POINT_MODEL_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class PointModel:
+    """How one landmark network reads one speaker's face.
+
+    network : which network (a key of ``articast.core.faces.finder.LANDMARK_MODELS``).
+    landmarks : (M,) int, the network's point indices that are modelled.
+    mean : (M, 3) mm, head frame; basis : (K, M, 3) mm per unit alpha.
+    sigma_mm : (M,) s.d. of a point's own reading error about its prediction, mm on the face
+        (in the image plane: px x depth / focal length), from the enrolment frames.
+    modes : (R, M, 2) the reading errors the points share, in units of ``sigma_mm`` (image
+        plane x, y): their covariance is diag(sigma^2) + sigma modes_r modes_r^T sigma. A
+        landmark network's errors are far from independent: on the three real clips the
+        600 image-plane residuals of its 300 points had the spread of only 5-7 independent
+        ones (participation ratio of their covariance); weighing them as independent made
+        the fit follow the network's shared errors (a mouth read a little open as a whole).
+    """
+
+    network: str
+    landmarks: np.ndarray
+    mean: np.ndarray
+    basis: np.ndarray
+    sigma_mm: np.ndarray
+    modes: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        m = len(self.landmarks)
+        if self.modes is None:
+            object.__setattr__(self, "modes", np.zeros((0, m, 2)))
+        assert self.modes is not None
+        if (self.mean.shape != (m, 3) or self.basis.ndim != 3 or self.basis.shape[1:] != (m, 3)
+                or self.sigma_mm.shape != (m,) or self.modes.ndim != 3
+                or self.modes.shape[1:] != (m, 2) or len(self.modes) > 64):
+            raise ModelFileError("landmark observation model: inconsistent shapes "
+                                 f"{self.mean.shape}, {self.basis.shape}, {self.sigma_mm.shape}, "
+                                 f"{self.modes.shape}")
+        finite = all(np.isfinite(a).all() for a in (self.mean, self.basis, self.sigma_mm,
+                                                     self.modes))
+        if not finite or np.any(self.sigma_mm <= 0):
+            raise ModelFileError("landmark observation model: non-finite values or sigma <= 0")
+
+    @property
+    def n_params(self) -> int:
+        return int(self.basis.shape[0])
+
+    def points(self, alpha: np.ndarray) -> np.ndarray:
+        """(M, 3) head-frame points at ``alpha`` (K,)."""
+        return self.mean + np.tensordot(alpha, self.basis, axes=1)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        save_bundle(path, POINT_MODEL_KIND, POINT_MODEL_VERSION,
+                    {"landmarks": self.landmarks, "mean": self.mean, "basis": self.basis,
+                     "sigma_mm": self.sigma_mm, "modes": self.modes}, {"network": self.network})
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str], n_params: int | None = None) -> PointModel:
+        """Read one; one clear :class:`ModelFileError` on any defect."""
+        arrays, meta = load_bundle(path, POINT_MODEL_KIND, (POINT_MODEL_VERSION,))
+        with reading(path, "landmark observation model"):
+            for key in ("landmarks", "mean", "basis", "sigma_mm"):
+                require(key in arrays, path, f"missing array {key!r}")
+            pm = cls(str(meta.get("network", "")), np.asarray(arrays["landmarks"], np.int64),
+                     np.asarray(arrays["mean"], np.float64),
+                     np.asarray(arrays["basis"], np.float64),
+                     np.asarray(arrays["sigma_mm"], np.float64),
+                     np.asarray(arrays["modes"], np.float64) if "modes" in arrays else None)
+            require(n_params is None or pm.n_params == n_params, path,
+                    f"{pm.n_params} parameters, the speaker's model has {n_params}")
+        return pm
+
+
+def model_point_model(model: FaceModel, landmarks: np.ndarray, network: str,
+                      sigma_mm: float = 1.0) -> PointModel:
+    """The observation model that assumes the network reads the model's own points (a
+    speaker enrolled before observation models existed)."""
+    return PointModel(network, np.asarray(landmarks, np.int64), model.mean.copy(),
+                      model.basis.copy(), np.full(len(landmarks), float(sigma_mm)))
+
+
+def learn_point_model(model: FaceModel, camera: Camera, states: list[tuple[np.ndarray, Pose]],
+                      readings: np.ndarray, model_points: np.ndarray, landmarks: np.ndarray,
+                      network: str, ridge: float = 1.0, min_sigma_mm: float = 0.2,
+                      n_modes: int = 12) -> PointModel:
+    """Regress how ``network`` reads the model points ``model_points`` (M,) (its point indices
+    ``landmarks`` (M,)) from the enrolment frames.
+
+    states : per frame, the enrolled (alpha (K,), pose). readings : (F, M, 2) px of the
+    network's points in those frames (NaN where it found no face). Each reading is carried to
+    the head frame at the depth of the model point it reads (its offset from the projected
+    model point, in mm on the face), and the offsets are regressed on [1, alpha] with a ridge
+    of ``ridge`` (in training s.d.^2 frames: few frames or a narrow range keep the model's own
+    basis). Returns the model's points plus the regressed offsets, each point's own residual
+    s.d. (at least ``min_sigma_mm``) and the ``n_modes`` largest error modes the points share
+    (principal components of the image-plane residuals, :class:`PointModel` ``modes``).
+    """
+    k = model.n_params
+    rows, offs, rots = [], [], []
+    sd = np.maximum(model.stats.std, 1e-6)
+    for (alpha, pose), uv in zip(states, readings, strict=True):
+        if not np.isfinite(uv).all():
+            continue
+        head = model.shape(alpha)[model_points]
+        rot = pose.matrix
+        cam = head @ rot.T + pose.translation
+        pred = camera.project(cam)
+        # px -> mm in the image plane at each point's depth, then to the head frame
+        d_cam = np.zeros((len(head), 3))
+        d_cam[:, 0] = (uv[:, 0] - pred[:, 0]) * cam[:, 2] / camera.fx
+        d_cam[:, 1] = (uv[:, 1] - pred[:, 1]) * cam[:, 2] / camera.fy
+        offs.append(d_cam @ rot)  # R^T d
+        rots.append(rot)
+        rows.append(np.concatenate([[1.0], np.asarray(alpha) / sd]))
+    if len(rows) < 2 * (k + 1):
+        return model_point_model(model, landmarks, network)
+    a = np.array(rows)  # (F, K + 1)
+    y = np.array(offs).reshape(len(rows), -1)  # (F, M * 3)
+    reg = ridge * np.eye(k + 1)
+    reg[0, 0] = 0.0
+    coef = np.linalg.solve(a.T @ a + reg, a.T @ y)  # (K + 1, M * 3)
+    res = (y - a @ coef).reshape(len(rows), -1, 3)
+    # back to each frame's image plane (x, y), where the readings' errors live
+    plane = np.einsum("fij,fmj->fmi", np.array(rots), res)[:, :, :2]  # (F, M, 2)
+    m = len(model_points)
+    flat = plane.reshape(len(rows), 2 * m)
+    cov = flat.T @ flat / len(rows)
+    n_modes = int(min(n_modes, len(rows) // 4, 2 * m))
+    lam, vec = np.linalg.eigh(cov)
+    lam, vec = lam[::-1][:n_modes], vec[:, ::-1][:, :n_modes]
+    shared = (vec ** 2) @ lam  # (2M,) the variance the modes explain, per coordinate
+    own = np.maximum(np.diag(cov) - shared, 0.0).reshape(m, 2).mean(1)
+    sigma = np.maximum(np.sqrt(own), min_sigma_mm)
+    modes = (vec * np.sqrt(np.maximum(lam, 0.0))).T.reshape(n_modes, m, 2) / sigma[None, :, None]
+    mean = model.mean[model_points] + coef[0].reshape(m, 3)
+    basis = model.basis[:, model_points] + (coef[1:] / sd[:, None]).reshape(k, m, 3)
+    return PointModel(network, np.asarray(landmarks, np.int64), mean, basis, sigma, modes)
+
+
+class PointTerm:
+    """One frame's landmark readings as a term of the fit.
+
+    readings : (M, 2) px (rows with NaN are left out). depth_mm : the head's distance, which
+    turns the model's mm uncertainties into px (fixed while a frame is fitted).
+    scale : Cauchy scale of each point's whitened residual norm (None: least squares).
+    """
+
+    def __init__(self, pm: PointModel, camera: Camera, readings: np.ndarray, depth_mm: float,
+                 scale: float | None = 3.0, weight: float = 1.0) -> None:
+        uv = np.asarray(readings, np.float64)
+        ok = np.isfinite(uv).all(1)
+        self.ok = ok
+        self.mean, self.basis = pm.mean[ok], pm.basis[:, ok]
+        self._basis_mk = np.ascontiguousarray(self.basis.transpose(1, 2, 0))  # (M, 3, K)
+        self.uv = uv[ok]
+        self.camera = camera
+        px_per_mm = 0.5 * (camera.fx + camera.fy) / max(float(depth_mm), 1.0)
+        self.inv_sigma = np.sqrt(weight) / (pm.sigma_mm[ok] * px_per_mm)
+        self.scale = scale
+        self.k = pm.n_params
+        # the shared error modes in whitened units (2M, R), and (I + V^T V)^-1 (Woodbury)
+        assert pm.modes is not None
+        self._v = np.ascontiguousarray(pm.modes[:, ok].reshape(len(pm.modes), 2 * int(ok.sum())).T)
+        self._c = np.linalg.inv(np.eye(self._v.shape[1]) + self._v.T @ self._v)
+        self._jit = kernels.AVAILABLE and not np.any(np.asarray(camera.dist) != 0)
+        self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+        self._mean = np.ascontiguousarray(self.mean)
+
+    @property
+    def n_points(self) -> int:
+        return len(self.uv)
+
+    def shared(self, r: np.ndarray, jac: np.ndarray
+               ) -> tuple[float, np.ndarray, np.ndarray]:
+        """The correction for the errors the points share: with whitened residuals r (2M,)
+        and Jacobian (2M, P) (IRLS-weighted), the cost r^T (I + V V^T)^-1 r is r^T r minus
+        c = (V^T r)^T C (V^T r); returns c, and the halves of its gradient and Gauss-Newton
+        Hessian (J^T V C V^T r, J^T V C V^T J) to subtract."""
+        if self._v.shape[1] == 0:
+            p = jac.shape[1]
+            return 0.0, np.zeros(p), np.zeros((p, p))
+        vr = self._v.T @ r
+        vj = self._v.T @ jac  # (R, P)
+        cvr = self._c @ vr
+        return float(vr @ cvr), vj.T @ cvr, vj.T @ (self._c @ vj)
+
+    def residuals(self, alpha: np.ndarray, rot: np.ndarray, t: np.ndarray, jacobian: bool
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+        """Whitened residuals (2M,) and their Jacobian (2M, K + 6) w.r.t. (alpha, rotation
+        increment on the left, translation). Compiled
+        (:func:`~articast.core.tracking.kernels.point_residuals`) where the camera has no
+        distortion; :meth:`residuals_numpy` is the reference."""
+        if self._jit:
+            r, jac = kernels.point_residuals(
+                self._mean, self._basis_mk, np.asarray(alpha, np.float64), rot,
+                np.asarray(t, np.float64), self._intr, self.inv_sigma, self.uv, jacobian)
+            return r, (jac if jacobian else None)
+        return self.residuals_numpy(alpha, rot, t, jacobian)
+
+    def residuals_numpy(self, alpha: np.ndarray, rot: np.ndarray, t: np.ndarray,
+                        jacobian: bool) -> tuple[np.ndarray, np.ndarray | None]:
+        """The reference of :meth:`residuals` (any camera)."""
+        head = self.mean + np.tensordot(alpha, self.basis, axes=1)
+        rh = head @ rot.T
+        uv, jp = self.camera.project_jacobian(rh + t, jacobian)
+        w = self.inv_sigma[:, None]
+        r = ((uv - self.uv) * w).reshape(-1)
+        if not jacobian:
+            return r, None
+        m, k = len(head), self.k
+        dcam = np.zeros((m, 3, k + 6))
+        dcam[:, :, :k] = np.matmul(rot, self._basis_mk)
+        dcam[:, :, k:k + 3] = turn_jacobian(rh)
+        dcam[:, 0, k + 3] = dcam[:, 1, k + 4] = dcam[:, 2, k + 5] = 1.0
+        jac = np.matmul(jp, dcam) * w[:, :, None]  # (M, 2, P)
+        return r, jac.reshape(2 * m, k + 6)

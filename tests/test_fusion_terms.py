@@ -1,0 +1,200 @@
+"""The pieces of fused live tracking on constructed data where the answer is known: the
+landmark observation model and its term (with the errors the points share), the motion model,
+and the three-cornered hat that weighs the evidence."""
+
+import numpy as np
+import pytest
+
+from articast.core.errors import ModelFileError
+from articast.core.model.camera import FRONTAL, Camera, Pose, rotation_matrix
+from articast.core.tracking.fitting import FitPolicy, StatePrior, fit_gauss_newton
+from articast.core.tracking.kalman import ConstantVelocity, MotionNoise, process_noise
+from articast.core.tracking.points import PointModel, PointTerm, learn_point_model
+from tests.blobface import blob_trained
+
+CAM = Camera.default(640, 480, 60.0)
+
+
+def _points(rng, m=60, k=4):
+    mean = np.column_stack([rng.uniform(-40, 40, m), rng.uniform(-50, 30, m),
+                            rng.uniform(-10, 20, m)])
+    return mean, rng.normal(0, 3.0, (k, m, 3))
+
+
+def test_compiled_landmark_term_matches_the_numpy_reference():
+    rng = np.random.default_rng(0)
+    mean, basis = _points(rng, 80, 7)
+    pm = PointModel("v1", np.arange(80), mean, basis, rng.uniform(0.3, 1.0, 80))
+    uv = rng.uniform(100, 500, (80, 2))
+    uv[5] = np.nan
+    term = PointTerm(pm, CAM, uv, 500.0)
+    a = rng.normal(0, 1, 7)
+    rot = rotation_matrix(FRONTAL + rng.normal(0, 0.1, 3))
+    t = np.array([5.0, -3.0, 500.0])
+    r1, j1 = term.residuals(a, rot, t, True)
+    r2, j2 = term.residuals_numpy(a, rot, t, True)
+    assert term.n_points == 79 and r1.shape == (158,)
+    np.testing.assert_allclose(r1, r2, atol=1e-9)
+    np.testing.assert_allclose(j1, j2, atol=1e-9 * np.abs(j2).max())
+    # and the Jacobian is the residuals' derivative
+    eps = 1e-6
+    for j in (0, 7, 9, 11):
+        d = np.zeros(13)
+        d[j] = eps
+        def at(x):
+            return term.residuals_numpy(a + x[:7], rotation_matrix(x[7:10]) @ rot, t + x[10:],
+                                        False)[0]
+        num = (at(d) - at(-d)) / (2 * eps)
+        assert np.abs(j2[:, j] - num).max() < 1e-4 * (np.abs(num).max() + 1e-9), j
+
+
+def _face_model(rng, m=60, k=4):
+    from articast.core.model.face import FaceModel, ParamStats
+
+    mean, basis = _points(rng, m, k)
+    stats = ParamStats(np.zeros(k), np.ones(k), np.full(k, -3.0), np.full(k, 3.0))
+    return FaceModel(mean=mean, basis=basis, param_names=tuple(f"p{i}" for i in range(k)),
+                     stats=stats, point_names=tuple(f"n{i}" for i in range(m)), groups={},
+                     triangles=np.zeros((0, 3), np.int64), feature_points={},
+                     fapu_overrides={}, name="test")
+
+
+def _readings(model, states, offset, dbasis, shared, own_sd, rng, camera=CAM):
+    """What a network with a known observation model reads: the model's points moved by a
+    fixed offset and an articulation-dependent change, plus errors shared by all points (a
+    random multiple of ``shared`` (M, 2) mm) and each point's own."""
+    out = []
+    for alpha, pose in states:
+        pts = model.shape(alpha) + offset + np.tensordot(alpha, dbasis, axes=1)
+        cam = pts @ pose.matrix.T + pose.translation
+        uv = camera.project(cam)
+        mm = rng.normal() * shared + rng.normal(0, own_sd, shared.shape)
+        out.append(uv + mm * camera.fx / cam[:, 2:3])
+    return np.array(out)
+
+
+def _states(rng, n, k):
+    return [(rng.normal(0, 1, k), Pose(FRONTAL + rng.normal(0, 0.05, 3),
+                                       np.array([0, 0, 450.0]) + rng.normal(0, 10, 3)))
+            for _ in range(n)]
+
+
+def test_the_observation_model_is_learned_from_readings():
+    rng = np.random.default_rng(1)
+    model = _face_model(rng)
+    m, k = model.mean.shape[0], model.n_params
+    offset = rng.normal(0, 1.0, (m, 3)) * [1, 1, 0]
+    dbasis = rng.normal(0, 0.8, (k, m, 3)) * [1, 1, 0]
+    shared = np.tile([0.0, 1.5], (m, 1))  # the whole face read 1.5 mm low or high at once
+    states = _states(rng, 400, k)
+    reads = _readings(model, states, offset, dbasis, shared, 0.3, rng)
+    pm = learn_point_model(model, CAM, states, reads, np.arange(m), np.arange(m), "v1",
+                           ridge=1e-3)
+    # a point's prediction moves like the network's reading, not like the model's point
+    a = np.array([1.0, -1.0, 0.5, 0.0])
+    want = model.shape(a) + offset + np.tensordot(a, dbasis, axes=1)
+    assert np.abs(pm.points(a) - want)[:, :2].max() < 0.4
+    assert np.abs(model.shape(a) - want)[:, :2].max() > 1.0  # (the model's own are not)
+    # each point's own error, and the shared one as the first mode (in units of sigma)
+    assert np.median(pm.sigma_mm) == pytest.approx(0.3, rel=0.25)
+    first = pm.modes[0] * pm.sigma_mm[:, None]
+    assert np.abs(np.abs(first[:, 1]).mean() - 1.5) < 0.3
+    assert np.abs(first[:, 0]).mean() < 0.3
+
+
+def test_shared_errors_count_once_in_the_fit(tmp_path):
+    """A reading whose points are all off by the same shared error: the fit that knows the
+    errors are shared moves the articulation less than the fit that takes them as
+    independent."""
+    rng = np.random.default_rng(2)
+    model, camera, pose, app = blob_trained(seed=5)
+    k = model.n_params
+    m = model.mean.shape[0]
+    shared = rng.normal(0, 1.0, (m, 2))  # one pattern of error, of a random size per frame
+    states = _states(rng, 300, k)
+    states = [(a * 0.5, Pose(pose.rotation + (p.rotation - FRONTAL), pose.translation
+                             + p.translation - [0, 0, 450])) for a, p in states]
+    reads = _readings(model, states, 0.0, np.zeros((k, m, 3)), shared, 0.2, rng, camera)
+    pm = learn_point_model(model, camera, states, reads, np.arange(m), np.arange(m), "v1")
+    independent = PointModel("v1", pm.landmarks, pm.mean, pm.basis, pm.sigma_mm)
+    pm.save(tmp_path / "points.npz")
+    assert np.allclose(PointModel.load(tmp_path / "points.npz", k).modes, pm.modes)
+    alpha = np.zeros(k)
+    cam_pts = model.shape(alpha) @ pose.matrix.T + pose.translation
+    uv = camera.project(cam_pts) + 2.0 * shared * camera.fx / cam_pts[:, 2:3]
+    moved = {}
+    for name, obs in (("shared", pm), ("independent", independent)):
+        term = PointTerm(obs, camera, uv, float(pose.translation[2]), None)
+        prior = StatePrior(alpha, pose.matrix, pose.translation,
+                           np.diag(np.r_[np.full(k, 1.0), np.full(3, 1e4), np.full(3, 1.0)]))
+        fit = fit_gauss_newton(_problem(model, app, camera), None, 0, alpha, pose.rotation,
+                               pose.translation, FitPolicy(max_iterations=10), points=term,
+                               state_prior=prior, appearance_weight=0.0)
+        moved[name] = float(np.abs(fit.alpha).max())
+    assert moved["shared"] < 0.5 * moved["independent"]
+
+
+def _problem(model, app, camera):
+    from articast.core.tracking.fitting import Problem
+
+    return Problem(model, app, camera)
+
+
+def test_observation_model_files_are_checked(tmp_path):
+    rng = np.random.default_rng(3)
+    mean, basis = _points(rng, 10, 3)
+    pm = PointModel("v1", np.arange(10), mean, basis, np.ones(10))
+    pm.save(tmp_path / "p.npz")
+    with pytest.raises(ModelFileError, match="3 parameters"):
+        PointModel.load(tmp_path / "p.npz", 7)
+    with pytest.raises(ModelFileError):
+        PointModel("v1", np.arange(10), mean, basis, np.zeros(10))
+
+
+def _ramp(n, dt, speed, noise, rng):
+    t = np.arange(n) * dt
+    return t, speed * t, speed * t + rng.normal(0, noise, n)
+
+
+def test_the_motion_model_smooths_without_lagging_a_steady_motion():
+    """A state moving at constant speed, measured with noise: the filtered state is closer to
+    the truth than the measurements, and not behind it (a smoother would be)."""
+    rng = np.random.default_rng(4)
+    k = 1
+    kf = ConstantVelocity(k, MotionNoise(np.r_[np.full(k, 5.0), np.full(6, 1.0)],
+                                         np.ones(k + 6)))
+    dt, noise = 0.04, 0.1
+    _, truth, meas = _ramp(400, dt, 2.0, noise, rng)
+    info = np.diag(np.r_[1.0 / noise**2, np.full(6, 1e6)])
+    kf.start(meas[:1], FRONTAL, np.zeros(3), info)
+    out = [meas[0]]
+    for z in meas[1:]:
+        prior = kf.predict(dt)
+        # the fit: the prior and one measurement of alpha -> the posterior mean
+        lam = prior.information[0, 0]
+        a = (lam * prior.alpha[0] + z / noise**2) / (lam + 1.0 / noise**2)
+        kf.update(np.array([a]), FRONTAL, np.zeros(3), info)
+        out.append(a)
+    err = np.array(out)[100:] - truth[100:]
+    assert np.sqrt(np.mean(err**2)) < 0.7 * noise  # the measurements: 1.0 x noise
+    assert abs(err.mean()) < 0.02 * noise * 10  # not behind: a lag of one frame is 0.08
+
+
+def test_process_noise_separates_motion_from_measurement_noise():
+    rng = np.random.default_rng(5)
+    dt, q, sd, n = 0.04, 50.0, 0.05, 3000
+    acc = rng.normal(0, np.sqrt(q / dt), n)
+    vel = np.cumsum(acc) * dt
+    x = np.cumsum(vel) * dt
+    alpha = (x + rng.normal(0, sd, n))[:, None]
+    zeros = np.zeros((n, 3))
+    times = np.arange(n) * dt
+    mn = process_noise(alpha, zeros + FRONTAL, zeros, times)
+    assert 0.5 * q < mn.q[0] < 2.0 * q  # not the measurement noise's ~6 sd^2 / (2/3 dt^3)
+    # gaps are allowed (the equally spaced triples are used); a sparse clip keeps the defaults
+    keep = np.ones(n, bool)
+    keep[::7] = False
+    assert 0.5 * q < process_noise(alpha[keep], (zeros + FRONTAL)[keep], zeros[keep],
+                                   times[keep]).q[0] < 2.0 * q
+    assert process_noise(alpha[::3], zeros[::3] + FRONTAL, zeros[::3], times[::3]).q[0] == \
+        MotionNoise.default(1).q[0]
