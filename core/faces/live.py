@@ -39,7 +39,7 @@ from articast.core.faces.finder import FaceFinder, reader_seed
 from articast.core.faces.fit import state_from_landmarks
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
-from articast.core.model.camera import Pose
+from articast.core.model.camera import Pose, axis_angle
 from articast.core.outputs.lips import lips_dict
 from articast.core.tracking.filters import OneEuroFilter, OneEuroPolicy
 from articast.core.tracking.fitting import StatePrior
@@ -121,9 +121,11 @@ class FusionPolicy:
     read_every : the reader runs on every n-th frame; the frames between are fitted on the
         appearance and the motion model alone (the reader is most of a frame's cost).
     gate : a reading whose median point is further from the prediction than this fraction
-        of the face's size in the image restarts the state from the face finder (the robust
-        loss would otherwise ignore every point of a reading that far, and the state could
-        drift off the face: on franck, 40 % of the frames were lost that way without it).
+        of the face's size in the image restarts the motion model at the prediction (zero
+        velocity, a wide covariance) and lets every point pull that frame (least squares): the
+        robust loss would otherwise ignore every point of a reading that far, and the state
+        could drift off the face (on franck 40 % of the frames were lost that way without
+        it). A frame whose fit is still not ok is found again by the face finder.
     """
 
     reader: str = "v1"
@@ -192,6 +194,7 @@ class LiveTracker:
         self.reader = reader
         self._reading: Any = None
         self._since_read = 0
+        self.regated = 0  # readings far from the prediction (the motion model restarted)
         self._t_last: float | None = None
         if fu is not None:
             if reader is None:  # the bundled one, on one thread
@@ -330,10 +333,17 @@ class LiveTracker:
             self._since_read = 0
         restart = not self._started or (reading is None and not skip)
         prior = None
+        scale = fu.points_scale
         if not restart and fu.kalman:
             prior = self.kalman.predict(dt)
             if reading is not None and self._gated(reading, prior):
-                restart = True  # the reading is far from the prediction: the state is lost
+                # the reading is far from the prediction (a motion it did not foresee, or a
+                # state drifting off the face): the prediction is forgotten (zero velocity,
+                # wide covariance) and every landmark pulls (least squares) this frame
+                self.kalman.start(prior.alpha, axis_angle(prior.rotation), prior.translation)
+                prior = self.kalman.predict(dt)
+                scale = None
+                self.regated += 1
         if restart:  # (re)start: the detector and the finding landmarks
             was = self._started
             self._started = False
@@ -354,7 +364,7 @@ class LiveTracker:
         term = None
         if reading is not None:
             self._reading = reading
-            term = self._term(reading, prior, self.weights[0])
+            term = self._term(reading, prior, self.weights[0], scale)
         ev = Evidence(term, prior, self.weights[1], fu.levels)
         result = self._judge(self.tracker.track(image, t, evidence=ev))
         if prior is not None:
@@ -371,14 +381,15 @@ class LiveTracker:
             self._started = False  # diverged, left the image, blank: find the face again
         return result
 
-    def _term(self, reading: Any, prior: StatePrior | None, weight: float = 1.0) -> PointTerm:
+    def _term(self, reading: Any, prior: StatePrior | None, weight: float = 1.0,
+              scale: float | None = None) -> PointTerm:
         fu = self.fusion
         assert fu is not None
         depth = float(prior.translation[2]) if prior is not None else float(
             (self.tracker.state or (None, Pose()))[1].translation[2])
         return PointTerm(self.point_model, self.speaker.camera,
                          reading.landmarks[self.point_model.landmarks, :2], depth,
-                         fu.points_scale, weight)
+                         scale, weight)
 
     def _gated(self, reading: Any, prior: StatePrior) -> bool:
         """Whether the reading is too far from the motion model's prediction to be of the
@@ -392,8 +403,8 @@ class LiveTracker:
         cam = pm.points(prior.alpha) @ prior.rotation.T + prior.translation
         uv = self.speaker.camera.project(cam)
         seen = reading.landmarks[pm.landmarks, :2]
-        off = np.nanmedian(np.linalg.norm(uv - seen, axis=1))
-        size = float(np.sqrt(np.nanmean(np.sum((uv - uv.mean(0)) ** 2, axis=1))))
+        off = np.median(np.linalg.norm(uv - seen, axis=1))
+        size = float(np.sqrt(np.mean(np.sum((uv - uv.mean(0)) ** 2, axis=1))))
         return bool(not np.isfinite(off) or off > fu.gate * max(size, 1.0))
 
     def _judge(self, result: TrackResult) -> TrackResult:
