@@ -38,7 +38,15 @@ from articast.client import protocol as P
 from articast.core.errors import ArticastError
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
-from articast.service.middleware import BodyLimit, BodyTooLarge, Guard, MessageBucket, deny
+from articast.service.middleware import (
+    BodyLimit,
+    BodyTimeout,
+    BodyTooLarge,
+    Guard,
+    MessageBucket,
+    TokenGate,
+    deny,
+)
 from articast.service.security import AccessPolicy, Forbidden
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
@@ -89,6 +97,20 @@ class SessionCreate(BaseModel):
     preview: bool = False
 
 
+def path_name_problem(path: str) -> str:
+    """Why ``path`` cannot name a file on this system ("" if it can): a NUL byte, a name
+    over 255 bytes or a path over 4096 (the kernel's limits), said before anything opens it."""
+    if "\0" in path:
+        return "a file name cannot contain a NUL byte"
+    encoded = path.encode("utf-8", "surrogateescape")
+    if len(encoded) > 4096:
+        return f"a path of {len(encoded)} bytes is over the limit of 4096"
+    longest = max((len(part) for part in encoded.split(b"/")), default=0)
+    if longest > 255:
+        return f"a file name of {longest} bytes is over the limit of 255"
+    return ""
+
+
 def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
     """The spec of a session asked for over HTTP, its files resolved inside the media roots.
 
@@ -103,6 +125,10 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
         raise HTTPException(400, str(exc)) from None
     files = {"model": body.model, "appearance": body.appearance, "camera": body.camera,
              "speaker": body.speaker}
+    for field_name, path in (("source", p.target), *files.items()):
+        problem = path_name_problem(path)
+        if problem:
+            raise HTTPException(400, f"{field_name}: {problem}")
     access.check_session_files(p.kind, p.target, files)
     if p.kind in ("file", "images", "replay-record"):
         query = body.source.partition("?")[2]
@@ -294,6 +320,11 @@ class Connection:
                 else:
                     await self.send(status_text(StatusEvent(name, session.state,
                                                             session.detail, now())))
+                if text is not None and session.state in ("ended", "failed"):
+                    # a subscriber arriving after the end: say so (final for clients),
+                    # instead of a hello followed by silence
+                    await self.send(status_text(StatusEvent(name, session.state,
+                                                            session.detail, now())))
             while True:
                 ev = await s.sub.get()
                 if isinstance(ev, FrameEvent):
@@ -482,12 +513,18 @@ def create_app(config: ServiceConfig | None = None,
 
     mount_avatar(app)
 
-    app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes)
+    app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes,
+                       timeout_s=config.hub.header_timeout_s)
+    app.add_middleware(TokenGate, access=config.access)
     app.add_middleware(Guard, access=config.access)
 
     @app.exception_handler(BodyTooLarge)
     async def too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, 413)
+        return JSONResponse({"detail": str(exc)}, 413, headers={"Connection": "close"})
+
+    @app.exception_handler(BodyTimeout)
+    async def too_slow(request: Request, exc: BodyTimeout) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, 408, headers={"Connection": "close"})
 
     @app.exception_handler(Exception)
     async def internal(request: Request, exc: Exception) -> JSONResponse:
@@ -561,6 +598,10 @@ def create_app(config: ServiceConfig | None = None,
             raise HTTPException(409, f"session {body.name!r} exists") from None
         except ArticastError as exc:
             raise HTTPException(400, str(exc)) from None
+        except (OSError, ValueError) as exc:  # a file the checks above let through
+            raise HTTPException(400, f"cannot start session {body.name!r}: "
+                                f"{type(exc).__name__}: {getattr(exc, 'strerror', '') or exc}"
+                                ) from None
         return s.to_dict()
 
     @app.delete("/api/sessions/{name}")
@@ -574,7 +615,7 @@ def create_app(config: ServiceConfig | None = None,
     @app.post("/api/sessions/{name}/recentre")
     async def recentre_session(name: str, request: Request) -> dict[str, Any]:
         """Take the session's next good frame as the speaker's neutral head pose."""
-        authorise(request)
+        authorise_admin(request)
         session = svc.manager.sessions.get(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r}")

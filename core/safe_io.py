@@ -1,0 +1,148 @@
+"""Opening input files without trusting them: regular files only, bounded reads.
+
+Every loader opens its file through here, so a FIFO (which would block ``open`` or ``read``
+for ever), a device (``/dev/zero``: endless), a folder or a file larger than the loader can
+sensibly take is one :class:`~articast.core.errors.InputError` naming the file, before any
+byte is parsed. The file is opened non-blocking and checked with ``fstat`` on the open
+descriptor, so what is checked is what is read (no swap between a check and the open).
+
+``.npz`` archives are checked before NumPy inflates them: every member's declared size, and
+the shape its ``.npy`` header declares, must fit ``max_bytes`` (a 4 MB archive may declare
+4 GB, or 1e14 elements).
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import stat
+import zipfile
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from articast.core.errors import InputError
+
+MAX_TEXT_BYTES = 256 * 2**20
+"""JSON, JSON lines, .obj, .fap: far above any real file of ours (a 10-minute recording
+with meshes is ~60 MB)."""
+MAX_NPZ_BYTES = 2 * 2**30
+"""Inflated size of a model/appearance/corpus/binding archive (the largest real one: ~50 MB)."""
+
+
+def open_regular(path: str | os.PathLike[str], what: str = "file",
+                 max_bytes: int | None = None, *, follow_symlinks: bool = True) -> IO[bytes]:
+    """``path`` opened for reading in binary, if it is a regular file of at most
+    ``max_bytes``; else :class:`InputError` naming it. ``follow_symlinks=False`` refuses a
+    symbolic link as the last component (``O_NOFOLLOW``)."""
+    flags = os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_CLOEXEC", 0)
+    if not follow_symlinks:
+        flags |= getattr(os, "O_NOFOLLOW", 0)
+    try:
+        fd = os.open(path, flags)
+    except OSError as exc:
+        raise InputError(f"{what} {path}: cannot open it ({exc.strerror or exc})") from None
+    except ValueError:  # a NUL byte in the name
+        raise InputError(f"{what} {str(path)!r}: not a valid file name") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            kind = ("a folder" if stat.S_ISDIR(st.st_mode) else
+                    "a FIFO" if stat.S_ISFIFO(st.st_mode) else
+                    "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else
+                    "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
+            raise InputError(f"{what} {path}: is {kind}, not a regular file")
+        if max_bytes is not None and st.st_size > max_bytes:
+            raise InputError(f"{what} {path}: {st.st_size} bytes, over the limit of "
+                             f"{max_bytes} bytes for this kind of file")
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        return os.fdopen(fd, "rb")
+    except BaseException:
+        os.close(fd)
+        raise
+
+
+def require_regular(path: str | os.PathLike[str], what: str = "file",
+                    max_bytes: int | None = None) -> Path:
+    """Check ``path`` is a regular file (of at most ``max_bytes``) and return it: for
+    readers that open by name themselves (OpenCV)."""
+    open_regular(path, what, max_bytes).close()
+    return Path(path)
+
+
+def read_regular_bytes(path: str | os.PathLike[str], max_bytes: int = MAX_TEXT_BYTES,
+                       what: str = "file") -> bytes:
+    """The bytes of a regular file of at most ``max_bytes`` (read bounded even if it grows)."""
+    with open_regular(path, what, max_bytes) as fh:
+        data = fh.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise InputError(f"{what} {path}: over the limit of {max_bytes} bytes")
+    return data
+
+
+def read_regular_text(path: str | os.PathLike[str], max_bytes: int = MAX_TEXT_BYTES,
+                      what: str = "file") -> str:
+    data = read_regular_bytes(path, max_bytes, what)
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError(f"{what} {path}: not UTF-8 text") from None
+
+
+def open_regular_text(path: str | os.PathLike[str], what: str = "file",
+                      max_bytes: int | None = MAX_TEXT_BYTES) -> IO[str]:
+    """A text (UTF-8) reader of a regular file; for line-by-line readers of big files."""
+    return io.TextIOWrapper(open_regular(path, what, max_bytes), encoding="utf-8")
+
+
+def _npy_declared_bytes(member: IO[bytes]) -> int:
+    version = np.lib.format.read_magic(member)
+    if version == (1, 0):
+        shape, _, dtype = np.lib.format.read_array_header_1_0(member)
+    elif version == (2, 0):
+        shape, _, dtype = np.lib.format.read_array_header_2_0(member)
+    else:
+        raise ValueError(f"npy version {version}")
+    if dtype.hasobject:
+        raise ValueError("object arrays are not accepted")
+    n = 1
+    for d in shape:
+        n *= int(d)
+    return n * dtype.itemsize
+
+
+def load_npz(path: str | os.PathLike[str], what: str = "archive",
+             max_bytes: int = MAX_NPZ_BYTES) -> Any:
+    """``np.load(path)`` of a regular ``.npz`` file whose members, inflated, fit
+    ``max_bytes`` together, by their declared sizes and array shapes, checked before
+    anything is inflated (no pickles)."""
+    fh = open_regular(path, what)
+    try:
+        if zipfile.is_zipfile(fh):
+            fh.seek(0)
+            total = 0
+            with zipfile.ZipFile(fh) as zf:
+                for info in zf.infolist():
+                    total += info.file_size
+                    if total > max_bytes:
+                        raise InputError(f"{what} {path}: declares {total} bytes inflated, "
+                                         f"over the limit of {max_bytes}")
+                    if info.filename.endswith(".npy"):
+                        with zf.open(info) as member:
+                            declared = _npy_declared_bytes(member)
+                        if declared > info.file_size or declared > max_bytes:
+                            raise InputError(f"{what} {path}: {info.filename} declares "
+                                             f"{declared} bytes of array data in a member "
+                                             f"of {info.file_size}")
+        fh.seek(0)
+        data = fh.read()
+    except InputError:
+        raise
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, OverflowError) as exc:
+        raise InputError(f"{what} {path}: not a valid .npz archive "
+                         f"({type(exc).__name__})") from None
+    finally:
+        fh.close()
+    return np.load(io.BytesIO(data), allow_pickle=False)
