@@ -14,6 +14,7 @@ the shape its ``.npy`` header declares, must fit ``max_bytes`` (a 4 MB archive m
 from __future__ import annotations
 
 import io
+import json
 import os
 import stat
 import zipfile
@@ -31,7 +32,11 @@ MAX_NPZ_BYTES = 2 * 2**30
 """Inflated size of a model/appearance/corpus/binding archive (the largest real one: ~50 MB)."""
 
 
-def open_regular(path: str | os.PathLike[str], what: str = "file",
+def _where(what: str, path: Any) -> str:
+    return f"{what} {path}" if what else f"{path}"
+
+
+def open_regular(path: str | os.PathLike[str], what: str = "",
                  max_bytes: int | None = None, *, follow_symlinks: bool = True) -> IO[bytes]:
     """``path`` opened for reading in binary, if it is a regular file of at most
     ``max_bytes``; else :class:`InputError` naming it. ``follow_symlinks=False`` refuses a
@@ -42,9 +47,10 @@ def open_regular(path: str | os.PathLike[str], what: str = "file",
     try:
         fd = os.open(path, flags)
     except OSError as exc:
-        raise InputError(f"{what} {path}: cannot open it ({exc.strerror or exc})") from None
+        raise InputError(f"{_where(what, path)}: cannot open it ({exc.strerror or exc})"
+                         ) from None
     except ValueError:  # a NUL byte in the name
-        raise InputError(f"{what} {str(path)!r}: not a valid file name") from None
+        raise InputError(f"{_where(what, repr(str(path)))}: not a valid file name") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
@@ -52,9 +58,9 @@ def open_regular(path: str | os.PathLike[str], what: str = "file",
                     "a FIFO" if stat.S_ISFIFO(st.st_mode) else
                     "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) else
                     "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file")
-            raise InputError(f"{what} {path}: is {kind}, not a regular file")
+            raise InputError(f"{_where(what, path)}: is {kind}, not a regular file")
         if max_bytes is not None and st.st_size > max_bytes:
-            raise InputError(f"{what} {path}: {st.st_size} bytes, over the limit of "
+            raise InputError(f"{_where(what, path)}: {st.st_size} bytes, over the limit of "
                              f"{max_bytes} bytes for this kind of file")
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
@@ -64,7 +70,7 @@ def open_regular(path: str | os.PathLike[str], what: str = "file",
         raise
 
 
-def require_regular(path: str | os.PathLike[str], what: str = "file",
+def require_regular(path: str | os.PathLike[str], what: str = "",
                     max_bytes: int | None = None) -> Path:
     """Check ``path`` is a regular file (of at most ``max_bytes``) and return it: for
     readers that open by name themselves (OpenCV)."""
@@ -73,28 +79,41 @@ def require_regular(path: str | os.PathLike[str], what: str = "file",
 
 
 def read_regular_bytes(path: str | os.PathLike[str], max_bytes: int = MAX_TEXT_BYTES,
-                       what: str = "file") -> bytes:
+                       what: str = "") -> bytes:
     """The bytes of a regular file of at most ``max_bytes`` (read bounded even if it grows)."""
     with open_regular(path, what, max_bytes) as fh:
         data = fh.read(max_bytes + 1)
     if len(data) > max_bytes:
-        raise InputError(f"{what} {path}: over the limit of {max_bytes} bytes")
+        raise InputError(f"{_where(what, path)}: over the limit of {max_bytes} bytes")
     return data
 
 
 def read_regular_text(path: str | os.PathLike[str], max_bytes: int = MAX_TEXT_BYTES,
-                      what: str = "file") -> str:
+                      what: str = "") -> str:
     data = read_regular_bytes(path, max_bytes, what)
     try:
         return data.decode("utf-8")
     except UnicodeDecodeError:
-        raise InputError(f"{what} {path}: not UTF-8 text") from None
+        raise InputError(f"{_where(what, path)}: not UTF-8 text") from None
 
 
-def open_regular_text(path: str | os.PathLike[str], what: str = "file",
+def open_regular_text(path: str | os.PathLike[str], what: str = "",
                       max_bytes: int | None = MAX_TEXT_BYTES) -> IO[str]:
     """A text (UTF-8) reader of a regular file; for line-by-line readers of big files."""
-    return io.TextIOWrapper(open_regular(path, what, max_bytes), encoding="utf-8")
+    return io.TextIOWrapper(open_regular(path, what, max_bytes), encoding="utf-8",
+                            errors="replace")
+
+
+def loads_json(text: str | bytes, where: str) -> Any:
+    """``json.loads`` with every failure one :class:`InputError` naming ``where`` (JSON
+    nested too deeply included: Python's parser recurses)."""
+    try:
+        return json.loads(text)
+    except RecursionError:
+        raise InputError(f"{where}: JSON nested too deeply") from None
+    except (ValueError, TypeError) as exc:
+        detail = exc.msg if isinstance(exc, json.JSONDecodeError) else type(exc).__name__
+        raise InputError(f"{where}: not valid JSON ({detail})") from None
 
 
 def _npy_declared_bytes(member: IO[bytes]) -> int:
@@ -113,7 +132,7 @@ def _npy_declared_bytes(member: IO[bytes]) -> int:
     return n * dtype.itemsize
 
 
-def load_npz(path: str | os.PathLike[str], what: str = "archive",
+def load_npz(path: str | os.PathLike[str], what: str = "",
              max_bytes: int = MAX_NPZ_BYTES) -> Any:
     """``np.load(path)`` of a regular ``.npz`` file whose members, inflated, fit
     ``max_bytes`` together, by their declared sizes and array shapes, checked before
@@ -127,13 +146,13 @@ def load_npz(path: str | os.PathLike[str], what: str = "archive",
                 for info in zf.infolist():
                     total += info.file_size
                     if total > max_bytes:
-                        raise InputError(f"{what} {path}: declares {total} bytes inflated, "
+                        raise InputError(f"{_where(what, path)}: declares {total} bytes inflated, "
                                          f"over the limit of {max_bytes}")
                     if info.filename.endswith(".npy"):
                         with zf.open(info) as member:
                             declared = _npy_declared_bytes(member)
                         if declared > info.file_size or declared > max_bytes:
-                            raise InputError(f"{what} {path}: {info.filename} declares "
+                            raise InputError(f"{_where(what, path)}: {info.filename} declares "
                                              f"{declared} bytes of array data in a member "
                                              f"of {info.file_size}")
         fh.seek(0)
@@ -141,7 +160,7 @@ def load_npz(path: str | os.PathLike[str], what: str = "archive",
     except InputError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, OverflowError) as exc:
-        raise InputError(f"{what} {path}: not a valid .npz archive "
+        raise InputError(f"{_where(what, path)}: not a valid .npz archive "
                          f"({type(exc).__name__})") from None
     finally:
         fh.close()

@@ -22,6 +22,7 @@ once, never retried). Both are :class:`~articast.core.errors.ArticastError`.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -351,13 +352,18 @@ class RecordSource(_Finite):
         self._assets = SourceAssets()
 
     def open(self) -> SourceInfo:
+        from articast.core.safe_io import open_regular_text
         from articast.service.record import read_header
 
         if not self.path.is_file():
             raise SourceError(f"{self.path}: no such file")
         header, self._assets, self.param_names = read_header(self.path)
-        self._fh = self.path.open("r", encoding="utf-8", errors="replace")
+        try:
+            self._fh = open_regular_text(self.path, max_bytes=None)
+        except InputError as exc:
+            raise SourceError(str(exc)) from None
         self._lines = enumerate(self._fh, 1)
+        self._last_t = -math.inf
         src = header.get("source") or {}
         return SourceInfo(self.uri, "replay-record", False, src.get("width"), src.get("height"),
                           src.get("fps"), None, {"path": str(self.path), "recorded": src})
@@ -374,6 +380,10 @@ class RecordSource(_Finite):
                     raise SourceError(f"{self.path}:{n}: not a frame record ({exc})") from None
                 return None  # the last line of a crashed recording: lost frame in flight
             if result is not None:
+                if result.t < self._last_t:
+                    raise SourceError(f"{self.path}:{n}: time stamp {result.t:.6g} goes back "
+                                      f"in time (after {self._last_t:.6g})")
+                self._last_t = result.t
                 return result.t, None, result
         return None
 
