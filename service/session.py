@@ -235,8 +235,9 @@ class Session:
             from articast.core.tracking.result import TrackResult
 
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
-                              Pose(rec.rotation, rec.translation), bool(rec.quality["ok"]))
-            neutral = None if self.neutral is None else Pose(*self.neutral)
+                              Pose(np.asarray(rec.rotation), np.asarray(rec.translation)),
+                              bool(rec.quality["ok"]))
+            neutral = None if self.neutral is None else Pose(*map(np.asarray, self.neutral))
             self._m.vmc.send(res, self._vmc_model, neutral=neutral)  # UDP, never blocks
         t = now()
         m.publish_latency.observe(t - rec.t_tracked)

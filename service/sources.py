@@ -417,7 +417,7 @@ class SyntheticSource(_Finite):
         try:
             import articast.core.synthetic as synthetic
 
-            open_stream = synthetic.open_stream  # type: ignore[attr-defined]
+            open_stream = synthetic.open_stream
         except (ImportError, AttributeError) as exc:
             raise SourceError(
                 "the synthetic speaker (core.synthetic) is not available in this "

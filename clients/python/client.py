@@ -100,8 +100,9 @@ class Client:
                  token: str | None = None) -> None:
         self.url, self.session = url, session
         self.token = (os.environ.get("ARTICAST_TOKEN", "") if token is None else token).strip()
-        self.subscribe_msg = P.Subscribe(session=session, streams=list(streams), rate=rate,
-                                         encoding=encoding, geometry=geometry)
+        self.subscribe_msg = P.Subscribe.model_validate(
+            {"session": session, "streams": list(streams), "rate": rate, "encoding": encoding,
+             "geometry": geometry})
         self.backoff = (backoff_initial_s, backoff_max_s)
         self.max_retries = max_retries
         self.open_timeout_s = open_timeout_s
@@ -146,7 +147,8 @@ class Client:
             except (TimeoutError, OSError, websockets.WebSocketException):
                 failures += 1
                 if self.max_retries is not None and failures > self.max_retries:
-                    raise ClientClosed(f"{_redact(self.url)}: gave up after {failures} attempts") from None
+                    raise ClientClosed(f"{_redact(self.url)}: gave up after {failures} "
+                                       "attempts") from None
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, self.backoff[1])
         raise ClientClosed("closed")

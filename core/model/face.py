@@ -107,7 +107,9 @@ class FaceModel:
     mean: np.ndarray
     basis: np.ndarray
     param_names: tuple[str, ...] = PARAM_NAMES
-    stats: ParamStats | None = None
+    # None as an argument means "unit statistics"; __post_init__ always fills it, so readers
+    # see a ParamStats (typed so: no Optional narrowing at every use)
+    stats: ParamStats = None  # type: ignore[assignment]
     point_names: tuple[str, ...] = ()
     groups: Mapping[str, np.ndarray] = field(default_factory=dict)
     triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))

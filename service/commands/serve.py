@@ -28,7 +28,7 @@ Every option is also settable as an ARTICAST_<OPTION> environment variable.
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser(
         "serve", help="track faces and stream them to WebSocket subscribers",
         description="Run the streaming service with one session per --source.",
