@@ -47,7 +47,7 @@ from articast.service.middleware import (
     TokenGate,
     deny,
 )
-from articast.service.security import AccessPolicy, Forbidden
+from articast.service.security import AccessPolicy, Forbidden, client_key
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
 from articast.service.wire import (
@@ -162,6 +162,7 @@ class Connection:
         self.task: asyncio.Task[Any] | None = None
         rate = svc.config.hub.max_messages_per_s
         self._bucket = MessageBucket(rate, 2 * rate)
+        self.key = client_key((ws.scope.get("client") or ("?",))[0])
         self._refused = 0
         self._last_refusal_error = 0.0
 
@@ -255,6 +256,11 @@ class Connection:
     async def subscribe(self, req: P.Subscribe) -> None:
         self._refused = 0
         svc, name = self.svc, req.session
+        limits = svc.config.hub
+        if not svc.subscribe_bucket(self.key).take(time.monotonic()):
+            await self.error("rate_limited", f"over {limits.max_subscribes_per_client_s:g} "
+                             "subscribe requests per second from this address: refused", name)
+            return
         session = svc.lookup(name)
         if session is None:
             await self.error("unknown_session", f"no session {name!r}; sessions: "
@@ -272,11 +278,15 @@ class Connection:
             await self.error("too_many_subscriptions", "subscription limit per connection "
                              f"({svc.config.hub.max_subscriptions_per_connection}) reached", name)
             return
+        if name not in self.subs and svc.subscriptions_of(self.key) >= \
+                limits.max_subscriptions_per_client:
+            await self.error("too_many_subscriptions", "subscription limit per client address "
+                             f"({limits.max_subscriptions_per_client}) reached", name)
+            return
         if svc.subscriber_total() >= svc.config.hub.max_subscribers:
             await self.error("too_many_subscriptions", "the server is at its subscriber limit "
                              f"({svc.config.hub.max_subscribers})", name)
             return
-        limits = svc.config.hub
         depth = min(req.queue, limits.max_queue_limit) if req.queue else limits.max_queue
         sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
         s = Subscriber(self, req, sub)
@@ -303,8 +313,7 @@ class Connection:
         if session is None or session.description is None:
             return None
         streams = [x for x in s.req.streams if x != "mesh" or session.description["geometry"]]
-        return hello(s.req.session, session.sid, session.description, session.source_info,
-                     s.req, session.state, streams)
+        return self.svc.hello_text(s.req, session, streams)
 
     async def _pump(self, s: Subscriber) -> None:
         """Sends one subscription's messages; awaits only its queue and this socket."""
@@ -377,6 +386,8 @@ class Service:
             self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc),
                                          names=config.server.vmc_names)
         self.connections: set[Connection] = set()
+        self._buckets: dict[str, MessageBucket] = {}
+        self._hellos: dict[tuple[Any, ...], tuple[Any, Any, str]] = {}
         self._watchdog: asyncio.Task[None] | None = None
 
     def lookup(self, name: str) -> Any:
@@ -408,6 +419,37 @@ class Service:
 
     def subscriber_total(self) -> int:
         return sum(len(c.subs) for c in self.connections)
+
+    def subscriptions_of(self, key: str) -> int:
+        """Subscriptions of one client address, over all its connections."""
+        return sum(len(c.subs) for c in self.connections if c.key == key)
+
+    def subscribe_bucket(self, key: str) -> MessageBucket:
+        """The subscribe-rate budget of one client address (bounded: the least recently
+        used addresses are forgotten first)."""
+        bucket = self._buckets.pop(key, None)
+        if bucket is None:
+            rate = self.config.hub.max_subscribes_per_client_s
+            bucket = MessageBucket(rate, 2 * rate)
+            if len(self._buckets) >= 65536:
+                self._buckets.pop(next(iter(self._buckets)))
+        self._buckets[key] = bucket
+        return bucket
+
+    def hello_text(self, req: P.Subscribe, session: Any, streams: list[Any]) -> str:
+        """The hello of a subscription, encoded once per (session run, options): a client
+        that resubscribes in a loop costs a dictionary lookup, not a 15 kB encode."""
+        key = (req.session, session.sid, session.state, tuple(streams), req.encoding, req.rate,
+               req.geometry)
+        hit = self._hellos.get(key)
+        if hit is not None and hit[0] is session.description and hit[1] is session.source_info:
+            return hit[2]
+        text = hello(req.session, session.sid, session.description, session.source_info, req,
+                     session.state, streams)
+        if len(self._hellos) >= 256:
+            self._hellos.pop(next(iter(self._hellos)))
+        self._hellos[key] = (session.description, session.source_info, text)
+        return text
 
     def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""

@@ -19,7 +19,7 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from articast.service.app import ServiceConfig, create_app
-from articast.service.security import install_log_redaction
+from articast.service.security import client_key, install_log_redaction
 
 ABORT_EXTENSION = "articast.abort"
 """ASGI scope extension: a callable that aborts the connection's transport at once."""
@@ -39,7 +39,7 @@ class ClientConnections:
         if key in self._open:
             return True
         peer = transport.get_extra_info("peername")
-        address = str(peer[0]) if peer else "?"
+        address = client_key(str(peer[0])) if peer else "?"
         if self.by_address.get(address, 0) >= self.limit:
             return False
         self.by_address[address] = self.by_address.get(address, 0) + 1

@@ -221,3 +221,105 @@ def test_short_tokens_are_refused_at_start(tmp_path):
                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
     lines = r.stderr.strip().splitlines()
     assert r.returncode == 2 and len(lines) == 1 and "at least 16" in lines[0], r.stderr
+
+
+# ------------------------------------------------------------------------- e/f: per address
+def test_one_address_cannot_take_the_subscriptions_or_starve_a_bystander(media):
+    """Row e: 16 connections of one address resubscribing as fast as they can (each under
+    its own per-connection message limit) starved a bystander for seconds; row f: one
+    address could fill the server's subscriber limit. Now both are per address (127.0.0.1
+    here), and a bystander on 127.0.0.2 keeps its frames and can still subscribe."""
+    cfg = _config(media, token="", max_subscriptions_per_client=12,
+                  max_subscribes_per_client_s=10.0, max_subscribers=60,
+                  max_messages_per_s=200.0)
+    with ServerThread(cfg) as srv:
+        url = f"ws://127.0.0.1:{srv.port}/ws"
+        sub = json.dumps({"type": "subscribe", "session": "rec", "geometry": True})
+
+        async def flooder(stats, stop):
+            async with websockets.connect(url, max_size=2**24) as ws:
+                while not stop.is_set():
+                    await ws.send(sub)
+                    try:
+                        m = json.loads(await asyncio.wait_for(ws.recv(), 0.05))
+                    except TimeoutError:
+                        continue
+                    if m["type"] == "hello":
+                        stats["hello"] += 1
+                    elif m["type"] == "error":
+                        stats[m["code"]] = stats.get(m["code"], 0) + 1
+
+        async def bystander(gaps, stop):
+            async with websockets.connect(url, max_size=2**24,
+                                          local_addr=("127.0.0.2", 0)) as ws:
+                await ws.send(json.dumps({"type": "subscribe", "session": "rec",
+                                          "geometry": False}))
+                last = None
+                while not stop.is_set():
+                    m = json.loads(await asyncio.wait_for(ws.recv(), 3 * TIMEOUT))
+                    if m["type"] == "frame":
+                        t = time.monotonic()
+                        if last is not None:
+                            gaps.append(t - last)
+                        last = t
+
+        async def holder(n, results):
+            """One address opening a subscription on each of ``n`` connections (row f)."""
+            conns = []
+            for _ in range(n):
+                ws = await websockets.connect(url, max_size=2**24)
+                conns.append(ws)
+                await ws.send(sub)
+            got = {"hello": 0, "too_many_subscriptions": 0, "rate_limited": 0}
+            for ws in conns:
+                try:
+                    while True:
+                        m = json.loads(await asyncio.wait_for(ws.recv(), 1.0))
+                        if m["type"] == "hello":
+                            got["hello"] += 1
+                            break
+                        if m["type"] == "error":
+                            got[m["code"]] = got.get(m["code"], 0) + 1
+                            break
+                except TimeoutError:
+                    pass
+            results.append(got)
+            return conns
+
+        async def scenario():
+            stop = asyncio.Event()
+            stats = {"hello": 0}
+            gaps: list[float] = []
+            by = asyncio.create_task(bystander(gaps, stop))
+            await asyncio.sleep(1.0)
+            floods = [asyncio.create_task(flooder(stats, stop)) for _ in range(16)]
+            await asyncio.sleep(3.0)
+            stop.set()
+            await asyncio.gather(*floods, return_exceptions=True)
+            by.cancel()
+            await asyncio.gather(by, return_exceptions=True)
+            await asyncio.sleep(3.0)  # the subscribe budget refills
+            results: list[dict] = []
+            conns = await holder(20, results)
+            # another address still subscribes
+            async with websockets.connect(url, max_size=2**24,
+                                          local_addr=("127.0.0.2", 0)) as ws:
+                await ws.send(json.dumps({"type": "subscribe", "session": "rec"}))
+                while True:
+                    m = json.loads(await asyncio.wait_for(ws.recv(), 3 * TIMEOUT))
+                    if m["type"] in ("hello", "error"):
+                        other = m
+                        break
+            for ws in conns:
+                await ws.close()
+            return stats, gaps, results[0], other
+
+        stats, gaps, held, other = asyncio.run(asyncio.wait_for(scenario(), 30 * TIMEOUT))
+    # the flood is refused beyond the address's budget: ~10/s + a burst of 20 over 3 s
+    assert stats.get("rate_limited", 0) > 0, stats
+    assert stats["hello"] <= 2 * 10 + 3 * 10 + 10, stats
+    # the bystander kept its 30 fps: no gap of a second
+    assert len(gaps) > 30 and max(gaps) < 1.0, (len(gaps), max(gaps or [0]))
+    # one address holds at most its 12 subscriptions; the rest are refused with the reason
+    assert held["hello"] <= 12 and held.get("too_many_subscriptions", 0) >= 8, held
+    assert other["type"] == "hello", other
