@@ -70,6 +70,48 @@ def open_regular(path: str | os.PathLike[str], what: str = "",
         raise
 
 
+def inside(real: str, roots: tuple[str, ...]) -> bool:
+    """``real`` (a resolved path) is one of ``roots`` or below one."""
+    for root in roots:
+        r = os.path.realpath(root)
+        if real == r or real.startswith(r.rstrip(os.sep) + os.sep):
+            return True
+    return False
+
+
+def opened_path(fh: IO[Any]) -> str:
+    """The file an open descriptor really is (Linux: its /proc/self/fd link), whatever
+    links its name went through."""
+    fd = fh.fileno()
+    try:
+        return os.readlink(f"/proc/self/fd/{fd}")
+    except OSError:  # no /proc: resolve the name (the check is then by name, not by fd)
+        return os.path.realpath(fh.name) if isinstance(fh.name, str) else ""
+
+
+def open_confined(path: str | os.PathLike[str], roots: tuple[str, ...], what: str = "",
+                  max_bytes: int | None = None) -> IO[bytes]:
+    """:func:`open_regular`, and then, if ``roots`` are given, the file actually opened must
+    lie under one of them (checked on the descriptor at every open: a link swapped in after
+    the session was accepted is caught, and so is a link inside a root's folder pointing
+    out of it). Readers that need a name (OpenCV) pass ``/proc/self/fd/N`` of the result."""
+    fh = open_regular(path, what, max_bytes)
+    if roots and not inside(opened_path(fh), roots):
+        fh.close()
+        raise InputError(f"{_where(what, path)}: not under the server's media roots (it "
+                         "resolves outside them now)")
+    return fh
+
+
+def check_confined(path: str | os.PathLike[str], roots: tuple[str, ...],
+                   what: str = "") -> None:
+    """For loaders that open by name: ``path`` resolved now must lie under ``roots``
+    (nothing to check when there are none)."""
+    if roots and not inside(os.path.realpath(path), roots):
+        raise InputError(f"{_where(what, path)}: not under the server's media roots (it "
+                         "resolves outside them now)")
+
+
 def require_regular(path: str | os.PathLike[str], what: str = "",
                     max_bytes: int | None = None) -> Path:
     """Check ``path`` is a regular file (of at most ``max_bytes``) and return it: for

@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -139,7 +140,8 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
     resolved = {k: access.resolve(v) if v else "" for k, v in files.items()}
     return SessionSpec(body.name, source, resolved["model"], resolved["appearance"],
                        resolved["camera"], body.processor, body.wait_for_subscriber,
-                       speaker=resolved["speaker"], preview=body.preview)
+                       speaker=resolved["speaker"], preview=body.preview,
+                       media_roots=tuple(os.path.realpath(r) for r in access.media_roots))
 
 
 class Subscriber:

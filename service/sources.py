@@ -149,6 +149,17 @@ class _Finite:
     """Pacing and looping options shared by every non-live source."""
 
     live = False
+    roots: tuple[str, ...] = ()
+    """Media roots the files must resolve under at every open (empty: not confined)."""
+
+    def _open_file(self, path: Path) -> Any:
+        """``path`` opened (a regular file, under the roots if any), as SourceError."""
+        from articast.core.safe_io import open_confined
+
+        try:
+            return open_confined(path, self.roots)
+        except InputError as exc:
+            raise SourceError(str(exc)) from None
 
     def _playback(self, p: SourceURI) -> None:
         self.uri = p.text
@@ -243,6 +254,7 @@ class FileSource(_Finite):
         if not p.target:
             raise SourceError(f"{p.text!r}: give a file, e.g. file:talk.mp4")
         self._cap: Any = None
+        self._fh: Any = None
         self._first: np.ndarray | None = None
         self._n = 0
 
@@ -252,13 +264,18 @@ class FileSource(_Finite):
 
         if not self.path.is_file():
             raise SourceError(f"{self.path}: no such file")
-        cap = cv2.VideoCapture(str(self.path))
+        self.close()
+        self._fh = self._open_file(self.path)  # held open: OpenCV reads this very file
+        cap = cv2.VideoCapture(f"/proc/self/fd/{self._fh.fileno()}" if self.roots
+                               else str(self.path))
         if not cap.isOpened():
             cap.release()
+            self.close()
             raise SourceError(f"{self.path}: not a readable video (OpenCV cannot decode it)")
         ok, first = cap.read()
         if not ok or first is None:
             cap.release()
+            self.close()
             raise SourceError(f"{self.path}: corrupt or empty video (no frame could be decoded)")
         self._cap, self._first, self._n = cap, first, 0
         fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
@@ -295,6 +312,9 @@ class FileSource(_Finite):
         if self._cap is not None:
             self._cap.release()
             self._cap = None
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
 
 
 # ------------------------------------------------------------------------------- images
@@ -320,11 +340,12 @@ class ImagesSource(_Finite):
         return SourceInfo(self.uri, "images", False, first.shape[1], first.shape[0], self.fps,
                           len(self._files), {"dir": str(self.dir), "pace": self.pace})
 
-    @staticmethod
-    def _load(path: Path) -> np.ndarray:
+    def _load(self, path: Path) -> np.ndarray:
         import cv2
 
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        with self._open_file(path) as fh:  # each file, at each read: under the roots
+            data = np.frombuffer(fh.read(), np.uint8)
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
         if image is None:
             raise SourceError(f"{path}: not a readable image")
         return image
@@ -357,6 +378,7 @@ class RecordSource(_Finite):
 
         if not self.path.is_file():
             raise SourceError(f"{self.path}: no such file")
+        self._open_file(self.path).close()  # under the roots, if confined
         header, self._assets, self.param_names = read_header(self.path)
         try:
             self._fh = open_regular_text(self.path, max_bytes=None)
@@ -466,10 +488,13 @@ SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
 """Registry: kind -> (factory, accepted options)."""
 
 
-def make_source(uri: str) -> Source:
-    """Parse ``uri`` and build its source (no I/O yet: :meth:`Source.open` does that)."""
+def make_source(uri: str, roots: tuple[str, ...] = ()) -> Source:
+    """Parse ``uri`` and build its source (no I/O yet: :meth:`Source.open` does that).
+    ``roots``: the media roots every file it opens must resolve under (HTTP sessions)."""
     p = parse_uri(uri)
     source: Source = SOURCE_KINDS[p.kind][0](p)
+    if roots:
+        source.roots = tuple(roots)  # type: ignore[attr-defined]
     return source
 
 

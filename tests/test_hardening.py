@@ -323,3 +323,61 @@ def test_one_address_cannot_take_the_subscriptions_or_starve_a_bystander(media):
     # one address holds at most its 12 subscriptions; the rest are refused with the reason
     assert held["hello"] <= 12 and held.get("too_many_subscriptions", 0) >= 8, held
     assert other["type"] == "hello", other
+
+
+# ------------------------------------------------------------------------- b: every open
+def _wait_state(client, name, states, seconds):
+    deadline = time.monotonic() + seconds
+    while True:
+        s = {x["name"]: x for x in client.get("/api/sessions").json()}.get(name)
+        if s is not None and s["state"] in states:
+            return s
+        assert time.monotonic() < deadline, s
+        time.sleep(0.05)
+
+
+def test_media_roots_are_checked_at_every_open(tmp_path):
+    """Row b: a link swapped into the media root after POST (the file opens at the first
+    subscriber and at every restart), and a link inside an allowed images: folder, were
+    read from outside the root. Now the file actually opened is checked, at each open."""
+    import cv2
+    import numpy as np
+
+    root, outside = tmp_path / "root", tmp_path / "outside"
+    root.mkdir()
+    outside.mkdir()
+    write_recording(root / "good.jsonl", frames=30)
+    write_recording(outside / "secret.jsonl", frames=30)
+    frames = root / "frames"
+    frames.mkdir()
+    cv2.imwrite(str(frames / "a.png"), np.full((48, 64, 3), 100, np.uint8))
+    cv2.imwrite(str(outside / "secret.png"), np.full((48, 64, 3), 200, np.uint8))
+    (frames / "b.png").symlink_to(outside / "secret.png")
+    cfg = ServiceConfig(server=ServerSettings(log_level="critical"),
+                        access=AccessPolicy(token=TOKEN, media_roots=(str(root),)),
+                        http_processors=("truth", "tests.service_helpers:ImageStats"))
+    with ServerThread(cfg) as srv:
+        c = srv.client()
+        r = c.post("/api/sessions", json={"name": "rec", "source": "replay-record:good.jsonl",
+                                          "processor": "truth", "wait_for_subscriber": True})
+        assert r.status_code == 201, r.text
+        (root / "good.jsonl").unlink()  # swapped for a link after the POST was accepted
+        (root / "good.jsonl").symlink_to(outside / "secret.jsonl")
+
+        async def subscribe():
+            async with websockets.connect(srv.url) as ws:
+                await ws.send(json.dumps({"type": "subscribe", "session": "rec"}))
+                while True:
+                    m = json.loads(await asyncio.wait_for(ws.recv(), 3 * TIMEOUT))
+                    assert m["type"] != "frame", "a frame of the file outside the root"
+                    if m["type"] == "status" and m["state"] == "failed":
+                        return m
+
+        failed = asyncio.run(subscribe())
+        assert "media roots" in failed["detail"], failed
+        r = c.post("/api/sessions", json={"name": "img", "source": "images:frames?pace=fast",
+                                          "processor": "tests.service_helpers:ImageStats"})
+        assert r.status_code == 201, r.text
+        s = _wait_state(c, "img", ("failed", "ended"), 3 * TIMEOUT)
+        assert s["state"] == "failed" and "b.png" in s["detail"], s
+        assert "media roots" in s["detail"], s
