@@ -8,6 +8,7 @@ tuples:
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
 ``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
+``("alive",)``                          once a second while a recording's gap is waited out
 ``("done", outcome, detail)``           last message: ``ended``, ``failed`` (bad input, not
                                         restarted), ``crashed`` (restarted) or ``stopped``
 
@@ -127,11 +128,17 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             recorder = Recorder(record_dir, spec.name, desc, source_info)
         seq = 0
         preview_policy, next_preview = PreviewPolicy(), 0.0
+        next_alive = 0.0
         while not stop.is_set():
             frame = capture.get(timeout=0.1)
             if frame is None:
                 if capture.done:
                     break
+                if capture.pacing and time.monotonic() >= next_alive:
+                    # a recording's gap: the source is waiting for its media time, which the
+                    # stall watchdog must not take for a hang (it restarted from frame 0)
+                    next_alive = time.monotonic() + 1.0
+                    emit(("alive",))
                 continue
             t0 = time.perf_counter()
             result = processor.process(frame)

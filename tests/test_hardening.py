@@ -381,3 +381,67 @@ def test_media_roots_are_checked_at_every_open(tmp_path):
         s = _wait_state(c, "img", ("failed", "ended"), 3 * TIMEOUT)
         assert s["state"] == "failed" and "b.png" in s["detail"], s
         assert "media roots" in s["detail"], s
+
+
+# ------------------------------------------------------------------------- h: stalls
+class Sleepy:
+    """A FrameProcessor whose first run hangs 8 s on its third frame (a stuck thread)."""
+
+    runs = 0
+
+    def __init__(self, context):
+        Sleepy.runs += 1
+        self.run, self.n = Sleepy.runs, 0
+
+    def process(self, frame):
+        self.n += 1
+        if self.run == 1 and self.n == 3:
+            time.sleep(8.0)  # longer than the stall limit + the 5 s join: abandoned
+        return frame.truth
+
+
+def test_a_stalled_thread_worker_is_restarted(media):
+    """Row h: a thread worker that hung stayed ``stalled`` for ever with 0 restarts (its
+    late "stopped" overwrote the watchdog's "crashed"). Now it is given up and restarted."""
+    from articast.service.settings import SessionPolicy
+
+    Sleepy.runs = 0
+    cfg = ServiceConfig(
+        server=ServerSettings(log_level="critical"),
+        policy=SessionPolicy(worker="thread", worker_stall_s=1.0, restart_initial_s=0.05),
+        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=0",
+                              processor="tests.test_hardening:Sleepy"),))
+    with ServerThread(cfg) as srv:
+        session = srv.service.manager.sessions["rec"]
+        deadline = time.monotonic() + 3 * TIMEOUT
+        while not (session.metrics.restarts >= 1 and session.state == "running"
+                   and session.metrics.frames > 10):
+            assert time.monotonic() < deadline, (session.state, session.metrics.restarts)
+            time.sleep(0.05)
+        assert Sleepy.runs >= 2
+
+
+def test_a_gap_in_a_recording_is_waited_out_not_restarted(tmp_path):
+    """Row h: a recording with a gap longer than the stall limit restarted from frame 0
+    every time, never reaching its second half. Now the wait is a wait."""
+    from articast.service.settings import SessionPolicy
+
+    path = tmp_path / "gap.jsonl"
+    write_recording(path, frames=20, fps=20)
+    lines = path.read_text().splitlines()
+    shifted = [json.dumps({**json.loads(x), "t": json.loads(x)["t"] + 2.5})
+               for x in lines[11:]]
+    path.write_text("\n".join([*lines[:11], *shifted]) + "\n")  # 2.5 s of nothing mid-way
+    cfg = ServiceConfig(
+        server=ServerSettings(log_level="critical"),
+        policy=SessionPolicy(worker="thread", worker_stall_s=1.0, restart_initial_s=0.05),
+        sessions=(SessionSpec("gap", f"replay-record:{path}"),))
+    with ServerThread(cfg) as srv:
+        session = srv.service.manager.sessions["gap"]
+        deadline = time.monotonic() + 3 * TIMEOUT
+        while session.state != "ended":
+            assert time.monotonic() < deadline and session.state != "failed", (
+                session.state, session.detail)
+            time.sleep(0.05)
+        assert session.metrics.restarts == 0
+        assert session.metrics.frames == 20
