@@ -321,13 +321,21 @@ class Connection:
         """Sends one subscription's messages; awaits only its queue and this socket."""
         name = s.req.session
         helloed = False
+        said: tuple[int, int] | None = None  # (sid, description) of the last hello sent
+
+        def described() -> tuple[int, int] | None:
+            now_session = self.svc.lookup(name)
+            if now_session is None or now_session.description is None:
+                return None
+            return now_session.sid, id(now_session.description)
+
         try:
             session = self.svc.lookup(name)
             if session is not None:
                 text = self._hello(s)
                 if text is not None:
                     await self.send(text)
-                    helloed = True
+                    helloed, said = True, described()
                 else:
                     await self.send(status_text(StatusEvent(name, session.state,
                                                             session.detail, now())))
@@ -344,16 +352,18 @@ class Connection:
                         if text is None:
                             continue
                         await self.send(text)
-                        helloed = True
+                        helloed, said = True, described()
                     await self.send(ev.for_subscriber(s.view, s.sub.dropped))
                     session = self.svc.lookup(name)
                     if session is not None:
                         session.metrics.send_latency.observe(now() - ev.record.t_tracked)
                 elif isinstance(ev, ReadyEvent):
+                    if helloed and described() == said:
+                        continue  # this run's hello was sent already
                     text = self._hello(s)
                     if text is not None:
                         await self.send(text)
-                        helloed = True
+                        helloed, said = True, described()
                 elif isinstance(ev, StatusEvent):
                     await self.send(status_text(ev, s.sub.dropped))
                     if ev.state == "stopped":

@@ -445,3 +445,105 @@ def test_a_gap_in_a_recording_is_waited_out_not_restarted(tmp_path):
             time.sleep(0.05)
         assert session.metrics.restarts == 0
         assert session.metrics.frames == 20
+
+
+# ------------------------------------------------------------------------- i, j: Redis
+@pytest.fixture
+def redis_server():
+    import shutil
+
+    if not shutil.which("redis-server"):
+        pytest.skip("redis-server is not installed")
+    from tests.test_redis_scaleout import Redis
+
+    r = Redis()
+    r.start()
+    yield r
+    r.stop()
+
+
+def test_a_malformed_entry_in_the_sessions_hash_fails_only_that_session(redis_server, caplog):
+    """Row i: one malformed entry made every poll of the hash fail (logged at debug only):
+    a session whose worker died stayed ``running`` on the gateway. Now the bad entry is that
+    session ``failed`` with a warning, and the others are followed as before."""
+    import logging
+
+    import redis
+
+    from articast.service.remote import session_info  # noqa: F401 - the format written
+    from articast.service.wire import now
+
+    client = redis.Redis.from_url(redis_server.url)
+    good = {"name": "alive", "sid": 1, "state": "running", "detail": "", "description": None,
+            "source": None, "processor": "truth", "worker": "thread", "restarts": 0,
+            "t": now(), "host": "h", "run": "r"}
+    client.hset("articast:sessions", mapping={
+        "alive": json.dumps(good), "bad": json.dumps({"name": "bad", "t": "yesterday"}),
+        "worse": "{not json"})
+    cfg = ServiceConfig(server=ServerSettings(log_level="critical"), hub_url=redis_server.url,
+                        role="gateway")
+    with caplog.at_level(logging.WARNING, logger="articast.remote"), ServerThread(cfg) as srv:
+        c = srv.client()
+
+        def states():
+            return {s["name"]: s["state"] for s in c.get("/api/sessions").json()}
+
+        deadline = time.monotonic() + 3 * TIMEOUT
+        while states() != {"alive": "running", "bad": "failed", "worse": "failed"}:
+            assert time.monotonic() < deadline, states()
+            time.sleep(0.1)
+        # its worker dies: no more heartbeats; the gateway says so within the stale limit
+        t0 = time.monotonic()
+        while states()["alive"] != "unavailable":
+            assert time.monotonic() - t0 < 5 + 3 * TIMEOUT, states()
+            time.sleep(0.2)
+    warned = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    assert sum("malformed" in m for m in warned) == 2, warned  # once per entry
+
+
+def test_a_replaced_track_worker_brings_one_hello_and_no_spurious_state(redis_server,
+                                                                         tmp_path):
+    """Row j: kill -9 a track-worker and start its replacement at once: the subscriber got
+    a spurious ``unavailable`` and three hellos within 2.6 s. Now: one hello, then frames."""
+    from tests.test_redis_scaleout import articast, first_line, next_of, stop, subscriber
+
+    rec = tmp_path / "rec.jsonl"
+    write_recording(rec, frames=300, fps=30)
+    source = f"alice=replay-record:{rec}?loop=0"
+    procs = [articast("track-worker", "--hub", redis_server.url, "--json", "--source", source)]
+    try:
+        first_line(procs[0])
+        g = articast("gateway", "--hub", redis_server.url, "--port", "0", "--json")
+        procs.append(g)
+        url = first_line(g)["url"]
+
+        async def go():
+            ws, first = await subscriber(url)
+            if first["type"] != "hello":
+                await next_of(ws, "hello")
+            await next_of(ws, "frame")
+            procs[0].kill()
+            procs[0].wait(TIMEOUT)
+            procs.append(articast("track-worker", "--hub", redis_server.url, "--json",
+                                  "--source", source))
+            seen = []
+            while not (seen and seen[-1]["type"] == "frame" and sum(
+                    m["type"] == "frame" for m in seen) >= 30):
+                m = json.loads(await asyncio.wait_for(ws.recv(), 3 * TIMEOUT))
+                seen.append(m)
+            t_end = time.monotonic() + 3.0  # and a while longer
+            while time.monotonic() < t_end:
+                try:
+                    seen.append(json.loads(await asyncio.wait_for(ws.recv(), 0.5)))
+                except TimeoutError:
+                    pass
+            await ws.close()
+            return seen
+
+        seen = asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+    finally:
+        for p in procs:
+            stop(p)
+    kinds = [(m["type"], m.get("state"), m.get("sid"), m.get("detail")) for m in seen if m["type"] != "frame"]
+    assert sum(k[0] == "hello" for k in kinds) == 1, kinds
+    assert ("status", "unavailable") not in kinds, kinds
