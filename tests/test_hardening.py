@@ -547,3 +547,46 @@ def test_a_replaced_track_worker_brings_one_hello_and_no_spurious_state(redis_se
     kinds = [(m["type"], m.get("state"), m.get("sid"), m.get("detail")) for m in seen if m["type"] != "frame"]
     assert sum(k[0] == "hello" for k in kinds) == 1, kinds
     assert ("status", "unavailable") not in kinds, kinds
+
+
+# ------------------------------------------------------------------------- m: benchmark
+def test_the_benchmarks_lean_clients_answer_keepalive_pings(media):
+    """Row m: benchmarks/redis_scaleout.py's lean clients never answered pings, so a server
+    rightly closed the slow ones and "all recovered" was confounded. A lean client against a
+    real server that pings every 0.3 s stays connected and answers each ping."""
+    import uvicorn
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        from leanclient import LeanSubscriber
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    from articast.service.server import bound_socket, uvicorn_config
+
+    config = uvicorn_config(_config(media, token=""))
+    config.ws_ping_interval, config.ws_ping_timeout = 0.3, 0.3
+    sock = bound_socket("127.0.0.1", 0)
+    server = uvicorn.Server(config)
+
+    async def scenario():
+        task = asyncio.create_task(server.serve(sockets=[sock]))
+        while not server.started:
+            await asyncio.sleep(0.02)
+        loop = asyncio.get_running_loop()
+        clock = [time.time(), time.time() + 3.0]
+        stats: dict = {}
+        transport, client = await loop.create_connection(
+            lambda: LeanSubscriber({"type": "subscribe", "session": "rec",
+                                    "encoding": "binary", "geometry": False}, clock, stats),
+            "127.0.0.1", sock.getsockname()[1])
+        await asyncio.wait_for(client.done, 6 * TIMEOUT)
+        server.should_exit = True
+        await task
+        return client
+
+    try:
+        client = asyncio.run(asyncio.wait_for(scenario(), 10 * TIMEOUT))
+    finally:
+        sock.close()
+    # 3 s of frames at 30 fps: still connected at the end (a 0.3 s unanswered ping closes it)
+    assert client.got > 60, client.got
