@@ -7,7 +7,6 @@ does must not cost the other.
 import asyncio
 import json
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -22,6 +21,7 @@ from articast.service.security import AccessPolicy, FailedAttempts, client_key, 
 from articast.service.settings import HubSettings, ServerSettings
 from articast.service.worker import SessionSpec
 from tests.service_helpers import TIMEOUT, ServerThread, write_recording
+from tests.test_security import _answer, _raw
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "hardening-token-0123456789"
@@ -44,24 +44,6 @@ def _config(media, token=TOKEN, **hub):
 
 def _from(address):
     return httpx.Client(timeout=TIMEOUT, transport=httpx.HTTPTransport(local_address=address))
-
-
-def _raw(port, data=b"", local="127.0.0.1"):
-    s = socket.create_connection(("127.0.0.1", port), timeout=3 * TIMEOUT,
-                                 source_address=(local, 0))
-    if data:
-        s.sendall(data)
-    return s
-
-
-def _answer(s) -> bytes:
-    out = b""
-    try:
-        while chunk := s.recv(65536):
-            out += chunk
-    except (TimeoutError, ConnectionResetError):
-        pass
-    return out
 
 
 # ------------------------------------------------------------------------- a: never in logs
@@ -505,23 +487,17 @@ def test_a_replaced_track_worker_brings_one_hello_and_no_spurious_state(redis_se
                                                                          tmp_path):
     """Row j: kill -9 a track-worker and start its replacement at once: the subscriber got
     a spurious ``unavailable`` and three hellos within 2.6 s. Now: one hello, then frames."""
-    from tests.test_redis_scaleout import articast, first_line, next_of, stop, subscriber
+    from tests.test_redis_scaleout import articast, stop, streaming, worker_and_gateway
 
     rec = tmp_path / "rec.jsonl"
     write_recording(rec, frames=300, fps=30)
     source = f"alice=replay-record:{rec}?loop=0"
-    procs = [articast("track-worker", "--hub", redis_server.url, "--json", "--source", source)]
+    procs: list = []
     try:
-        first_line(procs[0])
-        g = articast("gateway", "--hub", redis_server.url, "--port", "0", "--json")
-        procs.append(g)
-        url = first_line(g)["url"]
+        url = worker_and_gateway(redis_server.url, source, procs)
 
         async def go():
-            ws, first = await subscriber(url)
-            if first["type"] != "hello":
-                await next_of(ws, "hello")
-            await next_of(ws, "frame")
+            ws = await streaming(url)
             procs[0].kill()
             procs[0].wait(TIMEOUT)
             procs.append(articast("track-worker", "--hub", redis_server.url, "--json",
