@@ -432,6 +432,7 @@ def test_hostile_files_through_the_commands(valid, tmp_path):
                                str(valid / "model.npz"), "-o", out + ".fap"], "fifo.json"),
         "serve --token-file a FIFO": (["demo", "--port", "0", "--token-file", str(fifo_json)],
                                       "fifo.json"),
+        "calibrate a FIFO": (["calibrate", str(fifo), "-o", out + ".json"], "fifo.avi"),
     }
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     procs = {}
