@@ -367,7 +367,8 @@ def test_media_roots_are_checked_at_every_open(tmp_path):
 
 # ------------------------------------------------------------------------- h: stalls
 class Sleepy:
-    """A FrameProcessor whose first run hangs 8 s on its third frame (a stuck thread)."""
+    """A FrameProcessor whose first run hangs 4 s on its third frame (a stuck thread that
+    comes back while the session waits up to 5 s for it to stop)."""
 
     runs = 0
 
@@ -378,7 +379,7 @@ class Sleepy:
     def process(self, frame):
         self.n += 1
         if self.run == 1 and self.n == 3:
-            time.sleep(8.0)  # longer than the stall limit + the 5 s join: abandoned
+            time.sleep(4.0)
         return frame.truth
 
 
