@@ -28,8 +28,9 @@ from articast.core.errors import InputError
 MAX_TEXT_BYTES = 256 * 2**20
 """JSON, JSON lines, .obj, .fap: far above any real file of ours (a 10-minute recording
 with meshes is ~60 MB)."""
-MAX_NPZ_BYTES = 2 * 2**30
-"""Inflated size of a model/appearance/corpus/binding archive (the largest real one: ~50 MB)."""
+MAX_NPZ_BYTES = 2**30
+"""Inflated size of a model/appearance/corpus/binding archive: 1 GiB (the largest real one
+is ~50 MB)."""
 
 
 def _where(what: str, path: Any) -> str:
