@@ -441,16 +441,20 @@ def test_hostile_files_through_the_commands(valid, tmp_path):
                                        cwd=ROOT, env=env, stdout=subprocess.PIPE,
                                        stderr=subprocess.PIPE, text=True, preexec_fn=_limited)
     problems = []
-    for name, p in procs.items():
-        try:
-            _, err = p.communicate(timeout=120)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.communicate()
-            problems.append(f"{name}: hangs")
-            continue
-        lines = [x for x in err.splitlines() if x.strip()]
-        word = runs[name][1]
-        if p.returncode != 2 or len(lines) != 1 or word not in lines[0] or "Traceback" in err:
-            problems.append(f"{name}: exit {p.returncode}: {err[-600:]}")
+    try:
+        for name, p in procs.items():
+            try:
+                _, err = p.communicate(timeout=120)
+            except subprocess.TimeoutExpired:
+                problems.append(f"{name}: hangs")
+                continue
+            lines = [x for x in err.splitlines() if x.strip()]
+            word = runs[name][1]
+            if p.returncode != 2 or len(lines) != 1 or word not in lines[0] or "Traceback" in err:
+                problems.append(f"{name}: exit {p.returncode}: {err[-600:]}")
+    finally:  # a hung command (or this test stopped by its timeout) leaves nothing behind
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
     assert not problems, "\n".join(problems)
