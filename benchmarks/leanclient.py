@@ -32,6 +32,18 @@ def client_frame(text: str) -> bytes:
     return head + _mask(data)
 
 
+def pong_frame(payload: bytes) -> bytes:
+    """The client's (masked) answer to a server ping: a server closes a client that does not
+    answer its keepalive pings (uvicorn: 20 s), which would count as a lost subscriber."""
+    return struct.pack("!BB", 0x8A, 0x80 | len(payload)) + _mask(payload)
+
+
+def answer_pings(transport: Any, buf: bytearray, opcode: int, start: int, end: int) -> None:
+    """Send the pong for a ping frame (opcode 9) found in ``buf``."""
+    if opcode == 9:
+        transport.write(pong_frame(bytes(buf[start:end])))
+
+
 def upgrade_request(path: str = "/ws") -> bytes:
     """The client's WebSocket upgrade request (HTTP/1.1, loopback)."""
     key = base64.b64encode(os.urandom(16)).decode()
@@ -93,6 +105,7 @@ class LeanSubscriber(asyncio.Protocol):
             self.connected.set_result(None)
         frames, used = server_frames(self.buf)
         for opcode, start, end in frames:
+            answer_pings(self.transport, self.buf, opcode, start, end)
             if opcode == 2:
                 self._frame(self.buf, start)
             elif opcode == 1:

@@ -20,9 +20,13 @@ from typing import Any
 
 import numpy as np
 
-from articast.core.errors import ArticastError, ModelFileError
+from articast.core.errors import ArticastError, InputError, ModelFileError
+from articast.core.safe_io import load_npz
 
 _META_KEY = "__meta__"
+MAX_VALUE = 1e15
+"""Largest |value| of any float array in a bundle: beyond it, squares and products overflow
+(1e308 in a model ended in LinAlgError)."""
 
 
 def save_bundle(
@@ -63,10 +67,10 @@ def load_bundle(
     where = f"{path}"
     if path.is_dir():
         raise ModelFileError(f"{where}: is a folder, expected an articast {kind} file")
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise ModelFileError(f"{where}: no such file")
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        with load_npz(path) as npz:
             names = list(npz.files)
             if _META_KEY not in names:
                 raise ModelFileError(f"{where}: not an articast {kind} file (no metadata)")
@@ -74,6 +78,8 @@ def load_bundle(
             arrays = {n: np.array(npz[n]) for n in names if n != _META_KEY}
     except ModelFileError:
         raise
+    except InputError as exc:  # not a regular file, or an archive declaring too much
+        raise ModelFileError(str(exc)) from None
     except READ_ERRORS as exc:
         raise ModelFileError(
             f"{where}: cannot read as an articast {kind} file (truncated or not an npz "
@@ -93,6 +99,9 @@ def load_bundle(
     for name, arr in arrays.items():
         if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
             raise ModelFileError(f"{where}: array {name!r} contains NaN or infinite values")
+        if arr.dtype.kind == "f" and arr.size and float(np.max(np.abs(arr))) > MAX_VALUE:
+            raise ModelFileError(f"{where}: array {name!r} holds values beyond {MAX_VALUE:g}, "
+                                 "which no articast file does")
     return arrays, meta
 
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import os
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
@@ -38,8 +39,16 @@ from articast.client import protocol as P
 from articast.core.errors import ArticastError
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
-from articast.service.middleware import BodyLimit, BodyTooLarge, Guard, MessageBucket, deny
-from articast.service.security import AccessPolicy, Forbidden
+from articast.service.middleware import (
+    BodyLimit,
+    BodyTimeout,
+    BodyTooLarge,
+    Guard,
+    MessageBucket,
+    TokenGate,
+    deny,
+)
+from articast.service.security import AccessPolicy, Forbidden, client_key
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
 from articast.service.wire import (
@@ -89,6 +98,20 @@ class SessionCreate(BaseModel):
     preview: bool = False
 
 
+def path_name_problem(path: str) -> str:
+    """Why ``path`` cannot name a file on this system ("" if it can): a NUL byte, a name
+    over 255 bytes or a path over 4096 (the kernel's limits), said before anything opens it."""
+    if "\0" in path:
+        return "a file name cannot contain a NUL byte"
+    encoded = path.encode("utf-8", "surrogateescape")
+    if len(encoded) > 4096:
+        return f"a path of {len(encoded)} bytes is over the limit of 4096"
+    longest = max((len(part) for part in encoded.split(b"/")), default=0)
+    if longest > 255:
+        return f"a file name of {longest} bytes is over the limit of 255"
+    return ""
+
+
 def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
     """The spec of a session asked for over HTTP, its files resolved inside the media roots.
 
@@ -103,6 +126,10 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
         raise HTTPException(400, str(exc)) from None
     files = {"model": body.model, "appearance": body.appearance, "camera": body.camera,
              "speaker": body.speaker}
+    for field_name, path in (("source", p.target), *files.items()):
+        problem = path_name_problem(path)
+        if problem:
+            raise HTTPException(400, f"{field_name}: {problem}")
     access.check_session_files(p.kind, p.target, files)
     if p.kind in ("file", "images", "replay-record"):
         query = body.source.partition("?")[2]
@@ -113,7 +140,8 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
     resolved = {k: access.resolve(v) if v else "" for k, v in files.items()}
     return SessionSpec(body.name, source, resolved["model"], resolved["appearance"],
                        resolved["camera"], body.processor, body.wait_for_subscriber,
-                       speaker=resolved["speaker"], preview=body.preview)
+                       speaker=resolved["speaker"], preview=body.preview,
+                       media_roots=tuple(os.path.realpath(r) for r in access.media_roots))
 
 
 class Subscriber:
@@ -136,6 +164,7 @@ class Connection:
         self.task: asyncio.Task[Any] | None = None
         rate = svc.config.hub.max_messages_per_s
         self._bucket = MessageBucket(rate, 2 * rate)
+        self.key = client_key((ws.scope.get("client") or ("?",))[0])
         self._refused = 0
         self._last_refusal_error = 0.0
 
@@ -229,6 +258,11 @@ class Connection:
     async def subscribe(self, req: P.Subscribe) -> None:
         self._refused = 0
         svc, name = self.svc, req.session
+        limits = svc.config.hub
+        if not svc.subscribe_bucket(self.key).take(time.monotonic()):
+            await self.error("rate_limited", f"over {limits.max_subscribes_per_client_s:g} "
+                             "subscribe requests per second from this address: refused", name)
+            return
         session = svc.lookup(name)
         if session is None:
             await self.error("unknown_session", f"no session {name!r}; sessions: "
@@ -246,11 +280,15 @@ class Connection:
             await self.error("too_many_subscriptions", "subscription limit per connection "
                              f"({svc.config.hub.max_subscriptions_per_connection}) reached", name)
             return
+        if name not in self.subs and svc.subscriptions_of(self.key) >= \
+                limits.max_subscriptions_per_client:
+            await self.error("too_many_subscriptions", "subscription limit per client address "
+                             f"({limits.max_subscriptions_per_client}) reached", name)
+            return
         if svc.subscriber_total() >= svc.config.hub.max_subscribers:
             await self.error("too_many_subscriptions", "the server is at its subscriber limit "
                              f"({svc.config.hub.max_subscribers})", name)
             return
-        limits = svc.config.hub
         depth = min(req.queue, limits.max_queue_limit) if req.queue else limits.max_queue
         sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
         s = Subscriber(self, req, sub)
@@ -277,21 +315,33 @@ class Connection:
         if session is None or session.description is None:
             return None
         streams = [x for x in s.req.streams if x != "mesh" or session.description["geometry"]]
-        return hello(s.req.session, session.sid, session.description, session.source_info,
-                     s.req, session.state, streams)
+        return self.svc.hello_text(s.req, session, streams)
 
     async def _pump(self, s: Subscriber) -> None:
         """Sends one subscription's messages; awaits only its queue and this socket."""
         name = s.req.session
         helloed = False
+        said: tuple[int, int] | None = None  # (sid, description) of the last hello sent
+
+        def described() -> tuple[int, int] | None:
+            now_session = self.svc.lookup(name)
+            if now_session is None or now_session.description is None:
+                return None
+            return now_session.sid, id(now_session.description)
+
         try:
             session = self.svc.lookup(name)
             if session is not None:
                 text = self._hello(s)
                 if text is not None:
                     await self.send(text)
-                    helloed = True
+                    helloed, said = True, described()
                 else:
+                    await self.send(status_text(StatusEvent(name, session.state,
+                                                            session.detail, now())))
+                if text is not None and session.state in ("ended", "failed"):
+                    # a subscriber arriving after the end: say so (final for clients),
+                    # instead of a hello followed by silence
                     await self.send(status_text(StatusEvent(name, session.state,
                                                             session.detail, now())))
             while True:
@@ -302,16 +352,18 @@ class Connection:
                         if text is None:
                             continue
                         await self.send(text)
-                        helloed = True
+                        helloed, said = True, described()
                     await self.send(ev.for_subscriber(s.view, s.sub.dropped))
                     session = self.svc.lookup(name)
                     if session is not None:
                         session.metrics.send_latency.observe(now() - ev.record.t_tracked)
                 elif isinstance(ev, ReadyEvent):
+                    if helloed and described() == said:
+                        continue  # this run's hello was sent already
                     text = self._hello(s)
                     if text is not None:
                         await self.send(text)
-                        helloed = True
+                        helloed, said = True, described()
                 elif isinstance(ev, StatusEvent):
                     await self.send(status_text(ev, s.sub.dropped))
                     if ev.state == "stopped":
@@ -346,6 +398,8 @@ class Service:
             self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc),
                                          names=config.server.vmc_names)
         self.connections: set[Connection] = set()
+        self._buckets: dict[str, MessageBucket] = {}
+        self._hellos: dict[tuple[Any, ...], tuple[Any, Any, str]] = {}
         self._watchdog: asyncio.Task[None] | None = None
 
     def lookup(self, name: str) -> Any:
@@ -377,6 +431,37 @@ class Service:
 
     def subscriber_total(self) -> int:
         return sum(len(c.subs) for c in self.connections)
+
+    def subscriptions_of(self, key: str) -> int:
+        """Subscriptions of one client address, over all its connections."""
+        return sum(len(c.subs) for c in self.connections if c.key == key)
+
+    def subscribe_bucket(self, key: str) -> MessageBucket:
+        """The subscribe-rate budget of one client address (bounded: the least recently
+        used addresses are forgotten first)."""
+        bucket = self._buckets.pop(key, None)
+        if bucket is None:
+            rate = self.config.hub.max_subscribes_per_client_s
+            bucket = MessageBucket(rate, 2 * rate)
+            if len(self._buckets) >= 65536:
+                self._buckets.pop(next(iter(self._buckets)))
+        self._buckets[key] = bucket
+        return bucket
+
+    def hello_text(self, req: P.Subscribe, session: Any, streams: list[Any]) -> str:
+        """The hello of a subscription, encoded once per (session run, options): a client
+        that resubscribes in a loop costs a dictionary lookup, not a 15 kB encode."""
+        key = (req.session, session.sid, session.state, tuple(streams), req.encoding, req.rate,
+               req.geometry)
+        hit = self._hellos.get(key)
+        if hit is not None and hit[0] is session.description and hit[1] is session.source_info:
+            return hit[2]
+        text = hello(req.session, session.sid, session.description, session.source_info, req,
+                     session.state, streams)
+        if len(self._hellos) >= 256:
+            self._hellos.pop(next(iter(self._hellos)))
+        self._hellos[key] = (session.description, session.source_info, text)
+        return text
 
     def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""
@@ -482,12 +567,18 @@ def create_app(config: ServiceConfig | None = None,
 
     mount_avatar(app)
 
-    app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes)
+    app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes,
+                       timeout_s=config.hub.header_timeout_s)
+    app.add_middleware(TokenGate, access=config.access)
     app.add_middleware(Guard, access=config.access)
 
     @app.exception_handler(BodyTooLarge)
     async def too_large(request: Request, exc: BodyTooLarge) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, 413)
+        return JSONResponse({"detail": str(exc)}, 413, headers={"Connection": "close"})
+
+    @app.exception_handler(BodyTimeout)
+    async def too_slow(request: Request, exc: BodyTimeout) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, 408, headers={"Connection": "close"})
 
     @app.exception_handler(Exception)
     async def internal(request: Request, exc: Exception) -> JSONResponse:
@@ -561,6 +652,10 @@ def create_app(config: ServiceConfig | None = None,
             raise HTTPException(409, f"session {body.name!r} exists") from None
         except ArticastError as exc:
             raise HTTPException(400, str(exc)) from None
+        except (OSError, ValueError) as exc:  # a file the checks above let through
+            raise HTTPException(400, f"cannot start session {body.name!r}: "
+                                f"{type(exc).__name__}: {getattr(exc, 'strerror', '') or exc}"
+                                ) from None
         return s.to_dict()
 
     @app.delete("/api/sessions/{name}")
@@ -574,7 +669,7 @@ def create_app(config: ServiceConfig | None = None,
     @app.post("/api/sessions/{name}/recentre")
     async def recentre_session(name: str, request: Request) -> dict[str, Any]:
         """Take the session's next good frame as the speaker's neutral head pose."""
-        authorise(request)
+        authorise_admin(request)
         session = svc.manager.sessions.get(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r}")

@@ -40,6 +40,8 @@ class Capture:
         self.frames = 0
         self.dropped = 0
         self.attempts = 0
+        self.pacing = False
+        """Waiting for the next frame's media time (a gap in a recording): not a stall."""
 
     # ------------------------------------------------------------------ consumer side
     def start(self) -> Capture:
@@ -125,8 +127,12 @@ class Capture:
                     if not self.source.live and self.source.pace == "realtime":
                         t0_media = t if t0_media is None else t0_media
                         wait = t0_wall + (t - t0_media) - time.monotonic()
-                        if wait > 0 and self._stop.wait(wait):
-                            return
+                        self.pacing = wait > 0
+                        try:
+                            if wait > 0 and self._stop.wait(wait):
+                                return
+                        finally:
+                            self.pacing = False
                     last_t = t
                     self._put(Frame(index, t + t_offset, time.monotonic(), image, truth))
                     index += 1

@@ -28,7 +28,8 @@ def check_worker(url: str, prefix: str, timeout: float = 3.0) -> str:
     from articast.service.wire import now
 
     client = redis.Redis.from_url(url, socket_connect_timeout=timeout, socket_timeout=timeout)
-    entries = {k.decode(): json.loads(v) for k, v in client.hgetall(prefix + "sessions").items()}
+    entries = {(k.decode() if isinstance(k, bytes) else k): json.loads(v)
+               for k, v in client.hgetall(prefix + "sessions").items()}
     mine = {n: e for n, e in entries.items() if e.get("host") in (None, os.uname().nodename)}
     if not mine:
         raise RuntimeError("no session announced in Redis")

@@ -2,19 +2,30 @@
 
 * :class:`Guard` refuses a foreign ``Host`` (DNS rebinding) or browser ``Origin`` with 403,
   before a WebSocket handshake too (:func:`deny`);
-* :class:`BodyLimit` answers 413 to HTTP bodies over the limit, declared or chunked;
+* :class:`TokenGate` checks the token before anything else reads the request (so a POST
+  without the token never has its body read or parsed: no schema in a 422), backs off an
+  address that keeps sending wrong tokens (429), and logs each refusal once, as a refusal;
+* :class:`BodyLimit` answers 413 to HTTP bodies over the limit, declared or chunked, and 408
+  to a body that does not arrive within the time limit (slow bodies hold no connection);
 * :class:`MessageBucket` is the token bucket of ``--max-messages-per-s``.
 """
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import math
 import time
-from typing import Any
+from typing import Any, NoReturn
 
 from fastapi.responses import JSONResponse
 
-from articast.service.security import AccessPolicy
+from articast.service.security import AccessPolicy, FailedAttempts, client_key
+
+log = logging.getLogger("articast.access")
+OPEN_PATHS = ("/healthz", "/api/protocol", "/avatar")
+"""Routes that answer without the token (``/healthz`` says more with it)."""
+CLOSE = [(b"connection", b"close")]
 
 
 class MessageBucket:
@@ -39,11 +50,16 @@ class BodyTooLarge(Exception):
     pass
 
 
-class BodyLimit:
-    """ASGI middleware: HTTP bodies over ``limit`` bytes get 413, declared or chunked."""
+class BodyTimeout(Exception):
+    pass
 
-    def __init__(self, app: Any, limit: int) -> None:
-        self.app, self.limit = app, limit
+
+class BodyLimit:
+    """ASGI middleware: HTTP bodies over ``limit`` bytes get 413, declared or chunked; a
+    body still incomplete ``timeout_s`` after the app first asked for it gets 408."""
+
+    def __init__(self, app: Any, limit: int, timeout_s: float = 10.0) -> None:
+        self.app, self.limit, self.timeout_s = app, limit, timeout_s
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
@@ -55,16 +71,45 @@ class BodyLimit:
                                 "malformed length"}, 413)(scope, receive, send)
             return
         seen = 0
+        deadline = 0.0
+        started = answered = complete = False
+
+        async def answer(status: int, reason: str, exc: Exception) -> NoReturn:
+            # answered here: the framework turns an error while it reads the body into a
+            # 400 of its own, which ``guarded`` then swallows
+            nonlocal answered
+            if not started and not answered:
+                answered = True
+                await JSONResponse({"detail": reason}, status,
+                                   headers={"Connection": "close"})(scope, receive, send)
+            raise exc
+
+        async def guarded(msg: Any) -> None:
+            nonlocal started
+            if answered:
+                return
+            started = started or msg["type"] == "http.response.start"
+            await send(msg)
 
         async def limited() -> Any:
-            nonlocal seen
-            msg = await receive()
+            nonlocal seen, deadline, complete
+            if complete:  # after the body: a disconnect, whenever it comes
+                return await receive()
+            t = time.monotonic()
+            deadline = deadline or t + self.timeout_s
+            try:
+                msg = await asyncio.wait_for(receive(), max(0.0, deadline - t))
+            except TimeoutError:
+                reason = f"request body not complete within {self.timeout_s:g} s"
+                await answer(408, reason, BodyTimeout(reason))
             seen += len(msg.get("body", b""))
             if seen > self.limit:
-                raise BodyTooLarge(f"request body over {self.limit} bytes")
+                reason = f"request body over {self.limit} bytes"
+                await answer(413, reason, BodyTooLarge(reason))
+            complete = msg["type"] != "http.request" or not msg.get("more_body", False)
             return msg
 
-        await self.app(scope, limited, send)
+        await self.app(scope, limited, guarded)
 
 
 class Guard:
@@ -95,11 +140,80 @@ class Guard:
         await self.app(scope, receive, send)
 
 
-async def deny(scope: Any, receive: Any, send: Any, status: int, reason: str) -> None:
+async def deny(scope: Any, receive: Any, send: Any, status: int, reason: str,
+               headers: list[tuple[bytes, bytes]] | None = None) -> None:
     """An HTTP refusal, also before a WebSocket handshake (else close 1008 after it)."""
     response = JSONResponse({"detail": reason}, status)
+    response.raw_headers.extend(headers or [])
     if scope["type"] == "http" or "websocket.http.response" in scope.get("extensions", {}):
         await response(scope, receive, send)
         return
     await send({"type": "websocket.accept"})
     await send({"type": "websocket.close", "code": 1008, "reason": reason[:120]})
+
+
+class TokenGate:
+    """ASGI middleware: the token first, before any route reads the request.
+
+    * no token configured: everything passes but the session API (POST/DELETE under
+      ``/api/``), which answers 403 with the way to enable it;
+    * a token configured: every route but ``OPEN_PATHS`` needs it (401);
+    * an address that sent ``FailedAttempts.free`` wrong tokens is answered 429 for a growing
+      time, without its token being compared (guessing slowed to a handful per minute);
+      every other address is unaffected.
+
+    Refusals close the connection (an unread body is never read) and are logged at info:
+    the first of a series per address, and when a lock-out starts.
+    """
+
+    def __init__(self, app: Any, access: AccessPolicy,
+                 attempts: FailedAttempts | None = None) -> None:
+        self.app, self.access = app, access
+        self.attempts = attempts or FailedAttempts()
+
+    async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
+        kind = scope["type"]
+        if kind not in ("http", "websocket"):
+            await self.app(scope, receive, send)
+            return
+        path = scope.get("path", "")
+        admin = kind == "http" and scope.get("method") not in ("GET", "HEAD", "OPTIONS") \
+            and path.startswith("/api/")
+        if admin and not self.access.token:
+            await deny(scope, receive, send, 403, "the session API needs a token: start the "
+                       "server with ARTICAST_TOKEN or --token-file", CLOSE)
+            return
+        headers = dict(scope.get("headers") or ())
+        authorization = headers.get(b"authorization", b"").decode("latin-1")
+        offered = bool(authorization) or b"token=" in scope.get("query_string", b"")
+        open_path = not admin and path.startswith(OPEN_PATHS)
+        if not self.access.token or (open_path and not offered):
+            await self.app(scope, receive, send)
+            return
+        key = client_key((scope.get("client") or ("?",))[0])
+        t = time.monotonic()
+        wait = self.attempts.blocked(key, t)
+        if wait > 0:
+            await deny(scope, receive, send, 429, "too many wrong tokens from this address: "
+                       f"retry in {math.ceil(wait)} s",
+                       CLOSE + [(b"retry-after", str(math.ceil(wait)).encode())])
+            return
+        if self.access.token_ok(authorization, scope.get("query_string", b"")):
+            self.attempts.succeeded(key)
+            await self.app(scope, receive, send)
+            return
+        # a wrong guess counts, on open routes too (/healthz says less without the token:
+        # an oracle otherwise); no token at all is no guess
+        lock = self.attempts.failed(key, t) if offered else 0.0
+        if open_path:
+            await self.app(scope, receive, send)
+            return
+        what = "WebSocket connection" if kind == "websocket" else f"{scope.get('method')} {path}"
+        if lock:
+            log.info("refused a %s from %s: wrong token again; refusing the address for "
+                     "%.0f s", what, key, lock)
+        else:
+            log.info("refused a %s from %s: %s token (401)", what, key,
+                     "wrong" if offered else "no")
+        await deny(scope, receive, send, 401, "this server needs a token: Authorization: "
+                   "Bearer TOKEN (or ?token=TOKEN)", CLOSE)

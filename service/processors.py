@@ -22,6 +22,8 @@ import time
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numpy as np
+
 from articast.core.errors import ArticastError, InputError
 from articast.core.tracking.result import TrackResult
 from articast.service.sources import Frame, SourceAssets, SourceInfo
@@ -99,14 +101,14 @@ class TrackerProcessor:
         if pose is not None and not isinstance(pose, Pose):
             try:
                 v = [float(x) for x in (pose.split(",") if isinstance(pose, str) else pose)]
-                pose = Pose(v[:3], v[3:6]) if len(v) == 6 else None
+                pose = Pose(np.asarray(v[:3]), np.asarray(v[3:6])) if len(v) == 6 else None
             except (TypeError, ValueError):
                 pose = None
             if pose is None:
                 raise InputError(f"session {context.session!r}: initial_pose must be 6 numbers "
                                  "rx,ry,rz,tx,ty,tz (axis-angle rad, mm)")
         if pose is None:  # a frontal face in front of the camera: searched around it
-            pose = Pose(translation=[0.0, 0.0, float(opts.get("distance_mm", 300.0))])
+            pose = Pose(translation=np.array([0.0, 0.0, float(opts.get("distance_mm", 300.0))]))
         self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
                                initial_pose=pose, clock=time.perf_counter)
         from articast.core.tracking import kernels

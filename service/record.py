@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+from articast.core.errors import ArticastError
 from articast.core.model.face import PARAM_NAMES
 from articast.core.tracking.result import TrackResult
 from articast.service.jsonsafe import dumps
@@ -64,13 +65,20 @@ class Recorder:
 
 def read_header(path: Path) -> tuple[dict[str, Any], SourceAssets, tuple[str, ...]]:
     """The header of a recording (or defaults for headerless ``articast track`` output)."""
+    from articast.core.errors import InputError
+    from articast.core.safe_io import MAX_TEXT_BYTES, open_regular_text
+
     try:
-        with path.open("r", encoding="utf-8") as fh:
-            first = fh.readline()
+        with open_regular_text(path, max_bytes=None) as fh:
+            first = fh.readline(MAX_TEXT_BYTES)
+    except InputError as exc:
+        raise SourceError(str(exc)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise SourceError(f"{path}: cannot read: {exc}") from None
     try:
         doc = json.loads(first)
+    except RecursionError:
+        raise SourceError(f"{path}: line 1: JSON nested too deeply") from None
     except ValueError:
         raise SourceError(f"{path}: not a JSONL recording (line 1 is not JSON)") from None
     if not isinstance(doc, dict):
@@ -90,8 +98,9 @@ def read_header(path: Path) -> tuple[dict[str, Any], SourceAssets, tuple[str, ..
             from articast.core.model.camera import Camera
 
             camera = Camera.from_dict(doc["camera"], where=str(path))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise SourceError(f"{path}: malformed header: {exc}") from None
+    except (KeyError, TypeError, ValueError, RecursionError) as exc:
+        raise SourceError(f"{path}: malformed header: {type(exc).__name__}: "
+                          f"{str(exc)[:200]}") from None
     return doc, SourceAssets(model=model, camera=camera), tuple(doc["param_names"])
 
 
@@ -99,7 +108,10 @@ def parse_frame_line(line: str, param_names: tuple[str, ...]) -> TrackResult | N
     """One recording line -> TrackResult (None for headers and blank lines)."""
     if not line.strip():
         return None
-    doc = json.loads(line)
+    try:
+        doc = json.loads(line)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
     if not isinstance(doc, dict):
         raise ValueError("not a JSON object")
     if doc.get("type") == "header":
@@ -108,6 +120,8 @@ def parse_frame_line(line: str, param_names: tuple[str, ...]) -> TrackResult | N
         return TrackResult.from_dict(doc, param_names)
     except (KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"missing or malformed field {exc}") from None
+    except ArticastError as exc:  # a pose of absurd values
+        raise ValueError(str(exc)) from None
 
 
 def safe_name(name: str) -> str:

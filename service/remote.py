@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import json
 import logging
+import math
 import os
 import time
 from collections.abc import Callable
@@ -31,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from articast.core.errors import ArticastError
 from articast.service.jsonsafe import dumps
 from articast.service.metrics import SessionMetrics
 from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
@@ -55,6 +57,27 @@ def session_info(s: Any) -> dict[str, Any]:
             "host": HOST, "run": RUN}
 
 
+def entry_problem(name: str, info: Any) -> str:
+    """What is wrong with a worker's entry in the sessions hash ("" if nothing): another
+    writer, a bug or a hand edit must fail that session only, and say so."""
+    if not isinstance(info, dict):
+        return "not a JSON object"
+    if info.get("name") != name:
+        return "its name differs from its key"
+    t = info.get("t")
+    if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+        return "no valid time stamp 't'"
+    if not isinstance(info.get("state", ""), str) or not isinstance(info.get("detail", ""), str):
+        return "state/detail are not text"
+    if not isinstance(info.get("sid", 0), int) or isinstance(info.get("sid", 0), bool):
+        return "sid is not an integer"
+    desc = info.get("description")
+    if desc is not None and not (isinstance(desc, dict) and isinstance(
+            desc.get("param_names"), list)):
+        return "description is not a session description"
+    return ""
+
+
 class RemoteSession:
     """A session as a gateway sees it (the attributes the WebSocket layer reads)."""
 
@@ -70,6 +93,7 @@ class RemoteSession:
         self.outputs: Any = None
         self.metrics = SessionMetrics()
         self.seen = 0.0
+        self.t = 0.0  # the worker's time stamp of the entry taken last
         self._dense: bytes | None = None
 
     @property
@@ -80,7 +104,15 @@ class RemoteSession:
         """Workers do not wait for a gateway's subscribers (``wait_for_subscriber`` is local)."""
 
     def update(self, info: dict[str, Any]) -> bool:
-        """Take a worker's entry; True when the description is new (a new ``hello``)."""
+        """Take a worker's entry; True when the description is new (a new ``hello``).
+
+        An entry older than the one taken last is ignored: when a worker is replaced, the
+        hash may still hold its predecessor's entry for a beat after the new worker's
+        ``ready`` arrived, and going back to it gave a second and third hello."""
+        t = float(info.get("t", 0.0))
+        if t < self.t:
+            return False
+        self.t = t
         self.seen = time.monotonic()
         self.state, self.detail = str(info.get("state", "")), str(info.get("detail", ""))
         self.source_info, self.processor = info.get("source"), str(info.get("processor", ""))
@@ -131,6 +163,7 @@ class Directory:
 
     def __init__(self) -> None:
         self.sessions: dict[str, RemoteSession] = {}
+        self._malformed: dict[str, str] = {}  # name -> the problem last logged
 
     def get(self, name: str) -> RemoteSession | None:
         return self.sessions.get(name)
@@ -150,13 +183,33 @@ class Directory:
         for name, info in entries.items():
             s = self.sessions.get(name)
             before = (s.state, s.detail) if s else None
-            if now() - float(info.get("t", 0.0)) > STALE_S:
-                info = {**info, "state": "unavailable", "detail": "no heartbeat from its "
-                        f"worker for over {STALE_S:g} s"}
-            s, new = self.update(info)
+            try:
+                problem = entry_problem(name, info)
+                if not problem:
+                    t = float(info["t"])
+                    if now() - t > STALE_S:
+                        info = {**info, "state": "unavailable", "detail": "no heartbeat from "
+                                f"its worker for over {STALE_S:g} s"}
+                    s, new = self.update(info)
+            except (ArticastError, ValueError, TypeError, KeyError, AttributeError,
+                    IndexError, RecursionError) as exc:
+                problem = f"{type(exc).__name__}: {str(exc)[:100]}"
+            if problem:  # one bad entry: that session is failed, the others go on
+                s = self.sessions.get(name) or self.sessions.setdefault(name,
+                                                                        RemoteSession(name))
+                s.seen = time.monotonic()
+                s.state, s.detail = "failed", ("its entry in the shared sessions hash is "
+                                               f"malformed ({problem})")
+                new = False
+                if self._malformed.get(name) != problem:
+                    self._malformed[name] = problem
+                    log.warning("session %s: %s", name, s.detail)
+            else:
+                self._malformed.pop(name, None)
+            assert s is not None
             if new:
                 events.append(ReadyEvent(name))
-            if before is not None and before != (s.state, s.detail):
+            if before != (s.state, s.detail) and (before is not None or problem):
                 events.append(StatusEvent(name, s.state, s.detail, now()))
         # missing from the hash: Redis restarted (workers rewrite within a beat) or the worker
         # died; a removed session already said "stopped" on its channel
@@ -220,8 +273,11 @@ class EventCodec:
                     self.directory.sessions.pop(name, None)
             return StatusEvent(name, doc["state"], doc["detail"], doc["t"])
         if kind == "r":
+            # a new description only: the poll of the hash may have brought it first, and
+            # one run gets one hello (a replaced worker gave three)
             if doc.get("info"):
-                self.directory.update(doc["info"])
+                _, new = self.directory.update(doc["info"])
+                return ReadyEvent(name) if new else None
             return ReadyEvent(name)
         raise ValueError(f"unknown event kind {kind!r}")
 
@@ -289,11 +345,11 @@ class Poller:
         raw = await self.redis.hgetall(self.key)
         entries = {}
         for k, v in raw.items():
-            name = k.decode() if isinstance(k, bytes) else str(k)
+            name = k.decode("utf-8", "replace") if isinstance(k, bytes) else str(k)
             try:
                 entries[name] = json.loads(v)
-            except ValueError:
-                continue
+            except (ValueError, RecursionError):
+                entries[name] = None  # malformed: Directory.sync says so
         for ev in self.directory.sync(entries):
             self.publish_local(ev.session, ev)
         self.polled.set()

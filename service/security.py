@@ -21,9 +21,12 @@ from __future__ import annotations
 
 import hmac
 import ipaddress
+import logging
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 from articast.core.errors import InputError
@@ -69,8 +72,11 @@ def load_token(env: dict[str, str] | os._Environ[str] | None = None,
     """The secret from ``--token-file`` or ``ARTICAST_TOKEN`` (file wins); "" if neither."""
     env = os.environ if env is None else env
     if token_file:
+        from articast.core.safe_io import read_regular_bytes
+
         try:
-            token = Path(token_file).read_text(encoding="utf-8").strip()
+            data = read_regular_bytes(token_file, MAX_TOKEN_FILE_BYTES, what="--token-file")
+            token = data.decode("utf-8").strip()
         except (OSError, UnicodeDecodeError) as exc:
             raise InputError(f"--token-file {token_file}: cannot read it "
                              f"({type(exc).__name__})") from None
@@ -78,6 +84,67 @@ def load_token(env: dict[str, str] | os._Environ[str] | None = None,
             raise InputError(f"--token-file {token_file}: the file is empty")
         return token
     return (env.get("ARTICAST_TOKEN") or env.get("ARTICAST_API_TOKEN") or "").strip()
+
+
+MIN_TOKEN_BYTES = 16
+MAX_TOKEN_FILE_BYTES = 4096
+
+
+def check_token_strength(token: str) -> None:
+    """A token shorter than 16 bytes is refused at start: guessing one, even slowed down by
+    the per-address back-off, is within reach; 16 random bytes are not."""
+    if token and len(token.encode("utf-8")) < MIN_TOKEN_BYTES:
+        raise InputError(f"the token has {len(token.encode('utf-8'))} bytes: use at least "
+                         f"{MIN_TOKEN_BYTES} (e.g. python -c 'import secrets; "
+                         "print(secrets.token_urlsafe(24))')")
+
+
+def client_key(host: str | None) -> str:
+    """The address limits and back-offs count by: an IPv4 address, or an IPv6 client's /64
+    (one host gets a whole /64 and can pick any address in it)."""
+    if not host:
+        return "?"
+    try:
+        ip = ipaddress.ip_address(host.strip("[]").split("%", 1)[0])
+    except ValueError:
+        return host
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.IPv6Network((ip, 64), strict=False))
+    return str(ip)
+
+
+class FailedAttempts:
+    """Back-off per client address after wrong tokens: ``free`` failures pass, then every
+    further one locks the address out for ``initial_s`` doubling to ``max_s`` (requests get
+    429 without their token being looked at). A success forgets the address. Bounded:
+    at most ``max_addresses`` are remembered (the oldest forgotten first)."""
+
+    def __init__(self, free: int = 5, initial_s: float = 1.0, max_s: float = 60.0,
+                 max_addresses: int = 65536) -> None:
+        self.free, self.initial_s, self.max_s = free, initial_s, max_s
+        self.max_addresses = max_addresses
+        self._failures: dict[str, tuple[int, float]] = {}  # key -> (count, locked until)
+
+    def blocked(self, key: str, t: float) -> float:
+        """Seconds ``key`` is still locked out for (0: it may try)."""
+        entry = self._failures.get(key)
+        return max(0.0, entry[1] - t) if entry else 0.0
+
+    def failed(self, key: str, t: float) -> float:
+        """Count a wrong token; the lock-out it starts (0: none yet)."""
+        count = self._failures.pop(key, (0, 0.0))[0] + 1
+        lock = 0.0
+        if count > self.free:
+            lock = min(self.max_s, self.initial_s * 2.0 ** min(30, count - self.free - 1))
+        if len(self._failures) >= self.max_addresses:
+            self._failures.pop(next(iter(self._failures)))
+        self._failures[key] = (count, t + lock)
+        return lock
+
+    def succeeded(self, key: str) -> None:
+        self._failures.pop(key, None)
 
 
 @dataclass(frozen=True)
@@ -181,3 +248,54 @@ class AccessPolicy:
         # the same answer whether the path exists or not: no existence oracle
         raise Forbidden(403, f"{field_name}: only files under the server's media roots "
                         "may be opened")
+
+
+# ---------------------------------------------------------------------------------- logs
+_SECRET_PATTERNS = (
+    re.compile(r"(?i)(token=)[^&\s\"'#]+"),                       # ?token=... in a URL
+    re.compile(r"(?i)(authorization['\"]?\s*[:,=]\s*[(b'\"\s]*bearer\s+)[^\s'\")\],]+"),
+)
+_REFUSED_HANDSHAKE = ('%s - "WebSocket %s" %d', "connection rejected (%d %s)")
+
+
+def redact(text: str, token: str = "") -> str:
+    """``text`` with every ``token=VALUE``, ``Authorization: Bearer VALUE`` and the token
+    itself replaced by ``…``."""
+    for pattern in _SECRET_PATTERNS:
+        text = pattern.sub(r"\1…", text)
+    if token:
+        text = text.replace(token, "…")
+    return text
+
+
+class _RedactingRecord(logging.LogRecord):
+    secret = ""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # formatters that read the arguments themselves (uvicorn's access log) see them
+        # redacted too
+        if isinstance(self.args, tuple):
+            self.args = tuple(redact(a, self.secret) if isinstance(a, str) else a
+                              for a in self.args)
+
+    def getMessage(self) -> str:  # noqa: N802 - logging's name
+        return redact(super().getMessage(), self.secret)
+
+
+def _drop_refusal_echo(record: logging.LogRecord) -> bool:
+    """uvicorn's and websockets' own lines for a refused handshake: the app logs it once,
+    as a refusal, with the reason."""
+    return record.msg not in _REFUSED_HANDSHAKE
+
+
+def install_log_redaction(token: str) -> None:
+    """Make every log record of this process redact the token (the access log's
+    ``"WebSocket /ws?token=…"``, debug dumps of ``Authorization`` headers), at every level
+    and through every handler: the records themselves are built redacting."""
+    _RedactingRecord.secret = token or _RedactingRecord.secret
+    logging.setLogRecordFactory(_RedactingRecord)
+    for name in ("uvicorn.error", "websockets.server"):
+        logger = logging.getLogger(name)
+        if _drop_refusal_echo not in logger.filters:
+            logger.addFilter(_drop_refusal_echo)

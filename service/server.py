@@ -19,6 +19,7 @@ from uvicorn.protocols.http.httptools_impl import HttpToolsProtocol
 from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 from articast.service.app import ServiceConfig, create_app
+from articast.service.security import client_key, install_log_redaction
 
 ABORT_EXTENSION = "articast.abort"
 """ASGI scope extension: a callable that aborts the connection's transport at once."""
@@ -38,7 +39,7 @@ class ClientConnections:
         if key in self._open:
             return True
         peer = transport.get_extra_info("peername")
-        address = str(peer[0]) if peer else "?"
+        address = client_key(str(peer[0])) if peer else "?"
         if self.by_address.get(address, 0) >= self.limit:
             return False
         self.by_address[address] = self.by_address.get(address, 0) + 1
@@ -166,6 +167,14 @@ def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | No
                 with contextlib.suppress(OSError):
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, socket_buffer_bytes)
 
+        async def send(self, message: Any) -> None:
+            await super().send(message)
+            if (message["type"] == "websocket.http.response.body"
+                    and not message.get("more_body", False)):
+                # the refusal (401/403) is a complete answer: uvicorn would otherwise log
+                # "ASGI callable returned without completing handshake" and try a 500
+                self.handshake_complete = True
+
         def handle_connect(self, event: Any) -> None:
             super().handle_connect(event)
             scope = getattr(self, "scope", None)
@@ -178,6 +187,7 @@ def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | No
 def uvicorn_config(config: ServiceConfig,
                    on_live: Callable[[], None] | None = None) -> uvicorn.Config:
     s, h = config.server, config.hub
+    install_log_redaction(config.access.token)
     clients = ClientConnections(h.max_connections_per_client)
     return uvicorn.Config(
         create_app(config, on_live), host=s.host, port=s.port, log_level=s.log_level,

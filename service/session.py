@@ -14,6 +14,7 @@ import asyncio
 import logging
 import re
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -58,6 +59,9 @@ class Session:
         the first after :meth:`recentre`. The streamed relative pose, the VMC head and the
         head FAPs are relative to it."""
         self._done = asyncio.Event()
+        self._generation = 0
+        """Which worker's messages count: bumped for each worker and when one is given up
+        (a stalled thread cannot be killed; its late frames and its "stopped" are ignored)."""
         self.settled = asyncio.Event()
         """Set at the first frame, or when the session reports a problem (unavailable,
         failed, ended, restarting): what ``serve`` waits for before printing its URL."""
@@ -152,18 +156,27 @@ class Session:
                     self._set_state("stalled", f"no frame for {quiet:.1f} s; restarting the "
                                     "worker")
                     self._outcome = ("crashed", f"stalled: no frame for {quiet:.1f} s")
+                    self._generation += 1  # its "stopped" must not overwrite "crashed"
                     worker.kill()
                     return
 
     # ----------------------------------------------------------------------- worker messages
-    def emit_threadsafe(self, msg: tuple[Any, ...]) -> None:
+    def emitter(self) -> Callable[[tuple[Any, ...]], None]:
+        """The ``emit`` of a new worker: its messages count until it is given up."""
+        self._generation += 1
+        generation = self._generation
+        return lambda msg: self.emit_threadsafe(msg, generation)
+
+    def emit_threadsafe(self, msg: tuple[Any, ...], generation: int | None = None) -> None:
         """Called by worker threads (and process readers): hand over to the event loop."""
         try:
-            self._loop.call_soon_threadsafe(self._on_message, msg)
+            self._loop.call_soon_threadsafe(self._on_message, msg, generation)
         except RuntimeError:  # loop closed during shutdown
             pass
 
-    def _on_message(self, msg: tuple[Any, ...]) -> None:
+    def _on_message(self, msg: tuple[Any, ...], generation: int | None = None) -> None:
+        if generation is not None and generation != self._generation:
+            return  # a worker given up (stalled): it no longer speaks for the session
         kind = msg[0]
         self._last_activity = time.monotonic()
         if kind == "frame":
@@ -235,8 +248,9 @@ class Session:
             from articast.core.tracking.result import TrackResult
 
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
-                              Pose(rec.rotation, rec.translation), bool(rec.quality["ok"]))
-            neutral = None if self.neutral is None else Pose(*self.neutral)
+                              Pose(np.asarray(rec.rotation), np.asarray(rec.translation)),
+                              bool(rec.quality["ok"]))
+            neutral = None if self.neutral is None else Pose(*map(np.asarray, self.neutral))
             self._m.vmc.send(res, self._vmc_model, neutral=neutral)  # UDP, never blocks
         t = now()
         m.publish_latency.observe(t - rec.t_tracked)
@@ -303,9 +317,9 @@ class SessionManager:
             kind = "thread" if light and self._thread_owner in (None, s) else "process"
         if kind == "thread":
             self._thread_owner = self._thread_owner or s
-            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emit_threadsafe)
+            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emitter())
         if kind == "process":
-            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emit_threadsafe)
+            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emitter())
         raise InputError(f"worker must be auto, thread or process, not {kind!r}")
 
     def release_thread(self, s: Session) -> None:

@@ -46,7 +46,15 @@ class HubSettings:
     max_messages_per_s: float = _opt(20.0, "client messages per second per connection (bursts "
                                      "of twice that); beyond: dropped with an error, and a "
                                      "connection far over it is closed (1008)")
-    max_connections_per_client: int = _opt(256, "open TCP connections per client address")
+    max_connections_per_client: int = _opt(256, "open TCP connections per client address "
+                                           "(an IPv6 client: per /64)")
+    max_subscriptions_per_client: int = _opt(256, "subscriptions of one client address, all "
+                                             "its connections together (an IPv6 client: per "
+                                             "/64): one address cannot fill --max-subscribers")
+    max_subscribes_per_client_s: float = _opt(20.0, "subscribe requests per second of one "
+                                              "client address, all its connections together "
+                                              "(bursts of twice that); beyond: refused with "
+                                              "rate_limited, and bystanders keep their frames")
     max_header_bytes: int = _opt(16384, "largest HTTP request head (request line + headers)")
     header_timeout_s: float = _opt(10.0, "close a connection whose request head is not "
                                    "complete this long after it started (slowloris)")

@@ -22,6 +22,7 @@ once, never retried). Both are :class:`~articast.core.errors.ArticastError`.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable, Iterator
@@ -148,6 +149,17 @@ class _Finite:
     """Pacing and looping options shared by every non-live source."""
 
     live = False
+    roots: tuple[str, ...] = ()
+    """Media roots the files must resolve under at every open (empty: not confined)."""
+
+    def _open_file(self, path: Path) -> Any:
+        """``path`` opened (a regular file, under the roots if any), as SourceError."""
+        from articast.core.safe_io import open_confined
+
+        try:
+            return open_confined(path, self.roots)
+        except InputError as exc:
+            raise SourceError(str(exc)) from None
 
     def _playback(self, p: SourceURI) -> None:
         self.uri = p.text
@@ -242,6 +254,7 @@ class FileSource(_Finite):
         if not p.target:
             raise SourceError(f"{p.text!r}: give a file, e.g. file:talk.mp4")
         self._cap: Any = None
+        self._fh: Any = None
         self._first: np.ndarray | None = None
         self._n = 0
 
@@ -251,13 +264,18 @@ class FileSource(_Finite):
 
         if not self.path.is_file():
             raise SourceError(f"{self.path}: no such file")
-        cap = cv2.VideoCapture(str(self.path))
+        self.close()
+        self._fh = self._open_file(self.path)  # held open: OpenCV reads this very file
+        cap = cv2.VideoCapture(f"/proc/self/fd/{self._fh.fileno()}" if self.roots
+                               else str(self.path))
         if not cap.isOpened():
             cap.release()
+            self.close()
             raise SourceError(f"{self.path}: not a readable video (OpenCV cannot decode it)")
         ok, first = cap.read()
         if not ok or first is None:
             cap.release()
+            self.close()
             raise SourceError(f"{self.path}: corrupt or empty video (no frame could be decoded)")
         self._cap, self._first, self._n = cap, first, 0
         fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
@@ -294,6 +312,9 @@ class FileSource(_Finite):
         if self._cap is not None:
             self._cap.release()
             self._cap = None
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
 
 
 # ------------------------------------------------------------------------------- images
@@ -319,11 +340,12 @@ class ImagesSource(_Finite):
         return SourceInfo(self.uri, "images", False, first.shape[1], first.shape[0], self.fps,
                           len(self._files), {"dir": str(self.dir), "pace": self.pace})
 
-    @staticmethod
-    def _load(path: Path) -> np.ndarray:
+    def _load(self, path: Path) -> np.ndarray:
         import cv2
 
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        with self._open_file(path) as fh:  # each file, at each read: under the roots
+            data = np.frombuffer(fh.read(), np.uint8)
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
         if image is None:
             raise SourceError(f"{path}: not a readable image")
         return image
@@ -351,13 +373,19 @@ class RecordSource(_Finite):
         self._assets = SourceAssets()
 
     def open(self) -> SourceInfo:
+        from articast.core.safe_io import open_regular_text
         from articast.service.record import read_header
 
         if not self.path.is_file():
             raise SourceError(f"{self.path}: no such file")
+        self._open_file(self.path).close()  # under the roots, if confined
         header, self._assets, self.param_names = read_header(self.path)
-        self._fh = self.path.open("r", encoding="utf-8", errors="replace")
+        try:
+            self._fh = open_regular_text(self.path, max_bytes=None)
+        except InputError as exc:
+            raise SourceError(str(exc)) from None
         self._lines = enumerate(self._fh, 1)
+        self._last_t = -math.inf
         src = header.get("source") or {}
         return SourceInfo(self.uri, "replay-record", False, src.get("width"), src.get("height"),
                           src.get("fps"), None, {"path": str(self.path), "recorded": src})
@@ -374,6 +402,10 @@ class RecordSource(_Finite):
                     raise SourceError(f"{self.path}:{n}: not a frame record ({exc})") from None
                 return None  # the last line of a crashed recording: lost frame in flight
             if result is not None:
+                if result.t < self._last_t:
+                    raise SourceError(f"{self.path}:{n}: time stamp {result.t:.6g} goes back "
+                                      f"in time (after {self._last_t:.6g})")
+                self._last_t = result.t
                 return result.t, None, result
         return None
 
@@ -407,7 +439,7 @@ class SyntheticSource(_Finite):
         try:
             import articast.core.synthetic as synthetic
 
-            open_stream = synthetic.open_stream  # type: ignore[attr-defined]
+            open_stream = synthetic.open_stream
         except (ImportError, AttributeError) as exc:
             raise SourceError(
                 "the synthetic speaker (core.synthetic) is not available in this "
@@ -456,10 +488,13 @@ SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
 """Registry: kind -> (factory, accepted options)."""
 
 
-def make_source(uri: str) -> Source:
-    """Parse ``uri`` and build its source (no I/O yet: :meth:`Source.open` does that)."""
+def make_source(uri: str, roots: tuple[str, ...] = ()) -> Source:
+    """Parse ``uri`` and build its source (no I/O yet: :meth:`Source.open` does that).
+    ``roots``: the media roots every file it opens must resolve under (HTTP sessions)."""
     p = parse_uri(uri)
     source: Source = SOURCE_KINDS[p.kind][0](p)
+    if roots:
+        source.roots = tuple(roots)  # type: ignore[attr-defined]
     return source
 
 

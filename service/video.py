@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 from collections.abc import Iterator
@@ -11,6 +12,10 @@ from typing import Any
 import numpy as np
 
 from articast.core.errors import InputError
+from articast.core.safe_io import MAX_TEXT_BYTES, require_regular
+
+MAX_VIDEO_BYTES = 64 * 2**30
+"""A video file: far above any clip (an hour of 1080p MJPG is ~40 GB)."""
 
 
 def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.ndarray]]:
@@ -22,8 +27,9 @@ def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.nd
     import cv2
 
     p = Path(path)
-    if not p.is_file():
+    if not os.path.lexists(p):
         raise InputError(f"{p}: no such video file")
+    require_regular(p, max_bytes=MAX_VIDEO_BYTES)  # a FIFO would block OpenCV for ever
     cap = cv2.VideoCapture(str(p))
     if not cap.isOpened():
         raise InputError(f"{p}: cannot open as a video (unknown or corrupt container)")
@@ -61,6 +67,7 @@ def video_frame_count(path: str | os.PathLike[str]) -> int:
     """Frame count the container declares (0 if unknown)."""
     import cv2
 
+    require_regular(path, max_bytes=MAX_VIDEO_BYTES)
     cap = cv2.VideoCapture(str(path))
     try:
         return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
@@ -75,10 +82,12 @@ def read_jsonl(path: str | os.PathLike[str]) -> list[dict[str, Any]]:
         raise InputError(f"{p}: is a folder, expected a JSON-lines file")
     if not p.is_file():
         raise InputError(f"{p}: no such file")
+    from articast.core.safe_io import open_regular
+
     out = []
     n = 0
     try:
-        with open(p, encoding="utf-8") as fh:
+        with io.TextIOWrapper(open_regular(p, max_bytes=MAX_TEXT_BYTES), encoding="utf-8") as fh:
             for n, line in enumerate(fh, 1):  # noqa: B007 - n names the line in errors
                 if not line.strip():
                     continue

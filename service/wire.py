@@ -65,8 +65,8 @@ def model_from_description(d: dict[str, Any]) -> Any:
         mean=np.asarray(g["mean"], np.float64).reshape(n, 3),
         basis=np.asarray(g["basis"], np.float64).reshape(len(names), n, 3),
         param_names=names,
-        stats=ParamStats(*(np.asarray(st[k]) for k in ("mean", "std", "min", "max")))
-        if st else None,
+        **({"stats": ParamStats(*(np.asarray(st[k]) for k in ("mean", "std", "min", "max")))}
+           if st else {}),
         point_names=tuple(g.get("point_names") or ()),
         triangles=np.asarray(g.get("triangles") or [], np.int32).reshape(-1, 3),
         feature_points=g.get("feature_points") or {},

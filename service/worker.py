@@ -8,6 +8,7 @@ tuples:
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
 ``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
+``("alive",)``                          once a second while a recording's gap is waited out
 ``("done", outcome, detail)``           last message: ``ended``, ``failed`` (bad input, not
                                         restarted), ``crashed`` (restarted) or ``stopped``
 
@@ -29,6 +30,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from articast.core.errors import ArticastError
+from articast.core.safe_io import check_confined
 from articast.core.tracking.result import TrackResult
 from articast.service.capture import Capture
 from articast.service.preview import PreviewPolicy, render_preview
@@ -65,6 +67,10 @@ class SessionSpec:
     preview: bool = False
     """Encode a small, low-rate JPEG preview of the tracked video with the fitted mesh
     (:mod:`articast.service.preview`). Off by default: it is a picture of a face."""
+    media_roots: tuple[str, ...] = ()
+    """For a session added over HTTP: every file it opens (source, each image of a folder,
+    model, appearance, camera, speaker), at every open and restart, must resolve under these
+    folders. Empty: the operator's own session, not confined."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "source": self.source, "model": self.model,
@@ -90,7 +96,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             if stop.is_set():
                 emit(("done", "stopped", ""))
                 return
-        source = make_source(spec.source)
+        source = make_source(spec.source, spec.media_roots)
         capture = Capture(source, capture_settings,
                           lambda state, detail: emit(("status", state, detail))).start()
         while not capture.opened.wait(0.1):
@@ -100,6 +106,9 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         if capture.error is not None:
             raise capture.error
         assert capture.info is not None
+        for path in (spec.speaker, spec.model, spec.appearance, spec.camera):
+            if path:
+                check_confined(path, spec.media_roots)
         speaker = load_speaker(spec.speaker, capture.info) if spec.speaker else None
         if speaker is not None:
             model, appearance, camera = speaker.model, speaker.appearance, speaker.camera
@@ -119,11 +128,17 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             recorder = Recorder(record_dir, spec.name, desc, source_info)
         seq = 0
         preview_policy, next_preview = PreviewPolicy(), 0.0
+        next_alive = 0.0
         while not stop.is_set():
             frame = capture.get(timeout=0.1)
             if frame is None:
                 if capture.done:
                     break
+                if capture.pacing and time.monotonic() >= next_alive:
+                    # a recording's gap: the source is waiting for its media time, which the
+                    # stall watchdog must not take for a hang (it restarted from frame 0)
+                    next_alive = time.monotonic() + 1.0
+                    emit(("alive",))
                 continue
             t0 = time.perf_counter()
             result = processor.process(frame)

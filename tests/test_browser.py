@@ -114,7 +114,16 @@ def test_with_a_token_the_avatar_passes_it_on_from_its_url(sessions):
         with Browser(url + "?token=browser-token") as b:  # no session: it asks the API
             b.wait_for("window.articast.frames > 5", 60)
             b.wait_for("window.articast.mesh.startsWith('dense')", 60)
-        with Browser(url + "?session=closed&token=wrong") as b:
-            time.sleep(2.0)
-            assert b.evaluate("window.articast.frames") == 0
-            assert b.evaluate("window.articast.connected") is False
+        # a refusal is final and says the fix (issue 20, item 1), not "reconnecting"
+        for query in ("?session=closed&token=wrong", "?session=closed", ""):
+            with Browser(url + query) as b:
+                b.wait_for("window.articast.final !== ''", 30)
+                final = b.evaluate("window.articast.final")
+                assert "token=TOKEN" in final and "ARTICAST_TOKEN" in final, final
+                time.sleep(1.0)
+                assert "reconnecting" not in b.evaluate("window.articast.status")
+                assert b.evaluate("window.articast.frames") == 0
+                assert b.evaluate("window.articast.connected") is False
+        with Browser(url + "?session=nobody&token=browser-token") as b:
+            b.wait_for("window.articast.final !== ''", 30)
+            assert "nobody" in b.evaluate("window.articast.final")

@@ -281,6 +281,20 @@ def test_serve_marks_a_session_with_a_bad_file_failed_without_restarting(valid, 
     write_video(video, frames=30)
     cut = tmp_path / "cut.avi"
     cut.write_bytes(video.read_bytes()[: video.stat().st_size // 2])
+    # issue 20 row k: values that crashed the worker again and again (a restart loop)
+    from tests.hostile_corpus import _npy, _npz_with
+
+    with np.load(valid / "model.npz") as z:
+        mean = z["mean"]
+    huge_model = _npz_with(tmp_path / "huge.npz", valid / "model.npz",
+                           {"mean.npy": _npy(np.full_like(mean, 1e308))})
+    cam = json.loads((valid / "camera.json").read_text())
+    tiny_cam = tmp_path / "tiny.json"
+    tiny_cam.write_text(json.dumps({**cam, "K": [[1e-300, 0, 32], [0, 1e-300, 24], [0, 0, 1]]}))
+    lines = (valid / "rec.jsonl").read_text().splitlines()
+    late = tmp_path / "late.jsonl"
+    late.write_text("\n".join([*lines[:3], json.dumps({**json.loads(lines[3]), "t": 1e12}),
+                               *lines[4:]]) + "\n")
     config = ServiceConfig(
         server=ServerSettings(log_level="critical"),
         policy=SessionPolicy(restart_initial_s=0.05, restart_max_s=0.1, max_restarts=20),
@@ -293,6 +307,11 @@ def test_serve_marks_a_session_with_a_bad_file_failed_without_restarting(valid, 
                     "processor": "truth"}, "bad.npz"),
         "cut": ({"source": f"file:{cut}?pace=fast", "processor": "tests.service_helpers:ImageStats"},
                 "ended early"),
+        "huge-model": ({"source": f"file:{video}", "model": str(huge_model),
+                        "processor": "tests.service_helpers:ImageStats"}, "huge.npz"),
+        "tiny-focal": ({"source": f"replay-record:{valid / 'rec.jsonl'}", "camera": str(tiny_cam),
+                        "processor": "truth"}, "tiny.json"),
+        "late": ({"source": f"replay-record:{late}?pace=fast", "processor": "truth"}, "late.jsonl"),
     }
     with ServerThread(config) as srv:
         c = srv.client()
@@ -334,3 +353,108 @@ def test_no_nan_or_infinity_in_json_written():
                      "jsonsafe.py", "protocol.py", "redis_hub.py", "wire.py", "evaluate.py",
                      "serve.py", "healthcheck.py")]
     assert offenders == [], offenders
+
+
+# ----------------------------------------------------------------------------- issue 20, row k
+MEMORY_LIMIT = 3 * 2**30
+"""Address space of the child that loads the corpus: a loader that inflates a bomb or
+allocates a declared 1e14 elements fails against it instead of taking the machine."""
+
+
+def _limited():
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT, MEMORY_LIMIT))
+
+
+def test_the_hostile_corpus_through_every_loader(valid, tmp_path):
+    """FIFOs, /dev/zero, declared-huge archives and zip bombs, JSON nested 100,000 deep,
+    values of 1e308/1e-300/NaN, time going back: each one clear error naming the file, in
+    bounded time (no hang) and memory (3 GB of address space), never a traceback."""
+    from tests.hostile_corpus import build
+
+    cases = build(tmp_path, valid)
+    listing = tmp_path / "cases.json"
+    listing.write_text(json.dumps(cases))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    env["PYTHONPATH"] = str(ROOT)
+    r = subprocess.run([sys.executable, "-m", "tests.hostile_corpus", str(listing)], cwd=ROOT,
+                       env=env, capture_output=True, text=True, timeout=600,
+                       preexec_fn=_limited)
+    results = [json.loads(x) for x in r.stdout.splitlines() if x.startswith("{")]
+    if os.environ.get("ARTICAST_SHOW_CORPUS"):  # pytest -s: what each case answered
+        print("\n".join(f"{x['outcome']:6} {x['seconds']:5.2f}s {x['case']}: {x['message']}"
+                        for x in results))
+    assert len(results) == len(cases), (r.returncode, r.stderr[-3000:])
+    wrong = [x for x in results if x["outcome"] != "error"]
+    assert not wrong, "\n".join(json.dumps(x) for x in wrong)
+    by_case = {c["case"]: c for c in cases}
+    for x in results:
+        msg, path = x["message"], Path(by_case[x["case"]]["path"])
+        assert "\n" not in msg.strip(), x
+        assert path.name in msg or str(path) in msg, x
+
+
+def test_hostile_files_through_the_commands(valid, tmp_path):
+    """The seven hangs of the attack run (a FIFO given to track, enroll, --camera,
+    bind-dense, export-fap, the .fap reader through a speaker, --token-file) and the silent
+    wrong results (a focal length of 1e-300 tracked "ok"; 500 identical vertices bound):
+    each command ends within the bound with one line and exit 2. The commands run side by
+    side, each limited to 3 GB of address space."""
+    video = tmp_path / "v.avi"
+    write_video(video, frames=10)
+    fifo = tmp_path / "fifo.avi"
+    os.mkfifo(fifo)
+    fifo_json = tmp_path / "fifo.json"
+    os.mkfifo(fifo_json)
+    doc = json.loads((valid / "camera.json").read_text())
+    tiny = tmp_path / "tiny-focal.json"
+    tiny.write_text(json.dumps({**doc, "K": [1e-300, 0, 32, 0, 1e-300, 24, 0, 0, 1]}))
+    same = tmp_path / "same.obj"
+    same.write_text("v 1 2 3\n" * 500 + "f 1 2 3\n")
+    common = ["--model", str(valid / "model.npz"), "--appearance",
+              str(valid / "appearance.npz")]
+    out = str(tmp_path / "out")
+    runs = {
+        "track a FIFO": (["track", "--quiet", str(fifo), *common, "--camera",
+                          str(valid / "camera.json"), "-o", out], "fifo.avi"),
+        "track --camera a FIFO": (["track", "--quiet", str(video), *common, "--camera",
+                                   str(fifo_json), "-o", out], "fifo.json"),
+        "track, focal 1e-300": (["track", "--quiet", str(video), *common, "--camera", str(tiny),
+                                 "-o", out], "tiny-focal.json"),
+        "enroll a FIFO": (["enroll", str(fifo), "-o", out], "fifo.avi"),
+        "bind-dense a FIFO": (["bind-dense", str(fifo), "--model", str(valid / "model.npz"),
+                               "-o", out + ".npz"], "fifo.avi"),
+        "bind-dense 500 identical vertices": (["bind-dense", str(same), "--model",
+                                               str(valid / "model.npz"), "-o", out + ".npz"],
+                                              "same.obj"),
+        "export-fap a FIFO": (["export-fap", str(fifo_json), "--model",
+                               str(valid / "model.npz"), "-o", out + ".fap"], "fifo.json"),
+        "serve --token-file a FIFO": (["demo", "--port", "0", "--token-file", str(fifo_json)],
+                                      "fifo.json"),
+        "calibrate a FIFO": (["calibrate", str(fifo), "-o", out + ".json"], "fifo.avi"),
+    }
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    procs = {}
+    for name, (args, _) in runs.items():
+        procs[name] = subprocess.Popen([sys.executable, "-m", "articast.service.cli", *args],
+                                       cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                       stderr=subprocess.PIPE, text=True, preexec_fn=_limited)
+    problems = []
+    try:
+        for name, p in procs.items():
+            try:
+                _, err = p.communicate(timeout=120)
+            except subprocess.TimeoutExpired:
+                problems.append(f"{name}: hangs")
+                continue
+            lines = [x for x in err.splitlines() if x.strip()]
+            word = runs[name][1]
+            if p.returncode != 2 or len(lines) != 1 or word not in lines[0] or "Traceback" in err:
+                problems.append(f"{name}: exit {p.returncode}: {err[-600:]}")
+    finally:  # a hung command (or this test stopped by its timeout) leaves nothing behind
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+                p.communicate()
+    assert not problems, "\n".join(problems)

@@ -122,6 +122,24 @@ async def subscriber(url, session="alice"):
         await asyncio.sleep(0.2)
 
 
+def worker_and_gateway(hub_url, source, procs) -> str:
+    """A track-worker of ``source`` and a gateway on ``hub_url`` (added to ``procs``): the
+    gateway's URL."""
+    procs.append(articast("track-worker", "--hub", hub_url, "--json", "--source", source))
+    first_line(procs[-1])
+    procs.append(articast("gateway", "--hub", hub_url, "--port", "0", "--json"))
+    return first_line(procs[-1])["url"]
+
+
+async def streaming(url):
+    """A subscriber of alice on ``url`` that has had its hello and a first frame."""
+    ws, first = await subscriber(url)
+    if first["type"] != "hello":
+        await next_of(ws, "hello")
+    await next_of(ws, "frame")
+    return ws
+
+
 async def next_of(ws, kind):
     while True:
         m = json.loads(await asyncio.wait_for(ws.recv(), 3 * TIMEOUT))
@@ -219,18 +237,12 @@ def test_a_killed_worker_is_reported_and_its_replacement_streams_again(tmp_path)
     redis = Redis()
     redis.start()
     source = f"alice=replay-record:{rec}?loop=0"
-    procs = [articast("track-worker", "--hub", redis.url, "--json", "--source", source)]
+    procs: list = []
     try:
-        first_line(procs[0])
-        g = articast("gateway", "--hub", redis.url, "--port", "0", "--json")
-        procs.append(g)
-        url = first_line(g)["url"]
+        url = worker_and_gateway(redis.url, source, procs)
 
         async def go():
-            ws, first = await subscriber(url)
-            if first["type"] != "hello":
-                await next_of(ws, "hello")
-            await next_of(ws, "frame")
+            ws = await streaming(url)
             procs[0].kill()
             procs[0].wait(TIMEOUT)
             while True:

@@ -426,11 +426,11 @@ def test_insecure_no_token_is_an_explicit_choice(tmp_path, monkeypatch):
         access_policy(args, "0.0.0.0")
     args = build_parser().parse_args(["demo", "--host", "0.0.0.0", "--insecure-no-token"])
     assert access_policy(args, "0.0.0.0").token == ""
-    (tmp_path / "t").write_text("from-file\n")
+    (tmp_path / "t").write_text("from-file-0123456789\n")
     monkeypatch.setenv("ARTICAST_TOKEN_FILE", str(tmp_path / "t"))
     args = build_parser().parse_args(["demo", "--host", "0.0.0.0", "--media-root", str(tmp_path)])
     policy = access_policy(args, "0.0.0.0")
-    assert policy.token == "from-file" and policy.media_roots == (str(tmp_path.resolve()),)
+    assert policy.token == "from-file-0123456789" and policy.media_roots == (str(tmp_path.resolve()),)
     args = build_parser().parse_args(["demo", "--media-root", str(tmp_path / "nope")])
     with pytest.raises(InputError, match="not a folder"):
         access_policy(args, "127.0.0.1")

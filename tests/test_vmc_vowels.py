@@ -18,12 +18,15 @@ from articast.core.model.camera import Camera
 from articast.core.outputs.vowels import VOWELS, VowelMapper
 from articast.core.synthetic import default_speaker, rest_pose
 from articast.service.app import ServiceConfig
+from articast.service.security import AccessPolicy
 from articast.service.settings import ServerSettings
 from articast.service.vmc import MAX_DATAGRAM
 from articast.service.wire import describe
 from articast.service.worker import SessionSpec
 from tests.service_helpers import TIMEOUT, ServerThread
 from tests.test_arkit_vmc import vmc_frames
+
+TOKEN = "vmc-test-token-0123456789"
 
 
 def vowel_states(seed):
@@ -126,7 +129,8 @@ def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
                        wait_for_subscriber=False)
     config = ServiceConfig(server=ServerSettings(log_level="critical",
                                                  vmc=f"{address[0]}:{address[1]}",
-                                                 vmc_names=style), sessions=(spec,))
+                                                 vmc_names=style), sessions=(spec,),
+                           access=AccessPolicy(token=TOKEN))  # recentre is an admin POST
     n = HOLD * len(order)
     with ServerThread(config) as srv:
         deadline = time.monotonic() + 6 * TIMEOUT
@@ -139,7 +143,8 @@ def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
             time.sleep(0.05)
         published = session.metrics.frames
         with urllib.request.urlopen(urllib.request.Request(
-                f"{srv.http}/api/sessions/v/recentre", method="POST"), timeout=10) as r:
+                f"{srv.http}/api/sessions/v/recentre", method="POST",
+                headers=srv.headers), timeout=10) as r:
             assert json.load(r) == {"name": "v", "recentred": True}
     time.sleep(0.1)
     with rec.lock:
@@ -189,7 +194,8 @@ def test_streamed_pose_is_relative_to_the_neutral_and_recentres(tmp_path):
     vowel_recording(tmp_path / "v.jsonl", model, states, nod_from=20)
     spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=1",
                        wait_for_subscriber=True)
-    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,),
+                           access=AccessPolicy(token=TOKEN))  # recentre is an admin POST
 
     def frames(ws, until):
         while True:
@@ -203,7 +209,8 @@ def test_streamed_pose_is_relative_to_the_neutral_and_recentres(tmp_path):
         ws.send(json.dumps({"type": "subscribe", "session": "v", "streams": ["pose"]}))
         got = list(frames(ws, lambda m: m["frame"] >= 30))
         with urllib.request.urlopen(urllib.request.Request(
-                f"{srv.http}/api/sessions/v/recentre", method="POST"), timeout=10) as r:
+                f"{srv.http}/api/sessions/v/recentre", method="POST",
+                headers=srv.headers), timeout=10) as r:
             assert r.status == 200
         after = list(frames(ws, lambda m: m["frame"] >= 60))
     for f in got:

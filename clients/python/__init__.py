@@ -6,6 +6,12 @@ share one definition and the client never imports the server. It installs on its
 ``articast-client`` distribution (``pip install clients/python``). See docs/CLIENTS.md.
 """
 
-from articast.client.client import Client, ClientClosed, ClientError, subscribe_sync
+from articast.client.client import (
+    Client,
+    ClientClosed,
+    ClientError,
+    ClientRefused,
+    subscribe_sync,
+)
 
-__all__ = ["Client", "ClientClosed", "ClientError", "subscribe_sync"]
+__all__ = ["Client", "ClientClosed", "ClientError", "ClientRefused", "subscribe_sync"]

@@ -8,14 +8,21 @@
 
 A lost connection (server restart, network) is retried with exponential backoff; each
 reconnection subscribes again and receives a fresh ``hello`` (``client.hello``), after which
-frames continue. Protocol errors from the server (unknown session, bad stream) are not
-retried: they raise :class:`ClientError`.
+frames continue. Only what can recover is retried (connection refused or reset, a timeout, an
+HTTP 5xx, a connection closed mid-stream). A refusal is final: a missing or wrong token (HTTP
+401/403 before the handshake) raises :class:`ClientRefused`, a protocol error from the server
+(unknown session, bad stream) raises :class:`ClientError`; both say what to do in one line.
+
+The token comes from ``token=`` or, by default, the ``ARTICAST_TOKEN`` environment variable,
+and travels as ``Authorization: Bearer TOKEN``.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
+import os
 import queue
 import threading
 from collections.abc import AsyncIterator, Iterator, Sequence
@@ -38,23 +45,64 @@ class ClientError(Exception):
         self.code, self.reason = code, reason
 
 
+class ClientRefused(ClientError):
+    """The server refused the connection itself (HTTP 401/403/4xx before the WebSocket
+    handshake): retrying cannot help, so it is final and says what to do."""
+
+    def __init__(self, url: str, status: int, detail: str = "") -> None:
+        if status == 401:
+            fix = ("the server needs a token, and none or a wrong one was given: set "
+                   "ARTICAST_TOKEN or pass --token (the server's ARTICAST_TOKEN or --token-file)")
+        elif status == 403:
+            fix = ("the server does not accept this client (its Host/Origin rules"
+                   + (f": {detail}" if detail else "") + ")")
+        elif status == 429:
+            fix = "too many failed attempts from this address: wait, then fix the token"
+        else:
+            fix = detail or "the server refused the connection"
+        super().__init__("refused", f"{url}: HTTP {status}: {fix}")
+        self.status = status
+
+
+def _redact(url: str) -> str:
+    """``url`` without a ``token=`` query value (messages never show the secret)."""
+    head, sep, query = url.partition("?")
+    if not sep:
+        return url
+    parts = [("token=…" if q.startswith("token=") else q) for q in query.split("&")]
+    return head + "?" + "&".join(parts)
+
+
+def _refusal_detail(exc: Any) -> str:
+    body = getattr(getattr(exc, "response", None), "body", b"") or b""
+    try:
+        detail = json.loads(body).get("detail", "")
+    except (ValueError, AttributeError):
+        return ""
+    return str(detail)[:200] if isinstance(detail, str) else ""
+
+
 class Client:
     """Subscribe to one session of an articast server.
 
     url : ``ws://host:port/ws``. streams : among articulatory, pose, fap, arkit, mesh.
     rate : max frames/s (None: every frame). encoding : "json" or "binary".
     backoff_initial_s, backoff_max_s : reconnection delays (doubling); max_retries : give up
-    after this many failed attempts in a row (None: never).
+    after this many failed attempts in a row (None: never). token : the server's token
+    (default: ``ARTICAST_TOKEN``; "" for none).
     """
 
     def __init__(self, url: str, session: str,
                  streams: Sequence[str] = ("articulatory", "pose"), *,
                  rate: float | None = None, encoding: str = "json", geometry: bool = True,
                  backoff_initial_s: float = 0.2, backoff_max_s: float = 5.0,
-                 max_retries: int | None = None, open_timeout_s: float = 5.0) -> None:
+                 max_retries: int | None = None, open_timeout_s: float = 5.0,
+                 token: str | None = None) -> None:
         self.url, self.session = url, session
-        self.subscribe_msg = P.Subscribe(session=session, streams=list(streams), rate=rate,
-                                         encoding=encoding, geometry=geometry)
+        self.token = (os.environ.get("ARTICAST_TOKEN", "") if token is None else token).strip()
+        self.subscribe_msg = P.Subscribe.model_validate(
+            {"session": session, "streams": list(streams), "rate": rate, "encoding": encoding,
+             "geometry": geometry})
         self.backoff = (backoff_initial_s, backoff_max_s)
         self.max_retries = max_retries
         self.open_timeout_s = open_timeout_s
@@ -79,15 +127,28 @@ class Client:
         delay, failures = self.backoff[0], 0
         while not self._closed:
             try:
+                headers = {"Authorization": f"Bearer {self.token}"} if self.token else None
                 self._ws = await websockets.connect(self.url, open_timeout=self.open_timeout_s,
-                                                    max_size=2**26, close_timeout=1)
+                                                    max_size=2**26, close_timeout=1,
+                                                    additional_headers=headers)
                 await self._ws.send(self.subscribe_msg.model_dump_json())
                 self.connects += 1
                 return
+            except websockets.InvalidStatus as exc:
+                status = exc.response.status_code
+                if 400 <= status < 500 and status != 408:
+                    raise ClientRefused(_redact(self.url), status, _refusal_detail(exc)) from None
+                failures += 1  # 5xx, 408: the server may recover
+                if self.max_retries is not None and failures > self.max_retries:
+                    raise ClientClosed(f"{_redact(self.url)}: gave up after {failures} attempts "
+                                       f"(last: HTTP {status})") from None
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, self.backoff[1])
             except (TimeoutError, OSError, websockets.WebSocketException):
                 failures += 1
                 if self.max_retries is not None and failures > self.max_retries:
-                    raise ClientClosed(f"{self.url}: gave up after {failures} attempts") from None
+                    raise ClientClosed(f"{_redact(self.url)}: gave up after {failures} "
+                                       "attempts") from None
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, self.backoff[1])
         raise ClientClosed("closed")
@@ -113,8 +174,11 @@ class Client:
                             return
                     elif isinstance(msg, P.Error):
                         raise ClientError(msg.code, msg.reason)
-            except websockets.ConnectionClosed:
-                pass  # reconnect below
+            except websockets.ConnectionClosed as exc:
+                if exc.rcvd is not None and exc.rcvd.code == 1008:  # policy: final
+                    raise ClientError("refused", exc.rcvd.reason or "closed by the server's "
+                                      "policy (1008)") from None
+                # anything else closed mid-stream: reconnect below
             finally:
                 if self._ws is not None:
                     await self._ws.close()
@@ -130,9 +194,14 @@ class SyncSubscription:
         self.client = client
         self._q: queue.Queue[Any] = queue.Queue(maxsize=256)
         self._loop = asyncio.new_event_loop()
-        self._thread = threading.Thread(target=self._loop.run_until_complete,
-                                        args=(self._pump(),), daemon=True)
+        self._task = self._loop.create_task(self._pump())
+        self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
+
+    def _run(self) -> None:
+        with contextlib.suppress(asyncio.CancelledError):
+            self._loop.run_until_complete(self._task)
+        self._loop.close()
 
     @property
     def hello(self) -> P.Hello | None:
@@ -142,10 +211,17 @@ class SyncSubscription:
         try:
             async for frame in self.client.frames():
                 await asyncio.to_thread(self._q.put, frame)
-        except BaseException as exc:  # noqa: BLE001 - handed to the consumer thread
-            self._q.put(exc)
+        except asyncio.CancelledError:
+            self._offer(self._DONE)  # closed by close(): the consumer has stopped
+            raise
+        except Exception as exc:  # noqa: BLE001 - handed to the consumer thread
+            await asyncio.to_thread(self._q.put, exc)
             return
-        self._q.put(self._DONE)
+        await asyncio.to_thread(self._q.put, self._DONE)
+
+    def _offer(self, item: Any) -> None:
+        with contextlib.suppress(queue.Full):
+            self._q.put_nowait(item)
 
     def __iter__(self) -> Iterator[P.Frame]:
         while True:
@@ -157,8 +233,12 @@ class SyncSubscription:
             yield item
 
     def close(self) -> None:
+        """Stop the client: its task is cancelled in its own loop (its ``finally`` closes the
+        socket), so no coroutine is left un-awaited however far the client had got."""
+        self.client._closed = True
         if self._thread.is_alive():
-            asyncio.run_coroutine_threadsafe(self.client.close(), self._loop)
+            with contextlib.suppress(RuntimeError):  # the loop has just finished
+                self._loop.call_soon_threadsafe(self._task.cancel)
             self._thread.join(2.0)
 
     def __enter__(self) -> SyncSubscription:

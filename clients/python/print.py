@@ -17,11 +17,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("session")
     ap.add_argument("--rate", type=float, default=None, help="max frames per second")
     ap.add_argument("--frames", type=int, default=0, help="stop after N frames")
+    ap.add_argument("--token", default=None, help="the server's token (default: "
+                    "ARTICAST_TOKEN; prefer the variable: arguments show in the process list)")
     args = ap.parse_args(argv)
     n = 0
     try:
         with subscribe_sync(args.url, args.session, ("articulatory", "pose"),
-                            rate=args.rate) as sub:
+                            rate=args.rate, token=args.token) as sub:
             for f in sub:
                 a = f.values.articulatory or {}
                 lat = (time.time() - f.t_sent) * 1000

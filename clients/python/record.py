@@ -27,12 +27,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("session")
     ap.add_argument("-o", "--output", required=True, help="JSONL file to write")
     ap.add_argument("--frames", type=int, default=0, help="stop after N frames (0: until end)")
+    ap.add_argument("--token", default=None, help="the server's token (default: "
+                    "ARTICAST_TOKEN; prefer the variable: arguments show in the process list)")
     args = ap.parse_args(argv)
     n = 0
     header_written = False
     try:
         with open(args.output, "w", encoding="utf-8") as out:
-            with subscribe_sync(args.url, args.session, ("articulatory", "pose")) as sub:
+            with subscribe_sync(args.url, args.session, ("articulatory", "pose"),
+                                token=args.token) as sub:
                 for frame in sub:
                     if not header_written and sub.hello is not None:
                         out.write(json.dumps(header_record(sub.hello)) + "\n")

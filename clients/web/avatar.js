@@ -19,7 +19,7 @@ function withToken(url) {
 }
 const state = (window.articast = {
   frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
-  error: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null,
+  error: "", final: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null,
   latencies: [], // capture -> on screen, ms, one per drawn frame (the last 20 000)
 });
 const $ = (id) => document.getElementById(id);
@@ -191,10 +191,27 @@ function showBars(alpha) {
 function status(text, bad) { const s = $("status"); s.textContent = text; s.className = bad ? "bad" : "good"; state.status = text; }
 
 // ----------------------------------------------------------------------------- connection
-let delay = 250;
+let delay = 250, final = "";
+const TOKEN_FIX = "this server needs a token: open this page with &token=TOKEN in its URL " +
+  "(the server's ARTICAST_TOKEN or --token-file)";
+function stop(text) { // a refusal or an end: said once, never retried
+  final = text; state.final = text; status(text, true); overlay(text);
+}
+async function refusal() { // why the server would not let us in, if it says so (else "")
+  try {
+    const r = await fetch("/api/sessions", { headers: authHeaders });
+    if (r.status === 401) return token ? "the server refused this page's token: " + TOKEN_FIX : TOKEN_FIX;
+    if (r.status === 429) return "the server refused this page's token too often: " + TOKEN_FIX +
+      "; then wait a minute";
+    if (r.status === 403) return "the server refused this page: " + ((await r.json()).detail || "forbidden");
+  } catch (e) { /* unreachable: a network problem, retried */ }
+  return "";
+}
 async function chooseSession() {
   if (params.get("session")) return params.get("session");
-  const r = await fetch("/api/sessions", { headers: authHeaders }); const list = await r.json();
+  const r = await fetch("/api/sessions", { headers: authHeaders });
+  if ([401, 403, 429].includes(r.status)) throw new Error("refused");
+  const list = await r.json();
   if (!list.length) throw new Error("the server has no session");
   return list[0].name;
 }
@@ -269,9 +286,14 @@ function overlay(text) { // what the view says while there is no face to show
 }
 async function connect() {
   let session;
-  try { session = await chooseSession(); } catch (e) { return retry(`no session yet (${e.message})`); }
+  try { session = await chooseSession(); } catch (e) {
+    const why = await refusal();
+    return why ? stop(why) : retry(`no session yet (${e.message})`);
+  }
   const ws = new WebSocket(socketUrl());
+  let opened = false;
   ws.onopen = () => {
+    opened = true;
     state.connected = true; state.connects++; delay = 250; status(`connected to ${session}`);
     if (!state.rendered) overlay(`waiting for the first frame of ${session}…`);
     ws.send(JSON.stringify({ type: "subscribe", session, streams: ["articulatory", "pose"],
@@ -285,10 +307,19 @@ async function connect() {
       const text = `${m.session}: ${m.state} ${m.detail || ""}`;
       status(text, m.state !== "running");
       if (!state.rendered || m.state !== "running") overlay(m.state === "running" ? "" : text);
+      if (["ended", "failed", "stopped"].includes(m.state)) { stop(text); ws.close(); }
     }
-    else if (m.type === "error") { state.error = m.reason; status(`error: ${m.reason}`, true); }
+    else if (m.type === "error") {
+      state.error = m.reason; status(`error: ${m.reason}`, true);
+      if (m.code === "unknown_session") { stop(`no session "${session}" on this server`); ws.close(); }
+    }
   };
-  ws.onclose = () => { state.connected = false; retry("disconnected"); };
+  ws.onclose = async () => {
+    state.connected = false;
+    if (final) return;
+    const why = opened ? "" : await refusal(); // a refused handshake: the browser hides the 401
+    if (why) stop(why); else retry("disconnected");
+  };
 }
 function socketUrl() { // the one place the WebSocket URL is built
   const proto = location.protocol === "https:" ? "wss" : "ws";

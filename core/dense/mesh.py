@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -211,11 +210,32 @@ def _point_to_plane_step(
 
 def load_obj(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     """:func:`parse_obj` of a file; :class:`InputError` naming the file for any defect."""
-    try:
-        text = Path(path).read_text(encoding="utf-8", errors="replace")
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
-    return parse_obj(text, source=str(path))
+    from articast.core.safe_io import read_regular_bytes
+
+    text = read_regular_bytes(path).decode("utf-8", errors="replace")
+    verts, tris = parse_obj(text, source=str(path))
+    check_scan(verts, tris, source=str(path))
+    return verts, tris
+
+
+MAX_COORDINATE_MM = 1e6
+"""A scan's coordinates, mm (1 km): beyond, a file is not a face."""
+
+
+def check_scan(verts: np.ndarray, tris: np.ndarray, source: str = "<obj>") -> None:
+    """A scan a face can be bound to: finite coordinates of plausible size, at least three
+    distinct vertices that span an area (500 copies of one point bound with a 45 mm error
+    before, and exited 0)."""
+    if len(verts) and not np.all(np.abs(verts) <= MAX_COORDINATE_MM):
+        raise InputError(f"{source}: vertex coordinates must be finite and within "
+                         f"{MAX_COORDINATE_MM:g} mm")
+    if len(verts) < 3:
+        raise InputError(f"{source}: a scan needs at least 3 vertices, found {len(verts)}")
+    spread = verts - verts.mean(axis=0)
+    extent = np.linalg.svd(spread, compute_uv=False) if len(verts) else np.zeros(3)
+    if extent[1] <= 1e-9 * max(1.0, float(extent[0])):
+        raise InputError(f"{source}: the vertices do not span a surface (all the same point, "
+                         "or on one line)")
 
 
 def parse_obj(text: str, source: str = "<obj>") -> tuple[np.ndarray, np.ndarray]:

@@ -100,12 +100,16 @@ def mouth_parts(model: FaceModel) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     if not parts:
         return (np.zeros((0, 3)), np.zeros((k, 0, 3)), np.zeros((0, 3), np.int64),
                 np.zeros(0, np.uint8))
-    verts, modes, tris, labels, offset = [], [], [], [], 0
+    all_verts: list[np.ndarray] = []
+    all_modes: list[np.ndarray] = []
+    all_tris: list[np.ndarray] = []
+    labels: list[np.ndarray] = []
+    offset = 0
     for v, m, t, lab in parts:
-        verts.append(v)
-        modes.append(m)
-        tris.append(t + offset)
+        all_verts.append(v)
+        all_modes.append(m)
+        all_tris.append(t + offset)
         labels.append(np.full(len(v), lab, np.uint8))
         offset += len(v)
-    return (np.concatenate(verts), np.concatenate(modes, axis=1), np.concatenate(tris),
+    return (np.concatenate(all_verts), np.concatenate(all_modes, axis=1), np.concatenate(all_tris),
             np.concatenate(labels))

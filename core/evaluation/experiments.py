@@ -158,7 +158,7 @@ class Evaluation:
     def _degrade(self, cond: str, seq_index: int, n: int):
         from articast.core.synthetic import RenderOptions
 
-        base = {"seed": 1000 * (seq_index + 1)}
+        base: dict[str, Any] = {"seed": 1000 * (seq_index + 1)}
         if cond == "noise":
             base["noise_sigma"] = 5.0
         elif cond == "blur":

@@ -116,13 +116,19 @@ class Speaker:
         d = Path(folder)
         if not d.is_dir():
             raise InputError(f"{d}: not a speaker folder (make one with 'articast enroll')")
-        missing = [f for f in FILES if not (d / f).is_file()]
+        missing = [f for f in FILES if not os.path.lexists(d / f)]
         if missing:
             raise ModelFileError(f"{d}: not a complete speaker folder, missing "
                                  f"{', '.join(missing)} (make one with 'articast enroll')")
         where = str(d / "speaker.json")
+        from articast.core.safe_io import read_regular_bytes
+
         try:
-            meta = json.loads((d / "speaker.json").read_text(encoding="utf-8"))
+            meta = json.loads(read_regular_bytes(d / "speaker.json", 16 << 20))
+        except InputError as exc:
+            raise ModelFileError(str(exc)) from None
+        except RecursionError:
+            raise ModelFileError(f"{where}: JSON nested too deeply") from None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ModelFileError(f"{where}: not readable JSON ({exc})") from None
         if not isinstance(meta, dict) or meta.get("kind") != SPEAKER_KIND:

@@ -139,12 +139,27 @@ class Pose:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> Pose:
+        """A pose read from a file: 3 + 3 finite numbers of plausible size (a rotation vector
+        within 1000 rad, a translation within 1 km), else :class:`InputError`."""
         try:
-            return cls(d["rotation"], d["translation"])
+            pose = cls(d["rotation"], d["translation"])
         except (KeyError, TypeError) as exc:
             raise InputError(
                 f"a pose needs 'rotation' and 'translation' (3 numbers each): {exc}"
             ) from None
+        if pose.rotation.shape != (3,) or pose.translation.shape != (3,):
+            raise InputError("a pose needs 'rotation' and 'translation' of 3 numbers each")
+        if not (np.all(np.abs(pose.rotation) <= 1e3) and np.all(np.abs(pose.translation) <= 1e6)):
+            raise InputError("pose values must be finite, rotation within 1000 rad and "
+                             "translation within 1e6 mm")
+        return pose
+
+
+FOCAL_RANGE = (0.05, 100.0)
+"""Plausible focal lengths, in multiples of the image's larger side (a fisheye ~0.3, a long
+telephoto ~10): a camera file outside it is a mistake (1e-300 px tracked "ok" before)."""
+MAX_DISTORTION = 1e4
+"""Plausible |distortion coefficient| (OpenCV's rational model reaches tens)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -284,6 +299,19 @@ class Camera:
                 raise ModelFileError(f"{where}: image size {width}x{height} is not plausible")
             if not (k[0, 0] > 0 and k[1, 1] > 0):
                 raise ModelFileError(f"{where}: focal lengths in K must be positive")
+            size = max(width, height)
+            if not (FOCAL_RANGE[0] * size <= min(k[0, 0], k[1, 1])
+                    and max(k[0, 0], k[1, 1]) <= FOCAL_RANGE[1] * size):
+                raise ModelFileError(
+                    f"{where}: focal lengths {k[0, 0]:.4g}, {k[1, 1]:.4g} px are not plausible "
+                    f"for a {width}x{height} image (expected {FOCAL_RANGE[0]:g} to "
+                    f"{FOCAL_RANGE[1]:g} times its larger side)")
+            if not (-width <= k[0, 2] <= 2 * width and -height <= k[1, 2] <= 2 * height):
+                raise ModelFileError(f"{where}: principal point {k[0, 2]:.4g}, {k[1, 2]:.4g} px "
+                                     f"is far outside the {width}x{height} image")
+            if np.any(np.abs(dist) > MAX_DISTORTION):
+                raise ModelFileError(f"{where}: distortion coefficients over "
+                                     f"{MAX_DISTORTION:g} are not plausible")
             return cls(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height, dist)
         except ModelFileError:
             raise
@@ -297,12 +325,16 @@ class Camera:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Camera:
+        from articast.core.safe_io import read_regular_bytes
+
+        if Path(path).is_dir():
+            raise ModelFileError(f"{path}: is a folder, expected a camera file (.json)")
+        if not os.path.lexists(path):
+            raise ModelFileError(f"{path}: no such file")
         try:
-            doc = json.loads(Path(path).read_text())
-        except FileNotFoundError:
-            raise ModelFileError(f"{path}: no such file") from None
-        except IsADirectoryError:
-            raise ModelFileError(f"{path}: is a folder, expected a camera file (.json)") from None
+            doc = json.loads(read_regular_bytes(path, 1 << 20))
+        except InputError as exc:
+            raise ModelFileError(str(exc)) from None
         except (OSError, ValueError, RecursionError) as exc:
             raise ModelFileError(f"{path}: not a JSON camera file ({type(exc).__name__})"
                                  ) from None

@@ -54,6 +54,10 @@ def _frozen(a: np.ndarray, dtype: type) -> np.ndarray:
     return a
 
 
+MAX_MM = 1e5
+"""|coordinate| and |basis value| of a model, mm (100 m): 1e308 in a model file made the
+fits fail with LinAlgError in a crash-restart loop before."""
+
 @dataclass(frozen=True, eq=False)
 class ParamStats:
     """Training statistics of the articulatory parameters, each an array of shape (K,)."""
@@ -103,7 +107,9 @@ class FaceModel:
     mean: np.ndarray
     basis: np.ndarray
     param_names: tuple[str, ...] = PARAM_NAMES
-    stats: ParamStats | None = None
+    # None as an argument means "unit statistics"; __post_init__ always fills it, so readers
+    # see a ParamStats (typed so: no Optional narrowing at every use)
+    stats: ParamStats = None  # type: ignore[assignment]
     point_names: tuple[str, ...] = ()
     groups: Mapping[str, np.ndarray] = field(default_factory=dict)
     triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int32))
@@ -233,6 +239,8 @@ class FaceModel:
             require(basis.ndim == 3 and basis.shape[1:] == (n, 3), path,
                     f"basis has shape {basis.shape}, expected (K, {n}, 3)")
             k = basis.shape[0]
+            require(bool(np.all(np.abs(mean) <= MAX_MM)) and bool(np.all(np.abs(basis) <= MAX_MM)),
+                    path, f"mean or basis values beyond {MAX_MM:g} mm: not a face model")
             require(arrays["stats"].shape == (4, k), path,
                     f"stats has shape {arrays['stats'].shape}, expected (4, {k})")
             names = meta.get("param_names", [])

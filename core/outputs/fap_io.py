@@ -115,15 +115,16 @@ def write_fap(
 
 def read_fap(path: str | os.PathLike[str], *, allow_comments: bool = False) -> FapSequence:
     """Read and check a ``.fap`` file (see :func:`parse_fap`)."""
+    from articast.core.safe_io import read_regular_bytes
+
     path = Path(path)
+    if not os.path.lexists(path):
+        raise InputError(f"{path}: no such file")
+    data = read_regular_bytes(path)
     try:
-        text = path.read_bytes().decode("ascii")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror or type(exc).__name__})") from None
+        text = data.decode("ascii")
     except UnicodeDecodeError as exc:
-        line = path.read_bytes()[: exc.start].count(b"\n") + 1
+        line = data[: exc.start].count(b"\n") + 1
         raise InputError(f"{path}: line {line}: not ASCII text") from None
     return parse_fap(text, source=str(path), allow_comments=allow_comments)
 

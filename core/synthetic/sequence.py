@@ -51,8 +51,8 @@ def default_camera(rig: str = "head", width: int = 640, height: int = 480) -> Ca
 def rest_pose(rig: str = "head") -> Pose:
     """Head -> camera pose of ``rig`` with the head at rest."""
     _check_rig(rig)
-    eye, target, _ = RIG_GEOMETRY[rig]
-    eye, target = np.asarray(eye), np.asarray(target)
+    eye_xyz, target_xyz, _ = RIG_GEOMETRY[rig]
+    eye, target = np.asarray(eye_xyz), np.asarray(target_xyz)
     fwd = (target - eye) / np.linalg.norm(target - eye)  # camera z, in the head frame
     right = np.cross(fwd, [0.0, 1.0, 0.0])  # camera x: head up x forward
     right /= np.linalg.norm(right)

@@ -9,6 +9,11 @@ import numpy as np
 
 from articast.core.model.camera import Pose
 
+MAX_T = 1e9
+"""A record's time stamp, s: media time from the start (31 years is no recording)."""
+MAX_ALPHA = 1e3
+"""|alpha| in training standard deviations: real frames stay within ~10."""
+
 
 @dataclass(frozen=True, eq=False)
 class TrackResult:
@@ -60,8 +65,13 @@ class TrackResult:
     def from_dict(cls, d: dict[str, Any], param_names: tuple[str, ...]) -> TrackResult:
         q = d.get("quality", {})
         alpha = np.array([float(d["alpha"].get(n, 0.0)) for n in param_names])
+        t = float(d["t"])
+        if not abs(t) <= MAX_T:  # NaN included
+            raise ValueError(f"time stamp {t} is not a finite number within {MAX_T:g} s")
+        if not np.all(np.abs(alpha) <= MAX_ALPHA):
+            raise ValueError(f"alpha values must be finite numbers within ±{MAX_ALPHA:g}")
         return cls(
-            frame=int(d["frame"]), t=float(d["t"]), alpha=alpha, pose=Pose.from_dict(d["pose"]),
+            frame=int(d["frame"]), t=t, alpha=alpha, pose=Pose.from_dict(d["pose"]),
             ok=bool(q.get("ok", True)), reason=str(q.get("reason", "")),
             residual=float(q["residual"]) if q.get("residual") is not None else float("nan"),
             evals=int(q.get("evals", 0)),

@@ -57,14 +57,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def read_track(path: Path, param_names: tuple[str, ...]) -> list:
     """TrackResults of a JSON-lines file; blank lines are skipped, anything else must parse."""
+    from articast.core.safe_io import read_regular_text
     from articast.core.tracking.result import TrackResult
 
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(f"{path}: no such file") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read: {exc}") from None
+    if not path.exists() and not path.is_symlink():
+        raise InputError(f"{path}: no such file")
+    text = read_regular_text(path)
     results = []
     for n, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
@@ -80,6 +78,8 @@ def read_track(path: Path, param_names: tuple[str, ...]) -> list:
             if not np.all(np.isfinite(result.alpha)):
                 raise ValueError("alpha values must be finite numbers")
             results.append(result)
+        except RecursionError:
+            raise InputError(f"{path}: line {n}: JSON nested too deeply") from None
         except (ValueError, KeyError, TypeError, AttributeError) as exc:
             reason = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
             raise InputError(f"{path}: line {n}: not a track record: {reason}") from None
@@ -138,6 +138,31 @@ def track_fps(t: np.ndarray) -> float:
     return nearest if abs(nearest - fps) <= tolerance else round(fps, 3)
 
 
+MAX_FAP_FRAMES = 10_000_000
+"""Frames of one .fap file (92 hours at 30 fps)."""
+
+
+def fap_frame_count(results: list, where: str, fps: float | None = None) -> tuple[float, int]:
+    """The rate and the number of frames of the .fap file for these track records; an
+    :class:`InputError` for time stamps that give no usable rate or an absurd span (two
+    records 1e9 s apart divided by zero before)."""
+    t = np.array([r.t for r in results])
+    if fps is None:
+        try:
+            fps = track_fps(t)
+        except InputError as exc:
+            raise InputError(f"{where}: {exc}") from None
+    if not (np.isfinite(fps) and 0.01 <= fps <= 10_000):
+        raise InputError(f"{where}: a frame rate of {fps:.6g} fps from its time stamps is not "
+                         "plausible: pass --fps")
+    span = float(t[-1] - t[0])
+    n = int(span * fps) + 1 if span > 0 else len(t)
+    if n > MAX_FAP_FRAMES:
+        raise InputError(f"{where}: its time stamps span {span:.6g} s, {n} frames at "
+                         f"{fps:.6g} fps: over the limit of {MAX_FAP_FRAMES}")
+    return fps, n
+
+
 def _export_fap(args: argparse.Namespace) -> int:
     from articast.core.model.camera import FRONTAL
     from articast.core.model.face import FaceModel
@@ -161,7 +186,7 @@ def _export_fap(args: argparse.Namespace) -> int:
     alpha, pose = hold_last_good(alpha, pose, ok, neutral_pose)
     if args.fps is not None and not (np.isfinite(args.fps) and args.fps > 0):
         raise InputError(f"--fps must be a positive number, got {args.fps}")
-    fps = args.fps if args.fps is not None else track_fps(t)
+    fps, _ = fap_frame_count(results, str(args.track), args.fps)
     # no usable time span (one record, or time stamps all equal): one .fap frame per record
     idx = grid_indices(t, fps) if t[-1] > t[0] else np.arange(len(t))
     encoder = FapEncoder(model, reference_rotation=reference, jaw_relative=not args.absolute_lips)

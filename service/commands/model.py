@@ -65,7 +65,10 @@ def _calibrate(args: argparse.Namespace) -> int:
     for p in args.images:
         paths.extend(sorted(q for q in p.iterdir() if q.is_file()) if p.is_dir() else [p])
     images = []
+    from articast.core.safe_io import require_regular
+
     for p in paths:
+        require_regular(p)  # a FIFO would block OpenCV for ever
         im = cv2.imread(str(p))
         if im is None:
             raise InputError(f"{p}: not a readable image")

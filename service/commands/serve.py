@@ -28,7 +28,7 @@ Every option is also settable as an ARTICAST_<OPTION> environment variable.
 """
 
 
-def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
+def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser(
         "serve", help="track faces and stream them to WebSocket subscribers",
         description="Run the streaming service with one session per --source.",
@@ -210,7 +210,12 @@ def access_policy(args: argparse.Namespace, host: str) -> AccessPolicy:
     import os
 
     from articast.core.errors import InputError
-    from articast.service.security import AccessPolicy, is_loopback, load_token
+    from articast.service.security import (
+        AccessPolicy,
+        check_token_strength,
+        is_loopback,
+        load_token,
+    )
 
     if getattr(args, "api_token", None) is not None:
         raise InputError("--api-token is gone: a token on the command line is visible to "
@@ -218,6 +223,7 @@ def access_policy(args: argparse.Namespace, host: str) -> AccessPolicy:
                          "--token-file FILE")
     env = os.environ
     token = load_token(env, args.token_file or env.get("ARTICAST_TOKEN_FILE", ""))
+    check_token_strength(token)
     insecure = args.insecure_no_token or env.get("ARTICAST_INSECURE_NO_TOKEN", "").lower() in (
         "1", "true", "yes", "on")
     if not token and not is_loopback(host) and not insecure:

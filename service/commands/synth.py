@@ -171,7 +171,7 @@ def _sequence(args: argparse.Namespace) -> int:
     alpha = invert(model, seq.points)
 
     video_path = out / "video.mp4"
-    writer = cv2.VideoWriter(str(video_path), cv2.VideoWriter_fourcc(*"mp4v"), float(args.fps),
+    writer = cv2.VideoWriter(str(video_path), cv2.VideoWriter.fourcc(*"mp4v"), float(args.fps),
                              (width, height))
     if not writer.isOpened():
         raise InputError(f"cannot write {video_path}: OpenCV has no mp4v encoder here or the "

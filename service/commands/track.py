@@ -157,13 +157,13 @@ def _initial_pose(args: argparse.Namespace, param_names):
             v = []
         if len(v) != 6:
             raise InputError("--init-pose needs 6 numbers: rx,ry,rz,tx,ty,tz")
-        return Pose(v[:3], v[3:])
+        return Pose(np.asarray(v[:3]), np.asarray(v[3:]))
     if args.init_truth:
         states = load_states(args.init_truth, param_names)
         if not states:
             raise InputError(f"{args.init_truth}: empty")
         return states[0].pose
-    return Pose(translation=[0.0, 0.0, args.distance_mm])
+    return Pose(translation=np.array([0.0, 0.0, args.distance_mm]))
 
 
 def _make_tracker(args: argparse.Namespace):
