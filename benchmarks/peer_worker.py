@@ -135,6 +135,9 @@ def main() -> None:
     stream = sys.stdin.buffer
     head = json.loads(stream.readline())
     n, h, w = int(head["n"]), int(head["h"]), int(head["w"])
+    import cv2
+
+    cv2.setNumThreads(1)
     tracker = METHODS[method](cfg, w, h)
     points, ms, cpu = [], np.zeros(n), np.zeros(n)
     for i in range(n):

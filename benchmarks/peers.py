@@ -38,8 +38,11 @@ Scores per clip and method (held-out frames):
 - ``lag``: the shift (frames, within +-5) of the peak correlation with the leave-one-out
   consensus; positive: the method is late;
 - ``ms``: mean wall ms per frame of the method's whole loop (detector, landmarks, fit), one
-  thread; ``cpu_ms``: its process CPU time per frame (less sensitive to other jobs on the
-  machine); ``x_v1``: ms over the FaceMesh v1 loop's in the same run;
+  thread (onnxruntime sessions with one intra-op thread, ``cv2.setNumThreads(1)`` here and in
+  the workers; mediapipe's graph runs its own calculators); ``cpu_ms``: its process CPU time
+  per frame (less sensitive to other jobs on the machine); ``x_v1``: ms over the FaceMesh v1
+  loop's in the same run. Timings exclude model loading and, for the workers, process
+  start-up and the pipe (measured inside the worker);
 - ``synthetic`` only: ``truth_r``, the correlation with the true aperture ratio (the truth's
   parameters through the true model: inner midpoints 2.2-2.3 over outer corners 8.3-8.4), and
   for articast the mean absolute error of its aperture and width in mm.
@@ -509,6 +512,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="write an overlay grid of every frame articast marks occluded here")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)
     names = args.only or [*clips, "synthetic"]
     peers = load_peers(args.peers)
