@@ -84,10 +84,13 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
         face = finder.track(f, prev) if prev is not None else None
         face = face or finder.find(f)
         prev = face
-        marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
+        marks.append(face.landmarks if face is not None else None)
         found.append(face is not None)
     ms = (time.perf_counter() - t0) * 1000 / max(len(frames), 1)
-    return np.array(marks), np.array(found), ms
+    # NaN where no face, as many points as the model gives (478 for v2, 468 for FaceMesh v1)
+    shape = next((m.shape for m in marks if m is not None), (478, 3))
+    return (np.array([m if m is not None else np.full(shape, np.nan) for m in marks]),
+            np.array(found), ms)
 
 
 def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None = None,
