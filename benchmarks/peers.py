@@ -291,8 +291,8 @@ def run_worker(name: str, peer: dict, held: list[np.ndarray]) -> dict:
             return {"error": f"worker exit {code}: {tail[-1] if tail else ''}"}
         data = np.load(out)
         pts, scheme = data["points"], str(data["scheme"])
-        if pts.shape[1] == 0:
-            return {"error": "no face in any frame"}
+        if pts.shape[1] == 0:  # no face in any frame: as many NaN points as the scheme needs
+            pts = np.full((len(held), max(SCHEMES[scheme]) + 1, 2), np.nan)
         found = np.isfinite(pts).all(axis=(1, 2))
         return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme),
                 "ms": float(data["ms"].mean()), "cpu_ms": float(data["cpu_ms"].mean()),
@@ -520,6 +520,7 @@ def main(argv: list[str] | None = None) -> None:
     log(f"load average {load['start']}; methods {' '.join(args.methods)}")
     rows = []
     for name in names:
+        at = [round(x, 2) for x in os.getloadavg()]
         if name == "synthetic":
             rows.append(run_synthetic(args.methods, args.facemesh_v1, peers))
         elif name in clips:
@@ -527,6 +528,7 @@ def main(argv: list[str] | None = None) -> None:
                                  args.grid))
         else:
             sys.exit(f"{name}: not in {args.clips}/clips.json: run tools/fetch_real_clips.py")
+        rows[-1]["load_average_at_start"] = at
     load["end"] = [round(x, 2) for x in os.getloadavg()]
     if args.json:
         print(json.dumps({"load_average": load, "command": " ".join(sys.argv),
