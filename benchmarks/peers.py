@@ -394,10 +394,25 @@ def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: i
                                       for r in range(0, len(tiles), per_row)]))
 
 
-def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | None) -> dict:
+def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict],
+                truth: np.ndarray | None = None) -> None:
+    """Each method's per-frame aperture ratio and lip box (NaN where none), to look into."""
+    if series is None:
+        return
+    series.mkdir(parents=True, exist_ok=True)
+    live = {k: v for k, v in runs.items() if "error" not in v}
+    np.savez_compressed(series / f"{name}.npz", fps=fps, methods=list(live),
+                        **{f"ratio_{k}": v["ratio"] for k, v in live.items()},
+                        **{f"box_{k}": v["boxes"] for k, v in live.items()},
+                        **({"truth": truth} if truth is not None else {}))
+
+
+def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | None,
+             series: Path | None = None) -> dict:
     log(f"{name}: reading {path.name}")
     enrol, held, fps, n = read_clip(path)
     runs = run_methods(methods, held, fps, enrol, facemesh_v1, peers)
+    save_series(series, name, fps, runs)
     row = evaluate(name, held, fps, runs)
     row.update({"frames": n, "size": list(held[0].shape[1::-1]) if held else None,
                 "enrol_fraction": ENROL_FRACTION})
@@ -406,7 +421,8 @@ def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | No
     return row
 
 
-def run_synthetic(methods, facemesh_v1, peers, seed: int = 0) -> dict:
+def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | None = None
+                  ) -> dict:
     """The built-in speaker on the desk rig: enrolled from landmarks on a 25 s sentence read at
     12 fps (as benchmarks/no_truth_path.py), the methods on another sentence at 50 fps, scored
     against the truth too."""
@@ -428,6 +444,7 @@ def run_synthetic(methods, facemesh_v1, peers, seed: int = 0) -> dict:
     truth = ap_true / outer_width_mm(true_model, at)
     runs = run_methods(methods, held, 50.0, enrol_imgs, facemesh_v1, peers,
                        {"camera": enrol.camera, "enrol_fps": 12.0})
+    save_series(series, "synthetic", 50.0, runs, truth)
     row = evaluate("synthetic", held, 50.0, runs, truth=truth)
     a = runs.get("articast", {})
     if "error" not in a and a:
@@ -455,8 +472,40 @@ def _fmt(x) -> str:
     return "–" if x is None else str(x)
 
 
+SUMMARY = (("r against the consensus of the others", "consensus_r"),
+           ("still-mouth jitter, % of the outer lip width", "jitter_pct_width"),
+           ("lag, frames (positive: late)", "lag_frames"),
+           ("wall ms per frame / FaceMesh v1 loop's", "x_v1"),
+           ("CPU ms per frame / FaceMesh v1 loop's", "cpu_x_v1"),
+           ("frames with a face (articast: ok)", None))
+
+
+def summary(rows: list[dict]) -> list[str]:
+    """One table per score: methods down, clips across."""
+    clips = [r["clip"] for r in rows]
+    methods = list(dict.fromkeys(m for r in rows for m in r["methods"]))
+    lines = []
+    for title, key in SUMMARY:
+        lines += [f"**{title}**", "", "| method | " + " | ".join(clips) + " |",
+                  "|---" * (len(clips) + 1) + "|"]
+        for m in methods:
+            cells = []
+            for r in rows:
+                v = r["methods"].get(m, {})
+                if "skipped" in v or not v:
+                    cells.append("–")
+                elif key is None:
+                    cells.append(_fmt(v.get("ok", v.get("found"))))
+                else:
+                    cells.append(_fmt(v.get(key)))
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
 def markdown(rows: list[dict], load: dict) -> str:
-    lines = [f"load average at start {load['start']}, at end {load['end']}", ""]
+    lines = [f"load average at start {load['start']}, at end {load['end']}", "",
+             *summary(rows)]
     for row in rows:
         truth = row["clip"] == "synthetic"
         lines += [f"### {row['clip']} ({row['held_out_frames']} held-out frames at "
@@ -510,6 +559,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--methods", nargs="*", choices=METHODS, default=list(METHODS))
     ap.add_argument("--grid", type=Path,
                     help="write an overlay grid of every frame articast marks occluded here")
+    ap.add_argument("--series", type=Path,
+                    help="write each clip's per-method aperture ratio and lip box series here")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
@@ -522,10 +573,11 @@ def main(argv: list[str] | None = None) -> None:
     for name in names:
         at = [round(x, 2) for x in os.getloadavg()]
         if name == "synthetic":
-            rows.append(run_synthetic(args.methods, args.facemesh_v1, peers))
+            rows.append(run_synthetic(args.methods, args.facemesh_v1, peers,
+                                      series=args.series))
         elif name in clips:
             rows.append(run_real(name, clips[name], args.methods, args.facemesh_v1, peers,
-                                 args.grid))
+                                 args.grid, args.series))
         else:
             sys.exit(f"{name}: not in {args.clips}/clips.json: run tools/fetch_real_clips.py")
         rows[-1]["load_average_at_start"] = at
