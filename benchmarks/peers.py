@@ -36,7 +36,9 @@ Scores per clip and method (held-out frames):
   outer width; the windows are the 10 % of 0.4 s windows whose mouth image changes least, the
   mouth placed by the per-frame median of all methods' lip boxes (``box_motion``);
 - ``lag``: the shift (frames, within +-5) of the peak correlation with the leave-one-out
-  consensus; positive: the method is late;
+  consensus; positive: the method is late. +-5 means no peak inside the range (a slow drift
+  between the two series makes the correlation climb with the shift), hence also
+  ``lag_velocity_frames``, the same on the frame-to-frame changes (blind to slow drifts);
 - ``ms``: mean wall ms per frame of the method's whole loop (detector, landmarks, fit), one
   thread (onnxruntime sessions with one intra-op thread, ``cv2.setNumThreads(1)`` here and in
   the workers; mediapipe's graph runs its own calculators); ``cpu_ms``: its process CPU time
@@ -163,7 +165,8 @@ def score(aps: dict[str, np.ndarray], windows: list[slice]) -> dict[str, dict]:
         r, n = pearson(ap, cons)
         out[name] = {"consensus_r": _round(r, 4), "consensus_n": n,
                      "jitter_pct_width": _round(jitter(ap, windows), 3),
-                     "lag_frames": lag(ap, cons)}
+                     "lag_frames": lag(ap, cons),
+                     "lag_velocity_frames": lag(np.diff(ap), np.diff(cons))}
     return out
 
 
@@ -462,7 +465,8 @@ def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | Non
 COLUMNS = (("found / ok", lambda r: r.get("ok", r.get("found"))),
            ("r consensus (n)", lambda r: f"{_fmt(r['consensus_r'])} ({r['consensus_n']})"),
            ("jitter % width", lambda r: r["jitter_pct_width"]),
-           ("lag", lambda r: r["lag_frames"]),
+           ("lag (velocity)", lambda r: f"{_fmt(r['lag_frames'])} "
+                                        f"({_fmt(r['lag_velocity_frames'])})"),
            ("ms/frame", lambda r: r["ms"]),
            ("x v1", lambda r: r["x_v1"]),
            ("CPU ms (x v1)", lambda r: f"{_fmt(r['cpu_ms'])} ({_fmt(r['cpu_x_v1'])})"))
@@ -474,7 +478,8 @@ def _fmt(x) -> str:
 
 SUMMARY = (("r against the consensus of the others", "consensus_r"),
            ("still-mouth jitter, % of the outer lip width", "jitter_pct_width"),
-           ("lag, frames (positive: late)", "lag_frames"),
+           ("lag, frames (positive: late; ±5: no peak in the range)", "lag_frames"),
+           ("lag of the frame-to-frame changes, frames", "lag_velocity_frames"),
            ("wall ms per frame / FaceMesh v1 loop's", "x_v1"),
            ("CPU ms per frame / FaceMesh v1 loop's", "cpu_x_v1"),
            ("frames with a face (articast: ok)", None))
