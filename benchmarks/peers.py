@@ -281,6 +281,7 @@ def run_worker(name: str, peer: dict, held: list[np.ndarray]) -> dict:
                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=fh,
                 env={**os.environ, "OMP_NUM_THREADS": "1", "TF_NUM_INTEROP_THREADS": "1",
                      "TF_NUM_INTRAOP_THREADS": "1", "GLOG_minloglevel": "2"})
+            assert proc.stdin is not None
             try:
                 proc.stdin.write(json.dumps({"n": len(held), "h": h, "w": w}).encode() + b"\n")
                 for f in held:
