@@ -102,8 +102,10 @@ class Dlib68:
 class OpenSeeFace:
     """OpenSeeFace's ``Tracker`` (its own detector, crops and landmark model), one face, one
     thread, gaze off (lips only), otherwise ``facetracker.py``'s defaults. Its 66 points
-    (68 with the pupils) are the iBUG scheme without the inner-lip corners: 48-59 the outer
-    lip, 58 and 62 the inner corners, 59-61 the upper and 63-65 the lower inner lip."""
+    (68 with the pupils) follow iBUG's up to 47; the mouth is not iBUG's: 58 and 62 are the
+    corners (shared by both contours; its own ``mouth_wide`` feature uses them), 48-52 the
+    upper and 53-57 the lower outer lip, 59-61 the upper and 63-65 the lower inner lip
+    (checked by drawing the indices on a frame)."""
 
     scheme = "openseeface"
 

@@ -29,7 +29,7 @@ Scores per clip and method (held-out frames):
 
 - ``consensus_r`` (and ``consensus_n`` frames): correlation of the method's lip aperture (inner
   gap over outer width: MediaPipe 13-14 over 61-291, iBUG 62-66 over 48-54, OpenSeeFace 60-64
-  over 48-54; the gap projected on the normal of the corner line) with the per-frame median of
+  over 58-62; the gap projected on the normal of the corner line) with the per-frame median of
   the *other* methods' (the method left out; frames with fewer than 2 others dropped);
   ``pairwise_r``: every pair's correlation;
 - ``jitter``: RMS of the aperture ratio about its linear trend inside still windows, % of the
@@ -96,7 +96,7 @@ MAX_LAG = 5
 MIN_FRAMES = 10  # fewer frames in common: no correlation reported
 #: per scheme: inner upper and lower midpoints, outer corners, outer upper and lower midpoints
 SCHEMES = {"mediapipe": (13, 14, 61, 291, 0, 17), "ibug68": (62, 66, 48, 54, 51, 57),
-           "openseeface": (60, 64, 48, 54, 51, 57)}
+           "openseeface": (60, 64, 58, 62, 50, 55)}
 
 
 def log(msg: str) -> None:
