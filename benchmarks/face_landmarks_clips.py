@@ -62,14 +62,24 @@ def aperture(landmarks: np.ndarray) -> tuple[float, float]:
     return float((landmarks[14, :2] - landmarks[13, :2]) @ down) / max(width, 1e-9), width
 
 
-def mouth_patch(grey: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
-    """(32, 64) float32 grey patch around the lips (box of the lip points grown 30 %)."""
+def lip_box(landmarks: np.ndarray) -> np.ndarray:
+    """(4,) x0, y0, x1, y1 px: the bounding box of the lip points (MediaPipe indices)."""
     pts = landmarks[LIP_BOX, :2]
-    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    return np.concatenate([pts.min(axis=0), pts.max(axis=0)])
+
+
+def box_patch(grey: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(32, 64) float32 grey patch around a lip box (x0, y0, x1, y1 px), grown 30 %."""
+    lo, hi = np.asarray(box[:2], float), np.asarray(box[2:], float)
     c, half = (lo + hi) / 2, (hi - lo) * 0.65 + 2
     src = np.float32([c - half, [c[0] + half[0], c[1] - half[1]], [c[0] - half[0], c[1] + half[1]]])
     dst = np.float32([[0, 0], [64, 0], [0, 32]])
     return cv2.warpAffine(grey, cv2.getAffineTransform(src, dst), (64, 32)).astype(np.float32)
+
+
+def mouth_patch(grey: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """(32, 64) float32 grey patch around the lips (box of the lip points grown 30 %)."""
+    return box_patch(grey, lip_box(landmarks))
 
 
 def run_clip(path: Path, finders: dict[str, FaceFinder], max_frames: int) -> dict:
@@ -115,12 +125,20 @@ def mouth_motion(greys: list[np.ndarray], landmarks: list[np.ndarray | None], le
     """Per-frame image change of the mouth patch, the patch fixed within each window of
     ``length`` frames (placed by the landmarks of the window's first frame), so that the choice
     of still windows depends on pixels, not on any model's jitter."""
+    return box_motion(greys, [lip_box(lm) if lm is not None else None for lm in landmarks],
+                      length)
+
+
+def box_motion(greys: list[np.ndarray], boxes: list[np.ndarray | None], length: int
+               ) -> np.ndarray:
+    """``mouth_motion`` with the mouth given as a lip box (x0, y0, x1, y1 px) per frame, or
+    None where it is not known: the patch is placed by the box of each window's first frame."""
     motion, anchor, prev = [], None, None
-    for n, (grey, lm) in enumerate(zip(greys, landmarks, strict=True)):
+    for n, (grey, box) in enumerate(zip(greys, boxes, strict=True)):
         if n % length == 0:
-            anchor = lm
+            anchor = box
         if anchor is not None and prev is not None:
-            change = mouth_patch(grey, anchor) - mouth_patch(prev, anchor)
+            change = box_patch(grey, anchor) - box_patch(prev, anchor)
             motion.append(float(np.abs(change).mean()))
         else:
             motion.append(np.nan)

@@ -48,6 +48,7 @@ from articast.core.faces.enrol import DEPTHS, EnrolOptions  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
+from articast.core.faces.speaker import Speaker  # noqa: E402
 from articast.core.model.camera import Camera  # noqa: E402
 from articast.core.outputs.lips import lip_measures  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
@@ -83,10 +84,63 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
         face = finder.track(f, prev) if prev is not None else None
         face = face or finder.find(f)
         prev = face
-        marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
+        marks.append(face.landmarks if face is not None else None)
         found.append(face is not None)
     ms = (time.perf_counter() - t0) * 1000 / max(len(frames), 1)
-    return np.array(marks), np.array(found), ms
+    # NaN where no face, as many points as the model gives (478 for v2, 468 for FaceMesh v1)
+    shape = next((m.shape for m in marks if m is not None), (478, 3))
+    return (np.array([m if m is not None else np.full(shape, np.nan) for m in marks]),
+            np.array(found), ms)
+
+
+def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None = None,
+                  rig: str = "desk", stride: int = 2, finder: FaceFinder | None = None,
+                  options: EnrolOptions | None = None, build: BuildOptions | None = None,
+                  extra: list[np.ndarray] | None = None) -> Speaker:
+    """Enrol a speaker on ``frames`` (BGR, all the same size) as the benchmarks do: every
+    ``stride``-th frame (as ``articast enroll`` strides long clips), the bundled landmark model
+    on each, then ``build_speaker``. ``camera``: default a 60-degree webcam at the frames'
+    size. ``extra``: more frames appended to the enrolment (a diagnosis: --enrol-with-held).
+    ``speaker.report["build_s"]`` is the time of ``build_speaker``."""
+    finder = finder or FaceFinder.load(threads=1)
+    h, w = frames[0].shape[:2]
+    camera = camera or Camera.default(w, h, 60.0)
+    enrol = list(frames[::stride])
+    marks, found, _ = landmarks_every_frame(finder, enrol)
+    if extra:
+        more, more_found, _ = landmarks_every_frame(finder, extra)
+        enrol, marks = enrol + list(extra), np.concatenate([marks, np.nan_to_num(more)])
+        found = np.concatenate([found, more_found])
+    t0 = time.perf_counter()
+    speaker = build_speaker(enrol, marks, found, mediapipe_scheme(rig), camera, rig,
+                            options or EnrolOptions(), build or BuildOptions())
+    speaker.report["build_s"] = time.perf_counter() - t0
+    speaker.report["enrol_frames"] = len(enrol)
+    return speaker
+
+
+def track_live(speaker: Speaker, frames: list[np.ndarray], fps: float, *,
+               live_policy: LivePolicy | None = None, finder: FaceFinder | None = None,
+               t0: float = 0.0) -> tuple[list, float, LiveTracker]:
+    """Track ``frames`` live (one thread, the speaker's rig): the per-frame results, the mean
+    ms per frame of the whole live path (its landmark calls and optical flow included; the
+    numba kernels are warmed up first, outside the timing) and the tracker (for its
+    ``finder_calls``, ``restarts``)."""
+    kernels.warm_up()
+    live = LiveTracker(speaker, finder or FaceFinder.load(threads=1),
+                       mediapipe_scheme(speaker.rig), live_policy, clock=time.perf_counter)
+    results = []
+    start = time.perf_counter()
+    for i, f in enumerate(frames):
+        results.append(live.track(f, t0 + i / fps))
+    ms = (time.perf_counter() - start) * 1000 / max(len(frames), 1)
+    return results, ms, live
+
+
+def outer_width_mm(model, alpha: np.ndarray) -> np.ndarray:
+    """Outer lip width (mm) of the fitted geometry: the corners 8.3-8.4, per frame."""
+    g = model.shape(alpha)
+    return np.linalg.norm(g[:, model.point("8.3")] - g[:, model.point("8.4")], axis=-1)
 
 
 def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy | None = None,
@@ -97,39 +151,25 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     enrol_s, test_s = CLIPS[name]
     n_enrol = int(enrol_s * fps)
     held = frames[n_enrol:n_enrol + int(test_s * fps)]
-    finder = FaceFinder.load(threads=1)
     camera = Camera.default(*SIZE, 60.0)
-    # enrolment: the first part, every other frame (as `articast enroll` strides long clips)
-    enrol = frames[:n_enrol:2]
-    marks, found, _ = landmarks_every_frame(finder, enrol)
-    if enrol_with_held:  # a diagnosis, not a held-out measure: see --enrol-with-held
-        extra = held[::enrol_with_held]
-        more, more_found, _ = landmarks_every_frame(finder, extra)
-        enrol, marks = enrol + extra, np.concatenate([marks, np.nan_to_num(more)])
-        found = np.concatenate([found, more_found])
+    # enrolment: the first part, every other frame (as `articast enroll` strides long clips);
+    # --enrol-with-held is a diagnosis, not a held-out measure
     opts = EnrolOptions(jaw_moves_upper_lip=not upper_lip_off_jaw,
                         **({"depth": depth} if depth is not None else {}))
-    t0 = time.perf_counter()
-    speaker = build_speaker(enrol, marks, found, mediapipe_scheme("desk"), camera, "desk", opts,
-                            BuildOptions(flow=flow))
-    build_s = time.perf_counter() - t0
-    kernels.warm_up()
+    speaker = enrol_speaker(frames[:n_enrol], fps, camera=camera, options=opts,
+                            build=BuildOptions(flow=flow),
+                            extra=held[::enrol_with_held] if enrol_with_held else None)
+    build_s = speaker.report["build_s"]
     # the landmark model alone on every held-out frame (the independent reference and the
     # speed baseline), then the live path on the same frames, in the same process
+    kernels.warm_up()
     lm, lm_found, lm_ms = landmarks_every_frame(FaceFinder.load(threads=1), held)
-    live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme("desk"),
-                       live_policy, clock=time.perf_counter)
-    results = []
-    t0 = time.perf_counter()
-    for i, f in enumerate(held):
-        results.append(live.track(f, i / fps))
-    live_ms = (time.perf_counter() - t0) * 1000 / max(len(held), 1)
+    results, live_ms, live = track_live(speaker, held, fps, live_policy=live_policy)
     ok = np.array([r.ok for r in results])
     alpha = np.array([r.alpha for r in results])
     ap_mm, _ = lip_measures(speaker.model, alpha)
     m = speaker.model
-    outer = np.linalg.norm(m.shape(alpha)[:, m.point("8.3")] - m.shape(alpha)[:, m.point("8.4")],
-                           axis=-1)
+    outer = outer_width_mm(m, alpha)
     ap_lm = np.array([aperture(x)[0] if np.isfinite(x).all() else np.nan for x in lm])
     grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in held]
     length = window_frames(fps)
@@ -137,7 +177,7 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     windows = still_windows(motion, length)
     both = ok & np.isfinite(ap_lm)
     out = {
-        "clip": name, "fps": round(fps, 3), "enrol_frames": len(enrol),
+        "clip": name, "fps": round(fps, 3), "enrol_frames": speaker.report["enrol_frames"],
         "held_out_frames": len(held), "ok": round(float(ok.mean()), 4),
         "reasons": _reasons(results),
         "aperture_r": round(float(np.corrcoef((ap_mm / outer)[both], ap_lm[both])[0, 1]), 4),

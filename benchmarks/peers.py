@@ -1,0 +1,599 @@
+"""articast against the free face trackers, on the same frames, one thread each, in one run.
+
+    python tools/fetch_real_clips.py                      # once: the clips
+    python tools/convert_face_models.py --with-v1         # once, in a tools venv: FaceMesh v1
+    python benchmarks/setup_peers.py --openseeface-git GIT   # once: the peers' venvs, models
+    python benchmarks/peers.py [--json] [--only CLIP ...] [--methods M ...] [--grid DIR]
+
+Each clip (every clip ``tools/fetch_real_clips.py`` fetched, and ``synthetic``) is read once and
+scaled to 640 px wide (aspect kept); every method sees exactly these frames. articast enrols on
+the first 60 % (at most 600 frames analysed, as ``articast enroll`` strides) and everything is
+scored on the remaining 40 % (held out), where all methods run:
+
+- ``articast``: ``real_clips.track_live`` (the live path: landmark checks, optical flow, fit,
+  filter); its aperture is ``lips.aperture_mm`` over the fitted outer lip width (8.3-8.4), as in
+  ``benchmarks/real_clips.py``. Frames not ok are NaN in its scores, counted in ``ok``.
+- ``facemesh_v1``: the loop a user would write with MediaPipe FaceMesh v1 on onnxruntime: the
+  bundled BlazeFace detector on the first frame and when lost, then the 468-point model (192 px)
+  on a crop re-made from the previous frame's landmarks (``FinderPolicy(refine=0,
+  keep_roi=0)``). Its mean ms per frame is the **speed baseline** of every ratio.
+- ``facelandmarker_v2``: the bundled ``FaceFinder`` (478 points, its default policy), as
+  ``real_clips.landmarks_every_frame``.
+- ``openseeface``, ``mediapipe`` (its own FaceMesh solution), ``dlib`` (68 points): each in its
+  own venv (``benchmarks/setup_peers.py``), run as a subprocess (``benchmarks/peer_worker.py``)
+  that receives the frames through a pipe and times its own per-frame work *inside* the
+  worker: process start-up, model loading and the pipe are not in its time. A peer that is not
+  set up is skipped with its reason.
+
+Scores per clip and method (held-out frames):
+
+- ``consensus_r`` (and ``consensus_n`` frames): correlation of the method's lip aperture (inner
+  gap over outer width: MediaPipe 13-14 over 61-291, iBUG 62-66 over 48-54, OpenSeeFace 60-64
+  over 58-62; the gap projected on the normal of the corner line) with the per-frame median of
+  the *other* methods' (the method left out; frames with fewer than 2 others dropped);
+  ``pairwise_r``: every pair's correlation;
+- ``jitter``: RMS of the aperture ratio about its linear trend inside still windows, % of the
+  outer width; the windows are the 10 % of 0.4 s windows whose mouth image changes least, the
+  mouth placed by the per-frame median of all methods' lip boxes (``box_motion``);
+- ``lag``: the shift (frames, within +-5) of the peak correlation with the leave-one-out
+  consensus; positive: the method is late. +-5 means no peak inside the range (a slow drift
+  between the two series makes the correlation climb with the shift), hence also
+  ``lag_velocity_frames``, the same on the frame-to-frame changes (blind to slow drifts);
+- ``ms``: mean wall ms per frame of the method's whole loop (detector, landmarks, fit), one
+  thread (onnxruntime sessions with one intra-op thread, ``cv2.setNumThreads(1)`` here and in
+  the workers; mediapipe's graph runs its own calculators); ``cpu_ms``: its process CPU time
+  per frame (less sensitive to other jobs on the machine); ``x_v1``: ms over the FaceMesh v1
+  loop's in the same run. Timings exclude model loading and, for the workers, process
+  start-up and the pipe (measured inside the worker);
+- ``synthetic`` only: ``truth_r``, the correlation with the true aperture ratio (the truth's
+  parameters through the true model: inner midpoints 2.2-2.3 over outer corners 8.3-8.4), and
+  for articast the mean absolute error of its aperture and width in mm.
+
+``--json`` prints one object per clip with the machine's load (``os.getloadavg``) at start and
+end; otherwise a markdown table. Progress goes to stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from face_landmarks_clips import box_motion, jitter, still_windows, window_frames  # noqa: E402
+from real_clips import (  # noqa: E402
+    enrol_speaker,
+    landmarks_every_frame,
+    outer_width_mm,
+    overlay,
+    track_live,
+)
+
+from articast.core.faces.finder import FaceFinder, FinderPolicy  # noqa: E402
+from articast.core.tracking import kernels  # noqa: E402
+
+CLIP_CACHE = Path.home() / ".cache/articast/clips"
+PEER_CACHE = Path.home() / ".cache/articast/peers"
+FACE_MODELS = Path.home() / ".cache/articast/face-models"
+WIDTH = 640
+ENROL_FRACTION = 0.6
+MAX_ENROL_FRAMES = 600
+METHODS = ("articast", "facemesh_v1", "facelandmarker_v2", "openseeface", "mediapipe", "dlib")
+WORKERS = ("openseeface", "mediapipe", "dlib")
+BASELINE = "facemesh_v1"
+MAX_LAG = 5
+MIN_FRAMES = 10  # fewer frames in common: no correlation reported
+#: per scheme: inner upper and lower midpoints, outer corners, outer upper and lower midpoints
+SCHEMES = {"mediapipe": (13, 14, 61, 291, 0, 17), "ibug68": (62, 66, 48, 54, 51, 57),
+           "openseeface": (60, 64, 58, 62, 50, 55)}
+
+
+def log(msg: str) -> None:
+    print(f"[peers {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------- scoring
+def aperture_ratio(points: np.ndarray, scheme: str) -> np.ndarray:
+    """(F,) inner-lip gap over outer-lip width from (F, K, 2) image points (NaN where none):
+    the gap between the inner midpoints projected on the normal of the corner line."""
+    up, low, right, left = (points[:, i] for i in SCHEMES[scheme][:4])
+    across = left - right
+    width = np.linalg.norm(across, axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        down = np.stack([-across[:, 1], across[:, 0]], -1) / width[:, None]
+        return np.sum((low - up) * down, -1) / width
+
+
+def lip_box(points: np.ndarray, scheme: str) -> np.ndarray:
+    """(F, 4) x0, y0, x1, y1 of the outer lip's corners and midpoints (NaN where none)."""
+    pts = points[:, list(SCHEMES[scheme][2:])]
+    return np.concatenate([pts.min(1), pts.max(1)], -1)
+
+
+def pearson(a: np.ndarray, b: np.ndarray) -> tuple[float, int]:
+    """Correlation over the frames where both are finite, and their number (NaN if fewer
+    than ``MIN_FRAMES``)."""
+    both = np.isfinite(a) & np.isfinite(b)
+    n = int(both.sum())
+    if n < MIN_FRAMES or np.std(a[both]) == 0 or np.std(b[both]) == 0:
+        return float("nan"), n
+    return float(np.corrcoef(a[both], b[both])[0, 1]), n
+
+
+def consensus(series: dict[str, np.ndarray], leave_out: str | None = None,
+              min_others: int = 2) -> np.ndarray:
+    """Per-frame median of the series other than ``leave_out``; NaN where fewer than
+    ``min_others`` of them are finite."""
+    others = np.array([v for k, v in series.items() if k != leave_out])
+    count = np.isfinite(others).sum(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        med = np.nanmedian(others, 0)
+    return np.where(count >= min_others, med, np.nan)
+
+
+def lag(x: np.ndarray, ref: np.ndarray, max_lag: int = MAX_LAG) -> int | None:
+    """The shift L in [-max_lag, max_lag] maximising corr(x[t], ref[t - L]): positive when
+    ``x`` follows ``ref`` late by L frames. None if no shift has a correlation."""
+    best, best_r = None, -np.inf
+    n = len(x)
+    for s in range(-max_lag, max_lag + 1):
+        a = x[max(s, 0):n + min(s, 0)]
+        b = ref[max(-s, 0):n - max(s, 0)]
+        r, _ = pearson(a, b)
+        if np.isfinite(r) and r > best_r:
+            best, best_r = s, r
+    return best
+
+
+def score(aps: dict[str, np.ndarray], windows: list[slice]) -> dict[str, dict]:
+    """Consensus r, jitter and lag of every method's aperture series."""
+    out = {}
+    for name, ap in aps.items():
+        cons = consensus(aps, leave_out=name)
+        r, n = pearson(ap, cons)
+        out[name] = {"consensus_r": _round(r, 4), "consensus_n": n,
+                     "jitter_pct_width": _round(jitter(ap, windows), 3),
+                     "lag_frames": lag(ap, cons),
+                     "lag_velocity_frames": lag(np.diff(ap), np.diff(cons))}
+    return out
+
+
+def _round(x: float | None, k: int) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), k)
+
+
+# ---------------------------------------------------------------------------- frames
+def scaled(frame: np.ndarray) -> np.ndarray:
+    h, w = frame.shape[:2]
+    size = (WIDTH, int(round(h * WIDTH / w / 2)) * 2)
+    return cv2.resize(frame, size, interpolation=cv2.INTER_LINEAR if w < WIDTH
+                      else cv2.INTER_AREA)
+
+
+def read_clip(path: Path) -> tuple[list[np.ndarray], list[np.ndarray], float, int]:
+    """Enrolment frames (the first 60 %, strided to at most MAX_ENROL_FRAMES), held-out frames
+    (the rest), fps, and the clip's frame count."""
+    cap = cv2.VideoCapture(str(path))
+    fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    n = 0
+    while cap.grab():
+        n += 1
+    cap.release()
+    n_enrol = int(ENROL_FRACTION * n)
+    stride = max(2, math.ceil(n_enrol / MAX_ENROL_FRAMES))
+    enrol, held = [], []
+    cap = cv2.VideoCapture(str(path))
+    for i in range(n):
+        ok, f = cap.read()
+        if not ok:
+            break
+        if i >= n_enrol:
+            held.append(scaled(f))
+        elif i % stride == 0:
+            enrol.append(scaled(f))
+    cap.release()
+    return enrol, held, fps, n
+
+
+# ---------------------------------------------------------------------------- methods
+def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk") -> dict:
+    """Enrol on ``enrol`` (already strided), track ``held`` live."""
+    try:
+        speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig, stride=1)
+    except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
+        return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
+    kernels.warm_up()
+    finder = FaceFinder.load(threads=1)
+    c0 = time.process_time()
+    results, ms, live = track_live(speaker, held, fps, finder=finder)
+    cpu = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+    m, cam = speaker.model, speaker.camera
+    ok = np.array([r.ok for r in results])
+    alpha = np.array([r.alpha for r in results])
+    from articast.core.outputs.lips import lip_measures
+
+    ap_mm, width_mm = lip_measures(m, alpha)
+    ratio = np.where(ok, ap_mm / outer_width_mm(m, alpha), np.nan)
+    idx = [m.point(x) for x in ("8.1", "8.2", "8.3", "8.4")]
+    boxes = np.full((len(held), 4), np.nan)
+    for i, r in enumerate(results):
+        if r.ok:
+            uv = cam.project_head(m.shape(np.asarray(r.alpha))[idx], r.pose)
+            boxes[i] = np.concatenate([uv.min(0), uv.max(0)])
+    reasons: dict[str, int] = {}
+    for r in results:
+        if not r.ok:
+            code = r.reason.split(":", 1)[0]
+            reasons[code] = reasons.get(code, 0) + 1
+    return {"ratio": ratio, "boxes": boxes, "ms": ms, "cpu_ms": cpu, "found": ok,
+            "speaker": speaker, "results": results, "aperture_mm": ap_mm,
+            "width_mm": width_mm, "ok": ok,
+            "info": {"ok": _round(ok.mean(), 4), "reasons": reasons,
+                     "occluded_frames": [i for i, r in enumerate(results)
+                                         if not r.ok and r.reason.startswith("occluded")],
+                     "restarts": live.restarts,
+                     "finder_calls_per_frame": _round(live.finder_calls / max(len(held), 1), 3),
+                     "enrol_frames": speaker.report["enrol_frames"],
+                     "enrol_build_s": _round(speaker.report["build_s"], 1)}}
+
+
+def run_finder(finder: FaceFinder, held, scheme="mediapipe") -> dict:
+    c0 = time.process_time()
+    marks, found, ms = landmarks_every_frame(finder, held)
+    cpu = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+    pts = marks[:, :, :2]
+    return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme), "ms": ms,
+            "cpu_ms": cpu, "found": found}
+
+
+def facemesh_v1_finder(path: Path) -> FaceFinder:
+    import onnxruntime as ort
+
+    v2 = FaceFinder.load(threads=1)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.inter_op_num_threads = 1
+    opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    lm = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    return FaceFinder(v2.detector_session, lm, FinderPolicy(refine=0, keep_roi=0.0))
+
+
+def run_worker(name: str, peer: dict, held: list[np.ndarray]) -> dict:
+    """Run one peer in its venv on ``held`` through a pipe; its own per-frame timing."""
+    h, w = held[0].shape[:2]
+    with tempfile.TemporaryDirectory(prefix="articast-peer-") as tmp:
+        out, err = Path(tmp) / "out.npz", Path(tmp) / "stderr.txt"
+        with open(err, "wb") as fh:
+            proc = subprocess.Popen(
+                [peer["python"], str(HERE / "peer_worker.py"), name, json.dumps(peer), str(out)],
+                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=fh,
+                env={**os.environ, "OMP_NUM_THREADS": "1", "TF_NUM_INTEROP_THREADS": "1",
+                     "TF_NUM_INTRAOP_THREADS": "1", "GLOG_minloglevel": "2"})
+            assert proc.stdin is not None
+            try:
+                proc.stdin.write(json.dumps({"n": len(held), "h": h, "w": w}).encode() + b"\n")
+                for f in held:
+                    proc.stdin.write(np.ascontiguousarray(f).tobytes())
+                proc.stdin.close()
+            except BrokenPipeError:
+                pass
+            code = proc.wait()
+        if code != 0 or not out.is_file():
+            tail = err.read_text(errors="replace").strip().splitlines()
+            return {"error": f"worker exit {code}: {tail[-1] if tail else ''}"}
+        data = np.load(out)
+        pts, scheme = data["points"], str(data["scheme"])
+        if pts.shape[1] == 0:  # no face in any frame: as many NaN points as the scheme needs
+            pts = np.full((len(held), max(SCHEMES[scheme]) + 1, 2), np.nan)
+        found = np.isfinite(pts).all(axis=(1, 2))
+        return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme),
+                "ms": float(data["ms"].mean()), "cpu_ms": float(data["cpu_ms"].mean()),
+                "found": found}
+
+
+def load_peers(cache: Path) -> dict:
+    path = cache / "peers.json"
+    return json.loads(path.read_text()) if path.is_file() else {}
+
+
+def run_methods(methods, held, fps, enrol, facemesh_v1: Path | None, peers: dict,
+                articast_kw: dict | None = None) -> dict[str, dict]:
+    out: dict[str, dict] = {}
+    for name in methods:
+        log(f"  {name} on {len(held)} frames")
+        t0 = time.perf_counter()
+        if name == "articast":
+            out[name] = run_articast(enrol, held, fps, **(articast_kw or {}))
+        elif name == "facemesh_v1":
+            if facemesh_v1 is None or not facemesh_v1.is_file():
+                out[name] = {"error": f"no FaceMesh v1 ONNX at {facemesh_v1}: run "
+                                      "tools/convert_face_models.py --with-v1"}
+            else:
+                out[name] = run_finder(facemesh_v1_finder(facemesh_v1), held)
+        elif name == "facelandmarker_v2":
+            out[name] = run_finder(FaceFinder.load(threads=1), held)
+        else:
+            peer = peers.get(name)
+            if not peer or not peer.get("ok"):
+                out[name] = {"error": (peer or {}).get("reason") or
+                             "not set up: run benchmarks/setup_peers.py"}
+            else:
+                out[name] = run_worker(name, peer, held)
+        if "error" in out[name]:
+            log(f"  {name}: skipped: {out[name]['error']}")
+        else:
+            log(f"  {name}: {out[name]['ms']:.2f} ms/frame "
+                f"({time.perf_counter() - t0:.0f} s in all)")
+    return out
+
+
+# ---------------------------------------------------------------------------- a clip
+def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | None = None
+             ) -> dict:
+    live = {k: v for k, v in runs.items() if "error" not in v}
+    aps = {k: v["ratio"] for k, v in live.items()}
+    boxes = np.array([v["boxes"] for v in live.values()])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        box = np.nanmedian(boxes, 0) if len(boxes) else np.full((len(held), 4), np.nan)
+    grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in held]
+    length = window_frames(fps)
+    motion = box_motion(grey, [b if np.isfinite(b).all() else None for b in box], length)
+    windows = still_windows(motion, length)
+    scores = score(aps, windows)
+    base = live.get(BASELINE, {}).get("ms")
+    base_cpu = live.get(BASELINE, {}).get("cpu_ms")
+    rows = {}
+    for k in runs:
+        v = runs[k]
+        if "error" in v:
+            rows[k] = {"skipped": v["error"]}
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            p50 = np.nanmedian(v["ratio"]) if np.isfinite(v["ratio"]).any() else None
+        row = {"found": _round(np.mean(v["found"]), 4), **scores[k],
+               "aperture_median": _round(p50, 4),
+               "ms": _round(v["ms"], 2), "cpu_ms": _round(v["cpu_ms"], 2),
+               "x_v1": _round(v["ms"] / base, 3) if base else None,
+               "cpu_x_v1": _round(v["cpu_ms"] / base_cpu, 3)
+               if base_cpu and v["cpu_ms"] else None}
+        if truth is not None:
+            row["truth_r"] = _round(pearson(v["ratio"], truth)[0], 4)
+        if "info" in v:
+            row.update(v["info"])
+        rows[k] = row
+    pair = {a: {b: _round(pearson(aps[a], aps[b])[0], 3) for b in aps if b != a} for a in aps}
+    return {"clip": name, "fps": round(fps, 3), "held_out_frames": len(held),
+            "still_windows": len(windows), "methods": rows, "pairwise_r": pair}
+
+
+def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: int = 8) -> None:
+    """Every held-out frame articast marked ``occluded``, with its fitted mesh."""
+    frames = run["info"]["occluded_frames"]
+    if not frames:
+        return
+    tiles = []
+    for i in frames:
+        t = cv2.resize(overlay(held[i], run["speaker"], run["results"][i]), (tile, tile))
+        cv2.putText(t, f"#{i}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+        tiles.append(t)
+    while len(tiles) % per_row:
+        tiles.append(np.zeros_like(tiles[0]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.vstack([np.hstack(tiles[r:r + per_row])
+                                      for r in range(0, len(tiles), per_row)]))
+
+
+def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict],
+                truth: np.ndarray | None = None) -> None:
+    """Each method's per-frame aperture ratio and lip box (NaN where none), to look into."""
+    if series is None:
+        return
+    series.mkdir(parents=True, exist_ok=True)
+    live = {k: v for k, v in runs.items() if "error" not in v}
+    np.savez_compressed(series / f"{name}.npz", fps=fps, methods=list(live),
+                        **{f"ratio_{k}": v["ratio"] for k, v in live.items()},
+                        **{f"box_{k}": v["boxes"] for k, v in live.items()},
+                        **({"truth": truth} if truth is not None else {}))
+
+
+def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | None,
+             series: Path | None = None) -> dict:
+    log(f"{name}: reading {path.name}")
+    enrol, held, fps, n = read_clip(path)
+    runs = run_methods(methods, held, fps, enrol, facemesh_v1, peers)
+    save_series(series, name, fps, runs)
+    row = evaluate(name, held, fps, runs)
+    row.update({"frames": n, "size": list(held[0].shape[1::-1]) if held else None,
+                "enrol_fraction": ENROL_FRACTION})
+    if grid is not None and "error" not in runs.get("articast", {"error": 1}):
+        write_occluded_grid(grid / f"{name}_occluded.png", held, runs["articast"])
+    return row
+
+
+def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | None = None
+                  ) -> dict:
+    """The built-in speaker on the desk rig: enrolled from landmarks on a 25 s sentence read at
+    12 fps (as benchmarks/no_truth_path.py), the methods on another sentence at 50 fps, scored
+    against the truth too."""
+    from articast.core.model.build import invert
+    from articast.core.outputs.lips import lip_measures
+    from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
+
+    log("synthetic: rendering (desk, speaker 0)")
+    sp = default_speaker(seed)
+    true_model = sp.model()
+    enrol = make_sequence(seed * 100 + 11, 300, 12.0, "desk", geometry=sp.geometry)
+    enrol_imgs = [sp.render(enrol.controls[i], enrol.pose(i), enrol.camera,
+                            RenderOptions(seed=10_000 + i)) for i in range(enrol.n_frames)]
+    test = make_sequence(seed * 100 + 12, 150, 50.0, "desk", geometry=sp.geometry)
+    held = [sp.render(test.controls[i], test.pose(i), test.camera,
+                      RenderOptions(seed=20_000 + i)) for i in range(test.n_frames)]
+    at = invert(true_model, test.points)
+    ap_true, width_true = lip_measures(true_model, at)
+    truth = ap_true / outer_width_mm(true_model, at)
+    runs = run_methods(methods, held, 50.0, enrol_imgs, facemesh_v1, peers,
+                       {"camera": enrol.camera, "enrol_fps": 12.0})
+    save_series(series, "synthetic", 50.0, runs, truth)
+    row = evaluate("synthetic", held, 50.0, runs, truth=truth)
+    a = runs.get("articast", {})
+    if "error" not in a and a:
+        ok = a["ok"]
+        row["methods"]["articast"]["aperture_mae_mm"] = _round(
+            np.abs(a["aperture_mm"] - ap_true)[ok].mean(), 2)
+        row["methods"]["articast"]["width_mae_mm"] = _round(
+            np.abs(a["width_mm"] - width_true)[ok].mean(), 2)
+    row.update({"frames": len(enrol_imgs) + len(held), "size": list(held[0].shape[1::-1]),
+                "enrol": "300 frames of another sentence at 12 fps (all analysed)"})
+    return row
+
+
+# ---------------------------------------------------------------------------- output
+COLUMNS = (("found / ok", lambda r: r.get("ok", r.get("found"))),
+           ("r consensus (n)", lambda r: f"{_fmt(r['consensus_r'])} ({r['consensus_n']})"),
+           ("jitter % width", lambda r: r["jitter_pct_width"]),
+           ("lag (velocity)", lambda r: f"{_fmt(r['lag_frames'])} "
+                                        f"({_fmt(r['lag_velocity_frames'])})"),
+           ("ms/frame", lambda r: r["ms"]),
+           ("x v1", lambda r: r["x_v1"]),
+           ("CPU ms (x v1)", lambda r: f"{_fmt(r['cpu_ms'])} ({_fmt(r['cpu_x_v1'])})"))
+
+
+def _fmt(x) -> str:
+    return "–" if x is None else str(x)
+
+
+SUMMARY = (("r against the consensus of the others", "consensus_r"),
+           ("still-mouth jitter, % of the outer lip width", "jitter_pct_width"),
+           ("lag, frames (positive: late; ±5: no peak in the range)", "lag_frames"),
+           ("lag of the frame-to-frame changes, frames", "lag_velocity_frames"),
+           ("wall ms per frame / FaceMesh v1 loop's", "x_v1"),
+           ("CPU ms per frame / FaceMesh v1 loop's", "cpu_x_v1"),
+           ("frames with a face (articast: ok)", None))
+
+
+def summary(rows: list[dict]) -> list[str]:
+    """One table per score: methods down, clips across."""
+    clips = [r["clip"] for r in rows]
+    methods = list(dict.fromkeys(m for r in rows for m in r["methods"]))
+    lines = []
+    for title, key in SUMMARY:
+        lines += [f"**{title}**", "", "| method | " + " | ".join(clips) + " |",
+                  "|---" * (len(clips) + 1) + "|"]
+        for m in methods:
+            cells = []
+            for r in rows:
+                v = r["methods"].get(m, {})
+                if "skipped" in v or not v:
+                    cells.append("–")
+                elif key is None:
+                    cells.append(_fmt(v.get("ok", v.get("found"))))
+                else:
+                    cells.append(_fmt(v.get(key)))
+            lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def markdown(rows: list[dict], load: dict) -> str:
+    lines = [f"load average at start {load['start']}, at end {load['end']}", "",
+             *summary(rows)]
+    for row in rows:
+        truth = row["clip"] == "synthetic"
+        lines += [f"### {row['clip']} ({row['held_out_frames']} held-out frames at "
+                  f"{row['fps']} fps, {row['still_windows']} still windows)", ""]
+        head = [c for c, _ in COLUMNS] + (["r truth"] if truth else [])
+        lines += ["| method | " + " | ".join(head) + " |", "|---" * (len(head) + 1) + "|"]
+        for name, r in row["methods"].items():
+            if "skipped" in r:
+                lines.append(f"| {name} | skipped: {r['skipped']} |" + " |" * (len(head) - 1))
+                continue
+            cells = [_fmt(f(r)) for _, f in COLUMNS] + ([_fmt(r.get("truth_r"))] if truth
+                                                         else [])
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        a = row["methods"].get("articast", {})
+        if "ok" in a:
+            occ = a["occluded_frames"]
+            lines += ["", f"articast: ok {a['ok']}, not ok {a['reasons']}, restarts "
+                      f"{a['restarts']}, finder calls/frame {a['finder_calls_per_frame']}, "
+                      f"occluded frames {occ[:40]}{' ...' if len(occ) > 40 else ''}"
+                      + (f"; aperture MAE {a['aperture_mae_mm']} mm, width MAE "
+                         f"{a['width_mae_mm']} mm" if "aperture_mae_mm" in a else "")]
+        names = list(row["pairwise_r"])
+        if names:
+            lines += ["", "pairwise r: | " + " | ".join(names) + " |",
+                      "|---" * (len(names) + 1) + "|"]
+            for a_ in names:
+                lines.append(f"| {a_} | " + " | ".join(
+                    "1" if b == a_ else _fmt(row["pairwise_r"][a_].get(b)) for b in names)
+                    + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def clip_paths(cache: Path) -> dict[str, Path]:
+    meta = cache / "clips.json"
+    if not meta.is_file():
+        return {}
+    return {r["name"]: Path(r["path"]) for r in json.loads(meta.read_text())}
+
+
+def main(argv: list[str] | None = None) -> None:
+    clips = clip_paths(CLIP_CACHE)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
+    ap.add_argument("--peers", type=Path, default=PEER_CACHE,
+                    help="the peers' cache made by benchmarks/setup_peers.py")
+    ap.add_argument("--facemesh-v1", type=Path, default=FACE_MODELS / "face_landmarks_v1.onnx",
+                    help="FaceMesh v1 ONNX (default: tools/convert_face_models.py --with-v1's)")
+    ap.add_argument("--only", nargs="*", help=f"clips (default: all fetched, then synthetic: "
+                                              f"{' '.join([*clips, 'synthetic'])})")
+    ap.add_argument("--methods", nargs="*", choices=METHODS, default=list(METHODS))
+    ap.add_argument("--grid", type=Path,
+                    help="write an overlay grid of every frame articast marks occluded here")
+    ap.add_argument("--series", type=Path,
+                    help="write each clip's per-method aperture ratio and lip box series here")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
+    clips = clip_paths(args.clips)
+    names = args.only or [*clips, "synthetic"]
+    peers = load_peers(args.peers)
+    load = {"start": [round(x, 2) for x in os.getloadavg()]}
+    log(f"load average {load['start']}; methods {' '.join(args.methods)}")
+    rows = []
+    for name in names:
+        at = [round(x, 2) for x in os.getloadavg()]
+        if name == "synthetic":
+            rows.append(run_synthetic(args.methods, args.facemesh_v1, peers,
+                                      series=args.series))
+        elif name in clips:
+            rows.append(run_real(name, clips[name], args.methods, args.facemesh_v1, peers,
+                                 args.grid, args.series))
+        else:
+            sys.exit(f"{name}: not in {args.clips}/clips.json: run tools/fetch_real_clips.py")
+        rows[-1]["load_average_at_start"] = at
+    load["end"] = [round(x, 2) for x in os.getloadavg()]
+    if args.json:
+        print(json.dumps({"load_average": load, "command": " ".join(sys.argv),
+                          "clips": rows}, indent=1))
+    else:
+        print(markdown(rows, load))
+
+
+if __name__ == "__main__":
+    main()

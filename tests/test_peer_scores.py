@@ -1,0 +1,72 @@
+"""The peer benchmark's scoring (benchmarks/peers.py) on series whose answer is known."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+peers = pytest.importorskip("peers")
+
+
+def test_consensus_leaves_the_scored_method_out_and_needs_two_others():
+    a = np.array([9.0, 9.0, 9.0, 9.0])
+    b = np.array([1.0, 1.0, np.nan, np.nan])
+    c = np.array([2.0, 3.0, 5.0, np.nan])
+    d = np.array([4.0, np.nan, 7.0, np.nan])
+    series = {"a": a, "b": b, "c": c, "d": d}
+    got = peers.consensus(series, leave_out="a")
+    np.testing.assert_allclose(got[:3], [2.0, 2.0, 6.0])  # median of b, c, d only: a left out
+    assert np.isnan(got[3])  # no other method has a value
+    without_c = peers.consensus(series, leave_out="c")  # a is an "other" now
+    np.testing.assert_allclose(without_c[:3], [4.0, 5.0, 8.0])
+    assert np.isnan(without_c[3])  # only a has a value: fewer than 2 others
+    with_a = peers.consensus(series, leave_out="b")
+    np.testing.assert_allclose(with_a[:3], [4.0, 6.0, 7.0])
+
+
+def test_lag_is_positive_when_the_method_is_late():
+    rng = np.random.default_rng(0)
+    ref = np.convolve(rng.normal(size=300), np.ones(4) / 4, mode="same")
+    late = np.concatenate([np.full(2, np.nan), ref[:-2]])  # x[t] = ref[t - 2]
+    early = np.concatenate([ref[3:], np.full(3, np.nan)])  # x[t] = ref[t + 3]
+    assert peers.lag(late, ref) == 2
+    assert peers.lag(early, ref) == -3
+    assert peers.lag(ref, ref) == 0
+
+
+def test_jitter_is_the_rms_about_the_linear_trend_in_percent():
+    t = np.arange(8.0)
+    trend = 0.2 + 0.01 * t
+    noise = 0.001 * np.array([1, -1, -1, 1, 1, -1, -1, 1])  # orthogonal to 1 and t per window
+    windows = [slice(0, 4), slice(4, 8)]
+    assert peers.jitter(trend, windows) == pytest.approx(0.0, abs=1e-9)
+    assert peers.jitter(trend + noise, windows) == pytest.approx(0.1, rel=1e-6)
+    # a window with a frame missing is left out, not filled
+    gappy = trend + noise
+    gappy[5] = np.nan
+    assert peers.jitter(gappy, windows) == pytest.approx(0.1, rel=1e-6)
+
+
+@pytest.mark.parametrize("scheme", ["mediapipe", "ibug68", "openseeface"])
+def test_aperture_ratio_is_the_gap_normal_to_the_corners_over_the_width(scheme):
+    up, low, right, left, top, bottom = peers.SCHEMES[scheme]
+    pts = np.zeros((2, max(peers.SCHEMES[scheme]) + 1, 2))
+    pts[0, [right, left, up, low, top, bottom]] = [[0, 0], [10, 0], [4, -1], [6, 2], [5, -3],
+                                                   [5, 4]]
+    turn = np.deg2rad(30)
+    rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    pts[1] = pts[0] @ rot.T * 2 + [100, 50]  # the same mouth turned, scaled and moved
+    np.testing.assert_allclose(peers.aperture_ratio(pts, scheme), [0.3, 0.3])
+    np.testing.assert_allclose(peers.lip_box(pts[:1], scheme), [[0, -3, 10, 4]])
+
+
+def test_pearson_needs_enough_common_frames():
+    x = np.arange(20.0)
+    r, n = peers.pearson(x, 2 * x + 1)
+    assert (round(r, 9), n) == (1.0, 20)
+    y = np.where(x < 15, np.nan, x)
+    assert np.isnan(peers.pearson(x, y)[0]) and peers.pearson(x, y)[1] == 5
