@@ -36,11 +36,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_clips import add_enrol_options, landmarks_every_frame  # noqa: E402
+from real_clips import add_enrol_options, enrol_speaker  # noqa: E402
 
 from articast.core.dense.mesh import register_icp  # noqa: E402
 from articast.core.dense.transfer import apply, bind  # noqa: E402
-from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
+from articast.core.faces.build import BuildOptions  # noqa: E402
 from articast.core.faces.enrol import EnrolOptions, similarity  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
@@ -88,23 +88,22 @@ def surface_error(model_e, alpha_e: np.ndarray, ok: np.ndarray, true_model, poin
 
 def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
         depth: str | None = None, flow: bool | None = None,
-        upper_lip_off_jaw: bool = False, motion: bool = True) -> dict:
+        upper_lip_off_jaw: bool = False, motion: bool = True, fusion: bool = True) -> dict:
     sp = default_speaker(seed)
     true_model = sp.model()
     finder = FaceFinder.load(threads=1)
     enrol = make_sequence(seed * 100 + 11, enrol_frames, 12.0, rig, geometry=sp.geometry)
     imgs = [sp.render(enrol.controls[i], enrol.pose(i), enrol.camera,
                       RenderOptions(seed=10_000 + i)) for i in range(enrol.n_frames)]
-    marks, found, _ = landmarks_every_frame(finder, imgs)
-    t0 = time.perf_counter()
     opts = EnrolOptions(fixed_pose=(rig == "head"), jaw_moves_upper_lip=not upper_lip_off_jaw,
                         **({"depth": depth} if depth is not None else {}))
-    speaker = build_speaker(imgs, marks, found, mediapipe_scheme(rig), enrol.camera, rig, opts,
-                            BuildOptions(flow=flow))
-    build_s = time.perf_counter() - t0
+    speaker = enrol_speaker(imgs, 12.0, camera=enrol.camera, rig=rig, max_frames=None,
+                            finder=finder, options=opts, build=BuildOptions(flow=flow))
+    build_s = speaker.report["build_s"]
     test = make_sequence(seed * 100 + 12, test_frames, 50.0, rig, geometry=sp.geometry)
-    live = LiveTracker(speaker, finder, mediapipe_scheme(rig),
-                       None if motion else LivePolicy(motion=None), clock=time.perf_counter)
+    policy = LivePolicy(**({} if motion else {"motion": None}),
+                        **({} if fusion else {"fusion": None}))
+    live = LiveTracker(speaker, finder, mediapipe_scheme(rig), policy, clock=time.perf_counter)
     res = [live.track(sp.render(test.controls[i], test.pose(i), test.camera,
                                 RenderOptions(seed=20_000 + i)), float(test.times[i]))
            for i in range(test.n_frames)]
@@ -135,6 +134,7 @@ def run(rig: str, seed: int, enrol_frames: int = 300, test_frames: int = 150,
                              for k, v in surf.items()},
             "depth": opts.depth, "flow": speaker.report["pixels"] != "landmarks",
             "upper_lip_off_jaw": not opts.jaw_moves_upper_lip, "motion": motion,
+            "fused": live.fusion is not None,
             "enrol_build_s": round(build_s, 1),
             "ms_per_frame_median": round(float(np.median([r.ms for r in res])), 2)}
 
@@ -146,13 +146,17 @@ def main(argv: list[str] | None = None) -> None:
     add_enrol_options(ap)
     ap.add_argument("--no-motion", action="store_true",
                     help="live tracking without the upper face's optical flow")
+    ap.add_argument("--no-fusion", action="store_true",
+                    help="live tracking without the reader's landmarks every frame (the "
+                         "appearance fit alone; LivePolicy.fusion None)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     rows = []
     for rig in args.rigs:
         for seed in args.seeds:
             row = run(rig, seed, depth=args.depth, flow=args.flow,
-                      upper_lip_off_jaw=args.upper_lip_off_jaw, motion=not args.no_motion)
+                      upper_lip_off_jaw=args.upper_lip_off_jaw, motion=not args.no_motion,
+                      fusion=not args.no_fusion)
             rows.append(row)
             if not args.json:
                 print(row, flush=True)

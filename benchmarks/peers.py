@@ -80,12 +80,12 @@ from real_clips import (  # noqa: E402
     track_live,
 )
 
-from articast.core.faces.finder import FaceFinder, FinderPolicy  # noqa: E402
+from articast.core.faces.build import analysed_frames  # noqa: E402
+from articast.core.faces.finder import FaceFinder, FinderPolicy, models_dir  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
 
 CLIP_CACHE = Path.home() / ".cache/articast/clips"
 PEER_CACHE = Path.home() / ".cache/articast/peers"
-FACE_MODELS = Path.home() / ".cache/articast/face-models"
 WIDTH = 640
 ENROL_FRACTION = 0.6
 MAX_ENROL_FRAMES = 600
@@ -182,9 +182,10 @@ def scaled(frame: np.ndarray) -> np.ndarray:
                       else cv2.INTER_AREA)
 
 
-def read_clip(path: Path) -> tuple[list[np.ndarray], list[np.ndarray], float, int]:
-    """Enrolment frames (the first 60 %, strided to at most MAX_ENROL_FRAMES), held-out frames
-    (the rest), fps, and the clip's frame count."""
+def read_clip(path: Path) -> tuple[list[np.ndarray], list[np.ndarray], float, int, np.ndarray]:
+    """Enrolment frames (those of the first 60 % that ``articast enroll`` would analyse:
+    strided to at most MAX_ENROL_FRAMES plus a consecutive run), held-out frames (the rest),
+    fps, the clip's frame count and the enrolment frames' times (s)."""
     cap = cv2.VideoCapture(str(path))
     fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
     n = 0
@@ -192,8 +193,8 @@ def read_clip(path: Path) -> tuple[list[np.ndarray], list[np.ndarray], float, in
         n += 1
     cap.release()
     n_enrol = int(ENROL_FRACTION * n)
-    stride = max(2, math.ceil(n_enrol / MAX_ENROL_FRAMES))
-    enrol, held = [], []
+    keep = set(analysed_frames(n_enrol, MAX_ENROL_FRAMES).tolist())
+    enrol, held, times = [], [], []
     cap = cv2.VideoCapture(str(path))
     for i in range(n):
         ok, f = cap.read()
@@ -201,17 +202,20 @@ def read_clip(path: Path) -> tuple[list[np.ndarray], list[np.ndarray], float, in
             break
         if i >= n_enrol:
             held.append(scaled(f))
-        elif i % stride == 0:
+        elif i in keep:
             enrol.append(scaled(f))
+            times.append(i / fps)
     cap.release()
-    return enrol, held, fps, n
+    return enrol, held, fps, n, np.array(times)
 
 
 # ---------------------------------------------------------------------------- methods
-def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk") -> dict:
-    """Enrol on ``enrol`` (already strided), track ``held`` live."""
+def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
+                 times=None) -> dict:
+    """Enrol on ``enrol`` (already selected, taken at ``times``), track ``held`` live."""
     try:
-        speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig, stride=1)
+        speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig,
+                                max_frames=None, times=times)
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
     kernels.warm_up()
@@ -414,8 +418,8 @@ def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict
 def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | None,
              series: Path | None = None) -> dict:
     log(f"{name}: reading {path.name}")
-    enrol, held, fps, n = read_clip(path)
-    runs = run_methods(methods, held, fps, enrol, facemesh_v1, peers)
+    enrol, held, fps, n, times = read_clip(path)
+    runs = run_methods(methods, held, fps, enrol, facemesh_v1, peers, {"times": times})
     save_series(series, name, fps, runs)
     row = evaluate(name, held, fps, runs)
     row.update({"frames": n, "size": list(held[0].shape[1::-1]) if held else None,
@@ -558,8 +562,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
     ap.add_argument("--peers", type=Path, default=PEER_CACHE,
                     help="the peers' cache made by benchmarks/setup_peers.py")
-    ap.add_argument("--facemesh-v1", type=Path, default=FACE_MODELS / "face_landmarks_v1.onnx",
-                    help="FaceMesh v1 ONNX (default: tools/convert_face_models.py --with-v1's)")
+    ap.add_argument("--facemesh-v1", type=Path, default=models_dir() / "face_landmarks_v1.onnx",
+                    help="FaceMesh v1 ONNX (default: the bundled one, mediapipe 0.10.14's "
+                         "weights, which articast reads every frame too)")
     ap.add_argument("--only", nargs="*", help=f"clips (default: all fetched, then synthetic: "
                                               f"{' '.join([*clips, 'synthetic'])})")
     ap.add_argument("--methods", nargs="*", choices=METHODS, default=list(METHODS))

@@ -43,9 +43,9 @@ from face_landmarks_clips import (  # noqa: E402
     window_frames,
 )
 
-from articast.core.faces.build import BuildOptions, build_speaker  # noqa: E402
+from articast.core.faces.build import BuildOptions, analysed_frames, build_speaker  # noqa: E402
 from articast.core.faces.enrol import DEPTHS, EnrolOptions  # noqa: E402
-from articast.core.faces.finder import FaceFinder  # noqa: E402
+from articast.core.faces.finder import FaceFinder, read_every_frame  # noqa: E402
 from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.faces.speaker import Speaker  # noqa: E402
@@ -94,26 +94,45 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
 
 
 def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None = None,
-                  rig: str = "desk", stride: int = 2, finder: FaceFinder | None = None,
+                  rig: str = "desk", max_frames: int | None = 600,
+                  finder: FaceFinder | None = None,
                   options: EnrolOptions | None = None, build: BuildOptions | None = None,
-                  extra: list[np.ndarray] | None = None) -> Speaker:
-    """Enrol a speaker on ``frames`` (BGR, all the same size) as the benchmarks do: every
-    ``stride``-th frame (as ``articast enroll`` strides long clips), the bundled landmark model
-    on each, then ``build_speaker``. ``camera``: default a 60-degree webcam at the frames'
-    size. ``extra``: more frames appended to the enrolment (a diagnosis: --enrol-with-held).
-    ``speaker.report["build_s"]`` is the time of ``build_speaker``."""
+                  extra: list[np.ndarray] | None = None,
+                  times: np.ndarray | None = None) -> Speaker:
+    """Enrol a speaker on ``frames`` (BGR, all the same size) as ``articast enroll`` does: the
+    frames it analyses (:func:`~articast.core.faces.build.analysed_frames`: strided to
+    ``max_frames`` plus a consecutive run; None: the frames as given, taken at ``times`` s,
+    default i / fps), the bundled landmark model on each and, on a desk camera, the live
+    reader (FaceMesh v1), then ``build_speaker``. ``camera``: default a 60-degree webcam at
+    the frames' size. ``extra``: more frames appended to the enrolment (a diagnosis:
+    --enrol-with-held). ``speaker.report["build_s"]`` is the time of ``build_speaker``."""
     finder = finder or FaceFinder.load(threads=1)
     h, w = frames[0].shape[:2]
     camera = camera or Camera.default(w, h, 60.0)
-    enrol = list(frames[::stride])
-    marks, found, _ = landmarks_every_frame(finder, enrol)
+    if max_frames is not None:
+        idx = analysed_frames(len(frames), max_frames)
+        enrol, at = [frames[i] for i in idx], idx / fps
+    else:
+        enrol = list(frames)
+        at = np.arange(len(enrol)) / fps if times is None else np.asarray(times, float)
     if extra:
-        more, more_found, _ = landmarks_every_frame(finder, extra)
-        enrol, marks = enrol + list(extra), np.concatenate([marks, np.nan_to_num(more)])
-        found = np.concatenate([found, more_found])
+        enrol = enrol + list(extra)
+        at = np.concatenate([at, at[-1] + (1 + np.arange(len(extra))) * 1000.0])
+    faces, prev = [], None
+    for f in enrol:
+        face = finder.track(f, prev) if prev is not None else None
+        prev = face = face or finder.find(f)
+        faces.append(face)
+    found = np.array([f is not None for f in faces])
+    marks = np.array([f.landmarks if f is not None else np.full((478, 3), np.nan)
+                      for f in faces])
+    readings = None
+    if rig == "desk":
+        readings = read_every_frame(FaceFinder.load(threads=1, landmarks="v1"), enrol, faces)
     t0 = time.perf_counter()
     speaker = build_speaker(enrol, marks, found, mediapipe_scheme(rig), camera, rig,
-                            options or EnrolOptions(), build or BuildOptions())
+                            options or EnrolOptions(), build or BuildOptions(),
+                            readings=readings, times=at)
     speaker.report["build_s"] = time.perf_counter() - t0
     speaker.report["enrol_frames"] = len(enrol)
     return speaker
@@ -152,7 +171,7 @@ def run_clip(name: str, path: Path, grid: Path | None, live_policy: LivePolicy |
     n_enrol = int(enrol_s * fps)
     held = frames[n_enrol:n_enrol + int(test_s * fps)]
     camera = Camera.default(*SIZE, 60.0)
-    # enrolment: the first part, every other frame (as `articast enroll` strides long clips);
+    # enrolment: the frames of the first part `articast enroll` would analyse;
     # --enrol-with-held is a diagnosis, not a held-out measure
     opts = EnrolOptions(jaw_moves_upper_lip=not upper_lip_off_jaw,
                         **({"depth": depth} if depth is not None else {}))

@@ -57,6 +57,25 @@ class BuildOptions:
     flow: bool | None = None
 
 
+CONSECUTIVE_RUN = 100
+"""Consecutive frames an enrolment analyses besides the strided ones (4 s at 25 fps): the
+motion model learns from frame-to-frame motion (:func:`~articast.core.tracking.kalman.
+process_noise` needs frames at most 50 ms apart)."""
+
+
+def analysed_frames(total: int, max_frames: int, run: int = CONSECUTIVE_RUN) -> np.ndarray:
+    """Indices of the frames of a ``total``-frame clip an enrolment analyses: every
+    ceil(total / max_frames)-th, and, when that skips frames, ``run`` consecutive ones from
+    the clip's middle. Sorted, unique."""
+    total = int(total)
+    stride = max(1, int(np.ceil(total / max_frames))) if max_frames > 0 else 1
+    idx = np.arange(0, total, stride)
+    if stride > 1:
+        mid = total // 2
+        idx = np.union1d(idx, np.arange(mid, min(total, mid + run)))
+    return idx
+
+
 def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.ndarray:
     """Indices of ``n`` rows of alpha (F, K) by farthest-point sampling (first: the row
     nearest the median posture unless ``start``)."""

@@ -371,8 +371,8 @@ class LiveTracker:
             fitted = result.extra.get("theta_fit")
             k = self.speaker.model.n_params
             if result.ok or fitted is not None:
-                th = (np.concatenate([result.alpha, result.pose.as_vector()])
-                      if result.ok else fitted)
+                th = np.asarray(np.concatenate([result.alpha, result.pose.as_vector()])
+                                if result.ok else fitted)
                 self.kalman.update(th[:k], th[k:k + 3], th[k + 3:],
                                    result.extra.get("information"))
             else:

@@ -374,8 +374,9 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         and the priors' gradient and Hessian."""
         if use_app:
             r_, jac_, vf_ = problem.residuals(maps, li, a_, rot_, t_, True, g_, with_gain)
-            rc_, rw_, jw_ = _robust(r_, jac_, nc, scale)
-            rc_, rw_, jw_ = appearance_weight * rc_, sw * rw_, sw * jw_
+            rc_, rw_, jw_o = _robust(r_, jac_, nc, scale)
+            assert jw_o is not None
+            rc_, rw_, jw_ = appearance_weight * rc_, sw * rw_, sw * jw_o
         else:
             r_, vf_, rc_ = np.zeros(0), 1.0, 0.0
             rw_, jw_ = np.zeros(0), np.zeros((0, k + 6))
@@ -383,7 +384,9 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         g_s, h_s = np.zeros(k + 6), np.zeros((k + 6, k + 6))
         if points is not None and points.n_points:
             pr, pj = points.residuals(a_, rot_, t_, True)
-            pc_, prw, pjw = _robust(pr, pj, 2, points.scale)
+            pc_, prw, pjw_o = _robust(pr, pj, 2, points.scale)
+            assert pjw_o is not None
+            pjw = pjw_o
             shared_c, shared_g, shared_h = points.shared(prw, pjw)
             pc_ -= shared_c  # the errors the landmarks share count once
             g_s -= 2.0 * shared_g

@@ -19,7 +19,7 @@ so a point the network loses (a hand, an extreme turn) stops pulling the fit.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -55,13 +55,12 @@ class PointModel:
     mean: np.ndarray
     basis: np.ndarray
     sigma_mm: np.ndarray
-    modes: np.ndarray | None = None
+    modes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
 
     def __post_init__(self) -> None:
         m = len(self.landmarks)
-        if self.modes is None:
+        if self.modes.size == 0:
             object.__setattr__(self, "modes", np.zeros((0, m, 2)))
-        assert self.modes is not None
         if (self.mean.shape != (m, 3) or self.basis.ndim != 3 or self.basis.shape[1:] != (m, 3)
                 or self.sigma_mm.shape != (m,) or self.modes.ndim != 3
                 or self.modes.shape[1:] != (m, 2) or len(self.modes) > 64):
@@ -97,7 +96,8 @@ class PointModel:
                      np.asarray(arrays["mean"], np.float64),
                      np.asarray(arrays["basis"], np.float64),
                      np.asarray(arrays["sigma_mm"], np.float64),
-                     np.asarray(arrays["modes"], np.float64) if "modes" in arrays else None)
+                     np.asarray(arrays["modes"], np.float64) if "modes" in arrays
+                     else np.zeros((0, 0, 2)))
             require(n_params is None or pm.n_params == n_params, path,
                     f"{pm.n_params} parameters, the speaker's model has {n_params}")
         return pm
@@ -191,8 +191,8 @@ class PointTerm:
         self.scale = scale
         self.k = pm.n_params
         # the shared error modes in whitened units (2M, R), and (I + V^T V)^-1 (Woodbury)
-        assert pm.modes is not None
-        self._v = np.ascontiguousarray(pm.modes[:, ok].reshape(len(pm.modes), 2 * int(ok.sum())).T)
+        n_modes = len(pm.modes)
+        self._v = np.ascontiguousarray(pm.modes[:, ok].reshape(n_modes, 2 * int(ok.sum())).T)
         self._c = np.linalg.inv(np.eye(self._v.shape[1]) + self._v.T @ self._v)
         self._jit = kernels.AVAILABLE and not np.any(np.asarray(camera.dist) != 0)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
@@ -239,6 +239,7 @@ class PointTerm:
         r = ((uv - self.uv) * w).reshape(-1)
         if not jacobian:
             return r, None
+        assert jp is not None
         m, k = len(head), self.k
         dcam = np.zeros((m, 3, k + 6))
         dcam[:, :, :k] = np.matmul(rot, self._basis_mk)

@@ -72,10 +72,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     en.set_defaults(func=_enroll)
 
 
-CONSECUTIVE_RUN = 100
-"""Consecutive frames analysed besides the strided ones (4 s at 25 fps)."""
-
-
 def find_faces(video: Path, max_frames: int, quiet: bool = False, read: bool = True):
     """Frames (strided to at most ``max_frames``, plus a run of consecutive frames from the
     middle of a long clip: the motion model learns from frame-to-frame motion,
@@ -83,21 +79,21 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, read: bool = T
     (F,), the clip's duration (s), frame size, the number of frames read, the live reader's
     landmarks of the same frames (F, 468, 3; None unless ``read``) and when each frame was
     taken (F,) s."""
+    from articast.core.faces.build import analysed_frames
     from articast.core.faces.finder import FaceFinder, read_every_frame
     from articast.service.progress import Progress
     from articast.service.video import iter_video, video_frame_count
 
     total = video_frame_count(video)
-    stride = max(1, int(np.ceil(total / max_frames))) if total and max_frames > 0 else 1
-    run = range(total // 2, total // 2 + CONSECUTIVE_RUN) if stride > 1 else range(0)
+    keep = set(analysed_frames(total, max_frames).tolist()) if total else None
     finder = FaceFinder.load()
     images, marks, found, faces, times = [], [], [], [], []
     prev = None
-    prog = Progress(total // stride + len(run) if total else 0, "landmarks", quiet=quiet)
+    prog = Progress(len(keep) if keep else 0, "landmarks", quiet=quiet)
     t_last, n_read, size = 0.0, 0, (0, 0)
     for i, t, img in iter_video(video):
         n_read, t_last = i + 1, t
-        if i % stride and i not in run:
+        if keep is not None and i not in keep:
             continue
         times.append(t)
         size = (img.shape[1], img.shape[0])
