@@ -82,6 +82,7 @@ from real_clips import (  # noqa: E402
 
 from articast.core.faces.build import analysed_frames  # noqa: E402
 from articast.core.faces.finder import FaceFinder, FinderPolicy, models_dir  # noqa: E402
+from articast.core.faces.live import FusionPolicy, LivePolicy  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
 
 CLIP_CACHE = Path.home() / ".cache/articast/clips"
@@ -92,6 +93,17 @@ MAX_ENROL_FRAMES = 600
 METHODS = ("articast", "facemesh_v1", "facelandmarker_v2", "openseeface", "mediapipe", "dlib")
 WORKERS = ("openseeface", "mediapipe", "dlib")
 BASELINE = "facemesh_v1"
+VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live tracking")
+    "fused": None,  # the default LivePolicy
+    "appearance": LivePolicy(fusion=None),  # the appearance fit alone, landmarks to check
+    "landmarks": LivePolicy(fusion=FusionPolicy(appearance_weight=0.0)),  # through the model
+    "no_kalman": LivePolicy(fusion=FusionPolicy(kalman=False)),
+    "no_one_euro": LivePolicy(smoothing=None),
+    "read_every_2": LivePolicy(fusion=FusionPolicy(read_every=2)),
+    "points_1": LivePolicy(fusion=FusionPolicy(points_weight=1.0)),
+    "points_0.1": LivePolicy(fusion=FusionPolicy(points_weight=0.1)),
+}
+ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
 MAX_LAG = 5
 MIN_FRAMES = 10  # fewer frames in common: no correlation reported
 #: per scheme: inner upper and lower midpoints, outer corners, outer upper and lower midpoints
@@ -221,7 +233,8 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     kernels.warm_up()
     finder = FaceFinder.load(threads=1)
     c0 = time.process_time()
-    results, ms, live = track_live(speaker, held, fps, finder=finder)
+    results, ms, live = track_live(speaker, held, fps, finder=finder,
+                                   live_policy=ARTICAST_POLICY)
     cpu = (time.process_time() - c0) * 1e3 / max(len(held), 1)
     m, cam = speaker.model, speaker.camera
     ok = np.array([r.ok for r in results])
@@ -572,8 +585,13 @@ def main(argv: list[str] | None = None) -> None:
                     help="write an overlay grid of every frame articast marks occluded here")
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-method aperture ratio and lip box series here")
+    ap.add_argument("--variant", choices=list(VARIANTS), default="fused",
+                    help="articast's live policy (the ablation of docs/TRACKING.md; default: "
+                         "the product's, fused)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    global ARTICAST_POLICY
+    ARTICAST_POLICY = VARIANTS[args.variant]
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)
     names = args.only or [*clips, "synthetic"]
@@ -595,6 +613,7 @@ def main(argv: list[str] | None = None) -> None:
     load["end"] = [round(x, 2) for x in os.getloadavg()]
     if args.json:
         print(json.dumps({"load_average": load, "command": " ".join(sys.argv),
+                          "variant": args.variant,
                           "clips": rows}, indent=1))
     else:
         print(markdown(rows, load))
