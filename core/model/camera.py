@@ -73,6 +73,12 @@ def turn_jacobian(points: np.ndarray) -> np.ndarray:
     return out
 
 
+def small_turn(d: np.ndarray) -> np.ndarray:
+    """(3,) the rotation vector of a rotation matrix ``d`` (3, 3) close to the identity (the
+    vee of its antisymmetric part: exact to first order), e.g. R @ R_ref.T between two poses."""
+    return 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
+
+
 def axis_angle(rot: np.ndarray) -> np.ndarray:
     """Inverse of :func:`rotation_matrix` for one (3, 3) matrix -> (3,) rad."""
     rot = np.asarray(rot, dtype=np.float64)

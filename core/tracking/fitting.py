@@ -26,7 +26,13 @@ import numpy as np
 
 from articast.core.appearance.maps import ImageMaps
 from articast.core.appearance.models import ROTATION_SCALE, AppearanceModel
-from articast.core.model.camera import Camera, axis_angle, rotation_matrix, turn_jacobian
+from articast.core.model.camera import (
+    Camera,
+    axis_angle,
+    rotation_matrix,
+    small_turn,
+    turn_jacobian,
+)
 from articast.core.model.face import FaceModel
 from articast.core.tracking import kernels
 from articast.core.tracking.points import PointTerm
@@ -92,9 +98,8 @@ class StatePrior:
     def terms(self, alpha: np.ndarray, rot: np.ndarray, t: np.ndarray
               ) -> tuple[float, np.ndarray, np.ndarray]:
         """Cost, gradient (K + 6,) and Gauss-Newton Hessian (K + 6, K + 6) at a state."""
-        d = rot @ self.rotation.T
-        d_rot = 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
-        e = np.concatenate([alpha - self.alpha, d_rot, t - self.translation])
+        e = np.concatenate([alpha - self.alpha, small_turn(rot @ self.rotation.T),
+                            t - self.translation])
         le = self.information @ e
         return float(e @ le), 2.0 * le, 2.0 * self.information
 
@@ -318,8 +323,7 @@ def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
     g, h = np.zeros(6), np.zeros((6, 6))
     if ref is None or pol.pose_sigma_mm is None or pol.pose_sigma_rad is None:
         return 0.0, g, h
-    d = rot @ ref[0].T  # left increment from the reference: small, so its axis-angle is
-    d_rot = 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])  # ~vee
+    d_rot = small_turn(rot @ ref[0].T)  # left increment from the reference: small
     d_t = t - ref[1]
     wr, wt = 1.0 / pol.pose_sigma_rad**2, 1.0 / pol.pose_sigma_mm**2
     g[:3], g[3:] = 2 * wr * d_rot, 2 * wt * d_t

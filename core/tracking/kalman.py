@@ -24,12 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from articast.core.model.camera import axis_angle, rotation_matrix
+from articast.core.model.camera import axis_angle, rotation_matrix, small_turn
 from articast.core.tracking.fitting import StatePrior
-
-
-def _vee(d: np.ndarray) -> np.ndarray:
-    return 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
 
 
 @dataclass(frozen=True)
@@ -161,7 +157,7 @@ class ConstantVelocity:
         a_p, r_p, t_p, p = self._pred
         n = self.n
         r_f = rotation_matrix(np.asarray(rotation, np.float64))
-        e = np.concatenate([np.asarray(alpha) - a_p, _vee(r_f @ r_p.T),
+        e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
                             np.asarray(translation) - t_p])
         pxx = p[:n, :n]
         gain = np.linalg.solve(pxx + 1e-12 * np.eye(n), p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1
