@@ -40,6 +40,7 @@ class Capture:
         self.frames = 0
         self.dropped = 0
         self.attempts = 0
+        self._lost = False  # unavailable since the last "running": say when it is back
 
     # ------------------------------------------------------------------ consumer side
     def start(self) -> Capture:
@@ -89,6 +90,7 @@ class Capture:
                 return True
             except SourceUnavailable as exc:
                 self.source.close()
+                self._lost = True
                 self._on_status("unavailable", f"{exc}; retry {self.attempts} in {delay:.1f} s")
                 if self._stop.wait(delay):
                     return False
@@ -114,7 +116,9 @@ class Capture:
                 return
             first_open = not self.opened.is_set()
             self.opened.set()
-            self._on_status("running", "" if first_open else "source is back")
+            if first_open or self._lost:  # not at every loop of a looping file
+                self._on_status("running", "" if first_open else "source is back")
+            self._lost = False
             t0_wall, t0_media, last_t = time.monotonic(), None, 0.0
             try:
                 while not self._stop.is_set():
@@ -132,6 +136,7 @@ class Capture:
                     index += 1
             except SourceUnavailable as exc:
                 self.source.close()
+                self._lost = True
                 self._on_status("unavailable", f"{exc}; reopening")
                 continue
             self.source.close()

@@ -42,6 +42,19 @@ class ProcessorContext:
     appearance: Any  # core.appearance.AppearanceModel | None
     options: dict[str, Any]
     speaker: Any = None  # articast.core.faces.speaker.Speaker | None
+    progress: Any = None
+    """Callable(str) telling the session (and its console) what a slow first start does."""
+
+
+def _warm_up(context: ProcessorContext) -> None:
+    """Compile (first run) or load the cost kernels before frames flow, saying so when it
+    compiles: a worker that is starting is not stalled."""
+    from articast.core.tracking import kernels
+
+    if context.progress is not None and not kernels.compiled_on_disk():
+        context.progress("compiling the tracking kernels (first run only, a few seconds; "
+                         "numba caches them)")
+    kernels.warm_up()
 
 
 class TruthProcessor:
@@ -109,9 +122,7 @@ class TrackerProcessor:
             pose = Pose(translation=[0.0, 0.0, float(opts.get("distance_mm", 300.0))])
         self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
                                initial_pose=pose, clock=time.perf_counter)
-        from articast.core.tracking import kernels
-
-        kernels.warm_up()  # compile (first run) or load the cost kernel before frames flow
+        _warm_up(context)
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:
@@ -127,7 +138,6 @@ class LiveProcessor:
         from articast.core.faces.finder import FaceFinder
         from articast.core.faces.live import LiveTracker, live_policy
         from articast.core.faces.scheme import mediapipe_scheme
-        from articast.core.tracking import kernels
 
         sp = context.speaker
         rig = str(context.options.get("rig", sp.rig))
@@ -137,7 +147,7 @@ class LiveProcessor:
             raise InputError(f"session {context.session!r}: {exc}") from None
         self.tracker = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
                                    tracking=policy, clock=time.perf_counter)
-        kernels.warm_up()
+        _warm_up(context)
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:

@@ -402,6 +402,8 @@ class SyntheticSource(_Finite):
         self.fps = _num(p, "fps", float, 60.0, 0.001)
         self._it: Iterator[Any] | None = None
         self._assets = SourceAssets()
+        self.progress: Callable[[str], None] | None = None
+        """Told in one line when the first open builds the speaker's cached assets."""
 
     def open(self) -> SourceInfo:
         try:
@@ -413,7 +415,8 @@ class SyntheticSource(_Finite):
                 "the synthetic speaker (core.synthetic) is not available in this "
                 f"build: {exc}"
             ) from None
-        stream = open_stream(seed=self.seed, fps=self.fps, cache_dir=cache_dir())
+        stream = open_stream(seed=self.seed, fps=self.fps, cache_dir=cache_dir(),
+                             progress=self.progress)
         extra = {k: getattr(stream, k) for k in ("initial_pose", "rig") if hasattr(stream, k)}
         self._assets = SourceAssets(stream.model, stream.camera,
                                     getattr(stream, "appearance", None), extra)

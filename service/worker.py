@@ -5,6 +5,8 @@ hand-over to the event loop, or a pipe to the server process) and goes on. Messa
 tuples:
 
 ``("status", state, detail)``           source state changes (``unavailable``, ``running``)
+``("progress", text)``                  what a slow start is doing (building caches,
+                                        compiling): the session is starting, not stalled
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
 ``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
@@ -90,7 +92,12 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             if stop.is_set():
                 emit(("done", "stopped", ""))
                 return
+        def progress(text: str) -> None:
+            emit(("progress", text))
+
         source = make_source(spec.source)
+        if hasattr(source, "progress"):
+            source.progress = progress
         capture = Capture(source, capture_settings,
                           lambda state, detail: emit(("status", state, detail))).start()
         while not capture.opened.wait(0.1):
@@ -108,7 +115,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
                                                     capture.assets, capture.info)
         # what the source knows (e.g. the synthetic rig and start pose), then the session's own
         ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
-                               {**capture.assets.extra, **dict(spec.options)}, speaker)
+                               {**capture.assets.extra, **dict(spec.options)}, speaker,
+                               progress)
         used, processor = make_processor(spec.processor, ctx)
         from articast.core.model.face import PARAM_NAMES
 

@@ -137,6 +137,21 @@ class ServerThread:
         return self.server.config.loaded_app.app.state.service  # type: ignore[union-attr]
 
 
+class SlowStart:
+    """A test FrameProcessor whose construction takes ``start_s`` seconds (session option),
+    saying so halfway, as a first run that builds caches does; then passes truth through."""
+
+    def __init__(self, context: Any) -> None:
+        start_s = float(context.options.get("start_s", 1.0))
+        time.sleep(start_s / 2)
+        if context.progress is not None:
+            context.progress("building test caches (first run only)")
+        time.sleep(start_s / 2)
+
+    def process(self, frame: Any) -> TrackResult:
+        return frame.truth
+
+
 class HardCrash:
     """A test FrameProcessor whose process dies on frame 3 (no exception, no goodbye)."""
 
