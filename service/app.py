@@ -291,7 +291,8 @@ class Connection:
                 if text is not None:
                     await self.send(text)
                     helloed = True
-                else:
+                if text is None or session.state in ("ended", "failed"):
+                    # nothing will follow a finished session: say so, not only in hello.state
                     await self.send(status_text(StatusEvent(name, session.state,
                                                             session.detail, now())))
             while True:

@@ -31,8 +31,9 @@ log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 TERMINAL = ("ended", "failed", "stopped")
 PROBLEMS = ("unavailable", "failed")
+TOLD = (*PROBLEMS, "ended")
 """States logged on the console at the default level (warning), with their reason (a crash
-is logged where the restart is decided)."""
+is logged where the restart is decided); a session that ended says so too."""
 JOIN_TIMEOUT_S = 5.0
 """How long a stopped worker may take to finish its frame before its process is terminated."""
 
@@ -277,7 +278,7 @@ class Session:
             return
         previous = self.state
         self.state, self.detail = state, detail
-        if state in PROBLEMS and previous != state:
+        if state in TOLD and previous != state:
             log.warning("session %s: %s%s", self.spec.name, state, f": {detail}" if detail else "")
         elif state in ("running", "starting") and previous in PROBLEMS:
             log.warning("session %s: %s again", self.spec.name,

@@ -4,13 +4,15 @@
 ``v4l2:/dev/video0?width=640&height=480&fps=60&fourcc=MJPG``  a camera through OpenCV's V4L2
                                                      backend; what the device actually gave is
                                                      reported in ``SourceInfo.detail``
-``file:talk.mp4?pace=realtime|fast&loop=N``          a video; timestamps from the container
-``images:DIR?fps=30&pace=..&loop=N``                 a folder of images in name order
-``synthetic:seed=3&fps=60&pace=..&loop=N``           the built-in speaker, with ground truth
-``replay-record:rec.jsonl?pace=..&loop=N``           a recording made by ``serve --record``
+``file:talk.mp4?pace=realtime|fast&loop=yes``        a video; timestamps from the container
+``images:DIR?fps=30&pace=..&loop=..``                a folder of images in name order
+``synthetic:seed=3&fps=60&pace=..&loop=..``          the built-in speaker, with ground truth
+``replay-record:rec.jsonl?pace=..&loop=..``          a recording made by ``serve --record``
 ===================================================  ==========================================
 
-``loop=N`` plays a finite source N times (0 = forever; default 1). ``pace=realtime`` (the
+``loop=yes`` (or ``true``, ``on``, ``1``, ``forever``) plays a finite source forever,
+``loop=no`` (``false``, ``off``, ``0``; the default) once, ``plays=N`` N times; then the
+session is ``ended``. ``pace=realtime`` (the
 default) delivers frames at their media time, ``pace=fast`` as fast as the tracker takes them,
 losing none. A source only reads; pacing, looping, retries and the one-frame slot are the
 capture thread's job (:mod:`articast.service.capture`).
@@ -144,6 +146,26 @@ def _num(p: SourceURI, key: str, conv: Callable[[str], Any], default: Any, lo: f
     return v
 
 
+LOOP_YES = ("yes", "true", "on", "1", "forever")
+LOOP_NO = ("no", "false", "off", "0")
+
+
+def loop_count(p: SourceURI) -> int:
+    """Plays of a finite source (0 = forever) from ``loop=yes|no`` or ``plays=N``. ``loop``
+    used to be a count in which 1 meant once: a ``loop=1`` that played once surprised
+    everyone, so it is a switch now and a count has its own name."""
+    loop = p.params.get("loop", "").strip().lower()
+    if loop and loop not in LOOP_YES + LOOP_NO:
+        raise SourceError(f"{p.text!r}: loop={p.params['loop']!r}: loop=yes plays forever, "
+                          "loop=no once (the default); plays=N plays N times")
+    plays = _num(p, "plays", int, None, 1)
+    if plays is not None and loop in LOOP_YES:
+        raise SourceError(f"{p.text!r}: loop=yes plays forever: drop it, or plays={plays}")
+    if plays is not None:
+        return int(plays)
+    return 0 if loop in LOOP_YES else 1
+
+
 class _Finite:
     """Pacing and looping options shared by every non-live source."""
 
@@ -154,7 +176,7 @@ class _Finite:
         self.pace = p.params.get("pace", "realtime")
         if self.pace not in ("realtime", "fast"):
             raise SourceError(f"{p.text!r}: pace must be 'realtime' or 'fast'")
-        self.loops = _num(p, "loop", int, 1)
+        self.loops = loop_count(p)
 
     def assets(self) -> SourceAssets:
         return SourceAssets()
@@ -448,7 +470,7 @@ def cache_dir() -> Path | None:
     return Path(base) / "articast"
 
 
-_PLAYBACK = ("pace", "loop")
+_PLAYBACK = ("pace", "loop", "plays")
 SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
     "v4l2": (V4L2Source, ("width", "height", "fps", "fourcc")),
     "file": (FileSource, _PLAYBACK),

@@ -50,8 +50,8 @@ def server(recording, tmp_path_factory):
                         stall_timeout_s=60, max_messages_per_s=1000),
         capture=CaptureSettings(retry_initial_s=0.05, retry_max_s=0.2),
         policy=SessionPolicy(restart_initial_s=0.05, restart_max_s=0.2, max_restarts=3),
-        sessions=(SessionSpec("rec", f"replay-record:{recording[0]}?loop=0"),
-                  SessionSpec("big", f"replay-record:{big}?loop=0")),
+        sessions=(SessionSpec("rec", f"replay-record:{recording[0]}?loop=yes"),
+                  SessionSpec("big", f"replay-record:{big}?loop=yes")),
         access=AccessPolicy(token="test-token",
                             media_roots=(str(tmp_path_factory.getbasetemp()),),
                             allowed_devices=("/dev/video97",)),
@@ -283,7 +283,7 @@ def test_metrics_healthz_and_schema(server):
 def test_start_and_stop_a_session_at_run_time(server, recording):
     c = server.client()
     r = c.post("/api/sessions", json={"name": "late",
-                                      "source": f"replay-record:{recording[0]}?loop=0"})
+                                      "source": f"replay-record:{recording[0]}?loop=yes"})
     assert r.status_code == 201, r.text
 
     async def go():
@@ -299,10 +299,53 @@ def test_start_and_stop_a_session_at_run_time(server, recording):
     assert "late" not in [s["name"] for s in c.get("/api/sessions").json()]
 
 
+def test_an_ended_source_tells_its_subscribers_and_loop_1_loops(server, tmp_path):
+    """A file played once ends: its subscribers get `status: ended`, one subscribing after
+    the end gets it too (not only hello.state), and the console says so; loop=1, serve
+    --help's own example, plays past the end (it played once)."""
+    import logging
+
+    short = tmp_path / "short.jsonl"
+    write_recording(short, frames=6, fps=30)
+    c = server.client()
+    for name, option in (("once", "loop=no&pace=fast"), ("looped", "loop=1&pace=fast")):
+        r = c.post("/api/sessions", json={"name": name, "wait_for_subscriber": True,
+                                          "source": f"replay-record:{short}?{option}"})
+        assert r.status_code == 201, r.text
+    messages = []
+    handler = logging.Handler()
+    handler.emit = lambda record: messages.append(record.getMessage())
+    logging.getLogger("articast.session").addHandler(handler)
+
+    async def go():
+        async with await subscribe(server.url, session="once", queue=64) as ws:
+            await until(ws, "hello")
+            while True:
+                m = await recv(ws)
+                if m["type"] == "status" and m["state"] == "ended":
+                    break
+                assert m["type"] == "frame" or m["state"] in ("starting", "running"), m
+        async with await subscribe(server.url, session="once") as late:
+            await until(late, "hello", skip=())
+            m = await recv(late)
+            assert (m["type"], m["state"]) == ("status", "ended"), m
+            assert "6 frames" in m["detail"]
+        async with await subscribe(server.url, session="looped", queue=64) as ws:
+            frames = [await until(ws, "frame", skip=("status", "hello")) for _ in range(15)]
+            assert frames[-1]["frame"] >= 14  # 6 frames a play: it looped
+    try:
+        run(go())
+    finally:
+        logging.getLogger("articast.session").removeHandler(handler)
+        for name in ("once", "looped"):
+            c.delete(f"/api/sessions/{name}")
+    assert "session once: ended: source ended after 6 frames" in messages, messages
+
+
 def test_a_crashing_session_is_restarted_and_the_server_survives(server, recording):
     c = server.client()
     r = c.post("/api/sessions", json={
-        "name": "crashy", "source": f"replay-record:{recording[0]}?loop=0",
+        "name": "crashy", "source": f"replay-record:{recording[0]}?loop=yes",
         "processor": "tests.service_helpers:Crashy"})
     assert r.status_code == 201
 
@@ -328,7 +371,7 @@ def test_a_crashing_session_is_restarted_and_the_server_survives(server, recordi
 def test_a_worker_process_that_dies_is_restarted(server, recording):
     c = server.client()
     assert c.post("/api/sessions", json={
-        "name": "dies", "source": f"replay-record:{recording[0]}?loop=0",
+        "name": "dies", "source": f"replay-record:{recording[0]}?loop=yes",
         "processor": "tests.service_helpers:HardCrash"}).status_code == 201
 
     async def go():
@@ -425,7 +468,7 @@ def test_a_subscriber_stalled_past_the_timeout_is_disconnected(tmp_path):
     config = ServiceConfig(
         server=ServerSettings(log_level="critical"),
         hub=HubSettings(stall_timeout_s=0.5),
-        sessions=(SessionSpec("big", f"replay-record:{big}?loop=0"),),
+        sessions=(SessionSpec("big", f"replay-record:{big}?loop=yes"),),
         access=AccessPolicy(token="secret"),
     )
 

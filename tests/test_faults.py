@@ -21,7 +21,7 @@ def test_a_hung_worker_is_declared_stalled_and_restarted(tmp_path):
         server=ServerSettings(log_level="critical"),
         policy=SessionPolicy(worker="process", worker_stall_s=1.0, restart_initial_s=0.05,
                              restart_max_s=0.2),
-        sessions=(SessionSpec("rec", f"replay-record:{rec}?loop=0"),))
+        sessions=(SessionSpec("rec", f"replay-record:{rec}?loop=yes"),))
 
     async def go(srv):
         async with websockets.connect(srv.url, max_size=2**24) as ws:
@@ -65,7 +65,7 @@ def test_a_worker_starting_slower_than_the_stall_bound_is_not_killed(tmp_path, c
     config = ServiceConfig(
         server=ServerSettings(log_level="critical"),
         policy=SessionPolicy(worker="process", worker_stall_s=0.5, restart_initial_s=0.05),
-        sessions=(SessionSpec("slow", f"replay-record:{rec}?loop=0",
+        sessions=(SessionSpec("slow", f"replay-record:{rec}?loop=yes",
                               processor="tests.service_helpers:SlowStart",
                               options={"start_s": 2.0}),))
 
@@ -97,7 +97,7 @@ def test_a_worker_that_never_finishes_starting_is_declared_stalled(tmp_path):
         server=ServerSettings(log_level="critical"),
         policy=SessionPolicy(worker="process", worker_stall_s=0.5, worker_start_s=1.0,
                              restart_initial_s=0.05, max_restarts=0),
-        sessions=(SessionSpec("hung", f"replay-record:{rec}?loop=0",
+        sessions=(SessionSpec("hung", f"replay-record:{rec}?loop=yes",
                               processor="tests.service_helpers:SlowStart",
                               options={"start_s": 600.0}),))
 

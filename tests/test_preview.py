@@ -49,7 +49,7 @@ def hello_of(url, session):
 
 @pytest.fixture(scope="module")
 def server():
-    uri = "synthetic:seed=1&fps=15&loop=0"
+    uri = "synthetic:seed=1&fps=15&loop=yes"
     config = ServiceConfig(server=ServerSettings(log_level="critical"),
                            sessions=(SessionSpec("shown", uri, preview=True),
                                      SessionSpec("private", uri)))
@@ -96,7 +96,7 @@ def test_with_a_token_the_preview_needs_it():
     from articast.service.security import AccessPolicy
 
     config = ServiceConfig(server=ServerSettings(log_level="critical"),
-                           sessions=(SessionSpec("shown", "synthetic:seed=1&fps=15&loop=0",
+                           sessions=(SessionSpec("shown", "synthetic:seed=1&fps=15&loop=yes",
                                                  preview=True),),
                            access=AccessPolicy(token="s3cret"))
     with ServerThread(config) as srv:

@@ -44,7 +44,7 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
     rec = tmp_path / "in.jsonl"
     write_recording(rec, frames=40, fps=60)
     out = tmp_path / "out"
-    p, url = start("serve", "--source", f"talk=replay-record:{rec}?loop=0", "--record", str(out))
+    p, url = start("serve", "--source", f"talk=replay-record:{rec}?loop=yes", "--record", str(out))
     try:
         got = asyncio.run(frames(url, "talk", 20))
         assert len(got) == 20
@@ -62,7 +62,7 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
     assert all(json.loads(x)["type"] == "frame" for x in lines[1:]) and len(lines) > 20
 
     # what was recorded serves again, with the same values
-    p2, url2 = start("replay-record", str(files[0]), "--name", "again", "--loop", "0")
+    p2, url2 = start("replay-record", str(files[0]), "--name", "again", "--loop")
     try:
         again = asyncio.run(frames(url2, "again", 5))
     finally:
@@ -107,8 +107,8 @@ def test_replay_without_an_appearance_model_says_so(tmp_path):
 def test_sigterm_with_subscribers_connected(tmp_path):
     rec = tmp_path / "in.jsonl"
     write_recording(rec, frames=40, fps=60)
-    p, url = start("serve", "--source", f"a=replay-record:{rec}?loop=0",
-                   "--source", f"b=replay-record:{rec}?loop=0")  # a thread and a process
+    p, url = start("serve", "--source", f"a=replay-record:{rec}?loop=yes",
+                   "--source", f"b=replay-record:{rec}?loop=yes")  # a thread and a process
 
     async def go():
         clients = []

@@ -48,13 +48,33 @@ def test_fast_file_playback_is_lossless_with_container_times(tmp_path):
     assert cap.info.width == 64 and cap.info.height == 48 and cap.info.fps == 25
 
 
-def test_loop_continues_the_time_line(tmp_path):
+def test_plays_continue_the_time_line(tmp_path):
     write_video(tmp_path / "v.avi", frames=5, fps=10)
-    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}?pace=fast&loop=3")).start()
+    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}?pace=fast&plays=3")).start()
     frames = drain(cap)
     assert [f.index for f in frames] == list(range(15))
     ts = [f.t for f in frames]
     assert ts == pytest.approx([i / 10 for i in range(15)])
+
+
+def test_loop_means_what_it_says(tmp_path):
+    """serve --help's own example, loop=1, played the file once (loop was a count of plays):
+    loop is a switch now, plays=N the count, and a count given to loop is one clear error."""
+    write_video(tmp_path / "v.avi", frames=5, fps=10)
+    v = tmp_path / "v.avi"
+    for value in ("1", "yes", "true", "on", "forever"):
+        assert make_source(f"file:{v}?loop={value}").loops == 0  # forever
+    for value in ("0", "no", "false", "off"):
+        assert make_source(f"file:{v}?loop={value}").loops == 1  # once
+    assert make_source(f"file:{v}").loops == 1
+    cap = Capture(make_source(f"file:{v}?pace=fast&loop=1")).start()
+    frames = drain(cap, limit=12)  # more than one play of 5 frames, and still going
+    cap.stop()
+    assert [f.index for f in frames] == list(range(12))
+    for bad, says in (("loop=3", "plays=N"), ("loop=yes&plays=2", "plays=2"),
+                      ("plays=0", ">= 1")):
+        with pytest.raises(SourceError, match=says):
+            make_source(f"file:{v}?{bad}")
 
 
 def test_realtime_pace_follows_media_time_and_keeps_the_newest(tmp_path):

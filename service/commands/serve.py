@@ -35,7 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--source", action="append", default=[], metavar="NAME=URI",
                    help="a session: v4l2:/dev/video0?width=640&height=480&fps=60, "
-                   "file:talk.mp4?pace=realtime&loop=1, images:DIR, synthetic:seed=3, "
+                   "file:talk.mp4?pace=realtime&loop=yes (loop=no, the default, plays "
+                   "once; plays=N), images:DIR, synthetic:seed=3, "
                    "replay-record:rec.jsonl (repeat for several faces; none: add them with "
                    "POST /api/sessions)")
     _common(s)
@@ -145,7 +146,10 @@ def _playback(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
                    help="realtime (default): frames at their media time; fast: as fast as "
                    "they are taken, none lost")
-    p.add_argument("--loop", type=int, default=1, help="times to play (0 = forever)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--loop", action="store_true",
+                   help="play forever (default: once, then the session is 'ended')")
+    g.add_argument("--plays", type=int, default=None, metavar="N", help="play N times")
 
 
 def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
@@ -309,7 +313,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    return _run(args, [("demo", f"synthetic:seed={args.seed}&fps={args.fps}&loop=0")])
+    return _run(args, [("demo", f"synthetic:seed={args.seed}&fps={args.fps}&loop=yes")])
 
 
 def _name(args: argparse.Namespace, path: Path) -> str:
@@ -318,13 +322,19 @@ def _name(args: argparse.Namespace, path: Path) -> str:
     return args.name or re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem)[:64] or "replay"
 
 
+def _plays(args: argparse.Namespace) -> str:
+    if args.plays is not None:
+        return f"plays={args.plays}"
+    return "loop=yes" if args.loop else "loop=no"
+
+
 def _replay(args: argparse.Namespace) -> int:
-    uri = f"file:{args.video}?pace={args.pace}&loop={args.loop}"
+    uri = f"file:{args.video}?pace={args.pace}&{_plays(args)}"
     return _run(args, [(_name(args, args.video), uri)])
 
 
 def _replay_record(args: argparse.Namespace) -> int:
-    uri = f"replay-record:{args.recording}?pace={args.pace}&loop={args.loop}"
+    uri = f"replay-record:{args.recording}?pace={args.pace}&{_plays(args)}"
     return _run(args, [(_name(args, args.recording), uri)])
 
 
