@@ -119,7 +119,7 @@ class Capture:
             if first_open or self._lost:  # not at every loop of a looping file
                 self._on_status("running", "" if first_open else "source is back")
             self._lost = False
-            t0_wall, t0_media, last_t = time.monotonic(), None, 0.0
+            t0_wall, t0_media, first_t, last_t = time.monotonic(), None, None, 0.0
             try:
                 while not self._stop.is_set():
                     item = self.source.read()
@@ -132,6 +132,7 @@ class Capture:
                         if wait > 0 and self._stop.wait(wait):
                             return
                     last_t = t
+                    first_t = t if first_t is None else first_t
                     self._put(Frame(index, t + t_offset, time.monotonic(), image, truth))
                     index += 1
             except SourceUnavailable as exc:
@@ -147,4 +148,4 @@ class Capture:
                 return
             # the next loop continues the time line one frame period after the last frame
             period = 1.0 / (self.info.fps if self.info and self.info.fps else 30.0)
-            t_offset += last_t + period
+            t_offset += last_t - (first_t or 0.0) + period  # a part (start=) begins late

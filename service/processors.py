@@ -155,6 +155,31 @@ class LiveProcessor:
         return self.tracker.track(frame.image, frame.t)
 
 
+def fit_camera(camera: Any, width: int, height: int, what: str = "the frames") -> Any:
+    """``camera`` for frames of ``width`` x ``height``: itself at its own size; scaled when the
+    aspect ratio matches (the same camera at another resolution: a webcam's 640x480 and
+    320x240 share their field of view); else one clear error saying what to do."""
+    if not (width and height) or (width, height) == (camera.width, camera.height):
+        return camera
+    factor = width / camera.width
+    if abs(camera.height * factor - height) > 1.0:
+        ratio = camera.width / camera.height
+        raise InputError(
+            f"{what} are {width}x{height} but the camera is {camera.width}x{camera.height}, "
+            f"another aspect ratio ({width / height:.3f} vs {ratio:.3f}): enrol (or calibrate) "
+            f"on a clip of {width}x{height}, or resize this one to "
+            f"{round(height * ratio)}x{height} or {width}x{round(width / ratio)}")
+    return camera.scaled(factor)
+
+
+def scaling_note(camera: Any, width: int, height: int) -> str:
+    """One line saying that the camera was scaled to the frames, or ''."""
+    if not (width and height) or (width, height) == (camera.width, camera.height):
+        return ""
+    return (f"camera scaled from {camera.width}x{camera.height} to {width}x{height} (the same "
+            "camera at another resolution: same aspect ratio, focal length and centre scaled)")
+
+
 def load_speaker(folder: str, source: SourceInfo) -> Any:
     """The speaker folder, its camera fitted to the source's frame size (same aspect ratio:
     scaled; another one: a clear error)."""
@@ -163,15 +188,9 @@ def load_speaker(folder: str, source: SourceInfo) -> Any:
     from articast.core.faces.speaker import Speaker
 
     sp = Speaker.load(folder)
-    cam = sp.camera
-    if source.width and source.height and (source.width, source.height) != (cam.width,
-                                                                           cam.height):
-        factor = source.width / cam.width
-        if abs(cam.height * factor - source.height) > 1.0:
-            raise InputError(f"the source's frames are {source.width}x{source.height} but the "
-                             f"speaker was enrolled at {cam.width}x{cam.height} (another "
-                             "aspect ratio): enrol at this size, or set the camera's size")
-        sp = replace(sp, camera=cam.scaled(factor))
+    if source.width and source.height:
+        sp = replace(sp, camera=fit_camera(sp.camera, source.width, source.height,
+                                           "the source's frames"))
     return sp
 
 
@@ -256,4 +275,6 @@ def load_assets(spec_model: str, spec_appearance: str, spec_camera: str,
         from articast.core.model.camera import Camera
 
         camera = Camera.default(source.width, source.height)
+    elif camera is not None and source.width and source.height:
+        camera = fit_camera(camera, source.width, source.height, "the source's frames")
     return model, appearance, camera

@@ -258,13 +258,23 @@ class V4L2Source:
 
 # ------------------------------------------------------------------------------- video file
 class FileSource(_Finite):
+    """A video file; ``start``/``end`` (seconds, or frames with ``f``: ``start=12.5``,
+    ``end=900f``) play a part of it, exactly (frames before the start are decoded and
+    skipped)."""
+
     def __init__(self, p: SourceURI) -> None:
+        from articast.service.video import Span
+
         self._playback(p)
         self.path = Path(p.target)
         if not p.target:
             raise SourceError(f"{p.text!r}: give a file, e.g. file:talk.mp4")
+        try:
+            self.span = Span(p.params.get("start"), p.params.get("end"), ("start", "end"))
+        except InputError as exc:
+            raise SourceError(f"{p.text!r}: {exc}") from None
         self._cap: Any = None
-        self._first: np.ndarray | None = None
+        self._first: tuple[float, np.ndarray] | None = None
         self._n = 0
 
     def open(self) -> SourceInfo:
@@ -277,26 +287,33 @@ class FileSource(_Finite):
         if not cap.isOpened():
             cap.release()
             raise SourceError(f"{self.path}: not a readable video (OpenCV cannot decode it)")
-        ok, first = cap.read()
-        if not ok or first is None:
+        self._cap, self._n = cap, 0
+        first = self._decode()
+        if first is None and self._n == 0:
             cap.release()
             raise SourceError(f"{self.path}: corrupt or empty video (no frame could be decoded)")
-        self._cap, self._first, self._n = cap, first, 0
+        if first is None:
+            cap.release()
+            raise SourceError(f"{self.path}: no frame from {self.span.describe()}: the video "
+                              f"has {self._n} frames")
+        self._first = first
         fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
-        height, width = int(first.shape[0]), int(first.shape[1])
-        return SourceInfo(self.uri, "file", False, width, height, fps, count,
-                          {"path": str(self.path), "pace": self.pace, "loop": self.loops})
+        if count and self.span:
+            count = self.span.frames(count, fps or 30.0) or None
+        height, width = int(first[1].shape[0]), int(first[1].shape[1])
+        detail = {"path": str(self.path), "pace": self.pace, "loop": self.loops}
+        if self.span:
+            detail["span"] = self.span.describe()
+        return SourceInfo(self.uri, "file", False, width, height, fps, count, detail)
 
-    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+    def _decode(self) -> tuple[float, np.ndarray] | None:
+        """The next frame of the span (t, image); None at its end (or the file's)."""
         import cv2
 
-        if self._first is not None:
-            image, self._first = self._first, None
-        else:
+        while True:
             ok, image = self._cap.read()
             if not ok or image is None:
-                from articast.core.errors import InputError
                 from articast.service.video import check_complete
 
                 try:
@@ -305,11 +322,25 @@ class FileSource(_Finite):
                 except InputError as exc:
                     raise SourceError(str(exc)) from None
                 return None
-        t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
-        fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0
-        if t <= 0 and self._n > 0:  # container without time stamps
-            t = self._n / fps
-        self._n += 1
+            t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0
+            if t <= 0 and self._n > 0:  # container without time stamps
+                t = self._n / fps
+            index = self._n
+            self._n += 1
+            if self.span.after(index, t):
+                return None
+            if not self.span.before(index, t):
+                return t, image
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        if self._first is not None:
+            (t, image), self._first = self._first, None
+        else:
+            item = self._decode()
+            if item is None:
+                return None
+            t, image = item
         return t, image, None
 
     def close(self) -> None:
@@ -473,7 +504,7 @@ def cache_dir() -> Path | None:
 _PLAYBACK = ("pace", "loop", "plays")
 SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
     "v4l2": (V4L2Source, ("width", "height", "fps", "fourcc")),
-    "file": (FileSource, _PLAYBACK),
+    "file": (FileSource, (*_PLAYBACK, "start", "end")),
     "images": (ImagesSource, (*_PLAYBACK, "fps")),
     "synthetic": (SyntheticSource, (*_PLAYBACK, "seed", "fps")),
     "replay-record": (RecordSource, _PLAYBACK),

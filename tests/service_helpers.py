@@ -152,6 +152,20 @@ class SlowStart:
         return frame.truth
 
 
+class RefusesVideo:
+    """A test FrameProcessor that refuses video files (a session that fails at start, as a
+    clip of another aspect ratio than the enrolment does) and passes truth through else."""
+
+    def __init__(self, context: Any) -> None:
+        from articast.core.errors import InputError
+
+        if context.source.kind == "file":
+            raise InputError("test: this processor refuses video files")
+
+    def process(self, frame: Any) -> TrackResult:
+        return frame.truth
+
+
 class HardCrash:
     """A test FrameProcessor whose process dies on frame 3 (no exception, no goodbye)."""
 

@@ -58,6 +58,10 @@ def test_enroll_writes_a_speaker_folder_with_the_seven_parameters(enrolled, caps
     assert sp.report["pixels"] == "landmarks"
     ap, wd = lip_measures(sp.model, np.zeros(7))
     assert 30 < wd < 70 and 0 <= ap < 15
+    # a contact sheet of what it learned: enrolment frames with the fitted model drawn
+    sheet = cv2.imread(str(enrolled / "speaker" / "contact.png"))
+    assert sheet is not None and sheet.shape[0] >= 240 and sheet.shape[1] == 3 * 240
+    assert "contact sheet" not in capsys.readouterr().out  # --json: the report only
 
 
 def test_track_with_only_the_speaker_folder_follows_the_true_articulation(enrolled, capsys):

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import websockets
 
-from tests.service_helpers import TIMEOUT, write_recording
+from tests.service_helpers import TIMEOUT, write_recording, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -136,3 +136,34 @@ def test_sigterm_with_subscribers_connected(tmp_path):
     assert took < TIMEOUT and code in (0, -signal.SIGTERM)
     err = p.stderr.read()
     assert "Traceback" not in err and "leaked" not in err, err
+
+
+def test_no_url_is_printed_for_a_session_that_failed(tmp_path):
+    """A session that fails at start (a clip of another size than the enrolment, a bad
+    file) used to be announced with its URL all the same. Now: every session failed ->
+    no URL, exit 2 and one line; some failed -> the URL of the others, the failed named."""
+    rec, video = tmp_path / "in.jsonl", tmp_path / "in.avi"
+    write_recording(rec, frames=40, fps=30)
+    write_video(video)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "error"}
+    bad = "tests.service_helpers:RefusesVideo"
+    run = subprocess.run([sys.executable, "-m", "articast.service.cli", "serve", "--source",
+                          f"a=file:{video}", "--processor", bad, "--port", "0"],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=20 * TIMEOUT)
+    assert run.returncode == 2, run
+    assert "ws://" not in run.stdout + run.stderr
+    assert run.stderr.strip().splitlines()[-1] == ("articast serve: error: nothing to serve: a "
+                                                   "failed (the reason is above)"), run.stderr
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "serve",
+                          "--source", f"good=replay-record:{rec}?loop=yes",
+                          "--source", f"bad=file:{video}",
+                          "--processor", bad, "--port", "0", "--json"],
+                         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        line = json.loads(p.stdout.readline())
+        assert line["sessions"] == ["good"] and list(line["failed"]) == ["bad"], line
+        assert "session=good" in line["avatar"]
+    finally:
+        p.send_signal(signal.SIGTERM)
+        p.wait(TIMEOUT)

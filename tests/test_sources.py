@@ -57,6 +57,25 @@ def test_plays_continue_the_time_line(tmp_path):
     assert ts == pytest.approx([i / 10 for i in range(15)])
 
 
+def test_a_part_of_a_file_start_and_end(tmp_path):
+    """file:...?start=SECONDS&end=FRAMESf plays that part exactly; looping it continues the
+    time line from the part's own start."""
+    write_video(tmp_path / "v.avi", frames=20, fps=25)
+    v = tmp_path / "v.avi"
+    cap = Capture(make_source(f"file:{v}?pace=fast&start=0.2&end=15f&plays=2")).start()
+    frames = drain(cap)
+    assert cap.error is None
+    assert len(frames) == 20 and cap.info.frame_count == 10
+    assert [f.t for f in frames] == pytest.approx([0.2 + i / 25 for i in range(20)])
+    assert "0.2 s to 15f" in cap.info.detail["span"]
+    for bad in ("start=x", "start=5f&end=2f", "end=-1"):
+        with pytest.raises(SourceError):
+            make_source(f"file:{v}?{bad}")
+    cap = Capture(make_source(f"file:{v}?start=30")).start()
+    drain(cap)
+    assert isinstance(cap.error, SourceError) and "no frame from 30 s" in str(cap.error)
+
+
 def test_loop_means_what_it_says(tmp_path):
     """serve --help's own example, loop=1, played the file once (loop was a count of plays):
     loop is a switch now, plays=N the count, and a count given to loop is one clear error."""

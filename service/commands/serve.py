@@ -36,7 +36,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     s.add_argument("--source", action="append", default=[], metavar="NAME=URI",
                    help="a session: v4l2:/dev/video0?width=640&height=480&fps=60, "
                    "file:talk.mp4?pace=realtime&loop=yes (loop=no, the default, plays "
-                   "once; plays=N), images:DIR, synthetic:seed=3, "
+                   "once; plays=N; start=12.5&end=900f: a part, in seconds or frames), "
+                   "images:DIR, synthetic:seed=3, "
                    "replay-record:rec.jsonl (repeat for several faces; none: add them with "
                    "POST /api/sessions)")
     _common(s)
@@ -59,6 +60,9 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     r.add_argument("video", type=Path, help="video file to track and stream")
     _playback(r)
+    from articast.service.commands.track import add_span_arguments
+
+    add_span_arguments(r)
     _common(r)
     r.set_defaults(func=_replay)
 
@@ -287,14 +291,19 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         print(f"articast: starting {', '.join(names)}; the URL follows once the face streams",
               file=sys.stderr, flush=True)
 
-    def listening(url: str) -> None:
+    def listening(url: str, failed: dict[str, str]) -> None:
         http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]
-        avatar = f"{http}/avatar/" + (f"?session={names[0]}" if names else "")
+        up = [n for n in names if n not in failed]  # never a URL for a failed session
+        avatar = f"{http}/avatar/" + (f"?session={up[0]}" if up else "")
         if args.json:
-            print(json.dumps({"url": url, "avatar": avatar, "sessions": names}), flush=True)
+            print(json.dumps({"url": url, "avatar": avatar, "sessions": up,
+                              "failed": failed}), flush=True)
         else:
-            first = names[0] if names else "NAME"
-            print(f"articast: serving {', '.join(names) or 'no session yet'} at {url}\n"
+            first = up[0] if up else "NAME"
+            if failed:
+                print(f"articast: not serving {', '.join(failed)}: failed (the reason is "
+                      "above)", file=sys.stderr, flush=True)
+            print(f"articast: serving {', '.join(up) or 'no session yet'} at {url}\n"
                   f"  browser avatar: {avatar}\n"
                   f'  subscribe with {{"type": "subscribe", "session": "{first}"}}; '
                   "Ctrl-C stops", flush=True)
@@ -329,7 +338,11 @@ def _plays(args: argparse.Namespace) -> str:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    uri = f"file:{args.video}?pace={args.pace}&{_plays(args)}"
+    from urllib.parse import quote
+
+    span = "".join(f"&{k}={quote(v)}" for k, v in (("start", args.start), ("end", args.end))
+                   if v)
+    uri = f"file:{args.video}?pace={args.pace}&{_plays(args)}{span}"
     return _run(args, [(_name(args, args.video), uri)])
 
 
@@ -348,7 +361,7 @@ def _gateway(args: argparse.Namespace) -> int:
                            access=access_policy(args, server.host),
                            hub_url=url, hub_prefix=hub_prefix(args), role="gateway")
 
-    def listening(ws_url: str) -> None:
+    def listening(ws_url: str, failed: dict[str, str]) -> None:
         if args.json:
             print(json.dumps({"url": ws_url, "hub": _safe_url(url)}), flush=True)
         else:
