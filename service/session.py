@@ -122,7 +122,10 @@ class Session:
                 worker.stop()
                 await asyncio.to_thread(worker.join, JOIN_TIMEOUT_S)
             outcome, detail = self._outcome
-            if self._stopping.is_set() or outcome == "stopped":
+            if self._stopping.is_set():
+                return
+            if outcome == "stopped":  # the worker alone was stopped (SIGTERM): not a crash
+                self._set_state("stopped", detail or "the worker was stopped (SIGTERM)")
                 return
             if outcome in ("ended", "failed"):
                 self._set_state(outcome, detail)

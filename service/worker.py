@@ -257,6 +257,9 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through the pipe
     stop, go = threading.Event(), threading.Event()
+    # SIGTERM (systemd stops the whole group, terminate() after a join timeout) is a stop,
+    # not a crash: finish the frame, say "stopped", exit
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
     lock = threading.Lock()
 
     def control() -> None:
@@ -337,6 +340,9 @@ class ProcessWorker:
         self.process.join(timeout)
         if self.process.is_alive():
             self.process.terminate()
+            self.process.join(1.0)
+        if self.process.is_alive():  # stuck in native code: SIGTERM waits for it
+            self.process.kill()
             self.process.join(1.0)
         self._reader.join(1.0)
         self._conn.close()

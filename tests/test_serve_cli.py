@@ -167,3 +167,25 @@ def test_no_url_is_printed_for_a_session_that_failed(tmp_path):
     finally:
         p.send_signal(signal.SIGTERM)
         p.wait(TIMEOUT)
+
+
+def test_sigterm_to_the_whole_group_is_a_stop_not_a_crash(tmp_path):
+    """systemd (and `kill -TERM -PGID`) signal every process of the service at once: the
+    worker process died of SIGTERM and the server logged `session ... crashed: worker
+    process exited with code -15` on its way out. A worker takes SIGTERM as a stop."""
+    rec = tmp_path / "in.jsonl"
+    write_recording(rec, frames=40, fps=30)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "warning"}
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "serve", "--source",
+                          f"a=replay-record:{rec}?loop=yes", "--worker", "process",
+                          "--port", "0", "--json"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        url = json.loads(p.stdout.readline())["url"]
+        asyncio.run(frames(url, "a", 3))
+        os.killpg(p.pid, signal.SIGTERM)
+        _, err = p.communicate(timeout=3 * TIMEOUT)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert "crashed" not in err and "code -15" not in err and "Traceback" not in err, err

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -31,6 +32,8 @@ Every option is also settable as an ARTICAST_<OPTION> environment variable.
 def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     s = sub.add_parser(
         "serve", help="track faces and stream them to WebSocket subscribers",
+        usage="%(prog)s --source NAME=URI [--source ...] [--speaker DIR | --model M "
+              "--appearance A --camera C] [--port N] [options; server limits last]",
         description="Run the streaming service with one session per --source.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--source", action="append", default=[], metavar="NAME=URI",
@@ -45,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
     d = sub.add_parser(
         "demo", help="serve the built-in synthetic speaker on loopback",
+        usage="%(prog)s [--port N] [--fps FPS] [options; server limits last]",
         description="Serve the synthetic speaker (no camera, no files needed) and print the "
         "URL a client connects to.", epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -55,8 +59,11 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
     r = sub.add_parser(
         "replay", help="serve a recorded video through the tracker",
+        usage="%(prog)s VIDEO (--speaker DIR | --model M --appearance A --camera C) "
+              "[--loop] [--start WHEN] [--end WHEN] [--port N] [options; server limits last]",
         description="Track a video file as if it were a camera and stream it (one session, "
-        "named after the file). Give the speaker's --model, --appearance and --camera.",
+        "named after the file). Give --speaker DIR (from 'articast enroll'), or the "
+        "speaker's --model, --appearance and --camera.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     r.add_argument("video", type=Path, help="video file to track and stream")
     _playback(r)
@@ -68,12 +75,14 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
 
     rr = sub.add_parser(
         "replay-record", help="serve a recording made by serve --record",
-        description="Stream a recording (serve --record, or python -m articast.client.record) "
+        usage="%(prog)s RECORDING [--loop | --plays N] [--pace fast] [--port N] "
+              "[options; server limits last]",
+        description="Stream a recording (serve --record, or articast-record) "
         "again, with the same hello and frames at their recorded times: no tracking, no "
         "camera.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     rr.add_argument("recording", type=Path, help="recording (.jsonl)")
     _playback(rr)
-    _common(rr)
+    _common(rr, tracking=False)
     rr.set_defaults(func=_replay_record)
 
     w = sub.add_parser(
@@ -105,7 +114,8 @@ def register(sub: argparse._SubParsersAction) -> None:  # type: ignore[type-arg]
     gw.set_defaults(func=_gateway)
 
 
-def _hub_argument(p: argparse.ArgumentParser, required: bool = False) -> None:
+def _hub_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup,
+                  required: bool = False) -> None:
     p.add_argument("--hub", default=None, required=False, metavar="URL",
                    help="redis://HOST:PORT/DB: sessions and subscribers meet in Redis "
                    + ("(required; env ARTICAST_HUB)" if required else
@@ -170,25 +180,50 @@ def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     return g
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    g = _session_files(p)
+COMMON_SERVER = ("host", "port", "record", "log_level")
+"""ServerSettings shown with the command's own options; the rest go to their groups."""
+
+
+def _common(p: argparse.ArgumentParser, tracking: bool = True) -> None:
+    """The options every serving command shares, the ones people use first: where to listen,
+    what to track with, access; the ~60 limits of a long-running server last, in one group.
+    ``tracking=False`` (replay-record: the recording brings its frames) leaves out the
+    options that would do nothing."""
+    add_arguments(p, ServerSettings, skip=tuple(f.name for f in dataclasses.fields(
+        ServerSettings) if f.name not in COMMON_SERVER))
+    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    if tracking:
+        g = _session_files(p)
+    else:
+        g = p.add_argument_group("session")
+        p.set_defaults(speaker="", model="", appearance="", camera="", processor="auto",
+                       preview=False)
     g.add_argument("--wait-for-subscriber", action="store_true",
                    help="hold each source until its first subscriber arrives")
-    g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
-                   help="serve a small, low-rate preview of the tracked video with the fitted "
-                   "mesh (GET /api/sessions/NAME/preview.jpg; the browser avatar shows it). "
-                   "Off by default for privacy; on for the synthetic demo")
-    g.add_argument("--api-token", default=None, metavar="REMOVED",
-                   help="removed: a token on the command line is visible in the process list; "
-                        "set ARTICAST_TOKEN or use --token-file")
+    if tracking:
+        g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
+                       help="serve a small, low-rate preview of the tracked video with the "
+                       "fit drawn on it (GET /api/sessions/NAME/preview.jpg; the browser "
+                       "avatar shows it). Off by default for privacy; on for the synthetic "
+                       "demo")
+    add_arguments(p.add_argument_group("VMC (VTuber apps)"), ServerSettings,
+                  skip=tuple(f.name for f in dataclasses.fields(ServerSettings)
+                             if not f.name.startswith("vmc")))
     a = p.add_argument_group("access")
     add_access_arguments(a)
-    _hub_argument(p)
-    add_arguments(p.add_argument_group("server"), ServerSettings)
-    add_arguments(p.add_argument_group("fan-out limits"), HubSettings)
-    add_arguments(p.add_argument_group("capture"), CaptureSettings)
-    add_arguments(p.add_argument_group("sessions"), SessionPolicy)
-    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    a.add_argument("--api-token", default=None, metavar="REMOVED",
+                   help="removed: a token on the command line is visible in the process list; "
+                        "set ARTICAST_TOKEN or use --token-file")
+    _hub_argument(p.add_argument_group("scale-out on Redis (docs/SERVICE.md)"))
+    limits = p.add_argument_group(
+        "server limits", "Bounds of a long-running server; the defaults suit one machine "
+        "(docs/SERVICE.md, Access control and Settings). Each is also an ARTICAST_* variable.")
+    add_arguments(limits, ServerSettings, skip=tuple(
+        f.name for f in dataclasses.fields(ServerSettings)
+        if f.name in COMMON_SERVER or f.name.startswith("vmc")))
+    add_arguments(limits, HubSettings)
+    add_arguments(limits, CaptureSettings)
+    add_arguments(limits, SessionPolicy)
 
 
 def add_access_arguments(a: argparse._ArgumentGroup) -> None:
