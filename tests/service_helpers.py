@@ -152,6 +152,23 @@ class SlowStart:
         return frame.truth
 
 
+class Occludes:
+    """A test FrameProcessor that passes truth through but reports frames 3-5 of every run
+    as the tracker reports a hand over the mouth: ok false, reason ``occluded: ...``, the
+    last good state held."""
+
+    def __init__(self, context: Any) -> None:
+        self.n, self.last = 0, None
+
+    def process(self, frame: Any) -> TrackResult:
+        self.n += 1
+        if 4 <= self.n <= 6 and self.last is not None:
+            return TrackResult(frame.index, frame.t, self.last.alpha, self.last.pose, False,
+                               "occluded: 5 of 40 sample points on the lips (test)")
+        self.last = frame.truth
+        return frame.truth
+
+
 class RefusesVideo:
     """A test FrameProcessor that refuses video files (a session that fails at start, as a
     clip of another aspect ratio than the enrolment does) and passes truth through else."""

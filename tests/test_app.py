@@ -57,7 +57,7 @@ def server(recording, tmp_path_factory):
                             allowed_devices=("/dev/video97",)),
         http_processors=("auto", "truth", "tests.service_helpers:Crashy",
                          "tests.service_helpers:HardCrash",
-                         "tests.service_helpers:ImageStats"),
+                         "tests.service_helpers:ImageStats", "tests.service_helpers:Occludes"),
     )
     with ServerThread(config) as srv:
         srv.record_dir = record_dir
@@ -340,6 +340,38 @@ def test_an_ended_source_tells_its_subscribers_and_loop_1_loops(server, tmp_path
         for name in ("once", "looped"):
             c.delete(f"/api/sessions/{name}")
     assert "session once: ended: source ended after 6 frames" in messages, messages
+
+
+def test_occluded_frames_reach_clients_flagged_with_the_last_good_state(server, recording):
+    """What the docs say about `occluded` is what clients get: the frame is streamed, ok
+    false, its reason starting `occluded`, the articulation and pose of the last good
+    frame held (the tracker keeps fitting underneath)."""
+    c = server.client()
+    r = c.post("/api/sessions", json={"name": "hand", "processor": "tests.service_helpers:"
+                                      "Occludes", "wait_for_subscriber": True,
+                                      "source": f"replay-record:{recording[0]}?pace=fast"})
+    assert r.status_code == 201, r.text
+
+    async def go():
+        async with await subscribe(server.url, session="hand", queue=64) as ws:
+            return [await until(ws, "frame", skip=("status", "hello")) for _ in range(8)]
+    try:
+        frames = run(go())
+    finally:
+        c.delete("/api/sessions/hand")
+    assert [f["seq"] for f in frames] == list(range(8))  # none left out
+    flags = [(f["quality"]["ok"], f["quality"]["reason"].split(":")[0]) for f in frames]
+    assert flags == [(True, "")] * 3 + [(False, "occluded")] * 3 + [(True, "")] * 2, flags
+    for f in frames[3:6]:
+        assert f["values"]["articulatory"] == frames[2]["values"]["articulatory"]
+        assert f["values"]["pose"]["translation"] == frames[2]["values"]["pose"]["translation"]
+    # and the words agree: neither the docs nor the tracker's own reason say "not streamed"
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for path in (root / "README.md", root / "docs" / "REAL_SPEAKERS.md",
+                 root / "docs" / "SERVICE.md", root / "core" / "tracking" / "tracker.py"):
+        assert "not streamed" not in path.read_text(), path
 
 
 def test_a_crashing_session_is_restarted_and_the_server_survives(server, recording):
