@@ -46,14 +46,16 @@ class ProcessorContext:
     """Callable(str) telling the session (and its console) what a slow first start does."""
 
 
+COMPILING = "compiling the tracking kernels (first run only, a few seconds; numba caches them)"
+
+
 def _warm_up(context: ProcessorContext) -> None:
     """Compile (first run) or load the cost kernels before frames flow, saying so when it
     compiles: a worker that is starting is not stalled."""
     from articast.core.tracking import kernels
 
     if context.progress is not None and not kernels.compiled_on_disk():
-        context.progress("compiling the tracking kernels (first run only, a few seconds; "
-                         "numba caches them)")
+        context.progress(COMPILING)
     kernels.warm_up()
 
 

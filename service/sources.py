@@ -539,10 +539,15 @@ def parse_named(spec: str) -> tuple[str, str]:
 
 
 def probe(uri: str) -> SourceInfo:
-    """Open and close a finite source once: a corrupt file fails here with one clear error."""
+    """Open and close a finite source once: a corrupt file fails here with one clear error.
+    The synthetic speaker is not opened (its options are checked): opening it loads, or on a
+    first run builds, its model and appearance, which its worker does anyway (it cost
+    `articast demo` seconds before its worker even started)."""
     src = make_source(uri)
     if src.live:
         return SourceInfo(uri, parse_uri(uri).kind, True)
+    if isinstance(src, SyntheticSource):
+        return SourceInfo(uri, "synthetic", False, detail={"seed": src.seed})
     try:
         return src.open()
     finally:

@@ -35,6 +35,7 @@ from articast.core.tracking.result import TrackResult
 from articast.service.capture import Capture
 from articast.service.preview import PreviewPolicy, render_preview
 from articast.service.processors import (
+    COMPILING,
     ProcessorContext,
     load_assets,
     load_speaker,
@@ -42,7 +43,7 @@ from articast.service.processors import (
 )
 from articast.service.record import Recorder
 from articast.service.settings import CaptureSettings
-from articast.service.sources import make_source
+from articast.service.sources import RecordSource, make_source
 from articast.service.wire import FrameRecord, describe, epoch
 
 Emit = Callable[[tuple[Any, ...]], None]
@@ -92,10 +93,17 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             if stop.is_set():
                 emit(("done", "stopped", ""))
                 return
+        said: set[str] = set()
+
         def progress(text: str) -> None:
-            emit(("progress", text))
+            if text not in said:  # the kernels' compilation may be announced twice
+                said.add(text)
+                emit(("progress", text))
 
         source = make_source(spec.source)
+        if _tracks(spec, source):  # a first run compiles while its source opens (caches)
+            threading.Thread(target=_compile_kernels, args=(progress,), daemon=True,
+                             name="compile kernels").start()
         if hasattr(source, "progress"):
             source.progress = progress
         capture = Capture(source, capture_settings,
@@ -163,6 +171,22 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             capture.stop()
         if recorder is not None:
             recorder.close()
+
+
+def _tracks(spec: SessionSpec, source: Any) -> bool:
+    """Whether the session will run the tracker (not ground truth passed through)."""
+    return spec.processor in ("auto", "tracker", "live") and not isinstance(
+        source, RecordSource)
+
+
+def _compile_kernels(progress: Callable[[str], None]) -> None:
+    """Compile the tracker's kernels if numba's cache lacks them (a first run), saying so; in
+    a thread beside the source's opening, which on a first run builds its own caches."""
+    from articast.core.tracking import kernels
+
+    if not kernels.compiled_on_disk():
+        progress(COMPILING)
+        kernels.warm_up()
 
 
 def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
@@ -285,8 +309,42 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
         conn.close()
 
 
+WORKER_MODULES = ("articast.service.worker", "articast.service.processors",
+                  "articast.core.tracking.tracker", "articast.core.tracking.kernels",
+                  "articast.core.synthetic", "articast.core.faces.live", "cv2", "numba",
+                  "articast.service.preload")
+"""What a worker process imports before its first frame (~1-2 s): preloaded once by the
+fork server, so a worker starts as a fork of a process that has them."""
+
+
+def _context() -> Any:
+    """Workers fork from a fork server (a clean, single-threaded process that has imported
+    :data:`WORKER_MODULES` once; no inherited threads, loop or sockets) where there is one;
+    spawned elsewhere."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(list(WORKER_MODULES))
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def start_worker_server() -> None:
+    """Start the fork server now, in the background: it imports what workers need while the
+    server imports its own (two cores, half the start-up). Idempotent; a failure only means
+    the first worker starts it."""
+    ctx = ProcessWorker._ctx
+    if ctx.get_start_method() == "forkserver":
+        try:
+            from multiprocessing import forkserver
+
+            forkserver.ensure_running()
+        except (OSError, ValueError):  # pragma: no cover - started on first use instead
+            pass
+
+
 class ProcessWorker:
-    """Runs :func:`run_worker` in its own process (spawned: no inherited threads or loop).
+    """Runs :func:`run_worker` in its own process (forked from a fork server, or spawned: no
+    inherited threads or loop).
 
     A reader thread in the server receives the worker's messages and passes them to ``emit``;
     if the process dies without saying ``done``, ``emit`` gets ``("done", "crashed", ...)``.
@@ -295,7 +353,7 @@ class ProcessWorker:
     """
 
     kind = "process"
-    _ctx = multiprocessing.get_context("spawn")
+    _ctx = _context()
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
                  emit: Emit) -> None:

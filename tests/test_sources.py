@@ -181,11 +181,26 @@ def test_missing_camera_is_a_status_with_retries_not_a_crash():
     assert "/dev/video97" in statuses[0][1] and "retry" in statuses[0][1]
 
 
-def test_synthetic_source_brings_model_camera_appearance_and_truth():
+def test_synthetic_source_brings_model_camera_appearance_and_truth(tmp_path, monkeypatch):
+    """... and its first open says what it builds (the first `articast demo` looked hung),
+    once: the next open loads the cache. probe() (serve's check before starting) does not
+    build it in the server's own process any more."""
     from articast.service.sources import make_source
 
+    monkeypatch.setenv("ARTICAST_CACHE_DIR", str(tmp_path / "cache"))
+    assert probe("synthetic:seed=0&fps=30").kind == "synthetic"
+    assert not (tmp_path / "cache").exists()
+    said = []
     src = make_source("synthetic:seed=0&fps=30")
+    src.progress = said.append
+    src.open()
+    src.close()
+    assert len(said) == 1 and said[0].startswith("building synthetic speaker 0's model")
+    assert str(tmp_path / "cache") in said[0]
+    src = make_source("synthetic:seed=0&fps=30")
+    src.progress = said.append
     info = src.open()
+    assert len(said) == 1
     try:
         assets = src.assets()
         assert (info.width, info.height) == (640, 480) and info.kind == "synthetic"

@@ -9,7 +9,8 @@ Conditions (all with ground truth):
   (Gaussian blur 1.5 px), ``light`` (light direction drifting 30 deg): the teleconference
   condition with the test images degraded.
 - ``occlusion``: the teleconference condition with a hand over the mouth (sequence 1) and
-  black frames (sequence 2) for 10 frames (60-69; ``EvalConfig.occlusion``); frames inside the gap are not scored for accuracy;
+  black frames (sequence 2) for 10 frames (60-69; ``EvalConfig.occlusion``); frames inside
+  the gap are not scored for accuracy;
   ``flagged_fraction`` says how many were marked not ok, ``occluded_ok_rms_mm_max`` the worst
   error of an occluded frame streamed as ok (a hand sliding in first covers a few points,
   which the robust fit tracks through; 0 = none streamed), and ``recovery_frames`` how many frames
@@ -39,14 +40,12 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
 from articast.core.evaluation.measures import lip_aperture, lip_width, rms_3d, score_sequence
+from articast.core.evaluation.names import CONDITIONS, MODELS
 from articast.core.model.build import invert
 from articast.core.model.camera import Pose
 from articast.core.tracking.fitting import FitPolicy
 from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
-MODELS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin", "la_lin_nelder_mead")
-CONDITIONS = ("postures", "teleconference", "desk", "noise", "gain", "blur", "light",
-              "occlusion", "hand_slide")
 OCCLUSION = (60, 70)  # [start, stop) frames of the occlusion in the occlusion condition
 HAND_SLIDE = (60, 90)  # [start, stop) frames of the hand in the hand_slide condition
 HAND_SLIDE_IN = 20  # frames the hand takes to reach the mouth

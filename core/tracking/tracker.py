@@ -87,8 +87,9 @@ class TrackingPolicy:
         face, not mispredictions scattered over all of it) is not ok, ``occluded``, and the
         tracker keeps its robust fit (no re-initialisation, the running levels are left
         alone): a hand sliding over the mouth or chin is tracked through, and its frames
-        are sent with ok false and the last good state held. Only the points the articulation moves (``occlusion_moving`` x the largest
-        displacement over the training range, or more: lips, jaw line, chin) are judged:
+        are sent with ok false and the last good state held. Only the points the
+        articulation moves (``occlusion_moving`` x the largest displacement over the
+        training range, or more: lips, jaw line, chin) are judged:
         rigid points (eyes, brows, nose) mispredict whenever the head turns (judged, they
         made 13-22 % of the clean clip cap13 "occluded"), and hiding them does not bias the
         articulation. Measured and left out: requiring the outliers to be next to each

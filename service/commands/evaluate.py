@@ -11,7 +11,7 @@ from pathlib import Path
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    from articast.core.evaluation.experiments import CONDITIONS, MODELS
+    from articast.core.evaluation.names import CONDITIONS, MODELS
 
     p = sub.add_parser(
         "evaluate",

@@ -284,6 +284,10 @@ def access_policy(args: argparse.Namespace, host: str) -> AccessPolicy:
 
 
 def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
+    if sources:  # the workers' imports run beside the server's own from here on
+        from articast.service.worker import start_worker_server
+
+        start_worker_server()
     from articast.core.errors import InputError
     from articast.service.app import ServiceConfig
     from articast.service.server import serve
