@@ -126,3 +126,12 @@ def test_start_and_end_are_checked_before_any_work(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and says in err[0], err
     assert not (tmp_path / "sp").exists()
+    # enroll with a camera of another aspect ratio: what to do, in one line
+    from articast.core.model.camera import Camera
+
+    cam = Camera.load(tmp_path / "s" / "camera.json")
+    Camera(cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height * 2).save(tmp_path / "t.json")
+    assert main(["enroll", video, "-o", str(tmp_path / "sp"), "--quiet", "--camera",
+                 str(tmp_path / "t.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another aspect ratio" in err[0] and "resize" in err[0], err

@@ -140,9 +140,13 @@ def _enroll(args: argparse.Namespace) -> int:
                                                               args.quiet, span)
     if camera is None:
         camera = Camera.default(size[0], size[1], DEFAULT_FOV_DEG)
-    elif (camera.width, camera.height) != size:
-        raise InputError(f"video frames are {size[0]}x{size[1]} but the camera is calibrated "
-                         f"for {camera.width}x{camera.height}")
+    else:  # the same camera at another resolution is scaled; another aspect ratio: one line
+        from articast.service.processors import fit_camera, scaling_note
+
+        note = scaling_note(camera, *size)
+        camera = fit_camera(camera, *size, what="the video's frames")
+        if note and not args.quiet:
+            print(f"articast enroll: {note}", file=sys.stderr)
     warnings = []
     if seconds < MIN_SECONDS:
         warnings.append(f"the clip is {seconds:.1f} s long: 20-60 s of reading aloud cover "
