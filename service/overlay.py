@@ -52,16 +52,17 @@ def projected(model: Any, camera: Any, result: Any) -> np.ndarray | None:
 
 
 def draw(image: np.ndarray, uv: np.ndarray, model: Any, ok: bool,
-         contours: list[tuple[np.ndarray, tuple[int, int, int]]]) -> np.ndarray:
+         contours: list[tuple[np.ndarray, tuple[int, int, int]]],
+         opacity: float = MESH_OPACITY) -> np.ndarray:
     """``image`` (BGR uint8, not modified) with the mesh at pixel coordinates ``uv`` drawn
-    thin and translucent, and the lip ``contours`` on top."""
+    thin and translucent (``opacity``), and the lip ``contours`` on top."""
     q = np.round(uv * (1 << _SHIFT)).astype(np.int32)
     out = image.copy()
     if len(model.triangles):
         mesh = image.copy()
         cv2.polylines(mesh, [q[t] for t in model.triangles], True,
                       MESH_OK if ok else MESH_LOST, 1, cv2.LINE_AA, shift=_SHIFT)
-        out = cv2.addWeighted(mesh, MESH_OPACITY, image, 1.0 - MESH_OPACITY, 0.0)
+        out = cv2.addWeighted(mesh, opacity, image, 1.0 - opacity, 0.0)
     for idx, colour in contours:
         cv2.polylines(out, [q[idx]], False, colour, 1, cv2.LINE_AA, shift=_SHIFT)
     return out

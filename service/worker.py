@@ -135,6 +135,10 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             recorder = Recorder(record_dir, spec.name, desc, source_info)
         seq = 0
         preview_policy, next_preview = PreviewPolicy(), 0.0
+        if spec.preview:
+            from articast.service.overlay import lip_contours
+
+            contours = lip_contours(speaker)
         while not stop.is_set():
             frame = capture.get(timeout=0.1)
             if frame is None:
@@ -151,7 +155,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             if spec.preview and frame.image is not None and time.monotonic() >= next_preview:
                 next_preview = time.monotonic() + 1.0 / preview_policy.rate_hz
                 emit(("preview", seq, render_preview(frame.image, model, camera, result,
-                                                     preview_policy)))
+                                                     preview_policy, contours)))
             if recorder is not None:
                 recorder.write(rec)
             seq += 1

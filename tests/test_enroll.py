@@ -145,11 +145,19 @@ def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp
 
     video = enrolled / "test" / "video.mp4"
     spec = SessionSpec("me", f"file:{video}?pace=fast", wait_for_subscriber=True,
-                       speaker=str(enrolled / "speaker"))
+                       speaker=str(enrolled / "speaker"), preview=True)
     config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
     with ServerThread(config) as srv:
         hello, frames = asyncio.run(collect(srv.url, "me",
                                             ["articulatory", "pose", "fap", "arkit"]))
+        with srv.client() as c:
+            jpeg = c.get("/api/sessions/me/preview.jpg").content
+    # the preview draws the lip contours over the translucent mesh (an opaque wireframe hid
+    # them): magenta inner and yellow outer lines are there
+    img = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    b, g, r = img[..., 0], img[..., 1], img[..., 2]
+    assert ((b - g > 80) & (r - g > 80)).sum() > 10  # magenta
+    assert ((g - b > 80) & (r - b > 80)).sum() > 10  # yellow
     assert hello["param_names"][6] == "lar1" and len(frames) == 75
     ok = np.array([f["quality"]["ok"] for f in frames])
     assert ok.mean() >= 0.95
