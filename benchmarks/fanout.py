@@ -192,7 +192,7 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     rec = make_recording(frames=int(args.fps * 30), fps=args.fps, n_points=2000)
-    with Server({"bench": f"replay-record:{rec}?loop=0"}, "--max-queue", "8",
+    with Server({"bench": f"replay-record:{rec}?loop=yes"}, "--max-queue", "8",
                 "--max-connections-per-client", "5000") as srv:
         srv.wait_running()
         for n in args.subscribers:

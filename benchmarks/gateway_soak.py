@@ -2,7 +2,7 @@
 
     python benchmarks/gateway_soak.py --json --seconds 600
 
-The worker replays a 60 fps recording (loop=0); ``--subscribers`` clients read everything
+The worker replays a 60 fps recording (loop=yes); ``--subscribers`` clients read everything
 through the gateway. Reports the gateway's and the worker's RSS at the start of the measured
 window and at the end, the change in percent, the RSS slope fitted over the window
 (MB/min), frames delivered, the session's restarts (must stay 0) and the worker process's
@@ -64,7 +64,7 @@ def main() -> None:
     url = f"redis://127.0.0.1:{port}/0"
     redis = start_redis(port)
     worker = articast("track-worker", "--hub", url, "--json",
-                      "--source", f"soak=replay-record:{rec}?loop=0")
+                      "--source", f"soak=replay-record:{rec}?loop=yes")
     gateway = None
     try:
         json.loads(worker.stdout.readline())

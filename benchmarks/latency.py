@@ -109,7 +109,7 @@ def main() -> None:
 
         os.environ["ARTICAST_BUSY_MS"] = str(args.busy_ms)
         extra += ["--processor", "benchmarks.busy:Busy"]
-    with Server({"bench": f"replay-record:{rec}?loop=0"}, *extra) as srv:
+    with Server({"bench": f"replay-record:{rec}?loop=yes"}, *extra) as srv:
         srv.wait_running()
         for n in args.subscribers:
             r = asyncio.run(measure(srv.url, n, args.seconds, args.encoding, args.client))

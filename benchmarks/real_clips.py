@@ -236,52 +236,21 @@ def _reasons(results) -> dict[str, int]:
     return out
 
 
-def overlay(image: np.ndarray, speaker, result, crop: float = 1.5, size: int = 320
-            ) -> np.ndarray:
-    """A square tile around the face: the fitted mesh drawn thin, the lip contours thick
-    (outer in yellow, inner in magenta), green mesh when ok, red when not."""
-    from articast.core.faces.scheme import (
-        LIP_INNER_LOWER,
-        LIP_INNER_UPPER,
-        LIP_OUTER_LOWER,
-        LIP_OUTER_UPPER,
-        mediapipe_scheme,
-    )
-
-    m, cam = speaker.model, speaker.camera
-    uv = cam.project_head(m.shape(np.asarray(result.alpha)), result.pose)
-    where = {int(p): i for i, p in enumerate(mediapipe_scheme(speaker.rig).points)}
-    c = np.nanmean(uv, 0)
-    half = crop * 0.5 * float(np.nanmax(np.ptp(uv, 0)))
-    x0, y0 = c - half
-    k = size / (2 * half)
-    warp = np.float32([[k, 0, -k * x0], [0, k, -k * y0]])
-    tile = cv2.warpAffine(image, warp, (size, size), flags=cv2.INTER_LINEAR)
-    q = np.round((uv * k - [k * x0, k * y0]) * 16).astype(np.int32)
-    mesh = (60, 200, 60) if result.ok else (60, 60, 230)
-    drawn = tile.copy()
-    cv2.polylines(drawn, [q[tr] for tr in m.triangles], True, mesh, 1, cv2.LINE_AA, shift=4)
-    tile = cv2.addWeighted(drawn, 0.35, tile, 0.65, 0.0)
-    for contour, colour in ((LIP_OUTER_UPPER, (0, 230, 255)), (LIP_OUTER_LOWER, (0, 230, 255)),
-                            (LIP_INNER_UPPER, (255, 0, 255)), (LIP_INNER_LOWER, (255, 0, 255))):
-        pts = q[[where[i] for i in contour]]
-        cv2.polylines(tile, [pts], False, colour, 1, cv2.LINE_AA, shift=4)
-    return tile
-
-
 def _write_grid(path: Path, frames, results, speaker, n: int = 9) -> None:
-    """``n`` held-out frames spread over the clip, each with the fitted mesh drawn on it."""
+    """``n`` held-out frames spread over the clip, each with the fit drawn on it as the
+    product draws it (articast.service.overlay: ``track --overlay``, enroll's contact
+    sheet)."""
+    from articast.service.overlay import fit_tile, grid, label, lip_contours
+
+    contours = lip_contours(speaker)
     idx = np.linspace(0, len(frames) - 1, n).round().astype(int)
     tiles = []
     for i in idx:
-        tile = overlay(frames[i], speaker, results[i])
+        tile = fit_tile(frames[i], speaker.model, speaker.camera, results[i], contours)
         lips = results[i].lips or {}
-        cv2.putText(tile, f"#{i} aperture {lips.get('aperture_mm', float('nan')):.1f} mm",
-                    (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-        tiles.append(tile)
-    rows = [np.hstack(tiles[r:r + 3]) for r in range(0, len(tiles), 3)]
+        tiles.append(label(tile, f"#{i} aperture {lips.get('aperture_mm', float('nan')):.1f} mm"))
     path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), np.vstack(rows))
+    cv2.imwrite(str(path), grid(tiles))
 
 
 def add_enrol_options(ap: argparse.ArgumentParser) -> None:

@@ -226,7 +226,7 @@ def main() -> None:
     procs: list[subprocess.Popen] = []
     try:
         worker = articast("track-worker", "--hub", url, "--json",
-                          "--source", f"bench=replay-record:{rec}?loop=0")
+                          "--source", f"bench=replay-record:{rec}?loop=yes")
         procs.append(worker)
         json.loads(worker.stdout.readline())
         gateways = []

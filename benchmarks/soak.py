@@ -57,9 +57,9 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
     if args.source == "synthetic":
-        uri = f"synthetic:seed=3&fps={args.fps:g}&loop=0"
+        uri = f"synthetic:seed=3&fps={args.fps:g}&loop=yes"
     else:
-        uri = f"replay-record:{make_recording(int(args.fps * 30), args.fps)}?loop=0"
+        uri = f"replay-record:{make_recording(int(args.fps * 30), args.fps)}?loop=yes"
     import httpx
 
     with Server({"soak": uri}) as srv:

@@ -383,7 +383,7 @@ class Service:
     """What the app holds: the hub, the sessions, the open connections."""
 
     def __init__(self, config: ServiceConfig,
-                 on_live: Callable[[], None] | None = None) -> None:
+                 on_live: Callable[[dict[str, str]], None] | None = None) -> None:
         self.config = config
         self.on_live = on_live
         self._announce_task: asyncio.Task[None] | None = None
@@ -482,12 +482,14 @@ class Service:
     async def _announce(self) -> None:
         """Call ``on_live`` once every initial session streams (its first frame is on the
         hub) or has said why it cannot (a session held for its first subscriber counts as
-        ready): a URL printed then shows a moving face, not an empty page."""
+        ready): a URL printed then shows a moving face, not an empty page. It is told which
+        sessions have failed already ({name: reason}): no URL is printed for those."""
         waits = [s.settled.wait() for s in self.manager.sessions.values()
                  if not s.spec.wait_for_subscriber]
         await asyncio.gather(*waits)
         assert self.on_live is not None
-        self.on_live()
+        self.on_live({n: s.detail for n, s in self.manager.sessions.items()
+                      if s.state == "failed"})
 
     async def _watch(self) -> None:
         limit = self.config.hub.stall_timeout_s
@@ -546,8 +548,8 @@ class Service:
 
 
 def create_app(config: ServiceConfig | None = None,
-               on_live: Callable[[], None] | None = None) -> FastAPI:
-    """The app. ``on_live()`` is called once the initial sessions stream (see
+               on_live: Callable[[dict[str, str]], None] | None = None) -> FastAPI:
+    """The app. ``on_live(failed)`` is called once the initial sessions stream (see
     :meth:`Service._announce`)."""
     config = config or ServiceConfig()
     svc = Service(config, on_live)

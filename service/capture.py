@@ -42,6 +42,7 @@ class Capture:
         self.attempts = 0
         self.pacing = False
         """Waiting for the next frame's media time (a gap in a recording): not a stall."""
+        self._lost = False  # unavailable since the last "running": say when it is back
 
     # ------------------------------------------------------------------ consumer side
     def start(self) -> Capture:
@@ -91,6 +92,7 @@ class Capture:
                 return True
             except SourceUnavailable as exc:
                 self.source.close()
+                self._lost = True
                 self._on_status("unavailable", f"{exc}; retry {self.attempts} in {delay:.1f} s")
                 if self._stop.wait(delay):
                     return False
@@ -116,8 +118,10 @@ class Capture:
                 return
             first_open = not self.opened.is_set()
             self.opened.set()
-            self._on_status("running", "" if first_open else "source is back")
-            t0_wall, t0_media, last_t = time.monotonic(), None, 0.0
+            if first_open or self._lost:  # not at every loop of a looping file
+                self._on_status("running", "" if first_open else "source is back")
+            self._lost = False
+            t0_wall, t0_media, first_t, last_t = time.monotonic(), None, None, 0.0
             try:
                 while not self._stop.is_set():
                     item = self.source.read()
@@ -134,10 +138,12 @@ class Capture:
                         finally:
                             self.pacing = False
                     last_t = t
+                    first_t = t if first_t is None else first_t
                     self._put(Frame(index, t + t_offset, time.monotonic(), image, truth))
                     index += 1
             except SourceUnavailable as exc:
                 self.source.close()
+                self._lost = True
                 self._on_status("unavailable", f"{exc}; reopening")
                 continue
             self.source.close()
@@ -148,4 +154,4 @@ class Capture:
                 return
             # the next loop continues the time line one frame period after the last frame
             period = 1.0 / (self.info.fps if self.info and self.info.fps else 30.0)
-            t_offset += last_t + period
+            t_offset += last_t - (first_t or 0.0) + period  # a part (start=) begins late

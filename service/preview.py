@@ -28,25 +28,27 @@ class PreviewPolicy:
     """JPEG quality, 0-100."""
 
 
-MESH_BGR = (96, 230, 120)
-LOST_BGR = (60, 60, 230)
+PREVIEW_MESH_OPACITY = 0.6
+"""The preview is small (320 px): its mesh is drawn a little stronger than the full-size
+overlay's, still translucent, with the lip contours on top (the opaque wireframe hid them)."""
 
 
 def render_preview(image: np.ndarray, model: Any, camera: Any, result: Any,
-                   policy: PreviewPolicy = PreviewPolicy()) -> bytes:
-    """JPEG bytes of ``image`` (H, W, 3) uint8 BGR with the mesh of ``model`` at the tracked
-    state of ``result`` (alpha, pose) drawn on it, scaled to ``policy.width`` pixels wide.
-    The mesh is green when the frame was tracked, red when it was not (the last good state)."""
+                   policy: PreviewPolicy = PreviewPolicy(), contours: Any = ()) -> bytes:
+    """JPEG bytes of ``image`` (H, W, 3) uint8 BGR with the fit drawn on it as
+    :mod:`articast.service.overlay` draws it (the mesh of ``model`` at the tracked state of
+    ``result``, green when the frame was tracked, red when not; an enrolled speaker's lip
+    ``contours`` on top), scaled to ``policy.width`` pixels wide."""
+    from articast.service.overlay import draw, projected
+
     h, w = image.shape[:2]
     scale = policy.width / float(w)
     small = cv2.resize(image, (policy.width, max(1, int(round(h * scale)))),
                        interpolation=cv2.INTER_AREA)
     if model is not None and camera is not None and len(model.triangles):
-        uv = camera.project_head(model.shape(np.asarray(result.alpha, float)), result.pose)
-        if np.all(np.isfinite(uv)):
-            pts = np.round(uv * scale * 16).astype(np.int32)  # 4 fractional bits
-            polys = [pts[t] for t in model.triangles]
-            colour = MESH_BGR if result.ok else LOST_BGR
-            cv2.polylines(small, polys, True, colour, 1, cv2.LINE_AA, shift=4)
+        uv = projected(model, camera, result)
+        if uv is not None:
+            small = draw(small, uv * scale, model, bool(result.ok), list(contours),
+                         PREVIEW_MESH_OPACITY)
     ok, buf = cv2.imencode(".jpg", small, [cv2.IMWRITE_JPEG_QUALITY, int(policy.quality)])
     return buf.tobytes() if ok else b""

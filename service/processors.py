@@ -44,6 +44,21 @@ class ProcessorContext:
     appearance: Any  # core.appearance.AppearanceModel | None
     options: dict[str, Any]
     speaker: Any = None  # articast.core.faces.speaker.Speaker | None
+    progress: Any = None
+    """Callable(str) telling the session (and its console) what a slow first start does."""
+
+
+COMPILING = "compiling the tracking kernels (first run only, a few seconds; numba caches them)"
+
+
+def _warm_up(context: ProcessorContext) -> None:
+    """Compile (first run) or load the cost kernels before frames flow, saying so when it
+    compiles: a worker that is starting is not stalled."""
+    from articast.core.tracking import kernels
+
+    if context.progress is not None and not kernels.compiled_on_disk():
+        context.progress(COMPILING)
+    kernels.warm_up()
 
 
 class TruthProcessor:
@@ -111,9 +126,7 @@ class TrackerProcessor:
             pose = Pose(translation=np.array([0.0, 0.0, float(opts.get("distance_mm", 300.0))]))
         self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
                                initial_pose=pose, clock=time.perf_counter)
-        from articast.core.tracking import kernels
-
-        kernels.warm_up()  # compile (first run) or load the cost kernel before frames flow
+        _warm_up(context)
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:
@@ -129,7 +142,6 @@ class LiveProcessor:
         from articast.core.faces.finder import FaceFinder
         from articast.core.faces.live import LiveTracker, live_policy
         from articast.core.faces.scheme import mediapipe_scheme
-        from articast.core.tracking import kernels
 
         sp = context.speaker
         rig = str(context.options.get("rig", sp.rig))
@@ -139,12 +151,37 @@ class LiveProcessor:
             raise InputError(f"session {context.session!r}: {exc}") from None
         self.tracker = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
                                    tracking=policy, clock=time.perf_counter)
-        kernels.warm_up()
+        _warm_up(context)
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:
             raise InputError("this source has no images to track")
         return self.tracker.track(frame.image, frame.t)
+
+
+def fit_camera(camera: Any, width: int, height: int, what: str = "the frames") -> Any:
+    """``camera`` for frames of ``width`` x ``height``: itself at its own size; scaled when the
+    aspect ratio matches (the same camera at another resolution: a webcam's 640x480 and
+    320x240 share their field of view); else one clear error saying what to do."""
+    if not (width and height) or (width, height) == (camera.width, camera.height):
+        return camera
+    factor = width / camera.width
+    if abs(camera.height * factor - height) > 1.0:
+        ratio = camera.width / camera.height
+        raise InputError(
+            f"{what} are {width}x{height} but the camera is {camera.width}x{camera.height}, "
+            f"another aspect ratio ({width / height:.3f} vs {ratio:.3f}): enrol (or calibrate) "
+            f"on a clip of {width}x{height}, or resize this one to "
+            f"{round(height * ratio)}x{height} or {width}x{round(width / ratio)}")
+    return camera.scaled(factor)
+
+
+def scaling_note(camera: Any, width: int, height: int) -> str:
+    """One line saying that the camera was scaled to the frames, or ''."""
+    if not (width and height) or (width, height) == (camera.width, camera.height):
+        return ""
+    return (f"camera scaled from {camera.width}x{camera.height} to {width}x{height} (the same "
+            "camera at another resolution: same aspect ratio, focal length and centre scaled)")
 
 
 def load_speaker(folder: str, source: SourceInfo) -> Any:
@@ -155,15 +192,9 @@ def load_speaker(folder: str, source: SourceInfo) -> Any:
     from articast.core.faces.speaker import Speaker
 
     sp = Speaker.load(folder)
-    cam = sp.camera
-    if source.width and source.height and (source.width, source.height) != (cam.width,
-                                                                           cam.height):
-        factor = source.width / cam.width
-        if abs(cam.height * factor - source.height) > 1.0:
-            raise InputError(f"the source's frames are {source.width}x{source.height} but the "
-                             f"speaker was enrolled at {cam.width}x{cam.height} (another "
-                             "aspect ratio): enrol at this size, or set the camera's size")
-        sp = replace(sp, camera=cam.scaled(factor))
+    if source.width and source.height:
+        sp = replace(sp, camera=fit_camera(sp.camera, source.width, source.height,
+                                           "the source's frames"))
     return sp
 
 
@@ -248,4 +279,6 @@ def load_assets(spec_model: str, spec_appearance: str, spec_camera: str,
         from articast.core.model.camera import Camera
 
         camera = Camera.default(source.width, source.height)
+    elif camera is not None and source.width and source.height:
+        camera = fit_camera(camera, source.width, source.height, "the source's frames")
     return model, appearance, camera

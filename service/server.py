@@ -185,7 +185,7 @@ def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | No
 
 
 def uvicorn_config(config: ServiceConfig,
-                   on_live: Callable[[], None] | None = None) -> uvicorn.Config:
+                   on_live: Callable[[dict[str, str]], None] | None = None) -> uvicorn.Config:
     s, h = config.server, config.hub
     install_log_redaction(config.access.token)
     clients = ClientConnections(h.max_connections_per_client)
@@ -226,10 +226,13 @@ def raise_file_limit() -> None:
             resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
 
 
-def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = None) -> None:
-    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url)`` is called once the port is bound
-    and the initial sessions stream (their first frame is out, or they said why not), so a
-    URL printed then never shows an empty page."""
+def serve(config: ServiceConfig,
+          on_listening: Callable[[str, dict[str, str]], None] | None = None) -> None:
+    """Serve until SIGTERM/SIGINT. ``on_listening(ws_url, failed)`` is called once the port is
+    bound and the initial sessions stream (their first frame is out, or they said why not),
+    so a URL printed then never shows an empty page; ``failed`` names the sessions that
+    failed already (their reason was logged). When every initial session failed there is
+    nothing to serve: no URL, and one error (InputError) once the server has stopped."""
     raise_file_limit()
     try:
         sock = bound_socket(config.server.host, config.server.port)
@@ -241,6 +244,18 @@ def serve(config: ServiceConfig, on_listening: Callable[[str], None] | None = No
     host, port = sock.getsockname()[:2]
     shown = f"[{host}]" if ":" in host else host
     url = f"ws://{shown}:{port}/ws"
-    live = None if on_listening is None else (lambda: on_listening(url))
+    nothing: list[str] = []
+
+    def live(failed: dict[str, str]) -> None:
+        if config.sessions and len(failed) == len(config.sessions):
+            nothing.extend(failed)
+            server.should_exit = True
+        elif on_listening is not None:
+            on_listening(url, failed)
+
     server = uvicorn.Server(uvicorn_config(config, live))
     server.run(sockets=[sock])
+    if nothing:
+        from articast.core.errors import InputError
+
+        raise InputError(f"nothing to serve: {', '.join(nothing)} failed (the reason is above)")

@@ -32,8 +32,9 @@ log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 TERMINAL = ("ended", "failed", "stopped")
 PROBLEMS = ("unavailable", "failed")
+TOLD = (*PROBLEMS, "ended")
 """States logged on the console at the default level (warning), with their reason (a crash
-is logged where the restart is decided)."""
+is logged where the restart is decided); a session that ended says so too."""
 JOIN_TIMEOUT_S = 5.0
 """How long a stopped worker may take to finish its frame before its process is terminated."""
 
@@ -70,6 +71,9 @@ class Session:
         self._task: asyncio.Task[None] | None = None
         self._loop = asyncio.get_running_loop()
         self._last_activity = time.monotonic()
+        self._ready = False
+        """The current worker said ``ready`` (source open, processor built): from then on it
+        is ``running`` and held to the stall bound; before, to the longer start bound."""
 
     # ----------------------------------------------------------------------- lifecycle
     def start(self) -> None:
@@ -109,6 +113,7 @@ class Session:
             self._done.clear()
             worker = self._worker = self._m.make_worker(self)
             self.worker_kind = worker.kind
+            self._ready = False
             started = time.monotonic()
             try:
                 worker.start()
@@ -121,7 +126,10 @@ class Session:
                 worker.stop()
                 await asyncio.to_thread(worker.join, JOIN_TIMEOUT_S)
             outcome, detail = self._outcome
-            if self._stopping.is_set() or outcome == "stopped":
+            if self._stopping.is_set():
+                return
+            if outcome == "stopped":  # the worker alone was stopped (SIGTERM): not a crash
+                self._set_state("stopped", detail or "the worker was stopped (SIGTERM)")
                 return
             if outcome in ("ended", "failed"):
                 self._set_state(outcome, detail)
@@ -142,21 +150,29 @@ class Session:
 
     async def _watch(self, worker: ThreadWorker | ProcessWorker) -> None:
         """Wait for the worker's end; declare it ``stalled`` and kill it if a running session
-        produces nothing for ``worker_stall_s`` (a hung process, a frozen driver)."""
-        limit = self._m.policy.worker_stall_s
+        produces nothing for ``worker_stall_s`` (a hung process, a frozen driver), or a
+        starting one reports nothing for ``worker_start_s`` (a first run builds caches and
+        compiles for several seconds, saying so: it is not stalled)."""
+        policy = self._m.policy
+        bounds = [b for b in (policy.worker_stall_s, policy.worker_start_s) if b > 0]
+        tick = max(0.05, min(1.0, min(bounds) / 4)) if bounds else None
         while not self._done.is_set():
             try:
-                await asyncio.wait_for(self._done.wait(), max(0.05, min(1.0, limit / 4))
-                                       if limit > 0 else None)
+                await asyncio.wait_for(self._done.wait(), tick)
             except TimeoutError:
                 quiet = time.monotonic() - self._last_activity
-                if (self.state == "running" and worker.go.is_set() and limit > 0
+                starting = not self._ready and self.state in ("starting", "restarting")
+                limit = policy.worker_start_s if starting else policy.worker_stall_s
+                if ((self.state == "running" or starting) and worker.go.is_set() and limit > 0
                         and quiet > limit and not self._stopping.is_set()):
-                    log.warning("session %s stalled: nothing for %.1f s", self.spec.name, quiet)
-                    self._set_state("stalled", f"no frame for {quiet:.1f} s; restarting the "
-                                    "worker")
-                    self._outcome = ("crashed", f"stalled: no frame for {quiet:.1f} s")
+                    what = "still starting, nothing" if starting else "nothing"
+                    log.warning("session %s stalled: %s for %.1f s", self.spec.name, what, quiet)
+                    self._set_state("stalled", f"{'no start' if starting else 'no frame'} for "
+                                    f"{quiet:.1f} s; restarting the worker")
+                    self._outcome = ("crashed", f"stalled: {'no start' if starting else 'no frame'}"
+                                     f" for {quiet:.1f} s")
                     self._generation += 1  # its "stopped" must not overwrite "crashed"
+                    self._done.set()
                     worker.kill()
                     return
 
@@ -178,20 +194,30 @@ class Session:
         if generation is not None and generation != self._generation:
             return  # a worker given up (stalled): it no longer speaks for the session
         kind = msg[0]
-        self._last_activity = time.monotonic()
+        if kind != "status" or (msg[1], msg[2]) != (self.state, self.detail):
+            self._last_activity = time.monotonic()  # a repeated status is no sign of life
         if kind == "frame":
             self._on_frame(msg[1])
         elif kind == "status":
-            self._set_state(msg[1], msg[2])
+            if msg[1] == "running" and not self._ready:  # the source is open, the tracker not
+                self._set_state("starting", msg[2] or "source open; loading the tracker")
+            else:
+                self._set_state(msg[1], msg[2])
+        elif kind == "progress":  # a slow start says what it does: on the console, to clients
+            log.warning("session %s: %s", self.spec.name, msg[1])
+            if not self._ready:
+                self._set_state("starting", msg[1])
         elif kind == "preview":
             self.preview = (msg[1], msg[2])
         elif kind == "ready":
             self._on_ready(msg[1], msg[2], msg[3])
         elif kind == "done":
-            self._outcome = (msg[1], msg[2])
+            if not self._done.is_set():  # the watchdog's reason beats the kill's exit code
+                self._outcome = (msg[1], msg[2])
             self._done.set()
 
     def _on_ready(self, desc: dict[str, Any], source: dict[str, Any], processor: str) -> None:
+        self._ready = True
         self.description, self.source_info, self.processor = desc, source, processor
         g = desc.get("geometry")
         if g:
@@ -269,10 +295,11 @@ class Session:
             return
         previous = self.state
         self.state, self.detail = state, detail
-        if state in PROBLEMS and previous != state:
+        if state in TOLD and previous != state:
             log.warning("session %s: %s%s", self.spec.name, state, f": {detail}" if detail else "")
-        elif state == "running" and previous in PROBLEMS:
-            log.warning("session %s: running again", self.spec.name)
+        elif state in ("running", "starting") and previous in PROBLEMS:
+            log.warning("session %s: %s again", self.spec.name,
+                        "running" if state == "running" else "source open")
         if state in PROBLEMS or state in TERMINAL or state == "restarting":
             self.settled.set()
         self._m.hub.publish(self.spec.name, StatusEvent(self.spec.name, state, detail, now()))

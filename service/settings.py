@@ -72,6 +72,10 @@ class SessionPolicy:
     max_sessions: int = _opt(8, "sessions the server runs at most (POST beyond: 429)")
     worker_stall_s: float = _opt(10.0, "a running session that produces nothing this long is "
                                   "declared stalled and its worker restarted (0: never)")
+    worker_start_s: float = _opt(120.0, "a starting session (opening its source, loading or "
+                                 "building its models, compiling; it says what it does) "
+                                 "that reports nothing this long is declared stalled and "
+                                 "its worker restarted (0: never)")
 
 
 @dataclass(frozen=True)

@@ -4,13 +4,15 @@
 ``v4l2:/dev/video0?width=640&height=480&fps=60&fourcc=MJPG``  a camera through OpenCV's V4L2
                                                      backend; what the device actually gave is
                                                      reported in ``SourceInfo.detail``
-``file:talk.mp4?pace=realtime|fast&loop=N``          a video; timestamps from the container
-``images:DIR?fps=30&pace=..&loop=N``                 a folder of images in name order
-``synthetic:seed=3&fps=60&pace=..&loop=N``           the built-in speaker, with ground truth
-``replay-record:rec.jsonl?pace=..&loop=N``           a recording made by ``serve --record``
+``file:talk.mp4?pace=realtime|fast&loop=yes``        a video; timestamps from the container
+``images:DIR?fps=30&pace=..&loop=..``                a folder of images in name order
+``synthetic:seed=3&fps=60&pace=..&loop=..``          the built-in speaker, with ground truth
+``replay-record:rec.jsonl?pace=..&loop=..``          a recording made by ``serve --record``
 ===================================================  ==========================================
 
-``loop=N`` plays a finite source N times (0 = forever; default 1). ``pace=realtime`` (the
+``loop=yes`` (or ``true``, ``on``, ``1``, ``forever``) plays a finite source forever,
+``loop=no`` (``false``, ``off``, ``0``; the default) once, ``plays=N`` N times; then the
+session is ``ended``. ``pace=realtime`` (the
 default) delivers frames at their media time, ``pace=fast`` as fast as the tracker takes them,
 losing none. A source only reads; pacing, looping, retries and the one-frame slot are the
 capture thread's job (:mod:`articast.service.capture`).
@@ -145,6 +147,26 @@ def _num(p: SourceURI, key: str, conv: Callable[[str], Any], default: Any, lo: f
     return v
 
 
+LOOP_YES = ("yes", "true", "on", "1", "forever")
+LOOP_NO = ("no", "false", "off", "0")
+
+
+def loop_count(p: SourceURI) -> int:
+    """Plays of a finite source (0 = forever) from ``loop=yes|no`` or ``plays=N``. ``loop``
+    used to be a count in which 1 meant once: a ``loop=1`` that played once surprised
+    everyone, so it is a switch now and a count has its own name."""
+    loop = p.params.get("loop", "").strip().lower()
+    if loop and loop not in LOOP_YES + LOOP_NO:
+        raise SourceError(f"{p.text!r}: loop={p.params['loop']!r}: loop=yes plays forever, "
+                          "loop=no once (the default); plays=N plays N times")
+    plays = _num(p, "plays", int, None, 1)
+    if plays is not None and loop in LOOP_YES:
+        raise SourceError(f"{p.text!r}: loop=yes plays forever: drop it, or plays={plays}")
+    if plays is not None:
+        return int(plays)
+    return 0 if loop in LOOP_YES else 1
+
+
 class _Finite:
     """Pacing and looping options shared by every non-live source."""
 
@@ -166,7 +188,7 @@ class _Finite:
         self.pace = p.params.get("pace", "realtime")
         if self.pace not in ("realtime", "fast"):
             raise SourceError(f"{p.text!r}: pace must be 'realtime' or 'fast'")
-        self.loops = _num(p, "loop", int, 1)
+        self.loops = loop_count(p)
 
     def assets(self) -> SourceAssets:
         return SourceAssets()
@@ -248,14 +270,24 @@ class V4L2Source:
 
 # ------------------------------------------------------------------------------- video file
 class FileSource(_Finite):
+    """A video file; ``start``/``end`` (seconds, or frames with ``f``: ``start=12.5``,
+    ``end=900f``) play a part of it, exactly (frames before the start are decoded and
+    skipped)."""
+
     def __init__(self, p: SourceURI) -> None:
+        from articast.service.video import Span
+
         self._playback(p)
         self.path = Path(p.target)
         if not p.target:
             raise SourceError(f"{p.text!r}: give a file, e.g. file:talk.mp4")
+        try:
+            self.span = Span(p.params.get("start"), p.params.get("end"), ("start", "end"))
+        except InputError as exc:
+            raise SourceError(f"{p.text!r}: {exc}") from None
         self._cap: Any = None
         self._fh: Any = None
-        self._first: np.ndarray | None = None
+        self._first: tuple[float, np.ndarray] | None = None
         self._n = 0
 
     def open(self) -> SourceInfo:
@@ -272,27 +304,34 @@ class FileSource(_Finite):
             cap.release()
             self.close()
             raise SourceError(f"{self.path}: not a readable video (OpenCV cannot decode it)")
-        ok, first = cap.read()
-        if not ok or first is None:
+        self._cap, self._n = cap, 0
+        first = self._decode()
+        if first is None and self._n == 0:
             cap.release()
             self.close()
             raise SourceError(f"{self.path}: corrupt or empty video (no frame could be decoded)")
-        self._cap, self._first, self._n = cap, first, 0
+        if first is None:
+            cap.release()
+            raise SourceError(f"{self.path}: no frame from {self.span.describe()}: the video "
+                              f"has {self._n} frames")
+        self._first = first
         fps = float(cap.get(cv2.CAP_PROP_FPS)) or None
         count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) or None
-        height, width = int(first.shape[0]), int(first.shape[1])
-        return SourceInfo(self.uri, "file", False, width, height, fps, count,
-                          {"path": str(self.path), "pace": self.pace, "loop": self.loops})
+        if count and self.span:
+            count = self.span.frames(count, fps or 30.0) or None
+        height, width = int(first[1].shape[0]), int(first[1].shape[1])
+        detail = {"path": str(self.path), "pace": self.pace, "loop": self.loops}
+        if self.span:
+            detail["span"] = self.span.describe()
+        return SourceInfo(self.uri, "file", False, width, height, fps, count, detail)
 
-    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+    def _decode(self) -> tuple[float, np.ndarray] | None:
+        """The next frame of the span (t, image); None at its end (or the file's)."""
         import cv2
 
-        if self._first is not None:
-            image, self._first = self._first, None
-        else:
+        while True:
             ok, image = self._cap.read()
             if not ok or image is None:
-                from articast.core.errors import InputError
                 from articast.service.video import check_complete
 
                 try:
@@ -301,11 +340,25 @@ class FileSource(_Finite):
                 except InputError as exc:
                     raise SourceError(str(exc)) from None
                 return None
-        t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
-        fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0
-        if t <= 0 and self._n > 0:  # container without time stamps
-            t = self._n / fps
-        self._n += 1
+            t = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            fps = self._cap.get(cv2.CAP_PROP_FPS) or 30.0
+            if t <= 0 and self._n > 0:  # container without time stamps
+                t = self._n / fps
+            index = self._n
+            self._n += 1
+            if self.span.after(index, t):
+                return None
+            if not self.span.before(index, t):
+                return t, image
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        if self._first is not None:
+            (t, image), self._first = self._first, None
+        else:
+            item = self._decode()
+            if item is None:
+                return None
+            t, image = item
         return t, image, None
 
     def close(self) -> None:
@@ -434,6 +487,8 @@ class SyntheticSource(_Finite):
         self.fps = _num(p, "fps", float, 60.0, 0.001)
         self._it: Iterator[Any] | None = None
         self._assets = SourceAssets()
+        self.progress: Callable[[str], None] | None = None
+        """Told in one line when the first open builds the speaker's cached assets."""
 
     def open(self) -> SourceInfo:
         try:
@@ -445,7 +500,8 @@ class SyntheticSource(_Finite):
                 "the synthetic speaker (core.synthetic) is not available in this "
                 f"build: {exc}"
             ) from None
-        stream = open_stream(seed=self.seed, fps=self.fps, cache_dir=cache_dir())
+        stream = open_stream(seed=self.seed, fps=self.fps, cache_dir=cache_dir(),
+                             progress=self.progress)
         extra = {k: getattr(stream, k) for k in ("initial_pose", "rig") if hasattr(stream, k)}
         self._assets = SourceAssets(stream.model, stream.camera,
                                     getattr(stream, "appearance", None), extra)
@@ -477,10 +533,10 @@ def cache_dir() -> Path | None:
     return Path(base) / "articast"
 
 
-_PLAYBACK = ("pace", "loop")
+_PLAYBACK = ("pace", "loop", "plays")
 SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
     "v4l2": (V4L2Source, ("width", "height", "fps", "fourcc")),
-    "file": (FileSource, _PLAYBACK),
+    "file": (FileSource, (*_PLAYBACK, "start", "end")),
     "images": (ImagesSource, (*_PLAYBACK, "fps")),
     "synthetic": (SyntheticSource, (*_PLAYBACK, "seed", "fps")),
     "replay-record": (RecordSource, _PLAYBACK),
@@ -518,10 +574,15 @@ def parse_named(spec: str) -> tuple[str, str]:
 
 
 def probe(uri: str) -> SourceInfo:
-    """Open and close a finite source once: a corrupt file fails here with one clear error."""
+    """Open and close a finite source once: a corrupt file fails here with one clear error.
+    The synthetic speaker is not opened (its options are checked): opening it loads, or on a
+    first run builds, its model and appearance, which its worker does anyway (it cost
+    `articast demo` seconds before its worker even started)."""
     src = make_source(uri)
     if src.live:
         return SourceInfo(uri, parse_uri(uri).kind, True)
+    if isinstance(src, SyntheticSource):
+        return SourceInfo(uri, "synthetic", False, detail={"seed": src.seed})
     try:
         return src.open()
     finally:

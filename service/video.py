@@ -17,12 +17,79 @@ from articast.core.safe_io import MAX_TEXT_BYTES, require_regular
 MAX_VIDEO_BYTES = 64 * 2**30
 """A video file: far above any clip (an hour of 1080p MJPG is ~40 GB)."""
 
+SPAN_HELP = "seconds (12.5) or a frame number with f (300f)"
 
-def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.ndarray]]:
-    """Yield ``(index, t_seconds, bgr_image)`` for every frame of a video file.
+
+def parse_mark(text: str | None, option: str) -> tuple[float, str] | None:
+    """``--start``/``--end`` (or a source's ``start=``/``end=``): seconds, or frames with a
+    ``f`` suffix: (value, "s" | "f"); None when not given. One clear error otherwise."""
+    if text is None or str(text).strip() == "":
+        return None
+    raw = str(text).strip().lower()
+    unit = "f" if raw.endswith("f") else "s"
+    number = raw[:-1] if raw.endswith(("f", "s")) else raw
+    try:
+        value = int(number) if unit == "f" else float(number)
+    except ValueError:
+        raise InputError(f"{option} {text!r}: expected {SPAN_HELP}") from None
+    if not np.isfinite(value) or value < 0:
+        raise InputError(f"{option} {text!r}: expected {SPAN_HELP}, not negative")
+    return float(value), unit
+
+
+class Span:
+    """The part of a clip between ``start`` (included) and ``end`` (excluded), each in
+    seconds of the container's time line or in frames (:func:`parse_mark`)."""
+
+    def __init__(self, start: str | None = None, end: str | None = None,
+                 names: tuple[str, str] = ("--start", "--end")) -> None:
+        self.start = parse_mark(start, names[0])
+        self.end = parse_mark(end, names[1])
+        if self.start and self.end and self.start[1] == self.end[1] \
+                and self.end[0] <= self.start[0]:
+            raise InputError(f"{names[1]} {end} is not after {names[0]} {start}")
+
+    def __bool__(self) -> bool:
+        return self.start is not None or self.end is not None
+
+    @staticmethod
+    def _at(mark: tuple[float, str], i: int, t: float) -> float:
+        return (i if mark[1] == "f" else t) - mark[0]
+
+    def before(self, i: int, t: float) -> bool:
+        """Frame ``i`` at ``t`` s comes before the start."""
+        return self.start is not None and self._at(self.start, i, t) < -1e-6
+
+    def after(self, i: int, t: float) -> bool:
+        """Frame ``i`` at ``t`` s is at or past the end."""
+        return self.end is not None and self._at(self.end, i, t) >= -1e-6
+
+    def frames(self, total: int, fps: float) -> int:
+        """How many frames of a clip of ``total`` frames at ``fps`` the span holds (0 if
+        unknown)."""
+        if not total:
+            return 0
+        def index(mark, default):
+            if mark is None:
+                return default
+            return int(mark[0]) if mark[1] == "f" else int(round(mark[0] * (fps or 30.0)))
+        return max(0, min(total, index(self.end, total)) - min(total, index(self.start, 0)))
+
+    def describe(self) -> str:
+        def one(mark):
+            return "" if mark is None else (f"{int(mark[0])}f" if mark[1] == "f"
+                                            else f"{mark[0]:g} s")
+        return f"{one(self.start) or 'the start'} to {one(self.end) or 'the end'}"
+
+
+def iter_video(path: str | os.PathLike[str], span: Span | None = None
+               ) -> Iterator[tuple[int, float, np.ndarray]]:
+    """Yield ``(index, t_seconds, bgr_image)`` for every frame of a video file (of ``span``
+    only, when given: frames are decoded from the start, so the cut is exact).
 
     Time stamps come from the container (falling back to index / fps). Raises
-    :class:`InputError` if the file is missing or no frame can be decoded.
+    :class:`InputError` if the file is missing or no frame can be decoded, or if the span
+    holds no frame.
     """
     import cv2
 
@@ -35,7 +102,8 @@ def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.nd
         raise InputError(f"{p}: cannot open as a video (unknown or corrupt container)")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
     declared = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)
-    i = 0
+    i = given = 0
+    cut = False
     try:
         while True:
             ok, frame = cap.read()
@@ -45,13 +113,22 @@ def iter_video(path: str | os.PathLike[str]) -> Iterator[tuple[int, float, np.nd
             t = ms / 1000.0 if ms > 0 or i == 0 else (i / fps if fps > 0 else float(i))
             if i > 0 and fps > 0 and ms <= 0:
                 t = i / fps
-            yield i, t, frame
+            if span is not None and span.after(i, t):
+                cut = True
+                break
+            if span is None or not span.before(i, t):
+                given += 1
+                yield i, t, frame
             i += 1
     finally:
         cap.release()
     if i == 0:
         raise InputError(f"{p}: no frame could be decoded (corrupt or empty video)")
-    check_complete(p, i, declared)
+    if given == 0:
+        raise InputError(f"{p}: no frame from {span.describe() if span else ''}: the clip has "
+                         f"{i} frames ({t:.1f} s)")
+    if not cut:
+        check_complete(p, i, declared)
 
 
 def check_complete(path: str | os.PathLike[str], read: int, declared: int) -> None:

@@ -5,6 +5,8 @@ hand-over to the event loop, or a pipe to the server process) and goes on. Messa
 tuples:
 
 ``("status", state, detail)``           source state changes (``unavailable``, ``running``)
+``("progress", text)``                  what a slow start is doing (building caches,
+                                        compiling): the session is starting, not stalled
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
 ``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
@@ -35,6 +37,7 @@ from articast.core.tracking.result import TrackResult
 from articast.service.capture import Capture
 from articast.service.preview import PreviewPolicy, render_preview
 from articast.service.processors import (
+    COMPILING,
     ProcessorContext,
     load_assets,
     load_speaker,
@@ -42,7 +45,7 @@ from articast.service.processors import (
 )
 from articast.service.record import Recorder
 from articast.service.settings import CaptureSettings
-from articast.service.sources import make_source
+from articast.service.sources import RecordSource, make_source
 from articast.service.wire import FrameRecord, describe, epoch
 
 Emit = Callable[[tuple[Any, ...]], None]
@@ -96,7 +99,19 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             if stop.is_set():
                 emit(("done", "stopped", ""))
                 return
+        said: set[str] = set()
+
+        def progress(text: str) -> None:
+            if text not in said:  # the kernels' compilation may be announced twice
+                said.add(text)
+                emit(("progress", text))
+
         source = make_source(spec.source, spec.media_roots)
+        if _tracks(spec, source):  # a first run compiles while its source opens (caches)
+            threading.Thread(target=_compile_kernels, args=(progress,), daemon=True,
+                             name="compile kernels").start()
+        if hasattr(source, "progress"):
+            source.progress = progress
         capture = Capture(source, capture_settings,
                           lambda state, detail: emit(("status", state, detail))).start()
         while not capture.opened.wait(0.1):
@@ -117,7 +132,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
                                                     capture.assets, capture.info)
         # what the source knows (e.g. the synthetic rig and start pose), then the session's own
         ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
-                               {**capture.assets.extra, **dict(spec.options)}, speaker)
+                               {**capture.assets.extra, **dict(spec.options)}, speaker,
+                               progress)
         used, processor = make_processor(spec.processor, ctx)
         from articast.core.model.face import PARAM_NAMES
 
@@ -129,6 +145,10 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         seq = 0
         preview_policy, next_preview = PreviewPolicy(), 0.0
         next_alive = 0.0
+        if spec.preview:
+            from articast.service.overlay import lip_contours
+
+            contours = lip_contours(speaker)
         while not stop.is_set():
             frame = capture.get(timeout=0.1)
             if frame is None:
@@ -150,7 +170,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             if spec.preview and frame.image is not None and time.monotonic() >= next_preview:
                 next_preview = time.monotonic() + 1.0 / preview_policy.rate_hz
                 emit(("preview", seq, render_preview(frame.image, model, camera, result,
-                                                     preview_policy)))
+                                                     preview_policy, contours)))
             if recorder is not None:
                 recorder.write(rec)
             seq += 1
@@ -170,6 +190,22 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             capture.stop()
         if recorder is not None:
             recorder.close()
+
+
+def _tracks(spec: SessionSpec, source: Any) -> bool:
+    """Whether the session will run the tracker (not ground truth passed through)."""
+    return spec.processor in ("auto", "tracker", "live") and not isinstance(
+        source, RecordSource)
+
+
+def _compile_kernels(progress: Callable[[str], None]) -> None:
+    """Compile the tracker's kernels if numba's cache lacks them (a first run), saying so; in
+    a thread beside the source's opening, which on a first run builds its own caches."""
+    from articast.core.tracking import kernels
+
+    if not kernels.compiled_on_disk():
+        progress(COMPILING)
+        kernels.warm_up()
 
 
 def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
@@ -264,6 +300,9 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through the pipe
     stop, go = threading.Event(), threading.Event()
+    # SIGTERM (systemd stops the whole group, terminate() after a join timeout) is a stop,
+    # not a crash: finish the frame, say "stopped", exit
+    signal.signal(signal.SIGTERM, lambda signum, frame: stop.set())
     lock = threading.Lock()
 
     def control() -> None:
@@ -289,8 +328,42 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
         conn.close()
 
 
+WORKER_MODULES = ("articast.service.worker", "articast.service.processors",
+                  "articast.core.tracking.tracker", "articast.core.tracking.kernels",
+                  "articast.core.synthetic", "articast.core.faces.live", "cv2", "numba",
+                  "articast.service.preload")
+"""What a worker process imports before its first frame (~1-2 s): preloaded once by the
+fork server, so a worker starts as a fork of a process that has them."""
+
+
+def _context() -> Any:
+    """Workers fork from a fork server (a clean, single-threaded process that has imported
+    :data:`WORKER_MODULES` once; no inherited threads, loop or sockets) where there is one;
+    spawned elsewhere."""
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        ctx = multiprocessing.get_context("forkserver")
+        ctx.set_forkserver_preload(list(WORKER_MODULES))
+        return ctx
+    return multiprocessing.get_context("spawn")
+
+
+def start_worker_server() -> None:
+    """Start the fork server now, in the background: it imports what workers need while the
+    server imports its own (two cores, half the start-up). Idempotent; a failure only means
+    the first worker starts it."""
+    ctx = ProcessWorker._ctx
+    if ctx.get_start_method() == "forkserver":
+        try:
+            from multiprocessing import forkserver
+
+            forkserver.ensure_running()
+        except (OSError, ValueError):  # pragma: no cover - started on first use instead
+            pass
+
+
 class ProcessWorker:
-    """Runs :func:`run_worker` in its own process (spawned: no inherited threads or loop).
+    """Runs :func:`run_worker` in its own process (forked from a fork server, or spawned: no
+    inherited threads or loop).
 
     A reader thread in the server receives the worker's messages and passes them to ``emit``;
     if the process dies without saying ``done``, ``emit`` gets ``("done", "crashed", ...)``.
@@ -299,7 +372,7 @@ class ProcessWorker:
     """
 
     kind = "process"
-    _ctx = multiprocessing.get_context("spawn")
+    _ctx = _context()
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
                  emit: Emit) -> None:
@@ -344,6 +417,9 @@ class ProcessWorker:
         self.process.join(timeout)
         if self.process.is_alive():
             self.process.terminate()
+            self.process.join(1.0)
+        if self.process.is_alive():  # stuck in native code: SIGTERM waits for it
+            self.process.kill()
             self.process.join(1.0)
         self._reader.join(1.0)
         self._conn.close()

@@ -137,6 +137,52 @@ class ServerThread:
         return self.server.config.loaded_app.app.state.service  # type: ignore[union-attr]
 
 
+class SlowStart:
+    """A test FrameProcessor whose construction takes ``start_s`` seconds (session option),
+    saying so halfway, as a first run that builds caches does; then passes truth through."""
+
+    def __init__(self, context: Any) -> None:
+        start_s = float(context.options.get("start_s", 1.0))
+        time.sleep(start_s / 2)
+        if context.progress is not None:
+            context.progress("building test caches (first run only)")
+        time.sleep(start_s / 2)
+
+    def process(self, frame: Any) -> TrackResult:
+        return frame.truth
+
+
+class Occludes:
+    """A test FrameProcessor that passes truth through but reports frames 3-5 of every run
+    as the tracker reports a hand over the mouth: ok false, reason ``occluded: ...``, the
+    last good state held."""
+
+    def __init__(self, context: Any) -> None:
+        self.n, self.last = 0, None
+
+    def process(self, frame: Any) -> TrackResult:
+        self.n += 1
+        if 4 <= self.n <= 6 and self.last is not None:
+            return TrackResult(frame.index, frame.t, self.last.alpha, self.last.pose, False,
+                               "occluded: 5 of 40 sample points on the lips (test)")
+        self.last = frame.truth
+        return frame.truth
+
+
+class RefusesVideo:
+    """A test FrameProcessor that refuses video files (a session that fails at start, as a
+    clip of another aspect ratio than the enrolment does) and passes truth through else."""
+
+    def __init__(self, context: Any) -> None:
+        from articast.core.errors import InputError
+
+        if context.source.kind == "file":
+            raise InputError("test: this processor refuses video files")
+
+    def process(self, frame: Any) -> TrackResult:
+        return frame.truth
+
+
 class HardCrash:
     """A test FrameProcessor whose process dies on frame 3 (no exception, no goodbye)."""
 

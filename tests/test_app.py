@@ -50,14 +50,14 @@ def server(recording, tmp_path_factory):
                         stall_timeout_s=60, max_messages_per_s=1000),
         capture=CaptureSettings(retry_initial_s=0.05, retry_max_s=0.2),
         policy=SessionPolicy(restart_initial_s=0.05, restart_max_s=0.2, max_restarts=3),
-        sessions=(SessionSpec("rec", f"replay-record:{recording[0]}?loop=0"),
-                  SessionSpec("big", f"replay-record:{big}?loop=0")),
+        sessions=(SessionSpec("rec", f"replay-record:{recording[0]}?loop=yes"),
+                  SessionSpec("big", f"replay-record:{big}?loop=yes")),
         access=AccessPolicy(token="test-token",
                             media_roots=(str(tmp_path_factory.getbasetemp()),),
                             allowed_devices=("/dev/video97",)),
         http_processors=("auto", "truth", "tests.service_helpers:Crashy",
                          "tests.service_helpers:HardCrash",
-                         "tests.service_helpers:ImageStats"),
+                         "tests.service_helpers:ImageStats", "tests.service_helpers:Occludes"),
     )
     with ServerThread(config) as srv:
         srv.record_dir = record_dir
@@ -283,7 +283,7 @@ def test_metrics_healthz_and_schema(server):
 def test_start_and_stop_a_session_at_run_time(server, recording):
     c = server.client()
     r = c.post("/api/sessions", json={"name": "late",
-                                      "source": f"replay-record:{recording[0]}?loop=0"})
+                                      "source": f"replay-record:{recording[0]}?loop=yes"})
     assert r.status_code == 201, r.text
 
     async def go():
@@ -299,10 +299,85 @@ def test_start_and_stop_a_session_at_run_time(server, recording):
     assert "late" not in [s["name"] for s in c.get("/api/sessions").json()]
 
 
+def test_an_ended_source_tells_its_subscribers_and_loop_1_loops(server, tmp_path):
+    """A file played once ends: its subscribers get `status: ended`, one subscribing after
+    the end gets it too (not only hello.state), and the console says so; loop=1, serve
+    --help's own example, plays past the end (it played once)."""
+    import logging
+
+    short = tmp_path / "short.jsonl"
+    write_recording(short, frames=6, fps=30)
+    c = server.client()
+    for name, option in (("once", "loop=no&pace=fast"), ("looped", "loop=1&pace=fast")):
+        r = c.post("/api/sessions", json={"name": name, "wait_for_subscriber": True,
+                                          "source": f"replay-record:{short}?{option}"})
+        assert r.status_code == 201, r.text
+    messages = []
+    handler = logging.Handler()
+    handler.emit = lambda record: messages.append(record.getMessage())
+    logging.getLogger("articast.session").addHandler(handler)
+
+    async def go():
+        async with await subscribe(server.url, session="once", queue=64) as ws:
+            await until(ws, "hello")
+            while True:
+                m = await recv(ws)
+                if m["type"] == "status" and m["state"] == "ended":
+                    break
+                assert m["type"] == "frame" or m["state"] in ("starting", "running"), m
+        async with await subscribe(server.url, session="once") as late:
+            await until(late, "hello", skip=())
+            m = await recv(late)
+            assert (m["type"], m["state"]) == ("status", "ended"), m
+            assert "6 frames" in m["detail"]
+        async with await subscribe(server.url, session="looped", queue=64) as ws:
+            frames = [await until(ws, "frame", skip=("status", "hello")) for _ in range(15)]
+            assert frames[-1]["frame"] >= 14  # 6 frames a play: it looped
+    try:
+        run(go())
+    finally:
+        logging.getLogger("articast.session").removeHandler(handler)
+        for name in ("once", "looped"):
+            c.delete(f"/api/sessions/{name}")
+    assert "session once: ended: source ended after 6 frames" in messages, messages
+
+
+def test_occluded_frames_reach_clients_flagged_with_the_last_good_state(server, recording):
+    """What the docs say about `occluded` is what clients get: the frame is streamed, ok
+    false, its reason starting `occluded`, the articulation and pose of the last good
+    frame held (the tracker keeps fitting underneath)."""
+    c = server.client()
+    r = c.post("/api/sessions", json={"name": "hand", "processor": "tests.service_helpers:"
+                                      "Occludes", "wait_for_subscriber": True,
+                                      "source": f"replay-record:{recording[0]}?pace=fast"})
+    assert r.status_code == 201, r.text
+
+    async def go():
+        async with await subscribe(server.url, session="hand", queue=64) as ws:
+            return [await until(ws, "frame", skip=("status", "hello")) for _ in range(8)]
+    try:
+        frames = run(go())
+    finally:
+        c.delete("/api/sessions/hand")
+    assert [f["seq"] for f in frames] == list(range(8))  # none left out
+    flags = [(f["quality"]["ok"], f["quality"]["reason"].split(":")[0]) for f in frames]
+    assert flags == [(True, "")] * 3 + [(False, "occluded")] * 3 + [(True, "")] * 2, flags
+    for f in frames[3:6]:
+        assert f["values"]["articulatory"] == frames[2]["values"]["articulatory"]
+        assert f["values"]["pose"]["translation"] == frames[2]["values"]["pose"]["translation"]
+    # and the words agree: neither the docs nor the tracker's own reason say "not streamed"
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    for path in (root / "README.md", root / "docs" / "REAL_SPEAKERS.md",
+                 root / "docs" / "SERVICE.md", root / "core" / "tracking" / "tracker.py"):
+        assert "not streamed" not in path.read_text(), path
+
+
 def test_a_crashing_session_is_restarted_and_the_server_survives(server, recording):
     c = server.client()
     r = c.post("/api/sessions", json={
-        "name": "crashy", "source": f"replay-record:{recording[0]}?loop=0",
+        "name": "crashy", "source": f"replay-record:{recording[0]}?loop=yes",
         "processor": "tests.service_helpers:Crashy"})
     assert r.status_code == 201
 
@@ -328,7 +403,7 @@ def test_a_crashing_session_is_restarted_and_the_server_survives(server, recordi
 def test_a_worker_process_that_dies_is_restarted(server, recording):
     c = server.client()
     assert c.post("/api/sessions", json={
-        "name": "dies", "source": f"replay-record:{recording[0]}?loop=0",
+        "name": "dies", "source": f"replay-record:{recording[0]}?loop=yes",
         "processor": "tests.service_helpers:HardCrash"}).status_code == 201
 
     async def go():
@@ -425,7 +500,7 @@ def test_a_subscriber_stalled_past_the_timeout_is_disconnected(tmp_path):
     config = ServiceConfig(
         server=ServerSettings(log_level="critical"),
         hub=HubSettings(stall_timeout_s=0.5),
-        sessions=(SessionSpec("big", f"replay-record:{big}?loop=0"),),
+        sessions=(SessionSpec("big", f"replay-record:{big}?loop=yes"),),
         access=AccessPolicy(token="secret"),
     )
 

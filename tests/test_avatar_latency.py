@@ -69,7 +69,7 @@ def server_frames(http, name):
 def server(tmp_path):
     rec = talking_recording(tmp_path / "talk.jsonl")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "articast.service.cli", "replay-record", str(rec), "--loop", "0",
+        [sys.executable, "-m", "articast.service.cli", "replay-record", str(rec), "--loop",
          "--port", "0", "--json", "--name", "talk"],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:

@@ -43,8 +43,8 @@ def jaw_recording(path, jaw1, frames=30):
 @pytest.fixture(scope="module")
 def sessions(tmp_path_factory):
     d = tmp_path_factory.mktemp("jaw")
-    return (SessionSpec("closed", f"replay-record:{jaw_recording(d / 'c.jsonl', 0.0)}?loop=0"),
-            SessionSpec("open", f"replay-record:{jaw_recording(d / 'o.jsonl', 2.0)}?loop=0"))
+    return (SessionSpec("closed", f"replay-record:{jaw_recording(d / 'c.jsonl', 0.0)}?loop=yes"),
+            SessionSpec("open", f"replay-record:{jaw_recording(d / 'o.jsonl', 2.0)}?loop=yes"))
 
 
 def canvas_pixels(browser):

@@ -46,3 +46,33 @@ def test_readme_lists_every_command():
     listed = {c for c in commands
               if c in table or c.split()[0] in table or any(t.startswith(c + " ") for t in table)}
     assert listed == commands, f"not in the README's command table: {commands - listed}"
+
+
+def _help(*command):
+    parser = dict(walk(build_parser()))[("articast", *command)]
+    return parser.format_help()
+
+
+def test_serving_commands_put_the_common_options_first_and_the_limits_last():
+    """demo/replay/replay-record --help ran through ~190 lines of server limits before what
+    matters: the common options come first, the limits in one group at the end."""
+    for command in ("demo", "replay", "replay-record", "serve"):
+        text = _help(command)
+        usage = text.split("\n\n")[0]
+        assert len(usage.splitlines()) <= 3 and "--max-queue" not in usage, (command, usage)
+        head = "\n".join(text.splitlines()[:45])
+        assert "--port" in head and "--max-queue" not in head, (command, head)
+        sections = re.findall(r"^(\S[^\n]*):$", text, re.M)
+        assert sections[-1] == "server limits", (command, sections)
+        limits = text.split("\nserver limits:\n", 1)[1]
+        for option in ("--max-queue", "--max-subscribers", "--retry-max-s",
+                       "--worker-stall-s", "--shutdown-timeout-s"):
+            assert option in limits and option not in text.split("\nserver limits:\n")[0]
+
+
+def test_replay_record_lists_no_tracking_options():
+    text = _help("replay-record")
+    for option in ("--speaker", "--model", "--appearance", "--camera", "--processor",
+                   "--preview"):
+        assert option not in text, option
+    assert "--loop" in text and "--plays" in text

@@ -23,7 +23,7 @@ def recording(tmp_path_factory):
     return path
 
 
-def config(recording, loop=0):
+def config(recording, loop="yes"):
     spec = SessionSpec("rec", f"replay-record:{recording}?loop={loop}")
     return ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
 
@@ -78,7 +78,7 @@ def test_unknown_session_is_a_client_error(recording):
 
 
 def test_reconnects_after_the_server_restarts(recording):
-    first = ServerThread(config(recording, loop=0))
+    first = ServerThread(config(recording, loop="yes"))
     port = first.port
     got, hellos = [], []
 
@@ -100,7 +100,7 @@ def test_reconnects_after_the_server_restarts(recording):
         await asyncio.to_thread(first.__exit__, None, None, None)  # server goes away
         before = len(got)
         await asyncio.sleep(0.3)
-        second = PortServer(config(recording, loop=0), port)
+        second = PortServer(config(recording, loop="yes"), port)
         await asyncio.to_thread(second.__enter__)
         try:
             await asyncio.wait_for(task, 6 * TIMEOUT)
@@ -118,7 +118,7 @@ def test_reconnects_after_the_server_restarts(recording):
 
 def test_record_cli_writes_a_replayable_file(recording, tmp_path):
     out = tmp_path / "out.jsonl"
-    with ServerThread(config(recording, loop=0)) as srv:
+    with ServerThread(config(recording, loop="yes")) as srv:
         r = subprocess.run([sys.executable, "-m", "articast.client.record", srv.url, "rec",
                             "-o", str(out), "--frames", "12"], capture_output=True, text=True,
                            timeout=60)

@@ -58,6 +58,10 @@ def test_enroll_writes_a_speaker_folder_with_the_seven_parameters(enrolled, caps
     assert sp.report["pixels"] == "landmarks"
     ap, wd = lip_measures(sp.model, np.zeros(7))
     assert 30 < wd < 70 and 0 <= ap < 15
+    # a contact sheet of what it learned: enrolment frames with the fitted model drawn
+    sheet = cv2.imread(str(enrolled / "speaker" / "contact.png"))
+    assert sheet is not None and sheet.shape[0] >= 240 and sheet.shape[1] == 3 * 240
+    assert "contact sheet" not in capsys.readouterr().out  # --json: the report only
 
 
 def test_track_with_only_the_speaker_folder_follows_the_true_articulation(enrolled, capsys):
@@ -141,11 +145,36 @@ def test_serve_streams_an_enrolled_speaker_with_lips_and_honest_ok(enrolled, tmp
 
     video = enrolled / "test" / "video.mp4"
     spec = SessionSpec("me", f"file:{video}?pace=fast", wait_for_subscriber=True,
-                       speaker=str(enrolled / "speaker"))
+                       speaker=str(enrolled / "speaker"), preview=True)
     config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
     with ServerThread(config) as srv:
         hello, frames = asyncio.run(collect(srv.url, "me",
                                             ["articulatory", "pose", "fap", "arkit"]))
+        with srv.client() as c:
+            jpeg = c.get("/api/sessions/me/preview.jpg").content
+    # the preview draws the lip contours over the translucent mesh (an opaque wireframe hid
+    # them): the inner contour's magenta is there, and not without the contours
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker, live_policy
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.core.faces.speaker import Speaker
+    from articast.service.overlay import lip_contours
+    from articast.service.preview import render_preview
+    from articast.service.video import iter_video
+
+    def magenta(data):
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR).astype(int)
+        b, g, r = img[..., 0], img[..., 1], img[..., 2]
+        return int(((b - g > 30) & (r - g > 30)).sum())
+
+    assert magenta(jpeg) >= 20
+    sp = Speaker.load(enrolled / "speaker")
+    image = next(img for i, _, img in iter_video(video) if i == 30)
+    res = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
+                      tracking=live_policy(sp.rig)).track(image, 0.0)
+    drawn = render_preview(image, sp.model, sp.camera, res, contours=lip_contours(sp))
+    plain = render_preview(image, sp.model, sp.camera, res)
+    assert magenta(drawn) >= magenta(plain) + 20, (magenta(drawn), magenta(plain))
     assert hello["param_names"][6] == "lar1" and len(frames) == 75
     ok = np.array([f["quality"]["ok"] for f in frames])
     assert ok.mean() >= 0.95

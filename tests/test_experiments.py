@@ -1,5 +1,6 @@
 """articast evaluate on a small configuration: structure of the figures, and that the
-tracker measurably recovers articulation (errors far below standing still at neutral)."""
+tracker measurably recovers articulation (errors far below standing still at neutral).
+The smoke run (--quick) runs the occluded conditions too, inside its 60-frame sequences."""
 
 import json
 
@@ -16,7 +17,8 @@ def figures(tmp_path_factory):
 
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        code = main(["evaluate", "--quick", "--conditions", "postures,teleconference",
+        code = main(["evaluate", "--quick",
+                     "--conditions", "postures,teleconference,occlusion,hand_slide",
                      "--models", "la_lin,la_cst", "-o", str(out), "--json"])
     assert code == 0
     return json.loads(buf.getvalue()), out
@@ -29,8 +31,28 @@ def test_json_has_every_figure(figures):
     for cond in ("postures", "teleconference"):
         for model in ("la_lin", "la_cst"):
             assert keys <= set(doc["conditions"][cond][model])
-    assert (out / "report.md").read_text().count("| la_lin |") == 2
+    assert (out / "report.md").read_text().count("| la_lin |") == 4
     assert (out / "teleconference_rms_boxplot.png").stat().st_size > 1000
+
+
+def test_quick_runs_the_occluded_conditions(figures):
+    """--quick used to refuse its own default conditions ("the occlusion condition needs
+    --frames of at least 80"): the smoke run moves the occlusions into its 60 frames."""
+    doc, _ = figures
+    for cond in ("occlusion", "hand_slide"):
+        fig = doc["conditions"][cond]["la_lin"]
+        assert fig["flagged_fraction"] >= 0.5, (cond, fig)
+        assert fig["recovery_frames"] <= 3, (cond, fig)
+
+
+def test_quick_covers_every_condition_and_full_runs_say_what_frames_they_need(capsys):
+    from articast.core.evaluation.experiments import CONDITIONS, EvalConfig
+
+    assert EvalConfig.quick().conditions == CONDITIONS  # the smoke run is every condition
+    assert main(["evaluate", "--frames", "80", "-o", "unused"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "hand_slide" in err and "at least 100" in err and "--quick" in err
+    assert "\n" not in err and "Traceback" not in err
 
 
 def test_tracking_recovers_articulation(figures):

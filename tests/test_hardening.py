@@ -38,7 +38,7 @@ def _config(media, token=TOKEN, **hub):
     return ServiceConfig(
         server=ServerSettings(log_level="critical"),
         hub=HubSettings(header_timeout_s=1.0, **hub),
-        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=0"),),
+        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=yes"),),
         access=AccessPolicy(token=token, media_roots=(str(media),)))
 
 
@@ -392,7 +392,7 @@ def test_a_stalled_thread_worker_is_restarted(media):
     cfg = ServiceConfig(
         server=ServerSettings(log_level="critical"),
         policy=SessionPolicy(worker="thread", worker_stall_s=1.0, restart_initial_s=0.05),
-        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=0",
+        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=yes",
                               processor="tests.test_hardening:Sleepy"),))
     with ServerThread(cfg) as srv:
         session = srv.service.manager.sessions["rec"]
@@ -492,7 +492,7 @@ def test_a_replaced_track_worker_brings_one_hello_and_no_spurious_state(redis_se
 
     rec = tmp_path / "rec.jsonl"
     write_recording(rec, frames=300, fps=30)
-    source = f"alice=replay-record:{rec}?loop=0"
+    source = f"alice=replay-record:{rec}?loop=yes"
     procs: list = []
     try:
         url = worker_and_gateway(redis_server.url, source, procs)

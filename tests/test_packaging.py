@@ -137,7 +137,7 @@ def test_client_distribution_alone(wheels, tmp_path):
     write_recording(rec, frames=300, fps=30.0)
     server = subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "replay-record", str(rec), "--name",
-         "rec", "--port", "0", "--json", "--loop", "0"],
+         "rec", "--port", "0", "--json", "--loop"],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
         url = json.loads(server.stdout.readline())["url"]

@@ -49,7 +49,7 @@ def hello_of(url, session):
 
 @pytest.fixture(scope="module")
 def server():
-    uri = "synthetic:seed=1&fps=15&loop=0"
+    uri = "synthetic:seed=1&fps=15&loop=yes"
     config = ServiceConfig(server=ServerSettings(log_level="critical"),
                            sessions=(SessionSpec("shown", uri, preview=True),
                                      SessionSpec("private", uri)))
@@ -72,7 +72,7 @@ def test_preview_shows_the_tracked_video_with_the_mesh(server):
     img = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
     assert img is not None and img.shape == (240, 320, 3)
     b, g, r = (img[..., i].astype(int) for i in range(3))
-    mesh = (g > 170) & (g - r > 60) & (g - b > 40)  # the green fitted mesh
+    mesh = (g - r > 40) & (g - b > 30)  # the green fitted mesh (translucent: the lips show)
     assert mesh.sum() > 300, mesh.sum()
     # the mesh lies on the face: the lower face fills the head rig's frame centre
     ys, xs = np.nonzero(mesh)
@@ -96,7 +96,7 @@ def test_with_a_token_the_preview_needs_it():
     from articast.service.security import AccessPolicy
 
     config = ServiceConfig(server=ServerSettings(log_level="critical"),
-                           sessions=(SessionSpec("shown", "synthetic:seed=1&fps=15&loop=0",
+                           sessions=(SessionSpec("shown", "synthetic:seed=1&fps=15&loop=yes",
                                                  preview=True),),
                            access=AccessPolicy(token="s3cret"))
     with ServerThread(config) as srv:

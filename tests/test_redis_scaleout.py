@@ -94,7 +94,7 @@ def deployment(tmp_path):
     procs = []
     try:
         worker = articast("track-worker", "--hub", redis.url, "--json",
-                          "--source", f"alice=replay-record:{rec}?loop=0")
+                          "--source", f"alice=replay-record:{rec}?loop=yes")
         procs.append(worker)
         first_line(worker)
         urls = []
@@ -203,7 +203,7 @@ def test_serve_with_the_redis_hub(tmp_path):
     redis = Redis()
     redis.start()
     p = articast("serve", "--hub", redis.url, "--port", "0", "--json",
-                 "--source", f"bob=replay-record:{rec}?loop=0")
+                 "--source", f"bob=replay-record:{rec}?loop=yes")
     try:
         url = first_line(p)["url"]
 
@@ -236,7 +236,7 @@ def test_a_killed_worker_is_reported_and_its_replacement_streams_again(tmp_path)
     write_recording(rec, frames=60, fps=30)
     redis = Redis()
     redis.start()
-    source = f"alice=replay-record:{rec}?loop=0"
+    source = f"alice=replay-record:{rec}?loop=yes"
     procs: list = []
     try:
         url = worker_and_gateway(redis.url, source, procs)

@@ -35,7 +35,7 @@ def recording(tmp_path_factory):
 
 
 def config(recording, token=TOKEN):
-    spec = SessionSpec("rec", f"replay-record:{recording}?loop=0")
+    spec = SessionSpec("rec", f"replay-record:{recording}?loop=yes")
     return ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,),
                          access=AccessPolicy(token=token))
 
@@ -114,7 +114,7 @@ def test_the_commands_stop_with_one_line(recording, tmp_path, module):
 
 
 def test_an_ended_session_is_final(recording):
-    spec = SessionSpec("rec", f"replay-record:{recording}?loop=1&pace=fast")
+    spec = SessionSpec("rec", f"replay-record:{recording}?loop=no&pace=fast")
     cfg = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,))
     with ServerThread(cfg) as srv:
         async def drain():

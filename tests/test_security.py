@@ -46,7 +46,7 @@ def guarded(media):
         hub=HubSettings(max_messages_per_s=20, max_connections_per_client=40,
                         header_timeout_s=1.0, max_header_bytes=16384),
         policy=SessionPolicy(max_sessions=3),
-        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=0"),),
+        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=yes"),),
         access=AccessPolicy(token=TOKEN, media_roots=(str(media),)),
     )
     with ServerThread(config) as srv:
@@ -58,7 +58,7 @@ def open_loopback(media):
     """No token, loopback: today's behaviour for subscribers (``articast demo``)."""
     config = ServiceConfig(
         server=ServerSettings(log_level="critical"),
-        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=0"),),
+        sessions=(SessionSpec("rec", f"replay-record:{media / 'talk.jsonl'}?loop=yes"),),
     )
     with ServerThread(config) as srv:
         yield srv
@@ -194,7 +194,7 @@ def test_sessions_are_capped(guarded):
     try:
         for i in range(5):
             r = c.post("/api/sessions", json={"name": f"cap{i}",
-                                              "source": "replay-record:talk.jsonl?loop=0"})
+                                              "source": "replay-record:talk.jsonl?loop=yes"})
             if r.status_code == 201:
                 made.append(f"cap{i}")
             else:

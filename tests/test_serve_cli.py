@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import websockets
 
-from tests.service_helpers import TIMEOUT, write_recording
+from tests.service_helpers import TIMEOUT, write_recording, write_video
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
     rec = tmp_path / "in.jsonl"
     write_recording(rec, frames=40, fps=60)
     out = tmp_path / "out"
-    p, url = start("serve", "--source", f"talk=replay-record:{rec}?loop=0", "--record", str(out))
+    p, url = start("serve", "--source", f"talk=replay-record:{rec}?loop=yes", "--record", str(out))
     try:
         got = asyncio.run(frames(url, "talk", 20))
         assert len(got) == 20
@@ -62,7 +62,7 @@ def test_serve_records_and_stops_cleanly_on_sigterm(tmp_path):
     assert all(json.loads(x)["type"] == "frame" for x in lines[1:]) and len(lines) > 20
 
     # what was recorded serves again, with the same values
-    p2, url2 = start("replay-record", str(files[0]), "--name", "again", "--loop", "0")
+    p2, url2 = start("replay-record", str(files[0]), "--name", "again", "--loop")
     try:
         again = asyncio.run(frames(url2, "again", 5))
     finally:
@@ -107,8 +107,8 @@ def test_replay_without_an_appearance_model_says_so(tmp_path):
 def test_sigterm_with_subscribers_connected(tmp_path):
     rec = tmp_path / "in.jsonl"
     write_recording(rec, frames=40, fps=60)
-    p, url = start("serve", "--source", f"a=replay-record:{rec}?loop=0",
-                   "--source", f"b=replay-record:{rec}?loop=0")  # a thread and a process
+    p, url = start("serve", "--source", f"a=replay-record:{rec}?loop=yes",
+                   "--source", f"b=replay-record:{rec}?loop=yes")  # a thread and a process
 
     async def go():
         clients = []
@@ -136,3 +136,56 @@ def test_sigterm_with_subscribers_connected(tmp_path):
     assert took < TIMEOUT and code in (0, -signal.SIGTERM)
     err = p.stderr.read()
     assert "Traceback" not in err and "leaked" not in err, err
+
+
+def test_no_url_is_printed_for_a_session_that_failed(tmp_path):
+    """A session that fails at start (a clip of another size than the enrolment, a bad
+    file) used to be announced with its URL all the same. Now: every session failed ->
+    no URL, exit 2 and one line; some failed -> the URL of the others, the failed named."""
+    rec, video = tmp_path / "in.jsonl", tmp_path / "in.avi"
+    write_recording(rec, frames=40, fps=30)
+    write_video(video)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "error"}
+    bad = "tests.service_helpers:RefusesVideo"
+    run = subprocess.run([sys.executable, "-m", "articast.service.cli", "serve", "--source",
+                          f"a=file:{video}", "--processor", bad, "--port", "0"],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=20 * TIMEOUT)
+    assert run.returncode == 2, run
+    assert "ws://" not in run.stdout + run.stderr
+    assert run.stderr.strip().splitlines()[-1] == ("articast serve: error: nothing to serve: a "
+                                                   "failed (the reason is above)"), run.stderr
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "serve",
+                          "--source", f"good=replay-record:{rec}?loop=yes",
+                          "--source", f"bad=file:{video}",
+                          "--processor", bad, "--port", "0", "--json"],
+                         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                         text=True)
+    try:
+        line = json.loads(p.stdout.readline())
+        assert line["sessions"] == ["good"] and list(line["failed"]) == ["bad"], line
+        assert "session=good" in line["avatar"]
+    finally:
+        p.send_signal(signal.SIGTERM)
+        p.wait(TIMEOUT)
+
+
+def test_sigterm_to_the_whole_group_is_a_stop_not_a_crash(tmp_path):
+    """systemd (and `kill -TERM -PGID`) signal every process of the service at once: the
+    worker process died of SIGTERM and the server logged `session ... crashed: worker
+    process exited with code -15` on its way out. A worker takes SIGTERM as a stop."""
+    rec = tmp_path / "in.jsonl"
+    write_recording(rec, frames=40, fps=30)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "warning"}
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "serve", "--source",
+                          f"a=replay-record:{rec}?loop=yes", "--worker", "process",
+                          "--port", "0", "--json"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        url = json.loads(p.stdout.readline())["url"]
+        asyncio.run(frames(url, "a", 3))
+        os.killpg(p.pid, signal.SIGTERM)
+        _, err = p.communicate(timeout=3 * TIMEOUT)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+    assert "crashed" not in err and "code -15" not in err and "Traceback" not in err, err

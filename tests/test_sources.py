@@ -48,13 +48,52 @@ def test_fast_file_playback_is_lossless_with_container_times(tmp_path):
     assert cap.info.width == 64 and cap.info.height == 48 and cap.info.fps == 25
 
 
-def test_loop_continues_the_time_line(tmp_path):
+def test_plays_continue_the_time_line(tmp_path):
     write_video(tmp_path / "v.avi", frames=5, fps=10)
-    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}?pace=fast&loop=3")).start()
+    cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}?pace=fast&plays=3")).start()
     frames = drain(cap)
     assert [f.index for f in frames] == list(range(15))
     ts = [f.t for f in frames]
     assert ts == pytest.approx([i / 10 for i in range(15)])
+
+
+def test_a_part_of_a_file_start_and_end(tmp_path):
+    """file:...?start=SECONDS&end=FRAMESf plays that part exactly; looping it continues the
+    time line from the part's own start."""
+    write_video(tmp_path / "v.avi", frames=20, fps=25)
+    v = tmp_path / "v.avi"
+    cap = Capture(make_source(f"file:{v}?pace=fast&start=0.2&end=15f&plays=2")).start()
+    frames = drain(cap)
+    assert cap.error is None
+    assert len(frames) == 20 and cap.info.frame_count == 10
+    assert [f.t for f in frames] == pytest.approx([0.2 + i / 25 for i in range(20)])
+    assert "0.2 s to 15f" in cap.info.detail["span"]
+    for bad in ("start=x", "start=5f&end=2f", "end=-1"):
+        with pytest.raises(SourceError):
+            make_source(f"file:{v}?{bad}")
+    cap = Capture(make_source(f"file:{v}?start=30")).start()
+    drain(cap)
+    assert isinstance(cap.error, SourceError) and "no frame from 30 s" in str(cap.error)
+
+
+def test_loop_means_what_it_says(tmp_path):
+    """serve --help's own example, loop=1, played the file once (loop was a count of plays):
+    loop is a switch now, plays=N the count, and a count given to loop is one clear error."""
+    write_video(tmp_path / "v.avi", frames=5, fps=10)
+    v = tmp_path / "v.avi"
+    for value in ("1", "yes", "true", "on", "forever"):
+        assert make_source(f"file:{v}?loop={value}").loops == 0  # forever
+    for value in ("0", "no", "false", "off"):
+        assert make_source(f"file:{v}?loop={value}").loops == 1  # once
+    assert make_source(f"file:{v}").loops == 1
+    cap = Capture(make_source(f"file:{v}?pace=fast&loop=1")).start()
+    frames = drain(cap, limit=12)  # more than one play of 5 frames, and still going
+    cap.stop()
+    assert [f.index for f in frames] == list(range(12))
+    for bad, says in (("loop=3", "plays=N"), ("loop=yes&plays=2", "plays=2"),
+                      ("plays=0", ">= 1")):
+        with pytest.raises(SourceError, match=says):
+            make_source(f"file:{v}?{bad}")
 
 
 def test_realtime_pace_follows_media_time_and_keeps_the_newest(tmp_path):
@@ -142,11 +181,26 @@ def test_missing_camera_is_a_status_with_retries_not_a_crash():
     assert "/dev/video97" in statuses[0][1] and "retry" in statuses[0][1]
 
 
-def test_synthetic_source_brings_model_camera_appearance_and_truth():
+def test_synthetic_source_brings_model_camera_appearance_and_truth(tmp_path, monkeypatch):
+    """... and its first open says what it builds (the first `articast demo` looked hung),
+    once: the next open loads the cache. probe() (serve's check before starting) does not
+    build it in the server's own process any more."""
     from articast.service.sources import make_source
 
+    monkeypatch.setenv("ARTICAST_CACHE_DIR", str(tmp_path / "cache"))
+    assert probe("synthetic:seed=0&fps=30").kind == "synthetic"
+    assert not (tmp_path / "cache").exists()
+    said = []
     src = make_source("synthetic:seed=0&fps=30")
+    src.progress = said.append
+    src.open()
+    src.close()
+    assert len(said) == 1 and said[0].startswith("building synthetic speaker 0's model")
+    assert str(tmp_path / "cache") in said[0]
+    src = make_source("synthetic:seed=0&fps=30")
+    src.progress = said.append
     info = src.open()
+    assert len(said) == 1
     try:
         assets = src.assets()
         assert (info.width, info.height) == (640, 480) and info.kind == "synthetic"

@@ -125,7 +125,7 @@ def test_bundles_a_receiver_accepts(receiver, tmp_path, style):
     address, rec = receiver
     model, states = vowel_states(1)
     order = vowel_recording(tmp_path / "v.jsonl", model, states)
-    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=1",
+    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=no",
                        wait_for_subscriber=False)
     config = ServiceConfig(server=ServerSettings(log_level="critical",
                                                  vmc=f"{address[0]}:{address[1]}",
@@ -192,7 +192,7 @@ def test_streamed_pose_is_relative_to_the_neutral_and_recentres(tmp_path):
 
     model, states = vowel_states(1)
     vowel_recording(tmp_path / "v.jsonl", model, states, nod_from=20)
-    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=1",
+    spec = SessionSpec("v", f"replay-record:{tmp_path / 'v.jsonl'}?loop=no",
                        wait_for_subscriber=True)
     config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(spec,),
                            access=AccessPolicy(token=TOKEN))  # recentre is an admin POST

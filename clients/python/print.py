@@ -1,6 +1,10 @@
-"""``python -m articast.client.print URL SESSION`` — one live line per frame: the seven
-articulatory parameters, quality and the measured latency (server send -> received, same host
-clock or NTP-synchronised hosts). Ctrl-C stops."""
+"""``articast-print URL SESSION`` — one live line per frame: the seven articulatory
+parameters, quality and the measured latency (server send -> received, same host clock or
+NTP-synchronised hosts). Ctrl-C stops.
+
+A server that listens with a token (``ARTICAST_TOKEN`` or ``--token-file`` on the server)
+refuses clients without it: give it in the URL, ``ws://HOST:PORT/ws?token=TOKEN``.
+(``python -m articast.client.print`` is the same command.)"""
 
 from __future__ import annotations
 
@@ -10,11 +14,17 @@ import time
 
 from articast.client.client import ClientClosed, ClientError, subscribe_sync
 
+URL_HELP = ("the server's WebSocket, as 'articast serve' prints it: ws://HOST:PORT/ws "
+            "(add ?token=TOKEN for a server with a token)")
+SESSION_HELP = ("the session (face) to follow: a name given to 'serve --source NAME=...', "
+                "'demo' for 'articast demo'; GET /api/sessions lists them")
+
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m articast.client.print", description=__doc__)
-    ap.add_argument("url")
-    ap.add_argument("session")
+    ap = argparse.ArgumentParser(prog="articast-print", description=__doc__.replace("``", "'"),
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("url", help=URL_HELP)
+    ap.add_argument("session", help=SESSION_HELP)
     ap.add_argument("--rate", type=float, default=None, help="max frames per second")
     ap.add_argument("--frames", type=int, default=0, help="stop after N frames")
     ap.add_argument("--token", default=None, help="the server's token (default: "

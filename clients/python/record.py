@@ -1,8 +1,12 @@
-"""``python -m articast.client.record URL SESSION -o out.jsonl [--frames N]``
+"""``articast-record URL SESSION -o out.jsonl [--frames N]``
 
 Record a session's frames as JSON lines (a header from ``hello``, then one line per frame,
 each flushed: a crash loses at most the frame in flight). The file replays with
 ``articast replay-record``. Reconnects by itself if the server goes away.
+
+A server that listens with a token (``ARTICAST_TOKEN`` or ``--token-file`` on the server)
+refuses clients without it: give it in the URL, ``ws://HOST:PORT/ws?token=TOKEN``.
+(``python -m articast.client.record`` is the same command.)
 """
 
 from __future__ import annotations
@@ -18,13 +22,14 @@ from articast.client.client import (
     header_record,
     subscribe_sync,
 )
+from articast.client.print import SESSION_HELP, URL_HELP
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m articast.client.record", description=__doc__,
+    ap = argparse.ArgumentParser(prog="articast-record", description=__doc__.replace("``", "'"),
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("url", help="ws://HOST:PORT/ws")
-    ap.add_argument("session")
+    ap.add_argument("url", help=URL_HELP)
+    ap.add_argument("session", help=SESSION_HELP)
     ap.add_argument("-o", "--output", required=True, help="JSONL file to write")
     ap.add_argument("--frames", type=int, default=0, help="stop after N frames (0: until end)")
     ap.add_argument("--token", default=None, help="the server's token (default: "

@@ -9,7 +9,8 @@ Conditions (all with ground truth):
   (Gaussian blur 1.5 px), ``light`` (light direction drifting 30 deg): the teleconference
   condition with the test images degraded.
 - ``occlusion``: the teleconference condition with a hand over the mouth (sequence 1) and
-  black frames (sequence 2) for 10 frames; frames inside the gap are not scored for accuracy;
+  black frames (sequence 2) for 10 frames (60-69; ``EvalConfig.occlusion``); frames inside
+  the gap are not scored for accuracy;
   ``flagged_fraction`` says how many were marked not ok, ``occluded_ok_rms_mm_max`` the worst
   error of an occluded frame streamed as ok (a hand sliding in first covers a few points,
   which the robust fit tracks through; 0 = none streamed), and ``recovery_frames`` how many frames
@@ -21,7 +22,10 @@ Conditions (all with ground truth):
   mouth until frame 89. Its first frames cover only a few sample points (the chin, a lip
   corner), which the robust fit tracks through, sometimes wrongly: the occlusion test
   (``TrackingPolicy.occlusion_q``) is what flags them. Same figures as ``occlusion``, over
-  frames 60-89.
+  frames 60-89 (``EvalConfig.hand_slide``).
+
+``EvalConfig.quick()`` is the smoke run: one 60-frame sequence per condition, the occlusions
+moved earlier to fit in it (frames 30-39 and 20-49), the la models only.
 
 No files and no clock here: ``clock`` (e.g. time.perf_counter) is passed in for ms per frame.
 """
@@ -36,20 +40,18 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
 from articast.core.evaluation.measures import lip_aperture, lip_width, rms_3d, score_sequence
+from articast.core.evaluation.names import CONDITIONS, MODELS
 from articast.core.model.build import invert
 from articast.core.model.camera import Pose
 from articast.core.tracking.fitting import FitPolicy
 from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
-MODELS = ("la_cst", "la_lin", "la_quad", "tex_cst", "tex_lin", "la_lin_nelder_mead")
-CONDITIONS = ("postures", "teleconference", "desk", "noise", "gain", "blur", "light",
-              "occlusion", "hand_slide")
 OCCLUSION = (60, 70)  # [start, stop) frames of the occlusion in the occlusion condition
 HAND_SLIDE = (60, 90)  # [start, stop) frames of the hand in the hand_slide condition
 HAND_SLIDE_IN = 20  # frames the hand takes to reach the mouth
 # where the sliding hand starts, in mouth widths from the mouth centre (x right, y down)
 HAND_SLIDE_FROM = ((0.0, 1.6), (1.8, 1.2))
-OCCLUDED = {"occlusion": OCCLUSION, "hand_slide": HAND_SLIDE}
+RECOVERY_FRAMES = 10  # frames a sequence runs on after an occlusion (recovery is measured there)
 
 
 @dataclass(frozen=True)
@@ -66,12 +68,37 @@ class EvalConfig:
     conditions: tuple[str, ...] = CONDITIONS
     models: tuple[str, ...] = MODELS
     tex_spacing_mm: float = 2.0
+    occlusion: tuple[int, int] = OCCLUSION  # [start, stop) frames of the hand / black frames
+    hand_slide: tuple[int, int] = HAND_SLIDE  # [start, stop) frames of the sliding hand
 
     def __post_init__(self) -> None:
         bad = [c for c in self.conditions if c not in CONDITIONS]
         bad += [m for m in self.models if m not in MODELS]
         if bad:
             raise ValueError(f"unknown conditions/models {bad}; known: {CONDITIONS} {MODELS}")
+        for cond, (a, b) in self.occluded.items():
+            if self.test_frames < b + RECOVERY_FRAMES:
+                raise ValueError(
+                    f"the {cond} condition needs --frames of at least {b + RECOVERY_FRAMES} "
+                    f"(the occlusion covers frames {a}-{b - 1}, then {RECOVERY_FRAMES} frames "
+                    f"to recover), or --quick, or --conditions without it")
+
+    @property
+    def occluded(self) -> dict[str, tuple[int, int]]:
+        """[start, stop) frames of the occluder, for the occluded conditions that are run."""
+        spans = {"occlusion": self.occlusion, "hand_slide": self.hand_slide}
+        return {c: spans[c] for c in self.conditions if c in spans}
+
+    @classmethod
+    def quick(cls, **changes: Any) -> EvalConfig:
+        """The smoke run (well under a minute on a 2-core machine): every condition on one
+        60-frame sequence with the occlusions moved earlier, the la models only (the tex
+        models and Nelder-Mead take most of a full run), 30 Nelder-Mead frames if asked."""
+        base: dict[str, Any] = dict(
+            test_frames=60, test_sequences=1, nelder_mead_frames=30,
+            models=("la_cst", "la_lin", "la_quad"), occlusion=(30, 40),
+            hand_slide=(20, 20 + HAND_SLIDE[1] - HAND_SLIDE[0]))
+        return cls(**{**base, **changes})
 
 
 @dataclass
@@ -159,6 +186,7 @@ class Evaluation:
         from articast.core.synthetic import RenderOptions
 
         base: dict[str, Any] = {"seed": 1000 * (seq_index + 1)}
+        occ, slide = self.cfg.occlusion, self.cfg.hand_slide
         if cond == "noise":
             base["noise_sigma"] = 5.0
         elif cond == "blur":
@@ -170,10 +198,10 @@ class Evaluation:
             extra: dict[str, Any] = {}
             if cond == "light":
                 extra["light_azimuth_deg"] = -20.0 + 30.0 * i / max(n - 1, 1)
-            if cond == "occlusion" and OCCLUSION[0] <= i < OCCLUSION[1]:
+            if cond == "occlusion" and occ[0] <= i < occ[1]:
                 extra["occluder"] = "hand" if seq_index % 2 == 0 else "black"
-            if cond == "hand_slide" and HAND_SLIDE[0] <= i < HAND_SLIDE[1]:
-                left = max(0.0, 1.0 - (i - HAND_SLIDE[0]) / HAND_SLIDE_IN)
+            if cond == "hand_slide" and slide[0] <= i < slide[1]:
+                left = max(0.0, 1.0 - (i - slide[0]) / HAND_SLIDE_IN)
                 start = HAND_SLIDE_FROM[seq_index % 2]
                 extra["occluder"] = "hand"
                 extra["occluder_shift"] = (start[0] * left, start[1] * left)
@@ -209,8 +237,8 @@ class Evaluation:
                 sc = score_sequence(self.model, alpha, ok, np.array([r.evals for r in res]),
                                     np.array([r.ms for r in res]), seq.points[:n])
                 scored = np.ones(n, bool)
-                if cond in OCCLUDED:
-                    a, b = OCCLUDED[cond]
+                if cond in cfg.occluded:
+                    a, b = cfg.occluded[cond]
                     scored[a:min(b, n)] = False
                     flagged.append(float(np.mean(~ok[a:b])) if n > a else float("nan"))
                     inside = sc.rms_mm[a:b][ok[a:b]]  # occluded frames streamed as ok
@@ -231,7 +259,7 @@ class Evaluation:
                                        lip_aperture(self.model, alpha),
                                        lip_aperture(self.model, alpha_true)))
             figs[name] = _merge(scores)
-            if cond in OCCLUDED:
+            if cond in cfg.occluded:
                 figs[name]["flagged_fraction"] = float(np.mean(flagged))
                 figs[name]["occluded_ok_rms_mm_max"] = float(np.max(streamed))
                 figs[name]["recovery_frames"] = float(np.max(recov))

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,11 +81,13 @@ def asset_key(seed: int, rig: str, kind: str) -> str:
 
 
 def speaker_assets(seed: int, rig: str = "head", kind: str = "la_quad",
-                   cache_dir: str | os.PathLike[str] | None = None
+                   cache_dir: str | os.PathLike[str] | None = None,
+                   progress: Callable[[str], None] | None = None
                    ) -> tuple[FaceModel, AppearanceModel]:
     """Speaker ``seed``'s model and trained appearance, from ``cache_dir`` when it has them
     (else built, trained and saved there; ``None``: no cache). A cache that cannot be written
-    (read-only, full disk) only costs the next start the same training again."""
+    (read-only, full disk) only costs the next start the same training again. ``progress``
+    is told, in one line, when the assets have to be built."""
     folder = Path(cache_dir) / asset_key(seed, rig, kind) if cache_dir is not None else None
     if folder is not None and (folder / "appearance.npz").is_file():
         try:
@@ -95,6 +97,10 @@ def speaker_assets(seed: int, rig: str = "head", kind: str = "la_quad",
             return model, appearance
         except ArticastError:
             pass  # a damaged cache entry: rebuild it below
+    if progress is not None:
+        progress(f"building synthetic speaker {seed}'s model, {kind} appearance and texture "
+                 + (f"(first run only, a few seconds; cached in {folder.parent})"
+                    if folder is not None else "(no cache: ARTICAST_CACHE_DIR=off)"))
     speaker = default_speaker(seed)
     model = speaker.model()
     appearance = enrolment_appearance(speaker, rig, kind)
@@ -121,9 +127,10 @@ def _load_atlas(seed: int, path: Path) -> None:
 
 
 def open_stream(seed: int = 0, fps: float = 30.0, rig: str = "head", kind: str = "la_quad",
-                cache_dir: str | os.PathLike[str] | None = None) -> SyntheticStream:
+                cache_dir: str | os.PathLike[str] | None = None,
+                progress: Callable[[str], None] | None = None) -> SyntheticStream:
     """The stream of speaker ``seed``: its model and trained appearance come from
-    ``cache_dir`` when there (:func:`speaker_assets`), else are built first (~8 s)."""
-    model, appearance = speaker_assets(seed, rig, kind, cache_dir)
+    ``cache_dir`` when there (:func:`speaker_assets`), else are built first (~5 s)."""
+    model, appearance = speaker_assets(seed, rig, kind, cache_dir, progress)
     return SyntheticStream(seed, float(fps), rig, model, default_camera(rig), appearance,
                            rest_pose(rig))

@@ -310,9 +310,11 @@ def warm_up() -> None:
         return
     f8 = np.float64
     src = np.zeros((20, 20, 3), np.uint8)
+    dist = np.zeros(5)
+    dist.setflags(write=False)  # as Camera.dist: a writable one compiled a type never used
     la_residuals(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
                  np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
-                 np.zeros((1, 3, 1), f8), np.array([100.0, 100.0, 10.0, 10.0]), np.zeros(5),
+                 np.zeros((1, 3, 1), f8), np.array([100.0, 100.0, 10.0, 10.0]), dist,
                  np.zeros(8, f8), np.zeros((1, 8), f8), np.zeros((0, 0), f8), 1.0,
                  np.ones((1, 8), f8), True, True, src, np.zeros((20, 20), np.uint8),
                  np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8),
@@ -324,3 +326,15 @@ def warm_up() -> None:
                         np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
                         jacobian)
     cauchy(np.zeros(8, f8), np.zeros((0, 0), f8), 8, 2.0)
+
+
+def compiled_on_disk() -> bool:
+    """Whether numba's on-disk cache already holds the kernels (False: :func:`warm_up` will
+    compile them, a few seconds). Reads numba's cache index; True when it cannot tell."""
+    if not AVAILABLE:
+        return True
+    try:
+        return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
+                   for f in (la_residuals, cauchy))
+    except AttributeError:  # another numba's internals
+        return True

@@ -107,9 +107,10 @@ class TrackingPolicy:
         ``occlusion_span_mm`` of one of them (head frame; 60 mm: a palm over part of the
         face, not mispredictions scattered over all of it) is not ok, ``occluded``, and the
         tracker keeps its robust fit (no re-initialisation, the running levels are left
-        alone): a hand sliding over the mouth or chin is tracked through, but not streamed
-        as ok. Only the points the articulation moves (``occlusion_moving`` x the largest
-        displacement over the training range, or more: lips, jaw line, chin) are judged:
+        alone): a hand sliding over the mouth or chin is tracked through, and its frames
+        are sent with ok false and the last good state held. Only the points the
+        articulation moves (``occlusion_moving`` x the largest displacement over the
+        training range, or more: lips, jaw line, chin) are judged:
         rigid points (eyes, brows, nose) mispredict whenever the head turns (judged, they
         made 13-22 % of the clean clip cap13 "occluded"), and hiding them does not bias the
         articulation. Measured and left out: requiring the outliers to be next to each
@@ -468,13 +469,13 @@ class Tracker:
         n_out = int(np.count_nonzero(out))
         if staying and n_out:
             return (f"occluded: still {n_out} of {int(judged.sum())} sample points on the lips, "
-                    f"jaw and chin unlike the face; tracked through, not streamed")
+                    f"jaw and chin unlike the face; tracked through; last good state held")
         if n_out < pol.occlusion_points or (
                 self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
             return None
         return (f"occluded: {n_out} of {int(judged.sum())} sample points on the lips, jaw and "
                 f"chin no longer look like the face (a hand or an object over them, or the fit "
-                f"is wrong there); tracked through, not streamed")
+                f"is wrong there); tracked through; last good state held")
 
     def _update_point_levels(self, q: np.ndarray | None) -> None:
         if q is None:

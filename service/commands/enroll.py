@@ -67,33 +67,45 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="analyse at most this many frames, evenly spread (default 600; a longer "
                          "clip adds 100 consecutive frames from its middle for the motion model)")
     en.add_argument("--name", default="", help="speaker name (default: the clip's name)")
+    from articast.service.commands.track import add_span_arguments
+
+    add_span_arguments(en)
     en.add_argument("--json", action="store_true", help="print the report as JSON")
     en.add_argument("--quiet", action="store_true", help="no progress line")
     en.set_defaults(func=_enroll)
 
 
-def find_faces(video: Path, max_frames: int, quiet: bool = False, read: bool = True):
+def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
+               read: bool = True):
     """Frames (strided to at most ``max_frames``, plus a run of consecutive frames from the
     middle of a long clip: the motion model learns from frame-to-frame motion,
     :func:`~articast.core.tracking.kalman.process_noise`), their landmarks (F, 478, 3), found
-    (F,), the clip's duration (s), frame size, the number of frames read, the live reader's
-    landmarks of the same frames (F, 468, 3; None unless ``read``) and when each frame was
-    taken (F,) s."""
+    (F,), the clip's duration (s), frame size, the number of frames read (of ``span``, a
+    :class:`~articast.service.video.Span`, when given), the live reader's landmarks of the
+    same frames (F, 468, 3; None unless ``read``) and when each frame was taken (F,) s."""
+    import cv2
+
     from articast.core.faces.build import analysed_frames
     from articast.core.faces.finder import FaceFinder, read_every_frame
     from articast.service.progress import Progress
     from articast.service.video import iter_video, video_frame_count
 
     total = video_frame_count(video)
+    if span:
+        cap = cv2.VideoCapture(str(video))
+        fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+        cap.release()
+        total = span.frames(total, fps)
     keep = set(analysed_frames(total, max_frames).tolist()) if total else None
     finder = FaceFinder.load()
     images, marks, found, faces, times = [], [], [], [], []
     prev = None
     prog = Progress(len(keep) if keep else 0, "landmarks", quiet=quiet)
-    t_last, n_read, size = 0.0, 0, (0, 0)
-    for i, t, img in iter_video(video):
-        n_read, t_last = i + 1, t
-        if keep is not None and i not in keep:
+    t_first, t_last, n_read, size = None, 0.0, 0, (0, 0)
+    for k, (_, t, img) in enumerate(iter_video(video, span)):
+        n_read, t_last = k + 1, t
+        t_first = t if t_first is None else t_first
+        if keep is not None and k not in keep:
             continue
         times.append(t)
         size = (img.shape[1], img.shape[0])
@@ -106,17 +118,18 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, read: bool = T
         found.append(face is not None)
         prog.update()
     prog.close()
-    if total and n_read < total * 0.9:
+    if total and n_read < total * 0.9 and not span:
         print(f"articast enroll: warning: {video} ended early: read {n_read} of the {total} "
               "frames its container declares", file=sys.stderr)
-    fps_dt = t_last / max(n_read - 1, 1)
+    length = t_last - (t_first or 0.0)
+    fps_dt = length / max(n_read - 1, 1)
     readings = None
     if read:
         reader = FaceFinder.load(landmarks="v1")
         prog = Progress(len(images), "reader landmarks", quiet=quiet)
         readings = read_every_frame(reader, images, faces, progress=prog.update)
         prog.close()
-    return (images, np.array(marks), np.array(found, bool), t_last + fps_dt, size, n_read,
+    return (images, np.array(marks), np.array(found, bool), length + fps_dt, size, n_read,
             readings, np.array(times))
 
 
@@ -135,15 +148,22 @@ def _enroll(args: argparse.Namespace) -> int:
     if args.output.exists() and not args.output.is_dir():
         raise InputError(f"{args.output}: exists and is not a folder")
     camera = Camera.load(args.camera) if args.camera else None
+    from articast.service.video import Span
+
+    span = Span(args.start, args.end)
     # fused live tracking reads FaceMesh v1 every frame on a desk camera (not on a
     # head-mounted one: core/faces/live.py LivePolicy.fusion)
     images, marks, found, seconds, size, n_read, readings, times = find_faces(
-        args.video, args.max_frames, args.quiet, read=args.rig == "desk")
+        args.video, args.max_frames, args.quiet, span, read=args.rig == "desk")
     if camera is None:
         camera = Camera.default(size[0], size[1], DEFAULT_FOV_DEG)
-    elif (camera.width, camera.height) != size:
-        raise InputError(f"video frames are {size[0]}x{size[1]} but the camera is calibrated "
-                         f"for {camera.width}x{camera.height}")
+    else:  # the same camera at another resolution is scaled; another aspect ratio: one line
+        from articast.service.processors import fit_camera, scaling_note
+
+        note = scaling_note(camera, *size)
+        camera = fit_camera(camera, *size, what="the video's frames")
+        if note and not args.quiet:
+            print(f"articast enroll: {note}", file=sys.stderr)
     warnings = []
     if seconds < MIN_SECONDS:
         warnings.append(f"the clip is {seconds:.1f} s long: 20-60 s of reading aloud cover "
@@ -176,14 +196,54 @@ def _enroll(args: argparse.Namespace) -> int:
 
     speaker = replace(speaker, report=report)
     speaker.save(args.output)
+    sheet = write_contact_sheet(args.output / CONTACT_SHEET, speaker, images, found)
     if args.json:
         print(dumps({"speaker": str(args.output), "residual": speaker.residual.to_dict(),
                      **report}, indent=1))
     else:
         _print_report(args.output, speaker, report)
+        if sheet:
+            print(f"contact sheet: {args.output / CONTACT_SHEET} (the fitted model on "
+                  f"{sheet} enrolment frames: lips outer yellow, inner magenta)")
     for w in warnings:
         print(f"articast enroll: warning: {w}", file=sys.stderr)
     return 0
+
+
+CONTACT_SHEET = "contact.png"
+
+
+def write_contact_sheet(path: Path, speaker, images: list, found: np.ndarray,
+                        n: int = 6) -> int:
+    """``n`` enrolment frames spread over the clip, each fitted afresh by the live tracker
+    (landmarks, then the appearance fit) and drawn as ``track --overlay`` draws: what the
+    enrolment learned, to look at before trusting it. Returns the number of tiles (0 when
+    no frame could be fitted; the folder is complete without the sheet)."""
+    import cv2
+
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker, live_policy
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.overlay import fit_tile, grid, label, lip_contours
+
+    contours = lip_contours(speaker)
+    usable = np.flatnonzero(found)
+    tiles = []
+    finder = FaceFinder.load()
+    for i in usable[np.linspace(0, len(usable) - 1, min(n, len(usable))).round().astype(int)]:
+        live = LiveTracker(speaker, finder, mediapipe_scheme(speaker.rig),
+                           tracking=live_policy(speaker.rig))
+        res = live.track(images[i], 0.0)
+        tile = fit_tile(images[i], speaker.model, speaker.camera, res, contours, size=240)
+        lips = res.lips or {}
+        tiles.append(label(tile, f"#{i} {lips.get('aperture_mm', float('nan')):.1f} mm"
+                           + ("" if res.ok else f" {res.reason.split(':')[0]}")))
+    if not tiles:
+        return 0
+    if not cv2.imwrite(str(path), grid(tiles)):
+        print(f"articast enroll: warning: could not write {path}", file=sys.stderr)
+        return 0
+    return len(tiles)
 
 
 def _print_report(folder: Path, speaker, report: dict) -> None:

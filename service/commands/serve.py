@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -31,11 +32,15 @@ Every option is also settable as an ARTICAST_<OPTION> environment variable.
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser(
         "serve", help="track faces and stream them to WebSocket subscribers",
+        usage="%(prog)s --source NAME=URI [--source ...] [--speaker DIR | --model M "
+              "--appearance A --camera C] [--port N] [options; server limits last]",
         description="Run the streaming service with one session per --source.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--source", action="append", default=[], metavar="NAME=URI",
                    help="a session: v4l2:/dev/video0?width=640&height=480&fps=60, "
-                   "file:talk.mp4?pace=realtime&loop=1, images:DIR, synthetic:seed=3, "
+                   "file:talk.mp4?pace=realtime&loop=yes (loop=no, the default, plays "
+                   "once; plays=N; start=12.5&end=900f: a part, in seconds or frames), "
+                   "images:DIR, synthetic:seed=3, "
                    "replay-record:rec.jsonl (repeat for several faces; none: add them with "
                    "POST /api/sessions)")
     _common(s)
@@ -43,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     d = sub.add_parser(
         "demo", help="serve the built-in synthetic speaker on loopback",
+        usage="%(prog)s [--port N] [--fps FPS] [options; server limits last]",
         description="Serve the synthetic speaker (no camera, no files needed) and print the "
         "URL a client connects to.", epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -53,22 +59,30 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     r = sub.add_parser(
         "replay", help="serve a recorded video through the tracker",
+        usage="%(prog)s VIDEO (--speaker DIR | --model M --appearance A --camera C) "
+              "[--loop] [--start WHEN] [--end WHEN] [--port N] [options; server limits last]",
         description="Track a video file as if it were a camera and stream it (one session, "
-        "named after the file). Give the speaker's --model, --appearance and --camera.",
+        "named after the file). Give --speaker DIR (from 'articast enroll'), or the "
+        "speaker's --model, --appearance and --camera.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     r.add_argument("video", type=Path, help="video file to track and stream")
     _playback(r)
+    from articast.service.commands.track import add_span_arguments
+
+    add_span_arguments(r)
     _common(r)
     r.set_defaults(func=_replay)
 
     rr = sub.add_parser(
         "replay-record", help="serve a recording made by serve --record",
-        description="Stream a recording (serve --record, or python -m articast.client.record) "
+        usage="%(prog)s RECORDING [--loop | --plays N] [--pace fast] [--port N] "
+              "[options; server limits last]",
+        description="Stream a recording (serve --record, or articast-record) "
         "again, with the same hello and frames at their recorded times: no tracking, no "
         "camera.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     rr.add_argument("recording", type=Path, help="recording (.jsonl)")
     _playback(rr)
-    _common(rr)
+    _common(rr, tracking=False)
     rr.set_defaults(func=_replay_record)
 
     w = sub.add_parser(
@@ -100,7 +114,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     gw.set_defaults(func=_gateway)
 
 
-def _hub_argument(p: argparse.ArgumentParser, required: bool = False) -> None:
+def _hub_argument(p: argparse.ArgumentParser | argparse._ArgumentGroup,
+                  required: bool = False) -> None:
     p.add_argument("--hub", default=None, required=False, metavar="URL",
                    help="redis://HOST:PORT/DB: sessions and subscribers meet in Redis "
                    + ("(required; env ARTICAST_HUB)" if required else
@@ -145,7 +160,10 @@ def _playback(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pace", choices=("realtime", "fast"), default="realtime",
                    help="realtime (default): frames at their media time; fast: as fast as "
                    "they are taken, none lost")
-    p.add_argument("--loop", type=int, default=1, help="times to play (0 = forever)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--loop", action="store_true",
+                   help="play forever (default: once, then the session is 'ended')")
+    g.add_argument("--plays", type=int, default=None, metavar="N", help="play N times")
 
 
 def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
@@ -162,25 +180,50 @@ def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     return g
 
 
-def _common(p: argparse.ArgumentParser) -> None:
-    g = _session_files(p)
+COMMON_SERVER = ("host", "port", "record", "log_level")
+"""ServerSettings shown with the command's own options; the rest go to their groups."""
+
+
+def _common(p: argparse.ArgumentParser, tracking: bool = True) -> None:
+    """The options every serving command shares, the ones people use first: where to listen,
+    what to track with, access; the ~60 limits of a long-running server last, in one group.
+    ``tracking=False`` (replay-record: the recording brings its frames) leaves out the
+    options that would do nothing."""
+    add_arguments(p, ServerSettings, skip=tuple(f.name for f in dataclasses.fields(
+        ServerSettings) if f.name not in COMMON_SERVER))
+    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    if tracking:
+        g = _session_files(p)
+    else:
+        g = p.add_argument_group("session")
+        p.set_defaults(speaker="", model="", appearance="", camera="", processor="auto",
+                       preview=False)
     g.add_argument("--wait-for-subscriber", action="store_true",
                    help="hold each source until its first subscriber arrives")
-    g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
-                   help="serve a small, low-rate preview of the tracked video with the fitted "
-                   "mesh (GET /api/sessions/NAME/preview.jpg; the browser avatar shows it). "
-                   "Off by default for privacy; on for the synthetic demo")
-    g.add_argument("--api-token", default=None, metavar="REMOVED",
-                   help="removed: a token on the command line is visible in the process list; "
-                        "set ARTICAST_TOKEN or use --token-file")
+    if tracking:
+        g.add_argument("--preview", action=argparse.BooleanOptionalAction, default=None,
+                       help="serve a small, low-rate preview of the tracked video with the "
+                       "fit drawn on it (GET /api/sessions/NAME/preview.jpg; the browser "
+                       "avatar shows it). Off by default for privacy; on for the synthetic "
+                       "demo")
+    add_arguments(p.add_argument_group("VMC (VTuber apps)"), ServerSettings,
+                  skip=tuple(f.name for f in dataclasses.fields(ServerSettings)
+                             if not f.name.startswith("vmc")))
     a = p.add_argument_group("access")
     add_access_arguments(a)
-    _hub_argument(p)
-    add_arguments(p.add_argument_group("server"), ServerSettings)
-    add_arguments(p.add_argument_group("fan-out limits"), HubSettings)
-    add_arguments(p.add_argument_group("capture"), CaptureSettings)
-    add_arguments(p.add_argument_group("sessions"), SessionPolicy)
-    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    a.add_argument("--api-token", default=None, metavar="REMOVED",
+                   help="removed: a token on the command line is visible in the process list; "
+                        "set ARTICAST_TOKEN or use --token-file")
+    _hub_argument(p.add_argument_group("scale-out on Redis (docs/SERVICE.md)"))
+    limits = p.add_argument_group(
+        "server limits", "Bounds of a long-running server; the defaults suit one machine "
+        "(docs/SERVICE.md, Access control and Settings). Each is also an ARTICAST_* variable.")
+    add_arguments(limits, ServerSettings, skip=tuple(
+        f.name for f in dataclasses.fields(ServerSettings)
+        if f.name in COMMON_SERVER or f.name.startswith("vmc")))
+    add_arguments(limits, HubSettings)
+    add_arguments(limits, CaptureSettings)
+    add_arguments(limits, SessionPolicy)
 
 
 def add_access_arguments(a: argparse._ArgumentGroup) -> None:
@@ -247,6 +290,10 @@ def access_policy(args: argparse.Namespace, host: str) -> AccessPolicy:
 
 
 def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
+    if sources:  # the workers' imports run beside the server's own from here on
+        from articast.service.worker import start_worker_server
+
+        start_worker_server()
     from articast.core.errors import InputError
     from articast.service.app import ServiceConfig
     from articast.service.server import serve
@@ -289,14 +336,19 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         print(f"articast: starting {', '.join(names)}; the URL follows once the face streams",
               file=sys.stderr, flush=True)
 
-    def listening(url: str) -> None:
+    def listening(url: str, failed: dict[str, str]) -> None:
         http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]
-        avatar = f"{http}/avatar/" + (f"?session={names[0]}" if names else "")
+        up = [n for n in names if n not in failed]  # never a URL for a failed session
+        avatar = f"{http}/avatar/" + (f"?session={up[0]}" if up else "")
         if args.json:
-            print(json.dumps({"url": url, "avatar": avatar, "sessions": names}), flush=True)
+            print(json.dumps({"url": url, "avatar": avatar, "sessions": up,
+                              "failed": failed}), flush=True)
         else:
-            first = names[0] if names else "NAME"
-            print(f"articast: serving {', '.join(names) or 'no session yet'} at {url}\n"
+            first = up[0] if up else "NAME"
+            if failed:
+                print(f"articast: not serving {', '.join(failed)}: failed (the reason is "
+                      "above)", file=sys.stderr, flush=True)
+            print(f"articast: serving {', '.join(up) or 'no session yet'} at {url}\n"
                   f"  browser avatar: {avatar}\n"
                   f'  subscribe with {{"type": "subscribe", "session": "{first}"}}; '
                   "Ctrl-C stops", flush=True)
@@ -315,7 +367,7 @@ def _serve(args: argparse.Namespace) -> int:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    return _run(args, [("demo", f"synthetic:seed={args.seed}&fps={args.fps}&loop=0")])
+    return _run(args, [("demo", f"synthetic:seed={args.seed}&fps={args.fps}&loop=yes")])
 
 
 def _name(args: argparse.Namespace, path: Path) -> str:
@@ -324,13 +376,23 @@ def _name(args: argparse.Namespace, path: Path) -> str:
     return args.name or re.sub(r"[^A-Za-z0-9_.-]", "_", path.stem)[:64] or "replay"
 
 
+def _plays(args: argparse.Namespace) -> str:
+    if args.plays is not None:
+        return f"plays={args.plays}"
+    return "loop=yes" if args.loop else "loop=no"
+
+
 def _replay(args: argparse.Namespace) -> int:
-    uri = f"file:{args.video}?pace={args.pace}&loop={args.loop}"
+    from urllib.parse import quote
+
+    span = "".join(f"&{k}={quote(v)}" for k, v in (("start", args.start), ("end", args.end))
+                   if v)
+    uri = f"file:{args.video}?pace={args.pace}&{_plays(args)}{span}"
     return _run(args, [(_name(args, args.video), uri)])
 
 
 def _replay_record(args: argparse.Namespace) -> int:
-    uri = f"replay-record:{args.recording}?pace={args.pace}&loop={args.loop}"
+    uri = f"replay-record:{args.recording}?pace={args.pace}&{_plays(args)}"
     return _run(args, [(_name(args, args.recording), uri)])
 
 
@@ -344,7 +406,7 @@ def _gateway(args: argparse.Namespace) -> int:
                            access=access_policy(args, server.host),
                            hub_url=url, hub_prefix=hub_prefix(args), role="gateway")
 
-    def listening(ws_url: str) -> None:
+    def listening(ws_url: str, failed: dict[str, str]) -> None:
         if args.json:
             print(json.dumps({"url": ws_url, "hub": _safe_url(url)}), flush=True)
         else:

@@ -80,7 +80,13 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="appearance model (.npz, 'articast train-appearance'), without --speaker")
     tk.add_argument("--camera", type=Path,
                     help="camera (.json); with --speaker it replaces the enrolment's camera")
-    tk.add_argument("-o", "--output", type=Path, required=True, help="track file (.jsonl)")
+    tk.add_argument("-o", "--output", type=Path, required=True,
+                    help="track file (.jsonl; written only if tracking succeeds)")
+    tk.add_argument("--overlay", type=Path, metavar="VIDEO.mp4",
+                    help="also write the video with the fit drawn on every frame: the mesh "
+                         "thin and translucent (green ok, red not), the lip contours on top "
+                         "(outer yellow, inner magenta; enrolled speakers). MPEG-4 (mp4v)")
+    add_span_arguments(tk)
     tk.add_argument("--optimiser", default="gauss-newton", choices=["gauss-newton", "nelder-mead"],
                     help="gauss-newton (default, analytic Jacobians) or the paper's simplex")
     tk.add_argument("--rig", choices=["head", "desk"],
@@ -92,6 +98,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="face distance for the initial search (default 300)")
     tk.add_argument("--quiet", action="store_true", help="no progress line")
     tk.set_defaults(func=_track)
+
+
+def add_span_arguments(p: argparse.ArgumentParser) -> None:
+    """--start/--end: a part of the clip, without cutting it with other tools."""
+    from articast.service.video import SPAN_HELP
+
+    p.add_argument("--start", metavar="WHEN",
+                   help=f"begin at this point of the clip: {SPAN_HELP}; default the start")
+    p.add_argument("--end", metavar="WHEN",
+                   help=f"stop before this point: {SPAN_HELP}; default the end")
 
 
 def load_states(path: Path, param_names: tuple[str, ...]) -> list:
@@ -166,8 +182,31 @@ def _initial_pose(args: argparse.Namespace, param_names):
     return Pose(translation=np.array([0.0, 0.0, args.distance_mm]))
 
 
-def _make_tracker(args: argparse.Namespace):
-    """(tracker with .track(image, t), model, camera) for --speaker or the bead-lab files."""
+def _frame_size(video: Path) -> tuple[int, int]:
+    """(width, height) of the video's frames (one clear error if it cannot be read)."""
+    from articast.service.video import iter_video
+
+    for _, _, img in iter_video(video):
+        return img.shape[1], img.shape[0]
+    raise InputError(f"{video}: no frame")  # pragma: no cover - iter_video raises first
+
+
+def _sized(camera, size: tuple[int, int], quiet: bool):
+    """The camera fitted to the video's frame size, saying so when it was scaled."""
+    import sys
+
+    from articast.service.processors import fit_camera, scaling_note
+
+    note = scaling_note(camera, *size)
+    camera = fit_camera(camera, *size, what="the video's frames")
+    if note and not quiet:
+        print(f"articast track: {note}", file=sys.stderr)
+    return camera
+
+
+def _make_tracker(args: argparse.Namespace, size: tuple[int, int]):
+    """(tracker with .track(image, t), model, camera) for --speaker or the bead-lab files,
+    the camera fitted to the video's frame ``size``."""
     from articast.core.tracking.tracker import Tracker, TrackingPolicy
 
     if args.speaker:
@@ -185,6 +224,9 @@ def _make_tracker(args: argparse.Namespace):
             from articast.core.model.camera import Camera
 
             speaker = replace(speaker, camera=Camera.load(args.camera))
+        from dataclasses import replace as _replace
+
+        speaker = _replace(speaker, camera=_sized(speaker.camera, size, args.quiet))
         rig = args.rig or speaker.rig
         policy = live_policy(rig, optimiser=args.optimiser)
         live = LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(speaker.rig),
@@ -199,7 +241,7 @@ def _make_tracker(args: argparse.Namespace):
 
     model = FaceModel.load(args.model)
     app = AppearanceModel.load(args.appearance, model)
-    camera = Camera.load(args.camera)
+    camera = _sized(Camera.load(args.camera), size, args.quiet)
     rig = args.rig or "head"
     policy = TrackingPolicy.for_rig(rig, optimiser=args.optimiser)
     if args.optimiser == "nelder-mead":
@@ -210,39 +252,93 @@ def _make_tracker(args: argparse.Namespace):
 
 
 def _track(args: argparse.Namespace) -> int:
+    import os
+    import tempfile
+
     from articast.service.progress import Progress
-    from articast.service.video import iter_video, video_frame_count
+    from articast.service.video import Span, iter_video, video_frame_count
 
     if args.output.is_dir():
         raise InputError(f"-o {args.output}: is a folder, expected a file name (.jsonl)")
-    tracker, model, camera = _make_tracker(args)
+    span = Span(args.start, args.end)
+    tracker, model, camera = _make_tracker(args, _frame_size(args.video))
+    contours = _contours(args)
     total = video_frame_count(args.video)
+    if span:
+        total = span.frames(total, _fps(args.video))
     prog = Progress(total, "tracking", quiet=args.quiet)
     n_ok = n = 0
     ms = []
     reasons: dict[str, int] = {}
-    with open(args.output, "w", encoding="utf-8") as out:
-        for i, t, img in iter_video(args.video):
-            if i == 0:
-                _check_size(img, camera)
-            res = tracker.track(img, t)
-            out.write(dumps(res.to_dict(model.param_names)) + "\n")
-            out.flush()
-            n += 1
-            n_ok += res.ok
-            ms.append(res.ms)
-            if not res.ok:
-                code = res.reason.split(":", 1)[0]
-                reasons[code] = reasons.get(code, 0) + 1
-            prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
-    prog.close()
-    why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
-    if n_ok == 0:  # exit 0 would pass a useless track off as a result
-        hint = ("is the enrolled speaker in view?" if args.speaker else "check the camera, "
-                "model and appearance files, and --init-pose")
-        raise InputError(f"{args.video}: none of its {n} frames could be tracked "
-                         f"({why.lstrip(', ')}; {hint}); frames written with ok=false to "
-                         f"{args.output}")
+    folder = args.output.resolve().parent
+    if not folder.is_dir():
+        raise InputError(f"-o {args.output}: the folder {folder} does not exist")
+    # written beside the output and renamed at the end: a failed track leaves no file
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{args.output.name}.", suffix=".part", dir=folder)
+    tmp = Path(tmp_name)
+    video = None
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as out:
+            for i, t, img in iter_video(args.video, span):
+                if n == 0 and args.overlay:
+                    from articast.service.overlay import VideoOut
+
+                    video = VideoOut(args.overlay, _fps(args.video),
+                                     (img.shape[1], img.shape[0]))
+                res = tracker.track(img, t)
+                out.write(dumps(res.to_dict(model.param_names)) + "\n")
+                out.flush()
+                if video is not None:
+                    from articast.service.overlay import draw_fit
+
+                    video.write(draw_fit(img, model, camera, res, contours))
+                n += 1
+                n_ok += res.ok
+                ms.append(res.ms)
+                if not res.ok:
+                    code = res.reason.split(":", 1)[0]
+                    reasons[code] = reasons.get(code, 0) + 1
+                prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
+        prog.close()
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the part file only
+        os.replace(tmp, args.output)  # every frame read: the lines say what happened
+        why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
+        if n_ok == 0:  # exit 0 would pass a useless track off as a result
+            hint = ("is the enrolled speaker in view?" if args.speaker else "check the camera, "
+                    "model and appearance files, and --init-pose")
+            raise InputError(f"{args.video}: none of its {n} frames could be tracked "
+                             f"({why.lstrip(', ')}; {hint}); frames written with ok=false "
+                             f"to {args.output}")
+    finally:
+        prog.close()
+        if video is not None:
+            video.close()
+            if tmp.exists() and args.overlay.exists():  # an error: no half overlay either
+                args.overlay.unlink()
+        tmp.unlink(missing_ok=True)
     print(f"{n} frames tracked ({n_ok} ok{why}), median {np.median(ms):.2f} ms/frame "
-          f"-> {args.output}")
+          f"-> {args.output}" + (f", overlay {args.overlay}" if args.overlay else ""))
     return 0
+
+
+def _fps(video: Path) -> float:
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    try:
+        return float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+    finally:
+        cap.release()
+
+
+def _contours(args: argparse.Namespace) -> list:
+    if not args.overlay:
+        return []
+    if args.overlay.is_dir():
+        raise InputError(f"--overlay {args.overlay}: is a folder, expected a file name (.mp4)")
+    from articast.core.faces.speaker import Speaker
+    from articast.service.overlay import lip_contours
+
+    return lip_contours(Speaker.load(args.speaker)) if args.speaker else []
