@@ -9,6 +9,7 @@ one pixel wide: the outer contour in yellow, the inner in magenta.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import cv2
@@ -69,7 +70,7 @@ def draw(image: np.ndarray, uv: np.ndarray, model: Any, ok: bool,
 
 
 def draw_fit(image: np.ndarray, model: Any, camera: Any, result: Any,
-             contours: list[tuple[np.ndarray, tuple[int, int, int]]] = ()) -> np.ndarray:
+             contours: Sequence[tuple[np.ndarray, tuple[int, int, int]]] = ()) -> np.ndarray:
     """The whole frame with the fit drawn on it (the frame itself when nothing projects)."""
     uv = projected(model, camera, result)
     return image.copy() if uv is None else draw(image, uv, model, bool(result.ok),
@@ -77,7 +78,7 @@ def draw_fit(image: np.ndarray, model: Any, camera: Any, result: Any,
 
 
 def fit_tile(image: np.ndarray, model: Any, camera: Any, result: Any,
-             contours: list[tuple[np.ndarray, tuple[int, int, int]]] = (),
+             contours: Sequence[tuple[np.ndarray, tuple[int, int, int]]] = (),
              crop: float = 1.5, size: int = 320) -> np.ndarray:
     """A ``size`` px square around the fitted face (``crop`` times its extent), magnified
     first and drawn on after, so the lines stay one pixel wide on a small face."""
@@ -88,7 +89,7 @@ def fit_tile(image: np.ndarray, model: Any, camera: Any, result: Any,
     half = crop * 0.5 * float(np.max(np.ptp(uv, 0)))
     x0, y0 = c - half
     k = size / (2 * half)
-    warp = np.float32([[k, 0, -k * x0], [0, k, -k * y0]])
+    warp = np.array([[k, 0, -k * x0], [0, k, -k * y0]], np.float32)
     tile = cv2.warpAffine(image, warp, (size, size), flags=cv2.INTER_LINEAR)
     return draw(tile, uv * k - [k * x0, k * y0], model, bool(result.ok), list(contours))
 
@@ -116,7 +117,7 @@ class VideoOut:
         from articast.core.errors import InputError
 
         self.path = path
-        self._w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"),
+        self._w = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"mp4v"),
                                   float(fps if fps and fps > 0 else 30.0), size)
         if not self._w.isOpened():
             raise InputError(f"--overlay {path}: OpenCV cannot write an mp4v video there "

@@ -19,6 +19,7 @@ pays the compilation (a few seconds).
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import numpy as np
 
@@ -334,7 +335,8 @@ def compiled_on_disk() -> bool:
     if not AVAILABLE:
         return True
     try:
+        kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
-                   for f in (la_residuals, cauchy))
+                   for f in kernels)
     except AttributeError:  # another numba's internals
         return True

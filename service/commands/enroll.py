@@ -161,7 +161,7 @@ def _enroll(args: argparse.Namespace) -> int:
         from articast.service.processors import fit_camera, scaling_note
 
         note = scaling_note(camera, *size)
-        camera = fit_camera(camera, *size, what="the video's frames")
+        camera = fit_camera(camera, size[0], size[1], what="the video's frames")
         if note and not args.quiet:
             print(f"articast enroll: {note}", file=sys.stderr)
     warnings = []
