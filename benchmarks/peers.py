@@ -76,7 +76,6 @@ from real_clips import (  # noqa: E402
     enrol_speaker,
     landmarks_every_frame,
     outer_width_mm,
-    overlay,
     track_live,
 )
 
@@ -84,6 +83,7 @@ from articast.core.faces.build import analysed_frames  # noqa: E402
 from articast.core.faces.finder import FaceFinder, FinderPolicy, models_dir  # noqa: E402
 from articast.core.faces.live import FusionPolicy, LivePolicy  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
+from articast.service.overlay import fit_tile, lip_contours  # noqa: E402
 
 CLIP_CACHE = Path.home() / ".cache/articast/clips"
 PEER_CACHE = Path.home() / ".cache/articast/peers"
@@ -404,7 +404,9 @@ def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: i
         return
     tiles = []
     for i in frames:
-        t = cv2.resize(overlay(held[i], run["speaker"], run["results"][i]), (tile, tile))
+        sp = run["speaker"]
+        t = cv2.resize(fit_tile(held[i], sp.model, sp.camera, run["results"][i],
+                                lip_contours(sp)), (tile, tile))
         cv2.putText(t, f"#{i}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
                     cv2.LINE_AA)
         tiles.append(t)
