@@ -51,7 +51,7 @@ def test_the_token_is_never_logged_at_any_level(media):
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     env.update(PYTHONPATH=str(ROOT), ARTICAST_TOKEN=TOKEN)
     p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "replay-record",
-                          str(media / "talk.jsonl"), "--loop", "0", "--port", "0", "--json",
+                          str(media / "talk.jsonl"), "--loop", "--port", "0", "--json",
                           "--log-level", "debug"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     try:

@@ -135,7 +135,7 @@ def test_the_server_logs_a_refused_handshake_once_as_such(recording, tmp_path):
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     env.update(PYTHONPATH=str(ROOT), ARTICAST_TOKEN=TOKEN)
     p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "replay-record",
-                          str(recording), "--loop", "0", "--port", "0", "--json",
+                          str(recording), "--loop", "--port", "0", "--json",
                           "--log-level", "info"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True)
     try:
