@@ -277,13 +277,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-motion", action="store_true",
                     help="live tracking without the upper face's optical flow (LivePolicy.motion "
                          "None: the tracker predicts the head's translation by itself)")
+    ap.add_argument("--no-fusion", action="store_true",
+                    help="the appearance fit alone, landmarks only to find, check and restart "
+                         "(LivePolicy.fusion None: the live path before issue 18)")
     ap.add_argument("--enrol-with-held", type=int, metavar="N",
                     help="diagnosis: also enrol on every Nth held-out frame (so the figures "
                          "are no longer held out): how far an appearance that had seen the "
                          "test part's conditions would agree (docs/REAL_SPEAKERS.md, franck)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    live = LivePolicy(motion=None) if args.no_motion else None
+    live = LivePolicy(**({"motion": None} if args.no_motion else {}),
+                      **({"fusion": None} if args.no_fusion else {}))
     rows = []
     for name in args.only:
         path = next(iter(args.cache.glob(f"{name}.*")), None)
