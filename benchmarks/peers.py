@@ -100,6 +100,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "no_kalman": LivePolicy(fusion=FusionPolicy(kalman=False)),
     "no_one_euro": LivePolicy(smoothing=None),
     "read_every_1": LivePolicy(fusion=FusionPolicy(read_every=1)),
+    "iterations_2": LivePolicy(fusion=FusionPolicy(max_iterations=2)),
     "points_1": LivePolicy(fusion=FusionPolicy(points_weight=1.0)),
     "points_0.1": LivePolicy(fusion=FusionPolicy(points_weight=0.1)),
 }
