@@ -387,8 +387,8 @@ class LiveTracker:
 
     def _term(self, reading: Any, prior: StatePrior | None, weight: float = 1.0,
               scale: float | None = None) -> PointTerm:
-        fu = self.fusion
-        assert fu is not None
+        """The reading as the fit's landmark term (the head's predicted depth turns the
+        observation model's mm into px)."""
         depth = float(prior.translation[2]) if prior is not None else float(
             (self.tracker.state or (None, Pose()))[1].translation[2])
         return PointTerm(self.point_model, self.speaker.camera,

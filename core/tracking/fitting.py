@@ -133,7 +133,7 @@ class FitResult:
     point_q: np.ndarray | None = None
     # (K + 6, K + 6) the data terms' Gauss-Newton information about (alpha, rotation
     # increment, translation) at the solution (the image gain marginalised out), without the
-    # priors: what the frame told, for a motion model's update
+    # priors: what the frame told, for a motion model's update (fits with a state prior only)
     information: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -386,6 +386,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             rw_, jw_ = np.zeros(0), np.zeros((0, k + 6))
         pc_ = 0.0
         g_s, h_s = np.zeros(k + 6), np.zeros((k + 6, k + 6))
+        h_shared = h_s.copy()
         if points is not None and points.n_points:
             pr, pj = points.residuals(a_, rot_, t_, True)
             pc_, prw, pjw_o = _robust(pr, pj, 2, points.scale)
@@ -395,6 +396,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             pc_ -= shared_c  # the errors the landmarks share count once
             g_s -= 2.0 * shared_g
             h_s -= 2.0 * shared_h
+            h_shared = shared_h
             if jw_.shape[1] > k + 6:  # the landmarks do not see the image gain
                 pjw = np.hstack([pjw, np.zeros((len(pjw), jw_.shape[1] - k - 6))])
             rw_, jw_ = np.concatenate([rw_, prw]), np.vstack([jw_, pjw])
@@ -408,9 +410,9 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         h_s[k:, k:] += h_pp_
         cost_ = (rc_ + pc_ + prior_ + pp_ + sp_ + wa * float((a_ - a_ref) @ (a_ - a_ref))
                  + wg * (g_ - gain0) ** 2 * with_gain)
-        return cost_, (r_, vf_, rc_, rw_, jw_, g_p_, h_p_, g_s, h_s)
+        return cost_, (r_, vf_, rc_, rw_, jw_, g_p_, h_p_, g_s, h_s, h_shared)
 
-    cost, (r, vf, rc, rw, jw, g_p, h_p, g_s, h_s) = evaluate(alpha, rot, t, gain)
+    cost, (r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared) = evaluate(alpha, rot, t, gain)
     evals, costs, converged, it = 1, [cost], False, 0
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
         h = jw.T @ jw
@@ -451,18 +453,18 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         lam = max(lam / 10, 1e-7)
         alpha, rot, t, gain = a_new, rot_new, t_new, g_new
         cost = cost_new
-        r, vf, rc, rw, jw, g_p, h_p, g_s, h_s = terms_new
+        r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared = terms_new
         costs.append(cost)
         if (np.abs(step[:k]).max() < pol.tol_alpha
                 and np.abs(step[k:k + 3]).max() < pol.tol_rotation
                 and np.abs(step[k + 3:k + 6]).max() < pol.tol_translation_mm):
             converged = True
             break
-    hd = jw.T @ jw
-    if points is not None and points.n_points:
-        shared_h = points.shared(rw[-2 * points.n_points:], jw[-2 * points.n_points:, :k + 6])[2]
-        hd[:k + 6, :k + 6] -= shared_h
-    info = _marginal_information(hd, k + 6, wg)
+    info = None
+    if state_prior is not None:  # what a motion model's update needs (fused tracking only)
+        hd = jw.T @ jw
+        hd[:k + 6, :k + 6] -= h_shared
+        info = _marginal_information(hd, k + 6, wg)
     n = max(r.size * vf, 1.0)
     rc_n = rc / max(appearance_weight, 1e-12) / n if use_app else 0.0
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n if use_app else 0.0,
