@@ -6,6 +6,7 @@ only to check the result.
 """
 
 import json
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -412,3 +413,47 @@ def test_a_speaker_enrolled_before_the_reader_is_tracked_as_before(enrolled, tmp
     ok = [live.track(img, i / 25).ok for i, (_, _, img) in
           enumerate(iter_video(enrolled / "test" / "video.mp4")) if i < 20]
     assert all(ok) and live.finder_calls <= 3
+
+
+def test_fused_frames_are_judged_by_the_landmarks_not_the_appearance_residual(enrolled):
+    """With the reader in the fit, ``ok`` is the landmarks' verdict: an appearance residual
+    far beyond the enrolment's (an opening the enrolment never showed, other light) does not
+    make a frame the landmarks confirm ``diverged``; a fit the landmarks disown is, with the
+    distance in its reason. A speaker whose observation model predates that statistic is
+    judged by the residual as before."""
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    assert sp.points is not None and 0.0 < sp.points.offset_p99 < 0.2
+    frames = [img for i, (_, _, img) in enumerate(iter_video(enrolled / "test" / "video.mp4"))
+              if i < 16]
+
+    def run(speaker):
+        live = _fused(speaker)
+        return [live.track(img, i / 25) for i, img in enumerate(frames)]
+
+    strict = replace(sp, residual=replace(sp.residual, p99=sp.residual.p99 / 1000))
+    assert all(r.ok for r in run(strict))
+    assert all(r.extra["landmark_offset"] <= 3 * sp.points.offset_p99
+               for r in run(strict) if "landmark_offset" in r.extra)
+    before = replace(strict, points=replace(sp.points, offset_p99=float("nan")))
+    assert not any(r.ok for r in run(before))
+    disowned = replace(sp, points=replace(sp.points, offset_p99=1e-6))
+    res = run(disowned)
+    assert not any(r.ok for r in res)
+    assert any(r.reason.startswith("diverged: the landmarks are") for r in res)
+
+
+def test_an_opening_beyond_the_enrolment_is_unfamiliar_to_the_appearance(enrolled):
+    """Where the lips open or stretch beyond the enrolment's range the appearance is not
+    trained, and the landmarks alone may confirm a fit it calls occluded."""
+    sp = Speaker.load(enrolled / "speaker")
+    cov = sp.report["coverage"]
+    live = _fused(sp)
+    inside = np.zeros(sp.model.n_params)
+    ap, wd = (float(x[0]) for x in lip_measures(sp.model, inside[None]))
+    assert cov["aperture_mm"][0] <= ap <= cov["aperture_mm"][1]
+    assert not live._unfamiliar(inside)
+    narrow = replace(sp, report={**sp.report, "coverage": {
+        "aperture_mm": [ap + 1.0, ap + 2.0], "width_mm": cov["width_mm"]}})
+    assert _fused(narrow)._unfamiliar(inside)

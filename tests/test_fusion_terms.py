@@ -9,7 +9,12 @@ from articast.core.errors import ModelFileError
 from articast.core.model.camera import FRONTAL, Camera, Pose, rotation_matrix
 from articast.core.tracking.fitting import FitPolicy, StatePrior, fit_gauss_newton
 from articast.core.tracking.kalman import ConstantVelocity, MotionNoise, process_noise
-from articast.core.tracking.points import PointModel, PointTerm, learn_point_model
+from articast.core.tracking.points import (
+    PointModel,
+    PointTerm,
+    learn_point_model,
+    offset_fraction,
+)
 from tests.blobface import blob_trained
 
 CAM = Camera.default(640, 480, 60.0)
@@ -138,6 +143,42 @@ def _problem(model, app, camera):
     from articast.core.tracking.fitting import Problem
 
     return Problem(model, app, camera)
+
+
+def test_the_offset_of_a_reading_is_a_fraction_of_the_face_size():
+    rng = np.random.default_rng(4)
+    pred = rng.uniform(100, 300, (50, 2))
+    size = np.sqrt(np.mean(np.sum((pred - pred.mean(0)) ** 2, 1)))
+    moved = pred + [0.05 * size, 0.0]
+    assert offset_fraction(pred, moved) == pytest.approx(0.05)
+    # the median: a few points read far away (a hand, a wrong contour) do not move it
+    moved[:10] += 500.0
+    moved[10] = np.nan
+    assert offset_fraction(pred, moved) == pytest.approx(0.05)
+    assert np.isnan(offset_fraction(pred, np.full_like(pred, np.nan)))
+
+
+def test_the_enrolment_keeps_how_far_its_readings_were(tmp_path):
+    """The observation model records the 99th percentile of its readings' offsets at the
+    enrolled states (what ``ok`` is judged against live), and keeps it on disk; a file saved
+    before it existed reads as unknown."""
+    rng = np.random.default_rng(5)
+    model = _face_model(rng)
+    m, k = model.mean.shape[0], model.n_params
+    states = _states(rng, 200, k)
+    reads = _readings(model, states, 0.0, np.zeros((k, m, 3)), np.zeros((m, 2)), 0.5, rng)
+    pm = learn_point_model(model, CAM, states, reads, np.arange(m), np.arange(m), "v1")
+    noisier = learn_point_model(model, CAM, states, _readings(
+        model, states, 0.0, np.zeros((k, m, 3)), np.zeros((m, 2)), 2.0, rng),
+        np.arange(m), np.arange(m), "v1")
+    assert 0.0 < pm.offset_p99 < noisier.offset_p99
+    assert noisier.offset_p99 == pytest.approx(4 * pm.offset_p99, rel=0.3)
+    pm.save(tmp_path / "p.npz")
+    assert PointModel.load(tmp_path / "p.npz").offset_p99 == pytest.approx(pm.offset_p99)
+    from dataclasses import replace
+
+    replace(pm, offset_p99=float("nan")).save(tmp_path / "old.npz")
+    assert np.isnan(PointModel.load(tmp_path / "old.npz").offset_p99)
 
 
 def test_observation_model_files_are_checked(tmp_path):

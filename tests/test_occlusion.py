@@ -96,3 +96,35 @@ def test_clean_sequences_have_no_occluded_frame_where_the_fit_is_right(speaker, 
     assert np.all(fit_err > 2.0), dict(zip(flagged, fit_err))
     assert len(flagged) <= 3
     assert np.mean([r.ok for r in res]) >= 0.97
+
+
+def test_a_second_opinion_can_overrule_the_appearance_occlusion_verdict(speaker, head_app):
+    """``Evidence.confirm``: the fused tracker's landmarks confirm fits the appearance calls
+    occluded where the appearance was never trained (an opening wider than the enrolment's).
+    The hook is asked about the fit the appearance flagged, and its yes streams that fit."""
+    from articast.core.tracking.tracker import Evidence
+
+    a, b = HAND_SLIDE
+    seq = make_sequence(2, b + 2, 50.0, "head")
+    model = speaker.model()
+    truth = invert(model, seq.points)
+    asked = []
+
+    def confirm(alpha, pose):
+        asked.append(np.array(alpha))
+        return True
+
+    for answer in (False, True):
+        tracker = Tracker(model, head_app, seq.camera, TrackingPolicy.for_rig("head"),
+                          initial_pose=seq.pose(0))
+        tracker.reset(seq.pose(0), truth[0])
+        ev = Evidence(confirm=confirm if answer else (lambda alpha, pose: False))
+        res = [tracker.track(speaker.render(seq.controls[i], seq.pose(i), seq.camera,
+                                            sliding_hand(i)), float(seq.times[i]), evidence=ev)
+               for i in range(b + 2)]
+        occluded = [r for r in res if r.reason.startswith("occluded")]
+        if not answer:
+            assert occluded  # the hook's no leaves the verdict
+        else:
+            assert not occluded and asked
+            assert any(np.allclose(r.alpha, x) for r in res for x in asked)

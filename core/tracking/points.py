@@ -19,7 +19,7 @@ so a point the network loses (a hand, an extreme turn) stops pulling the fit.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -48,6 +48,9 @@ class PointModel:
         600 image-plane residuals of its 300 points had the spread of only 5-7 independent
         ones (participation ratio of their covariance); weighing them as independent made
         the fit follow the network's shared errors (a mouth read a little open as a whole).
+    offset_p99 : 99th percentile, over the enrolment frames, of :func:`offset_fraction` of
+        the readings at the enrolled states (NaN: unknown, a model saved before it was kept).
+        The live tracker's ``ok`` is judged against it.
     """
 
     network: str
@@ -56,6 +59,7 @@ class PointModel:
     basis: np.ndarray
     sigma_mm: np.ndarray
     modes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
+    offset_p99: float = float("nan")
 
     def __post_init__(self) -> None:
         m = len(self.landmarks)
@@ -83,7 +87,9 @@ class PointModel:
     def save(self, path: str | os.PathLike[str]) -> None:
         save_bundle(path, POINT_MODEL_KIND, POINT_MODEL_VERSION,
                     {"landmarks": self.landmarks, "mean": self.mean, "basis": self.basis,
-                     "sigma_mm": self.sigma_mm, "modes": self.modes}, {"network": self.network})
+                     "sigma_mm": self.sigma_mm, "modes": self.modes},
+                    {"network": self.network, **({"offset_p99": self.offset_p99}
+                                                 if np.isfinite(self.offset_p99) else {})})
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], n_params: int | None = None) -> PointModel:
@@ -97,10 +103,32 @@ class PointModel:
                      np.asarray(arrays["basis"], np.float64),
                      np.asarray(arrays["sigma_mm"], np.float64),
                      np.asarray(arrays["modes"], np.float64) if "modes" in arrays
-                     else np.zeros((0, 0, 2)))
+                     else np.zeros((0, 0, 2)), _offset(meta.get("offset_p99")))
             require(n_params is None or pm.n_params == n_params, path,
                     f"{pm.n_params} parameters, the speaker's model has {n_params}")
         return pm
+
+
+def _offset(value: object) -> float:
+    """A stored ``offset_p99`` (absent or not a positive finite number: NaN, unknown)."""
+    try:
+        v = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return float("nan")
+    return v if np.isfinite(v) and v > 0 else float("nan")
+
+
+def offset_fraction(predicted_px: np.ndarray, readings_px: np.ndarray) -> float:
+    """How far a reading is from a state's points, as a fraction of the face's size: the
+    median distance between ``readings_px`` (M, 2) and ``predicted_px`` (M, 2) over the
+    points read (NaN rows left out), over the RMS spread of the predicted points about their
+    centre. NaN when nothing was read."""
+    d = np.linalg.norm(np.asarray(readings_px, float) - predicted_px, axis=1)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return float("nan")
+    size = float(np.sqrt(np.mean(np.sum((predicted_px - predicted_px.mean(0)) ** 2, axis=1))))
+    return float(np.median(d)) / max(size, 1.0)
 
 
 def model_point_model(model: FaceModel, landmarks: np.ndarray, network: str,
@@ -166,7 +194,12 @@ def learn_point_model(model: FaceModel, camera: Camera, states: list[tuple[np.nd
     modes = (vec * np.sqrt(np.maximum(lam, 0.0))).T.reshape(n_modes, m, 2) / sigma[None, :, None]
     mean = model.mean[model_points] + coef[0].reshape(m, 3)
     basis = model.basis[:, model_points] + (coef[1:] / sd[:, None]).reshape(k, m, 3)
-    return PointModel(network, np.asarray(landmarks, np.int64), mean, basis, sigma, modes)
+    pm = PointModel(network, np.asarray(landmarks, np.int64), mean, basis, sigma, modes)
+    offsets = [offset_fraction(camera.project(pm.points(alpha) @ pose.matrix.T
+                                              + pose.translation), uv)
+               for (alpha, pose), uv in zip(states, readings, strict=True)
+               if np.isfinite(uv).all()]
+    return replace(pm, offset_p99=float(np.percentile(offsets, 99)))
 
 
 class PointTerm:

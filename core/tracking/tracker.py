@@ -58,12 +58,16 @@ class Evidence:
         constant-velocity prediction, pose prior and articulation prior.
     appearance_weight : the appearance term's weight (0: not sampled).
     levels : pyramid levels to fit (None: the policy's, with its fast path).
+    confirm : a second opinion on a fit the appearance finds ``occluded``: called with its
+        articulation (K,) and head pose; True drops the verdict (the caller knows the
+        appearance is not to be trusted there, and other evidence confirms the fit).
     """
 
     points: PointTerm | None = None
     prior: StatePrior | None = None
     appearance_weight: float = 1.0
     levels: tuple[int, ...] | None = None
+    confirm: Callable[[np.ndarray, Pose], bool] | None = None
 
 
 @dataclass(frozen=True)
@@ -374,6 +378,7 @@ class Tracker:
         fit = None
         evals = 0
         levels = pol.levels if ev is None or ev.levels is None else ev.levels
+        landmarks = ev is not None and ev.points is not None
         if (pol.fast_path_factor and self._level is not None and self._prev is not None
                 and levels != (0,)):
             # most frames are easy: try the full-resolution fit from the prediction alone, and
@@ -387,17 +392,16 @@ class Tracker:
             fit = self._fit(image, theta0, levels, cache, pose_ref=ref, alpha_ref=a_ref,
                             evidence=ev)
             evals += fit.evals
-        if self._gap and self._good(fit):
+        if self._gap and self._good(fit, landmarks):
             # first frame after a gap: the last good state may be far from the face that
             # reappears (the mouth moved behind the hand); re-initialise too, keep the best
             again = self._fit_from_neutral(image, cache, ref, ev)
             evals += again.evals
-            if self._good(again) and again.cost < fit.cost:
+            if self._good(again, landmarks) and again.cost < fit.cost:
                 fit = again
-        if not self._good(fit):
+        if not self._good(fit, landmarks):
             tries = [fit]
             # (with landmark readings every start lands where they put it: no retry)
-            landmarks = ev is not None and ev.points is not None
             if pol.predict and self._prev is not None and not landmarks:
                 tries.append(self._fit(image, self._theta, pol.levels, cache, pose_ref=ref,
                                        evidence=ev))
@@ -405,13 +409,16 @@ class Tracker:
                 tries.append(self._fit_from_neutral(image, cache, ref, ev))
             evals += sum(f.evals for f in tries[1:])
             fit = min(tries, key=lambda f: f.cost)
-            if not self._good(fit):
+            if not self._good(fit, landmarks):
                 why = ("left_image: points left the image"
                        if fit.valid_fraction < pol.min_valid_fraction
                        else f"diverged: residual {fit.robust_residual:.3g} is far above its "
                             f"running level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
         occluded = self.occlusion(fit.point_q, fit.gain, staying=self._occluding)
+        if (occluded is not None and ev is not None and ev.confirm is not None
+                and ev.confirm(fit.alpha, Pose(fit.rotation, fit.translation))):
+            occluded = None
         self._suspect = self._suspect + 1 if occluded else 0
         if occluded and not self._occluding and self._suspect < self.policy.occlusion_frames:
             return self._accept(fit, t, t0, evals, keep_point_levels=True)
@@ -433,13 +440,18 @@ class Tracker:
         return self._fit(image, neutral, pol.reinit_levels, cache, retry, pose_ref=ref,
                          evidence=evidence)
 
-    def _good(self, fit: FitResult) -> bool:
+    def _good(self, fit: FitResult, landmarks: bool = False) -> bool:
+        """Whether a fit is usable: in the image, finite, inside the model's range and, fitted
+        on the appearance alone, with a residual not far above its running level. A fit with
+        landmark readings in it is not judged by its appearance residual here: the caller
+        judges it by the landmarks (an articulation the enrolment never showed, a wide-open
+        mouth, raises the appearance residual of a fit that the landmarks confirm)."""
         pol = self.policy
         if fit.valid_fraction < pol.min_valid_fraction or not np.all(np.isfinite(fit.theta)):
             return False
         if np.any(np.abs(fit.alpha) > self.problem.bound + 3.0):
             return False
-        if self._level is None:
+        if self._level is None or landmarks:
             return True
         assert self._rlevel is not None and fit.robust_residual is not None
         return fit.robust_residual <= max(pol.divergence_factor * self._rlevel,
