@@ -386,13 +386,15 @@ def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
     live = _fused(sp)
     assert live.fusion is not None
     res = [live.track(img, i / 25) for i, img in enumerate(frames[:30])]
-    assert live.finder_calls >= 14  # the reader, every other frame (FusionPolicy.read_every)
+    # the reader, every third frame (FusionPolicy.read_every), and the finder once
+    assert 30 // 3 <= live.finder_calls <= 30 // 3 + 4
     kf = live.kalman
     kf.t = kf.t + np.array([60.0, 0.0, 120.0])  # 6 cm aside, 12 cm further
     kf.alpha = kf.alpha + 3.0
     regated = live.regated
     res += [live.track(img, (30 + i) / 25) for i, img in enumerate(frames[30:])]
     assert live.regated >= regated + 1
+    assert live.rereads >= 1  # (the next frame was read too)
     ok = np.array([r.ok for r in res])
     assert ok[32:].all()
     ap = np.array([r.lips["aperture_mm"] for r in res])
@@ -457,3 +459,30 @@ def test_an_opening_beyond_the_enrolment_is_unfamiliar_to_the_appearance(enrolle
     narrow = replace(sp, report={**sp.report, "coverage": {
         "aperture_mm": [ap + 1.0, ap + 2.0], "width_mm": cov["width_mm"]}})
     assert _fused(narrow)._unfamiliar(inside)
+
+
+def test_an_appearance_unlike_the_enrolment_weighs_less_in_the_fit(enrolled):
+    """``FusionPolicy.adapt``: the appearance term's weight follows its residual level
+    relative to the enrolment's, so a face the appearance no longer predicts (here: the same
+    frames against an enrolment level made 50x smaller) leans on the landmarks and the motion
+    model, and is still tracked; a face like the enrolment's keeps the full weight."""
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for i, (_, _, img) in enumerate(iter_video(enrolled / "test" / "video.mp4"))
+              if i < 20]
+    truth = _track_lines(enrolled / "test" / "truth.jsonl")[:20]
+    true_model = FaceModel.load(enrolled / "test" / "model.npz")
+    ap_true, _ = lip_measures(true_model, np.array(
+        [[r["alpha"][n] for n in true_model.param_names] for r in truth]))
+    weights = {}
+    for name, speaker in (("own", sp), ("unlike", replace(sp, residual=replace(
+            sp.residual, median=sp.residual.median / 50)))):
+        live = _fused(speaker)
+        res = [live.track(img, i / 25) for i, img in enumerate(frames)]
+        assert all(r.ok for r in res)
+        weights[name] = np.array([r.extra["appearance_weight"] for r in res])
+        ap = np.array([r.lips["aperture_mm"] for r in res])
+        assert np.corrcoef(ap, ap_true)[0, 1] > 0.9
+    assert weights["own"][-5:].min() > 0.3
+    assert weights["unlike"][-5:].max() < 0.1

@@ -23,7 +23,11 @@ robust residual is far above its running level *or* above what the speaker's own
 clip produced: ``residual_factor`` x its 99th percentile), ``occluded`` (a part of the face
 the articulation moves, e.g. the chin or the mouth, fits far worse than usual: a hand; the
 tracker keeps tracking through it, see ``TrackingPolicy.occlusion_factor``), ``left_image``
-(the face left the frame), ``not_started``.
+(the face left the frame), ``not_started``. In fused tracking (``FusionPolicy``) the
+landmarks judge: a frame read by the reader is ``diverged`` when its points are far from the
+fitted face (``FusionPolicy.agreement``), whatever the appearance residual; an appearance
+``occluded`` on lips opened or stretched beyond the enrolment's range is dropped when the
+landmarks confirm the fit.
 """
 
 from __future__ import annotations
@@ -119,17 +123,31 @@ class FusionPolicy:
         finest level).
     max_iterations : Gauss-Newton iterations per frame.
     read_every : the reader runs on every n-th frame; the frames between are fitted on the
-        appearance and the motion model alone (the reader is most of a frame's cost). 2:
-        against the peers (benchmarks/peers.py) it read the lips as every frame did (franck r
-        0.956 vs 0.954, cap13 0.982 vs 0.984, pexels_woman 0.855 vs 0.874), as steadily or
-        more (still-mouth jitter 0.139 / 0.271 / 0.346 vs 0.137 / 0.247 / 1.02, cap12 0.067 vs
-        0.163), at 1.25-1.37x the FaceMesh v1 loop's CPU instead of 1.8-2.0x.
+        appearance and the motion model alone (the reader is most of a frame's cost). 3,
+        with ``adapt``, against every 2nd frame with fixed weights (benchmarks/peers.py, one
+        run each, docs/REAL_SPEAKERS.md): r against the consensus 0.957 / 0.566 / 0.981 /
+        0.862 vs 0.956 / 0.529 / 0.982 / 0.849 (franck, cap12, cap13, pexels_woman), still-mouth
+        jitter 0.131 / 0.080 / 0.323 / 0.293 vs 0.139 / 0.067 / 0.271 / 0.346, at 1.08-1.31x
+        the FaceMesh v1 loop's CPU instead of 1.22-1.30x. (Every frame read cost 1.8-2.0x and
+        read no better.)
     gate : a reading whose median point is further from the prediction than this fraction
         of the face's size in the image restarts the motion model at the prediction (zero
         velocity, a wide covariance) and lets every point pull that frame (least squares): the
         robust loss would otherwise ignore every point of a reading that far, and the state
         could drift off the face (on franck 40 % of the frames were lost that way without
         it). A frame whose fit is still not ok is found again by the face finder.
+    reread : a reading further from the motion model's prediction than this many times
+        ``PointModel.offset_p99`` (the face moves faster than the model foresaw) makes the
+        next frame read too (None: never).
+    adapt : the appearance term's weight follows its own residual level: x min(1, the
+        enrolment's median / a running mean of this clip's robust residual, updated at this
+        rate per frame, occluded frames left out). A face the appearance no longer predicts
+        (an expression, a light, a resolution the enrolment never showed) leans on the
+        landmarks and the motion model; one like the enrolment keeps the full weight (the
+        terms are whitened by the enrolment's statistics, which held-out frames of another
+        kind do not follow). pexels_woman (laughing after an enrolment of crying): r 0.782
+        -> 0.862 reading every 3rd frame; franck 0.957 either way, cap13 0.988 -> 0.981.
+        None: the fixed weights.
     agreement : a fitted frame with a reading is ``diverged`` when the reading's median point
         is further from the fitted face than this many times the enrolment's 99th percentile
         of that distance (:attr:`~articast.core.tracking.points.PointModel.offset_p99`, both
@@ -149,9 +167,11 @@ class FusionPolicy:
     levels: tuple[int, ...] = (0,)
     max_iterations: int = 3
     points_weight: float = 0.3
-    read_every: int = 2
+    read_every: int = 3
     gate: float = 0.15
     agreement: float = 3.0
+    reread: float | None = 2.0
+    adapt: float | None = 0.1
 
 
 LIVE_ALPHA_SIGMA = 0.5
@@ -210,6 +230,7 @@ class LiveTracker:
         self._reading: Any = None
         self._since_read = 0
         self.regated = 0  # readings far from the prediction (the motion model restarted)
+        self.rereads = 0  # readings that asked for the next frame to be read too
         self._t_last: float | None = None
         if fu is not None:
             if reader is None:  # the bundled one, on one thread
@@ -221,6 +242,7 @@ class LiveTracker:
             self.point_model = speaker.points
             self.kalman = ConstantVelocity(speaker.model.n_params, speaker.motion_noise)
             self.weights = (fu.points_weight, fu.appearance_weight)
+            self._app_level = speaker.residual.median
             self._motion = None  # the landmarks give the head's translation every frame
 
     # ------------------------------------------------------------------ helpers
@@ -351,6 +373,17 @@ class LiveTracker:
         scale = fu.points_scale
         if not restart and fu.kalman:
             prior = self.kalman.predict(dt)
+            if (reading is not None and fu.reread is not None
+                    and np.isfinite(self.point_model.offset_p99)):
+                # the prediction missed the reading by more than the reader's own spread: the
+                # face moves faster than the motion model foresaw, read the next frame too
+                pm = self.point_model
+                missed = self._offset(prior.alpha, Pose(axis_angle(prior.rotation),
+                                                        prior.translation),
+                                      reading.landmarks[pm.landmarks, :2])
+                if missed > fu.reread * pm.offset_p99:
+                    self._since_read = fu.read_every - 1
+                    self.rereads += 1
             if reading is not None and self._gated(reading, prior):
                 # the reading is far from the prediction (a motion it did not foresee, or a
                 # state drifting off the face): the prediction is forgotten (zero velocity,
@@ -387,8 +420,16 @@ class LiveTracker:
             def confirm(alpha: np.ndarray, pose: Pose) -> bool:
                 return self._unfamiliar(alpha) and self._offset(alpha, pose, seen) <= (
                     fu.agreement * self.point_model.offset_p99)
-        ev = Evidence(term, prior, self.weights[1], fu.levels, confirm)
+        wa = self.weights[1]
+        if fu.adapt is not None:
+            wa *= min(1.0, self.speaker.residual.median / max(self._app_level, 1e-12))
+        ev = Evidence(term, prior, wa, fu.levels, confirm)
         result = self.tracker.track(image, t, evidence=ev)
+        result = replace(result, extra={**result.extra, "appearance_weight": wa})
+        rr = result.extra.get("robust_residual")
+        if (fu.adapt is not None and rr is not None and np.isfinite(rr)
+                and not result.reason.startswith("occluded")):
+            self._app_level += fu.adapt * (float(rr) - self._app_level)
         if not np.isfinite(self.point_model.offset_p99):
             result = self._judge(result)  # an observation model saved before offset_p99
         elif reading is not None:
