@@ -88,6 +88,14 @@ class Binding:
     curvature : (N,) rad, angle deficits of the reference (0 on the boundary).
     lambda2 : regularisation weight lambda^2 of the Sumner-Popovic term.
     dense_triangles : (Q, 3) int, the dense mesh's facets, kept for rendering (may be empty).
+    follow : (M,) in [0, 1] or None (all 1): how much of its facet's motion a point takes,
+        ``M' = M + follow (f(M) - M)``; 0 holds it to the head (a scan's cranium, far from
+        the sparse mesh), in between a smooth falloff across the border
+        (:mod:`articast.core.dense.scan`).
+    turn : (M,) in [0, 1] or None (all 1): share of the normal offset ``local_2`` that turns
+        with the facet (``v``); the rest is carried unrotated along the reference normal, as
+        barycentric transfer does, which is linear in the sparse vertices. Lowered only where
+        the turning offset makes the dense modes stray (:mod:`articast.core.dense.scan`).
     """
 
     sparse_vertices: np.ndarray
@@ -102,11 +110,14 @@ class Binding:
     curvature: np.ndarray
     lambda2: float
     dense_triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    follow: np.ndarray | None = None
+    turn: np.ndarray | None = None
     # derived once, for the per-frame maps
     topology: MeshTopology = field(init=False, repr=False)
     curvature_weights: np.ndarray = field(init=False, repr=False)  # c_X (T, 3)
     denominators: np.ndarray = field(init=False, repr=False)  # sum_X c_X^2 + lambda^2 (T,)
     gather: sp.csr_matrix = field(init=False, repr=False)  # (M, 4T), see :func:`apply`
+    held: np.ndarray = field(init=False, repr=False)  # (1 - follow) M (M, 3), see :func:`apply`
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "topology",
@@ -118,6 +129,22 @@ class Binding:
         m, t = len(self.facet), len(self.triangles)
         cols = np.arange(4)[None, :] * t + self.facet[:, None]
         coef = np.c_[np.ones(m), self.local]
+        held = np.zeros((m, 3))
+        if self.turn is not None:  # f(M) = A' + l0 e1' + l1 e2' + l2 (s v + (1 - s) n)
+            s = _weights_in_unit("turn", self.turn, m)
+            object.__setattr__(self, "turn", s)
+            a = self.sparse_vertices[self.triangles[:, 0]]
+            n = np.cross(self.sparse_vertices[self.triangles[:, 1]] - a,
+                         self.sparse_vertices[self.triangles[:, 2]] - a)
+            n /= np.linalg.norm(n, axis=1, keepdims=True)
+            held = ((1.0 - s) * self.local[:, 2])[:, None] * n[self.facet]
+            coef[:, 3] *= s
+        if self.follow is not None:  # M' = (1 - w) M + w f(M): the weight folded in
+            w = _weights_in_unit("follow", self.follow, m)
+            object.__setattr__(self, "follow", w)
+            held = (1.0 - w)[:, None] * self.dense_vertices + w[:, None] * held
+            coef = coef * w[:, None]
+        object.__setattr__(self, "held", held)
         gather = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(m), 4), cols.ravel())),
                                shape=(m, 4 * t))
         object.__setattr__(self, "gather", gather)
@@ -129,6 +156,9 @@ class Binding:
     def save(self, path: str | os.PathLike[str]) -> None:
         """Write as a versioned bundle (kind ``dense-binding``)."""
         arrays = {name: getattr(self, name) for name in _ARRAYS}
+        for name in ("follow", "turn"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
         save_bundle(path, BINDING_KIND, BINDING_VERSION, arrays, {"lambda2": self.lambda2})
 
     @classmethod
@@ -155,11 +185,22 @@ class Binding:
                     "dense_triangles index no dense point")
             lam = meta.get("lambda2")
             require(isinstance(lam, int | float) and lam > 0, path, "lambda2 must be positive")
-            return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam))
+            extra = {k: arrays.get(k) for k in ("follow", "turn")}  # whole-head scans only
+            for name, w in extra.items():
+                require(w is None or (w.shape == (m,) and bool(np.all((w >= 0) & (w <= 1)))),
+                        path, f"array {name!r} must be ({m},) weights in [0, 1]")
+            return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam), **extra)
 
 
 _ARRAYS = ("sparse_vertices", "triangles", "dense_vertices", "facet", "local", "weights",
            "offset", "inside", "corner_normals", "curvature", "dense_triangles")
+
+
+def _weights_in_unit(name: str, w: Any, m: int) -> np.ndarray:
+    w = np.asarray(w, np.float64)
+    if w.shape != (m,) or not np.all((w >= 0) & (w <= 1)):
+        raise InputError(f"{name} must be ({m},) weights in [0, 1]")
+    return w
 
 
 def _check_points(name: str, arr: Any, n: int | None = None) -> np.ndarray:
@@ -329,7 +370,7 @@ def facet_maps(binding: Binding, vertices: np.ndarray) -> tuple[np.ndarray, ...]
 def apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.ndarray:
     """Dense mesh (M, 3) mm for the sparse mesh at ``sparse_vertices_new`` (N, 3) mm."""
     v = _check_points("sparse_vertices_new", sparse_vertices_new, len(binding.sparse_vertices))
-    return binding.gather @ np.concatenate(facet_maps(binding, v))
+    return binding.gather @ np.concatenate(facet_maps(binding, v)) + binding.held
 
 
 def barycentric_apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.ndarray:
@@ -337,7 +378,10 @@ def barycentric_apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.n
     displacements (no rotation of the offset). (N, 3) -> (M, 3) mm."""
     v = _check_points("sparse_vertices_new", sparse_vertices_new, len(binding.sparse_vertices))
     disp = (v - binding.sparse_vertices)[binding.triangles[binding.facet]]  # (M, 3, 3)
-    return binding.dense_vertices + np.einsum("mc,mcd->md", binding.weights, disp)
+    moved = np.einsum("mc,mcd->md", binding.weights, disp)
+    if binding.follow is not None:
+        moved *= binding.follow[:, None]
+    return binding.dense_vertices + moved
 
 
 def _check_model(binding: Binding, model: FaceModel) -> None:
@@ -371,11 +415,14 @@ def dense_modes(
 
 
 def linearity_error(
-    binding: Binding, model: FaceModel, alphas: np.ndarray, *, step: float = 1.0
+    binding: Binding, model: FaceModel, alphas: np.ndarray, *, step: float = 1.0,
+    points: np.ndarray | None = None,
 ) -> np.ndarray:
     """Max distance (F,) mm between the linear dense modes and per-frame transfer at each alpha.
 
     alphas : (F, K). Use postures from the training range to state a model's tolerance.
+    points : (M,) bool or indices, the dense points to measure (default all), e.g. only those
+        that move with the articulation.
     """
     alphas = np.asarray(alphas, dtype=np.float64)
     if alphas.ndim != 2 or alphas.shape[1] != model.n_params:
@@ -383,4 +430,9 @@ def linearity_error(
     mean, modes = dense_modes(binding, model, step=step)
     linear = mean + np.einsum("fk,kmd->fmd", alphas, modes)
     exact = np.stack([apply(binding, s) for s in model.shape(alphas)])
-    return np.linalg.norm(linear - exact, axis=-1).max(axis=1)
+    gap = np.linalg.norm(linear - exact, axis=-1)
+    if points is not None:
+        gap = gap[:, np.asarray(points)]
+        if gap.shape[1] == 0:
+            raise InputError("linearity_error: no points to measure")
+    return gap.max(axis=1)
