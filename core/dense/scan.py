@@ -16,10 +16,14 @@ than the lower-face model: cranium, ears, neck. Binding it takes three steps:
    that does not cover the model's face).
 3. **Support and falloff** (:func:`bind_scan`): points within ``support_mm`` of the model's
    surface are bound per facet (:func:`~articast.core.dense.transfer.bind`) and move with the
-   articulation; points further away are bound to their nearest facet and take a share
-   ``follow`` of its motion that falls from 1 to 0 over ``falloff_mm`` (a raised cosine), so
-   the neck under the jaw follows the jaw partly, the cranium stays with the head, and
-   nothing tears at the border. :class:`ScanReport` says how many points are bound which way.
+   articulation; points further away or beyond the model's border follow their nearest
+   surface point by a share ``follow`` that falls from 1 to 0 over ``falloff_mm`` (a raised
+   cosine), so the neck under the jaw follows the jaw partly, the cranium stays with the head,
+   and nothing tears at the border. :class:`ScanReport` says how many points are bound which
+   way. A real scan's surface lies millimetres off the model's, and some of the model's facets
+   fold as it articulates (the lip opening, under the jaw): an offset turning with such a facet
+   swings non-linearly, so the share of the offset that turns is limited where the linear
+   dense modes would stray (``turn`` of :class:`~articast.core.dense.transfer.Binding`).
 
 Frames: the scan's own frame and unit in, the head frame in mm out (x speaker's left, y up,
 z forward).
@@ -217,6 +221,14 @@ def shared_landmarks(model: FaceModel, landmarks: np.ndarray
     return np.array(src).reshape(-1, 3), np.array(dst).reshape(-1, 3), np.array(w), tuple(names)
 
 
+def coverage(model: FaceModel, head_points: np.ndarray, within_mm: float) -> np.ndarray:
+    """(S,) bool over the model's surface points (``np.unique(model.triangles)``): a point of
+    ``head_points`` (P, 3) mm head frame lies within ``within_mm``."""
+    sparse = model.mean[np.unique(model.triangles)]
+    near, _ = cKDTree(head_points).query(sparse, distance_upper_bound=within_mm)
+    return np.isfinite(near)
+
+
 def _rms(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
     return float(np.sqrt(np.sum(w * np.sum((a - b) ** 2, axis=1)) / np.sum(w)))
 
@@ -254,11 +266,10 @@ def align_scan(
                          f"{lm_rms:.1f} mm after the best similarity (limit "
                          f"{max_landmark_rms_mm:g} mm); are they the iBUG 68 points, in order?")
     head = sim.apply(vertices)
-    surface = np.unique(model.triangles)
-    sparse = model.mean[surface]
-    near_scan, _ = cKDTree(head).query(sparse, distance_upper_bound=overlap_mm)
-    moving = sparse[np.isfinite(near_scan)]
-    overlap = len(moving) / len(sparse)
+    sparse = model.mean[np.unique(model.triangles)]
+    covered = coverage(model, head, overlap_mm)
+    moving = sparse[covered]
+    overlap = float(covered.mean())
     if overlap < min_overlap:
         raise InputError(f"after the landmark alignment the scan covers {overlap:.0%} of the "
                          f"model's face (need {min_overlap:.0%} within {overlap_mm:g} mm): does "
@@ -298,8 +309,8 @@ class ScanReport:
     ``support_mm``, following their nearest facet by a share in (0, 1]; n_held : following
     the head only (share 0). inside_support_fraction : of the articulated points, the share
     whose binding found a facet containing them (the rest: the nearest facet).
-    n_unturned : points whose normal offset does not turn fully with the facet (``turn`` < 1,
-    :func:`limit_turning`).
+    n_unturned : articulated points whose normal offset does not turn fully with the facet
+    (``turn`` < 1: offsets near ``support_mm``, and :func:`limit_turning`).
     """
 
     articulated: np.ndarray
@@ -332,10 +343,17 @@ def bind_scan(
     """Bind a whole-head scan already in the head frame (mm) to ``model``'s mesh.
 
     vertices : (M, 3) mm head frame (e.g. ``align_scan(...).transform.apply(scan)``);
-    triangles : (Q, 3) the scan's facets, kept for rendering. Points within ``support_mm``
-    of the model's surface keep the per-facet binding of
-    :func:`~articast.core.dense.transfer.bind`; the others are re-bound to the facet nearest
-    in space and take the share :func:`falloff` of its motion.
+    triangles : (Q, 3) the scan's facets, kept for rendering.
+
+    * In the support (within ``support_mm`` of the model's surface, nearest surface point
+      not on its border): the per-facet binding of :func:`~articast.core.dense.transfer.bind`;
+      the normal offset turns with the facet fully up to ``support_mm / 3``, not at all at
+      ``support_mm`` (a raised cosine), and less where it would make the dense modes stray
+      by more than ``turn_tolerance_mm`` (:func:`limit_turning`).
+    * Elsewhere: bound to the nearest surface point Q, which moves with its facet
+      (barycentrically), the offset M - Q carried unrotated, scaled by the share
+      :func:`falloff` of the distance. Q and the falloff vary continuously over the scan,
+      and at the support's edge both rules give the same motion: no tear.
     """
     if not (support_mm > 0 and falloff_mm > 0):
         raise InputError(f"support_mm and falloff_mm must be positive, got {support_mm}, "
@@ -357,20 +375,19 @@ def bind_scan(
     facet, local = b.facet.copy(), b.local.copy()
     weights, offset = b.weights.copy(), b.offset.copy()
     out = ~articulated
-    if out.any():  # the nearest facet's affine map, damped by the falloff
-        a = sparse[tri[nearest[out], 0]]
-        e1, e2 = sparse[tri[nearest[out], 1]] - a, sparse[tri[nearest[out], 2]] - a
-        n = np.cross(e1, e2)
-        n /= np.linalg.norm(n, axis=1, keepdims=True)
-        basis = np.stack([e1, e2, n], axis=-1)
-        loc = np.linalg.solve(basis, (b.dense_vertices[out] - a)[..., None])[..., 0]
-        facet[out], local[out] = nearest[out], loc
-        weights[out] = np.c_[1.0 - loc[:, 0] - loc[:, 1], loc[:, 0], loc[:, 1]]
-        offset[out] = loc[:, 2]
+    if out.any():  # by the nearest surface point Q: Q moves with the facet, M - Q is carried
+        bc = closest_point_coordinates(b.dense_vertices[out], *(
+            sparse[tri[nearest[out], i]] for i in range(3)))
+        facet[out], local[out] = nearest[out], np.c_[bc[:, 1:], np.zeros(len(bc))]
+        weights[out], offset[out] = bc, distance[out]
     follow = falloff(distance, support_mm, falloff_mm)
+    # the offset turns fully near the surface, not at all at the support's edge: there the
+    # articulated points move as their border neighbours do (no tear)
+    taper = falloff(np.abs(local[:, 2]), support_mm / 3, support_mm * 2 / 3)
+    turn = np.where(articulated, taper, 0.0)
     binding = Binding(b.sparse_vertices, tri, b.dense_vertices, facet, local, weights, offset,
                       b.inside & articulated, b.corner_normals, b.curvature, b.lambda2,
-                      b.dense_triangles, follow=follow)
+                      b.dense_triangles, follow=follow, turn=turn)
     binding = limit_turning(binding, model, tolerance_mm=turn_tolerance_mm)
     n_art = int(articulated.sum())
     held = follow == 0
@@ -378,7 +395,8 @@ def bind_scan(
         articulated=articulated, distance_mm=distance, n_articulated=n_art,
         n_border=int((~articulated & ~held).sum()), n_held=int(held.sum()),
         inside_support_fraction=float(b.inside[articulated].mean()) if n_art else 0.0,
-        n_unturned=int((binding.turn < 1).sum()) if binding.turn is not None else 0)
+        n_unturned=int((binding.turn[articulated] < 1).sum()) if binding.turn is not None
+        else 0)
     return binding, report
 
 
@@ -403,6 +421,34 @@ def _beyond_border(points: np.ndarray, sparse: np.ndarray, tri: np.ndarray,
     return out
 
 
+def closest_point_coordinates(p: np.ndarray, a: np.ndarray, b: np.ndarray,
+                              c: np.ndarray) -> np.ndarray:
+    """(P, 3) barycentric coordinates of the point of triangle ABC nearest p (all (P, 3))."""
+    e1, e2 = b - a, c - a
+    gram = np.stack([np.einsum("pd,pd->p", e1, e1), np.einsum("pd,pd->p", e1, e2),
+                     np.einsum("pd,pd->p", e2, e2)], 1)
+    r1, r2 = np.einsum("pd,pd->p", p - a, e1), np.einsum("pd,pd->p", p - a, e2)
+    det = gram[:, 0] * gram[:, 2] - gram[:, 1] ** 2
+    u = (gram[:, 2] * r1 - gram[:, 1] * r2) / det
+    v = (gram[:, 0] * r2 - gram[:, 1] * r1) / det
+    best = np.c_[1.0 - u - v, u, v]
+    inside = best.min(1) >= 0
+    if inside.all():
+        return best
+    cand, dist = [], []
+    for i, j in ((0, 1), (1, 2), (2, 0)):  # the nearest point of each edge
+        x, y = (a, b, c)[i], (a, b, c)[j]
+        d = y - x
+        s = np.clip(np.einsum("pd,pd->p", p - x, d) / np.einsum("pd,pd->p", d, d), 0.0, 1.0)
+        w = np.zeros((len(p), 3))
+        w[:, i], w[:, j] = 1.0 - s, s
+        cand.append(w)
+        dist.append(np.linalg.norm(p - x - s[:, None] * d, axis=1))
+    pick = np.argmin(np.stack(dist), axis=0)
+    edge = np.stack(cand)[pick, np.arange(len(p))]
+    return np.where(inside[:, None], best, edge)
+
+
 def limit_turning(binding: Binding, model: FaceModel, *, tolerance_mm: float = 0.2,
                   probes: int = 24, seed: int = 1) -> Binding:
     """The binding with ``turn`` lowered where the turning normal offset makes the dense
@@ -425,7 +471,8 @@ def limit_turning(binding: Binding, model: FaceModel, *, tolerance_mm: float = 0
     for a in box:
         lin = mean + np.tensordot(a, modes, 1)
         gap = np.maximum(gap, np.linalg.norm(lin - apply(binding, model.shape(a)), axis=1))
-    turn = np.minimum(1.0, tolerance_mm / np.maximum(gap, 1e-12))
+    turn = binding.turn if binding.turn is not None else np.ones(binding.n_dense)
+    turn = turn * np.minimum(1.0, tolerance_mm / np.maximum(gap, 1e-12))
     return Binding(binding.sparse_vertices, binding.triangles, binding.dense_vertices,
                    binding.facet, binding.local, binding.weights, binding.offset,
                    binding.inside, binding.corner_normals, binding.curvature, binding.lambda2,

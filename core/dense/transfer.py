@@ -93,9 +93,14 @@ class Binding:
         the sparse mesh), in between a smooth falloff across the border
         (:mod:`articast.core.dense.scan`).
     turn : (M,) in [0, 1] or None (all 1): share of the normal offset ``local_2`` that turns
-        with the facet (``v``); the rest is carried unrotated along the reference normal, as
-        barycentric transfer does, which is linear in the sparse vertices. Lowered only where
-        the turning offset makes the dense modes stray (:mod:`articast.core.dense.scan`).
+        with the facet (``v``).
+
+    With ``follow`` or ``turn`` given, whatever part of ``M - A`` the terms
+    ``local_0 e1 + local_1 e2 + turn local_2 n`` do not account for is carried unrotated
+    (it is linear in the sparse vertices, as barycentric transfer): the rest of a normal
+    offset that does not turn, or, for a point bound by its nearest surface point
+    (``local`` = that point's (b, c, 0)), the whole offset from it
+    (:mod:`articast.core.dense.scan`).
     """
 
     sparse_vertices: np.ndarray
@@ -117,7 +122,7 @@ class Binding:
     curvature_weights: np.ndarray = field(init=False, repr=False)  # c_X (T, 3)
     denominators: np.ndarray = field(init=False, repr=False)  # sum_X c_X^2 + lambda^2 (T,)
     gather: sp.csr_matrix = field(init=False, repr=False)  # (M, 4T), see :func:`apply`
-    held: np.ndarray = field(init=False, repr=False)  # (1 - follow) M (M, 3), see :func:`apply`
+    held: np.ndarray = field(init=False, repr=False)  # (M, 3) carried part, see :func:`apply`
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "topology",
@@ -127,27 +132,22 @@ class Binding:
         object.__setattr__(self, "denominators", (c * c).sum(1) + self.lambda2)
         # f(M) = [1, local] . [A', e1', e2', v][facet]: one sparse product per frame
         m, t = len(self.facet), len(self.triangles)
-        cols = np.arange(4)[None, :] * t + self.facet[:, None]
         coef = np.c_[np.ones(m), self.local]
         held = np.zeros((m, 3))
-        if self.turn is not None:  # f(M) = A' + l0 e1' + l1 e2' + l2 (s v + (1 - s) n)
-            s = _weights_in_unit("turn", self.turn, m)
-            object.__setattr__(self, "turn", s)
-            a = self.sparse_vertices[self.triangles[:, 0]]
-            n = np.cross(self.sparse_vertices[self.triangles[:, 1]] - a,
-                         self.sparse_vertices[self.triangles[:, 2]] - a)
-            n /= np.linalg.norm(n, axis=1, keepdims=True)
-            held = ((1.0 - s) * self.local[:, 2])[:, None] * n[self.facet]
-            coef[:, 3] *= s
-        if self.follow is not None:  # M' = (1 - w) M + w f(M): the weight folded in
-            w = _weights_in_unit("follow", self.follow, m)
+        if self.follow is not None or self.turn is not None:
+            # M' = M + w (f(M) - M), f(M) = A' + l0 e1' + l1 e2' + s l2 v + (M - A - l0 e1
+            # - l1 e2 - s l2 n): at the reference (v = n) M' = M; the bracket is carried
+            w = _weights_in_unit("follow", np.ones(m) if self.follow is None else self.follow, m)
+            s = _weights_in_unit("turn", np.ones(m) if self.turn is None else self.turn, m)
             object.__setattr__(self, "follow", w)
-            held = (1.0 - w)[:, None] * self.dense_vertices + w[:, None] * held
+            object.__setattr__(self, "turn", s)
+            coef[:, 3] *= s
             coef = coef * w[:, None]
+            ref = np.concatenate(facet_basis_rest(self.sparse_vertices, self.triangles))
+            held = self.dense_vertices - np.asarray(gather_rows(coef, self.facet, len(
+                self.triangles)) @ ref)
         object.__setattr__(self, "held", held)
-        gather = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(m), 4), cols.ravel())),
-                               shape=(m, 4 * t))
-        object.__setattr__(self, "gather", gather)
+        object.__setattr__(self, "gather", gather_rows(coef, self.facet, t))
 
     @property
     def n_dense(self) -> int:
@@ -194,6 +194,22 @@ class Binding:
 
 _ARRAYS = ("sparse_vertices", "triangles", "dense_vertices", "facet", "local", "weights",
            "offset", "inside", "corner_normals", "curvature", "dense_triangles")
+
+
+def gather_rows(coef: np.ndarray, facet: np.ndarray, t: int) -> sp.csr_matrix:
+    """(M, 4T) sparse: row i puts ``coef[i]`` on facet ``facet[i]`` of ``[A; e1; e2; v]``."""
+    m = len(facet)
+    cols = np.arange(4)[None, :] * t + facet[:, None]
+    return sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(m), 4), cols.ravel())),
+                         shape=(m, 4 * t))
+
+
+def facet_basis_rest(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, ...]:
+    """A, e1, e2 and the unit normal n (each (T, 3)) of a mesh: ``[A; e1; e2; v]`` at rest."""
+    a = vertices[triangles[:, 0]]
+    e1, e2 = vertices[triangles[:, 1]] - a, vertices[triangles[:, 2]] - a
+    n = np.cross(e1, e2)
+    return a, e1, e2, n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 def _weights_in_unit(name: str, w: Any, m: int) -> np.ndarray:

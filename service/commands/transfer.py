@@ -107,11 +107,17 @@ def _bind_dense(args: argparse.Namespace) -> int:
     else:
         binding, reg = register_and_bind(model.mean, model.triangles, vertices, tris,
                                          **options)
-        if not reg.converged:
-            raise InputError(f"{args.scan}: the ICP from the scan's own frame did not converge "
-                             f"(RMS {reg.rms:.2f} mm): give the scan's 68 iBUG landmarks with "
-                             "--landmarks FILE (.ljson, .pts or .json), or --no-register if "
-                             "it is already in the model's head frame in mm")
+        from articast.core.dense.scan import coverage
+
+        covered = float(coverage(model, binding.dense_vertices, 12.0).mean())
+        why = (f"did not converge (RMS {reg.rms:.2f} mm)" if not reg.converged else
+               f"left {1 - covered:.0%} of the model's face without a scan point within "
+               "12 mm" if covered < 0.5 else "")
+        if why:
+            raise InputError(f"{args.scan}: the ICP from the scan's own frame {why}: give the "
+                             "scan's 68 iBUG landmarks with --landmarks FILE (.ljson, .pts or "
+                             ".json), or --no-register if it is already in the model's head "
+                             "frame in mm")
         report.update(icp_rms_mm=round(reg.rms, 4), icp_converged=reg.converged,
                       icp_iterations=reg.iterations)
     s = model.stats

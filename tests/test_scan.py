@@ -1,0 +1,197 @@
+"""A whole head scan in its own frame and unit bound by its landmarks (core/dense/scan.py,
+``bind-dense --landmarks``), on a head the tests make from the model (tests/scan_head.py)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from articast.core.dense.scan import (
+    align_scan,
+    bind_scan,
+    closest_point_coordinates,
+    load_landmarks,
+    parse_landmarks,
+    similarity,
+)
+from articast.core.dense.transfer import Binding, apply, linearity_error
+from articast.core.errors import InputError, ModelFileError
+from articast.core.model.camera import rotation_matrix
+from articast.service.cli import main
+from tests.scan_head import head_scan, write_ljson, write_obj, write_pts
+
+
+@pytest.fixture(scope="module")
+def bound():
+    h = head_scan()
+    al = align_scan(h.model, h.scan, h.triangles, h.landmarks)
+    binding, report = bind_scan(h.model, al.transform.apply(h.scan), h.triangles)
+    return h, al, binding, report
+
+
+def _edges(triangles):
+    return np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+
+
+def test_landmark_files_read_alike_and_the_menpo3d_group_order_is_undone(tmp_path):
+    pts = head_scan().landmarks
+    write_ljson(tmp_path / "a.ljson", pts)  # eyes listed before brows, as menpo3d's james
+    write_ljson(tmp_path / "b.ljson", pts, menpo3d_order=False)
+    write_pts(tmp_path / "c.pts", pts)
+    (tmp_path / "d.json").write_text(json.dumps(pts.tolist()))
+    for name in ("a.ljson", "b.ljson", "c.pts", "d.json"):
+        assert np.allclose(load_landmarks(tmp_path / name), pts, atol=1e-8), name
+    raw = json.loads((tmp_path / "a.ljson").read_text())
+    listed = np.array(raw["groups"]["LJSON"]["landmarks"]["points"])
+    assert not np.allclose(listed, pts)  # the file's own order is not iBUG's
+    with pytest.raises(InputError, match=r"c.pts: need the 68 points .* got 67 points"):
+        write_pts(tmp_path / "c.pts", pts[:67])
+        load_landmarks(tmp_path / "c.pts")
+    with pytest.raises(InputError, match="x.json: not a json landmark file"):
+        parse_landmarks("[[1, 2, 3], ", "json", "x.json")
+    with pytest.raises(InputError, match="must be .ljson, .pts or .json"):
+        load_landmarks(tmp_path / "a.txt")
+
+
+def test_similarity_recovers_scale_rotation_and_shift():
+    rng = np.random.default_rng(3)
+    src = rng.normal(size=(7, 3)) * 30
+    rot = rotation_matrix([0.4, -1.1, 0.7])
+    dst = 0.004 * src @ rot.T + [1.0, 2.0, -3.0]
+    sim = similarity(src, dst, np.ones(7))
+    assert sim.scale == pytest.approx(0.004, rel=1e-9)
+    assert np.allclose(sim.rotation, rot) and np.allclose(sim.apply(src), dst)
+    with pytest.raises(InputError, match="lie on a line"):
+        similarity(np.outer(np.arange(5.0), [1, 2, 3]), np.outer(np.arange(5.0), [3, 2, 1]),
+                   np.ones(5))
+
+
+def test_a_head_in_metres_and_another_frame_is_brought_into_the_head_frame(bound):
+    h, al, _, _ = bound
+    assert al.icp_converged and al.overlap_fraction > 0.95
+    assert al.transform.scale == pytest.approx(1000.0, rel=0.005)
+    assert al.landmark_rms_mm < 0.5 and al.icp_rms_mm < 1.0
+    # the scan is the model's surface smoothed by subdivision (shrunk by up to ~1.5 mm on
+    # the curved parts): the fit of the model onto it lands within 2 mm everywhere
+    err = np.linalg.norm(al.transform.apply(h.scan) - h.head, axis=1)
+    assert np.median(err) < 1.0 and err.max() < 2.0
+
+
+def test_the_face_moves_with_the_model_and_the_rest_of_the_head_with_the_head(bound):
+    h, al, binding, rep = bound
+    m = h.model
+    x = al.transform.apply(h.scan)
+    assert rep.n_articulated + rep.n_border + rep.n_held == len(x)
+    assert rep.n_articulated > 0.5 * len(x) and rep.n_held > 100 and rep.n_border > 100
+    assert rep.inside_support_fraction >= 0.95
+    assert not np.any(rep.articulated & ~h.face)  # only points the model moves are articulated
+    for a in (np.r_[m.stats.max[0], np.zeros(6)], m.stats.max, 0.5 * m.stats.min):
+        moved = apply(binding, m.shape(a))
+        truth = h.truth(a)
+        err = np.linalg.norm(moved - truth, axis=1)[rep.articulated]
+        motion = np.linalg.norm(truth - h.head, axis=1)[rep.articulated]
+        assert np.median(err) < 0.6 and err.max() < 3.5, (np.median(err), err.max())
+        assert np.median(err) < 0.1 * motion.max()
+        held = binding.follow == 0
+        assert np.array_equal(moved[held], x[held])  # the cranium does not move at all
+    back = x[:, 2] < x[:, 2].min() + 30  # the back of the head
+    assert np.all(binding.follow[back] == 0)
+    err = linearity_error(binding, m, np.random.default_rng(0).uniform(
+        m.stats.min, m.stats.max, (16, m.n_params)), points=rep.articulated)
+    assert np.median(err) <= 0.5 and err.max() <= 2.0
+
+
+def test_no_tear_at_the_border_and_the_neck_follows_the_jaw_partly(bound):
+    """Across the edges that leave the support, the scan stretches no more than the face
+    itself does under the model's motion (truth); cutting the motion off at the support's
+    edge (share 1 inside, 0 outside) tears it there."""
+    h, al, binding, rep = bound
+    m = h.model
+    x = al.transform.apply(h.scan)
+    e = _edges(h.triangles)
+    length = np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1)
+    leaving = ~(rep.articulated[e[:, 0]] & rep.articulated[e[:, 1]])
+    jaw = np.r_[m.stats.max[0], np.zeros(6)]
+    truth = h.truth(jaw) - h.head
+    face = h.face[e[:, 0]] & h.face[e[:, 1]]
+    face_strain = (np.linalg.norm(truth[e[:, 0]] - truth[e[:, 1]], axis=1) / length)[face].max()
+    cut = Binding(binding.sparse_vertices, binding.triangles, binding.dense_vertices,
+                  binding.facet, binding.local, binding.weights, binding.offset, binding.inside,
+                  binding.corner_normals, binding.curvature, binding.lambda2,
+                  binding.dense_triangles, follow=rep.articulated.astype(float),
+                  turn=binding.turn)
+    strains = []
+    for b in (binding, cut):
+        d = apply(b, m.shape(jaw)) - x
+        strains.append((np.linalg.norm(d[e[:, 0]] - d[e[:, 1]], axis=1) / length)[leaving].max())
+    assert strains[0] <= face_strain < strains[1], (strains, face_strain)
+    d = np.linalg.norm(apply(binding, m.shape(jaw)) - x, axis=1)
+    neck = (x[:, 1] < -90) & ~rep.articulated  # below the jaw, off the model
+    partly = neck & (binding.follow > 0) & (binding.follow < 1) & (d > 0.01)
+    assert partly.sum() > 20
+    assert d[partly].max() < d[rep.articulated].max()
+
+
+def test_bind_dense_with_landmarks_reports_and_refuses(tmp_path, capsys, bound):
+    h = bound[0]
+    h.model.save(tmp_path / "m.npz")
+    write_obj(tmp_path / "head.obj", h.scan, h.triangles)
+    write_ljson(tmp_path / "head.ljson", h.landmarks)
+    base = ["bind-dense", str(tmp_path / "head.obj"), "--model", str(tmp_path / "m.npz"),
+            "-o", str(tmp_path / "b.npz"), "--json"]
+    assert main([*base, "--landmarks", str(tmp_path / "head.ljson")]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["icp_converged"] and rep["scale_to_mm"] == pytest.approx(1000, rel=0.005)
+    assert rep["points_articulated"] + rep["points_border"] + rep["points_head_only"] == len(
+        h.head)
+    assert rep["inside_fraction"] >= 0.95 and rep["dense_modes_max_error_mm"] <= 2.0
+    assert set(rep["landmark_pairs"]) >= {"8.3", "8.4", "8.1", "9.15", "3.5", "3.6"}
+    b = Binding.load(tmp_path / "b.npz")
+    assert b.follow is not None and np.isclose(b.follow.min(), 0) and b.turn is not None
+    assert np.allclose(apply(b, h.model.mean), b.dense_vertices)
+    # no landmarks, scan in metres in its own frame: told what is needed
+    assert main(base) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--landmarks FILE" in err and len(err.splitlines()) == 1
+    # mirrored landmarks (left and right swapped): they fit no rigid placement
+    mirrored = h.landmarks.copy()
+    mirrored[[54, 48]], mirrored[36:42], mirrored[42:48] = (
+        h.landmarks[[48, 54]], h.landmarks[42:48], h.landmarks[36:42])
+    write_pts(tmp_path / "mirrored.pts", mirrored)
+    assert main([*base, "--landmarks", str(tmp_path / "mirrored.pts")]) == 2
+    assert "do not fit the model's feature points" in capsys.readouterr().err
+    # landmarks of another head (placed 80 mm off): the scan does not cover the face
+    write_pts(tmp_path / "off.pts", h.landmarks + h.to_scan(np.array([[0.0, 80.0, 0.0]]))
+              - h.to_scan(np.zeros((1, 3))))
+    assert main([*base, "--landmarks", str(tmp_path / "off.pts")]) == 2
+    assert "covers" in capsys.readouterr().err
+    # too few shared points
+    few = h.landmarks.copy()
+    few[[33, 51, 57, *range(36, 48)]] = np.nan
+    (tmp_path / "few.json").write_text(json.dumps(
+        [None if np.isnan(p).any() else p.tolist() for p in few]))
+    assert main([*base, "--landmarks", str(tmp_path / "few.json")]) == 2
+    assert "only 2 landmarks have a counterpart" in capsys.readouterr().err
+    assert main([*base, "--landmarks", str(tmp_path / "head.ljson"), "--no-register"]) == 2
+    assert "give one of them" in capsys.readouterr().err
+
+
+def test_binding_file_refuses_bad_shares(tmp_path, bound):
+    b = bound[2]
+    b.save(tmp_path / "b.npz")
+    arrays = dict(np.load(tmp_path / "b.npz", allow_pickle=False))
+    assert np.array_equal(Binding.load(tmp_path / "b.npz").turn, b.turn)
+    arrays["follow"] = arrays["follow"] * 2
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ModelFileError, match="'follow' must be"):
+        Binding.load(tmp_path / "bad.npz")
+
+
+def test_closest_point_coordinates_on_and_off_the_triangle():
+    a, b, c = np.zeros(3), np.array([10.0, 0, 0]), np.array([0, 10.0, 0])
+    p = np.array([[2.0, 3, 5], [20, 0, 1], [-3, -4, 0], [6, 6, 2]])
+    bc = closest_point_coordinates(p, *(np.tile(v, (4, 1)) for v in (a, b, c)))
+    q = bc @ np.stack([a, b, c])
+    assert np.allclose(q, [[2, 3, 0], [10, 0, 0], [0, 0, 0], [5, 5, 0]])
