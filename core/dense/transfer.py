@@ -153,9 +153,11 @@ class Binding:
     def n_dense(self) -> int:
         return int(self.dense_vertices.shape[0])
 
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write as a versioned bundle (kind ``dense-binding``)."""
-        arrays = {name: getattr(self, name) for name in _ARRAYS}
+    def save(self, path: str | os.PathLike[str],
+             extra: dict[str, np.ndarray] | None = None) -> None:
+        """Write as a versioned bundle (kind ``dense-binding``); ``extra`` arrays ride along
+        (e.g. a scan's texture, :mod:`articast.core.dense.texture`)."""
+        arrays = {**(extra or {}), **{name: getattr(self, name) for name in _ARRAYS}}
         for name in ("follow", "turn"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from articast.core.errors import InputError
+
+if TYPE_CHECKING:
+    from articast.core.dense.texture import ScanTexture
 from articast.service.jsonsafe import dumps
 
 
@@ -53,6 +57,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--falloff-mm", type=float, default=40.0,
                    help="with --landmarks: beyond the support, the share of the motion falls "
                         "to 0 over this distance (default 40)")
+    p.add_argument("--texture", type=Path, default=None,
+                   help="the scan's texture image (JPEG or PNG), kept in the binding for the "
+                        "browser avatar (articast serve/demo --scan); default: the map_Kd of "
+                        "the .obj's mtllib when there is one. Needs texture coordinates (vt) "
+                        "in the .obj")
+    p.add_argument("--no-texture", action="store_true",
+                   help="do not keep the .obj's texture in the binding")
     p.add_argument("--regularisation", type=float, default=3.0,
                    help="weight of the Sumner-Popovic term relative to the curvature terms")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
@@ -62,6 +73,23 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _positive(name: str, value: float) -> None:
     if not (np.isfinite(value) and value > 0):
         raise InputError(f"{name} must be positive, got {value}")
+
+
+def _texture(args: argparse.Namespace, triangles: np.ndarray | None) -> ScanTexture | None:
+    """The scan's texture (given, or the .obj's material's), or None."""
+    from articast.core.dense.texture import MAX_TEXTURE_BYTES, material_image, scan_texture
+    from articast.core.safe_io import read_regular_bytes
+
+    if args.no_texture:
+        return None
+    text = read_regular_bytes(args.scan).decode("utf-8", errors="replace")
+    image = args.texture or material_image(text, args.scan)
+    if image is None:
+        return None
+    if triangles is None:
+        raise InputError(f"{args.scan}: a texture needs the scan's facets (f lines)")
+    data = read_regular_bytes(image, MAX_TEXTURE_BYTES)
+    return scan_texture(text, triangles, data, str(args.scan), str(image))
 
 
 def _bind_dense(args: argparse.Namespace) -> int:
@@ -74,6 +102,8 @@ def _bind_dense(args: argparse.Namespace) -> int:
         raise InputError(f"{args.model}: the model has no triangles to bind a scan to")
     for name in ("scale", "support_mm", "falloff_mm"):
         _positive("--" + name.replace("_", "-"), getattr(args, name))
+    if args.texture is not None and args.no_texture:
+        raise InputError("--texture and --no-texture: give one of them")
     if args.landmarks is not None and args.no_register:
         raise InputError("--landmarks aligns the scan; --no-register says it is aligned: "
                          "give one of them")
@@ -127,7 +157,11 @@ def _bind_dense(args: argparse.Namespace) -> int:
         report["inside_fraction"] = round(float(binding.inside.mean()), 4)
     report.update(dense_modes_max_error_mm=round(float(err.max()), 4),
                   dense_modes_median_error_mm=round(float(np.median(err)), 4))
-    binding.save(args.output)
+    extra = _texture(args, tris)
+    if extra is not None:
+        report["texture"] = f"{extra.mime}, {len(extra.image)} bytes, {len(extra.uv)} " \
+            "render vertices"
+    binding.save(args.output, extra=None if extra is None else extra.arrays())
     report["output"] = str(args.output)
     if args.json:
         print(dumps(report, indent=2))
