@@ -139,3 +139,26 @@ def write_ljson(path, points: np.ndarray, menpo3d_order: bool = True) -> None:
 def write_pts(path, points: np.ndarray) -> None:
     body = "\n".join(f"{x:.9f} {y:.9f} {z:.9f}" for x, y, z in points)
     path.write_text(f"version: 1\nn_points: {len(points)}\n{{\n{body}\n}}\n")
+
+
+def write_textured(folder, scan: HeadScan | None = None) -> dict:
+    """The head as a textured scan in ``folder``: head.obj (v/vt, mtllib), head.mtl, head.png
+    (top half blue, bottom half green, in the texture's v), head.ljson. Returns the paths."""
+    import cv2
+
+    h = scan or head_scan()
+    x = h.head
+    u = np.arctan2(x[:, 0], x[:, 2]) / (2 * np.pi) + 0.5
+    v = (x[:, 1] - x[:, 1].min()) / np.ptp(x[:, 1])
+    img = np.zeros((64, 64, 3), np.uint8)
+    img[:32] = (255, 0, 0)  # BGR blue: the top rows, v near 1
+    img[32:] = (0, 200, 0)
+    cv2.imwrite(str(folder / "head.png"), img)
+    (folder / "head.mtl").write_text("newmtl skin\nKd 1 1 1\nmap_Kd head.png\n")
+    lines = ["mtllib head.mtl"] + [f"v {a:.9f} {b:.9f} {c:.9f}" for a, b, c in h.scan]
+    lines += [f"vt {a:.6f} {b:.6f}" for a, b in zip(u, v, strict=True)]
+    lines += ["usemtl skin"] + [f"f {a + 1}/{a + 1} {b + 1}/{b + 1} {c + 1}/{c + 1}"
+                                for a, b, c in h.triangles]
+    (folder / "head.obj").write_text("\n".join(lines) + "\n")
+    write_ljson(folder / "head.ljson", h.landmarks)
+    return {k: folder / f"head.{k}" for k in ("obj", "mtl", "png", "ljson")}

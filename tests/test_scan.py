@@ -4,10 +4,12 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
 
+from articast.core.bundle import load_bundle
 from articast.core.dense.scan import (
     align_scan,
     bind_scan,
@@ -16,11 +18,12 @@ from articast.core.dense.scan import (
     parse_landmarks,
     similarity,
 )
-from articast.core.dense.transfer import Binding, apply, linearity_error
+from articast.core.dense.texture import TEXTURE_ARRAYS, texture_from_arrays
+from articast.core.dense.transfer import Binding, apply, dense_modes, linearity_error
 from articast.core.errors import InputError, ModelFileError
 from articast.core.model.camera import rotation_matrix
 from articast.service.cli import main
-from tests.scan_head import head_scan, write_ljson, write_obj, write_pts
+from tests.scan_head import head_scan, write_ljson, write_obj, write_pts, write_textured
 
 
 @pytest.fixture(scope="module")
@@ -195,3 +198,89 @@ def test_closest_point_coordinates_on_and_off_the_triangle():
     bc = closest_point_coordinates(p, *(np.tile(v, (4, 1)) for v in (a, b, c)))
     q = bc @ np.stack([a, b, c])
     assert np.allclose(q, [[2, 3, 0], [10, 0, 0], [0, 0, 0], [5, 5, 0]])
+
+
+@pytest.fixture(scope="module")
+def textured(tmp_path_factory):
+    """The test head bound with its texture (bind-dense, the .obj's material), its model."""
+    d = tmp_path_factory.mktemp("textured")
+    files = write_textured(d)
+    head_scan().model.save(d / "m.npz")
+    assert main(["bind-dense", str(files["obj"]), "--landmarks", str(files["ljson"]),
+                 "--model", str(d / "m.npz"), "-o", str(d / "b.npz")]) == 0
+    return d, files
+
+
+def test_bind_dense_keeps_the_texture_and_its_render_mesh(textured, tmp_path, capsys):
+    d, files = textured
+    arrays, _ = load_bundle(d / "b.npz", "dense-binding", (1,))
+    tex = texture_from_arrays(arrays, len(head_scan().head))
+    assert tex is not None and tex.mime == "image/png"
+    assert tex.image == files["png"].read_bytes()
+    b = Binding.load(d / "b.npz")
+    # each render triangle is its scan facet, point for point
+    assert np.array_equal(tex.render_index[tex.triangles], b.dense_triangles)
+    args = ["bind-dense", str(files["obj"]), "--landmarks", str(files["ljson"]), "--model",
+            str(d / "m.npz"), "-o", str(tmp_path / "x.npz")]
+    assert main([*args, "--texture", str(files["ljson"])]) == 2
+    assert "head.ljson: the texture must be a JPEG or PNG image" in capsys.readouterr().err
+    plain = tmp_path / "plain.obj"  # facets without texture coordinates
+    write_obj(plain, head_scan().scan, head_scan().triangles)
+    args[1] = str(plain)
+    assert main([*args, "--texture", str(files["png"])]) == 2
+    assert "texture coordinates (vt) on every facet" in capsys.readouterr().err
+    assert main(args) == 0  # no texture asked, none found: a plain binding
+    capsys.readouterr()
+    assert "texture" not in load_bundle(tmp_path / "x.npz", "dense-binding", (1,))[0]
+
+
+def test_the_server_serves_the_scan_per_session_model_and_its_texture_with_the_token(
+        textured, tmp_path):
+    from articast.service.app import ServiceConfig, create_app
+    from articast.service.security import AccessPolicy
+    from articast.service.settings import ServerSettings
+    from articast.service.worker import SessionSpec
+    from tests.service_helpers import ServerThread
+    from tests.test_browser import jaw_recording
+
+    d, files = textured
+    sessions = (SessionSpec("s", f"replay-record:{jaw_recording(tmp_path / 's.jsonl', 1.0)}"
+                                 "?loop=yes"),)
+    config = ServiceConfig(server=ServerSettings(log_level="critical", scan=str(d / "b.npz")),
+                           sessions=sessions, access=AccessPolicy(token="t0ken"))
+    with ServerThread(config) as srv, srv.client() as c:
+        deadline = time.monotonic() + 30
+        while (r := c.get("/api/sessions/s/scan")).status_code == 409:
+            assert time.monotonic() < deadline, r.text
+            time.sleep(0.1)
+        assert r.status_code == 200, r.text
+        doc = r.json()
+        b = Binding.load(d / "b.npz")
+        model = head_scan().model
+        mean, modes = dense_modes(b, model)
+        assert doc["n_points"] == b.n_dense
+        assert np.allclose(np.reshape(doc["mean"], (-1, 3)), mean, atol=1e-3)
+        assert np.allclose(np.reshape(doc["basis"], modes.shape), modes, atol=1e-3)
+        tex = c.get("/api/sessions/s/scan/texture")
+        assert tex.status_code == 200 and tex.content == files["png"].read_bytes()
+        assert tex.headers["content-type"] == "image/png"
+        import httpx
+
+        bare = httpx.get(f"{srv.http}/api/sessions/s/scan/texture", timeout=10)
+        assert bare.status_code == 401  # a face: the token is needed
+        assert c.get("/api/sessions/nobody/scan").status_code == 404
+    # a scan bound to another model than the session's: refused with the reason
+    other = head_scan().model
+    shifted = Binding(b.sparse_vertices + 1.0, b.triangles, b.dense_vertices, b.facet, b.local,
+                      b.weights, b.offset, b.inside, b.corner_normals, b.curvature, b.lambda2,
+                      b.dense_triangles, follow=b.follow, turn=b.turn)
+    arrays, _ = load_bundle(d / "b.npz", "dense-binding", (1,))
+    shifted.save(tmp_path / "other.npz", extra={k: arrays[k] for k in TEXTURE_ARRAYS})
+    from articast.service.scan import ScanAsset
+
+    with pytest.raises(InputError, match="was bound to another model"):
+        ScanAsset(tmp_path / "other.npz").json_for(other)
+    # a binding without texture: the server does not start, and says why
+    b.save(tmp_path / "bare.npz")
+    with pytest.raises(ModelFileError, match="has no texture"):
+        create_app(ServiceConfig(server=ServerSettings(scan=str(tmp_path / "bare.npz"))))
