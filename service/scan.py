@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from articast.core.bundle import load_bundle
-from articast.core.dense.texture import ScanTexture, texture_from_arrays
+from articast.core.dense.texture import ScanTexture, mouth_cavity, texture_from_arrays
 from articast.core.dense.transfer import BINDING_KIND, BINDING_VERSION, Binding, dense_modes
 from articast.core.errors import InputError, ModelFileError
 from articast.service.jsonsafe import dumps
@@ -46,7 +46,9 @@ class ScanAsset:
 
     def json_for(self, model: Any) -> bytes:
         """``{n_points, mean (3M), basis (K*3M), triangles (3Q), render_index (R), uv (2R),
-        render_triangles (3Q), texture_type}`` for ``model``; :class:`InputError` when the scan
+        render_triangles (3Q'), texture_type, scan_points}`` for ``model``: the scan's points
+        then those of the dark mouth cavity behind the lips (uv -1, -1;
+        :func:`~articast.core.dense.texture.mouth_cavity`). :class:`InputError` when the scan
         was bound to another model. Blocking (call from a worker thread)."""
         mean = np.asarray(model.mean, np.float64)
         b = self.binding
@@ -58,16 +60,34 @@ class ScanAsset:
                              + np.asarray(model.basis, np.float32).tobytes()).hexdigest()
         with self._lock:
             if key not in self._json:
-                dmean, modes = dense_modes(b, model)
-                t = self.texture
-                self._json[key] = dumps({
-                    "n_points": b.n_dense,
-                    "mean": dmean.astype(np.float32).ravel().tolist(),
-                    "basis": modes.astype(np.float32).ravel().tolist(),
-                    "triangles": b.dense_triangles.ravel().tolist(),
-                    "render_index": t.render_index.tolist(),
-                    "uv": t.uv.astype(np.float32).ravel().tolist(),
-                    "render_triangles": t.triangles.ravel().tolist(),
-                    "texture_type": t.mime,
-                }).encode()
+                self._json[key] = self._build(model)
             return self._json[key]
+
+    def _build(self, model: Any) -> bytes:
+        b, t = self.binding, self.texture
+        dmean, modes = dense_modes(b, model)
+        # the facets the texture leaves out (across the lips) get a dark cavity behind them
+        tris = b.dense_triangles
+        drawn_keys = set(map(tuple, np.sort(t.render_index[t.triangles], axis=1).tolist()))
+        drawn = np.array([tuple(r) in drawn_keys for r in np.sort(tris, axis=1).tolist()], bool)
+        cav, cav_modes, cav_tris = mouth_cavity(dmean, modes, tris, drawn)
+        m, c, r = b.n_dense, len(cav), len(t.render_index)
+        # cavity facets index [points; cavity points]; in the render mesh the cavity's
+        # render vertices follow the scan's (R), one per cavity facet corner point
+        cav_points = np.unique(cav_tris)
+        render_of = np.zeros(m + c, np.int64)
+        render_of[cav_points] = r + np.arange(len(cav_points))
+        return dumps({
+            "n_points": m + c,
+            "mean": np.concatenate([dmean, cav]).astype(np.float32).ravel().tolist(),
+            "basis": np.concatenate([modes, cav_modes], axis=1).astype(np.float32).ravel()
+            .tolist(),
+            "triangles": np.concatenate([tris, cav_tris]).ravel().tolist(),
+            "render_index": np.concatenate([t.render_index, cav_points]).tolist(),
+            "uv": np.concatenate([t.uv, np.full((len(cav_points), 2), -1.0)]).astype(
+                np.float32).ravel().tolist(),
+            "render_triangles": np.concatenate([t.triangles, render_of[cav_tris]]).ravel()
+            .tolist(),
+            "texture_type": t.mime,
+            "scan_points": m,
+        }).encode()

@@ -48,17 +48,17 @@ class HeadScan:
 
     def truth(self, alpha: np.ndarray) -> np.ndarray:
         """(M, 3) mm head frame: the face points at posture alpha (the rest unchanged)."""
-        moved, _ = _control_mesh(self.model, self.model.shape(alpha))
+        moved, tris = _control_mesh(self.model, self.model.shape(alpha))
         out = self.head.copy()
-        out[self.face] = loop_subdivide(moved, self._control_tris(), 1)[0][self.face]
+        out[self.face] = loop_subdivide(moved, tris, 1)[0][self.face]
         return out
 
-    def _control_tris(self) -> np.ndarray:
-        return _control_mesh(self.model, self.model.mean)[1]
 
-
-def _control_mesh(model: FaceModel, shape: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The model's surface plus extension rings (fixed: they do not move with alpha)."""
+def _control_mesh(model: FaceModel, shape: np.ndarray, closed_mouth: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The model's surface plus extension rings (fixed: they do not move with alpha); with
+    ``closed_mouth``, facets across the mouth opening join the inner lip contour's upper and
+    lower points (as a scan with its lips together has)."""
     rest = model.mean
     outline = rest[OUTLINE]
     centre = np.array([0.0, -10.0, 0.0])
@@ -81,6 +81,14 @@ def _control_mesh(model: FaceModel, shape: np.ndarray) -> tuple[np.ndarray, np.n
         tris += [np.c_[a, d, b], np.c_[b, d, c]]  # outwards: away from the face's front
     last = ring_ids[-1]
     tris.append(np.c_[last, np.full(m, len(verts) - 1), np.roll(last, -1)])
+    if closed_mouth:  # inner contour: 0 and 16 the corners, 1-15 upper, 17-31 lower
+        fill = [(0, 1, 31), (15, 16, 17)]
+        for i in range(1, 15):
+            fill += [(i, i + 1, 32 - i), (i + 1, 31 - i, 32 - i)]
+        fill_arr = np.array(fill)
+        up = np.cross(rest[fill_arr[:, 1]] - rest[fill_arr[:, 0]],
+                      rest[fill_arr[:, 2]] - rest[fill_arr[:, 0]])[:, 2] > 0
+        tris.append(np.where(up[:, None], fill_arr, fill_arr[:, ::-1]))
     return verts, np.concatenate(tris).astype(np.int64)
 
 
@@ -90,10 +98,11 @@ def _eye(centre: np.ndarray, left_to_right: bool) -> np.ndarray:
     return centre + (ring if left_to_right else ring * [-1, 1, 1]) + [0.0, 0.0, -1.0]
 
 
-@lru_cache(maxsize=1)
-def head_scan() -> HeadScan:
+@lru_cache(maxsize=2)
+def head_scan(closed_mouth: bool = False) -> HeadScan:
+    """The test head; ``closed_mouth``: its lips joined (no ``truth`` for it)."""
     model = default_speaker(0).model()
-    verts, tris = _control_mesh(model, model.mean)
+    verts, tris = _control_mesh(model, model.mean, closed_mouth)
     head, dense_tris = loop_subdivide(verts, tris, 1)
     probe = np.c_[model.stats.max, model.stats.min].T
     face = np.zeros(len(head), bool)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import time
+from functools import lru_cache
 
 import numpy as np
 import pytest
@@ -15,10 +16,11 @@ from articast.core.dense.scan import (
     bind_scan,
     closest_point_coordinates,
     load_landmarks,
+    mouth_facets,
     parse_landmarks,
     similarity,
 )
-from articast.core.dense.texture import TEXTURE_ARRAYS, texture_from_arrays
+from articast.core.dense.texture import TEXTURE_ARRAYS, mouth_cavity, texture_from_arrays
 from articast.core.dense.transfer import Binding, apply, dense_modes, linearity_error
 from articast.core.errors import InputError, ModelFileError
 from articast.core.model.camera import rotation_matrix
@@ -284,3 +286,38 @@ def test_the_server_serves_the_scan_per_session_model_and_its_texture_with_the_t
     b.save(tmp_path / "bare.npz")
     with pytest.raises(ModelFileError, match="has no texture"):
         create_app(ServiceConfig(server=ServerSettings(scan=str(tmp_path / "bare.npz"))))
+
+
+def test_a_closed_mouth_opens_where_the_lips_meet_over_a_dark_cavity():
+    """A head whose lips are joined: the facets across the lips are found (only there), and
+    the cavity closing the opening follows the lips linearly, behind them."""
+    assert not mouth_facets(*_bound_head(False)[:2]).any()  # an open mouth: nothing to cut
+    binding, model, x = _bound_head(True)
+    cut = mouth_facets(binding, model)
+    tri = binding.dense_triangles
+    centre = x[tri[cut]].mean(axis=1)
+    inner = model.mean[model.group("lip_inner")]
+    assert 20 <= cut.sum() < 0.05 * len(tri)
+    assert np.all(np.abs(centre[:, 0]) < np.abs(inner[:, 0]).max())  # between the corners
+    assert np.all(np.abs(centre[:, 1] - inner[:, 1].mean()) < 10)  # on the lip line
+    mean, modes = dense_modes(binding, model)
+    cav, cav_modes, cav_tris = mouth_cavity(mean, modes, tri, ~cut)
+    assert len(cav) > 10 and cav_tris.max() == len(mean) + len(cav) - 1
+    assert np.all(cav[:, 2] < mean[np.unique(tri[cut]), 2].max())  # behind the lips
+    jaw = np.r_[model.stats.max[0], np.zeros(model.n_params - 1)]
+    lips_open = mean + np.tensordot(jaw, modes, 1)
+    cavity_open = cav + np.tensordot(jaw, cav_modes, 1)
+    # the cavity's back point stays at the same place relative to the lips' centre
+    ring = np.unique(cav_tris[cav_tris < len(mean)])
+    rel_rest = cav[-1] - mean[ring].mean(0)
+    rel_open = cavity_open[-1] - lips_open[ring].mean(0)
+    assert np.allclose(rel_rest, rel_open, atol=1e-9)
+    assert np.ptp(lips_open[ring, 1]) > np.ptp(mean[ring, 1]) + 5  # the lips parted
+
+
+@lru_cache(maxsize=2)
+def _bound_head(closed: bool):
+    h = head_scan(closed)
+    al = align_scan(h.model, h.scan, h.triangles, h.landmarks)
+    x = al.transform.apply(h.scan)
+    return bind_scan(h.model, x, h.triangles)[0], h.model, x

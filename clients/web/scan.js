@@ -2,7 +2,9 @@
 // animated like the dense face, linearly from the streamed alpha (x = mean + sum_k alpha_k
 // basis_k over the scan's points), drawn with its texture. The render mesh splits a point where
 // the texture atlas has a seam (render_index: the point of each render vertex); normals are
-// computed on the points, so a seam does not show in the shading.
+// computed on the points, so a seam does not show in the shading. The facets across the lips
+// are not in the render mesh (bind-dense leaves them out): where the mouth opens, a dark cavity
+// the server adds behind the lips shows (points after the scan's, uv -1).
 //
 // loadScan(...) resolves to null when the server shows no scan (404), so the page is unchanged.
 
@@ -12,7 +14,9 @@ void main() { vn = rot * n; vuv = vec2(uv.x, 1.0 - uv.y); gl_Position = mvp * ve
 const FS = `precision mediump float; varying vec3 vn; varying vec2 vuv; uniform sampler2D tex;
 void main() { vec3 l = normalize(vec3(-0.3, 0.4, 1.0));
   float d = abs(dot(normalize(vn), l));
-  gl_FragColor = vec4(texture2D(tex, vuv).rgb * (0.55 + 0.6 * d), 1.0); }`;
+  // the mouth cavity (uv -1, -1) and the inside of the scan: dark
+  gl_FragColor = vuv.x < -0.5 || !gl_FrontFacing ? vec4(vec3(0.2, 0.05, 0.06) * (0.4 + 0.6 * d), 1.0)
+                                               : vec4(texture2D(tex, vuv).rgb * (0.55 + 0.6 * d), 1.0); }`;
 
 function compile(gl, type, src) {
   const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);

@@ -117,9 +117,12 @@ def material_image(obj_text: str, obj_path: str | os.PathLike[str]) -> Path | No
 
 
 def scan_texture(obj_text: str, triangles: np.ndarray, image: bytes,
-                 source: str = "<obj>", image_source: str = "<texture>") -> ScanTexture:
+                 source: str = "<obj>", image_source: str = "<texture>",
+                 drawn: np.ndarray | None = None) -> ScanTexture:
     """The :class:`ScanTexture` of a scan: its OBJ text, its triangles (Q, 3) as
-    :func:`~articast.core.dense.mesh.parse_obj` reads them, and the encoded image."""
+    :func:`~articast.core.dense.mesh.parse_obj` reads them, and the encoded image.
+    drawn : (Q,) bool, the facets to draw (default all; e.g. not those across the lips,
+    :func:`~articast.core.dense.scan.mouth_facets`)."""
     if len(image) > MAX_TEXTURE_BYTES:
         raise InputError(f"{image_source}: larger than {MAX_TEXTURE_BYTES >> 20} MiB")
     mime = image_mime(image, image_source)
@@ -127,7 +130,8 @@ def scan_texture(obj_text: str, triangles: np.ndarray, image: bytes,
     if len(corner_uv) != len(triangles) or len(triangles) == 0 or np.any(corner_uv < 0):
         raise InputError(f"{source}: a texture needs texture coordinates (vt) on every facet "
                          "corner (f v/vt ...)")
-    index, ruv, tris = render_mesh(triangles, uv, corner_uv)
+    keep = np.ones(len(triangles), bool) if drawn is None else np.asarray(drawn, bool)
+    index, ruv, tris = render_mesh(triangles[keep], uv, corner_uv[keep])
     return ScanTexture(index.astype(np.int64), ruv, tris.astype(np.int64), bytes(image), mime)
 
 
@@ -149,3 +153,53 @@ def texture_from_arrays(arrays: dict[str, np.ndarray], n_points: int,
             or (tris.size and (tris.min() < 0 or tris.max() >= r))):
         raise InputError(f"{source}: the texture's arrays do not fit its {n_points} points")
     return ScanTexture(index, uv, tris, image, image_mime(image, source))
+
+
+CAVITY_INSET = 0.4
+CAVITY_DEPTH_MM = (8.0, 20.0)
+
+
+def mouth_cavity(points: np.ndarray, modes: np.ndarray, triangles: np.ndarray,
+                 drawn: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A dark mouth behind the lips of a scan whose facets across the lips are not drawn
+    (:func:`~articast.core.dense.scan.mouth_facets`): most scans are masks, open behind the
+    face, so the opening would show the background.
+
+    points (M, 3) mm head frame, modes (K, M, 3) per unit alpha, triangles (Q, 3), drawn (Q,)
+    bool. The edges between a drawn facet and one that is not (the lips' edges) are joined to
+    a copy of themselves drawn ``CAVITY_INSET`` towards their centre and
+    ``CAVITY_DEPTH_MM[0]`` back, then to one point ``CAVITY_DEPTH_MM[1]`` behind the centre;
+    every added point moves as the mean of the points it comes from, so the cavity stays
+    linear in alpha and follows the lips. Returns the added points (C, 3), their modes
+    (K, C, 3) and facets (F, 3) indexing ``[points; added points]`` (empty when all is drawn).
+    """
+    k = modes.shape[0]
+    empty = (np.zeros((0, 3)), np.zeros((k, 0, 3)), np.zeros((0, 3), np.int64))
+    if drawn.all():
+        return empty
+    kept, cut = _edges(triangles[drawn]), _edges(triangles[~drawn])
+    uniq, counts = np.unique(kept, axis=0, return_counts=True)
+    border = uniq[counts == 1]  # the drawn mesh's border: the scan's own, and the lips'
+    cut_keys = set(map(tuple, cut.tolist()))
+    lips = np.array([e for e in border.tolist() if tuple(e) in cut_keys], np.int64)
+    if len(lips) == 0:
+        return empty
+    ring = np.unique(lips)
+    m = len(points)
+    centre, centre_modes = points[ring].mean(0), modes[:, ring].mean(1)
+    back = np.array([0.0, 0.0, 1.0])
+    inset = (1 - CAVITY_INSET) * points[ring] + CAVITY_INSET * centre - CAVITY_DEPTH_MM[0] * back
+    inset_modes = (1 - CAVITY_INSET) * modes[:, ring] + CAVITY_INSET * centre_modes[:, None]
+    added = np.concatenate([inset, (centre - CAVITY_DEPTH_MM[1] * back)[None]])
+    added_modes = np.concatenate([inset_modes, centre_modes[:, None]], axis=1)
+    where = np.full(m, -1, np.int64)
+    where[ring] = m + np.arange(len(ring))
+    a, b = lips[:, 0], lips[:, 1]
+    a2, b2, tip = where[a], where[b], m + len(ring)
+    facets = np.concatenate([np.c_[a, b, b2], np.c_[a, b2, a2],
+                             np.c_[a2, b2, np.full(len(a), tip)]])
+    return added, added_modes, facets
+
+
+def _edges(tris: np.ndarray) -> np.ndarray:
+    return np.sort(tris[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)

@@ -75,8 +75,10 @@ def _positive(name: str, value: float) -> None:
         raise InputError(f"{name} must be positive, got {value}")
 
 
-def _texture(args: argparse.Namespace, triangles: np.ndarray | None) -> ScanTexture | None:
-    """The scan's texture (given, or the .obj's material's), or None."""
+def _texture(args: argparse.Namespace, triangles: np.ndarray | None,
+             drawn: np.ndarray) -> ScanTexture | None:
+    """The scan's texture (given, or the .obj's material's), or None; ``drawn`` (Q,) the
+    facets to draw."""
     from articast.core.dense.texture import MAX_TEXTURE_BYTES, material_image, scan_texture
     from articast.core.safe_io import read_regular_bytes
 
@@ -89,7 +91,7 @@ def _texture(args: argparse.Namespace, triangles: np.ndarray | None) -> ScanText
     if triangles is None:
         raise InputError(f"{args.scan}: a texture needs the scan's facets (f lines)")
     data = read_regular_bytes(image, MAX_TEXTURE_BYTES)
-    return scan_texture(text, triangles, data, str(args.scan), str(image))
+    return scan_texture(text, triangles, data, str(args.scan), str(image), drawn)
 
 
 def _bind_dense(args: argparse.Namespace) -> int:
@@ -157,10 +159,14 @@ def _bind_dense(args: argparse.Namespace) -> int:
         report["inside_fraction"] = round(float(binding.inside.mean()), 4)
     report.update(dense_modes_max_error_mm=round(float(err.max()), 4),
                   dense_modes_median_error_mm=round(float(np.median(err)), 4))
-    extra = _texture(args, tris)
+    from articast.core.dense.scan import mouth_facets
+
+    opened = mouth_facets(binding, model)
+    extra = _texture(args, tris, ~opened)
     if extra is not None:
         report["texture"] = f"{extra.mime}, {len(extra.image)} bytes, {len(extra.uv)} " \
             "render vertices"
+        report["facets_across_the_lips_not_drawn"] = int(opened.sum())
     binding.save(args.output, extra=None if extra is None else extra.arrays())
     report["output"] = str(args.output)
     if args.json:
