@@ -54,8 +54,11 @@ def test_landmark_files_read_alike_and_the_menpo3d_group_order_is_undone(tmp_pat
     with pytest.raises(InputError, match=r"c.pts: need the 68 points .* got 67 points"):
         write_pts(tmp_path / "c.pts", pts[:67])
         load_landmarks(tmp_path / "c.pts")
-    with pytest.raises(InputError, match="x.json: not a json landmark file"):
-        parse_landmarks("[[1, 2, 3], ", "json", "x.json")
+    for text, kind in (("[[1, 2, 3], ", "json"), ('{"groups": {}}', "ljson"),
+                       ('{"points": {"a": 1}}', "json"), ("{\n1 2\n}", "pts"),
+                       ('{"landmarks": {"points": [[1, 2, "x"]]}}', "ljson")):
+        with pytest.raises(InputError, match=f"x.{kind}: not a {kind} landmark file"):
+            parse_landmarks(text, kind, f"x.{kind}")
     with pytest.raises(InputError, match="must be .ljson, .pts or .json"):
         load_landmarks(tmp_path / "a.txt")
 

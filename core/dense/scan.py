@@ -87,8 +87,9 @@ def parse_landmarks(text: str, kind: str, source: str = "<landmarks>") -> np.nda
             doc = json.loads(text)
             pts = _parse_ljson(doc) if kind == "ljson" else _points(
                 doc["points"] if isinstance(doc, dict) and "points" in doc else doc)
-    except (ValueError, KeyError, TypeError, IndexError, AttributeError) as exc:
-        raise InputError(f"{source}: not a {kind} landmark file ({exc})") from None
+    except (ValueError, KeyError, TypeError, IndexError, AttributeError, StopIteration,
+            RecursionError) as exc:
+        raise InputError(f"{source}: not a {kind} landmark file ({exc!r})") from None
     if pts.shape != (N_IBUG, 3):
         raise InputError(f"{source}: need the {N_IBUG} points of the iBUG scheme in 3-D, got "
                          f"{pts.shape[0]} points of {pts.shape[1] if pts.ndim == 2 else 0} "
