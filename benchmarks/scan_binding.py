@@ -20,8 +20,9 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from articast.core.dense.landmarks import load_landmarks  # noqa: E402
 from articast.core.dense.mesh import load_obj  # noqa: E402
-from articast.core.dense.scan import align_scan, bind_scan, load_landmarks  # noqa: E402
+from articast.core.dense.scan import align_scan, bind_scan  # noqa: E402
 from articast.core.dense.transfer import apply, dense_modes  # noqa: E402
 from articast.core.synthetic import default_speaker  # noqa: E402
 

@@ -11,13 +11,12 @@ import numpy as np
 import pytest
 
 from articast.core.bundle import load_bundle
+from articast.core.dense.landmarks import load_landmarks, parse_landmarks
 from articast.core.dense.scan import (
     align_scan,
     bind_scan,
     closest_point_coordinates,
-    load_landmarks,
     mouth_facets,
-    parse_landmarks,
     similarity,
 )
 from articast.core.dense.texture import TEXTURE_ARRAYS, mouth_cavity, texture_from_arrays

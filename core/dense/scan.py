@@ -3,11 +3,12 @@
 A real scan (an artist's head, a photogrammetry or structured-light capture) covers far more
 than the lower-face model: cranium, ears, neck. Binding it takes three steps:
 
-1. **Landmarks** (:func:`parse_landmarks`): 68 points of the iBUG scheme in 3-D, given by the
-   user with the scan (``.ljson``, ``.pts`` or a JSON list). The points that have a clear
-   counterpart among the model's MPEG-4 feature points (:data:`IBUG_TO_MPEG4`: lip corners,
-   lip mid points, nose base, eye centres) give a similarity transform, scale included
-   (weighted Umeyama), from the scan's frame and unit to the head frame in mm.
+1. **Landmarks** (:func:`~articast.core.dense.landmarks.parse_landmarks`): 68 points of the
+   iBUG scheme in 3-D, given by the user with the scan (``.ljson``, ``.pts`` or a JSON list).
+   The points that have a clear counterpart among the model's MPEG-4 feature points
+   (:data:`IBUG_TO_MPEG4`: lip corners, lip mid points, nose base, eye centres) give a
+   similarity transform, scale included (weighted Umeyama), from the scan's frame and unit to
+   the head frame in mm.
 2. **ICP on the overlap** (:func:`align_scan`): the rigid point-to-plane ICP of
    :func:`~articast.core.dense.mesh.register_icp` refines it, between the model's surface
    points and the scan points near them only (the rest of the head has no counterpart).
@@ -31,8 +32,6 @@ z forward).
 
 from __future__ import annotations
 
-import json
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,8 +41,6 @@ from articast.core.dense.mesh import point_triangle_distance, register_icp
 from articast.core.dense.transfer import Binding, apply, bind, dense_modes
 from articast.core.errors import InputError
 from articast.core.model.face import FaceModel
-
-N_IBUG = 68
 
 IBUG_TO_MPEG4: tuple[tuple[str, tuple[int, ...], float], ...] = (
     ("8.3", (54,), 1.0),  # outer lip corner, speaker's left (iBUG: image right)
@@ -59,91 +56,6 @@ counterpart, and its weight in the similarity. Left out: the chin (iBUG 8 is the
 the chin, the model's 2.1 the front of the chin: ~20 mm apart in depth), the inner lip
 points (the model's mean posture has the mouth open, a scan's is usually closed), the jaw
 contour, brows and nose bridge (no counterpart in the model)."""
-
-_LJSON_GROUPS = (  # iBUG order: (names a .ljson may give the group, first index, size)
-    (("jaw", "chin"), 0, 17),
-    (("left_eyebrow", "leyebrow"), 17, 5),
-    (("right_eyebrow", "reyebrow"), 22, 5),
-    (("nose",), 27, 9),
-    (("left_eye", "leye"), 36, 6),
-    (("right_eye", "reye"), 42, 6),
-    (("mouth",), 48, 20),
-)
-
-
-# ---------------------------------------------------------------- landmark files
-def parse_landmarks(text: str, kind: str, source: str = "<landmarks>") -> np.ndarray:
-    """(68, 3) float64 iBUG-68 landmarks, scan frame and unit; NaN rows for missing points.
-
-    kind : ``"ljson"`` (menpo v2/v3; points listed by labelled group are put into iBUG
-    order, e.g. menpo3d's ``james.ljson``, which lists the eyes before the brows),
-    ``"pts"`` (``version: 1`` / ``n_points: 68`` / ``{ x y z ... }``) or ``"json"`` (a list
-    of 68 [x, y, z], or ``{"points": [...]}``). :class:`InputError` naming ``source``.
-    """
-    try:
-        if kind == "pts":
-            pts = _parse_pts(text)
-        else:
-            doc = json.loads(text)
-            pts = _parse_ljson(doc) if kind == "ljson" else _points(
-                doc["points"] if isinstance(doc, dict) and "points" in doc else doc)
-    except (ValueError, KeyError, TypeError, IndexError, AttributeError, StopIteration,
-            RecursionError) as exc:
-        raise InputError(f"{source}: not a {kind} landmark file ({exc!r})") from None
-    if pts.shape != (N_IBUG, 3):
-        raise InputError(f"{source}: need the {N_IBUG} points of the iBUG scheme in 3-D, got "
-                         f"{pts.shape[0]} points of {pts.shape[1] if pts.ndim == 2 else 0} "
-                         "coordinates")
-    if np.isinf(pts).any():
-        raise InputError(f"{source}: landmark coordinates must be finite")
-    return pts
-
-
-def _points(rows: object) -> np.ndarray:
-    if not isinstance(rows, list):
-        raise ValueError("expected a list of points")
-    out = [[np.nan] * 3 if r is None or (isinstance(r, list) and None in r) else r
-           for r in rows]
-    arr = np.array(out, dtype=np.float64)
-    return arr.reshape(len(out), -1) if arr.size else np.zeros((0, 3))
-
-
-def _parse_ljson(doc: dict) -> np.ndarray:
-    if "groups" in doc and isinstance(doc["groups"], dict):  # v3: the first (usually only) group
-        group = next(iter(doc["groups"].values()))
-        pts, labels = _points(group["landmarks"]["points"]), group.get("labels", [])
-    else:  # v2
-        pts, labels = _points(doc["landmarks"]["points"]), doc.get("labels", [])
-    masks = {str(lab["label"]).lower(): list(lab["mask"]) for lab in labels}
-    if len(pts) != N_IBUG or not masks:
-        return pts
-    out = np.full((N_IBUG, 3), np.nan)
-    for names, first, size in _LJSON_GROUPS:
-        mask = next((masks[n] for n in names if n in masks), None)
-        if mask is None or len(mask) != size:
-            return pts  # labels of another scheme: take the listed order
-        out[first:first + size] = pts[mask]
-    return out
-
-
-def _parse_pts(text: str) -> np.ndarray:
-    body = text.split("{", 1)[1].rsplit("}", 1)[0] if "{" in text else text
-    rows = [line.split() for line in body.splitlines() if line.strip()]
-    if any(len(r) != 3 for r in rows):
-        raise ValueError("each point needs 3 coordinates (x y z)")
-    return np.array(rows, dtype=np.float64).reshape(-1, 3)
-
-
-def load_landmarks(path: str | os.PathLike[str]) -> np.ndarray:
-    """:func:`parse_landmarks` of a file, the format from its suffix (.ljson, .pts, .json)."""
-    from articast.core.safe_io import read_regular_bytes
-
-    suffix = os.fspath(path).rsplit(".", 1)[-1].lower()
-    if suffix not in ("ljson", "pts", "json"):
-        raise InputError(f"{path}: landmarks must be .ljson, .pts or .json (iBUG 68 points)")
-    text = read_regular_bytes(path).decode("utf-8", errors="replace")
-    return parse_landmarks(text, suffix, str(path))
-
 
 # ---------------------------------------------------------------- alignment
 @dataclass(frozen=True)

@@ -116,7 +116,8 @@ def _bind_dense(args: argparse.Namespace) -> int:
     report: dict[str, object] = {"dense_points": len(vertices)}
     moving = None
     if args.landmarks is not None:
-        from articast.core.dense.scan import align_scan, bind_scan, load_landmarks
+        from articast.core.dense.landmarks import load_landmarks
+        from articast.core.dense.scan import align_scan, bind_scan
 
         landmarks = load_landmarks(args.landmarks) * args.scale
         al = align_scan(model, vertices, triangles, landmarks)
