@@ -35,8 +35,12 @@ def register(sub: argparse._SubParsersAction) -> None:
             "share bound inside a facet, and how far the linear dense modes stray from "
             "per-frame transfer over postures of the model's training range, over the points "
             "that move with the articulation (the tolerance to expect when a client animates "
-            "the scan from alpha). Example: articast bind-dense james.obj --landmarks "
-            "james.ljson --model speaker.npz -o james-binding.npz (docs/DENSE_TRANSFER.md)."
+            "the scan from alpha). The texture of the .obj (or --texture) is kept for the "
+            "browser avatar: articast demo --scan BINDING. Example, for the demo's speaker: "
+            "articast synth corpus --seed 1 -o corpus.npz; articast build-model corpus.npz -o "
+            "speaker.npz; articast bind-dense james.obj --landmarks james.ljson --model "
+            "speaker.npz -o james.npz (docs/DENSE_TRANSFER.md; python tools/fetch_scan.py "
+            "fetches james)."
         ),
     )
     p.add_argument("scan", type=Path, help="dense mesh, Wavefront .obj")
