@@ -36,7 +36,7 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from articast.client import protocol as P
-from articast.core.errors import ArticastError
+from articast.core.errors import ArticastError, InputError
 from articast.service.hub import HubClosed, InMemoryHub
 from articast.service.metrics import render
 from articast.service.middleware import (
@@ -707,6 +707,45 @@ def create_app(config: ServiceConfig | None = None,
         if session.description is None or not session.description.get("geometry"):
             raise HTTPException(409, f"session {name!r} has no face model (yet)")
         return Response(session.dense_json(), media_type="application/json")
+
+    from articast.service.scan import ScanAsset
+
+    scan = ScanAsset(config.server.scan) if config.server.scan else None
+
+    @app.get("/api/sessions/{name}/scan")
+    def scan_mesh(name: str, request: Request) -> Response:
+        """The server's bound head scan (``--scan``) animated by this session's model: dense
+        modes and the render mesh as JSON (service/scan.py); 404 without ``--scan``."""
+        authorise(request)
+        session = _scan_session(name)
+        from articast.service.wire import model_from_description
+
+        assert scan is not None
+        try:
+            body = scan.json_for(model_from_description(session.description))
+        except InputError as exc:
+            raise HTTPException(409, str(exc)) from None
+        return Response(body, media_type="application/json")
+
+    @app.get("/api/sessions/{name}/scan/texture")
+    def scan_texture(name: str, request: Request) -> Response:
+        """The scan's texture image: a picture of a face, so the token is needed."""
+        authorise(request)
+        _scan_session(name)
+        assert scan is not None
+        return Response(scan.texture.image, media_type=scan.texture.mime,
+                        headers={"Cache-Control": "private, max-age=3600"})
+
+    def _scan_session(name: str) -> Any:
+        if scan is None:
+            raise HTTPException(404, "this server shows no head scan (start it with --scan "
+                                "BINDING)")
+        session = svc.lookup(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r}")
+        if session.description is None or not session.description.get("geometry"):
+            raise HTTPException(409, f"session {name!r} has no face model (yet)")
+        return session
 
     @app.get("/api/protocol")
     async def protocol_schema() -> dict[str, Any]:

@@ -85,6 +85,9 @@ class ServerSettings:
     record: str = _opt("", "write every session's frames as JSONL into this folder")
     shutdown_timeout_s: float = _opt(5.0, "wait this long for connections and workers to end")
     log_level: str = _opt("warning", "uvicorn and articast log level")
+    scan: str = _opt("", "show this bound, textured head scan on the avatar page, animated by "
+                     "the stream (a binding from 'articast bind-dense SCAN --landmarks FILE', "
+                     "made against the sessions' model; docs/DENSE_TRANSFER.md)")
     vmc: str = _opt("", "also send every session's mouth/jaw ARKit blendshapes and head pose "
                         "over the VMC protocol (OSC/UDP) to HOST[:PORT] (default port 39539)")
     vmc_names: str = _opt("perfect-sync", "VMC blendshape names: perfect-sync (UpperCamel, "

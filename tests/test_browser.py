@@ -127,3 +127,36 @@ def test_with_a_token_the_avatar_passes_it_on_from_its_url(sessions):
         with Browser(url + "?session=nobody&token=browser-token") as b:
             b.wait_for("window.articast.final !== ''", 30)
             assert "nobody" in b.evaluate("window.articast.final")
+
+
+def test_a_bound_scan_is_drawn_textured_and_moves_with_the_stream(sessions, tmp_path):
+    """serve --scan: the page draws the test head with its own texture (blue and green,
+    colours the shaded faces never have) and its jaw region moves with jaw1; the same token
+    rules as the dense face (the texture is a face)."""
+    from articast.service.cli import main
+    from articast.service.security import AccessPolicy
+    from tests.scan_head import head_scan, write_textured
+
+    files = write_textured(tmp_path)
+    head_scan().model.save(tmp_path / "m.npz")
+    assert main(["bind-dense", str(files["obj"]), "--landmarks", str(files["ljson"]),
+                 "--model", str(tmp_path / "m.npz"), "-o", str(tmp_path / "b.npz")]) == 0
+    config = ServiceConfig(server=ServerSettings(log_level="critical",
+                                                 scan=str(tmp_path / "b.npz")),
+                           sessions=sessions, access=AccessPolicy(token="scan-token"))
+    shots = {}
+    with ServerThread(config) as srv:
+        for name in ("closed", "open"):
+            with Browser(page(srv, name) + "&token=scan-token") as b:
+                b.wait_for("window.articast.mesh.startsWith('scan')", 60)
+                done = b.evaluate("window.articast.rendered")
+                b.wait_for(f"window.articast.rendered > {done + 3}", 30)
+                time.sleep(0.3)
+                png = b.screenshot()
+            img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+            shots[name] = img[:, : img.shape[1] - 280].astype(np.float32)
+    b_, g_, r_ = (shots["closed"][..., i] for i in range(3))
+    assert ((b_ > 100) & (b_ > 2 * r_) & (b_ > 2 * g_)).sum() > 2000  # the texture's blue
+    assert ((g_ > 80) & (g_ > 2 * r_) & (g_ > 2 * b_)).sum() > 2000  # and green
+    opened = np.abs(shots["closed"] - shots["open"]).max(axis=2)
+    assert (opened > 30).sum() > 300  # the chin and the neck moved with the jaw

@@ -8,6 +8,7 @@
 // queues in the page: frames that arrive between two display frames are counted, not drawn.
 // Latency shown = capture -> on screen (wall clock; the server's `t_capture`).
 import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
+import { loadScan } from "./scan.js";
 
 const params = new URLSearchParams(location.search);
 // the server's token, if it has one, comes in this page's URL (?token=...) and goes on
@@ -128,7 +129,7 @@ class Mesh {
 }
 if (gl) gl.getExtension("OES_element_index_uint");
 
-let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null;
+let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null, scan = null;
 
 function render() {
   if (!gl || !sparse || !state.alpha) return;
@@ -145,15 +146,16 @@ function render() {
     // an older server: relative to the first frame seen here, R0^T R
     rot = mat3Mul(transpose3(firstRot), rotationFromAxisAngle(pose.rotation));
   }
-  const model = mat4FromRot(rot, centre);
+  const useScan = scan && $("scan").checked; // a whole head: its own centre, further away
+  const model = mat4FromRot(rot, useScan ? scan.centre : centre);
   const proj = mat4Perspective(0.5, canvas.width / canvas.height, 50, 2000);
-  const view = mat4Translate(0, 0, -380);
+  const view = mat4Translate(0, 0, useScan ? -scan.distance : -380);
   const mvp = mat4Multiply(proj, mat4Multiply(view, model));
   const rot3 = new Float32Array([rot[0], rot[3], rot[6], rot[1], rot[4], rot[7], rot[2], rot[5], rot[8]]);
   const useDense = dense && $("dense").checked;
   const mesh = useDense ? dense : sparse;
-  mesh.update(state.alpha);
-  mesh.draw(mvp, rot3, [0.86, 0.66, 0.56], false);
+  if (useScan) { scan.update(state.alpha); scan.draw(mvp, rot3); }
+  else { mesh.update(state.alpha); mesh.draw(mvp, rot3, [0.86, 0.66, 0.56], false); }
   if ($("wire").checked) { sparse.update(state.alpha); sparse.draw(mvp, rot3, [0.2, 0.9, 0.6], true); }
 }
 function mat3Mul(a, b) {
@@ -248,6 +250,11 @@ async function onHello(h) {
       state.mesh = `dense ${dense.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh;
     } catch (e) { console.warn("dense mesh unavailable", e); }
   }
+  scan = null;
+  try {
+    scan = await loadScan(gl, h.session, k, authHeaders);
+    if (scan) { state.mesh = `scan ${scan.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh; }
+  } catch (e) { console.warn("head scan unavailable", e); state.scanError = String(e); }
 }
 let latest = null, rateMark = { t: 0, frames: 0 };
 function onFrame(f) { // cheap: the drawing happens in draw(), once per display frame

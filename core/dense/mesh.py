@@ -145,8 +145,10 @@ def register_icp(
         (the distance to the dense *surface*, as in the paper) is minimised, else
         point-to-point, which stalls at the sampling step of ``fixed`` (a point snaps to the
         nearest sample). keep : fraction of closest pairs used per iteration (robust to parts of
-        the sparse mesh the dense one does not cover). Starts from the identity: bring the two
-        meshes roughly together first (e.g. both in the head frame).
+        the sparse mesh the dense one does not cover); when the kept set flips between two sets
+        at every step (a two-step cycle of the residual), that is convergence too. Starts from
+        the identity: bring the two meshes roughly together first (e.g. both in the head
+        frame).
     """
     if not (0.0 < keep <= 1.0) or max_iterations < 1:
         raise InputError(f"need 0 < keep <= 1 and max_iterations >= 1, got {keep}, "
@@ -161,7 +163,8 @@ def register_icp(
     tree = cKDTree(fixed)
     rot, trans = np.eye(3), np.zeros(3)
     n_keep = max(3, int(round(keep * len(moving))))
-    prev, rms, it = np.inf, np.inf, 0
+    prev, prev2, rms, it = np.inf, np.inf, np.inf, 0
+    last = (rot, trans)  # the pose before the current one
     for it in range(1, max_iterations + 1):
         cur = moving @ rot.T + trans
         dist, idx = tree.query(cur)
@@ -174,10 +177,16 @@ def register_icp(
             nrm = fixed_normals[idx[sel]]
             d_rot, d_trans = _point_to_plane_step(p, q, nrm)
             rms = float(np.sqrt(np.mean(np.einsum("pd,pd->p", p - q, nrm) ** 2)))
+        if abs(prev2 - rms) < tolerance <= abs(prev - rms):
+            # the trimmed pairs flip between two sets and the poses with them: a fixed point
+            # of two steps; keep the better of the two poses
+            return (Registration(*last, prev, it, True) if prev < rms
+                    else Registration(rot, trans, rms, it, True))
+        last = (rot, trans)
         rot, trans = d_rot @ rot, d_rot @ trans + d_trans
         if abs(prev - rms) < tolerance:
             return Registration(rot, trans, rms, it, True)
-        prev = rms
+        prev2, prev = prev, rms
     return Registration(rot, trans, rms, it, False)
 
 

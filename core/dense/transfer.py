@@ -88,6 +88,19 @@ class Binding:
     curvature : (N,) rad, angle deficits of the reference (0 on the boundary).
     lambda2 : regularisation weight lambda^2 of the Sumner-Popovic term.
     dense_triangles : (Q, 3) int, the dense mesh's facets, kept for rendering (may be empty).
+    follow : (M,) in [0, 1] or None (all 1): how much of its facet's motion a point takes,
+        ``M' = M + follow (f(M) - M)``; 0 holds it to the head (a scan's cranium, far from
+        the sparse mesh), in between a smooth falloff across the border
+        (:mod:`articast.core.dense.scan`).
+    turn : (M,) in [0, 1] or None (all 1): share of the normal offset ``local_2`` that turns
+        with the facet (``v``).
+
+    With ``follow`` or ``turn`` given, whatever part of ``M - A`` the terms
+    ``local_0 e1 + local_1 e2 + turn local_2 n`` do not account for is carried unrotated
+    (it is linear in the sparse vertices, as barycentric transfer): the rest of a normal
+    offset that does not turn, or, for a point bound by its nearest surface point
+    (``local`` = that point's (b, c, 0)), the whole offset from it
+    (:mod:`articast.core.dense.scan`).
     """
 
     sparse_vertices: np.ndarray
@@ -102,11 +115,14 @@ class Binding:
     curvature: np.ndarray
     lambda2: float
     dense_triangles: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    follow: np.ndarray | None = None
+    turn: np.ndarray | None = None
     # derived once, for the per-frame maps
     topology: MeshTopology = field(init=False, repr=False)
     curvature_weights: np.ndarray = field(init=False, repr=False)  # c_X (T, 3)
     denominators: np.ndarray = field(init=False, repr=False)  # sum_X c_X^2 + lambda^2 (T,)
     gather: sp.csr_matrix = field(init=False, repr=False)  # (M, 4T), see :func:`apply`
+    held: np.ndarray = field(init=False, repr=False)  # (M, 3) carried part, see :func:`apply`
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "topology",
@@ -116,19 +132,35 @@ class Binding:
         object.__setattr__(self, "denominators", (c * c).sum(1) + self.lambda2)
         # f(M) = [1, local] . [A', e1', e2', v][facet]: one sparse product per frame
         m, t = len(self.facet), len(self.triangles)
-        cols = np.arange(4)[None, :] * t + self.facet[:, None]
         coef = np.c_[np.ones(m), self.local]
-        gather = sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(m), 4), cols.ravel())),
-                               shape=(m, 4 * t))
-        object.__setattr__(self, "gather", gather)
+        held = np.zeros((m, 3))
+        if self.follow is not None or self.turn is not None:
+            # M' = M + w (f(M) - M), f(M) = A' + l0 e1' + l1 e2' + s l2 v + (M - A - l0 e1
+            # - l1 e2 - s l2 n): at the reference (v = n) M' = M; the bracket is carried
+            w = _weights_in_unit("follow", np.ones(m) if self.follow is None else self.follow, m)
+            s = _weights_in_unit("turn", np.ones(m) if self.turn is None else self.turn, m)
+            object.__setattr__(self, "follow", w)
+            object.__setattr__(self, "turn", s)
+            coef[:, 3] *= s
+            coef = coef * w[:, None]
+            ref = np.concatenate(facet_basis_rest(self.sparse_vertices, self.triangles))
+            held = self.dense_vertices - np.asarray(gather_rows(coef, self.facet, len(
+                self.triangles)) @ ref)
+        object.__setattr__(self, "held", held)
+        object.__setattr__(self, "gather", gather_rows(coef, self.facet, t))
 
     @property
     def n_dense(self) -> int:
         return int(self.dense_vertices.shape[0])
 
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write as a versioned bundle (kind ``dense-binding``)."""
-        arrays = {name: getattr(self, name) for name in _ARRAYS}
+    def save(self, path: str | os.PathLike[str],
+             extra: dict[str, np.ndarray] | None = None) -> None:
+        """Write as a versioned bundle (kind ``dense-binding``); ``extra`` arrays ride along
+        (e.g. a scan's texture, :mod:`articast.core.dense.texture`)."""
+        arrays = {**(extra or {}), **{name: getattr(self, name) for name in _ARRAYS}}
+        for name in ("follow", "turn"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
         save_bundle(path, BINDING_KIND, BINDING_VERSION, arrays, {"lambda2": self.lambda2})
 
     @classmethod
@@ -155,11 +187,38 @@ class Binding:
                     "dense_triangles index no dense point")
             lam = meta.get("lambda2")
             require(isinstance(lam, int | float) and lam > 0, path, "lambda2 must be positive")
-            return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam))
+            extra = {k: arrays.get(k) for k in ("follow", "turn")}  # whole-head scans only
+            for name, w in extra.items():
+                require(w is None or (w.shape == (m,) and bool(np.all((w >= 0) & (w <= 1)))),
+                        path, f"array {name!r} must be ({m},) weights in [0, 1]")
+            return cls(**{k: arrays[k] for k in _ARRAYS}, lambda2=float(lam), **extra)
 
 
 _ARRAYS = ("sparse_vertices", "triangles", "dense_vertices", "facet", "local", "weights",
            "offset", "inside", "corner_normals", "curvature", "dense_triangles")
+
+
+def gather_rows(coef: np.ndarray, facet: np.ndarray, t: int) -> sp.csr_matrix:
+    """(M, 4T) sparse: row i puts ``coef[i]`` on facet ``facet[i]`` of ``[A; e1; e2; v]``."""
+    m = len(facet)
+    cols = np.arange(4)[None, :] * t + facet[:, None]
+    return sp.csr_matrix((coef.ravel(), (np.repeat(np.arange(m), 4), cols.ravel())),
+                         shape=(m, 4 * t))
+
+
+def facet_basis_rest(vertices: np.ndarray, triangles: np.ndarray) -> tuple[np.ndarray, ...]:
+    """A, e1, e2 and the unit normal n (each (T, 3)) of a mesh: ``[A; e1; e2; v]`` at rest."""
+    a = vertices[triangles[:, 0]]
+    e1, e2 = vertices[triangles[:, 1]] - a, vertices[triangles[:, 2]] - a
+    n = np.cross(e1, e2)
+    return a, e1, e2, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _weights_in_unit(name: str, w: Any, m: int) -> np.ndarray:
+    w = np.asarray(w, np.float64)
+    if w.shape != (m,) or not np.all((w >= 0) & (w <= 1)):
+        raise InputError(f"{name} must be ({m},) weights in [0, 1]")
+    return w
 
 
 def _check_points(name: str, arr: Any, n: int | None = None) -> np.ndarray:
@@ -329,7 +388,7 @@ def facet_maps(binding: Binding, vertices: np.ndarray) -> tuple[np.ndarray, ...]
 def apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.ndarray:
     """Dense mesh (M, 3) mm for the sparse mesh at ``sparse_vertices_new`` (N, 3) mm."""
     v = _check_points("sparse_vertices_new", sparse_vertices_new, len(binding.sparse_vertices))
-    return binding.gather @ np.concatenate(facet_maps(binding, v))
+    return binding.gather @ np.concatenate(facet_maps(binding, v)) + binding.held
 
 
 def barycentric_apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.ndarray:
@@ -337,7 +396,10 @@ def barycentric_apply(binding: Binding, sparse_vertices_new: np.ndarray) -> np.n
     displacements (no rotation of the offset). (N, 3) -> (M, 3) mm."""
     v = _check_points("sparse_vertices_new", sparse_vertices_new, len(binding.sparse_vertices))
     disp = (v - binding.sparse_vertices)[binding.triangles[binding.facet]]  # (M, 3, 3)
-    return binding.dense_vertices + np.einsum("mc,mcd->md", binding.weights, disp)
+    moved = np.einsum("mc,mcd->md", binding.weights, disp)
+    if binding.follow is not None:
+        moved *= binding.follow[:, None]
+    return binding.dense_vertices + moved
 
 
 def _check_model(binding: Binding, model: FaceModel) -> None:
@@ -371,11 +433,14 @@ def dense_modes(
 
 
 def linearity_error(
-    binding: Binding, model: FaceModel, alphas: np.ndarray, *, step: float = 1.0
+    binding: Binding, model: FaceModel, alphas: np.ndarray, *, step: float = 1.0,
+    points: np.ndarray | None = None,
 ) -> np.ndarray:
     """Max distance (F,) mm between the linear dense modes and per-frame transfer at each alpha.
 
     alphas : (F, K). Use postures from the training range to state a model's tolerance.
+    points : (M,) bool or indices, the dense points to measure (default all), e.g. only those
+        that move with the articulation.
     """
     alphas = np.asarray(alphas, dtype=np.float64)
     if alphas.ndim != 2 or alphas.shape[1] != model.n_params:
@@ -383,4 +448,9 @@ def linearity_error(
     mean, modes = dense_modes(binding, model, step=step)
     linear = mean + np.einsum("fk,kmd->fmd", alphas, modes)
     exact = np.stack([apply(binding, s) for s in model.shape(alphas)])
-    return np.linalg.norm(linear - exact, axis=-1).max(axis=1)
+    gap = np.linalg.norm(linear - exact, axis=-1)
+    if points is not None:
+        gap = gap[:, np.asarray(points)]
+        if gap.shape[1] == 0:
+            raise InputError("linearity_error: no points to measure")
+    return gap.max(axis=1)

@@ -180,7 +180,7 @@ def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     return g
 
 
-COMMON_SERVER = ("host", "port", "record", "log_level")
+COMMON_SERVER = ("host", "port", "record", "log_level", "scan")
 """ServerSettings shown with the command's own options; the rest go to their groups."""
 
 
