@@ -197,3 +197,181 @@ def test_delegate_rebuilds_from_the_clip_and_says_what_it_needs(enrolled, tmp_pa
     assert main(["export-gltf", str(folder), "-o", str(tmp_path / "x.glb")]) == 2
     err = capsys.readouterr().err
     assert "delegate.npz" in err and "Traceback" not in err and len(err.splitlines()) == 1
+
+
+def _serve(speaker, video, *extra):
+    """``articast serve`` as a user runs it (a subprocess, a token, logging at info), tracking
+    ``video`` with ``speaker``: the process and its HTTP base URL."""
+    import os
+    import sys
+
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "ARTICAST_LOG_LEVEL": "info",
+           "ARTICAST_TOKEN": TOKEN}
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "serve", "--source",
+                          f"me=file:{video}?loop=yes", "--speaker", str(speaker), *extra,
+                          "--port", "0", "--json"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True)
+    line = p.stdout.readline()
+    if not line:
+        p.kill()
+        raise AssertionError(p.stderr.read())
+    url = json.loads(line)["url"]
+    return p, url.replace("ws://", "http://").split("/ws")[0]
+
+
+TOKEN = "delegate-test-token"
+
+
+def _hello(http):
+    from websockets.sync.client import connect
+
+    ws_url = http.replace("http://", "ws://") + f"/ws?token={TOKEN}"
+    with connect(ws_url, open_timeout=30) as ws:
+        ws.send(json.dumps({"type": "subscribe", "session": "me", "geometry": False}))
+        while True:
+            m = json.loads(ws.recv(timeout=60))
+            if m["type"] == "hello":
+                return m
+
+
+def test_the_delegate_is_served_with_the_token_only_and_never_logged(enrolled):
+    import httpx
+
+    d, speaker, _ = enrolled
+    delegate = Delegate.load(d / "speaker" / "delegate.npz")
+    p, http = _serve(d / "speaker", d / "test" / "video.mp4")
+    try:
+        hello = _hello(http)
+        assert hello["delegate_url"] == "/api/sessions/me/delegate"
+        url = http + hello["delegate_url"]
+        for headers in ({}, {"Authorization": "Bearer wrong"}):
+            r = httpx.get(url, headers=headers, timeout=30)
+            assert r.status_code == 401 and "data:image" not in r.text
+        r = httpx.get(url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60)
+        assert r.status_code == 200 and r.headers["cache-control"] == "no-store"
+        doc = r.json()
+    finally:
+        p.terminate()
+        out, err = p.communicate(timeout=30)
+    import base64
+
+    def png(data_url):
+        raw = base64.b64decode(data_url.split(",", 1)[1])
+        return cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR)
+
+    # the speaker's own texture, exactly, and its articulation modes on the stated grid
+    assert np.array_equal(png(doc["texture"]), delegate.texture)
+    k, s = len(doc["param_names"]), delegate.texture.shape[0]
+    cols, _ = doc["modes_grid"]
+    grid = png(doc["modes"]).astype(float)
+    jaw = grid[:s, :s]  # mode 0 (jaw1) is the first tile
+    assert np.abs((jaw - 128) * doc["modes_scale"] - delegate.texture_modes[0]).max() <= 0.5
+    assert len(doc["basis"]) == k * 3 * doc["n_vertices"] and cols * s == grid.shape[1]
+    # nothing of the face in the logs (info level: the access log names the path only)
+    assert "/api/sessions/me/delegate" in err
+    assert "data:image" not in out + err and doc["texture"][40:120] not in out + err
+
+
+def test_serve_no_delegate_serves_none(enrolled):
+    import httpx
+
+    d, _, _ = enrolled
+    p, http = _serve(d / "speaker", d / "test" / "video.mp4", "--no-delegate")
+    try:
+        assert _hello(http)["delegate_url"] is None
+        r = httpx.get(http + "/api/sessions/me/delegate",
+                      headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30)
+        assert r.status_code == 404 and "--no-delegate" in r.json()["detail"]
+    finally:
+        p.terminate()
+        p.communicate(timeout=30)
+
+
+def _jaw_recording(path, speaker, jaw1, frames=30):
+    """A replayable recording of the enrolled speaker's model holding jaw1 at ``jaw1``."""
+    from articast.service.wire import describe
+
+    model = speaker.model
+    desc = describe(model, speaker.camera, model.param_names)
+    pose = {"rotation": [3.14159, 0.0, 0.0], "translation": [0.0, 0.0, 450.0]}
+    with path.open("w") as fh:
+        fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
+                             "session": "s", "source": {"kind": "test", "fps": 30}, **desc})
+                 + "\n")
+        for i in range(frames):
+            alpha = {n: 0.0 for n in model.param_names}
+            alpha["jaw1"] = float(jaw1)
+            fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / 30,
+                                 "alpha": alpha, "pose": pose,
+                                 "quality": {"ok": True, "reason": "", "residual": 0.0,
+                                             "evals": 0, "iterations": 0, "ms": 0.0}}) + "\n")
+    return path
+
+
+def test_the_browser_avatar_draws_the_textured_delegate_and_its_mouth_moves(enrolled, tmp_path):
+    """Headless Chromium: with the delegate the face region is textured (the speaker's eyes,
+    brows, lips: far more fine structure than the generic face of the same session with
+    --no-delegate), and it changes with the jaw. Screenshots: in ARTICAST_TEST_ARTEFACTS
+    when set, else in the test's tmp_path."""
+    import os
+
+    from articast.service.app import ServiceConfig
+    from articast.service.security import AccessPolicy
+    from articast.service.settings import ServerSettings
+    from articast.service.worker import SessionSpec
+    from tests.browser import CHROMIUM, Browser
+    from tests.service_helpers import ServerThread
+
+    if CHROMIUM is None:
+        pytest.skip("chromium is not installed (.ci/run installs Debian's chromium)")
+    d, speaker, _ = enrolled
+    k = speaker.model.param_names.index("jaw1")
+    lo, hi = speaker.model.stats.min[k], speaker.model.stats.max[k]
+    a = np.zeros(speaker.model.n_params)
+    a[k] = hi
+    ap_hi = lip_measures(speaker.model, a)[0]
+    a[k] = lo
+    shut, wide = (lo, hi) if ap_hi > lip_measures(speaker.model, a)[0] else (hi, lo)
+    folder = str(d / "speaker")
+    specs = tuple(SessionSpec(name, f"replay-record:{_jaw_recording(tmp_path / f'{name}.jsonl', speaker, jaw)}?loop=yes",
+                              processor="truth", speaker=folder)
+                  for name, jaw in (("shut", shut), ("wide", wide)))
+    out = Path(os.environ.get("ARTICAST_TEST_ARTEFACTS") or tmp_path)
+    out.mkdir(parents=True, exist_ok=True)
+    shots = {}
+    for delegates in (True, False):
+        config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=specs,
+                               access=AccessPolicy(token="avatar-token"), delegates=delegates)
+        with ServerThread(config) as srv:
+            for name in (("shut", "wide", "shut") if delegates else ("shut",)):
+                url = f"http://127.0.0.1:{srv.port}/avatar/?session={name}&token=avatar-token"
+                with Browser(url) as b:
+                    b.wait_for("window.articast.frames > 10", 60)
+                    if delegates:
+                        b.wait_for("window.articast.delegate.startsWith('textured')", 60)
+                    else:
+                        b.wait_for("window.articast.mesh.startsWith('dense')", 60)
+                        assert b.evaluate("window.articast.delegate") == ""
+                    n = b.evaluate("window.articast.rendered")
+                    b.wait_for(f"window.articast.rendered > {n + 3}", 30)
+                    png = b.screenshot()
+                key = f"{name}-{'delegate' if delegates else 'generic'}"
+                (out / f"avatar-{key}-{len(shots)}.png").write_bytes(png)
+                img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+                shots.setdefault(key, []).append(img[:, : img.shape[1] - 280])
+
+    def dark_fraction(img):
+        """Of the face region (not the background), the part darker than grey 70: the
+        speaker's hair, brows and pupils; the generic face's shading hardly has any."""
+        face = np.abs(img.astype(int) - img[5, 5].astype(int)).sum(2) > 30
+        face = cv2.erode(face.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+        assert face.sum() > 5000
+        return float((cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)[face] < 70).mean())
+
+    textured = dark_fraction(shots["shut-delegate"][0])
+    generic = dark_fraction(shots["shut-generic"][0])
+    assert textured > 0.05 and textured > 4 * generic, (textured, generic)
+    same = np.abs(shots["shut-delegate"][0].astype(float) - shots["shut-delegate"][1]).mean()
+    moved = np.abs(shots["shut-delegate"][0].astype(float) - shots["wide-delegate"][0])
+    assert moved.mean() > 5 * max(same, 0.05)
+    assert (moved.max(2) > 40).sum() > 300  # a visibly different region: the opened mouth
