@@ -375,3 +375,39 @@ def test_the_browser_avatar_draws_the_textured_delegate_and_its_mouth_moves(enro
     moved = np.abs(shots["shut-delegate"][0].astype(float) - shots["wide-delegate"][0])
     assert moved.mean() > 5 * max(same, 0.05)
     assert (moved.max(2) > 40).sum() > 300  # a visibly different region: the opened mouth
+
+
+@pytest.mark.parametrize("defect", ["triangles", "texture", "texture_modes", "modes", "names",
+                                    "missing", "kind"])
+def test_a_malformed_delegate_file_is_one_clear_error(defect, tmp_path):
+    from articast.core.bundle import save_bundle
+    from articast.core.errors import ModelFileError
+
+    v, k, s = 12, 7, 8
+    arrays = {"vertices": np.zeros((v, 3)), "modes": np.zeros((k, v, 3)), "uv": np.zeros((v, 2)),
+              "triangles": np.array([[0, 1, 2], [2, 3, 4]]), "model_index": np.arange(v),
+              "texture": np.zeros((s, s, 3), np.uint8),
+              "texture_modes": np.zeros((k, s, s, 3), np.int8), "seen": np.zeros((s, s))}
+    meta = {"param_names": ["jaw1", "lips1", "lips2", "lips3", "lips4", "jaw2", "lar1"]}
+    kind = "articast-delegate"
+    good = tmp_path / "good.npz"
+    save_bundle(good, kind, 1, arrays, meta)
+    assert Delegate.load(good).mesh.vertices.shape == (v, 3)
+    if defect == "triangles":
+        arrays["triangles"] = np.array([[0, 1, 99]])
+    elif defect == "texture":
+        arrays["texture"] = np.zeros((s, s, 3), np.float32)
+    elif defect == "texture_modes":
+        arrays["texture_modes"] = np.zeros((k, s, s, 3), np.float64)
+    elif defect == "modes":
+        arrays["modes"] = np.zeros((k, v + 1, 3))
+    elif defect == "names":
+        meta = {"param_names": ["jaw1"]}
+    elif defect == "missing":
+        del arrays["uv"]
+    else:
+        kind = "face-model"
+    bad = tmp_path / "delegate.npz"
+    save_bundle(bad, kind, 1, arrays, meta)
+    with pytest.raises(ModelFileError, match="delegate.npz"):
+        Delegate.load(bad)

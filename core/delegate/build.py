@@ -18,7 +18,13 @@ import numpy as np
 
 from articast.core.bundle import load_bundle, reading, require, save_bundle
 from articast.core.delegate.geometry import DelegateMesh, fit_mesh
-from articast.core.delegate.texture import TEXTURE_SIZE, build_texture, texture_at
+from articast.core.delegate.texture import (
+    MIN_WEIGHT,
+    TEXTURE_SIZE,
+    build_texture,
+    texture_at,
+    uv_raster,
+)
 from articast.core.errors import InputError
 from articast.core.model.camera import Camera, Pose
 from articast.core.model.face import FaceModel
@@ -103,12 +109,11 @@ def build_delegate(model: FaceModel, camera: Camera,
     if not frames:
         raise InputError("a delegate needs frames of the speaker at tracked states")
     mesh = fit_mesh(model)
-    t0, modes, seen = build_texture(mesh, frames, camera, size)
-    faced = seen > 0
+    t0, modes, seen = build_texture(mesh, frames, camera, size, support=mesh.support())
+    covered = len(uv_raster(mesh.uv, mesh.triangles, size).texel)
     report = {"frames": len(frames), "texture_size": int(size), "vertices": len(mesh.vertices),
               "triangles": len(mesh.triangles),
-              "texels_seen_pct": round(100.0 * float((seen >= 2.0).sum() / max(faced.sum(), 1)),
-                                       1)}
+              "texels_seen_pct": round(100.0 * float((seen >= MIN_WEIGHT).sum()) / covered, 1)}
     return Delegate(mesh, np.clip(np.round(t0), 0, 255).astype(np.uint8),
                     np.clip(modes, -63.5, 63.5).astype(np.float32), seen,
                     tuple(model.param_names), report)

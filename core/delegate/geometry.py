@@ -31,6 +31,10 @@ from articast.core.faces.canonical import canonical_face
 from articast.core.model.face import FaceModel
 
 _MP_NAME = re.compile(r"^mp(\d+)$")
+SUPPORT_MM = (20.0, 35.0)
+"""A vertex within the first distance of the nearest model point has a known position
+(support 1); beyond the second, only an extrapolated one (support 0), linear between: the
+texture is not sampled there (:func:`~articast.core.delegate.texture.build_texture`)."""
 MAX_MODE_MM = 3.0
 """Largest motion (mm per s.d.) a vertex outside the model may get from the transfer: the
 upper face hardly moves in speech, and a vertex far beyond the model's mesh extrapolates its
@@ -49,6 +53,17 @@ class DelegateMesh:
     uv: np.ndarray
     triangles: np.ndarray
     model_index: np.ndarray
+
+    def support(self) -> np.ndarray:
+        """(V,) in [0, 1]: how well each vertex's position is known (:data:`SUPPORT_MM`)."""
+        from scipy.spatial import cKDTree
+
+        own = self.model_index >= 0
+        if not own.any():
+            return np.ones(len(self.vertices))
+        dist, _ = cKDTree(self.vertices[own]).query(self.vertices)
+        near, far = SUPPORT_MM
+        return np.clip((far - dist) / (far - near), 0.0, 1.0)
 
     def shape(self, alpha: np.ndarray) -> np.ndarray:
         """(V, 3) mm at ``alpha`` (K,)."""

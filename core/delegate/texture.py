@@ -183,12 +183,16 @@ def fit_tex_lin(colours: np.ndarray, weights: np.ndarray, alphas: np.ndarray,
 
 
 def build_texture(mesh: DelegateMesh, frames: Sequence[tuple[np.ndarray, np.ndarray, Pose]],
-                  camera: Camera, size: int = TEXTURE_SIZE, use: np.ndarray | None = None
+                  camera: Camera, size: int = TEXTURE_SIZE, use: np.ndarray | None = None,
+                  support: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The texture of ``mesh`` from ``frames`` (image BGR uint8, alpha (K,), pose).
 
     use : (K,) bool, the parameters the texture may vary with (default: every parameter
-    that moves the mesh). Returns T0 (S, S, 3) float32 BGR grey levels, T_k (K, S, S, 3)
+    that moves the mesh). support : (V,) in [0, 1], how far each vertex's position can be
+    trusted (default 1): a texel's weights are scaled by it, so where the surface is only
+    extrapolated the texture is filled from its neighbours rather than sampled at the wrong
+    place of the image. Returns T0 (S, S, 3) float32 BGR grey levels, T_k (K, S, S, 3)
     float32 grey levels per unit alpha, and the total weight each texel was seen with (S, S).
     """
     if len(frames) < 2:
@@ -197,6 +201,9 @@ def build_texture(mesh: DelegateMesh, frames: Sequence[tuple[np.ndarray, np.ndar
     samples = [sample_frame(mesh, raster, img, a, pose, camera) for img, a, pose in frames]
     colours = np.stack([s[0] for s in samples])
     weights = np.stack([s[1] for s in samples])
+    if support is not None:
+        sup = np.einsum("pc,pc->p", raster.bary, np.asarray(support)[mesh.triangles[raster.tri]])
+        weights *= np.clip(sup, 0.0, 1.0).astype(np.float32)[None]
     alphas = np.array([np.asarray(a, np.float64) for _, a, _ in frames])
     if use is None:
         use = np.abs(mesh.modes).reshape(len(mesh.modes), -1).max(1) > 0
