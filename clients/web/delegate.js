@@ -50,7 +50,8 @@ export class Delegate {
   constructor(gl, d, tex, modes) {
     this.gl = gl; this.k = Math.min(d.param_names.length, MAX_MODES);
     this.mean = new Float32Array(d.mean); this.basis = new Float32Array(d.basis);
-    this.m = d.n_vertices; this.tri = new Uint16Array(d.triangles);
+    this.m = d.n_vertices;
+    this.tri = this.m < 65536 ? new Uint16Array(d.triangles) : new Uint32Array(d.triangles);
     this.pos = new Float32Array(this.mean.length); this.nrm = new Float32Array(this.mean.length);
     this.grid = d.modes_grid; this.scale = d.modes_scale; this.inset = 0.5 / tex.width;
     const prog = (this.prog = gl.createProgram());
@@ -108,7 +109,8 @@ export class Delegate {
     gl.uniform1f(loc.scale, this.scale); gl.uniform1i(loc.k, this.k);
     gl.uniform1f(loc.inset, this.inset);
     gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.ib);
-    gl.drawElements(gl.TRIANGLES, this.tri.length, gl.UNSIGNED_SHORT, 0);
+    gl.drawElements(gl.TRIANGLES, this.tri.length,
+                    this.tri instanceof Uint16Array ? gl.UNSIGNED_SHORT : gl.UNSIGNED_INT, 0);
     gl.disableVertexAttribArray(loc.uv); // the generic face's program has no such array
     gl.activeTexture(gl.TEXTURE0);
   }

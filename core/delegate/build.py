@@ -90,6 +90,8 @@ class Delegate:
             tm = arrays["texture_modes"]
             require(tm.shape == (k, *tex.shape) and tm.dtype == np.int8, path,
                     f"texture_modes must be ({k}, S, S, 3) int8")
+            require(arrays["model_index"].shape == (n,), path, f"model_index must be ({n},)")
+            require(arrays["seen"].shape == tex.shape[:2], path, "seen must be (S, S)")
             names = tuple(str(x) for x in meta.get("param_names", []))
             require(len(names) == k, path, f"{len(names)} parameter names for {k} modes")
             mesh = DelegateMesh(v.astype(np.float64), modes.astype(np.float64),

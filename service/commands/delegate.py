@@ -74,19 +74,21 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def read_clip(video: Path, span, max_frames: int) -> tuple[list[np.ndarray], np.ndarray]:
     """At most ``max_frames`` frames of ``video`` (of ``span``), evenly spread, with their
-    times (s)."""
-    from articast.service.video import iter_video, video_frame_count
+    times (s). Frames are kept at a stride that doubles whenever twice ``max_frames`` are
+    held, so a long clip never fills the memory."""
+    from articast.service.video import iter_video
 
-    total = video_frame_count(video) or 0
-    keep = None
-    if total > max_frames and not span:
-        keep = set(np.linspace(0, total - 1, max_frames).round().astype(int).tolist())
-    images, times = [], []
-    for k, t, img in iter_video(video, span):
-        if keep is None or k in keep:
-            images.append(img)
-            times.append(t)
-    if keep is None and len(images) > max_frames:
+    images: list[np.ndarray] = []
+    times: list[float] = []
+    stride = 1
+    for k, (_, t, img) in enumerate(iter_video(video, span)):
+        if k % stride:
+            continue
+        images.append(img)
+        times.append(t)
+        if len(images) >= 2 * max_frames:
+            images, times, stride = images[::2], times[::2], stride * 2
+    if len(images) > max_frames:
         pick = np.linspace(0, len(images) - 1, max_frames).round().astype(int)
         images, times = [images[i] for i in pick], [times[i] for i in pick]
     return images, np.array(times, np.float64)
@@ -130,7 +132,7 @@ def _delegate(args: argparse.Namespace) -> int:
                          "clip with --video CLIP")
     say = (lambda m: None) if args.quiet else (lambda m: print(f"delegate: {m}",
                                                                  file=sys.stderr))
-    images, times = read_clip(args.video, Span(args.start, args.end), 600)
+    images, times = read_clip(args.video, Span(args.start, args.end), MAX_TRACKED)
     delegate = make_delegate(speaker, images, times, say)
     delegate.save(args.speaker / DELEGATE_FILE)
     out = {"delegate": str(args.speaker / DELEGATE_FILE), **delegate.report}

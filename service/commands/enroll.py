@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articast.core.errors import InputError
+from articast.core.errors import ArticastError, InputError
 from articast.service.jsonsafe import dumps
 
 MIN_SECONDS = 20.0
@@ -230,7 +230,7 @@ def _write_delegate(folder: Path, speaker, images: list, found: np.ndarray, time
     keep = np.flatnonzero(found)
     try:
         d = make_delegate(speaker, [images[i] for i in keep], np.asarray(times)[keep], say)
-    except InputError as exc:
+    except ArticastError as exc:  # the speaker folder is complete without it
         print(f"articast enroll: warning: no delegate: {exc}", file=sys.stderr)
         return f"none: {exc}"
     d.save(folder / DELEGATE_FILE)
