@@ -33,10 +33,12 @@ def register(sub: argparse._SubParsersAction) -> None:
             "enrolment clip again, or any clip of the same speaker with the same camera). "
             "A delegate is a picture of a face: 'articast serve' serves it only with the "
             "session's token, and 'serve --no-delegate' serves none. Then: 'articast "
-            "export-gltf SPEAKER_DIR -o me.glb'."
+            "export-gltf SPEAKER_DIR -o me.glb'. Example: articast delegate me/ --video "
+            "me.mp4"
         ),
     )
-    de.add_argument("speaker", type=Path, help="speaker folder from 'articast enroll'")
+    de.add_argument("speaker", type=Path, metavar="SPEAKER_DIR",
+                    help="speaker folder from 'articast enroll'")
     de.add_argument("--video", type=Path,
                     help="a clip of the speaker (the enrolment clip, or another one with the "
                          "same camera); needed: the folder keeps no frames")
@@ -62,7 +64,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "Example: articast export-gltf me/ -o me.glb"
         ),
     )
-    ex.add_argument("speaker", type=Path, help="speaker folder from 'articast enroll'")
+    ex.add_argument("speaker", type=Path, metavar="SPEAKER_DIR",
+                    help="speaker folder from 'articast enroll'")
     ex.add_argument("-o", "--output", type=Path, required=True, help="the .glb file to write")
     ex.add_argument("--no-texture", action="store_true",
                     help="leave the texture out (a face picture) even when there is one")
