@@ -83,6 +83,8 @@ class ServiceConfig:
     http_processors: tuple[str, ...] = ("auto", "truth", "tracker", "live")
     """Processors a session added over HTTP may name: importing ``module:callable`` on a
     client's word would run the client's choice of code, so only these are accepted."""
+    delegates: bool = True
+    """Serve each speaker's delegate to token holders (False: ``serve --no-delegate``)."""
 
 
 class SessionCreate(BaseModel):
@@ -390,6 +392,7 @@ class Service:
         self.hub: Any = InMemoryHub()  # a RedisHub replaces it in start() with --hub redis://
         self.manager = SessionManager(self.hub, config.capture, config.policy,
                                       config.server.record)
+        self.manager.delegates = config.delegates
         self.directory: Any = None  # articast.service.remote.Directory on Redis
         self._remote: list[Any] = []
         if config.server.vmc:
@@ -707,6 +710,25 @@ def create_app(config: ServiceConfig | None = None,
         if session.description is None or not session.description.get("geometry"):
             raise HTTPException(409, f"session {name!r} has no face model (yet)")
         return Response(session.dense_json(), media_type="application/json")
+
+    @app.get("/api/sessions/{name}/delegate")
+    def delegate(name: str, request: Request) -> Response:
+        """The speaker's delegate (:mod:`articast.service.delegate`): a picture of their face,
+        so the token is needed like for subscribing; never cached, never logged."""
+        authorise(request)
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r} on this server")
+        if not config.delegates:
+            raise HTTPException(404, "this server serves no delegate (--no-delegate)")
+        if session.description is None:
+            raise HTTPException(409, f"session {name!r} has no face model (yet)")
+        try:
+            body = session.delegate_json()
+        except ArticastError as exc:
+            raise HTTPException(404, str(exc)) from None
+        return Response(body, media_type="application/json",
+                        headers={"Cache-Control": "no-store"})
 
     from articast.service.scan import ScanAsset
 

@@ -15,6 +15,7 @@ from articast.core.errors import ArticastError
 
 COMMAND_MODULES = (
     "articast.service.commands.enroll",
+    "articast.service.commands.delegate",
     "articast.service.commands.model",
     "articast.service.commands.track",
     "articast.service.commands.evaluate",

@@ -51,6 +51,7 @@ class Session:
         self._mesh: tuple[np.ndarray, np.ndarray] | None = None
         self.outputs: Any = None  # articast.service.outputs.Outputs when the model has FAP points
         self._dense: bytes | None = None
+        self._delegate: bytes | None = None
         self._worker: ThreadWorker | ProcessWorker | None = None
         self._vmc_model: Any = None
         self.preview: tuple[int, bytes] | None = None
@@ -237,6 +238,9 @@ class Session:
             desc["dense_url"] = f"/api/sessions/{self.spec.name}/dense"
         if self.spec.preview:
             desc["preview_url"] = f"/api/sessions/{self.spec.name}/preview.jpg"
+        self._delegate = None
+        if self._m.delegates and self.delegate_file() is not None:
+            desc["delegate_url"] = f"/api/sessions/{self.spec.name}/delegate"
         self._m.hub.publish(self.spec.name, ReadyEvent(self.spec.name))
         self._set_state("running", "")
 
@@ -258,6 +262,27 @@ class Session:
             model = model_from_description(self.description or {})
             self._dense = dumps(dense_face(model).to_dict()).encode()
         return self._dense
+
+    def delegate_file(self) -> Any:
+        """The speaker folder's delegate file (:mod:`articast.service.delegate`), or None."""
+        from articast.service.delegate import delegate_path
+
+        try:
+            return delegate_path(self.spec.speaker, self.spec.media_roots)
+        except InputError:
+            return None
+
+    def delegate_json(self) -> bytes:
+        """JSON of the speaker's delegate (cached; blocking, like :meth:`dense_json`). Raises
+        :class:`InputError` when there is none or it does not fit the session's model."""
+        if self._delegate is None:
+            from articast.service.delegate import delegate_json
+
+            path = self.delegate_file()
+            if path is None or not self._m.delegates:
+                raise InputError(f"session {self.spec.name!r} has no delegate")
+            self._delegate = delegate_json(path, (self.description or {})["param_names"])
+        return self._delegate
 
     def _on_frame(self, rec: FrameRecord) -> None:
         if self.description is None:
@@ -323,6 +348,8 @@ class SessionManager:
         self.policy = policy or SessionPolicy()
         self.record_dir = record_dir
         self.vmc: Any = None  # articast.service.vmc.VmcSender when the server sends VMC
+        self.delegates = True
+        """Offer each speaker's delegate (False: ``serve --no-delegate``)."""
         self.sessions: dict[str, Session] = {}
         self._next_sid = 1
         self._thread_owner: Session | None = None

@@ -209,6 +209,7 @@ def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] |
         fapu=desc.get("fapu"),
         dense_url=desc.get("dense_url"),
         preview_url=desc.get("preview_url"),
+        delegate_url=desc.get("delegate_url"),
         source=P.SourceDescription(**source) if source else None,
         state=state,
     )

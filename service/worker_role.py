@@ -29,6 +29,7 @@ async def run_track_worker(url: str, prefix: str, specs: list[SessionSpec],
             loop.add_signal_handler(sig, stop.set)
     directory = Directory()
     manager = SessionManager(None, capture, policy, record_dir)  # type: ignore[arg-type]
+    manager.delegates = False  # the gateway serves subscribers and cannot read our folders
     hub: RedisHub[object] = RedisHub(url, EventCodec(directory, manager.sessions.get),
                                      prefix=prefix)
     manager.hub = hub

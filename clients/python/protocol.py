@@ -139,6 +139,10 @@ class Hello(_Message):
     preview_url: str | None = Field(
         default=None, description="HTTP path of the newest tracking preview (JPEG: the tracked "
         "video with the fitted mesh, a few per second); only when the session opted in")
+    delegate_url: str | None = Field(
+        default=None, description="HTTP path of the speaker's own textured face (JSON: mesh, "
+        "per-parameter modes, texture and its articulation modes); only for a speaker with "
+        "a delegate, with the token, unless the server runs with --no-delegate")
     source: SourceDescription | None = None
     state: str = "running"
 

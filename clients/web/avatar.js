@@ -9,6 +9,7 @@
 // Latency shown = capture -> on screen (wall clock; the server's `t_capture`).
 import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
 import { loadScan } from "./scan.js";
+import { loadDelegate } from "./delegate.js";
 
 const params = new URLSearchParams(location.search);
 // the server's token, if it has one, comes in this page's URL (?token=...) and goes on
@@ -129,7 +130,7 @@ class Mesh {
 }
 if (gl) gl.getExtension("OES_element_index_uint");
 
-let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null, scan = null;
+let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null, scan = null, delegate = null;
 
 function render() {
   if (!gl || !sparse || !state.alpha) return;
@@ -155,6 +156,7 @@ function render() {
   const useDense = dense && $("dense").checked;
   const mesh = useDense ? dense : sparse;
   if (useScan) { scan.update(state.alpha); scan.draw(mvp, rot3); }
+  else if (delegate && $("delegate").checked) { delegate.update(state.alpha); delegate.draw(mvp, rot3); }
   else { mesh.update(state.alpha); mesh.draw(mvp, rot3, [0.86, 0.66, 0.56], false); }
   if ($("wire").checked) { sparse.update(state.alpha); sparse.draw(mvp, rot3, [0.2, 0.9, 0.6], true); }
 }
@@ -242,7 +244,10 @@ async function onHello(h) {
   centre = [0, 0, 0];
   for (let i = 0; i < g.mean.length; i += 3) for (let d = 0; d < 3; d++) centre[d] += g.mean[i + d] * 3 / g.mean.length;
   state.mesh = `sparse ${sparse.m} points`; $("mesh").textContent = state.mesh;
-  dense = null;
+  dense = null; delegate = null; state.delegate = "";
+  loadDelegate(gl, h.delegate_url, authHeaders).then((d) => { // the speaker's own face
+    if (d && state.hello === h) { delegate = d; state.delegate = `textured, ${d.m} points`; }
+  }).catch((e) => console.warn("delegate unavailable", e));
   if (h.dense_url) {
     try {
       const d = await (await fetch(h.dense_url, { headers: authHeaders })).json();

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from articast.core.errors import InputError
+from articast.core.errors import ArticastError, InputError
 from articast.service.jsonsafe import dumps
 
 MIN_SECONDS = 20.0
@@ -70,6 +70,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     from articast.service.commands.track import add_span_arguments
 
     add_span_arguments(en)
+    en.add_argument("--delegate", action=argparse.BooleanOptionalAction, default=True,
+                    help="also write the speaker's textured 3D face (delegate.npz, from the "
+                         "clip's frames; 'articast delegate' rebuilds it): what a browser "
+                         "avatar and 'articast export-gltf' show of them (default on; "
+                         "--no-delegate keeps no picture of the face in the folder)")
     en.add_argument("--json", action="store_true", help="print the report as JSON")
     en.add_argument("--quiet", action="store_true", help="no progress line")
     en.set_defaults(func=_enroll)
@@ -196,6 +201,8 @@ def _enroll(args: argparse.Namespace) -> int:
 
     speaker = replace(speaker, report=report)
     speaker.save(args.output)
+    if args.delegate:
+        report["delegate"] = _write_delegate(args.output, speaker, images, found, times, say)
     sheet = write_contact_sheet(args.output / CONTACT_SHEET, speaker, images, found)
     if args.json:
         print(dumps({"speaker": str(args.output), "residual": speaker.residual.to_dict(),
@@ -211,6 +218,23 @@ def _enroll(args: argparse.Namespace) -> int:
 
 
 CONTACT_SHEET = "contact.png"
+
+
+def _write_delegate(folder: Path, speaker, images: list, found: np.ndarray, times: np.ndarray,
+                    say) -> dict | str:
+    """delegate.npz from the enrolment's frames (``articast delegate``); its report, or why
+    there is none (the speaker folder is complete without it)."""
+    from articast.core.delegate.build import DELEGATE_FILE
+    from articast.service.commands.delegate import make_delegate
+
+    keep = np.flatnonzero(found)
+    try:
+        d = make_delegate(speaker, [images[i] for i in keep], np.asarray(times)[keep], say)
+    except ArticastError as exc:  # the speaker folder is complete without it
+        print(f"articast enroll: warning: no delegate: {exc}", file=sys.stderr)
+        return f"none: {exc}"
+    d.save(folder / DELEGATE_FILE)
+    return d.report
 
 
 def write_contact_sheet(path: Path, speaker, images: list, found: np.ndarray,
@@ -256,6 +280,10 @@ def _print_report(folder: Path, speaker, report: dict) -> None:
     print("variance explained (%): " + ", ".join(f"{k} {v:.1f}" for k, v in var.items())
           + f"; total {sum(var.values()):.1f}")
     print("lar1 (throat) is not visible to the camera: it stays 0")
+    d = report.get("delegate")
+    if isinstance(d, dict):
+        print(f"delegate: {folder / 'delegate.npz'} (textured from {d['frames']} tracked "
+              f"frames, {d['texels_seen_pct']} % of the face seen; 'articast export-gltf')")
     print(f"scale: {report['scale']}; camera: {report['camera']}")
     cov = report["coverage"]
     print(f"lip aperture {cov['aperture_mm'][0]:.1f}-{cov['aperture_mm'][1]:.1f} mm, "

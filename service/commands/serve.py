@@ -206,6 +206,11 @@ def _common(p: argparse.ArgumentParser, tracking: bool = True) -> None:
                        "fit drawn on it (GET /api/sessions/NAME/preview.jpg; the browser "
                        "avatar shows it). Off by default for privacy; on for the synthetic "
                        "demo")
+        g.add_argument("--delegate", action=argparse.BooleanOptionalAction, default=True,
+                       help="serve the speaker's own textured face (the delegate.npz 'articast "
+                       "enroll' writes into the speaker folder) to subscribers with the token, "
+                       "for the browser avatar (default on; --no-delegate serves none: the "
+                       "avatar shows a generic face)")
     add_arguments(p.add_argument_group("VMC (VTuber apps)"), ServerSettings,
                   skip=tuple(f.name for f in dataclasses.fields(ServerSettings)
                              if not f.name.startswith("vmc")))
@@ -326,7 +331,8 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         sessions=specs, access=access,
         hub_url=hub_url(args), hub_prefix=hub_prefix(args),
         http_processors=tuple(dict.fromkeys(("auto", "truth", "tracker", "live",
-                                             args.processor))))
+                                             args.processor))),
+        delegates=getattr(args, "delegate", True))
 
     import logging
 
