@@ -116,7 +116,7 @@ def test_the_delegate_drawn_at_tracked_states_looks_like_the_held_out_frames(enr
     print(f"delegate SSIM {np.mean(lin):.3f}, flat {np.mean(flat):.3f}, "
           f"4 px off {np.mean(shifted):.3f}")
     assert np.mean(lin) >= 0.8, lin
-    assert np.mean(lin) > np.mean(flat) + 0.2 and np.mean(lin) > np.mean(shifted) + 0.05
+    assert np.mean(lin) > np.mean(flat) + 0.15 and np.mean(lin) > np.mean(shifted) + 0.05
 
 
 def test_the_inner_mouth_darkens_in_the_texture_as_the_jaw_opens(enrolled):
