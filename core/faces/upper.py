@@ -250,10 +250,10 @@ def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
     poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
     x0, y0 = np.floor(poly.min(0)).astype(int) - 1
     x1, y1 = np.ceil(poly.max(0)).astype(int) + 2
-    h, w = grey.shape
+    h, w = grey.shape[:2]
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 6 or y1 - y0 < 3:
         return None
-    patch = grey[y0:y1, x0:x1].astype(np.float32)
+    patch = _grey(grey[y0:y1, x0:x1]).astype(np.float32)
     mask = np.zeros(patch.shape, np.uint8)
     cv2.fillPoly(mask, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
     inside = patch[mask > 0]
@@ -299,10 +299,10 @@ def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
     ra, rb = half * 1.25, b + 0.5 * half
     r = int(math.ceil(max(ra, rb))) + 1
     cx, cy = int(round(centre[0])), int(round(centre[1]))
-    h, w = grey.shape
+    h, w = grey.shape[:2]
     if cx - r < 0 or cy - r < 0 or cx + r + 1 > w or cy + r + 1 > h:
         return None
-    patch = grey[cy - r:cy + r + 1, cx - r:cx + r + 1]
+    patch = _grey(grey[cy - r:cy + r + 1, cx - r:cx + r + 1])
     c = (centre[0] - cx + r, centre[1] - cy + r)
     eye = np.zeros(patch.shape, np.uint8)
     ring = np.zeros(patch.shape, np.uint8)
@@ -314,6 +314,13 @@ def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
     if m_ring <= 1.0:
         return None
     return float(1.0 - m_eye / m_ring)
+
+
+def _grey(patch: np.ndarray) -> np.ndarray:
+    """A crop of a grey or BGR image, grey (only the crop is converted: cheaper than the
+    frame)."""
+    return patch if patch.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(patch),
+                                                       cv2.COLOR_BGR2GRAY)
 
 
 # ---------------------------------------------------------------------------- per frame
@@ -437,7 +444,7 @@ class UpperTracker:
         if not ok:
             self.reset()
             return UpperFace.absent("no_face: the face is not tracked in this frame")
-        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        grey = image  # (grey or BGR: only the eyes' crops are converted)
         if landmarks is not None:
             m = measure(grey, landmarks, self.canon, ref.open_mm)
             if m is None:
