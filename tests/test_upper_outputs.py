@@ -135,3 +135,43 @@ def test_vmcp_receives_blinks_and_eye_bones_from_our_bundles():
     names = [m.params[0] for b in none for m in (c for c in b) if m.address in
              ("/VMC/Ext/Blend/Val", "/VMC/Ext/Bone/Pos")]
     assert "Blink_L" not in names and "LeftEye" not in names
+
+
+def test_wire_frame_carries_eyes_and_brows_with_their_own_ok():
+    from articast.client.protocol import Frame, parse_server_message
+    from articast.service.outputs import Outputs
+    from articast.service.wire import FrameEvent, FrameRecord
+
+    outputs = Outputs(MODEL)
+    names = list(MODEL.param_names)
+
+    def record(upper: UpperFace | None, ok: bool = True) -> FrameRecord:
+        return FrameRecord(
+            seq=0, frame=0, t=0.0, t_capture=0.0, t_tracked=0.0,
+            alpha=tuple(0.0 for _ in names), rotation=tuple(FRONTAL), translation=(0, 0, 400.0),
+            quality={"ok": ok, "reason": "", "residual": 0.0, "evals": 0, "iterations": 0,
+                     "ms": 1.0},
+            eyes=None if upper is None else upper.eyes_dict(),
+            brows=None if upper is None else upper.brows_dict())
+
+    streams = (("arkit", "fap"), "json")
+    seen = FrameEvent("s", 1, record(face(cl=0.7)), names, outputs=outputs)
+    text = seen.for_subscriber(streams, dropped=3)
+    msg = parse_server_message(text)
+    assert isinstance(msg, Frame) and msg.dropped == 3
+    assert msg.eyes is not None and msg.eyes.ok and msg.eyes.closure_left == pytest.approx(0.7)
+    assert msg.brows is not None and msg.brows.raise_inner_left_mm == pytest.approx(4.0)
+    assert msg.values.arkit["eyeBlinkLeft"] == pytest.approx(0.7)
+    assert "jawOpen" in msg.values.arkit  # the mouth's still there
+    assert msg.values.fap.values["19"] == round(0.7 * 1024)
+    # eyes lost while the lips are fine: their own ok and reason, no eye values anywhere
+    lost = FrameEvent("s", 1, record(UpperFace.absent("turned: the head is turned 50 deg")),
+                      names, outputs=outputs)
+    m2 = parse_server_message(lost.for_subscriber(streams, dropped=0))
+    assert m2.quality.ok and not m2.eyes.ok and m2.eyes.reason.startswith("turned")
+    assert m2.eyes.closure_left is None
+    assert "eyeBlinkLeft" not in m2.values.arkit and "19" not in m2.values.fap.values
+    # a processor without the upper face (e.g. ground truth): no blocks
+    m3 = parse_server_message(FrameEvent("s", 1, record(None), names,
+                                         outputs=outputs).for_subscriber(streams, dropped=0))
+    assert m3.eyes is None and m3.brows is None

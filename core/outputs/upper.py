@@ -134,3 +134,17 @@ def eye_rotation(u: Any) -> np.ndarray | None:
     rx = np.array([[1.0, 0.0, 0.0], [0.0, math.cos(p), math.sin(p)],
                    [0.0, -math.sin(p), math.cos(p)]])
     return ry @ rx
+
+
+def with_upper_faps(values: np.ndarray, mask: np.ndarray, uppers: list[Any],
+                    fapu: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The lower face's FAP values (F, 68) and mask ((68,) or (F, 68)) with each frame's
+    upper-face FAPs added (``uppers``: F UpperFace or None): a per-frame mask (F, 68), the
+    eye and brow FAPs flagged only on the frames where they were seen."""
+    vals = np.array(values, np.int64)
+    m = np.array(np.broadcast_to(np.asarray(mask, bool), vals.shape))
+    for i, u in enumerate(uppers):
+        for n, v in fap_upper(u, fapu).items():
+            vals[i, n - 1] = v
+            m[i, n - 1] = True
+    return vals, m

@@ -191,6 +191,11 @@ def _export_fap(args: argparse.Namespace) -> int:
     idx = grid_indices(t, fps) if t[-1] > t[0] else np.arange(len(t))
     encoder = FapEncoder(model, reference_rotation=reference, jaw_relative=not args.absolute_lips)
     values, mask = encoder.values(alpha[idx], pose[idx])
+    uppers = [results[i].upper for i in idx]
+    if any(u is not None for u in uppers):  # a track of this version: eyes and brows too
+        from articast.core.outputs.upper import with_upper_faps
+
+        values, mask = with_upper_faps(values, mask, uppers, encoder.fapu)
     write_fap(args.output, values, mask, fps, args.name)
     print(f"{len(idx)} frames at {fps_text(fps)} fps ({int((~ok).sum())} of {len(ok)} track frames "
           f"not ok, held) -> {args.output}")
