@@ -58,6 +58,7 @@ from articast.core.tracking import kernels  # noqa: E402
 
 EAR_FRACTION = 0.7
 TOLERANCE = 2
+SERIES = ("ours", "ref", "closure", "ear_ratio")  # only in --json
 IBUG_EYES = ((36, 37, 38, 39, 40, 41), (42, 43, 44, 45, 46, 47))
 
 
@@ -133,9 +134,18 @@ def track(speaker, held, fps):
                  "upper_ms": spent["wall"] * 1e3 / n, "upper_cpu_ms": spent["cpu"] * 1e3 / n}
 
 
-def grid(path: Path, held, closure, ratio, evs, per_row: int = 7, tile: int = 150) -> None:
+def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,
+         tile: int = 150, most: int = 60) -> None:
+    """A row per event (both methods' events, overlapping ones merged): the frames from 2
+    before its onset, the upper face (centred on the reference's eye points where it has
+    them), labelled with articast's closure (yellow above 0.5) and the EAR ratio (red below
+    EAR_FRACTION); the row's first tile says which method saw the event."""
     rows = []
-    for s, _ in evs[:24]:
+    for s, e in events(np.isin(np.arange(len(held)), [i for a, b in ours + ref
+                                                      for i in range(a, b)]), merge=0)[:most]:
+        who = ("both" if any(a < e and s < b for a, b in ours) and any(
+            a < e and s < b for a, b in ref) else "articast" if any(
+            a < e and s < b for a, b in ours) else "reference")
         tiles = []
         for i in range(s - 2, s + per_row - 2):
             if not 0 <= i < len(held):
@@ -143,15 +153,21 @@ def grid(path: Path, held, closure, ratio, evs, per_row: int = 7, tile: int = 15
                 continue
             img = held[i]
             h, w = img.shape[:2]
-            side = int(0.3 * w)
-            cy, cx = int(0.35 * h), w // 2
-            crop = img[max(0, cy - side // 2):cy + side // 2, max(0, cx - side // 2):cx + side // 2]
+            c = eyes[min(max(i, s), e - 1)]
+            cx, cy = (int(c[0]), int(c[1])) if np.all(np.isfinite(c)) else (w // 2,
+                                                                             int(0.35 * h))
+            half = int(0.15 * w)
+            pad = cv2.copyMakeBorder(img, half, half, half, half, cv2.BORDER_CONSTANT)
+            crop = pad[cy:cy + 2 * half, cx:cx + 2 * half]
             t = cv2.resize(crop, (tile, tile))
-            c = closure[i]
-            cv2.putText(t, f"{i} c{'-' if not np.isfinite(c) else f'{c:.2f}'}", (3, 14), 0, 0.45,
-                        (0, 255, 255) if np.isfinite(c) and c > 0.5 else (255, 255, 255), 1)
+            c_i = closure[i]
+            cv2.putText(t, f"{i} c{'-' if not np.isfinite(c_i) else f'{c_i:.2f}'}", (3, 14), 0,
+                        0.45, (0, 255, 255) if np.isfinite(c_i) and c_i > 0.5 else
+                        (255, 255, 255), 1)
             cv2.putText(t, f"ear {ratio[i]:.2f}", (3, tile - 6), 0, 0.45,
                         (0, 0, 255) if ratio[i] < EAR_FRACTION else (255, 255, 255), 1)
+            if i == s - 2:
+                cv2.putText(t, who, (3, 32), 0, 0.45, (0, 255, 0), 1)
             tiles.append(t)
         rows.append(np.hstack(tiles))
     if rows:
@@ -194,9 +210,11 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
                 "closure_vs_ear_r": float(np.corrcoef(cl[both], -e[both])[0, 1])
                 if both.sum() > 10 else None,
                 "ours": ours, "ref": ref})
+    out["closure"] = [None if not np.isfinite(v) else round(float(v), 3) for v in cl]
+    out["ear_ratio"] = [None if not np.isfinite(v) else round(float(v), 3) for v in ratio]
     if grid_dir is not None:
-        evs = sorted(set(ours) | set(ref))
-        grid(grid_dir / f"{name}.jpg", held, cl, ratio, evs)
+        eyes = np.nanmean(got["points"][:, 36:48], axis=1)
+        grid(grid_dir / f"{name}.jpg", held, cl, ratio, ours, ref, eyes)
     return out
 
 
@@ -218,10 +236,10 @@ def main(argv: list[str] | None = None) -> None:
             continue
         row = run(name, clips[name], peers, args.grid)
         rows.append(row)
-        short = {k: v for k, v in row.items() if k not in ("ours", "ref")}
+        short = {k: v for k, v in row.items() if k not in SERIES}
         log(json.dumps(short))
     print(json.dumps(rows, indent=1) if args.json else "\n".join(
-        json.dumps({k: v for k, v in r.items() if k not in ("ours", "ref")}) for r in rows))
+        json.dumps({k: v for k, v in r.items() if k not in SERIES}) for r in rows))
 
 
 if __name__ == "__main__":
