@@ -63,9 +63,12 @@ MAX_YAW_DEG = 40.0
 class UpperReference:
     """The speaker's own upper face at enrolment (speaker.json ``upper``).
 
-    open_mm, closed_mm : (left, right) lid opening of the open eye (90th percentile of the
-        clip) and of the closed eye (the clip's deepest blinks; when the clip has none, a
-        fixed fraction of the open eye and ``blinks`` is 0).
+    open_mm, closed_mm : (left, right) lid opening of the open eye (the clip's median: the
+        speaker's usual open eye) and of the closed eye (the clip's deepest blinks, its 1st
+        percentile; when the clip has none, a fixed fraction of the open eye and ``blinks`` is
+        0). With the 90th percentile as the open eye, a laughing speaker's squint (the
+        cheeks push the lower lids up) read 0.52-0.58 on franck, a blink; with the median
+        0.4 (docs/UPPER_FACE.md).
     brows_mm : (left inner, left outer, right inner, right outer) neutral brow heights above
         the eye line (the clip's median).
     iris_mm : (left x, left y, right x, right y) the iris's offset from the corners' midpoint
@@ -371,7 +374,7 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     if len(ms) < 10:
         return None
     op = np.array([m.opening for m in ms])  # (F, 2)
-    open_mm = np.percentile(op, 90, axis=0)
+    open_mm = np.median(op, axis=0)  # the usual open eye (blinks are < 10 % of the time)
     low = np.percentile(op, 1, axis=0)
     blinked = low < 0.6 * open_mm
     closed = np.where(blinked, np.minimum(low, 0.6 * open_mm), CLOSED_FRACTION * open_mm)

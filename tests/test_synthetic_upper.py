@@ -1,0 +1,58 @@
+"""The synthetic speaker's eyes and brows (core/synthetic/upper.py): a person's blink timing,
+and what is painted follows the truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from articast.core.errors import InputError
+from articast.core.synthetic.texture import SKIN_PPM, SKIN_X0, SKIN_Y1, make_atlas
+from articast.core.synthetic.upper import EYE_X, EYE_Y, paint_upper, upper_sequence
+
+
+def test_blinks_like_a_person():
+    fps = 30.0
+    u = upper_sequence(3, int(300 * fps), fps)  # five minutes
+    per_minute = len(u.blinks) / 5.0
+    assert 10.0 <= per_minute <= 20.0
+    starts = np.array([s for s, _ in u.blinks])
+    assert (np.diff(starts) < 0.45 * fps).any()  # some double blinks
+    lengths = np.array([e - s for s, e in u.blinks])
+    assert lengths.min() >= 3 and lengths.max() <= 9  # 100-300 ms at 30 fps
+    assert np.all((u.closure >= 0) & (u.closure <= 1))
+    assert np.abs(u.gaze[:, 0]).max() <= 15 and np.abs(u.gaze[:, 1]).max() <= 10
+    assert u.gaze[:, 0].std() > 3 and u.brows.max() > 2 and u.brows.min() >= 0
+    with pytest.raises(InputError):
+        upper_sequence(0, 0, 30.0)
+
+
+def px(x_mm: float, y_mm: float) -> tuple[int, int]:
+    """Atlas (row, col) of a neutral head-frame point."""
+    return int((SKIN_Y1 - y_mm) * SKIN_PPM), int((x_mm - SKIN_X0) * SKIN_PPM)
+
+
+def test_painted_eyes_follow_the_truth():
+    open_ = paint_upper(0, (0.0, 0.0), (0.0, 0.0), (0.0, 0.0)).astype(float)
+    shut = paint_upper(0, (1.0, 0.0), (0.0, 0.0), (0.0, 0.0)).astype(float)
+    for side, x in ((0, EYE_X), (1, -EYE_X)):
+        r, c = px(x + 9.0, EYE_Y)  # the sclera, beside the iris
+        if side == 0:
+            assert open_[r, c].mean() > 200 and shut[r, c].mean() < 190  # the lid covers it
+        else:
+            assert shut[r, c].mean() > 200  # the other eye stays open
+    looking = paint_upper(0, (0.0, 0.0), (15.0, 0.0), (0.0, 0.0)).astype(float)
+    r, c = px(EYE_X, EYE_Y)  # the eye's centre: the pupil looking ahead, the iris looking left
+    assert open_[r, c].mean() < 20 and 50 < looking[r, c].mean() < 100
+    r, c = px(EYE_X + 11.5 * np.sin(np.radians(15.0)), EYE_Y)  # where the pupil went
+    assert looking[r, c].mean() < 20 and open_[r, c].mean() > 50
+    raised = paint_upper(0, (0.0, 0.0), (0.0, 0.0), (5.0, 0.0)).astype(float)
+    r0, c0 = px(EYE_X, 64.0)
+    r1, _ = px(EYE_X, 69.0)
+    assert raised[r0, c0].mean() > open_[r0, c0].mean() + 20  # the brow has left its place
+    assert raised[r1, c0].mean() < open_[r1, c0].mean() - 20  # and is 5 mm higher
+    # everything outside the eyes' region is the speaker's own atlas
+    base = make_atlas(0).image.astype(float)
+    rl, cl = px(0.0, 0.0)
+    assert np.array_equal(open_[rl - 40:rl + 40, cl - 40:cl + 40],
+                          base[rl - 40:rl + 40, cl - 40:cl + 40])
