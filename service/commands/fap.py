@@ -34,7 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "48-50) from the JSON lines written by 'articast track', and write the ASCII .fap "
             "file Xface, Greta, visage and VREng read. Frames with quality.ok false hold the "
             "last good values. Lower-lip FAPs are relative to open_jaw (use --absolute-lips "
-            "for absolute ones); see docs/FAP_CHOICES.md."
+            "for absolute ones); see docs/FAP_CHOICES.md. A track of an enrolled desk "
+            "speaker also carries its eyes and brows: their FAPs (eyelids 19-22, eyeballs "
+            "23-26, eyebrows 31-36) are written on the frames where they were seen "
+            "(docs/UPPER_FACE.md)."
         ),
     )
     p.add_argument("track", type=Path, help="tracked sequence (.jsonl, one frame per line)")
