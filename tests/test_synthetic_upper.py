@@ -8,7 +8,7 @@ import pytest
 
 from articast.core.errors import InputError
 from articast.core.synthetic.texture import SKIN_PPM, SKIN_X0, SKIN_Y1, make_atlas
-from articast.core.synthetic.upper import EYE_X, EYE_Y, paint_upper, upper_sequence
+from articast.core.synthetic.upper import BROW_Y, EYE_X, EYE_Y, paint_upper, upper_sequence
 
 
 def test_blinks_like_a_person():
@@ -47,8 +47,8 @@ def test_painted_eyes_follow_the_truth():
     r, c = px(EYE_X + 11.5 * np.sin(np.radians(15.0)), EYE_Y)  # where the pupil went
     assert looking[r, c].mean() < 20 and open_[r, c].mean() > 50
     raised = paint_upper(0, (0.0, 0.0), (0.0, 0.0), (5.0, 0.0)).astype(float)
-    r0, c0 = px(EYE_X, 64.0)
-    r1, _ = px(EYE_X, 69.0)
+    r0, c0 = px(EYE_X, BROW_Y)
+    r1, _ = px(EYE_X, BROW_Y + 5.0)
     assert raised[r0, c0].mean() > open_[r0, c0].mean() + 20  # the brow has left its place
     assert raised[r1, c0].mean() < open_[r1, c0].mean() - 20  # and is 5 mm higher
     # everything outside the eyes' region is the speaker's own atlas

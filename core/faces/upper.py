@@ -11,10 +11,10 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
   open-eye and closed-eye references from enrolment -> closure 0 (open) .. 1 (closed), so a
   narrow-eyed speaker is not "half closed";
 - **blinks between readings**: the reader runs every other frame (``FusionPolicy.read_every``),
-  and a blink lasts 3-9 frames. On every frame a photometric eye measure is taken: how much
-  darker (iris, pupil, lash line, the shadowed sclera) an ellipse over the open eye is than the
-  skin of a ring around it, the ellipse placed by the last reading's eye corners moved with the
-  tracked head. Enrolment fits it to the readers' closure (a straight line per eye,
+  and a blink lasts 3-9 frames. On every frame a photometric eye measure is taken: the
+  contrast (grey-level s.d.: sclera, iris, lash line; a closed lid is skin) of an ellipse over
+  the open eye relative to the skin of a ring around it, the ellipse placed by the last
+  reading's eye corners moved with the tracked head. Enrolment fits it to the readers' closure (a straight line per eye,
   :func:`calibrate`), and frames without a reading take their closure from it;
 - **gaze**: the iris is the darkest blob inside the eye's contour; its centre's offset from
   the corners' midpoint, in mm of the aligned frame, less the speaker's own looking-at-the-
@@ -22,6 +22,8 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
   in degrees;
 - **brows**: inner / outer point heights above the eye corners' line, mm, less the speaker's
   neutral (the enrolment's median): raise > 0, lowering = how far the inner brows come down.
+  These are the landmark network's brows, which follow its face prior more than the pixels
+  (on the synthetic speaker they moved 0.7 mm for a painted 6 mm raise: docs/UPPER_FACE.md).
 
 Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll`` stores
 (speaker.json ``upper``).
@@ -288,10 +290,12 @@ def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
 
 def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
                   open_px: float) -> float | None:
-    """How much darker than the skin round it an ellipse over the open eye is (0: no
-    contrast; ~0.3-0.5 an open eye): 1 - mean(ellipse) / mean(ring round it). The ellipse
-    joins the corners ``inner``, ``outer`` (2,) px and is ``open_px`` high (the speaker's
-    open eye at this distance); None outside the image."""
+    """The contrast of an ellipse over the open eye (white sclera, dark iris, lash line; a
+    closed lid is skin): the grey levels' s.d. inside it over the mean of the skin in a ring
+    round it (0: uniform; ~0.3-0.6 an open eye). The ellipse joins the corners ``inner``,
+    ``outer`` (2,) px and is ``open_px`` high (the speaker's open eye at this distance); None
+    outside the image. (Its darkness relative to the ring, tried first, did not follow the
+    closure on the synthetic speaker, whose sclera is as bright as the iris is dark.)"""
     centre = (np.asarray(inner) + np.asarray(outer)) / 2.0
     axis = np.asarray(outer, np.float64) - inner
     half = float(np.linalg.norm(axis)) / 2.0
@@ -312,11 +316,12 @@ def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
     cv2.ellipse(ring, (c, (2 * ra, 2 * rb), ang), 1, -1)
     cv2.ellipse(eye, (c, (2 * a, 2 * b), ang), 1, -1)
     ring[eye > 0] = 0
-    m_eye = cv2.mean(patch, eye)[0]
+    _, sd = cv2.meanStdDev(patch, mask=eye)
+    s_eye = float(sd.ravel()[0])
     m_ring = cv2.mean(patch, ring)[0]
     if m_ring <= 1.0:
         return None
-    return float(1.0 - m_eye / m_ring)
+    return float(s_eye / m_ring)
 
 
 def _grey(patch: np.ndarray) -> np.ndarray:

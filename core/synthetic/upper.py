@@ -10,7 +10,7 @@ under them is the speaker's own (its atlas, inpainted where the static eyes were
 :func:`upper_sequence` draws a person-like timeline: blinks 10-20 a minute at random
 intervals (some double: a second blink 250-400 ms after the first), each closing in ~80 ms,
 closed ~40 ms and opening in ~150 ms; gaze fixations of 0.4-2 s joined by fast saccades
-(within +-15 deg yaw, +-10 deg pitch); brow raises of 2-6 mm held 0.3-1.2 s, now and then.
+(within +-15 deg yaw, +-10 deg pitch); brow raises of 2-5 mm held 0.3-1.2 s, now and then.
 """
 
 from __future__ import annotations
@@ -29,7 +29,9 @@ EYE_Y, EYE_X = 52.0, 32.0
 """The eyes' centres in the neutral head frame (mm), as the static texture paints them."""
 SCLERA = (12.0, 4.5)
 """Half-axes of the sclera, mm."""
-BROW_Y = 64.0
+BROW_Y = 61.0
+"""The animated brows' rest height (3 mm below the static texture's: raised, those went under
+the hair)."""
 REGION = (-55.0, 55.0, 36.0, 78.0)
 """The part of the skin repainted (x0, x1, y0, y1 mm, head frame)."""
 
@@ -96,7 +98,7 @@ def upper_sequence(seed: int, n_frames: int, fps: float) -> UpperTruth:
     brows = np.zeros((n_frames, 2))
     at = rng.uniform(0.5, 2.0)
     while at < dur:
-        h = rng.uniform(2.0, 6.0)
+        h = rng.uniform(2.0, 5.0)
         length = rng.uniform(0.3, 1.2)
         ramp = 0.15
         shape = np.clip(np.minimum((t - at) / ramp, (at + length + ramp - t) / ramp), 0, 1)
@@ -130,7 +132,7 @@ def _bare(seed: int) -> np.ndarray:
     for side in (-1.0, 1.0):
         ex = side * EYE_X
         mask |= (((x - ex) / 13.8) ** 2 + ((y - EYE_Y) / 6.6) ** 2 < 1.0).astype(np.uint8)
-        brow = np.abs(y - (BROW_Y - 0.006 * (x - ex) ** 2 + 1.5 * side * (x - ex) / 15)) < 3.2
+        brow = np.abs(y - (64.0 - 0.006 * (x - ex) ** 2 + 1.5 * side * (x - ex) / 15)) < 3.2
         mask |= (brow & (np.abs(x - ex) < 18.5)).astype(np.uint8)
     mask = cv2.dilate(mask, np.ones((5, 5), np.uint8))
     out = cv2.inpaint(patch, mask, 5, cv2.INPAINT_TELEA)
