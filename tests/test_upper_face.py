@@ -12,9 +12,8 @@ import pytest
 from articast.core.errors import ModelFileError
 from articast.core.faces import upper as U
 from articast.core.faces.canonical import canonical_face
-from articast.core.model.camera import rotation_matrix
+from articast.core.model.camera import Pose, rotation_matrix
 from articast.core.tracking.result import TrackResult
-from articast.core.model.camera import Pose
 
 CANON = canonical_face()
 SCALE = 3.0  # px per mm

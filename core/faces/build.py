@@ -28,12 +28,12 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
 from articast.core.errors import InputError
-from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
 from articast.core.faces.canonical import canonical_face
+from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
 from articast.core.faces.fit import fit_pose
 from articast.core.faces.flow import default_for, refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
-from articast.core.faces.upper import UpperReference, calibrate
+from articast.core.faces.upper import Measures, UpperReference, calibrate
 from articast.core.faces.upper import measure as measure_upper
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
@@ -223,7 +223,7 @@ def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> Upper
     import cv2
 
     canon = canonical_face()
-    ms = []
+    ms: list[Measures | None] = []
     for img, lm in zip(images, readings, strict=True):
         if not np.all(np.isfinite(lm[:468, :2])):
             ms.append(None)

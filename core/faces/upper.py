@@ -14,8 +14,9 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
   and a blink lasts 3-9 frames. On every frame a photometric eye measure is taken: the
   contrast (grey-level s.d.: sclera, iris, lash line; a closed lid is skin) of an ellipse over
   the open eye relative to the skin of a ring around it, the ellipse placed by the last
-  reading's eye corners moved with the tracked head. Enrolment fits it to the readers' closure (a straight line per eye,
-  :func:`calibrate`), and frames without a reading take their closure from it;
+  reading's eye corners moved with the tracked head. Enrolment fits it to the reader's
+  closure (a straight line per eye, :func:`calibrate`), and frames without a reading take
+  their closure from it (or hold the last reading's where that line fits poorly);
 - **gaze**: the iris is the darkest blob inside the eye's contour; its centre's offset from
   the corners' midpoint, in mm of the aligned frame, less the speaker's own looking-at-the-
   camera offset, over the eyeball's radius -> yaw (to the speaker's left +) and pitch (up +)
@@ -281,7 +282,7 @@ def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
     ax_al = aligned.points[outer, :2] - aligned.points[inner, :2]
     ax_img = np.array([ax_img[0], -ax_img[1]])  # y up
     ang = math.atan2(ax_al[1], ax_al[0]) - math.atan2(ax_img[1], ax_img[0])
-    k = float(np.linalg.norm(ax_al) / max(np.linalg.norm(ax_img), 1e-9))
+    k = float(np.linalg.norm(ax_al)) / max(float(np.linalg.norm(ax_img)), 1e-9)
     d = np.array([c[0] - mid[0], -(c[1] - mid[1])])
     ca, sa = math.cos(ang), math.sin(ang)
     off = k * np.array([ca * d[0] - sa * d[1], sa * d[0] + ca * d[1]])
@@ -404,7 +405,7 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
         photo += [float(a), float(b)]
         photo_r.append(r)
     runs = _runs(cl.max(axis=1) > 0.5)
-    return UpperReference(tuple(open_mm), tuple(closed), tuple(brows),  # type: ignore[arg-type]
+    return UpperReference(tuple(open_mm), tuple(closed), tuple(brows),
                           tuple(iris), tuple(photo), tuple(photo_r),  # type: ignore[arg-type]
                           len(runs), len(ms))
 
@@ -493,8 +494,8 @@ class UpperTracker:
         self._closure = (cl[0], cl[1])
         gaze = self._gaze
         if source == "reader":
-            offs = [(m.iris[i][0] - ref.iris_mm[2 * i], m.iris[i][1] - ref.iris_mm[2 * i + 1])
-                    for i in range(2) if m.iris[i] is not None and cl[i] < 0.5]
+            offs = [(iris[0] - ref.iris_mm[2 * i], iris[1] - ref.iris_mm[2 * i + 1])
+                    for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
             if offs:
                 dx, dy = np.mean(offs, axis=0)
                 gaze = (math.degrees(math.asin(float(np.clip(dx / EYE_RADIUS_MM, -1, 1)))),

@@ -128,13 +128,13 @@ def _bare(seed: int) -> np.ndarray:
     """The region's skin without the static eyes and brows (inpainted), uint8."""
     x, y, sl = _grid()
     patch = np.ascontiguousarray(make_atlas(seed).image[sl])
-    mask = np.zeros(x.shape, np.uint8)
+    painted = np.zeros(x.shape, bool)
     for side in (-1.0, 1.0):
         ex = side * EYE_X
-        mask |= (((x - ex) / 13.8) ** 2 + ((y - EYE_Y) / 6.6) ** 2 < 1.0).astype(np.uint8)
+        painted |= ((x - ex) / 13.8) ** 2 + ((y - EYE_Y) / 6.6) ** 2 < 1.0
         brow = np.abs(y - (64.0 - 0.006 * (x - ex) ** 2 + 1.5 * side * (x - ex) / 15)) < 3.2
-        mask |= (brow & (np.abs(x - ex) < 18.5)).astype(np.uint8)
-    mask = cv2.dilate(mask, np.ones((5, 5), np.uint8))
+        painted |= brow & (np.abs(x - ex) < 18.5)
+    mask = cv2.dilate(painted.astype(np.uint8), np.ones((5, 5), np.uint8))
     out = cv2.inpaint(patch, mask, 5, cv2.INPAINT_TELEA)
     out.setflags(write=False)
     return out
