@@ -135,7 +135,7 @@ def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
     m_open = U.photo_measure(grey_open, inner, outer, OPEN * SCALE)
     b = -1.0 / m_open  # closure 0 at the open eye's measure, 1 at no contrast
     ref = U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
-                           photo=(1.0, b, 1.0, b), photo_r=(0.9, 0.9))
+                           photo=(1.0, b, 1.0, b), photo_r=(-0.9, -0.9))
     tracker = U.UpperTracker(ref)
     first = tracker.step(eye_image(lm, (0.0, 0.0)), lm, np.zeros(2), True)
     assert first.closure_left == pytest.approx(0.0, abs=0.02)
@@ -143,7 +143,7 @@ def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
     assert shut.source == "photo" and shut.closure_left > 0.9 and shut.closure_right > 0.9
     # a weak calibration is not used: the last reading's closure is held
     weak = U.UpperTracker(U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
-                                           photo=(1.0, b, 1.0, b), photo_r=(0.2, 0.2)))
+                                           photo=(1.0, b, 1.0, b), photo_r=(-0.2, -0.2)))
     weak.step(eye_image(lm, (0.0, 0.0)), lm, np.zeros(2), True)
     held = weak.step(np.full((400, 640, 3), 150, np.uint8), None, np.zeros(2), True)
     assert held.closure_left == pytest.approx(0.0, abs=0.02)

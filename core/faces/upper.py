@@ -78,7 +78,8 @@ class UpperReference:
         when looking at the camera (the clip's median).
     photo : (left a, left b, right a, right b): closure = a + b x the photometric eye measure;
         photo_r : (left, right) its correlation with the reader's closure on the clip (a
-        side below 0.5 is not used: frames between readings hold the last closure).
+        side below 0.5 in magnitude is not used: frames between readings hold the last
+        closure).
     blinks : blinks the clip held (closure runs above 0.5); frames : frames measured.
     """
 
@@ -418,8 +419,9 @@ def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
 
 
 PHOTO_MIN_R = 0.5
-"""A side whose photometric measure correlated less than this with the reader's closure at
-enrolment is not used between readings (the last reading's closure is held)."""
+"""A side whose photometric measure correlated less than this (in magnitude: the contrast
+falls as the lid closes, r < 0) with the reader's closure at enrolment is not used between
+readings (the last reading's closure is held)."""
 
 
 @dataclass
@@ -486,7 +488,7 @@ class UpperTracker:
             c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
             if photo is not None:
                 x = photo[i]
-                if x is not None and ref.photo_r[i] >= PHOTO_MIN_R:
+                if x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R:
                     c = float(np.clip(ref.photo[2 * i] + ref.photo[2 * i + 1] * x, 0.0, 1.0))
                 elif self._closure is not None:
                     c = self._closure[i]
