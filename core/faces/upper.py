@@ -430,6 +430,7 @@ class UpperTracker:
 
     reference: UpperReference | None
     rig: str = "desk"
+    fuse: bool = True  # on a reading's frame, the mean of its closure and the photometric one
     canon: CanonicalFace = field(default_factory=canonical_face)
     _last: Measures | None = None
     _corners: np.ndarray | None = None  # (2 sides, 2 corners, 2) px at the last reading
@@ -486,6 +487,11 @@ class UpperTracker:
         cl = []
         for i in range(2):
             c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
+            x_now = m.photo[i]
+            if (photo is None and self.fuse and x_now is not None
+                    and abs(ref.photo_r[i]) >= PHOTO_MIN_R):  # a reading: both measures
+                c = 0.5 * (c + float(np.clip(ref.photo[2 * i] + ref.photo[2 * i + 1] * x_now,
+                                             0.0, 1.0)))
             if photo is not None:
                 x = photo[i]
                 if x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R:
