@@ -56,3 +56,25 @@ def test_painted_eyes_follow_the_truth():
     rl, cl = px(0.0, 0.0)
     assert np.array_equal(open_[rl - 40:rl + 40, cl - 40:cl + 40],
                           base[rl - 40:rl + 40, cl - 40:cl + 40])
+
+
+def test_cli_synth_sequence_with_upper_writes_its_truth(tmp_path):
+    import json
+
+    import cv2
+
+    from articast.service.cli import main
+
+    out = tmp_path / "s"
+    assert main(["synth", "sequence", "-o", str(out), "--rig", "desk", "--frames", "60",
+                 "--fps", "10", "--size", "320x240", "--upper"]) == 0
+    lines = [json.loads(x) for x in (out / "truth.jsonl").read_text().splitlines()]
+    assert len(lines) == 60 and all("upper" in r for r in lines)
+    closure = np.array([r["upper"]["closure_left"] for r in lines])
+    want = upper_sequence(0, 60, 10.0).closure[:, 0]  # --sentence defaults to --seed 0
+    assert np.allclose(closure, want) and closure.max() > 0.5  # a blink in 6 s
+    cap = cv2.VideoCapture(str(out / "video.mp4"))
+    n = 0
+    while cap.read()[0]:
+        n += 1
+    assert n == 60
