@@ -41,9 +41,9 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from blinks import events  # noqa: E402
 from real_clips import enrol_speaker  # noqa: E402
 
+from articast.core.evaluation.upper import score_upper  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -87,49 +87,9 @@ def corr(a, b) -> float | None:
     return round(float(np.corrcoef(a[ok], b[ok])[0, 1]), 4)
 
 
-def score(res, truth, tolerance: int = 0) -> dict:
-    n = len(res)
-    cl = np.full((n, 2), np.nan)
-    gz = np.full((n, 2), np.nan)
-    br = np.full((n, 2), np.nan)
-    for i, r in enumerate(res):
-        u = r.upper
-        if u is not None and u.eyes_ok:
-            cl[i] = (u.closure_left, u.closure_right)
-            if u.gaze_yaw_deg is not None:
-                gz[i] = (u.gaze_yaw_deg, u.gaze_pitch_deg)
-        if u is not None and u.brows_ok:
-            br[i] = ((u.raise_inner_left_mm + u.raise_outer_left_mm) / 2,
-                     (u.raise_inner_right_mm + u.raise_outer_right_mm) / 2)
-    true_ev = events(truth.closure.mean(axis=1) > 0.5, merge=0)
-    ours = events(np.nan_to_num(cl.mean(axis=1)) > 0.5, merge=0)
-
-    def hit(a, b):
-        return a[0] < b[1] + tolerance and b[0] < a[1] + tolerance
-
-    tp_ours = sum(any(hit(a, b) for b in true_ev) for a in ours)
-    tp_true = sum(any(hit(a, b) for a in ours) for b in true_ev)
-    prec = tp_ours / len(ours) if ours else None
-    rec = tp_true / len(true_ev) if true_ev else None
-    f1 = (2 * prec * rec / (prec + rec)) if prec and rec else 0.0
-    onsets = [next(a for a in ours if hit(a, b))[0] - b[0] for b in true_ev
-              if any(hit(a, b) for a in ours)]
-    open_ = truth.closure.mean(axis=1) < 0.2
-    err = np.hypot(*(gz - truth.gaze).T)
-    err = err[open_ & np.isfinite(err)]
-    return {
-        "frames": n, "eyes_ok": round(float(np.isfinite(cl[:, 0]).mean()), 4),
-        "true_blinks": len(true_ev), "tracked_blinks": len(ours),
-        "blink_precision": None if prec is None else round(prec, 4),
-        "blink_recall": None if rec is None else round(rec, 4), "blink_f1": round(f1, 4),
-        "onset_frames": onsets,
-        "onset_within_1": round(float(np.mean(np.abs(onsets) <= 1)), 4) if onsets else None,
-        "closure_r": [corr(cl[:, k], truth.closure[:, k]) for k in range(2)],
-        "gaze_median_error_deg": round(float(np.median(err)), 3) if err.size else None,
-        "gaze_yaw_r": corr(gz[:, 0], truth.gaze[:, 0]),
-        "gaze_pitch_r": corr(gz[:, 1], truth.gaze[:, 1]),
-        "brow_r": [corr(br[:, k], truth.brows[:, k]) for k in range(2)],
-    }
+def score(res, truth) -> dict:
+    """The figures of ``articast evaluate --upper`` (core/evaluation/upper.py)."""
+    return score_upper([r.upper for r in res], truth)
 
 
 def lips(res, speaker, true_model, seq) -> dict:

@@ -78,3 +78,39 @@ def test_cli_synth_sequence_with_upper_writes_its_truth(tmp_path):
     while cap.read()[0]:
         n += 1
     assert n == 60
+
+
+def test_upper_scores_against_the_truth():
+    from articast.core.evaluation.upper import score_upper
+    from articast.core.faces.upper import UpperFace
+
+    truth = upper_sequence(5, 900, 30.0)
+
+    def faces(shift: int = 0, absent: bool = False):
+        out = []
+        for i in range(900):
+            j = min(max(i - shift, 0), 899)
+            if absent:
+                out.append(UpperFace.absent("not_seen: head rig"))
+                continue
+            c, g, b = truth.closure[j], truth.gaze[j], truth.brows[j]
+            out.append(UpperFace(True, "", c[0], c[1], g[0], g[1], "reader", True, "",
+                                 b[0], b[0], b[1], b[1], 0.0))
+        return out
+
+    exact = score_upper(faces(), truth)
+    assert exact["blink_f1"] == 1.0 and exact["true_blinks"] == exact["tracked_blinks"] > 5
+    assert exact["onset_within_1"] == 1.0 and exact["gaze_median_error_deg"] == 0.0
+    assert exact["closure_r"] == [1.0, 1.0] and exact["brow_r"] == [1.0, 1.0]
+    late = score_upper(faces(shift=3), truth)  # three frames late: found, but late
+    assert late["blink_f1"] == 1.0 and late["onset_within_1"] == 0.0
+    assert set(late["onset_frames"]) == {3}
+    gone = score_upper(faces(absent=True), truth)
+    assert gone["eyes_ok"] == 0.0 and gone["blink_recall"] == 0.0 and gone["blink_f1"] == 0.0
+
+
+def test_evaluate_refuses_a_bad_upper_length(capsys):
+    from articast.service.cli import main
+
+    assert main(["evaluate", "--quick", "--upper", "--upper-seconds", "0.5"]) == 2
+    assert "--upper-seconds" in capsys.readouterr().err

@@ -203,7 +203,7 @@ class LiveTracker:
         self._t_last: float | None = None
         # the upper face (eyes, brows) from this frame's landmarks, or between readings
         # from the eyes' pixels (core/faces/upper.py)
-        self.upper = UpperTracker(speaker.upper, speaker.rig)
+        self.upper = UpperTracker(speaker.upper, speaker.rig, clock=clock)
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         if fu is not None:

@@ -33,6 +33,7 @@ Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll``
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -431,6 +432,8 @@ class UpperTracker:
     reference: UpperReference | None
     rig: str = "desk"
     fuse: bool = True  # on a reading's frame, the mean of its closure and the photometric one
+    clock: Callable[[], float] | None = None  # (given: ``spent_s`` adds up the steps' time)
+    spent_s: float = 0.0
     canon: CanonicalFace = field(default_factory=canonical_face)
     _last: Measures | None = None
     _corners: np.ndarray | None = None  # (2 sides, 2 corners, 2) px at the last reading
@@ -444,6 +447,16 @@ class UpperTracker:
 
     def step(self, image: np.ndarray, landmarks: np.ndarray | None, anchor: np.ndarray | None,
              ok: bool) -> UpperFace:
+        """One frame (:meth:`_step`), its time added to ``spent_s`` when there is a clock."""
+        if self.clock is None:
+            return self._step(image, landmarks, anchor, ok)
+        t0 = self.clock()
+        out = self._step(image, landmarks, anchor, ok)
+        self.spent_s += self.clock() - t0
+        return out
+
+    def _step(self, image: np.ndarray, landmarks: np.ndarray | None, anchor: np.ndarray | None,
+              ok: bool) -> UpperFace:
         """One frame. landmarks : this frame's reading (None between readings); anchor : (2,)
         px, where a point fixed to the head (tracked) is in this frame, to move the eye
         corners between readings (None: they stay); ok : whether the face is tracked."""
