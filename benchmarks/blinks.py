@@ -34,6 +34,7 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import cv2
@@ -135,7 +136,7 @@ def track(speaker, held, fps):
 
 
 def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,
-         tile: int = 150, most: int = 60) -> None:
+         tile: int = 120, most: int = 60) -> None:
     """A row per event (both methods' events, overlapping ones merged): the frames from 2
     before its onset, the upper face (centred on the reference's eye points where it has
     them), labelled with articast's closure (yellow above 0.5) and the EAR ratio (red below
@@ -172,7 +173,7 @@ def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,
         rows.append(np.hstack(tiles))
     if rows:
         path.parent.mkdir(parents=True, exist_ok=True)
-        cv2.imwrite(str(path), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 80])
+        cv2.imwrite(str(path), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 75])
 
 
 def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
@@ -213,7 +214,9 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
     out["closure"] = [None if not np.isfinite(v) else round(float(v), 3) for v in cl]
     out["ear_ratio"] = [None if not np.isfinite(v) else round(float(v), 3) for v in ratio]
     if grid_dir is not None:
-        eyes = np.nanmean(got["points"][:, 36:48], axis=1)
+        with warnings.catch_warnings():  # frames where dlib found no face: NaN, centred
+            warnings.simplefilter("ignore", RuntimeWarning)
+            eyes = np.nanmean(got["points"][:, 36:48], axis=1)
         grid(grid_dir / f"{name}.jpg", held, cl, ratio, ours, ref, eyes)
     return out
 
