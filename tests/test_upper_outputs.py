@@ -175,3 +175,19 @@ def test_wire_frame_carries_eyes_and_brows_with_their_own_ok():
     m3 = parse_server_message(FrameEvent("s", 1, record(None), names,
                                          outputs=outputs).for_subscriber(streams, dropped=0))
     assert m3.eyes is None and m3.brows is None
+
+
+def test_hostile_eye_blocks_in_a_recording_never_reach_an_output():
+    from articast.core.outputs.fap import fapu_from_model
+
+    d = TrackResult(0, 0.0, np.zeros(MODEL.n_params), Pose(FRONTAL),
+                    upper=face()).to_dict(MODEL.param_names)
+    d["eyes"].update(closure_left=7.0, gaze_yaw_deg=1e308)
+    d["brows"].update(raise_inner_left_mm=float("nan"), raise_outer_left_mm="high")
+    back = TrackResult.from_dict(d, MODEL.param_names).upper
+    # a closure out of 0..1 is no closure: the eyes are not ok; the brows neither
+    assert not back.eyes_ok and back.closure_left is None and back.gaze_yaw_deg is None
+    assert not back.brows_ok and back.raise_inner_left_mm is None
+    assert fap_upper(back, fapu_from_model(MODEL)) == {} and arkit_upper(back) == {}
+    d["eyes"] = "not a block"
+    assert TrackResult.from_dict(d, MODEL.param_names).upper is None

@@ -171,17 +171,23 @@ class UpperFace:
         if not isinstance(eyes, dict) or not isinstance(brows, dict):
             return None
 
-        def num(d: dict, k: str) -> float | None:
+        def num(d: dict, k: str, lo: float, hi: float) -> float | None:
+            """A plausible number, or None (a hostile or broken file: never a crash
+            downstream, e.g. a FAP of 1e308 degrees)."""
             v = d.get(k)
-            return float(v) if isinstance(v, int | float) and math.isfinite(v) else None
+            ok = isinstance(v, int | float) and not isinstance(v, bool) and lo <= v <= hi
+            return float(v) if ok else None  # (NaN fails the comparison)
 
-        return cls(bool(eyes.get("ok")), str(eyes.get("reason", "")),
-                   num(eyes, "closure_left"), num(eyes, "closure_right"),
-                   num(eyes, "gaze_yaw_deg"), num(eyes, "gaze_pitch_deg"), "",
-                   bool(brows.get("ok")), str(brows.get("reason", "")),
-                   num(brows, "raise_inner_left_mm"), num(brows, "raise_outer_left_mm"),
-                   num(brows, "raise_inner_right_mm"), num(brows, "raise_outer_right_mm"),
-                   num(brows, "lowering_mm"))
+        mm = (-100.0, 100.0)
+        cl = [num(eyes, k, 0.0, 1.0) for k in ("closure_left", "closure_right")]
+        gz = [num(eyes, k, -90.0, 90.0) for k in ("gaze_yaw_deg", "gaze_pitch_deg")]
+        br = [num(brows, k, *mm) for k in ("raise_inner_left_mm", "raise_outer_left_mm",
+                                           "raise_inner_right_mm", "raise_outer_right_mm")]
+        eyes_ok = bool(eyes.get("ok")) and None not in cl
+        brows_ok = bool(brows.get("ok")) and None not in br
+        return cls(eyes_ok, str(eyes.get("reason", ""))[:200], cl[0], cl[1], gz[0], gz[1], "",
+                   brows_ok, str(brows.get("reason", ""))[:200], br[0], br[1], br[2], br[3],
+                   num(brows, "lowering_mm", *mm))
 
 
 def _r(v: float | None, nd: int = 4) -> float | None:
