@@ -31,7 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "assumed inter-pupillary distance (or mouth width when the eyes are not seen), "
             "local appearance trained at the landmark states and refined by "
             "analysis-by-synthesis. Read with open vowels, rounded and spread lips "
-            "(e.g. 'a', 'ee', 'oo', 'p', 'f') so every parameter is covered. Then: "
+            "(e.g. 'a', 'ee', 'oo', 'p', 'f') so every parameter is covered, and blink "
+            "naturally: on a desk camera the same clip gives the speaker's own open eye, "
+            "closed eye and neutral brows, which the tracked eyelids, gaze and brows are "
+            "measured against (docs/UPPER_FACE.md; a warning when it holds no blink). Then: "
             "'articast track VIDEO --speaker DIR' or 'articast serve --source me=... "
             "--speaker DIR'."
         ),
