@@ -175,8 +175,9 @@ class UpperFace:
             """A plausible number, or None (a hostile or broken file: never a crash
             downstream, e.g. a FAP of 1e308 degrees)."""
             v = d.get(k)
-            ok = isinstance(v, int | float) and not isinstance(v, bool) and lo <= v <= hi
-            return float(v) if ok else None  # (NaN fails the comparison)
+            if not isinstance(v, int | float) or isinstance(v, bool):
+                return None
+            return float(v) if lo <= v <= hi else None  # (NaN fails the comparison)
 
         mm = (-100.0, 100.0)
         cl = [num(eyes, k, 0.0, 1.0) for k in ("closure_left", "closure_right")]
