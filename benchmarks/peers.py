@@ -294,6 +294,18 @@ def facemesh_v1_finder(path: Path) -> FaceFinder:
 
 def run_worker(name: str, peer: dict, held: list[np.ndarray]) -> dict:
     """Run one peer in its venv on ``held`` through a pipe; its own per-frame timing."""
+    got = worker_points(name, peer, held)
+    if "error" in got:
+        return got
+    pts, scheme = got["points"], got["scheme"]
+    found = np.isfinite(pts).all(axis=(1, 2))
+    return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme),
+            "ms": got["ms"], "cpu_ms": got["cpu_ms"], "found": found}
+
+
+def worker_points(name: str, peer: dict, held: list[np.ndarray]) -> dict:
+    """One peer's points on ``held`` (``points`` (N, K, 2) px, NaN where no face; ``scheme``;
+    its mean ``ms`` and ``cpu_ms``), or ``error``."""
     h, w = held[0].shape[:2]
     with tempfile.TemporaryDirectory(prefix="articast-peer-") as tmp:
         out, err = Path(tmp) / "out.npz", Path(tmp) / "stderr.txt"
@@ -319,10 +331,8 @@ def run_worker(name: str, peer: dict, held: list[np.ndarray]) -> dict:
         pts, scheme = data["points"], str(data["scheme"])
         if pts.shape[1] == 0:  # no face in any frame: as many NaN points as the scheme needs
             pts = np.full((len(held), max(SCHEMES[scheme]) + 1, 2), np.nan)
-        found = np.isfinite(pts).all(axis=(1, 2))
-        return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme),
-                "ms": float(data["ms"].mean()), "cpu_ms": float(data["cpu_ms"].mean()),
-                "found": found}
+        return {"points": pts, "scheme": scheme, "ms": float(data["ms"].mean()),
+                "cpu_ms": float(data["cpu_ms"].mean())}
 
 
 def load_peers(cache: Path) -> dict:

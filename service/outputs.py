@@ -44,6 +44,18 @@ class Outputs:
         values = self._fap.frame_dict(alpha, np.concatenate([rotation, translation]))
         return {"values": values, "mask": sorted(int(k) for k in values)}
 
+    def with_upper_fap(self, fap: dict[str, Any], upper: Any) -> dict[str, Any]:
+        """A frame's FAPs with the eyelid, eyeball and eyebrow FAPs of ``upper`` (an
+        :class:`~articast.core.faces.upper.UpperFace`) added where they were seen."""
+        from articast.core.outputs.fap import Fapu
+        from articast.core.outputs.upper import fap_upper
+
+        extra = fap_upper(upper, Fapu(**self.fapu))
+        if not extra or self._fap is None:  # nothing seen, or no reference head pose yet
+            return fap
+        values = {**fap["values"], **{str(k): int(v) for k, v in extra.items()}}
+        return {"values": values, "mask": sorted(int(k) for k in values)}
+
     def recentre(self) -> None:
         """The next good frame becomes the head FAPs' reference (as the session's neutral)."""
         self._fap = None

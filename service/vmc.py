@@ -13,6 +13,10 @@ checks it (``i`` int32, ``f`` float32, ``s`` string). A frame is split into bund
 ``/VMC/Ext/Root/Pos "root" 0 0 0 0 0 0 1``           the avatar's root stays where it is
 ``/VMC/Ext/Bone/Pos "Head" px py pz qx qy qz qw``    the head, relative to the speaker's
                                                      neutral pose
+``/VMC/Ext/Bone/Pos "LeftEye" 0 0 0 qx qy qz qw``    the eyes' gaze relative to the head (and
+``/VMC/Ext/Bone/Pos "RightEye" ...``                 ``RightEye``), when the eyes are seen
+``/VMC/Ext/Blend/Val name value`` ...                the ARKit eye and brow shapes and the VRM
+                                                     presets ``Blink_L Blink_R`` (when seen)
 ``/VMC/Ext/Blend/Val name value`` ...                ARKit mouth/jaw shapes, then the VRM
                                                      vowels ``A I U E O``
 ``/VMC/Ext/Blend/Apply``                             the receiver applies the values
@@ -103,6 +107,28 @@ def head_bone(
     return offset / 1000.0, quaternion_xyzw(unity)
 
 
+def upper_messages(upper: Any, names: str = "perfect-sync") -> list[OscMessage]:
+    """The eyes and brows of a frame (:mod:`articast.core.outputs.upper`), what was seen only:
+    the eye bones ``LeftEye`` / ``RightEye`` (the gaze, in the head bone's Unity axes), the
+    ARKit eye and brow shapes and the VRM presets ``Blink_L`` / ``Blink_R``."""
+    from articast.core.outputs.upper import arkit_upper, eye_rotation
+
+    out = []
+    rot = eye_rotation(upper)
+    if rot is not None:
+        q = quaternion_xyzw(UNITY_FROM_HEAD @ rot @ UNITY_FROM_HEAD)
+        for bone in ("LeftEye", "RightEye"):
+            out.append(_message("/VMC/Ext/Bone/Pos", bone, 0.0, 0.0, 0.0,
+                                *(float(v) for v in q)))
+    weights = arkit_upper(upper)
+    for name, value in weights.items():
+        out.append(_message("/VMC/Ext/Blend/Val", blend_name(name, names), float(value)))
+    if "eyeBlinkLeft" in weights:
+        out.append(_message("/VMC/Ext/Blend/Val", "Blink_L", float(weights["eyeBlinkLeft"])))
+        out.append(_message("/VMC/Ext/Blend/Val", "Blink_R", float(weights["eyeBlinkRight"])))
+    return out
+
+
 def _message(address: str, *args: str | int | float) -> OscMessage:
     b = OscMessageBuilder(address=address)
     for a in args:
@@ -185,6 +211,7 @@ class VmcSender:
         if vowels is not None:
             for name, value in vowels.weights_dict(result.alpha).items():
                 messages.append(_message("/VMC/Ext/Blend/Val", name, float(value)))
+        messages[2:2] = upper_messages(result.upper, self.names)
         messages.append(_message("/VMC/Ext/Blend/Apply"))
         head = [_message("/VMC/Ext/OK", 1), _message("/VMC/Ext/T", float(t))]
         groups: list[list[Any]] = [[]]

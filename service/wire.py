@@ -92,6 +92,8 @@ class FrameRecord:
     quality: dict[str, Any]
     source_dropped: int = 0
     lips: dict[str, float] | None = None
+    eyes: dict[str, Any] | None = None  # UpperFace.eyes_dict() (live tracking) or None
+    brows: dict[str, Any] | None = None
 
     def to_json(self, param_names: list[str]) -> dict[str, Any]:
         """The recording line (a superset of ``TrackResult.to_dict``)."""
@@ -99,7 +101,8 @@ class FrameRecord:
                 "t_capture": self.t_capture, "t_tracked": self.t_tracked,
                 "alpha": dict(zip(param_names, self.alpha, strict=True)),
                 "pose": {"rotation": list(self.rotation), "translation": list(self.translation)},
-                "lips": self.lips, "quality": self.quality}
+                "lips": self.lips, "quality": self.quality,
+                **({"eyes": self.eyes, "brows": self.brows} if self.eyes is not None else {})}
 
 
 def relative_pose(rotation: Any, translation: Any, neutral_rotation: Any,
@@ -175,12 +178,19 @@ class FrameEvent:
             v["mesh"] = (mean + np.asarray(r.alpha, np.float32) @ basis).tolist()
         if self.outputs is not None and ("fap" in streams or "arkit" in streams):
             alpha = np.asarray(r.alpha)
+            upper = _upper(r)
             if "fap" in streams:
                 v["fap"] = self.outputs.fap(alpha, np.asarray(r.rotation),
                                             np.asarray(r.translation), bool(r.quality["ok"]),
                                             None if self.neutral is None else self.neutral[0])
+                if upper is not None:
+                    v["fap"] = self.outputs.with_upper_fap(v["fap"], upper)
             if "arkit" in streams:
                 v["arkit"] = self.outputs.arkit_weights(alpha)
+                if upper is not None:  # the eyes and brows seen, after the mouth's
+                    from articast.core.outputs.upper import arkit_upper
+
+                    v["arkit"].update(arkit_upper(upper))
         return v
 
     def _encode(self, view: View) -> str | bytes:
@@ -190,11 +200,23 @@ class FrameEvent:
                "t": r.t, "t_capture": r.t_capture, "t_tracked": r.t_tracked, "t_sent": now(),
                "values": self.values(streams), "lips": r.lips, "quality": r.quality,
                "dropped": 0}
+        if r.eyes is not None and encoding != "binary":  # JSON encoding only
+            msg = {**{k: v for k, v in msg.items() if k != "dropped"}, "eyes": r.eyes,
+                   "brows": r.brows, "dropped": 0}
         if encoding == "binary":
             return P.encode_frame_binary(msg, self.sid, self.param_names)
         text = json.dumps(msg, separators=(",", ":"))
         assert text.endswith('"dropped":0}')
         return text
+
+
+def _upper(r: FrameRecord) -> Any:
+    """The record's eyes and brows as an UpperFace (None without them)."""
+    if r.eyes is None:
+        return None
+    from articast.core.faces.upper import UpperFace
+
+    return UpperFace.from_dicts(r.eyes, r.brows)
 
 
 def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] | None,

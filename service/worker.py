@@ -230,6 +230,8 @@ def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
                  "evals": int(result.evals), "iterations": int(result.iterations), "ms": ms},
         source_dropped=source_dropped,
         lips=_lips(result, model, alpha),
+        eyes=None if result.upper is None else result.upper.eyes_dict(),
+        brows=None if result.upper is None else result.upper.brows_dict(),
     )
 
 

@@ -63,6 +63,10 @@ def test_enroll_writes_a_speaker_folder_with_the_seven_parameters(enrolled, caps
     sheet = cv2.imread(str(enrolled / "speaker" / "contact.png"))
     assert sheet is not None and sheet.shape[0] >= 240 and sheet.shape[1] == 3 * 240
     assert "contact sheet" not in capsys.readouterr().out  # --json: the report only
+    # the upper face's references, from the same clip; its static eyes never blink: said
+    assert sp.upper is not None and sp.upper.open_mm[0] > sp.upper.closed_mm[0] > 0
+    assert sp.report["upper"]["eyes_visible"] and sp.report["upper"]["blinks"] == 0
+    assert any("no blink" in w for w in sp.report["warnings"])
 
 
 def test_track_with_only_the_speaker_folder_follows_the_true_articulation(enrolled, capsys):
@@ -83,6 +87,12 @@ def test_track_with_only_the_speaker_folder_follows_the_true_articulation(enroll
     ap = np.array([r["lips"]["aperture_mm"] for r in lines])
     ap_true, _ = lip_measures(true_model, at)
     assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
+    # every line has the eyes and brows; the rendered eyes stay open and look ahead
+    eyes = [r["eyes"] for r in lines]
+    assert all(e["ok"] for e, k in zip(eyes, ok, strict=True) if k)
+    closure = np.array([e["closure_left"] for e in eyes if e["ok"]])
+    assert np.all((closure >= 0) & (closure <= 1)) and np.median(closure) < 0.3
+    assert all("raise_left_mm" in r["brows"] for r in lines)
 
 
 @pytest.mark.parametrize("kind", ["noise", "blank"])
@@ -241,6 +251,10 @@ def test_a_head_mounted_camera_enrols_and_tracks_the_lower_face(tmp_path):
     sp, lines, ok, truth = _head_clip_enrolled_and_tracked(tmp_path, 5)
     assert sp.rig == "head" and "mouth width 50 mm" in sp.report["scale"]
     assert ok.mean() >= 0.95
+    # no eyes in view: absent with their reason, never open eyes at 0
+    assert sp.upper is None
+    assert all(not r["eyes"]["ok"] and r["eyes"]["reason"].startswith("not_seen")
+               and r["eyes"]["closure_left"] is None and not r["brows"]["ok"] for r in lines)
     true_model = FaceModel.load(tmp_path / "test" / "model.npz")
     at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
     ap_true, _ = lip_measures(true_model, at)

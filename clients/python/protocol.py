@@ -193,6 +193,32 @@ class Lips(_Message):
     width_mm: float
 
 
+class Eyes(_Message):
+    """The eyes of a frame (live tracking of an enrolled speaker; JSON encoding only). Values
+    are null when ``ok`` is false: the eyes were not seen (``reason``), not open."""
+
+    ok: bool
+    reason: str = ""
+    closure_left: float | None = Field(default=None, description="0 open .. 1 closed")
+    closure_right: float | None = None
+    gaze_yaw_deg: float | None = Field(default=None, description="to the speaker's left +")
+    gaze_pitch_deg: float | None = Field(default=None, description="up +")
+
+
+class Brows(_Message):
+    """The brows of a frame, mm from the speaker's neutral (raise +); null when not ok."""
+
+    ok: bool
+    reason: str = ""
+    raise_left_mm: float | None = None
+    raise_right_mm: float | None = None
+    raise_inner_left_mm: float | None = None
+    raise_outer_left_mm: float | None = None
+    raise_inner_right_mm: float | None = None
+    raise_outer_right_mm: float | None = None
+    lowering_mm: float | None = Field(default=None, description="inner brows lowered, mm")
+
+
 class Frame(_Message):
     type: Literal["frame"] = "frame"
     session: str
@@ -207,6 +233,9 @@ class Frame(_Message):
         default=None, description="lip aperture and width (mm) on every frame; null when the "
         "session's model has no inner-lip points")
     quality: Quality
+    eyes: Eyes | None = Field(default=None, description="eyelids and gaze, with their own ok "
+                              "(eyes can be lost while the lips are fine); JSON encoding only")
+    brows: Brows | None = Field(default=None, description="brow raise and lowering, own ok")
     dropped: int = Field(description="frames this subscriber lost because it read too slowly")
 
 

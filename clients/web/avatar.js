@@ -10,6 +10,7 @@
 import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
+import { drawUpper, upperAnchors } from "./eyes.js";
 
 const params = new URLSearchParams(location.search);
 // the server's token, if it has one, comes in this page's URL (?token=...) and goes on
@@ -130,7 +131,7 @@ class Mesh {
 }
 if (gl) gl.getExtension("OES_element_index_uint");
 
-let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null, scan = null, delegate = null;
+let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null, scan = null, delegate = null, upper = null;
 
 function render() {
   if (!gl || !sparse || !state.alpha) return;
@@ -159,6 +160,7 @@ function render() {
   else if (delegate && $("delegate").checked) { delegate.update(state.alpha); delegate.draw(mvp, rot3); }
   else { mesh.update(state.alpha); mesh.draw(mvp, rot3, [0.86, 0.66, 0.56], false); }
   if ($("wire").checked) { sparse.update(state.alpha); sparse.draw(mvp, rot3, [0.2, 0.9, 0.6], true); }
+  drawUpper($("upper"), mvp, upper, state.eyes, state.brows); // eyes.js: eyes and brows
 }
 function mat3Mul(a, b) {
   const o = new Array(9);
@@ -243,6 +245,7 @@ async function onHello(h) {
   sparse = new Mesh(new Float32Array(g.mean), new Float32Array(g.basis), g.triangles, k);
   centre = [0, 0, 0];
   for (let i = 0; i < g.mean.length; i += 3) for (let d = 0; d < 3; d++) centre[d] += g.mean[i + d] * 3 / g.mean.length;
+  upper = upperAnchors(g);
   state.mesh = `sparse ${sparse.m} points`; $("mesh").textContent = state.mesh;
   dense = null; delegate = null; state.delegate = "";
   loadDelegate(gl, h.delegate_url, authHeaders).then((d) => { // the speaker's own face
@@ -277,6 +280,7 @@ function draw(now) {
   latest = null;
   const names = state.hello.param_names, a = f.values.articulatory || {};
   state.alpha = names.map((n) => a[n] || 0);
+  state.eyes = f.eyes || null; state.brows = f.brows || null;
   if (f.values.pose) { pose = f.values.pose; if (!firstRot && f.quality.ok) firstRot = rotationFromAxisAngle(pose.rotation); }
   showBars(state.alpha);
   $("quality").textContent = f.quality.ok ? `ok, ${f.quality.evals} evals` : `not ok: ${f.quality.reason}`;

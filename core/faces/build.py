@@ -15,6 +15,8 @@
    this face, with the errors its points share
    (:func:`~articast.core.tracking.points.learn_point_model`), and the motion model's process
    noise from the clip's states (:func:`~articast.core.tracking.kalman.process_noise`).
+7. With the same readings on a desk camera: the speaker's own upper-face references
+   (:mod:`articast.core.faces.upper`: open and closed eye, neutral brows, gaze at the camera).
 """
 
 from __future__ import annotations
@@ -26,10 +28,13 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
 from articast.core.errors import InputError
+from articast.core.faces.canonical import canonical_face
 from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
 from articast.core.faces.fit import fit_pose
 from articast.core.faces.flow import default_for, refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
+from articast.core.faces.upper import Measures, UpperReference, calibrate
+from articast.core.faces.upper import measure as measure_upper
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lip_measures
@@ -202,7 +207,48 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
                                       np.asarray(readings), reader, at)
         report["reader"] = {"network": reader, "shared_error_modes": int(len(points.modes)),
                             "sigma_mm_median": round(float(np.median(points.sigma_mm)), 3)}
-    return Speaker(model, app, camera, stats, rig, scheme.name, name, report, points, motion)
+    upper = None
+    if readings is not None and rig == "desk":
+        say("calibrating the eyes and brows (open eye, closed eye, neutral brows, gaze)")
+        upper = upper_reference(images, np.asarray(readings))
+        report["upper"] = upper_report(upper)
+    return Speaker(model, app, camera, stats, rig, scheme.name, name, report, points, motion,
+                   upper)
+
+
+def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> UpperReference | None:
+    """Step 7: the speaker's open-eye, closed-eye, neutral-brow and gaze references, and the
+    photometric eye measure's line to the reader's closure, from the reader's landmarks of
+    the enrolment frames (:func:`~articast.core.faces.upper.calibrate`)."""
+    import cv2
+
+    canon = canonical_face()
+    ms: list[Measures | None] = []
+    for img, lm in zip(images, readings, strict=True):
+        if not np.all(np.isfinite(lm[:468, :2])):
+            ms.append(None)
+            continue
+        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        ms.append(measure_upper(grey, lm, canon))
+    first = calibrate(ms)
+    if first is None:
+        return None
+    # the photometric measure again with the ellipse at the speaker's open eye (as live)
+    ms = [None if m is None else measure_upper(
+        img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), lm, canon,
+        first.open_mm) for m, img, lm in zip(ms, images, readings, strict=True)]
+    return calibrate(ms)
+
+
+def upper_report(ref: UpperReference | None) -> dict:
+    """What ``enroll`` reports of the upper face (and warns about)."""
+    if ref is None:
+        return {"eyes_visible": False}
+    return {"eyes_visible": True, "frames": ref.frames, "blinks": ref.blinks,
+            "open_eye_mm": [round(v, 2) for v in ref.open_mm],
+            "closed_eye_mm": [round(v, 2) for v in ref.closed_mm],
+            "neutral_brows_mm": [round(v, 2) for v in ref.brows_mm],
+            "photometric_r": [round(v, 3) for v in ref.photo_r]}
 
 
 def fusion_model(model: FaceModel, camera: Camera, scheme: LandmarkScheme,

@@ -43,6 +43,7 @@ from articast.core.faces.finder import FaceFinder, reader_seed
 from articast.core.faces.fit import state_from_landmarks
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
+from articast.core.faces.upper import UpperTracker
 from articast.core.model.camera import Pose, axis_angle
 from articast.core.outputs.lips import lip_measures, lips_dict
 from articast.core.tracking.filters import OneEuroFilter, OneEuroPolicy
@@ -232,6 +233,11 @@ class LiveTracker:
         self.regated = 0  # readings far from the prediction (the motion model restarted)
         self.rereads = 0  # readings that asked for the next frame to be read too
         self._t_last: float | None = None
+        # the upper face (eyes, brows) from this frame's landmarks, or between readings
+        # from the eyes' pixels (core/faces/upper.py)
+        self.upper = UpperTracker(speaker.upper, speaker.rig, clock=clock)
+        self._fresh: Any = None  # the landmarks read in this frame, if any
+        self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         if fu is not None:
             if reader is None:  # the bundled one, on one thread
                 self.reader = FaceFinder.load(landmarks=fu.reader)
@@ -248,9 +254,10 @@ class LiveTracker:
     # ------------------------------------------------------------------ helpers
     def _finder(self, image: np.ndarray, previous: Any = None) -> Any:
         self.finder_calls += 1
-        if previous is not None:
-            return self.finder.track(image, previous)
-        return self.finder.find(image)
+        face = (self.finder.track(image, previous) if previous is not None
+                else self.finder.find(image))
+        self._fresh = face
+        return face
 
     def _start(self, face: Any, keep_levels: bool = False) -> bool:
         state = state_from_landmarks(self.speaker.model, self.scheme, self.speaker.camera,
@@ -299,7 +306,9 @@ class LiveTracker:
         """Fit one frame (BGR uint8) taken at time ``t`` (s)."""
         self._frame += 1
         t0 = self.clock() if self.clock else 0.0
+        self._fresh = None
         result = self._track(image, t)
+        result = replace(result, upper=self._upper_face(image, result))
         ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
         result = replace(result, frame=self._frame, ms=ms)
         if self._filter is not None:
@@ -312,6 +321,16 @@ class LiveTracker:
         if result.ok:
             self._last = result
         return result
+
+    def _upper_face(self, image: np.ndarray, result: TrackResult) -> Any:
+        """The eyes and brows of this frame (:class:`~articast.core.faces.upper.UpperFace`)."""
+        fresh = self._fresh
+        marks = None if fresh is None else np.asarray(fresh.landmarks)
+        anchor = None
+        if result.ok or result.reason.startswith("occluded"):
+            anchor = self.speaker.camera.project_head(self._head_point[None], result.pose)[0]
+        return self.upper.step(image, marks, anchor,
+                               result.ok or result.reason.startswith("occluded"))
 
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
         if float(image[::8, ::8].std()) < self.tracker.policy.min_contrast:
@@ -367,6 +386,7 @@ class LiveTracker:
         if self._started and self._reading is not None and not skip:
             self.finder_calls += 1
             reading = self.reader.track(image, self._reading)
+            self._fresh = reading
             self._since_read = 0
         restart = not self._started or (reading is None and not skip)
         prior = None
@@ -405,6 +425,7 @@ class LiveTracker:
             self.kalman.start(alpha, pose.rotation, pose.translation)
             self.finder_calls += 1
             reading = self.reader.track(image, reader_seed(face))
+            self._fresh = reading
             if reading is None:
                 return self._lost(t, "no_face: the landmarks lost the face")
             self._since_read = 0

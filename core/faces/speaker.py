@@ -15,7 +15,10 @@
                         stand in)
 
 speaker.json's optional ``motion`` holds the motion model's process noise learned from the
-clip (``q`` per unknown; without it the defaults).
+clip (``q`` per unknown; without it the defaults); its optional ``upper`` the speaker's own
+open-eye, closed-eye, neutral-brow and gaze references
+(:class:`~articast.core.faces.upper.UpperReference`; without it the eyes and brows are
+reported absent, ``not_calibrated``).
 
 The residual statistics are what ``ok`` is judged against on live frames: a frame whose
 robust residual is far above what the enrolment clip itself produced is not the speaker
@@ -35,6 +38,7 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel
 from articast.core.errors import InputError, ModelFileError
+from articast.core.faces.upper import UpperReference
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
 from articast.core.tracking.kalman import MotionNoise
@@ -87,6 +91,7 @@ class Speaker:
     report: dict[str, Any] = field(default_factory=dict)
     points: PointModel | None = None
     motion_noise: MotionNoise | None = None
+    upper: UpperReference | None = None
 
     def save(self, folder: str | os.PathLike[str]) -> None:
         """Write the folder (created if needed); speaker.json last, so a folder with it is
@@ -106,6 +111,8 @@ class Speaker:
         if self.motion_noise is not None:
             meta["motion"] = {"q": [float(x) for x in self.motion_noise.q],
                               "v0": [float(x) for x in self.motion_noise.initial_velocity_sd]}
+        if self.upper is not None:
+            meta["upper"] = self.upper.to_dict()
         tmp = d / "speaker.json.tmp"
         tmp.write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         os.replace(tmp, d / "speaker.json")
@@ -148,7 +155,9 @@ class Speaker:
                    ResidualStats.from_dict(meta.get("residual") or {}, where), rig,
                    str(meta.get("scheme", "")), str(meta.get("name", "speaker")),
                    meta.get("report") if isinstance(meta.get("report"), dict) else {},
-                   points, _motion_noise(meta.get("motion"), model.n_params, where))
+                   points, _motion_noise(meta.get("motion"), model.n_params, where),
+                   None if meta.get("upper") is None
+                   else UpperReference.from_dict(meta["upper"], where))
 
 
 def _motion_noise(d: Any, k: int, where: str) -> MotionNoise | None:

@@ -2,7 +2,8 @@
 
 Avatar apps (VSeeFace, VNyan, Warudo, Unity/Unreal rigs with "perfect sync") are driven by
 Apple ARKit's 52 blendshape coefficients in 0..1. We populate the mouth and jaw ones (the
-eyes, brows, cheeks, nose and tongue stay 0: our model does not track them).
+cheeks, nose and tongue stay 0: our model does not track them; the eyes and brows come from
+the live tracker's upper face, :mod:`articast.core.outputs.upper`).
 
 Each populated shape is a **measure** in mm of feature-point displacements from the neutral
 face, in the head frame (x = the speaker's own left, y up, z forward), linear in alpha

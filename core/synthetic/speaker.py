@@ -64,8 +64,11 @@ class SyntheticSpeaker:
         return np.zeros(len(PARAM_NAMES))
 
     def render(self, controls: np.ndarray, pose: Pose, camera: Camera,
-               options: RenderOptions | None = None) -> np.ndarray:
-        """One frame of the true articulated face: controls (7,) -> (H, W, 3) uint8 BGR."""
+               options: RenderOptions | None = None, upper: dict | None = None) -> np.ndarray:
+        """One frame of the true articulated face: controls (7,) -> (H, W, 3) uint8 BGR.
+
+        upper : the eyes and brows (:mod:`articast.core.synthetic.upper`, a dict as
+        ``UpperTruth.frame`` gives); None: the static painted ones (open, looking ahead)."""
         c = np.asarray(controls, np.float64)
         if c.shape != (len(PARAM_NAMES),):
             raise InputError(f"render takes one posture, controls of shape (7,), got {c.shape}")
@@ -75,7 +78,14 @@ class SyntheticSpeaker:
         atlas = make_atlas(self.seed)
         scene = self._scene(c)
         bg = make_background(camera.width, camera.height, self.seed) if options.background else None
-        return composite(scene, pose, camera, options, atlas.image, bg)
+        image = atlas.image
+        if upper is not None:
+            from articast.core.synthetic.upper import paint_upper
+
+            image = paint_upper(self.seed, (upper["closure_left"], upper["closure_right"]),
+                                (upper["gaze_yaw_deg"], upper["gaze_pitch_deg"]),
+                                (upper["raise_left_mm"], upper["raise_right_mm"]))
+        return composite(scene, pose, camera, options, image, bg)
 
 
     def visible(self, controls: np.ndarray, pose: Pose, camera: Camera) -> np.ndarray:

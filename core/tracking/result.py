@@ -42,10 +42,12 @@ class TrackResult:
     ms: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
     lips: dict[str, float] | None = None
+    upper: Any = None  # an articast.core.faces.upper.UpperFace (live tracking), or None
 
     def to_dict(self, param_names: tuple[str, ...]) -> dict[str, Any]:
-        """The JSON-lines record of ``articast track`` (and of ground truth files)."""
-        return {
+        """The JSON-lines record of ``articast track`` (and of ground truth files); with the
+        upper face (live tracking) its ``eyes`` and ``brows`` blocks."""
+        out = {
             "frame": int(self.frame),
             "t": float(self.t),
             "alpha": {n: float(v) for n, v in zip(param_names, self.alpha, strict=True)},
@@ -60,6 +62,10 @@ class TrackResult:
                 "ms": float(self.ms),
             },
         }
+        if self.upper is not None:
+            out["eyes"] = self.upper.eyes_dict()
+            out["brows"] = self.upper.brows_dict()
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], param_names: tuple[str, ...]) -> TrackResult:
@@ -76,5 +82,14 @@ class TrackResult:
             residual=float(q["residual"]) if q.get("residual") is not None else float("nan"),
             evals=int(q.get("evals", 0)),
             iterations=int(q.get("iterations", 0)), ms=float(q.get("ms", 0.0)),
-            lips=d.get("lips"),
+            lips=d.get("lips"), upper=_upper(d),
         )
+
+
+def _upper(d: dict[str, Any]) -> Any:
+    """A record's ``eyes`` / ``brows`` blocks back as an UpperFace (None without them)."""
+    if "eyes" not in d:
+        return None
+    from articast.core.faces.upper import UpperFace
+
+    return UpperFace.from_dicts(d.get("eyes"), d.get("brows"))

@@ -31,7 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "assumed inter-pupillary distance (or mouth width when the eyes are not seen), "
             "local appearance trained at the landmark states and refined by "
             "analysis-by-synthesis. Read with open vowels, rounded and spread lips "
-            "(e.g. 'a', 'ee', 'oo', 'p', 'f') so every parameter is covered. Then: "
+            "(e.g. 'a', 'ee', 'oo', 'p', 'f') so every parameter is covered, and blink "
+            "naturally: on a desk camera the same clip gives the speaker's own open eye, "
+            "closed eye and neutral brows, which the tracked eyelids, gaze and brows are "
+            "measured against (docs/UPPER_FACE.md; a warning when it holds no blink). Then: "
             "'articast track VIDEO --speaker DIR' or 'articast serve --source me=... "
             "--speaker DIR'."
         ),
@@ -193,6 +196,13 @@ def _enroll(args: argparse.Namespace) -> int:
     if wd_range < MIN_WIDTH_RANGE_MM:
         warnings.append(f"the mouth width varied by {wd_range:.1f} mm only: include spread "
                         "and rounded vowels ('ee', 'oo')")
+    up = speaker.report.get("upper")
+    if up is not None and not up.get("eyes_visible"):
+        warnings.append("the eyes were not visible in enough frames: eyes and brows will be "
+                        "reported absent ('not_calibrated')")
+    elif up is not None and up.get("blinks", 0) == 0:
+        warnings.append("the clip holds no blink: the closed eye is assumed at "
+                        "25 % of the open eye's lid opening (blink naturally while reading)")
     report = {**speaker.report, "seconds": round(seconds, 2), "frames_read": n_read,
               "frames_analysed": int(found.size),
               "camera": "given" if args.camera else f"default ({DEFAULT_FOV_DEG:g} deg)",
@@ -289,6 +299,12 @@ def _print_report(folder: Path, speaker, report: dict) -> None:
     print(f"lip aperture {cov['aperture_mm'][0]:.1f}-{cov['aperture_mm'][1]:.1f} mm, "
           f"width {cov['width_mm'][0]:.1f}-{cov['width_mm'][1]:.1f} mm "
           "(2nd-98th percentile of the clip)")
+    up = report.get("upper")
+    if up and up.get("eyes_visible"):
+        o, c, b = up["open_eye_mm"], up["closed_eye_mm"], up["neutral_brows_mm"]
+        print(f"eyes: open {o[0]:.1f} / {o[1]:.1f} mm, closed {c[0]:.1f} / {c[1]:.1f} mm "
+              f"(left / right lid opening), {up['blinks']} blinks in {up['frames']} frames; "
+              f"neutral brows {b[0]:.1f} / {b[2]:.1f} mm (inner, left / right) above the eyes")
     r = speaker.residual
     print(f"appearance: {report['appearance']['kind']}, {report['appearance']['sample_points']} "
           f"points, trained on {report['training_frames']} frames; residual on "

@@ -42,6 +42,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="smoke run, well under a minute: every condition on one 60-frame "
                         "sequence (occlusions moved earlier to fit), the la models only unless "
                         "--models says otherwise, 30 Nelder-Mead frames")
+    p.add_argument("--upper", action="store_true",
+                   help="also the upper face (eyes, gaze, brows; docs/UPPER_FACE.md): the "
+                        "speaker blinks, looks and raises its brows on the desk rig, is "
+                        "enrolled from the landmarks as 'articast enroll' does and tracked "
+                        "live; blink F1 and onset, closure r, gaze median error, brow r, the "
+                        "lips on the same frames and the upper face's ms per frame (about 5 "
+                        "minutes for the default 60 s; --quick: 20 s)")
+    p.add_argument("--upper-seconds", type=float, default=None,
+                   help="length of the upper face's test sentence, s (default 60; 20 with "
+                        "--quick)")
     p.set_defaults(func=_evaluate)
 
 
@@ -63,14 +73,28 @@ def _evaluate(args: argparse.Namespace) -> int:
     def log(message: str) -> None:
         print(message, file=sys.stderr, flush=True)
 
+    seconds = args.upper_seconds or (20.0 if args.quick else 60.0)
+    if not (math.isfinite(seconds) and 2.0 <= seconds <= 3600.0):
+        raise InputError(f"--upper-seconds must be between 2 and 3600, got {seconds}")
     result = Evaluation(cfg, clock=time.perf_counter, progress=log).run()
+    upper = None
+    if args.upper:
+        from articast.core.evaluation.upper import UpperEvalConfig, evaluate_upper
+
+        upper = evaluate_upper(UpperEvalConfig(seed=args.seed, seconds=seconds),
+                               clock=time.perf_counter, progress=log)
     args.output.mkdir(parents=True, exist_ok=True)
     doc = _clean(result.to_json())
+    if upper is not None:
+        doc["upper"] = _clean(upper)
     (args.output / "figures.json").write_text(json.dumps(doc, indent=2, allow_nan=False) + "\n")
     from articast.service.report import write_report
 
     write_report(result, cfg, args.output, time.perf_counter() - t0,
                  " ".join(["articast evaluate"] + sys.argv[2:]))
+    if upper is not None:
+        with open(args.output / "report.md", "a", encoding="utf-8") as fh:
+            fh.write(upper_section(upper))
     if args.json:
         print(json.dumps(doc, indent=2, allow_nan=False))
     else:
@@ -85,3 +109,36 @@ def _clean(v):
     if isinstance(v, float) and not math.isfinite(v):
         return None
     return v
+
+
+def upper_section(u: dict) -> str:
+    """The report's upper-face section (``--upper``), with issue 19's targets."""
+    def f(v, nd=3):
+        if isinstance(v, list):
+            return " / ".join(f(x, nd) for x in v)
+        return "–" if v is None else f"{v:.{nd}f}" if isinstance(v, float) else str(v)
+
+    rows = [
+        ("blink F1 (precision, recall)", f"{f(u['blink_f1'])} ({f(u['blink_precision'])}, "
+         f"{f(u['blink_recall'])}); {u['tracked_blinks']} tracked events for "
+         f"{u['true_blinks']} blinks", ">= 0.97"),
+        ("onset within 1 frame", f(u["onset_within_1"]), "1.0"),
+        ("eyelid closure r (left / right)", f(u["closure_r"]), ">= 0.95"),
+        ("gaze median error, deg (yaw r, pitch r)",
+         f"{f(u['gaze_median_error_deg'], 2)} ({f(u['gaze_yaw_r'])}, {f(u['gaze_pitch_r'])})",
+         "<= 2"),
+        ("brow raise r (left / right)", f(u["brow_r"]), ">= 0.9"),
+        ("lips: aperture r, MAE mm", f"{f(u['lips']['aperture_r'])}, "
+         f"{f(u['lips']['aperture_mae_mm'], 2)}", "unchanged"),
+        ("upper face ms per frame (of the frame's)",
+         f"{f(u.get('upper_ms'), 2)} ({f(u.get('frame_ms'), 2)})", "<= +1"),
+    ]
+    c = u["config"]
+    lines = ["", "## upper face (eyes, gaze, brows)", "",
+             f"The speaker blinks, looks and raises its brows on the desk rig "
+             f"(core/synthetic/upper.py); enrolled from the landmarks on another sentence, "
+             f"tracked live on {c['seconds']:g} s at {c['fps']:g} fps "
+             "(core/evaluation/upper.py; docs/UPPER_FACE.md).", "",
+             "| figure | measured | issue 19's target |", "|---|---|---|"]
+    lines += [f"| {a} | {b} | {t} |" for a, b, t in rows]
+    return "\n".join(lines) + "\n"

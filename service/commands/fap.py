@@ -34,7 +34,10 @@ def register(sub: argparse._SubParsersAction) -> None:
             "48-50) from the JSON lines written by 'articast track', and write the ASCII .fap "
             "file Xface, Greta, visage and VREng read. Frames with quality.ok false hold the "
             "last good values. Lower-lip FAPs are relative to open_jaw (use --absolute-lips "
-            "for absolute ones); see docs/FAP_CHOICES.md."
+            "for absolute ones); see docs/FAP_CHOICES.md. A track of an enrolled desk "
+            "speaker also carries its eyes and brows: their FAPs (eyelids 19-22, eyeballs "
+            "23-26, eyebrows 31-36) are written on the frames where they were seen "
+            "(docs/UPPER_FACE.md)."
         ),
     )
     p.add_argument("track", type=Path, help="tracked sequence (.jsonl, one frame per line)")
@@ -191,6 +194,11 @@ def _export_fap(args: argparse.Namespace) -> int:
     idx = grid_indices(t, fps) if t[-1] > t[0] else np.arange(len(t))
     encoder = FapEncoder(model, reference_rotation=reference, jaw_relative=not args.absolute_lips)
     values, mask = encoder.values(alpha[idx], pose[idx])
+    uppers = [results[i].upper for i in idx]
+    if any(u is not None for u in uppers):  # a track of this version: eyes and brows too
+        from articast.core.outputs.upper import with_upper_faps
+
+        values, mask = with_upper_faps(values, mask, uppers, encoder.fapu)
     write_fap(args.output, values, mask, fps, args.name)
     print(f"{len(idx)} frames at {fps_text(fps)} fps ({int((~ok).sum())} of {len(ok)} track frames "
           f"not ok, held) -> {args.output}")

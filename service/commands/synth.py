@@ -14,8 +14,11 @@ files written to DIR:
   truth.jsonl   one JSON object per frame: frame, t (s), alpha {jaw1..lar1} (direct inversion
                 of the TRUE 3D points in model.npz: the best any tracker using that model can
                 do), pose {rotation (axis-angle, rad), translation (mm)} head -> camera,
-                controls {jaw1..lar1} (the generating controls of the synthetic speaker) and
-                occluded (true where --occluder hides the mouth in this frame)
+                controls {jaw1..lar1} (the generating controls of the synthetic speaker),
+                occluded (true where --occluder hides the mouth in this frame) and, with
+                --upper, upper {closure_left, closure_right (0 open .. 1 closed),
+                gaze_yaw_deg (to the speaker's left +), gaze_pitch_deg (up +),
+                raise_left_mm, raise_right_mm (brows)}
   truth.npz     arrays points (F, N, 3) mm head frame, controls (F, 7), poses (F, 6), times,
                 still (F,) frames inside still segments (for jitter measurements)
   model.npz     the linear model built from the speaker's corpus (articast build-model)
@@ -93,6 +96,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "set); truth.jsonl marks them with \"occluded\": true")
     s.add_argument("--still-frames", type=int, default=15,
                    help="length of the still segments, frames (default 15; 0 = none)")
+    s.add_argument("--upper", action="store_true",
+                   help="the eyes blink (10-20 a minute, some double), look around and the "
+                        "brows rise, with their truth in truth.jsonl (\"upper\"); default: "
+                        "still, open eyes looking ahead (docs/UPPER_FACE.md)")
     s.set_defaults(func=_sequence)
 
 
@@ -169,6 +176,11 @@ def _sequence(args: argparse.Namespace) -> int:
     seq = make_sequence(sentence, args.frames, args.fps, args.rig, args.still_frames,
                         size=(width, height), geometry=speaker.geometry)
     alpha = invert(model, seq.points)
+    upper = None
+    if args.upper:
+        from articast.core.synthetic.upper import upper_sequence
+
+        upper = upper_sequence(sentence, seq.n_frames, args.fps)
 
     video_path = out / "video.mp4"
     writer = cv2.VideoWriter(str(video_path), cv2.VideoWriter.fourcc(*"mp4v"), float(args.fps),
@@ -186,7 +198,8 @@ def _sequence(args: argparse.Namespace) -> int:
                     occluder=base.occluder if hidden else "none", seed=sentence * 100_003 + i,
                     light_azimuth_deg=base.light_azimuth_deg + drift,
                 )
-                writer.write(speaker.render(seq.controls[i], seq.pose(i), seq.camera, opts))
+                up = None if upper is None else upper.frame(i)
+                writer.write(speaker.render(seq.controls[i], seq.pose(i), seq.camera, opts, up))
                 record = {
                     "frame": i,
                     "t": float(seq.times[i]),
@@ -196,6 +209,8 @@ def _sequence(args: argparse.Namespace) -> int:
                                  zip(PARAM_NAMES, seq.controls[i], strict=True)},
                     "occluded": bool(hidden),
                 }
+                if up is not None:
+                    record["upper"] = up
                 fh.write(dumps(record) + "\n")
                 if (i + 1) % 25 == 0 or i + 1 == seq.n_frames:
                     print(f"\rrendered {i + 1}/{seq.n_frames} frames", end="", file=sys.stderr)

@@ -1,0 +1,249 @@
+"""articast's blinks on the real clips against an independent method's eye-aspect-ratio minima.
+
+    python tools/fetch_real_clips.py                 # once: the clips
+    python benchmarks/setup_peers.py ...              # once: dlib's venv (benchmarks/peers.py)
+    python benchmarks/blinks.py [--only CLIP ...] [--grid docs/blinks] [--json]
+
+Each clip is read as ``benchmarks/peers.py`` reads it (640 px wide; articast enrols on the first
+60 %, as ``articast enroll`` analyses it, upper-face references included) and everything is
+scored on the held-out 40 %:
+
+- **articast**: the live tracker (``LiveTracker``, the product's policy: the FaceMesh v1 reader
+  every other frame); a blink frame is one whose mean eyelid closure (left, right) is > 0.5;
+- **reference**: dlib's 68-point shape predictor (its own HOG detector), in its own venv
+  (``benchmarks/peer_worker.py``), a landmark model articast does not use: the eye aspect
+  ratio (Soukupova & Cech 2016) of each eye, ``(|p2-p6| + |p3-p5|) / (2 |p1-p4|)``, averaged
+  over both eyes; a blink frame is one whose EAR is below ``EAR_FRACTION`` x the clip's
+  median EAR (the clip's open eye);
+- events are runs of blink frames (runs apart by one frame are merged); an articast event and
+  a reference event match when they overlap within ``TOLERANCE`` frames. precision = matched
+  articast events / articast events, recall = matched reference events / reference events;
+  ``onset`` = articast's first blink frame minus the reference's, per matched pair;
+- ``upper_ms`` / ``upper_cpu_ms``: the time of the upper face's own step per frame
+  (``UpperTracker.step``, timed inside the same live run) next to the whole frame's
+  (``frame_ms``), one thread.
+
+``--grid DIR`` writes, per clip, the frames around each event (both methods' events: a tile per
+frame from 2 before to 4 after the onset, the upper face, labelled with articast's closure and
+the reference's EAR ratio) to DIR/CLIP.jpg.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from peers import (  # noqa: E402
+    CLIP_CACHE,
+    PEER_CACHE,
+    clip_paths,
+    load_peers,
+    read_clip,
+    worker_points,
+)
+from real_clips import enrol_speaker  # noqa: E402
+
+from articast.core.faces.finder import FaceFinder  # noqa: E402
+from articast.core.faces.live import LiveTracker  # noqa: E402
+from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
+from articast.core.tracking import kernels  # noqa: E402
+
+EAR_FRACTION = 0.7
+TOLERANCE = 2
+SERIES = ("ours", "ref", "closure", "ear_ratio")  # only in --json
+IBUG_EYES = ((36, 37, 38, 39, 40, 41), (42, 43, 44, 45, 46, 47))
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def ear(points: np.ndarray) -> np.ndarray:
+    """(N,) mean eye aspect ratio of both eyes from iBUG-68 points (N, 68, 2)."""
+    out = []
+    for e in IBUG_EYES:
+        p = points[:, e]
+        v = (np.linalg.norm(p[:, 1] - p[:, 5], axis=-1) + np.linalg.norm(p[:, 2] - p[:, 4],
+                                                                         axis=-1))
+        out.append(v / (2.0 * np.linalg.norm(p[:, 0] - p[:, 3], axis=-1)))
+    return np.mean(out, axis=0)
+
+
+def events(flags: np.ndarray, merge: int = 1) -> list[tuple[int, int]]:
+    """(start, end exclusive) runs of True, runs apart by <= ``merge`` frames merged."""
+    f = np.concatenate([[False], np.asarray(flags, bool), [False]])
+    d = np.flatnonzero(np.diff(f.astype(int)))
+    runs = list(zip(d[::2].tolist(), d[1::2].tolist(), strict=True))
+    out: list[tuple[int, int]] = []
+    for s, e in runs:
+        if out and s - out[-1][1] <= merge:
+            out[-1] = (out[-1][0], e)
+        else:
+            out.append((s, e))
+    return out
+
+
+def match(ours: list[tuple[int, int]], ref: list[tuple[int, int]],
+          tol: int = TOLERANCE) -> tuple[float | None, float | None, list[int]]:
+    """precision, recall, onsets (ours - ref) of matched pairs."""
+    def hit(a, b):
+        return a[0] < b[1] + tol and b[0] < a[1] + tol
+
+    m_ours = [any(hit(a, b) for b in ref) for a in ours]
+    m_ref = [any(hit(a, b) for a in ours) for b in ref]
+    onsets = []
+    for b in ref:
+        cands = [a for a in ours if hit(a, b)]
+        if cands:
+            onsets.append(cands[0][0] - b[0])
+    prec = float(np.mean(m_ours)) if ours else None
+    rec = float(np.mean(m_ref)) if ref else None
+    return prec, rec, onsets
+
+
+def track(speaker, held, fps):
+    kernels.warm_up()
+    live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme(speaker.rig),
+                       clock=time.perf_counter)
+    step = live.upper.step
+    spent = {"wall": 0.0, "cpu": 0.0}
+
+    def timed(*a, **k):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = step(*a, **k)
+        spent["wall"] += time.perf_counter() - w0
+        spent["cpu"] += time.process_time() - c0
+        return out
+
+    live.upper.step = timed  # type: ignore[method-assign]
+    res = []
+    w0, c0 = time.perf_counter(), time.process_time()
+    for i, f in enumerate(held):
+        res.append(live.track(f, i / fps))
+    n = max(len(held), 1)
+    return res, {"frame_ms": (time.perf_counter() - w0) * 1e3 / n,
+                 "frame_cpu_ms": (time.process_time() - c0) * 1e3 / n,
+                 "upper_ms": spent["wall"] * 1e3 / n, "upper_cpu_ms": spent["cpu"] * 1e3 / n}
+
+
+def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,
+         tile: int = 120, most: int = 60) -> None:
+    """A row per event (both methods' events, overlapping ones merged): the frames from 2
+    before its onset, the upper face (centred on the reference's eye points where it has
+    them), labelled with articast's closure (yellow above 0.5) and the EAR ratio (red below
+    EAR_FRACTION); the row's first tile says which method saw the event."""
+    rows = []
+    for s, e in events(np.isin(np.arange(len(held)), [i for a, b in ours + ref
+                                                      for i in range(a, b)]), merge=0)[:most]:
+        who = ("both" if any(a < e and s < b for a, b in ours) and any(
+            a < e and s < b for a, b in ref) else "articast" if any(
+            a < e and s < b for a, b in ours) else "reference")
+        tiles = []
+        for i in range(s - 2, s + per_row - 2):
+            if not 0 <= i < len(held):
+                tiles.append(np.zeros((tile, tile, 3), np.uint8))
+                continue
+            img = held[i]
+            h, w = img.shape[:2]
+            c = eyes[min(max(i, s), e - 1)]
+            cx, cy = (int(c[0]), int(c[1])) if np.all(np.isfinite(c)) else (w // 2,
+                                                                             int(0.35 * h))
+            half = int(0.15 * w)
+            pad = cv2.copyMakeBorder(img, half, half, half, half, cv2.BORDER_CONSTANT)
+            crop = pad[cy:cy + 2 * half, cx:cx + 2 * half]
+            t = cv2.resize(crop, (tile, tile))
+            c_i = closure[i]
+            cv2.putText(t, f"{i} c{'-' if not np.isfinite(c_i) else f'{c_i:.2f}'}", (3, 14), 0,
+                        0.45, (0, 255, 255) if np.isfinite(c_i) and c_i > 0.5 else
+                        (255, 255, 255), 1)
+            cv2.putText(t, f"ear {ratio[i]:.2f}", (3, tile - 6), 0, 0.45,
+                        (0, 0, 255) if ratio[i] < EAR_FRACTION else (255, 255, 255), 1)
+            if i == s - 2:
+                cv2.putText(t, who, (3, 32), 0, 0.45, (0, 255, 0), 1)
+            tiles.append(t)
+        rows.append(np.hstack(tiles))
+    if rows:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(path), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 75])
+
+
+def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
+    log(f"{name}: reading")
+    enrol, held, fps, n, times = read_clip(path)
+    log(f"{name}: enrolling on {len(enrol)} frames")
+    speaker = enrol_speaker(enrol, fps, max_frames=None, times=times)
+    log(f"{name}: tracking {len(held)} held-out frames")
+    res, cost = track(speaker, held, fps)
+    cl = np.array([np.nan if r.upper is None or not r.upper.eyes_ok
+                   else (r.upper.closure_left + r.upper.closure_right) / 2.0 for r in res])
+    src = [None if r.upper is None else r.upper.source for r in res]
+    out = {"clip": name, "frames": len(held), "fps": fps,
+           "upper": speaker.report.get("upper"), **{k: round(v, 3) for k, v in cost.items()},
+           "eyes_ok": round(float(np.isfinite(cl).mean()), 4),
+           "photo_frames": int(sum(s == "photo" for s in src))}
+    ours = events(np.nan_to_num(cl) > 0.5)
+    out["articast_events"] = len(ours)
+    if "dlib" not in peers:
+        out["reference"] = "dlib is not set up (benchmarks/setup_peers.py)"
+        return out
+    log(f"{name}: dlib on the same frames")
+    got = worker_points("dlib", peers["dlib"], held)
+    if "error" in got:
+        out["reference"] = got["error"]
+        return out
+    e = ear(got["points"])
+    ratio = e / np.nanmedian(e)
+    ref = events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION)
+    prec, rec, onsets = match(ours, ref)
+    both = np.isfinite(cl) & np.isfinite(e)
+    out.update({"reference_events": len(ref), "precision": prec, "recall": rec,
+                "onset_median": float(np.median(onsets)) if onsets else None,
+                "onset_within_1": (float(np.mean(np.abs(onsets) <= 1)) if onsets else None),
+                "closure_vs_ear_r": float(np.corrcoef(cl[both], -e[both])[0, 1])
+                if both.sum() > 10 else None,
+                "ours": ours, "ref": ref})
+    out["closure"] = [None if not np.isfinite(v) else round(float(v), 3) for v in cl]
+    out["ear_ratio"] = [None if not np.isfinite(v) else round(float(v), 3) for v in ratio]
+    if grid_dir is not None:
+        with warnings.catch_warnings():  # frames where dlib found no face: NaN, centred
+            warnings.simplefilter("ignore", RuntimeWarning)
+            eyes = np.nanmean(got["points"][:, 36:48], axis=1)
+        grid(grid_dir / f"{name}.jpg", held, cl, ratio, ours, ref, eyes)
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
+    ap.add_argument("--peers", type=Path, default=PEER_CACHE)
+    ap.add_argument("--only", nargs="*")
+    ap.add_argument("--grid", type=Path)
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    clips = clip_paths(args.clips)
+    peers = load_peers(args.peers)
+    rows = []
+    for name in args.only or [c for c in clips if "face" not in c or c == "single_face"]:
+        if name not in clips:
+            log(f"{name}: not fetched")
+            continue
+        row = run(name, clips[name], peers, args.grid)
+        rows.append(row)
+        short = {k: v for k, v in row.items() if k not in SERIES}
+        log(json.dumps(short))
+    print(json.dumps(rows, indent=1) if args.json else "\n".join(
+        json.dumps({k: v for k, v in r.items() if k not in SERIES}) for r in rows))
+
+
+if __name__ == "__main__":
+    main()

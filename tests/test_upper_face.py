@@ -1,0 +1,203 @@
+"""The upper face (core/faces/upper.py): eyelids, gaze and brows from a reading, pose removed,
+against readings made from the canonical face with known lids, brows, iris and head pose."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from articast.core.errors import ModelFileError
+from articast.core.faces import upper as U
+from articast.core.faces.canonical import canonical_face
+from articast.core.model.camera import Pose, rotation_matrix
+from articast.core.tracking.result import TrackResult
+
+CANON = canonical_face()
+SCALE = 3.0  # px per mm
+CENTRE = np.array([320.0, 200.0])
+
+
+def reading(points_mm: np.ndarray, yaw_deg: float = 0.0, roll_deg: float = 0.0,
+            scale: float = SCALE) -> np.ndarray:
+    """A reading (468, 3) in image px of head-frame points, the head turned by yaw and roll
+    (orthographic, as the landmark network's x, y, z)."""
+    r = rotation_matrix(np.array([0.0, math.radians(yaw_deg), 0.0])) @ rotation_matrix(
+        np.array([0.0, 0.0, math.radians(roll_deg)]))
+    p = (points_mm - points_mm.mean(0)) @ r.T * scale
+    return np.column_stack([p[:, 0] + CENTRE[0], -p[:, 1] + CENTRE[1], -p[:, 2]])
+
+
+def with_lids(closing_mm: float) -> np.ndarray:
+    """The canonical face with both upper lids lowered by ``closing_mm``."""
+    v = CANON.vertices_mm.copy()
+    for side in U.SIDES:
+        for up, _ in U.LID_PAIRS[side]:
+            v[up, 1] -= closing_mm
+    return v
+
+
+OPEN = U.lid_opening_mm(CANON.vertices_mm)[0]  # the canonical eye's lid opening, mm
+REF = U.UpperReference(open_mm=(OPEN, OPEN), closed_mm=(1.0, 1.0),
+                       brows_mm=tuple(U.brow_heights_mm(CANON.vertices_mm)),
+                       iris_mm=(0.0, 0.0, 0.0, 0.0))
+
+
+def test_alignment_removes_pose_and_scale():
+    for yaw, roll in ((0.0, 0.0), (25.0, 0.0), (-20.0, 12.0)):
+        al = U.align(reading(CANON.vertices_mm, yaw, roll), CANON)
+        assert al is not None
+        assert al.scale == pytest.approx(SCALE, rel=1e-6)
+        assert abs(abs(al.yaw_deg) - abs(yaw)) < 1e-6
+        ids = CANON.procrustes_ids
+        assert np.abs(al.points[ids] - CANON.vertices_mm[ids]).max() < 1e-6
+
+
+def test_closure_is_relative_to_the_speakers_open_eye_whatever_the_pose():
+    tracker = U.UpperTracker(REF)
+    img = np.full((400, 640, 3), 128, np.uint8)
+    seen = []
+    for closing in (0.0, (OPEN - 1.0) / 2, OPEN - 1.0):
+        for yaw in (0.0, 25.0):
+            f = tracker.step(img, reading(with_lids(closing), yaw), None, True)
+            assert f.eyes_ok and f.source == "reader"
+            seen.append((closing, f.closure_left, f.closure_right))
+    for closing, left, right in seen:
+        want = min(1.0, closing / (OPEN - 1.0))
+        assert left == pytest.approx(want, abs=0.02) and right == pytest.approx(want, abs=0.02)
+
+
+def test_brow_raise_in_mm_whatever_the_pose():
+    v = CANON.vertices_mm.copy()
+    for p in U.BROW_POINTS["left"]["inner"]:
+        v[p, 1] += 3.0
+    for p in (*U.BROW_POINTS["right"]["inner"], *U.BROW_POINTS["right"]["outer"]):
+        v[p, 1] -= 2.0
+    tracker = U.UpperTracker(REF)
+    f = tracker.step(np.full((400, 640, 3), 128, np.uint8), reading(v, 20.0, 8.0), None, True)
+    assert f.brows_ok
+    assert f.raise_inner_left_mm == pytest.approx(3.0, abs=0.05)
+    assert f.raise_outer_left_mm == pytest.approx(0.0, abs=0.05)
+    assert f.raise_inner_right_mm == pytest.approx(-2.0, abs=0.05)
+    assert f.lowering_mm == pytest.approx(max(0.0, -(3.0 - 2.0) / 2), abs=0.05)
+    assert f.brows_dict()["raise_left_mm"] == pytest.approx(1.5, abs=0.05)
+
+
+def eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE) -> np.ndarray:
+    """Skin, white eyes inside their contours, a dark iris at ``iris_mm`` (x left, y up) from
+    each eye's corners' midpoint (a frontal face)."""
+    img = np.full((400, 640), 150, np.uint8)
+    for side in U.SIDES:
+        poly = np.round(lm[list(U.EYE_CONTOUR[side]), :2]).astype(np.int32)
+        cv2.fillPoly(img, [poly], 235)
+        inner, outer = U.EYE_CORNERS[side]
+        mid = (lm[inner, :2] + lm[outer, :2]) / 2.0
+        c = mid + np.array([iris_mm[0], -iris_mm[1]]) * scale
+        mask = np.zeros_like(img)
+        cv2.fillPoly(mask, [poly], 1)
+        disc = np.zeros_like(img)
+        cv2.circle(disc, (int(round(c[0])), int(round(c[1]))), int(5.5 * scale), 1, -1)
+        img[(mask > 0) & (disc > 0)] = 30
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+
+
+def test_gaze_from_the_iris_between_the_corners():
+    lm = reading(CANON.vertices_mm)
+    tracker = U.UpperTracker(REF)
+    centred = tracker.step(eye_image(lm, (0.0, 0.0)), lm, None, True)
+    assert abs(centred.gaze_yaw_deg) < 3.0 and abs(centred.gaze_pitch_deg) < 4.0
+    left = tracker.step(eye_image(lm, (3.0, 0.0)), lm, None, True)
+    want = math.degrees(math.asin(3.0 / U.EYE_RADIUS_MM))
+    assert left.gaze_yaw_deg - centred.gaze_yaw_deg == pytest.approx(want, abs=4.0)
+    assert left.gaze_yaw_deg > centred.gaze_yaw_deg + 8.0
+    right = tracker.step(eye_image(lm, (-3.0, 0.0)), lm, None, True)
+    assert right.gaze_yaw_deg < centred.gaze_yaw_deg - 8.0
+
+
+def test_photometric_measure_tells_an_open_eye_from_a_closed_one():
+    lm = reading(CANON.vertices_mm)
+    open_img = cv2.cvtColor(eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)
+    closed_img = np.full_like(open_img, 150)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    m_open = U.photo_measure(open_img, inner, outer, OPEN * SCALE)
+    m_closed = U.photo_measure(closed_img, inner, outer, OPEN * SCALE)
+    assert m_closed == pytest.approx(0.0, abs=1e-6)
+    assert m_open is not None and m_open > 0.05
+    assert U.photo_measure(open_img, inner - 1000, outer - 1000, 20.0) is None  # off the image
+
+
+def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
+    lm = reading(CANON.vertices_mm)
+    grey_open = cv2.cvtColor(eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    m_open = U.photo_measure(grey_open, inner, outer, OPEN * SCALE)
+    b = -1.0 / m_open  # closure 0 at the open eye's measure, 1 at no contrast
+    ref = U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
+                           photo=(1.0, b, 1.0, b), photo_r=(-0.9, -0.9))
+    tracker = U.UpperTracker(ref)
+    first = tracker.step(eye_image(lm, (0.0, 0.0)), lm, np.zeros(2), True)
+    assert first.closure_left == pytest.approx(0.0, abs=0.02)
+    shut = tracker.step(np.full((400, 640, 3), 150, np.uint8), None, np.zeros(2), True)
+    assert shut.source == "photo" and shut.closure_left > 0.9 and shut.closure_right > 0.9
+    # a weak calibration is not used: the last reading's closure is held
+    weak = U.UpperTracker(U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
+                                           photo=(1.0, b, 1.0, b), photo_r=(-0.2, -0.2)))
+    weak.step(eye_image(lm, (0.0, 0.0)), lm, np.zeros(2), True)
+    held = weak.step(np.full((400, 640, 3), 150, np.uint8), None, np.zeros(2), True)
+    assert held.closure_left == pytest.approx(0.0, abs=0.02)
+
+
+def test_absent_not_zero():
+    img = np.full((400, 640, 3), 128, np.uint8)
+    lm = reading(CANON.vertices_mm)
+    head = U.UpperTracker(REF, rig="head").step(img, lm, None, True)
+    assert not head.eyes_ok and head.eyes_reason.startswith("not_seen")
+    assert head.closure_left is None and head.eyes_dict()["closure_left"] is None
+    assert not head.brows_ok and head.brows_dict()["raise_left_mm"] is None
+    old = U.UpperTracker(None).step(img, lm, None, True)
+    assert old.eyes_reason.startswith("not_calibrated")
+    lost = U.UpperTracker(REF).step(img, lm, None, False)
+    assert lost.eyes_reason.startswith("no_face")
+    turned = U.UpperTracker(REF).step(img, reading(CANON.vertices_mm, 60.0), None, True)
+    assert turned.eyes_reason.startswith("turned")
+
+
+def test_calibration_finds_the_open_and_closed_eye_and_counts_blinks():
+    img = cv2.cvtColor(np.full((400, 640, 3), 128, np.uint8), cv2.COLOR_BGR2GRAY)
+    closing = np.zeros(60)
+    closing[[10, 11, 12, 40, 41]] = [3.0, 5.7, 3.0, 5.0, 5.7]
+    ms = [U.measure(img, reading(with_lids(c), 10.0), CANON) for c in closing]
+    ref = U.calibrate(ms)
+    assert ref is not None
+    open_canon = U.lid_opening_mm(CANON.vertices_mm)[0]
+    assert ref.open_mm[0] == pytest.approx(open_canon, abs=0.01)
+    assert ref.closed_mm[0] == pytest.approx(open_canon - 5.7, abs=0.2)
+    assert ref.blinks == 2 and ref.frames == 60
+    none = U.calibrate([U.measure(img, reading(CANON.vertices_mm), CANON)] * 20)
+    assert none is not None and none.blinks == 0
+    assert none.closed_mm[0] == pytest.approx(U.CLOSED_FRACTION * open_canon, abs=0.01)
+    assert U.calibrate([None] * 30) is None
+
+
+def test_reference_round_trip_and_malformed():
+    d = REF.to_dict()
+    back = U.UpperReference.from_dict(d, "x")
+    assert back == REF
+    with pytest.raises(ModelFileError, match="upper-face"):
+        U.UpperReference.from_dict({**d, "open_mm": [1.0, 1.0]}, "x")  # not above closed
+    with pytest.raises(ModelFileError, match="upper-face"):
+        U.UpperReference.from_dict({**d, "brows_mm": [1.0]}, "x")
+
+
+def test_track_line_carries_eyes_and_brows():
+    f = U.UpperTracker(REF).step(np.full((400, 640, 3), 128, np.uint8),
+                                 reading(with_lids((OPEN - 1.0) / 2)), None, True)
+    r = TrackResult(3, 0.1, np.zeros(2), Pose(), upper=f)
+    d = r.to_dict(("a", "b"))
+    assert d["eyes"]["ok"] and d["eyes"]["closure_left"] == pytest.approx(0.5, abs=0.02)
+    assert set(d["brows"]) >= {"ok", "raise_left_mm", "raise_right_mm", "lowering_mm"}
+    back = TrackResult.from_dict(d, ("a", "b"))
+    assert back.upper.closure_right == pytest.approx(f.closure_right, abs=1e-3)
+    assert "eyes" not in TrackResult(0, 0.0, np.zeros(2), Pose()).to_dict(("a", "b"))
