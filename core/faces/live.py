@@ -393,18 +393,17 @@ class LiveTracker:
         scale = fu.points_scale
         if not restart and fu.kalman:
             prior = self.kalman.predict(dt)
-            if (reading is not None and fu.reread is not None
-                    and np.isfinite(self.point_model.offset_p99)):
+            # how far the prediction is from the reading, as a fraction of the face's size
+            missed = (self._offset(prior.alpha, prior.rotation, prior.translation,
+                                   reading.landmarks[self.point_model.landmarks, :2])
+                      if reading is not None else 0.0)
+            p99 = self.point_model.offset_p99
+            if fu.reread is not None and np.isfinite(p99) and missed > fu.reread * p99:
                 # the prediction missed the reading by more than the reader's own spread: the
                 # face moves faster than the motion model foresaw, read the next frame too
-                pm = self.point_model
-                missed = self._offset(prior.alpha, Pose(axis_angle(prior.rotation),
-                                                        prior.translation),
-                                      reading.landmarks[pm.landmarks, :2])
-                if missed > fu.reread * pm.offset_p99:
-                    self._since_read = fu.read_every - 1
-                    self.rereads += 1
-            if reading is not None and self._gated(reading, prior):
+                self._since_read = fu.read_every - 1
+                self.rereads += 1
+            if not np.isfinite(missed) or missed > fu.gate:
                 # the reading is far from the prediction (a motion it did not foresee, or a
                 # state drifting off the face): the prediction is forgotten (zero velocity,
                 # wide covariance) and every landmark pulls (least squares) this frame
@@ -439,7 +438,8 @@ class LiveTracker:
             seen = reading.landmarks[self.point_model.landmarks, :2]
 
             def confirm(alpha: np.ndarray, pose: Pose) -> bool:
-                return self._unfamiliar(alpha) and self._offset(alpha, pose, seen) <= (
+                return self._unfamiliar(alpha) and self._offset(
+                    alpha, pose.matrix, pose.translation, seen) <= (
                     fu.agreement * self.point_model.offset_p99)
         wa = self.weights[1]
         if fu.adapt is not None:
@@ -479,26 +479,11 @@ class LiveTracker:
                          reading.landmarks[self.point_model.landmarks, :2], depth,
                          scale, weight)
 
-    def _gated(self, reading: Any, prior: StatePrior) -> bool:
-        """Whether the reading is too far from the motion model's prediction to be of the
-        same state: its median point further than ``FusionPolicy.gate`` x the face's size
-        in the image (the spread of the predicted points) from where the prediction puts it
-        (a state that has drifted off the face: the robust loss would otherwise stop
-        listening to every point at once)."""
-        fu = self.fusion
-        assert fu is not None
-        pm = self.point_model
-        cam = pm.points(prior.alpha) @ prior.rotation.T + prior.translation
-        uv = self.speaker.camera.project(cam)
-        seen = reading.landmarks[pm.landmarks, :2]
-        off = np.median(np.linalg.norm(uv - seen, axis=1))
-        size = float(np.sqrt(np.mean(np.sum((uv - uv.mean(0)) ** 2, axis=1))))
-        return bool(not np.isfinite(off) or off > fu.gate * max(size, 1.0))
-
-    def _offset(self, alpha: np.ndarray, pose: Pose, seen: np.ndarray) -> float:
+    def _offset(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+                seen: np.ndarray) -> float:
         """:func:`~articast.core.tracking.points.offset_fraction` of a reading's points
-        ``seen`` (M, 2) px from the state (alpha, pose)."""
-        cam = self.point_model.points(alpha) @ pose.matrix.T + pose.translation
+        ``seen`` (M, 2) px from the state (alpha, rotation matrix, translation mm)."""
+        cam = self.point_model.points(alpha) @ rotation.T + translation
         return offset_fraction(self.speaker.camera.project(cam), seen)
 
     def _unfamiliar(self, alpha: np.ndarray) -> bool:
@@ -519,7 +504,8 @@ class LiveTracker:
         if not result.ok:
             return result
         pm = self.point_model
-        off = self._offset(result.alpha, result.pose, reading.landmarks[pm.landmarks, :2])
+        off = self._offset(result.alpha, result.pose.matrix, result.pose.translation,
+                           reading.landmarks[pm.landmarks, :2])
         limit = fu.agreement * pm.offset_p99
         result = replace(result, extra={**result.extra, "landmark_offset": off})
         if np.isfinite(off) and off <= limit:
