@@ -187,6 +187,86 @@ def score(aps: dict[str, np.ndarray], windows: list[slice]) -> dict[str, dict]:
     return out
 
 
+BOOTSTRAP = 1000  # resamples of the gap to the best peer
+BLOCK_S = 1.0  # seconds per bootstrap block (the aperture is correlated over a syllable or two)
+
+
+def gap_interval(x: np.ndarray, y: np.ndarray, cons_x: np.ndarray, cons_y: np.ndarray,
+                 block: int, resamples: int = BOOTSTRAP, seed: int = 0
+                 ) -> tuple[float, float, float] | None:
+    """r(x, cons_x) - r(y, cons_y) over the clip and its 95 % interval by a paired moving-block
+    bootstrap (the same blocks of ``block`` frames drawn for both): whether one method's lead
+    over another is more than which frames the clip happened to hold. None when there are
+    fewer than two blocks or a correlation is undefined."""
+    n = len(x)
+    if n < 2 * block:
+        return None
+    gap = pearson(x, cons_x)[0] - pearson(y, cons_y)[0]
+    if not math.isfinite(gap):
+        return None
+    rng = np.random.default_rng(seed)
+    starts = np.arange(n - block + 1)
+    k = int(np.ceil(n / block))
+    gaps = []
+    for _ in range(resamples):
+        idx = (rng.choice(starts, k)[:, None] + np.arange(block)[None]).ravel()[:n]
+        g = pearson(x[idx], cons_x[idx])[0] - pearson(y[idx], cons_y[idx])[0]
+        if math.isfinite(g):
+            gaps.append(g)
+    if len(gaps) < resamples // 2:
+        return None
+    lo, hi = np.percentile(gaps, [2.5, 97.5])
+    return float(gap), float(lo), float(hi)
+
+
+def window_gap_interval(x: np.ndarray, y: np.ndarray, windows: list[slice],
+                        resamples: int = BOOTSTRAP, seed: int = 0
+                        ) -> tuple[float, float, float] | None:
+    """jitter(x) - jitter(y) over the still windows and its 95 % interval, the windows
+    resampled (paired). None with fewer than two windows."""
+    if len(windows) < 2:
+        return None
+    gap = jitter(x, windows) - jitter(y, windows)
+    if not math.isfinite(gap):
+        return None
+    rng = np.random.default_rng(seed)
+    gaps = [jitter(x, sample) - jitter(y, sample)
+            for sample in ([windows[i] for i in rng.integers(0, len(windows), len(windows))]
+                           for _ in range(resamples))]
+    gaps = [g for g in gaps if math.isfinite(g)]
+    if not gaps:
+        return None
+    lo, hi = np.percentile(gaps, [2.5, 97.5])
+    return float(gap), float(lo), float(hi)
+
+
+def against_best(aps: dict[str, np.ndarray], scores: dict[str, dict], windows: list[slice],
+                 fps: float, method: str = "articast") -> dict:
+    """``method``'s r and jitter gaps to the best other method by each score, each with its
+    bootstrap interval (:func:`gap_interval`, :func:`window_gap_interval`)."""
+    if method not in aps:
+        return {}
+    others = {k: v for k, v in scores.items() if k != method}
+    out: dict = {}
+    with_r = {k: v["consensus_r"] for k, v in others.items() if v["consensus_r"] is not None}
+    if with_r and scores[method]["consensus_r"] is not None:
+        best = max(with_r, key=lambda k: with_r[k])
+        got = gap_interval(aps[method], aps[best], consensus(aps, leave_out=method),
+                           consensus(aps, leave_out=best), max(2, int(round(BLOCK_S * fps))))
+        if got is not None:
+            out["r"] = {"peer": best, "gap": _round(got[0], 4),
+                        "ci95": [_round(got[1], 4), _round(got[2], 4)]}
+    with_j = {k: v["jitter_pct_width"] for k, v in others.items()
+              if v["jitter_pct_width"] is not None}
+    if with_j and scores[method]["jitter_pct_width"] is not None:
+        best = min(with_j, key=lambda k: with_j[k])
+        got = window_gap_interval(aps[method], aps[best], windows)
+        if got is not None:
+            out["jitter"] = {"peer": best, "gap": _round(got[0], 3),
+                             "ci95": [_round(got[1], 3), _round(got[2], 3)]}
+    return out
+
+
 def _round(x: float | None, k: int) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), k)
 
@@ -409,7 +489,8 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
         rows[k] = row
     pair = {a: {b: _round(pearson(aps[a], aps[b])[0], 3) for b in aps if b != a} for a in aps}
     return {"clip": name, "fps": round(fps, 3), "held_out_frames": len(held),
-            "still_windows": len(windows), "methods": rows, "pairwise_r": pair}
+            "still_windows": len(windows), "methods": rows, "pairwise_r": pair,
+            "articast_vs_best": against_best(aps, scores, windows, fps)}
 
 
 def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: int = 8) -> None:
@@ -567,6 +648,15 @@ def markdown(rows: list[dict], load: dict) -> str:
                       f"occluded frames {occ[:40]}{' ...' if len(occ) > 40 else ''}"
                       + (f"; aperture MAE {a['aperture_mae_mm']} mm, width MAE "
                          f"{a['width_mae_mm']} mm" if "aperture_mae_mm" in a else "")]
+        vs = row.get("articast_vs_best") or {}
+        for key, what in (("r", f"r gap (95 % interval, paired {BLOCK_S:g} s block "
+                                f"bootstrap)"),
+                          ("jitter", "jitter gap, % width (95 % interval, still windows "
+                                     "resampled)")):
+            if key in vs:
+                g = vs[key]
+                lines.append(f"articast - best peer ({g['peer']}), {what}: {g['gap']} "
+                             f"({g['ci95'][0]} .. {g['ci95'][1]})")
         names = list(row["pairwise_r"])
         if names:
             lines += ["", "pairwise r: | " + " | ".join(names) + " |",

@@ -70,3 +70,46 @@ def test_pearson_needs_enough_common_frames():
     assert (round(r, 9), n) == (1.0, 20)
     y = np.where(x < 15, np.nan, x)
     assert np.isnan(peers.pearson(x, y)[0]) and peers.pearson(x, y)[1] == 5
+
+
+def test_the_gap_to_the_best_peer_has_an_interval_that_excludes_zero_only_when_it_is_real():
+    rng = np.random.default_rng(1)
+    n, block = 600, 25
+    truth = np.convolve(rng.normal(size=n), np.ones(8) / 8, mode="same")
+    good = truth + 0.05 * rng.normal(size=n)
+    bad = truth + 0.3 * rng.normal(size=n)
+    gap, lo, hi = peers.gap_interval(good, bad, truth, truth, block)
+    assert gap > 0 and 0 < lo <= gap <= hi  # the better method's lead is beyond the sampling
+    same, lo, hi = peers.gap_interval(good, good.copy(), truth, truth, block)
+    assert same == lo == hi == 0.0  # paired: the same frames for both, no spurious gap
+    twin = truth + 0.05 * rng.normal(size=n)  # as good, other noise: the interval holds 0
+    gap, lo, hi = peers.gap_interval(good, twin, truth, truth, block)
+    assert lo < 0 < hi
+    assert peers.gap_interval(good[:30], bad[:30], truth[:30], truth[:30], block) is None
+
+
+def test_the_jitter_gap_resamples_the_still_windows():
+    rng = np.random.default_rng(2)
+    windows = [slice(s, s + 10) for s in range(0, 200, 20)]
+    steady = 0.001 * rng.normal(size=200)
+    shaky = 0.01 * rng.normal(size=200)
+    gap, lo, hi = peers.window_gap_interval(shaky, steady, windows)
+    assert gap > 0 and 0 < lo <= gap <= hi
+    assert peers.window_gap_interval(shaky, steady, windows[:1]) is None
+
+
+def test_against_best_names_the_best_peer_of_each_score():
+    rng = np.random.default_rng(3)
+    n = 400
+    truth = np.convolve(rng.normal(size=n), np.ones(8) / 8, mode="same")
+    aps = {"articast": truth + 0.2 * rng.normal(size=n),
+           "a": truth + 0.02 * rng.normal(size=n),  # the closest to the others
+           "b": truth + 0.1 * rng.normal(size=n),
+           "c": truth + 0.1 * rng.normal(size=n)}
+    windows = [slice(s, s + 10) for s in range(0, n - 10, 40)]
+    scores = peers.score(aps, windows)
+    got = peers.against_best(aps, scores, windows, fps=25.0)
+    assert got["r"]["peer"] == "a" and got["r"]["ci95"][1] < 0  # articast clearly behind
+    assert got["jitter"]["peer"] == min(("a", "b", "c"),
+                                        key=lambda k: scores[k]["jitter_pct_width"])
+    assert got["jitter"]["gap"] > 0
