@@ -239,3 +239,29 @@ def test_process_noise_separates_motion_from_measurement_noise():
                                    times[keep]).q[0] < 2.0 * q
     assert process_noise(alpha[::3], zeros[::3] + FRONTAL, zeros[::3], times[::3]).q[0] == \
         MotionNoise.default(1).q[0]
+
+
+def test_the_motion_models_prediction_covariance_is_f_p_ft_plus_q():
+    """The block-wise prediction equals the textbook one: F P F^T + Q, F = [[I, dt I], [0, I]],
+    Q of white-noise acceleration (dt^3/3, dt^2/2, dt per unit of q)."""
+    from articast.core.tracking.kalman import ConstantVelocity
+
+    rng = np.random.default_rng(0)
+    k, dt = 7, 0.04
+    n = k + 6
+    cv = ConstantVelocity(k)
+    cv.start(rng.normal(size=k), 0.1 * rng.normal(size=3), rng.normal(size=3))
+    a = rng.normal(size=(2 * n, 2 * n))
+    cv.p = a @ a.T
+    p0 = cv.p.copy()
+    prior = cv.predict(dt)
+    f = np.eye(2 * n)
+    f[:n, n:] = dt * np.eye(n)
+    q, i = cv.noise.q, np.arange(n)
+    qm = np.zeros((2 * n, 2 * n))
+    qm[i, i] = q * dt**3 / 3
+    qm[i, n + i] = qm[n + i, i] = q * dt**2 / 2
+    qm[n + i, n + i] = q * dt
+    want = f @ p0 @ f.T + qm
+    np.testing.assert_allclose(cv._pred[3], want, rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(prior.information @ want[:n, :n], np.eye(n), atol=1e-6)

@@ -36,6 +36,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
+import cv2
 import numpy as np
 
 from articast.core.faces.enrol import LandmarkScheme
@@ -179,6 +180,12 @@ LIVE_ALPHA_SIGMA = 0.5
 """Motion prior of live tracking (training s.d. per frame, see ``FitPolicy.alpha_sigma``): on
 a 31 s webcam clip it brought the still-mouth jitter of the lip aperture from 0.25 to 0.18 %
 of the mouth width (the landmark model: 0.21 %) at the same agreement with the landmarks."""
+
+
+def _contrast(pixels: np.ndarray) -> float:
+    """The grey-level s.d. of ``pixels`` (any shape, every channel), as ``pixels.std()``
+    (OpenCV's one pass instead of numpy's strided float copies: 26 against 51 us a frame)."""
+    return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
 def live_policy(rig: str, **changes: Any) -> TrackingPolicy:
@@ -333,7 +340,7 @@ class LiveTracker:
                                result.ok or result.reason.startswith("occluded"))
 
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
-        if float(image[::8, ::8].std()) < self.tracker.policy.min_contrast:
+        if _contrast(image[::8, ::8]) < self.tracker.policy.min_contrast:
             return self._lost(t, "blank: the frame has no contrast")
         if self.fusion is not None:
             return self._track_fused(image, t, self.fusion)

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -75,6 +76,13 @@ class PointModel:
                                                      self.modes))
         if not finite or np.any(self.sigma_mm <= 0):
             raise ModelFileError("landmark observation model: non-finite values or sigma <= 0")
+
+    @cached_property
+    def every_point(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The per-reading set-up of :class:`PointTerm` when every point was read (the usual
+        frame), computed once: the basis as (M, 3, K), the shared modes as (2M, R) and
+        (I + V^T V)^-1."""
+        return _term_setup(self, np.ones(len(self.landmarks), bool))
 
     @property
     def n_params(self) -> int:
@@ -202,6 +210,16 @@ def learn_point_model(model: FaceModel, camera: Camera, states: list[tuple[np.nd
     return replace(pm, offset_p99=float(np.percentile(offsets, 99)))
 
 
+def _term_setup(pm: PointModel, ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:class:`PointTerm`'s set-up for the points ``ok`` (M,) bool of ``pm``: the basis as
+    (M', 3, K), the shared error modes in whitened units (2M', R), and (I + V^T V)^-1
+    (Woodbury)."""
+    basis_mk = np.ascontiguousarray(pm.basis[:, ok].transpose(1, 2, 0))
+    n_modes = len(pm.modes)
+    v = np.ascontiguousarray(pm.modes[:, ok].reshape(n_modes, 2 * int(ok.sum())).T)
+    return basis_mk, v, np.linalg.inv(np.eye(v.shape[1]) + v.T @ v)
+
+
 class PointTerm:
     """One frame's landmark readings as a term of the fit.
 
@@ -215,18 +233,16 @@ class PointTerm:
         uv = np.asarray(readings, np.float64)
         ok = np.isfinite(uv).all(1)
         self.ok = ok
-        self.mean, self.basis = pm.mean[ok], pm.basis[:, ok]
-        self._basis_mk = np.ascontiguousarray(self.basis.transpose(1, 2, 0))  # (M, 3, K)
-        self.uv = uv[ok]
+        every = bool(ok.all())
+        self.mean, self.basis = (pm.mean, pm.basis) if every else (pm.mean[ok], pm.basis[:, ok])
+        # (M, 3, K) basis, the shared modes in whitened units (2M, R), (I + V^T V)^-1
+        self._basis_mk, self._v, self._c = pm.every_point if every else _term_setup(pm, ok)
+        self.uv = uv if every else uv[ok]
         self.camera = camera
         px_per_mm = 0.5 * (camera.fx + camera.fy) / max(float(depth_mm), 1.0)
         self.inv_sigma = np.sqrt(weight) / (pm.sigma_mm[ok] * px_per_mm)
         self.scale = scale
         self.k = pm.n_params
-        # the shared error modes in whitened units (2M, R), and (I + V^T V)^-1 (Woodbury)
-        n_modes = len(pm.modes)
-        self._v = np.ascontiguousarray(pm.modes[:, ok].reshape(n_modes, 2 * int(ok.sum())).T)
-        self._c = np.linalg.inv(np.eye(self._v.shape[1]) + self._v.T @ self._v)
         self._jit = kernels.AVAILABLE and not np.any(np.asarray(camera.dist) != 0)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
         self._mean = np.ascontiguousarray(self.mean)
