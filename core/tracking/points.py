@@ -231,7 +231,7 @@ class PointTerm:
     def __init__(self, pm: PointModel, camera: Camera, readings: np.ndarray, depth_mm: float,
                  scale: float | None = 3.0, weight: float = 1.0) -> None:
         uv = np.asarray(readings, np.float64)
-        ok = np.isfinite(uv).all(1)
+        ok = np.asarray(np.isfinite(uv).all(1), bool)
         self.ok = ok
         every = bool(ok.all())
         self.mean, self.basis = (pm.mean, pm.basis) if every else (pm.mean[ok], pm.basis[:, ok])
