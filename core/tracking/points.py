@@ -234,7 +234,8 @@ class PointTerm:
         ok = np.asarray(np.isfinite(uv).all(1), bool)
         self.ok = ok
         every = bool(ok.all())
-        self.mean, self.basis = (pm.mean, pm.basis) if every else (pm.mean[ok], pm.basis[:, ok])
+        self.mean: np.ndarray = pm.mean if every else pm.mean[ok]
+        self.basis: np.ndarray = pm.basis if every else pm.basis[:, ok]
         # (M, 3, K) basis, the shared modes in whitened units (2M, R), (I + V^T V)^-1
         self._basis_mk, self._v, self._c = pm.every_point if every else _term_setup(pm, ok)
         self.uv = uv if every else uv[ok]
