@@ -131,11 +131,13 @@ def offset_fraction(predicted_px: np.ndarray, readings_px: np.ndarray) -> float:
     median distance between ``readings_px`` (M, 2) and ``predicted_px`` (M, 2) over the
     points read (NaN rows left out), over the RMS spread of the predicted points about their
     centre. NaN when nothing was read."""
-    d = np.linalg.norm(np.asarray(readings_px, float) - predicted_px, axis=1)
+    e = np.asarray(readings_px, float) - predicted_px
+    d = np.sqrt(e[:, 0] * e[:, 0] + e[:, 1] * e[:, 1])
     d = d[np.isfinite(d)]
     if d.size == 0:
         return float("nan")
-    size = float(np.sqrt(np.mean(np.sum((predicted_px - predicted_px.mean(0)) ** 2, axis=1))))
+    c = predicted_px - predicted_px.mean(0)
+    size = float(np.sqrt((c * c).sum() / len(c)))
     return float(np.median(d)) / max(size, 1.0)
 
 
