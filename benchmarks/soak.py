@@ -5,7 +5,10 @@
 
 The server runs in a subprocess with the given source; a few subscribers read everything.
 Reports the tracked fps (from /metrics), capture drops, the server's RSS at the start of the
-measured window and at the end, and the RSS slope fitted over the window (MB/min).
+measured window and at the end, and the RSS slope fitted over the window (MB/min), and the
+load averages before and after. With the synthetic source, whose renderer bounds the rate, the
+same run first times the renderer alone in this process (``render_only_fps``): the soak's fps
+is stated as a fraction of it (``fps_over_render_only``), which moves less with the load.
 """
 
 from __future__ import annotations
@@ -16,7 +19,7 @@ import json
 import time
 
 import numpy as np
-from common import Server, make_recording
+from common import Server, load_average, make_recording
 
 
 async def readers(url: str, n: int, seconds: float) -> list[int]:
@@ -37,6 +40,24 @@ async def readers(url: str, n: int, seconds: float) -> list[int]:
         return got
 
     return list(await asyncio.gather(*(one() for _ in range(n))))
+
+
+def render_only_fps(seconds: float) -> float:
+    """Frames per second of the synthetic source alone (rendering, no tracking, no server),
+    in this process: the bound the synthetic soak runs against."""
+    from articast.service.sources import make_source
+
+    src = make_source("synthetic:seed=3&fps=1000&loop=yes")
+    src.open()
+    try:
+        src.read()  # the first frame builds the speaker
+        n, t0 = 0, time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            src.read()
+            n += 1
+        return n / (time.monotonic() - t0)
+    finally:
+        src.close()
 
 
 def metric(text: str, name: str) -> float:
@@ -62,6 +83,8 @@ def main() -> None:
         uri = f"replay-record:{make_recording(int(args.fps * 30), args.fps)}?loop=yes"
     import httpx
 
+    load_before = load_average()
+    render_fps = render_only_fps(3) if args.source == "synthetic" else None
     with Server({"soak": uri}) as srv:
         srv.wait_running(60)
         total = args.warmup + args.seconds
@@ -93,7 +116,11 @@ def main() -> None:
              "subscriber_drops": metric(text, "articast_subscriber_dropped_total"),
              "frames_per_subscriber": got,
              "rss_start_mb": round(float(rss[0]), 1), "rss_end_mb": round(float(rss[-1]), 1),
-             "rss_max_mb": round(float(rss.max()), 1), "rss_slope_mb_per_min": round(slope, 3)}
+             "rss_max_mb": round(float(rss.max()), 1), "rss_slope_mb_per_min": round(slope, 3),
+             "load_average_before": load_before, "load_average_after": load_average()}
+        if render_fps:
+            r["render_only_fps"] = round(render_fps, 2)
+            r["fps_over_render_only"] = round(r["fps"] / render_fps, 3)
         print(json.dumps(r) if args.json else r, flush=True)
 
 
