@@ -21,7 +21,7 @@ import asyncio
 import json
 import time
 
-from common import Server, make_recording, percentile
+from common import ONE_ADDRESS, Server, make_recording, percentile
 
 
 async def ws_subscriber(url: str, encoding: str, clock: list[float], lat: list[float],
@@ -103,7 +103,7 @@ def main() -> None:
     except ImportError:
         pass
     rec = make_recording(frames=int(args.fps * 20), fps=args.fps)
-    extra = ["--worker", args.worker]
+    extra = ["--worker", args.worker, *ONE_ADDRESS]
     if args.busy_ms:
         import os
 
