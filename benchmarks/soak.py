@@ -7,8 +7,9 @@ The server runs in a subprocess with the given source; a few subscribers read ev
 Reports the tracked fps (from /metrics), capture drops, the server's RSS at the start of the
 measured window and at the end, and the RSS slope fitted over the window (MB/min), and the
 load averages before and after. With the synthetic source, whose renderer bounds the rate, the
-same run first times the renderer alone in this process (``render_only_fps``): the soak's fps
-is stated as a fraction of it (``fps_over_render_only``), which moves less with the load.
+same run times the renderer alone in this process for 5 s before the server starts and 5 s
+after it stops (``render_only_fps``, both): the soak's fps is stated as a fraction of their
+mean (``fps_over_render_only``), which moves less with the load than fps do.
 """
 
 from __future__ import annotations
@@ -84,7 +85,7 @@ def main() -> None:
     import httpx
 
     load_before = load_average()
-    render_fps = render_only_fps(3) if args.source == "synthetic" else None
+    render_fps = [render_only_fps(5)] if args.source == "synthetic" else []
     with Server({"soak": uri}) as srv:
         srv.wait_running(60)
         total = args.warmup + args.seconds
@@ -118,10 +119,11 @@ def main() -> None:
              "rss_start_mb": round(float(rss[0]), 1), "rss_end_mb": round(float(rss[-1]), 1),
              "rss_max_mb": round(float(rss.max()), 1), "rss_slope_mb_per_min": round(slope, 3),
              "load_average_before": load_before, "load_average_after": load_average()}
-        if render_fps:
-            r["render_only_fps"] = round(render_fps, 2)
-            r["fps_over_render_only"] = round(r["fps"] / render_fps, 3)
-        print(json.dumps(r) if args.json else r, flush=True)
+    if render_fps:  # after the server has stopped: the renderer alone again
+        render_fps.append(render_only_fps(5))
+        r["render_only_fps"] = [round(x, 2) for x in render_fps]
+        r["fps_over_render_only"] = round(r["fps"] / float(np.mean(render_fps)), 3)
+    print(json.dumps(r) if args.json else r, flush=True)
 
 
 if __name__ == "__main__":
