@@ -505,3 +505,31 @@ def test_hostile_files_through_the_commands(valid, tmp_path):
                 p.kill()
                 p.communicate()
     assert not problems, "\n".join(problems)
+
+
+def test_a_fifo_in_the_synthetic_speakers_cache_does_not_block(tmp_path):
+    """The cached texture atlas was read with np.load by name: a FIFO in its place (or
+    /dev/zero) blocked the demo's start for ever. Now it is skipped (the atlas is rebuilt)."""
+    import signal
+
+    from articast.core.synthetic import stream, texture
+
+    os.mkfifo(tmp_path / "atlas.npy")
+    os.symlink("/dev/zero", tmp_path / "zero.npy")
+    texture._PRESET_ATLASES.pop(987, None)
+
+    class Blocked(BaseException):  # not an OSError: the loader must not swallow it
+        pass
+
+    def hang(signum, frame):
+        raise Blocked("blocked on the cached atlas")
+
+    old = signal.signal(signal.SIGALRM, hang)
+    signal.alarm(10)
+    try:
+        stream._load_atlas(987, tmp_path / "atlas.npy")
+        stream._load_atlas(987, tmp_path / "zero.npy")
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    assert 987 not in texture._PRESET_ATLASES
