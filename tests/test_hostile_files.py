@@ -331,6 +331,10 @@ def test_serve_marks_a_session_with_a_bad_file_failed_without_restarting(valid, 
     late = tmp_path / "late.jsonl"
     late.write_text("\n".join([*lines[:3], json.dumps({**json.loads(lines[3]), "t": 1e12}),
                                *lines[4:]]) + "\n")
+    from tests.hostile_corpus import _png_declaring
+
+    (tmp_path / "huge").mkdir()
+    (tmp_path / "huge" / "x.png").write_bytes(_png_declaring(100_000, 100_000))
     config = ServiceConfig(
         server=ServerSettings(log_level="critical"),
         policy=SessionPolicy(restart_initial_s=0.05, restart_max_s=0.1, max_restarts=20),
@@ -348,6 +352,9 @@ def test_serve_marks_a_session_with_a_bad_file_failed_without_restarting(valid, 
         "tiny-focal": ({"source": f"replay-record:{valid / 'rec.jsonl'}", "camera": str(tiny_cam),
                         "processor": "truth"}, "tiny.json"),
         "late": ({"source": f"replay-record:{late}?pace=fast", "processor": "truth"}, "late.jsonl"),
+        # the corpus's PNG declaring 1e10 pixels: a cv2.error traceback at every restart
+        "huge-png": ({"source": f"images:{tmp_path / 'huge'}",
+                      "processor": "tests.service_helpers:ImageStats"}, "x.png"),
     }
     with ServerThread(config) as srv:
         c = srv.client()
