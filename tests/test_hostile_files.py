@@ -469,6 +469,22 @@ def test_hostile_files_through_the_commands(valid, tmp_path):
     common = ["--model", str(valid / "model.npz"), "--appearance",
               str(valid / "appearance.npz")]
     out = str(tmp_path / "out")
+    # the full corpus's finds, through the commands: a speaker whose points_v1.npz is a FIFO
+    # (skipped silently before), a track line of frame 1e308, 68 landmarks at one place
+    speaker = tmp_path / "speaker"
+    speaker.mkdir()
+    for f in ("model.npz", "appearance.npz", "camera.json", "speaker.json"):
+        os.symlink(valid / "speaker" / f, speaker / f)
+    os.mkfifo(speaker / "points_v1.npz")
+    lines = (valid / "truth.jsonl").read_text().splitlines()
+    far = tmp_path / "far.jsonl"
+    far.write_text("\n".join([lines[0], json.dumps({**json.loads(lines[1]), "frame": 1e308}),
+                              *lines[2:]]) + "\n")
+    same_lm = tmp_path / "same.json"
+    same_lm.write_text(json.dumps([[1.0, 2.0, 3.0]] * 68))
+    scan = tmp_path / "scan.obj"
+    scan.write_text("".join(f"v {x} {y} {x * y / 50}\n" for x in range(0, 60, 6)
+                            for y in range(0, 60, 6)) + "f 1 2 11\n")
     runs = {
         "track a FIFO": (["track", "--quiet", str(fifo), *common, "--camera",
                           str(valid / "camera.json"), "-o", out], "fifo.avi"),
@@ -487,6 +503,14 @@ def test_hostile_files_through_the_commands(valid, tmp_path):
         "serve --token-file a FIFO": (["demo", "--port", "0", "--token-file", str(fifo_json)],
                                       "fifo.json"),
         "calibrate a FIFO": (["calibrate", str(fifo), "-o", out + ".json"], "fifo.avi"),
+        "track --speaker, points_v1.npz a FIFO": (["track", "--quiet", str(video), "--speaker",
+                                                   str(speaker), "-o", out], "points_v1.npz"),
+        "export-fap, a frame of 1e308": (["export-fap", str(far), "--model",
+                                          str(valid / "model.npz"), "-o", out + "2.fap"],
+                                         "far.jsonl"),
+        "bind-dense, landmarks at one place": (["bind-dense", str(scan), "--landmarks",
+                                                str(same_lm), "--model", str(valid / "model.npz"),
+                                                "-o", out + "2.npz"], "same.json"),
     }
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     procs = {}
