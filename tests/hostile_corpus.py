@@ -285,8 +285,14 @@ def build(out: Path, valid: Path) -> list[dict]:
                                {member: _npy(np.full_like(arr, value))}))
 
     # values no real file has, loader by loader
-    bundle = {"model": "face-model", "points": "landmark-observation", "delegate": "delegate",
-              "appearance": "appearance-model", "binding": "dense-binding"}
+    from articast.core.appearance.models import APPEARANCE_KIND
+    from articast.core.delegate.build import DELEGATE_KIND
+    from articast.core.dense.transfer import BINDING_KIND
+    from articast.core.model.face import MODEL_KIND
+    from articast.core.tracking.points import POINT_MODEL_KIND
+
+    bundle = {"model": MODEL_KIND, "points": POINT_MODEL_KIND, "delegate": DELEGATE_KIND,
+              "appearance": APPEARANCE_KIND, "binding": BINDING_KIND}
     with np.load(valid / "model.npz") as z:
         mean, basis = z["mean"], z["basis"]
     for label, value in (("-1e308", -1e308),):
@@ -527,6 +533,18 @@ def build(out: Path, valid: Path) -> list[dict]:
         p = out / f"token-{len(cases)}"
         p.write_bytes(data)
         case("token", label, p)
+
+    # videos: a container with no frame; a picture under a video's name (a one-frame clip,
+    # which OpenCV reads as such: correct)
+    import cv2
+
+    w = cv2.VideoWriter(str(out / "no-frame.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, (64, 48))
+    w.release()
+    (out / "picture.avi").write_bytes((valid / "images" / "x.png").read_bytes())
+    for loader in ("video", "file-source"):
+        case(loader, "a container with no frame", out / "no-frame.avi")
+        case(loader, "a PNG picture named .avi (a one-frame clip)", out / "picture.avi",
+             expect="loaded")
 
     # images: a picture that declares more than it holds
     d = out / "images-huge"
