@@ -466,7 +466,7 @@ def build(out: Path, valid: Path) -> list[dict]:
         ("t NaN", lambda x, i: {**x, "t": float("nan")} if i == 2 else x),
         ("t going back", lambda x, i: {**x, "t": x["t"] - 10} if i == 3 else x),
         ("t of 1e12", lambda x, i: {**x, "t": 1e12} if i == 2 else x),
-        ("t of the wrong type (a string)", lambda x, i: {**x, "t": "0.1"} if i == 2 else x),
+        ("t of the wrong type (a word)", lambda x, i: {**x, "t": "soon"} if i == 2 else x),
         ("alpha of 1e308", lambda x, i: {**x, "alpha": {
             k: 1e308 for k in x["alpha"]}} if i == 2 else x),
         ("alpha NaN", lambda x, i: {**x, "alpha": {
@@ -510,7 +510,7 @@ def build(out: Path, valid: Path) -> list[dict]:
     # .fap files: numbers no player takes
     fap = (valid / "talk.fap").read_text().split("\n")
     head = fap[0].split(" ")
-    for label, new_head in (("fps 1e-300", [*head[:2], "0.000000000001", head[3]]),
+    for label, new_head in (("fps 1e-12", [*head[:2], "0.000000000001", head[3]]),
                             ("fps 1e308", [*head[:2], "1" + "0" * 308, head[3]]),
                             ("frame count 1e18", [*head[:3], "1" + "0" * 18]),
                             ("fps of the wrong type (a word)", [*head[:2], "fast", head[3]])):

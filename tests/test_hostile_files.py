@@ -445,6 +445,9 @@ def test_the_hostile_corpus_through_every_loader(valid, tmp_path):
         if x["outcome"] != "error":
             continue
         msg, path = x["message"], Path(by_case[x["case"]]["path"])
+        # a rewritten archive refused for its kind is refused for the wrong reason (the
+        # delegate's cases once were): only the case about the metadata may say so
+        assert "found another kind" not in msg or "metadata" in x["kind"], x
         assert "\n" not in msg.strip(), x
         assert path.name in msg or str(path) in msg, x
 
