@@ -15,6 +15,19 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
+ONE_ADDRESS = ("--max-connections-per-client", "5000", "--max-subscriptions-per-client", "5000",
+               "--max-subscribes-per-client-s", "100000")
+"""Server options for a load generator on loopback: its hundreds of subscribers come from one
+address, which the per-address limits (issue 20, row e/f: 256 connections, 256
+subscriptions, 20 subscribes/s) rightly refuse; without these the clients never connect."""
+
+
+def load_average() -> list[float]:
+    """The machine's 1-, 5- and 15-minute load averages (``uptime``), rounded: every timing
+    figure states the load it was taken at (the development machine's 2 cores are shared)."""
+    return [round(x, 2) for x in os.getloadavg()]
+
+
 def make_recording(frames: int, fps: float, n_points: int = 200) -> Path:
     """A ground-truth recording that the truth processor replays at ``fps``."""
     from tests.service_helpers import small_model, write_recording

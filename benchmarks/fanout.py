@@ -19,7 +19,7 @@ import socket
 import time
 from typing import Any
 
-from common import Server, make_recording, percentile
+from common import ONE_ADDRESS, Server, make_recording, percentile
 
 
 async def reader(url: str, clock: Any, out: dict, lat: list[float], encoding: str) -> None:
@@ -193,7 +193,7 @@ def main() -> None:
     args = ap.parse_args()
     rec = make_recording(frames=int(args.fps * 30), fps=args.fps, n_points=2000)
     with Server({"bench": f"replay-record:{rec}?loop=yes"}, "--max-queue", "8",
-                "--max-connections-per-client", "5000") as srv:
+                *ONE_ADDRESS) as srv:
         srv.wait_running()
         for n in args.subscribers:
             r = measure(srv, n, args.seconds, args.stalled, args.client_processes,

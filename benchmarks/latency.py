@@ -21,7 +21,7 @@ import asyncio
 import json
 import time
 
-from common import Server, make_recording, percentile
+from common import ONE_ADDRESS, Server, load_average, make_recording, percentile
 
 
 async def ws_subscriber(url: str, encoding: str, clock: list[float], lat: list[float],
@@ -103,7 +103,7 @@ def main() -> None:
     except ImportError:
         pass
     rec = make_recording(frames=int(args.fps * 20), fps=args.fps)
-    extra = ["--worker", args.worker]
+    extra = ["--worker", args.worker, *ONE_ADDRESS]
     if args.busy_ms:
         import os
 
@@ -112,8 +112,10 @@ def main() -> None:
     with Server({"bench": f"replay-record:{rec}?loop=yes"}, *extra) as srv:
         srv.wait_running()
         for n in args.subscribers:
+            load_before = load_average()
             r = asyncio.run(measure(srv.url, n, args.seconds, args.encoding, args.client))
-            r.update(source_fps=args.fps, worker=args.worker, busy_ms=args.busy_ms)
+            r.update(source_fps=args.fps, worker=args.worker, busy_ms=args.busy_ms,
+                     load_average_before=load_before, load_average_after=load_average())
             print(json.dumps(r) if args.json else
                   f"{n:4d} subscribers: p50 {r['p50_ms']:.2f} ms, p99 {r['p99_ms']:.2f} ms, "
                   f"{r['rate_hz']} Hz each, {r['drops']} drops", flush=True)

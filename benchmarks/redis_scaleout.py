@@ -35,7 +35,7 @@ import sys
 import time
 from typing import Any
 
-from common import ROOT, make_recording, percentile
+from common import ONE_ADDRESS, ROOT, load_average, make_recording, percentile
 from leanclient import answer_pings, client_frame, server_frames, upgrade_request
 
 from articast.client.protocol import frame_header
@@ -219,6 +219,7 @@ def main() -> None:
     ap.add_argument("--client-processes", type=int, default=2)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args()
+    load_before = load_average()
     rec = make_recording(frames=int(args.fps * 60), fps=args.fps, n_points=200)
     port = free_port()
     url = f"redis://127.0.0.1:{port}/0"
@@ -232,7 +233,7 @@ def main() -> None:
         gateways = []
         for _ in range(2):
             g = articast("gateway", "--hub", url, "--port", "0", "--json", "--log-level",
-                         "error", "--max-connections-per-client", "5000", "--max-queue", "8")
+                         "error", "--max-queue", "8", *ONE_ADDRESS)
             procs.append(g)
             gateways.append(g)
         urls = [json.loads(g.stdout.readline())["url"] for g in gateways]
@@ -303,6 +304,7 @@ def main() -> None:
                       "gateways": [round(cpu[p.pid], 2) for p in procs[1:]],
                       "client_processes": [round(c, 2) for c in ccpu]},
         "machine_cores": os.cpu_count(), "load_average": round(load, 1),
+        "load_average_before": load_before, "load_average_after": load_average(),
         "redis_outage_s": args.outage,
         "recovered": len(finite), "recovered_within_5s": sum(b <= 5.0 for b in finite),
         "recovery_p50_s": round(percentile(finite, 50), 3),

@@ -5,7 +5,11 @@
 
 The server runs in a subprocess with the given source; a few subscribers read everything.
 Reports the tracked fps (from /metrics), capture drops, the server's RSS at the start of the
-measured window and at the end, and the RSS slope fitted over the window (MB/min).
+measured window and at the end, and the RSS slope fitted over the window (MB/min), and the
+load averages before and after. With the synthetic source, whose renderer bounds the rate, the
+same run times the renderer alone in this process for 5 s before the server starts and 5 s
+after it stops (``render_only_fps``, both): the soak's fps is stated as a fraction of their
+mean (``fps_over_render_only``), which moves less with the load than fps do.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import json
 import time
 
 import numpy as np
-from common import Server, make_recording
+from common import Server, load_average, make_recording
 
 
 async def readers(url: str, n: int, seconds: float) -> list[int]:
@@ -37,6 +41,24 @@ async def readers(url: str, n: int, seconds: float) -> list[int]:
         return got
 
     return list(await asyncio.gather(*(one() for _ in range(n))))
+
+
+def render_only_fps(seconds: float) -> float:
+    """Frames per second of the synthetic source alone (rendering, no tracking, no server),
+    in this process: the bound the synthetic soak runs against."""
+    from articast.service.sources import make_source
+
+    src = make_source("synthetic:seed=3&fps=1000&loop=yes")
+    src.open()
+    try:
+        src.read()  # the first frame builds the speaker
+        n, t0 = 0, time.monotonic()
+        while time.monotonic() - t0 < seconds:
+            src.read()
+            n += 1
+        return n / (time.monotonic() - t0)
+    finally:
+        src.close()
 
 
 def metric(text: str, name: str) -> float:
@@ -62,6 +84,8 @@ def main() -> None:
         uri = f"replay-record:{make_recording(int(args.fps * 30), args.fps)}?loop=yes"
     import httpx
 
+    load_before = load_average()
+    render_fps = [render_only_fps(5)] if args.source == "synthetic" else []
     with Server({"soak": uri}) as srv:
         srv.wait_running(60)
         total = args.warmup + args.seconds
@@ -93,8 +117,13 @@ def main() -> None:
              "subscriber_drops": metric(text, "articast_subscriber_dropped_total"),
              "frames_per_subscriber": got,
              "rss_start_mb": round(float(rss[0]), 1), "rss_end_mb": round(float(rss[-1]), 1),
-             "rss_max_mb": round(float(rss.max()), 1), "rss_slope_mb_per_min": round(slope, 3)}
-        print(json.dumps(r) if args.json else r, flush=True)
+             "rss_max_mb": round(float(rss.max()), 1), "rss_slope_mb_per_min": round(slope, 3),
+             "load_average_before": load_before, "load_average_after": load_average()}
+    if render_fps:  # after the server has stopped: the renderer alone again
+        render_fps.append(render_only_fps(5))
+        r["render_only_fps"] = [round(x, 2) for x in render_fps]
+        r["fps_over_render_only"] = round(r["fps"] / float(np.mean(render_fps)), 3)
+    print(json.dumps(r) if args.json else r, flush=True)
 
 
 if __name__ == "__main__":

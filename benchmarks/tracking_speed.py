@@ -4,9 +4,12 @@ memory per tracker. Video decoding and rendering are excluded (frames are pre-re
 so is the one-off compilation of the cost kernel (warmed up first); the numpy reference path
 of the cost runs on the same frames too, so the kernel's gain is a ratio from one run.
 
-    python benchmarks/tracking_speed.py [--frames 150] [--nm-frames 40] [--kind la_lin]
+    python benchmarks/tracking_speed.py [--frames 150] [--nm-frames 40] [--repeats 3]
 
-Prints one JSON object.
+The timings are repeated ``--repeats`` times on the same frames (Gauss-Newton, Nelder-Mead and
+the numpy path interleaved in each repeat), so each ratio comes with its spread over repeats;
+the machine's load average before and after is in the output (the figures move with it on a
+shared machine). Prints one JSON object.
 """
 
 from __future__ import annotations
@@ -32,7 +35,12 @@ def main() -> None:
     ap.add_argument("--nm-frames", type=int, default=40)
     ap.add_argument("--kind", default="la_lin")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="timing repeats on the same frames, for the spread (default 3)")
     args = ap.parse_args()
+    from common import load_average
+
+    load_before = load_average()
     cv2.setNumThreads(1)
 
     from articast.core.appearance.models import TrainingFrame, train_appearance
@@ -64,7 +72,7 @@ def main() -> None:
         tracemalloc.stop()
         return peak / 2**20
 
-    def run(policy: TrackingPolicy, n: int) -> dict:
+    def run(policy: TrackingPolicy, n: int, heap: bool = True) -> dict:
         tracker = Tracker(model, app, te.camera, policy, clock=time.perf_counter)
         tracker.reset(te.pose(0), a_true[0])
         res = []
@@ -77,33 +85,56 @@ def main() -> None:
         return {"frames": n, "fps": n / wall, "ms_per_frame_mean": float(ms.mean()),
                 "ms_per_frame_p95": float(np.percentile(ms, 95)),
                 "evals_per_frame": float(np.mean([r.evals for r in res])),
-                "rms_mm_mean": float(err.mean()), "peak_heap_mib": memory(policy)}
+                "rms_mm_mean": float(err.mean()),
+                "peak_heap_mib": memory(policy) if heap else None}
 
     from articast.core.tracking import kernels
 
     kernels.warm_up()  # compilation (or loading the on-disk cache) is not a frame's work
     base = TrackingPolicy.for_rig("head")
-    gn = run(base, te.n_frames)
     from dataclasses import replace
 
-    nm = run(replace(base, optimiser="nelder-mead", levels=(0,)), min(args.nm_frames, te.n_frames))
-    gn_same = run(base, nm["frames"])
-    numpy_path = None
-    if kernels.AVAILABLE:  # the same tracker on the numpy reference code of the cost
-        kernels.AVAILABLE = False
-        numpy_path = run(base, nm["frames"])
-        kernels.AVAILABLE = True
+    nm_policy = replace(base, optimiser="nelder-mead", levels=(0,))
+    n_nm = min(args.nm_frames, te.n_frames)
+    repeats = []
+    for r in range(max(1, args.repeats)):  # interleaved: a burst of load hits all three
+        gn = run(base, te.n_frames, heap=r == 0)
+        nm = run(nm_policy, n_nm, heap=r == 0)
+        gn_same = run(base, n_nm, heap=False)
+        numpy_path = None
+        if kernels.AVAILABLE:  # the same tracker on the numpy reference code of the cost
+            kernels.AVAILABLE = False
+            numpy_path = run(base, n_nm, heap=False)
+            kernels.AVAILABLE = True
+        repeats.append({
+            "gauss_newton_ms": gn["ms_per_frame_mean"], "gauss_newton_p95_ms":
+                gn["ms_per_frame_p95"], "nelder_mead_ms": nm["ms_per_frame_mean"],
+            "speedup_vs_nelder_mead_same_frames":
+                nm["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"],
+            "compiled_kernel_speedup_same_frames": (
+                numpy_path["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"]
+                if numpy_path else None),
+            "load_1min": load_average()[0]})
+        if r == 0:
+            first = (gn, nm, gn_same)
+    gn, nm, gn_same = first
+
+    def spread(key: str) -> list | None:
+        v = [x[key] for x in repeats if x[key] is not None]
+        return [round(min(v), 3), round(float(np.median(v)), 3), round(max(v), 3)] if v else None
+
     out = {
         "image": "640x480", "kind": args.kind, "threads": 1,
         "gauss_newton": gn, "nelder_mead": nm,
-        "speedup_vs_nelder_mead_same_frames":
-            nm["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"],
         "accuracy_same_frames_mm": {"gauss_newton": gn_same["rms_mm_mean"],
                                     "nelder_mead": nm["rms_mm_mean"]},
         "appearance_model_kb": app.weights.nbytes / 1024,
-        "compiled_kernel_speedup_same_frames": (
-            numpy_path["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"]
-            if numpy_path else None),
+        "repeats": repeats,
+        "min_median_max": {k: spread(k) for k in (
+            "gauss_newton_ms", "gauss_newton_p95_ms", "nelder_mead_ms",
+            "speedup_vs_nelder_mead_same_frames", "compiled_kernel_speedup_same_frames")},
+        "load_average_before": load_before, "load_average_after": load_average(),
+        "cpus": os.cpu_count(),
     }
     print(json.dumps(out, indent=2))
 

@@ -89,8 +89,14 @@ def read_header(path: Path) -> tuple[dict[str, Any], SourceAssets, tuple[str, ..
         names = tuple(doc["alpha"]) if isinstance(doc["alpha"], dict) else PARAM_NAMES
         return {}, SourceAssets(), names
     if doc.get("format") != RECORD_FORMAT or doc.get("version") != RECORD_VERSION:
-        raise SourceError(f"{path}: unsupported recording {doc.get('format')!r} "
-                          f"version {doc.get('version')!r}")
+        raise SourceError(f"{path}: unsupported recording {str(doc.get('format'))[:40]!r} "
+                          f"version {str(doc.get('version'))[:40]!r}")
+    listed = doc.get("param_names")
+    # a source of another type was an AttributeError at the replay's open
+    if not isinstance(doc.get("source", {}), dict) or not isinstance(listed, list) or not all(
+            isinstance(n, str) for n in listed):
+        raise SourceError(f"{path}: malformed header: 'source' must be an object and "
+                          "'param_names' a list of names")
     try:
         model = model_from_description(doc)
         camera = None

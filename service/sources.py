@@ -298,8 +298,10 @@ class FileSource(_Finite):
             raise SourceError(f"{self.path}: no such file")
         self.close()
         self._fh = self._open_file(self.path)  # held open: OpenCV reads this very file
-        cap = cv2.VideoCapture(f"/proc/self/fd/{self._fh.fileno()}" if self.roots
-                               else str(self.path))
+        from articast.service.video import open_capture
+
+        cap = open_capture(f"/proc/self/fd/{self._fh.fileno()}" if self.roots
+                           else str(self.path))
         if not cap.isOpened():
             cap.release()
             self.close()
@@ -398,7 +400,11 @@ class ImagesSource(_Finite):
 
         with self._open_file(path) as fh:  # each file, at each read: under the roots
             data = np.frombuffer(fh.read(), np.uint8)
-        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+        try:
+            image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+        except cv2.error:  # e.g. a PNG declaring 1e10 pixels: OpenCV refuses by assertion
+            raise SourceError(f"{path}: not a readable image (OpenCV refused it: too large "
+                              "or malformed)") from None
         if image is None:
             raise SourceError(f"{path}: not a readable image")
         return image

@@ -19,6 +19,40 @@ MAX_VIDEO_BYTES = 64 * 2**30
 
 SPAN_HELP = "seconds (12.5) or a frame number with f (300f)"
 
+OPENCV_NOISE = (b"Unexpected element.",)
+"""What OpenCV's built-in AVI reader prints itself (``fprintf`` to stderr, whatever
+``OPENCV_LOG_LEVEL`` says) when it opens a truncated or corrupt file: a second line after
+articast's own error."""
+
+
+def open_capture(name: str, *api: int) -> Any:
+    """``cv2.VideoCapture(name, *api)`` with OpenCV's own stderr lines (:data:`OPENCV_NOISE`)
+    dropped: fd 2 goes to a temporary file while the container is parsed, and whatever else
+    was written there meanwhile (another thread's log) is written back afterwards."""
+    import sys
+    import tempfile
+
+    import cv2
+
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):  # no stderr to protect
+        return cv2.VideoCapture(name, *api)
+    with tempfile.TemporaryFile() as tmp:
+        try:
+            os.dup2(tmp.fileno(), 2)
+            cap = cv2.VideoCapture(name, *api)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        rest = b"".join(line for line in tmp.read().splitlines(keepends=True)
+                        if not line.startswith(OPENCV_NOISE))
+    if rest:
+        os.write(2, rest)
+    return cap
+
 
 def parse_mark(text: str | None, option: str) -> tuple[float, str] | None:
     """``--start``/``--end`` (or a source's ``start=``/``end=``): seconds, or frames with a
@@ -97,7 +131,7 @@ def iter_video(path: str | os.PathLike[str], span: Span | None = None
     if not os.path.lexists(p):
         raise InputError(f"{p}: no such video file")
     require_regular(p, max_bytes=MAX_VIDEO_BYTES)  # a FIFO would block OpenCV for ever
-    cap = cv2.VideoCapture(str(p))
+    cap = open_capture(str(p))
     if not cap.isOpened():
         raise InputError(f"{p}: cannot open as a video (unknown or corrupt container)")
     fps = cap.get(cv2.CAP_PROP_FPS) or 0.0
@@ -145,7 +179,7 @@ def video_frame_count(path: str | os.PathLike[str]) -> int:
     import cv2
 
     require_regular(path, max_bytes=MAX_VIDEO_BYTES)
-    cap = cv2.VideoCapture(str(path))
+    cap = open_capture(str(path))
     try:
         return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
     finally:

@@ -384,7 +384,9 @@ def test_a_malformed_delegate_file_is_one_clear_error(defect, tmp_path):
     from articast.core.errors import ModelFileError
 
     v, k, s = 12, 7, 8
-    arrays = {"vertices": np.zeros((v, 3)), "modes": np.zeros((k, v, 3)), "uv": np.zeros((v, 2)),
+    # the good file's vertices span a surface (all at one place is refused, issue 20)
+    arrays = {"vertices": np.random.default_rng(0).normal(0, 20, (v, 3)),
+              "modes": np.zeros((k, v, 3)), "uv": np.zeros((v, 2)),
               "triangles": np.array([[0, 1, 2], [2, 3, 4]]), "model_index": np.arange(v),
               "texture": np.zeros((s, s, 3), np.uint8),
               "texture_modes": np.zeros((k, s, s, 3), np.int8), "seen": np.zeros((s, s))}

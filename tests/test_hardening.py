@@ -567,3 +567,38 @@ def test_the_benchmarks_lean_clients_answer_keepalive_pings(media):
         sock.close()
     # 3 s of frames at 30 fps: still connected at the end (a 0.3 s unanswered ping closes it)
     assert client.got > 60, client.got
+
+
+# ----------------------------------------------------------------------------- issue 20, item 9
+OUTPUT_OPTIONS = {"--grid", "--pictures", "--figure", "--series", "--json", "--out", "-o",
+                  "--output"}
+
+
+def test_no_benchmark_writes_files_unless_told():
+    """A benchmark run never overwrites committed docs or images by default: every option
+    that names a file or folder to write (``--grid``, ``--pictures``, ``--figure``,
+    ``--series``, ``--json PATH``, ``--out``...) defaults to nothing. Read from the
+    benchmarks' own argument parsers (their sources, parsed: no benchmark is run)."""
+    import ast
+
+    root = Path(__file__).resolve().parents[1]
+    writers = []
+    for path in sorted((root / "benchmarks").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                    and node.func.attr == "add_argument" and node.args
+                    and isinstance(node.args[0], ast.Constant)):
+                continue
+            kw = {k.arg: k.value for k in node.keywords}
+            typ = kw.get("type")
+            if not (isinstance(typ, ast.Name) and typ.id == "Path"):
+                continue
+            name, default = node.args[0].value, kw.get("default")
+            shown = ast.unparse(default) if default is not None else "None"
+            if name in OUTPUT_OPTIONS:
+                writers.append((path.name, name))
+                assert shown == "None", f"{path.name} {name} writes to {shown} by default"
+            else:  # inputs (clip and scan caches) may have defaults, outside the repository
+                assert "ROOT" not in shown and "docs" not in shown, (path.name, name, shown)
+    # the parsers were read: the known writers are among them
+    assert ("real_clips.py", "--grid") in writers and ("blinks.py", "--grid") in writers

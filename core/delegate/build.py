@@ -79,6 +79,14 @@ class Delegate:
             require(modes.ndim == 3 and modes.shape[1:] == (n, 3), path,
                     f"modes must be (K, {n}, 3)")
             require(uv.shape == (n, 2), path, f"uv must be ({n}, 2)")
+            # what the avatar and the glTF export draw: texture coordinates in the texture,
+            # and a surface (every vertex at one place, or uv of 1e15, loaded silently)
+            require(bool(np.all((uv >= -0.01) & (uv <= 1.01))), path,
+                    "uv must lie within [0, 1]")
+            spread = (np.linalg.svd(v - v.mean(axis=0), compute_uv=False) if n >= 3
+                      else np.zeros(2))
+            require(float(spread[1]) > 1e-3, path,
+                    "the vertices do not span a surface (all at one place, or on one line)")
             require(tri.ndim == 2 and tri.shape[1] == 3 and tri.size > 0
                     and tri.min() >= 0 and tri.max() < n, path,
                     "triangles must index the vertices")

@@ -48,6 +48,16 @@ def parse_landmarks(text: str, kind: str, source: str = "<landmarks>") -> np.nda
                          "coordinates")
     if np.isinf(pts).any():
         raise InputError(f"{source}: landmark coordinates must be finite")
+    # what an alignment can use: coordinates of a scan's size (1e308 squared is inf), and
+    # three given points that span a plane (all missing, or all at one place, was accepted)
+    given = pts[~np.isnan(pts).any(axis=1)]
+    if np.abs(given).max(initial=0.0) > 1e6:
+        raise InputError(f"{source}: landmark coordinates beyond 1e6: not a face scan's")
+    spread = (np.linalg.svd(given - given.mean(axis=0), compute_uv=False)
+              if len(given) >= 3 else np.zeros(2))
+    if spread[1] <= 1e-9 * max(1.0, float(spread[0])):
+        raise InputError(f"{source}: the given landmarks ({len(given)} of {N_IBUG}) do not "
+                         "span a plane (fewer than 3, all at one place, or on one line)")
     return pts
 
 

@@ -74,6 +74,10 @@ class ResidualStats:
             raise ModelFileError(f"{where}: residual statistics are malformed ({exc})") from None
         if not all(math.isfinite(v) and v > 0 for v in vals) or frames < 1:
             raise ModelFileError(f"{where}: residual statistics must be positive numbers")
+        # a p99 of 1e308 judged every frame "ok" (the live tracker compares against it)
+        if max(vals) > 1e6 or frames > 10**9 or not vals[0] <= vals[1] <= vals[2]:
+            raise ModelFileError(f"{where}: residual statistics must be ordered (median <= "
+                                 "p95 <= p99), within 1e6, over at most 1e9 frames")
         return cls(*vals, frames)
 
 
@@ -148,7 +152,8 @@ class Speaker:
             raise ModelFileError(f"{where}: rig must be 'desk' or 'head', got {rig!r}")
         model = FaceModel.load(d / "model.npz")
         points = None
-        if (d / "points_v1.npz").is_file():
+        if os.path.lexists(d / "points_v1.npz"):  # there: it must load (a FIFO, a folder
+            # or a dangling link was skipped silently, the speaker tracked without its points)
             points = PointModel.load(d / "points_v1.npz", model.n_params)
         return cls(model, AppearanceModel.load(d / "appearance.npz", model),
                    Camera.load(d / "camera.json"),

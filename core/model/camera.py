@@ -302,7 +302,8 @@ class Camera:
                 raise ModelFileError(f"{where}: camera K or dist holds NaN or infinite values")
             width, height = int(d["width"]), int(d["height"])
             if not (0 < width <= 1 << 16 and 0 < height <= 1 << 16):
-                raise ModelFileError(f"{where}: image size {width}x{height} is not plausible")
+                raise ModelFileError(f"{where}: image size {width:.6g}x{height:.6g} is not "
+                                     "plausible")  # (1e308: a 309-digit number before)
             if not (k[0, 0] > 0 and k[1, 1] > 0):
                 raise ModelFileError(f"{where}: focal lengths in K must be positive")
             size = max(width, height)

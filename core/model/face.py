@@ -241,6 +241,16 @@ class FaceModel:
             k = basis.shape[0]
             require(bool(np.all(np.abs(mean) <= MAX_MM)) and bool(np.all(np.abs(basis) <= MAX_MM)),
                     path, f"mean or basis values beyond {MAX_MM:g} mm: not a face model")
+            # degenerate geometry loaded and tracked "ok" before: a face has extent, and its
+            # parameters move it
+            spread = (np.linalg.svd(mean - mean.mean(axis=0), compute_uv=False)
+                      if n >= 3 else np.ones(2))
+            require(float(spread[1]) > 1e-3, path,
+                    "the mean shape's points do not span a surface (all at one place, or on "
+                    "one line): not a face model")
+            require(k == 0 or float(np.abs(basis).max()) >= 1e-6, path,
+                    "the basis moves no point (all its values are below 1e-6 mm): not a face "
+                    "model")
             require(arrays["stats"].shape == (4, k), path,
                     f"stats has shape {arrays['stats'].shape}, expected (4, {k})")
             names = meta.get("param_names", [])

@@ -31,6 +31,10 @@ from articast.core.outputs.fap_table import N_FAPS
 
 VERSION = "2.1"
 _INT = re.compile(r"^[+-]?[0-9]+$")
+MIN_FPS, MAX_FPS = 0.01, 10_000.0
+"""Frame rates a .fap may declare (1e-12 fps, a frame every 31,000 years, was read)."""
+MAX_VALUE = 2**31 - 1
+"""|FAP value|: players hold them in 32 bits."""
 _NUMBER = re.compile(r"^[+-]?([0-9]+\.?[0-9]*|\.[0-9]+)$")
 _HIGH_LEVEL_COUNTS = (4, 6)  # values carried by FAP 1 (viseme) and FAP 2 (expression)
 
@@ -183,8 +187,9 @@ def _header(source: str, n: int, tokens: list[str]) -> tuple[str, str, float, in
     version, name, fps, count = tokens
     if not _NUMBER.match(version):
         raise InputError(f"{where}: version {version!r} is not a number such as 2.1")
-    if not _NUMBER.match(fps) or float(fps) <= 0:
-        raise InputError(f"{where}: fps {fps!r} is not a positive number")
+    if not _NUMBER.match(fps) or not MIN_FPS <= float(fps) <= MAX_FPS:
+        raise InputError(f"{where}: fps {fps[:40]!r} is not a number within {MIN_FPS:g} to "
+                         f"{MAX_FPS:g}")
     if not _INT.match(count) or int(count) < 0:
         raise InputError(f"{where}: frame count {count!r} is not a non-negative integer")
     return version, name, float(fps), int(count)
@@ -218,6 +223,9 @@ def _values_line(
         if not _INT.match(t):
             raise InputError(f"{where}: value {j} ({t!r}) is not an integer")
     ints = [int(t) for t in tokens[1 + sum(high):]]
+    big = next((v for v in ints if abs(v) > MAX_VALUE), None)
+    if big is not None:  # an int64 overflow (a traceback) beyond 2**63; no FAP is this big
+        raise InputError(f"{where}: value {str(big)[:40]} is beyond ±{MAX_VALUE} (32-bit)")
     out = np.zeros(N_FAPS, dtype=np.int64)
     low = np.flatnonzero(mask)
     out[low[low >= 2]] = ints

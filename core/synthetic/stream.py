@@ -120,9 +120,14 @@ def speaker_assets(seed: int, rig: str = "head", kind: str = "la_quad",
 def _load_atlas(seed: int, path: Path) -> None:
     """Use the cached texture atlas (rendering's first frame would build it, ~0.4 s); an
     entry without one (or a damaged one) only costs that time."""
-    try:
-        preset_atlas(seed, np.load(path, allow_pickle=False))
-    except (OSError, ValueError, InputError):
+    import io
+
+    from articast.core.safe_io import read_regular_bytes
+
+    try:  # a regular file of bounded size: a FIFO put in the cache would block np.load
+        atlas = np.load(io.BytesIO(read_regular_bytes(path, 256 * 2**20)), allow_pickle=False)
+        preset_atlas(seed, atlas)
+    except (OSError, ValueError, EOFError, InputError):
         pass
 
 

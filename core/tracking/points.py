@@ -106,7 +106,18 @@ class PointModel:
         with reading(path, "landmark observation model"):
             for key in ("landmarks", "mean", "basis", "sigma_mm"):
                 require(key in arrays, path, f"missing array {key!r}")
-            pm = cls(str(meta.get("network", "")), np.asarray(arrays["landmarks"], np.int64),
+            network = meta.get("network", "")
+            require(isinstance(network, str), path, "network must be a name (a string)")
+            marks, sigma = arrays["landmarks"], arrays["sigma_mm"]
+            # negative indices read the network's points from the end, silently; a reading
+            # error of 1e-300 mm weighs a point by 1e600
+            require(marks.size == 0 or (int(marks.min()) >= 0 and int(marks.max()) < 100_000
+                                        and len(np.unique(marks)) == marks.size), path,
+                    "landmarks must be distinct point numbers from 0")
+            require(sigma.size == 0 or (float(sigma.min()) >= MIN_SIGMA_MM
+                                        and float(sigma.max()) <= MAX_SIGMA_MM), path,
+                    f"sigma_mm must lie within {MIN_SIGMA_MM:g} to {MAX_SIGMA_MM:g} mm")
+            pm = cls(network, np.asarray(marks, np.int64),
                      np.asarray(arrays["mean"], np.float64),
                      np.asarray(arrays["basis"], np.float64),
                      np.asarray(arrays["sigma_mm"], np.float64),
@@ -115,6 +126,11 @@ class PointModel:
             require(n_params is None or pm.n_params == n_params, path,
                     f"{pm.n_params} parameters, the speaker's model has {n_params}")
         return pm
+
+
+MIN_SIGMA_MM, MAX_SIGMA_MM = 1e-3, 1e3
+"""A landmark's reading error a stored model may hold (enrolment floors it at
+``min_sigma_mm``, far above the lower bound; real ones are 0.3-1 mm)."""
 
 
 def _offset(value: object) -> float:

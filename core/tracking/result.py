@@ -13,6 +13,8 @@ MAX_T = 1e9
 """A record's time stamp, s: media time from the start (31 years is no recording)."""
 MAX_ALPHA = 1e3
 """|alpha| in training standard deviations: real frames stay within ~10."""
+MAX_FRAME = 1e12
+"""|frame number| of a record (a day at 1000 fps is 8.6e7)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,8 +78,13 @@ class TrackResult:
             raise ValueError(f"time stamp {t} is not a finite number within {MAX_T:g} s")
         if not np.all(np.abs(alpha) <= MAX_ALPHA):
             raise ValueError(f"alpha values must be finite numbers within ±{MAX_ALPHA:g}")
+        frame = d["frame"]  # 1e308 became a 309-digit frame number on the wire
+        if isinstance(frame, bool) or not isinstance(frame, int | float) or not (
+                abs(frame) <= MAX_FRAME and frame == int(frame)):
+            raise ValueError(f"frame {str(frame)[:40]} is not a whole number within "
+                             f"{MAX_FRAME:g}")
         return cls(
-            frame=int(d["frame"]), t=t, alpha=alpha, pose=Pose.from_dict(d["pose"]),
+            frame=int(frame), t=t, alpha=alpha, pose=Pose.from_dict(d["pose"]),
             ok=bool(q.get("ok", True)), reason=str(q.get("reason", "")),
             residual=float(q["residual"]) if q.get("residual") is not None else float("nan"),
             evals=int(q.get("evals", 0)),

@@ -96,11 +96,11 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
     from articast.core.faces.build import analysed_frames
     from articast.core.faces.finder import FaceFinder, read_every_frame
     from articast.service.progress import Progress
-    from articast.service.video import iter_video, video_frame_count
+    from articast.service.video import iter_video, open_capture, video_frame_count
 
     total = video_frame_count(video)
     if span:
-        cap = cv2.VideoCapture(str(video))
+        cap = open_capture(str(video))
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         cap.release()
         total = span.frames(total, fps)

@@ -121,6 +121,8 @@ def load_states(path: Path, param_names: tuple[str, ...]) -> list:
             out.append(TrackResult.from_dict(obj, param_names))
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"{path}: record {n}: missing or malformed field ({exc})") from None
+    if not out:
+        raise InputError(f"{path}: no records (an empty JSON-lines file)")
     return out
 
 
@@ -326,7 +328,9 @@ def _track(args: argparse.Namespace) -> int:
 def _fps(video: Path) -> float:
     import cv2
 
-    cap = cv2.VideoCapture(str(video))
+    from articast.service.video import open_capture
+
+    cap = open_capture(str(video))
     try:
         return float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
     finally:
