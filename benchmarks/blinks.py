@@ -190,6 +190,14 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
            "upper": speaker.report.get("upper"), **{k: round(v, 3) for k, v in cost.items()},
            "eyes_ok": round(float(np.isfinite(cl).mean()), 4),
            "photo_frames": int(sum(s == "photo" for s in src))}
+    gz = np.array([(r.upper.gaze_yaw_deg, r.upper.gaze_pitch_deg) for r in res
+                   if r.upper is not None and r.upper.eyes_ok
+                   and r.upper.gaze_yaw_deg is not None], float).reshape(-1, 2)
+    # no gaze truth on real clips: how often a gaze is given, and its spread (a sanity check)
+    out["gaze"] = {"frames": round(len(gz) / max(len(res), 1), 4),
+                   "median_deg": np.median(gz, axis=0).round(2).tolist() if len(gz) else None,
+                   "iqr_deg": (np.percentile(gz, 75, axis=0) - np.percentile(gz, 25, axis=0)
+                               ).round(2).tolist() if len(gz) else None}
     ours = events(np.nan_to_num(cl) > 0.5)
     out["articast_events"] = len(ours)
     if "dlib" not in peers:

@@ -116,6 +116,66 @@ def test_gaze_from_the_iris_between_the_corners():
     assert right.gaze_yaw_deg < centred.gaze_yaw_deg - 8.0
 
 
+def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE,
+                     iris_radius_mm: float = 5.5, roll_deg: float = 0.0) -> np.ndarray:
+    """Skin, per eye an opening (an ellipse between the corners, a quarter as high as wide:
+    the lids cover the iris's top and bottom) and a dark iris at ``iris_mm`` (x left, y up,
+    head frame; the head rolled by ``roll_deg`` as :func:`reading`) from the opening's
+    centre; drawn 8x larger and averaged down (edges fall between pixels)."""
+    ca, sa = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
+    off = np.array([ca * iris_mm[0] - sa * iris_mm[1], -(sa * iris_mm[0] + ca * iris_mm[1])])
+    k = 8
+    big = np.full((400 * k, 640 * k), 150, np.uint8)
+    for side in U.SIDES:
+        inner, outer = U.EYE_CORNERS[side]
+        mid = (lm[inner, :2] + lm[outer, :2]) / 2.0
+        a = float(np.linalg.norm(lm[outer, :2] - lm[inner, :2])) / 2.0
+        ang = math.degrees(math.atan2(*(lm[outer, :2] - lm[inner, :2])[::-1]))
+        opening = np.zeros_like(big)
+        o = (k - 1) / 2.0  # small pixel j's centre is big pixel k j + (k - 1) / 2's
+        cv2.ellipse(opening, ((mid[0] * k + o, mid[1] * k + o),
+                              (2 * a * k, 2 * 0.25 * a * k), ang), 1, -1)
+        c = (mid + off * scale) * k + o
+        disc = np.zeros_like(big)
+        cv2.circle(disc, (int(round(c[0])), int(round(c[1]))),
+                   int(round(iris_radius_mm * scale * k)), 1, -1)
+        big[opening > 0] = 235
+        big[(opening > 0) & (disc > 0)] = 40
+    img = cv2.resize(big, (640, 400), interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+
+
+def test_gaze_pitch_although_the_lids_cover_the_iris_top_and_bottom():
+    """The iris circle is fitted to its visible edge: moved up by 2 mm inside an opening
+    lower than itself (its dark centroid then moves ~0.5 mm), it reads ~10 deg up; the zero is
+    the iris centred in the eye's opening, whatever the enrolment's median (``iris_mm``)."""
+    ref = U.UpperReference(REF.open_mm, REF.closed_mm, REF.brows_mm, (2.0, -1.0, 2.0, -1.0),
+                           iris_radius_mm=(5.5, 5.5))
+    for roll in (0.0, 8.0):
+        lm = reading(CANON.vertices_mm, 0.0, roll)
+        for dx, dy in ((0.0, 0.0), (0.0, 2.0), (0.0, -2.0), (3.0, 1.0), (-2.5, -1.5)):
+            f = U.UpperTracker(ref).step(lidded_eye_image(lm, (dx, dy), roll_deg=roll), lm,
+                                         None, True)
+            assert f.eyes_ok and f.gaze_yaw_deg is not None
+            want = [math.degrees(math.asin(v / U.EYE_RADIUS_MM)) for v in (dx, dy)]
+            assert f.gaze_yaw_deg == pytest.approx(want[0], abs=1.0), (roll, dx, dy)
+            assert f.gaze_pitch_deg == pytest.approx(want[1], abs=1.0), (roll, dx, dy)
+
+
+def test_iris_fit_finds_the_radius_and_the_opening():
+    lm = reading(CANON.vertices_mm)
+    grey = cv2.cvtColor(lidded_eye_image(lm, (1.0, 0.5)), cv2.COLOR_BGR2GRAY)
+    for side in U.SIDES:
+        fit = U.fit_iris(grey, lm, side)
+        assert fit is not None and fit.rows >= U.IRIS_MIN_ROWS
+        assert fit.half_width == pytest.approx(5.5 * SCALE, abs=0.5)  # the equator is seen
+        inner, outer = U.EYE_CORNERS[side]
+        mid = (lm[inner, :2] + lm[outer, :2]) / 2.0
+        assert np.abs(fit.eye - mid).max() < 0.3
+        assert np.abs(fit.centre - (mid + [1.0 * SCALE, -0.5 * SCALE])).max() < 0.3
+    assert U.fit_iris(np.full_like(grey, 150), lm, "left") is None  # no eye: no iris
+
+
 def test_photometric_measure_tells_an_open_eye_from_a_closed_one():
     lm = reading(CANON.vertices_mm)
     open_img = cv2.cvtColor(eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)

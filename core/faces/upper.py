@@ -75,8 +75,12 @@ class UpperReference:
         0.4 (docs/UPPER_FACE.md).
     brows_mm : (left inner, left outer, right inner, right outer) neutral brow heights above
         the eye line (the clip's median).
-    iris_mm : (left x, left y, right x, right y) the iris's offset from the corners' midpoint
-        when looking at the camera (the clip's median).
+    iris_mm : (left x, left y, right x, right y) the iris's median offset from the eye
+        opening's centre over the clip, mm (reported: where the speaker looked while enrolling;
+        not the gaze's zero, which is the iris centred in the opening: docs/UPPER_FACE.md).
+    iris_radius_mm : (left, right) the speaker's visible iris radius (the clip's median of
+        each frame's widest iris chord / 2); 0: not measured (an older speaker.json), each
+        frame's own widest chord is used.
     photo : (left a, left b, right a, right b): closure = a + b x the photometric eye measure;
         photo_r : (left, right) its correlation with the reader's closure on the clip (a
         side below 0.5 in magnitude is not used: frames between readings hold the last
@@ -92,17 +96,21 @@ class UpperReference:
     photo_r: tuple[float, float] = (0.0, 0.0)
     blinks: int = 0
     frames: int = 0
+    iris_radius_mm: tuple[float, float] = (0.0, 0.0)
 
     def to_dict(self) -> dict[str, Any]:
         return {"open_mm": list(self.open_mm), "closed_mm": list(self.closed_mm),
                 "brows_mm": list(self.brows_mm), "iris_mm": list(self.iris_mm),
                 "photo": list(self.photo), "photo_r": list(self.photo_r),
-                "blinks": int(self.blinks), "frames": int(self.frames)}
+                "blinks": int(self.blinks), "frames": int(self.frames),
+                "iris_radius_mm": list(self.iris_radius_mm)}
 
     @classmethod
     def from_dict(cls, d: Any, where: str) -> UpperReference:
         sizes = {"open_mm": 2, "closed_mm": 2, "brows_mm": 4, "iris_mm": 4, "photo": 4,
                  "photo_r": 2}
+        if isinstance(d, dict) and "iris_radius_mm" in d:  # (absent before it was measured)
+            sizes["iris_radius_mm"] = 2
         try:
             vals = {k: tuple(float(x) for x in d[k]) for k in sizes}
             blinks, frames = int(d["blinks"]), int(d["frames"])
@@ -256,46 +264,158 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
-                   side: str) -> tuple[float, float] | None:
-    """The iris's offset (x to the speaker's left, y up; mm) from the eye corners' midpoint:
-    the darkness-weighted centre of what is darker than midway between the
-    eye's darkest and lightest tenths; None when the
-    eye is too closed or outside the image."""
+@dataclass(frozen=True)
+class IrisFit:
+    """One eye's iris and opening in image px: ``centre`` (2,) the iris circle's centre;
+    ``half_width`` the widest chord of the visible iris over 2 (the radius, when the iris's
+    equator is visible); ``eye`` (2,) the eye opening's own centre (horizontally the middle of
+    the opening on its widest rows, vertically its widest row); ``rows`` the iris rows used."""
+
+    centre: np.ndarray
+    half_width: float
+    eye: np.ndarray
+    rows: int
+
+
+IRIS_MIN_ROWS = 3
+"""An iris seen on fewer rows (chords bounded by white on both sides) is not fitted."""
+_SUB = (np.arange(4) + 0.5) / 4.0 - 0.5  # sub-rows of a pixel row (a chord is a row's mean)
+
+
+def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
+             radius_px: float | None = None) -> IrisFit | None:
+    """The iris as a circle fitted to its visible edge, and the eye opening it sits in.
+
+    In the eye's crop (the reader's contour grown by 3 px: the contour is a guide, the pixels
+    decide), the grey levels give the iris (the median of what is darker than midway between
+    the contour's darkest and lightest tenths), the white (the 75th percentile of the rest)
+    and the skin (the median round the contour). Each row's **chord** is the run of iris
+    round the iris's column, bounded by white on both sides (a row that meets a lid, a lash
+    line or the crop's edge is left out), its width the sum of the pixels' iris fractions
+    (sub-pixel). The lids cover the iris's top and bottom, so its dark centroid hardly moves
+    vertically; the chords' widths do: a circle of radius r whose centre is at height c has
+    chords 2 sqrt(r^2 - (y - c)^2), and c is the height that fits the widths best (least
+    absolute deviations over a grid of 1/20 px), r the speaker's iris radius (``radius_px``,
+    from enrolment) or this frame's widest chord / 2. The iris's x is the chords' centroid.
+
+    The **eye's own centre** replaces the reader's corners (which jitter by ~1 px and move
+    with the iris on a rendered eye): the opening is what is whiter than midway between skin
+    and white inside the grown contour; its widest row is its height (a parabola through the
+    widths round the widest), the middle of its ends on the rows within 2 of it (ends
+    sub-pixel from the next pixel's white fraction) its x. None when the eye is too closed,
+    too small or outside the image, or no iris/white contrast is found."""
     poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
-    x0, y0 = np.floor(poly.min(0)).astype(int) - 1
-    x1, y1 = np.ceil(poly.max(0)).astype(int) + 2
+    if not np.all(np.isfinite(poly)):
+        return None
+    x0, y0 = np.floor(poly.min(0)).astype(int) - 3
+    x1, y1 = np.ceil(poly.max(0)).astype(int) + 4
     h, w = grey.shape[:2]
-    if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 6 or y1 - y0 < 3:
+    if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 12 or y1 - y0 < 8:
         return None
     patch = _grey(grey[y0:y1, x0:x1]).astype(np.float32)
-    mask = np.zeros(patch.shape, np.uint8)
-    cv2.fillPoly(mask, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
-    inside = patch[mask > 0]
-    if inside.size < 8:
+    contour = np.zeros(patch.shape, np.uint8)
+    cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
+    grown = cv2.dilate(contour, np.ones((5, 5), np.uint8))
+    inside = patch[contour > 0]
+    outside = patch[grown == 0]
+    if inside.size < 12 or outside.size < 12:
         return None
-    lo, hi = np.percentile(inside, [10, 90])
-    thr = float(lo + hi) / 2.0  # between the iris's dark and the sclera's light
-    wgt = np.clip(thr - patch, 0.0, None) * mask
-    tot = float(wgt.sum())
-    if tot <= 0:
+    srt = np.sort(inside)
+    n = srt.size
+    thr = float(srt[n // 10] + srt[(9 * n) // 10]) / 2.0
+    nd = int(np.searchsorted(srt, thr))
+    if nd < 4 or n - nd < 4:
         return None
-    ys, xs = np.mgrid[y0:y1, x0:x1]
-    c = np.array([(wgt * xs).sum() / tot, (wgt * ys).sum() / tot])
+    iris_l, white = float(srt[nd // 2]), float(srt[nd + (3 * (n - nd)) // 4])
+    skin = float(np.partition(outside, outside.size // 2)[outside.size // 2])
+    if white - iris_l < 20.0 or white - skin < 8.0:
+        return None  # no iris/white contrast (a closed or unlit eye)
+    # --- the iris's chords
+    cov = np.clip((white - patch) / (white - iris_l), 0.0, 1.0) * (grown > 0)
+    wgt = np.clip(thr - patch, 0.0, None) * contour
+    if float(wgt.sum()) <= 0:
+        return None
+    cols = np.arange(patch.shape[1], dtype=np.float64)
+    cx0 = float((wgt.sum(0) * cols).sum() / wgt.sum())
+    brk = cov <= 0.12  # white (or outside): a chord's bound
+    run = np.cumsum(brk, axis=1)
+    dist = np.where(cov > 0.5, np.abs(cols - cx0)[None, :], np.inf)
+    j = np.argmin(dist, axis=1)
+    rows_ok = dist[np.arange(len(j)), j] < 0.5 * patch.shape[1] / 2
+    mine = (run == run[np.arange(len(j)), j][:, None]) & ~brk
+    first = np.argmax(mine, axis=1)
+    last = patch.shape[1] - 1 - np.argmax(mine[:, ::-1], axis=1)
+    bounded = rows_ok & (first > 0) & (last < patch.shape[1] - 1)
+    bounded &= grown[np.arange(len(j)), np.maximum(first - 1, 0)] > 0
+    bounded &= grown[np.arange(len(j)), np.minimum(last + 1, patch.shape[1] - 1)] > 0
+    widths = (cov * mine).sum(1)
+    cxs = (cov * mine * cols).sum(1) / np.maximum(widths, 1e-9)
+    half = float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0
+    r = float(radius_px) if radius_px else half
+    keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
+    if keep.sum() < IRIS_MIN_ROWS or r < 1.5:
+        return None
+    ys = np.flatnonzero(keep).astype(np.float64)
+    wk = widths[keep]
+    cy = 0.0
+    for cys in (np.arange(ys[0] - r, ys[-1] + r, 0.25), None):  # coarse, then fine
+        if cys is None:
+            cys = cy + np.arange(-0.25, 0.2501, 0.025)
+        yy = (ys[:, None] + _SUB[None, :]).ravel()[None, :] - cys[:, None]
+        pred = (2.0 * np.sqrt(np.clip(r * r - yy * yy, 0.0, None))).reshape(
+            len(cys), len(ys), len(_SUB)).mean(-1)
+        cy = float(cys[int(np.argmin(np.abs(pred - wk[None, :]).sum(1)))])
+    cx = float(np.average(cxs[keep], weights=wk))
+    # --- the eye opening's own centre
+    frac = np.clip((patch - skin) / (white - skin), 0.0, 1.0) * (grown > 0)
+    bright = frac >= 0.5
+    has = bright.any(1)
+    if has.sum() < 3:
+        return None
+    a = np.argmax(bright, axis=1)
+    b = patch.shape[1] - 1 - np.argmax(bright[:, ::-1], axis=1)
+    ri = np.arange(len(a))
+    left = a - 0.5 - np.where(a > 0, frac[ri, np.maximum(a - 1, 0)], 0.0)
+    right = b + 0.5 + np.where(b < patch.shape[1] - 1,
+                               frac[ri, np.minimum(b + 1, patch.shape[1] - 1)], 0.0)
+    width = np.where(has, right - left, 0.0)
+    k = int(np.argmax(width))
+    near = (np.abs(ri - k) <= 2) & (width > 0.6 * width[k])
+    ex = float(np.mean((left[near] + right[near]) / 2.0))
+    ey = float(k)
+    round_k = (np.abs(ri - k) <= 3) & (width > 0)
+    if round_k.sum() >= 3:  # a parabola through the widths round the widest row
+        t = (ri[round_k] - k).astype(np.float64)
+        v = np.stack([t * t, t, np.ones_like(t)], axis=1)
+        a2, b2, _ = np.linalg.solve(v.T @ v + 1e-9 * np.eye(3), v.T @ width[round_k])
+        if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
+            ey = k - float(b2 / (2.0 * a2))
+    return IrisFit(np.array([cx + x0, cy + y0]), half, np.array([ex + x0, ey + y0]),
+                   int(keep.sum()))
+
+
+def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
+                   side: str, radius_mm: float | None = None
+                   ) -> tuple[float, float, float] | None:
+    """The iris's offset (x to the speaker's left, y up; mm of the aligned frame) from the eye
+    opening's own centre (:func:`fit_iris`), and the visible iris's widest half-chord (mm);
+    None when the iris is not fitted. ``radius_mm``: the speaker's iris radius (enrolment)."""
+    fit = fit_iris(grey, landmarks, side,
+                   None if not radius_mm else radius_mm * aligned.scale)
+    if fit is None:
+        return None
     inner, outer = EYE_CORNERS[side]
     lm = np.asarray(landmarks, np.float64)
-    mid = (lm[inner, :2] + lm[outer, :2]) / 2.0
-    # image px -> the aligned frame's x, y (its in-plane rotation and scale): the corners'
-    # axis in the image against the same axis in the aligned points
+    # image px -> the aligned frame's x, y: the in-plane rotation of the corners' axis (its
+    # angle: ~1 px of jitter over the eye's width moves a 2 mm offset by < 0.1 mm) and the
+    # alignment's scale (all the rigid points: steadier than the corners' distance)
     ax_img = lm[outer, :2] - lm[inner, :2]
     ax_al = aligned.points[outer, :2] - aligned.points[inner, :2]
-    ax_img = np.array([ax_img[0], -ax_img[1]])  # y up
-    ang = math.atan2(ax_al[1], ax_al[0]) - math.atan2(ax_img[1], ax_img[0])
-    k = float(np.linalg.norm(ax_al)) / max(float(np.linalg.norm(ax_img)), 1e-9)
-    d = np.array([c[0] - mid[0], -(c[1] - mid[1])])
+    ang = math.atan2(ax_al[1], ax_al[0]) - math.atan2(-ax_img[1], ax_img[0])
+    d = np.array([fit.centre[0] - fit.eye[0], -(fit.centre[1] - fit.eye[1])]) / aligned.scale
     ca, sa = math.cos(ang), math.sin(ang)
-    off = k * np.array([ca * d[0] - sa * d[1], sa * d[0] + ca * d[1]])
-    return float(off[0]), float(off[1])
+    return (float(ca * d[0] - sa * d[1]), float(sa * d[0] + ca * d[1]),
+            fit.half_width / aligned.scale)
 
 
 def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
@@ -348,22 +468,25 @@ class Measures:
 
     opening: tuple[float, float]
     brows: np.ndarray
-    iris: tuple[tuple[float, float] | None, tuple[float, float] | None]
+    iris: tuple[tuple[float, float, float] | None, tuple[float, float, float] | None]
     photo: tuple[float | None, float | None]
     yaw_deg: float
     scale: float  # px per mm
 
 
 def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
-            open_mm: tuple[float, float] | None = None) -> Measures | None:
+            open_mm: tuple[float, float] | None = None,
+            iris_radius_mm: tuple[float, float] | None = None) -> Measures | None:
     """The raw measures of one reading (``open_mm``: the ellipse height of the photometric
-    measure; default: this reading's own opening)."""
+    measure; default: this reading's own opening; ``iris_radius_mm``: the speaker's iris
+    radius, default each frame's own widest chord)."""
     al = align(landmarks, canon)
     if al is None:
         return None
     opening = lid_opening_mm(al.points)
     lm = np.asarray(landmarks, np.float64)
-    iris = tuple(iris_offset_mm(grey, lm, al, s) for s in SIDES)
+    iris = tuple(iris_offset_mm(grey, lm, al, s, None if not iris_radius_mm
+                                else iris_radius_mm[i]) for i, s in enumerate(SIDES))
     ref = open_mm or opening
     photo = tuple(photo_measure(grey, lm[EYE_CORNERS[s][0], :2], lm[EYE_CORNERS[s][1], :2],
                                 max(ref[i], 1.0) * al.scale)
@@ -395,13 +518,15 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     closed = np.where(blinked, np.minimum(low, 0.6 * open_mm), CLOSED_FRACTION * open_mm)
     closed = np.minimum(closed, 0.8 * open_mm)
     brows = np.median(np.array([m.brows for m in ms]), axis=0)
-    iris = []
-    for i in range(2):
-        pts = np.array([m.iris[i] for m in ms if m.iris[i] is not None])
-        iris += list(np.median(pts, axis=0)) if len(pts) else [0.0, 0.0]
     # closure per frame, then a line from the photometric measure to it
     cl = np.array([[closure(m.opening[i], open_mm[i], closed[i]) for i in range(2)]
                    for m in ms])
+    iris, radius = [], []
+    for i in range(2):
+        pts = np.array([m.iris[i] for m, c in zip(ms, cl[:, i], strict=True)
+                        if m.iris[i] is not None and c < 0.3])
+        iris += list(np.median(pts[:, :2], axis=0)) if len(pts) else [0.0, 0.0]
+        radius.append(float(np.median(pts[:, 2])) if len(pts) >= 5 else 0.0)
     photo, photo_r = [], []
     for i in range(2):
         x = np.array([np.nan if m.photo[i] is None else m.photo[i] for m in ms])
@@ -416,7 +541,7 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     runs = _runs(cl.max(axis=1) > 0.5)
     return UpperReference(tuple(open_mm), tuple(closed), tuple(brows),
                           tuple(iris), tuple(photo), tuple(photo_r),  # type: ignore[arg-type]
-                          len(runs), len(ms))
+                          len(runs), len(ms), tuple(radius))  # type: ignore[arg-type]
 
 
 def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
@@ -478,7 +603,7 @@ class UpperTracker:
             return UpperFace.absent("no_face: the face is not tracked in this frame")
         grey = image  # (grey or BGR: only the eyes' crops are converted)
         if landmarks is not None:
-            m = measure(grey, landmarks, self.canon, ref.open_mm)
+            m = measure(grey, landmarks, self.canon, ref.open_mm, ref.iris_radius_mm)
             if m is None:
                 self.reset()
                 return UpperFace.absent("no_face: the landmarks are degenerate")
@@ -522,8 +647,9 @@ class UpperTracker:
         self._closure = (cl[0], cl[1])
         gaze = self._gaze
         if source == "reader":
-            offs = [(iris[0] - ref.iris_mm[2 * i], iris[1] - ref.iris_mm[2 * i + 1])
-                    for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
+            # the gaze's zero is the iris centred in the eye's opening (not the enrolment's
+            # median: a speaker who looked round while enrolling would shift it)
+            offs = [iris[:2] for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
             if offs:
                 dx, dy = np.mean(offs, axis=0)
                 gaze = (math.degrees(math.asin(float(np.clip(dx / EYE_RADIUS_MM, -1, 1)))),
