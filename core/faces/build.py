@@ -233,11 +233,12 @@ def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> Upper
     first = calibrate(ms)
     if first is None:
         return None
-    # the photometric measure again with the ellipse at the speaker's open eye (as live)
+    # the measures again at the speaker's open eye, iris radius and open-eye grey levels (as
+    # live: a closed eye's lid gap needs the open eye's levels)
     ms = [None if m is None else measure_upper(
         img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), lm, canon,
-        first.open_mm, first.iris_radius_mm) for m, img, lm in zip(ms, images, readings,
-                                                                 strict=True)]
+        first.open_mm, first.iris_radius_mm, (first.eye_levels(0), first.eye_levels(1)))
+        for m, img, lm in zip(ms, images, readings, strict=True)]
     return calibrate(ms)
 
 
