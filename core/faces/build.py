@@ -251,6 +251,8 @@ def upper_report(ref: UpperReference | None) -> dict:
             "closed_eye_mm": [round(v, 2) for v in ref.closed_mm],
             "neutral_brows_mm": [round(v, 2) for v in ref.brows_mm],
             "iris_radius_mm": [round(v, 2) for v in ref.iris_radius_mm],
+            "brow_band_mm": [round(v, 2) for v in ref.brow_band_mm],
+            "photometric_kind": list(ref.photo_kind),
             "photometric_r": [round(v, 3) for v in ref.photo_r]}
 
 

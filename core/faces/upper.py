@@ -10,21 +10,24 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
 - **eyelids**: the lid opening (mean of three upper/lower lid pairs, mm) against the speaker's
   open-eye and closed-eye references from enrolment -> closure 0 (open) .. 1 (closed), so a
   narrow-eyed speaker is not "half closed";
-- **blinks between readings**: the reader runs every other frame (``FusionPolicy.read_every``),
-  and a blink lasts 3-9 frames. On every frame a photometric eye measure is taken: the
-  contrast (grey-level s.d.: sclera, iris, lash line; a closed lid is skin) of an ellipse over
-  the open eye relative to the skin of a ring around it, the ellipse placed by the last
-  reading's eye corners moved with the tracked head. Enrolment fits it to the reader's
-  closure (a straight line per eye, :func:`calibrate`), and frames without a reading take
-  their closure from it (or hold the last reading's where that line fits poorly);
-- **gaze**: the iris is the darkest blob inside the eye's contour; its centre's offset from
-  the corners' midpoint, in mm of the aligned frame, less the speaker's own looking-at-the-
-  camera offset, over the eyeball's radius -> yaw (to the speaker's left +) and pitch (up +)
-  in degrees;
-- **brows**: inner / outer point heights above the eye corners' line, mm, less the speaker's
-  neutral (the enrolment's median): raise > 0, lowering = how far the inner brows come down.
-  These are the landmark network's brows, which follow its face prior more than the pixels
-  (on the synthetic speaker they moved 0.7 mm for a painted 6 mm raise: docs/UPPER_FACE.md).
+- **blinks between readings**: the reader runs every few frames (``FusionPolicy``), and a
+  blink lasts 3-9 frames. Between readings the closure comes from a photometric eye measure
+  placed by the last reading's eye corners moved with the tracked head: the lid gap
+  (:func:`lid_gap`, the eye's opening height, linear down to shut) or the contrast
+  (:func:`photo_measure`), whichever follows the speaker's lids better at enrolment
+  (:func:`calibrate`); a poorly fitting side holds the last reading's closure. On a
+  reading's frame the closure is the reader's (averaged with the contrast's, which is on its
+  scale);
+- **gaze**: an iris circle of the speaker's radius fitted to its visible edge
+  (:func:`fit_iris`: the chords' widths fix its height under the lids), its offset from the
+  eye opening's own centre (not the reader's corners), in mm of the aligned frame, over the
+  eyeball's radius -> yaw (to the speaker's left +) and pitch (up +) in degrees;
+- **brows**: the brow's dark band above the eye (:func:`brow_band_mm`, inner and outer halves),
+  mm above the eye corners' line, less the speaker's neutral (the enrolment's median): raise
+  > 0, lowering = how far the inner brows come down; the landmark network's brow points (which
+  follow its face prior more than the pixels: docs/UPPER_FACE.md) where no band is found;
+- **wide, squint, squeeze**: the eye open beyond its usual, the reader's lower lid's rise, its
+  inner brows' move towards the midline.
 
 Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll`` stores
 (speaker.json ``upper``).
@@ -122,14 +125,14 @@ class UpperReference:
     brow_x_mm: tuple[float, float] | None = None
     photo_kind: tuple[str, str] = ("contrast", "contrast")
 
-    def brow_window(self, i: int) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """Side ``i``'s live brow search window (inner, outer: mm above the eye line), None
-        when the band was not measured at enrolment."""
+    def brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
+        """Side ``i``'s live brow search windows (inner, outer: mm above the eye line; None
+        for a half whose band was not found at enrolment), None when neither was."""
         band = self.brow_band_mm[2 * i:2 * i + 2]
-        if min(band) <= 0:
+        if max(band) <= 0:
             return None
         floor = self.brow_floor_mm[i]
-        return tuple((max(floor, b - BROW_WINDOW_MM), b + BROW_WINDOW_MM)  # type: ignore
+        return tuple(None if b <= 0 else (max(floor, b - BROW_WINDOW_MM), b + BROW_WINDOW_MM)
                      for b in band)
 
     def eye_levels(self, i: int) -> tuple[float, float, float] | None:
@@ -357,16 +360,17 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-BROW_SEARCH_MM = 30.0
+BROW_SEARCH_MM = 20.0
 """At enrolment a brow is looked for from just above the open eye's upper lid to this many mm
-above the eyes' corners (a person's brow is 10-20 mm above them, the hairline ~50 mm
-further)."""
+above the eyes' corners (a person's brow is ~10-18 mm above them; further up, a fringe or the
+synthetic head's hair, 26 mm above its eyes, would win the search: at 30 mm it found the
+hair). Where no band is found inside the window, the reader's brow points are used."""
 BROW_WINDOW_MM = 8.0
 """Live, a brow is looked for this many mm either side of the speaker's neutral brow."""
 
 
 def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side: str,
-                 window: tuple[tuple[float, float], tuple[float, float]]
+                 window: tuple[tuple[float, float] | None, ...]
                  ) -> tuple[float | None, float | None] | None:
     """The brow's height above the eye's corners' line (mm; inner half, outer half), from
     the pixels: the landmark network's brow points follow its face prior more than the
@@ -375,7 +379,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     A strip along the eye's axis, 1.2 eye widths wide and up from the corners' line, is
     resampled (rotation removed; 1 px per px, heights in mm by the alignment's scale) and
     smoothed vertically; in each column the brow is the darkest point within ``window``
-    (inner (lo, hi), outer (lo, hi) mm: at enrolment from just above the open eye's lid to
+    (inner (lo, hi), outer (lo, hi) mm, None: that half is not looked for; at enrolment from
+    just above the open eye's lid to
     ``BROW_SEARCH_MM``, live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
     through its neighbours; each half's height is the median of its columns (the nasal half
     is ``inner``). None outside the image; a half is None when it has no dark band (a
@@ -392,8 +397,11 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         u = -u  # left to right in the image
     v = np.array([u[1], -u[0]])  # up in the image
     scale = aligned.scale
-    lo = min(w[0] for w in window)
-    hi = max(w[1] for w in window)
+    wins = [w for w in window if w is not None]
+    if not wins:
+        return None
+    lo = min(w[0] for w in wins)
+    hi = max(w[1] for w in wins)
     r0, r1 = int(math.floor(max(lo, 0.0) * scale)) - 2, int(math.ceil(hi * scale)) + 2
     wide = int(round(1.2 * length))
     centre = (inner + outer) / 2.0
@@ -417,8 +425,11 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     cols = np.arange(wide + 1) - wide / 2.0
     nasal = (cols * float(np.dot(inner - centre, u))) > 0
     out: list[float | None] = []
-    for half, (a, b) in zip((nasal, ~nasal), window, strict=True):
-        sel = (heights >= a) & (heights <= b)
+    for half, win in zip((nasal, ~nasal), window, strict=True):
+        if win is None:
+            out.append(None)
+            continue
+        sel = (heights >= win[0]) & (heights <= win[1])
         if sel.sum() < 3 or half.sum() < 3:
             out.append(None)
             continue
@@ -826,14 +837,14 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
         kinds.append(best[3])
     bands, floors = [], []
     for i in range(2):
-        hb = np.array([m.band[i] for m, c in zip(ms, cl[:, i], strict=True)
-                       if m.band[i] is not None and None not in m.band[i]  # type: ignore[operator]
-                       and c < 0.3]).reshape(-1, 2)
+        for j in range(2):  # each half on its own: the other may be hidden (docstring)
+            hb = [float(v) for m, c in zip(ms, cl[:, i], strict=True)
+                  if (bd := m.band[i]) is not None and (v := bd[j]) is not None and c < 0.3]
+            ok = len(hb) >= 10 and len(hb) >= 0.3 * len(ms)
+            bands.append(float(np.median(hb)) if ok else 0.0)
         fl = [float(f) for m, c in zip(ms, cl[:, i], strict=True)
               if (f := m.floor[i]) is not None and c < 0.3]
-        ok = len(hb) >= 10 and len(hb) >= 0.3 * len(ms)
-        bands += list(np.median(hb, axis=0)) if ok else [0.0, 0.0]
-        floors.append(float(np.median(fl)) if ok else 0.0)
+        floors.append(float(np.median(fl)) if fl and max(bands[-2:]) > 0 else 0.0)
     runs = _runs(cl.max(axis=1) > 0.5)
     return UpperReference(tuple(open_mm), tuple(closed), tuple(brows),
                           tuple(iris), tuple(photo), tuple(photo_r),  # type: ignore[arg-type]
@@ -867,9 +878,8 @@ class UpperTracker:
     reference: UpperReference | None
     rig: str = "desk"
     photometric: bool = False  # the closure from the photometric measure alone on every
-    # frame when usable (else, the default, on a reading's frame the reader's closure, the
-    # mean of it and the contrast's for a speaker whose measure is the contrast; the
-    # photometric alone between readings: docs/UPPER_FACE.md)
+    # frame when usable (else, the default, on a reading's frame the mean of the reader's and
+    # the photometric closure, the photometric alone between readings: docs/UPPER_FACE.md)
     clock: Callable[[], float] | None = None  # (given: ``spent_s`` adds up the steps' time)
     spent_s: float = 0.0
     canon: CanonicalFace = field(default_factory=canonical_face)
@@ -967,14 +977,14 @@ class UpperTracker:
             x = (m.photo[i] if ref.photo_kind[i] == "gap" else m.contrast[i]) \
                 if photo is None else photo[i]
             usable = x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R
-            # on a reading's frame (unless ``photometric``): the contrast's line is on the
-            # reader's scale (fitted to it), so both are averaged; the lid gap is on its own
-            # (0 usual open eye, 1 deepest blinks), and the reader's closure is kept
-            # (docs/UPPER_FACE.md: fused in, the gap missed 3 of pexels_woman's 4 blinks)
+            # on a reading's frame (unless ``photometric``) both measures are averaged: two
+            # estimates of the closure with their own errors (the reader's saturates near
+            # closed; the average keeps a laugh's squint, which the reader reads 0.5-0.7, under
+            # 0.5 on franck and pexels_woman: docs/UPPER_FACE.md)
             reading = photo is None and not self.photometric
-            if usable and not (reading and ref.photo_kind[i] == "gap"):
+            if usable:
                 raw = ref.photo[2 * i] + ref.photo[2 * i + 1] * float(x)  # type: ignore[arg-type]
-                if reading:  # the contrast: both measures
+                if reading:
                     raw = 0.5 * (raw - w)
                 c, w = float(np.clip(raw, 0.0, 1.0)), -raw
             elif photo is not None and self._closure is not None:
@@ -1004,8 +1014,10 @@ class UpperTracker:
             band = m.band[i]
             if band is None or ref.brow_window(i) is None or band == (None, None):
                 continue
-            up = [None if h is None else h - ref.brow_band_mm[2 * i + j]
-                  for j, h in enumerate(band)]
+            up = [None if h is None or ref.brow_band_mm[2 * i + j] <= 0
+                  else h - ref.brow_band_mm[2 * i + j] for j, h in enumerate(band)]
+            if up == [None, None]:
+                continue
             # a half not seen (under hair, off the face) rises with the other
             d[2 * i:2 * i + 2] = [up[j] if up[j] is not None else up[1 - j] for j in range(2)]
         lowering = float(max(0.0, -(d[0] + d[2]) / 2.0))

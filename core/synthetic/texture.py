@@ -26,11 +26,6 @@ ATLAS_SIZE = (1024, 1024)  # (height, width) px
 SKIN_PPM = 4.0
 """Atlas pixels per mm of the skin rectangle."""
 SKIN_X0, SKIN_Y1 = -85.0, 85.0
-HAIR_FRONT, HAIR_BACK = 0.22, 0.61
-"""The head's hairline (the polar angle from its top over pi, ``head`` material) in front and
-at the back: 0.22 puts it ~115 mm above the eyes' line in front, a forehead of ~55 mm above
-the brows (a person's is 50-60 mm). It was 0.36 (~80 mm: the hair a few mm above the brows,
-which drew the landmark network's brows and a photometric brow search to the hair)."""
 """Neutral head-frame x at the skin rectangle's left edge and y at its top edge (mm)."""
 SKIN_SIZE = (840, 680)  # (height, width) px: x in [-85, 85) mm, y in (-125, 85] mm
 #: material -> atlas rectangle (x0, y0, width, height) px
@@ -183,7 +178,7 @@ def _materials(atlas: np.ndarray, rng: np.random.Generator) -> None:
     x0, y0, w, h = MATERIALS["head"]
     s, t = np.meshgrid(np.linspace(0, 1, w), np.linspace(0, 1, h))
     az = (s - 0.5) * 2 * np.pi  # 0 = facing forward
-    hair_line = HAIR_FRONT + (HAIR_BACK - HAIR_FRONT) * (1 - np.cos(az)) / 2
+    hair_line = 0.36 + 0.25 * (1 - np.cos(az)) / 2
     hair = (t < hair_line)[..., None]
     strands = _field(rng, (h, w), 1.0)[..., None] * 10.0
     skin = SKIN_BGR + _field(rng, (h, w), 3.0)[..., None] * 5.0
