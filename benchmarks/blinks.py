@@ -19,6 +19,9 @@ scored on the held-out 40 %:
   a reference event match when they overlap within ``TOLERANCE`` frames. precision = matched
   articast events / articast events, recall = matched reference events / reference events;
   ``onset`` = articast's first blink frame minus the reference's, per matched pair;
+- ``brows_vs_dlib_r``: the correlation of articast's brow raise (both sides' mean, mm) with
+  dlib's (the brow points' mean height above the eye corners over the inter-ocular
+  distance, :func:`brow_raise`) over the held-out frames;
 - ``upper_ms`` / ``upper_cpu_ms``: the time of the upper face's own step per frame
   (``UpperTracker.step``, timed inside the same live run) next to the whole frame's
   (``frame_ms``), one thread.
@@ -61,6 +64,23 @@ EAR_FRACTION = 0.7
 TOLERANCE = 2
 SERIES = ("ours", "ref", "closure", "ear_ratio")  # only in --json
 IBUG_EYES = ((36, 37, 38, 39, 40, 41), (42, 43, 44, 45, 46, 47))
+IBUG_BROWS = ((17, 18, 19, 20, 21), (22, 23, 24, 25, 26))  # (image left, image right)
+
+
+def brow_raise(points: np.ndarray) -> np.ndarray:
+    """(N,) the brows' mean height above the eyes' corners (iBUG-68 points (N, 68, 2)),
+    perpendicular to the line joining the eyes' outer corners, over the inter-ocular distance
+    (scale and roll free), both sides averaged."""
+    a, b = points[:, 36], points[:, 45]
+    axis = b - a
+    iod = np.linalg.norm(axis, axis=-1)
+    up = np.stack([axis[:, 1], -axis[:, 0]], -1) / iod[:, None]  # up in the image
+    out = []
+    for brow, eye in zip(IBUG_BROWS, IBUG_EYES, strict=True):
+        corners = points[:, [eye[0], eye[3]]].mean(axis=1)
+        h = ((points[:, list(brow)].mean(axis=1) - corners) * up).sum(-1)
+        out.append(h / iod)
+    return np.mean(out, axis=0)
 
 
 def log(msg: str) -> None:
@@ -190,6 +210,14 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
            "upper": speaker.report.get("upper"), **{k: round(v, 3) for k, v in cost.items()},
            "eyes_ok": round(float(np.isfinite(cl).mean()), 4),
            "photo_frames": int(sum(s == "photo" for s in src))}
+    gz = np.array([(r.upper.gaze_yaw_deg, r.upper.gaze_pitch_deg) for r in res
+                   if r.upper is not None and r.upper.eyes_ok
+                   and r.upper.gaze_yaw_deg is not None], float).reshape(-1, 2)
+    # no gaze truth on real clips: how often a gaze is given, and its spread (a sanity check)
+    out["gaze"] = {"frames": round(len(gz) / max(len(res), 1), 4),
+                   "median_deg": np.median(gz, axis=0).round(2).tolist() if len(gz) else None,
+                   "iqr_deg": (np.percentile(gz, 75, axis=0) - np.percentile(gz, 25, axis=0)
+                               ).round(2).tolist() if len(gz) else None}
     ours = events(np.nan_to_num(cl) > 0.5)
     out["articast_events"] = len(ours)
     if "dlib" not in peers:
@@ -205,6 +233,13 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
     ref = events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION)
     prec, rec, onsets = match(ours, ref)
     both = np.isfinite(cl) & np.isfinite(e)
+    br = np.array([np.nan if r.upper is None or not r.upper.brows_ok else
+                   (r.upper.brows_dict()["raise_left_mm"] + r.upper.brows_dict()["raise_right_mm"])
+                   / 2.0 for r in res])
+    ref_br = brow_raise(got["points"])
+    both_b = np.isfinite(br) & np.isfinite(ref_br)
+    out["brows_vs_dlib_r"] = (float(np.corrcoef(br[both_b], ref_br[both_b])[0, 1])
+                              if both_b.sum() > 10 and np.std(br[both_b]) > 0 else None)
     out.update({"reference_events": len(ref), "precision": prec, "recall": rec,
                 "onset_median": float(np.median(onsets)) if onsets else None,
                 "onset_within_1": (float(np.mean(np.abs(onsets) <= 1)) if onsets else None),

@@ -58,11 +58,11 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def track(speaker, frames, fps, fuse: bool = True):
+def track(speaker, frames, fps, photometric: bool = False):
     kernels.warm_up()
     live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme(speaker.rig),
                        clock=time.perf_counter)
-    live.upper.fuse = fuse
+    live.upper.photometric = photometric
     step = live.upper.step
     spent = [0.0]
 
@@ -107,9 +107,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-static", action="store_true",
                     help="skip the run with static eyes (the lips' unchanged check)")
-    ap.add_argument("--no-fuse", action="store_true",
-                    help="closure on a reading's frame from the landmarks alone (the ablation "
-                         "of UpperTracker.fuse)")
+    ap.add_argument("--photometric-closure", action="store_true",
+                    help="the closure from the photometric measure on every frame, the "
+                         "reader's frames too (the ablation of UpperTracker.photometric; the "
+                         "default: the reader's lids on its frames, the photometric measure "
+                         "between)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     cv2.setNumThreads(1)
@@ -131,7 +133,7 @@ def main(argv: list[str] | None = None) -> None:
     speaker = enrol_speaker(enrol_imgs, 12.0, camera=enrol.camera, max_frames=None,
                             times=np.arange(300) / 12.0)
     log("tracking")
-    res, cost = track(speaker, frames, args.fps, fuse=not args.no_fuse)
+    res, cost = track(speaker, frames, args.fps, photometric=args.photometric_closure)
     out = {"seconds": args.seconds, "fps": args.fps, "enrolment": speaker.report.get("upper"),
            **score(res, up), **cost, "lips": lips(res, speaker, true_model, test)}
     if not args.no_static:

@@ -200,7 +200,7 @@ class FrameEvent:
                "t": r.t, "t_capture": r.t_capture, "t_tracked": r.t_tracked, "t_sent": now(),
                "values": self.values(streams), "lips": r.lips, "quality": r.quality,
                "dropped": 0}
-        if r.eyes is not None and encoding != "binary":  # JSON encoding only
+        if r.eyes is not None:  # (JSON: before "dropped", its last key)
             msg = {**{k: v for k, v in msg.items() if k != "dropped"}, "eyes": r.eyes,
                    "brows": r.brows, "dropped": 0}
         if encoding == "binary":

@@ -116,6 +116,195 @@ def test_gaze_from_the_iris_between_the_corners():
     assert right.gaze_yaw_deg < centred.gaze_yaw_deg - 8.0
 
 
+def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE,
+                     iris_radius_mm: float = 5.5, roll_deg: float = 0.0,
+                     closure: float = 0.0) -> np.ndarray:
+    """Skin, per eye an opening (an ellipse between the corners, a quarter as high as wide:
+    the lids cover the iris's top and bottom) and a dark iris at ``iris_mm`` (x left, y up,
+    head frame; the head rolled by ``roll_deg`` as :func:`reading`) from the opening's
+    centre; an upper lid (skin, shaded) down to ``closure`` of the opening's height at every
+    column (1: on the lower lid); drawn 8x larger and averaged down (edges fall between
+    pixels)."""
+    ca, sa = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
+    off = np.array([ca * iris_mm[0] - sa * iris_mm[1], -(sa * iris_mm[0] + ca * iris_mm[1])])
+    k = 8
+    img = np.full((400, 640), 150, np.uint8)
+    for side in U.SIDES:
+        inner, outer = U.EYE_CORNERS[side]
+        a = float(np.linalg.norm(lm[outer, :2] - lm[inner, :2])) / 2.0
+        ang = math.degrees(math.atan2(*(lm[outer, :2] - lm[inner, :2])[::-1]))
+        x0, y0 = np.floor((lm[inner, :2] + lm[outer, :2]) / 2.0 - a - 2).astype(int)
+        side_px = int(2 * a + 4)
+        mid = (lm[inner, :2] + lm[outer, :2]) / 2.0 - [x0, y0]  # in the eye's tile
+        big = np.full((side_px * k, side_px * k), 150, np.uint8)
+        o = (k - 1) / 2.0  # small pixel j's centre is big pixel k j + (k - 1) / 2's
+        opening = np.zeros_like(big)
+        cv2.ellipse(opening, ((mid[0] * k + o, mid[1] * k + o),
+                              (2 * a * k, 2 * 0.25 * a * k), ang), 1, -1)
+        c = (mid + off * scale) * k + o
+        disc = np.zeros_like(big)
+        cv2.circle(disc, (int(round(c[0])), int(round(c[1]))),
+                   int(round(iris_radius_mm * scale * k)), 1, -1)
+        big[opening > 0] = 235
+        big[(opening > 0) & (disc > 0)] = 40
+        if closure > 0:  # the lid: each point of the opening whose height above the lower
+            # lid (in the opening's own frame) is above (1 - closure) x the column's height
+            ys, xs = np.nonzero(opening)
+            th = math.radians(ang if math.cos(math.radians(ang)) > 0 else ang + 180.0)
+            px, py = xs - mid[0] * k - o, ys - mid[1] * k - o
+            pu = px * math.cos(th) + py * math.sin(th)
+            pv = -px * math.sin(th) + py * math.cos(th)
+            half_h = 0.25 * a * k * np.sqrt(np.clip(1 - (pu / (a * k)) ** 2, 0, 1))
+            up = (half_h - pv) / np.maximum(2 * half_h, 1e-9)  # 0 lower lid .. 1 top
+            lid = up > 1.0 - closure
+            big[ys[lid], xs[lid]] = 130
+        img[y0:y0 + side_px, x0:x0 + side_px] = cv2.resize(big, (side_px, side_px),
+                                                          interpolation=cv2.INTER_AREA)
+    return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+
+
+def test_gaze_pitch_although_the_lids_cover_the_iris_top_and_bottom():
+    """The iris circle is fitted to its visible edge: moved up by 2 mm inside an opening
+    lower than itself (its dark centroid then moves ~0.5 mm), it reads ~10 deg up; the zero is
+    the iris centred in the eye's opening, whatever the enrolment's median (``iris_mm``)."""
+    ref = U.UpperReference(REF.open_mm, REF.closed_mm, REF.brows_mm, (2.0, -1.0, 2.0, -1.0),
+                           iris_radius_mm=(5.5, 5.5))
+    for roll in (0.0, 8.0):
+        lm = reading(CANON.vertices_mm, 0.0, roll)
+        for dx, dy in ((0.0, 0.0), (0.0, 2.0), (0.0, -2.0), (3.0, 1.0), (-2.5, -1.5)):
+            f = U.UpperTracker(ref).step(lidded_eye_image(lm, (dx, dy), roll_deg=roll), lm,
+                                         None, True)
+            assert f.eyes_ok and f.gaze_yaw_deg is not None
+            want = [math.degrees(math.asin(v / U.EYE_RADIUS_MM)) for v in (dx, dy)]
+            assert f.gaze_yaw_deg == pytest.approx(want[0], abs=1.0), (roll, dx, dy)
+            assert f.gaze_pitch_deg == pytest.approx(want[1], abs=1.0), (roll, dx, dy)
+
+
+def test_iris_fit_finds_the_radius_and_the_opening():
+    lm = reading(CANON.vertices_mm)
+    grey = cv2.cvtColor(lidded_eye_image(lm, (1.0, 0.5)), cv2.COLOR_BGR2GRAY)
+    for side in U.SIDES:
+        fit = U.fit_iris(grey, lm, side)
+        assert fit is not None and fit.rows >= U.IRIS_MIN_ROWS
+        assert fit.half_width == pytest.approx(5.5 * SCALE, abs=0.5)  # the equator is seen
+        inner, outer = U.EYE_CORNERS[side]
+        mid = (lm[inner, :2] + lm[outer, :2]) / 2.0
+        assert np.abs(fit.eye - mid).max() < 0.3
+        assert np.abs(fit.centre - (mid + [1.0 * SCALE, -0.5 * SCALE])).max() < 0.3
+    assert U.fit_iris(np.full_like(grey, 150), lm, "left") is None  # no eye: no iris
+
+
+def test_lid_gap_is_linear_in_the_lids_travel_down_to_shut():
+    """The photometric lid gap against an upper lid painted down to 0 .. 1 of the opening:
+    a straight line (the reader's lids saturate near closed: docs/UPPER_FACE.md), near 0
+    shut, whatever the gaze."""
+    lm = reading(CANON.vertices_mm, 0.0, 6.0)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    grey = cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), roll_deg=6.0), cv2.COLOR_BGR2GRAY)
+    fit = U.fit_iris(grey, lm, "left")
+    assert fit is not None
+    skin, white, iris = fit.levels
+    assert skin == pytest.approx(150, abs=3) and white == pytest.approx(235, abs=3)
+    assert iris == pytest.approx(40, abs=3)
+    open_px = OPEN * SCALE
+    cs = np.linspace(0.0, 1.0, 9)
+    for gaze in ((0.0, 0.0), (2.5, -1.5)):
+        gaps = np.array([U.lid_gap(cv2.cvtColor(lidded_eye_image(
+            lm, gaze, roll_deg=6.0, closure=c), cv2.COLOR_BGR2GRAY), inner, outer, open_px,
+            fit.levels) for c in cs])
+        slope, icpt = np.polyfit(cs, gaps, 1)
+        assert np.abs(gaps - (icpt + slope * cs)).max() < 0.03 * icpt, gaps
+        assert gaps[-1] < 0.05 * gaps[0]
+    assert U.lid_gap(grey, inner, outer, open_px, (150.0, 152.0, 40.0)) is None  # no white
+    assert U.lid_gap(grey, inner - 1000, outer - 1000, open_px, fit.levels) is None
+
+
+def test_calibration_maps_the_usual_open_eye_to_0_and_the_deepest_blinks_to_1():
+    lm = reading(CANON.vertices_mm)
+    cs = np.zeros(60)
+    cs[[10, 11, 12, 40, 41]] = [0.5, 1.0, 0.5, 0.8, 1.0]
+    lids = (OPEN - 0.8) * cs  # the reader's lids come down with them
+    ms = []
+    for c, d in zip(cs, lids, strict=True):
+        grey = cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), closure=c), cv2.COLOR_BGR2GRAY)
+        ms.append(U.measure(grey, reading(with_lids(d)), CANON))
+    first = U.calibrate(ms)
+    assert first is not None and first.eye_levels(0) is not None
+    ms = [U.measure(cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), closure=c),
+                                 cv2.COLOR_BGR2GRAY), reading(with_lids(d)), CANON,
+                    first.open_mm, first.iris_radius_mm, (first.eye_levels(0),
+                                                          first.eye_levels(1)))
+          for c, d in zip(cs, lids, strict=True)]
+    ref = U.calibrate(ms)
+    assert ref is not None and ref.blinks == 2 and min(abs(r) for r in ref.photo_r) > 0.9
+    back = U.UpperReference.from_dict(ref.to_dict(), "x")
+    assert back.photo == pytest.approx(ref.photo) and back.levels == pytest.approx(ref.levels)
+    tracker = U.UpperTracker(ref)
+    got = [tracker.step(lidded_eye_image(lm, (0.0, 0.0), closure=c), reading(with_lids(d)),
+                        None, True).closure_left for c, d in zip(cs, lids, strict=True)]
+    assert np.abs(np.array(got) - cs).max() < 0.08, np.round(got, 2)
+    assert ref.photo_kind == ("gap", "gap")  # (it follows these lids better than contrast)
+    tracker = U.UpperTracker(ref, photometric=True)  # the lid gap on every frame
+    got = [tracker.step(lidded_eye_image(lm, (0.0, 0.0), closure=c), reading(with_lids(d)),
+                        None, True).closure_left for c, d in zip(cs, lids, strict=True)]
+    assert np.abs(np.array(got) - cs).max() < 0.08, np.round(got, 2)
+    # an older speaker.json (no levels, no kind: its photometric line is the contrast's)
+    old = {k: v for k, v in ref.to_dict().items() if k not in ("levels", "photo_kind")}
+    assert U.UpperReference.from_dict(old, "x").photo_kind == ("contrast", "contrast")
+    with pytest.raises(ModelFileError, match="photo_kind"):
+        U.UpperReference.from_dict({**ref.to_dict(), "photo_kind": ["gap", "x"]}, "x")
+
+
+def brow_image(lm: np.ndarray, height_mm: float, scale: float = SCALE) -> np.ndarray:
+    """Skin, the eyes (:func:`lidded_eye_image`), and per eye a brow: a dark band 4 mm thick
+    centred ``height_mm`` above the eye's corners' line, 1.3 eye widths long (a frontal,
+    upright face)."""
+    img = cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)
+    for side in U.SIDES:
+        inner, outer = lm[U.EYE_CORNERS[side][0], :2], lm[U.EYE_CORNERS[side][1], :2]
+        mid, half = (inner + outer) / 2.0, abs(outer[0] - inner[0]) * 0.65
+        y = mid[1] - height_mm * scale
+        img[int(round(y)) - int(2 * scale):int(round(y)) + int(2 * scale) + 1,
+            int(round(mid[0] - half)):int(round(mid[0] + half))] = 70
+    return img
+
+
+def test_brow_band_from_the_pixels_above_the_eye():
+    """The brow is the dark band above the eye, found in the pixels (the landmark network's
+    brow points follow its face prior: docs/UPPER_FACE.md); the enrolment window starts above
+    the open eye (its lashes and iris are darker than a brow), live one is round the neutral."""
+    lm = reading(CANON.vertices_mm)
+    al = U.align(lm, CANON)
+    assert al is not None
+    wide = ((6.0, U.BROW_SEARCH_MM),) * 2
+    for h in (10.0, 13.0, 16.0):
+        for side in U.SIDES:
+            band = U.brow_band_mm(brow_image(lm, h), lm, al, side, wide)
+            assert band is not None and None not in band
+            assert band[0] == pytest.approx(h, abs=0.3) and band[1] == pytest.approx(h, abs=0.3)
+    # no brow in the window (e.g. under a fringe): no height, not the window's edge
+    flat = cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)
+    assert U.brow_band_mm(flat, lm, al, "left", wide) in (None, (None, None))
+    # the tracker: the raise from the enrolment's neutral band, inner and outer
+    ref = U.UpperReference(REF.open_mm, REF.closed_mm, REF.brows_mm, REF.iris_mm,
+                           brow_band_mm=(12.0, 12.0, 12.0, 12.0), brow_floor_mm=(6.0, 6.0))
+    f = U.UpperTracker(ref).step(cv2.cvtColor(brow_image(lm, 15.0), cv2.COLOR_GRAY2BGR), lm,
+                                 None, True)
+    assert f.brows_ok
+    for v in (f.raise_inner_left_mm, f.raise_outer_left_mm, f.raise_inner_right_mm,
+              f.raise_outer_right_mm):
+        assert v == pytest.approx(3.0, abs=0.3)
+    # an outer half not found at enrolment (the synthetic brow's end off the face's mesh):
+    # not looked for, and it rises with the inner half
+    half = U.UpperReference(REF.open_mm, REF.closed_mm, REF.brows_mm, REF.iris_mm,
+                            brow_band_mm=(12.0, 0.0, 12.0, 0.0), brow_floor_mm=(6.0, 6.0))
+    assert half.brow_window(0) == ((6.0, 20.0), None)
+    g = U.UpperTracker(half).step(cv2.cvtColor(brow_image(lm, 15.0), cv2.COLOR_GRAY2BGR), lm,
+                                  None, True)
+    assert g.raise_outer_left_mm == pytest.approx(3.0, abs=0.3)
+    assert g.raise_outer_right_mm == pytest.approx(g.raise_inner_right_mm)
+
+
 def test_photometric_measure_tells_an_open_eye_from_a_closed_one():
     lm = reading(CANON.vertices_mm)
     open_img = cv2.cvtColor(eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)
@@ -132,10 +321,14 @@ def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
     lm = reading(CANON.vertices_mm)
     grey_open = cv2.cvtColor(eye_image(lm, (0.0, 0.0)), cv2.COLOR_BGR2GRAY)
     inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
-    m_open = U.photo_measure(grey_open, inner, outer, OPEN * SCALE)
-    b = -1.0 / m_open  # closure 0 at the open eye's measure, 1 at no contrast
+    fit = U.fit_iris(grey_open, lm, "left")
+    assert fit is not None
+    m_open = U.lid_gap(grey_open, inner, outer, OPEN * SCALE, fit.levels)
+    assert m_open is not None
+    b = -1.0 / m_open  # closure 0 at the open eye's gap, 1 at none
     ref = U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
-                           photo=(1.0, b, 1.0, b), photo_r=(-0.9, -0.9))
+                           photo=(1.0, b, 1.0, b), photo_r=(-0.9, -0.9),
+                           photo_kind=("gap", "gap"))
     tracker = U.UpperTracker(ref)
     first = tracker.step(eye_image(lm, (0.0, 0.0)), lm, np.zeros(2), True)
     assert first.closure_left == pytest.approx(0.0, abs=0.02)
@@ -143,7 +336,8 @@ def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
     assert shut.source == "photo" and shut.closure_left > 0.9 and shut.closure_right > 0.9
     # a weak calibration is not used: the last reading's closure is held
     weak = U.UpperTracker(U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
-                                           photo=(1.0, b, 1.0, b), photo_r=(-0.2, -0.2)))
+                                           photo=(1.0, b, 1.0, b), photo_r=(-0.2, -0.2),
+                                           photo_kind=("gap", "gap")))
     weak.step(eye_image(lm, (0.0, 0.0)), lm, np.zeros(2), True)
     held = weak.step(np.full((400, 640, 3), 150, np.uint8), None, np.zeros(2), True)
     assert held.closure_left == pytest.approx(0.0, abs=0.02)

@@ -19,6 +19,9 @@ from articast.core.outputs.fap import FapEncoder, read_fap, write_fap
 from articast.core.outputs.upper import (
     BROW_FULL_MM,
     GAZE_FULL_DEG,
+    SQUINT_FULL,
+    WIDE_DEAD,
+    WIDE_FULL,
     arkit_upper,
     eye_rotation,
     fap_upper,
@@ -33,10 +36,12 @@ TIMEOUT = 5.0 * float(os.environ.get("ARTICAST_TEST_TIMEOUT_SCALE", "1"))
 
 
 def face(cl: float = 0.2, cr: float = 0.9, yaw: float = 12.0, pitch: float = -6.0,
-         brows: tuple[float, float, float, float] = (4.0, 2.0, -2.0, 1.0)) -> UpperFace:
+         brows: tuple[float, float, float, float] = (4.0, 2.0, -2.0, 1.0),
+         wide: tuple[float, float] = (0.0, 0.3), lower: tuple[float, float] = (0.1, -0.05),
+         squeeze: tuple[float, float] = (1.5, -0.5)) -> UpperFace:
     li, lo, ri, ro = brows
     return UpperFace(True, "", cl, cr, yaw, pitch, "reader", True, "", li, lo, ri, ro,
-                     max(0.0, -(li + ri) / 2))
+                     max(0.0, -(li + ri) / 2), *wide, *lower, *squeeze)
 
 
 def test_arkit_eyes_and_brows():
@@ -49,7 +54,14 @@ def test_arkit_eyes_and_brows():
     assert w["browInnerUp"] == pytest.approx(1.0 / BROW_FULL_MM)
     assert w["browOuterUpLeft"] == pytest.approx(2.0 / BROW_FULL_MM)
     assert w["browDownRight"] > 0 and w["browDownLeft"] == 0.0
+    # wide: beyond the usual open eye, past the measure's noise; squint: the lower lid's rise
+    assert w["eyeWideLeft"] == 0.0
+    assert w["eyeWideRight"] == pytest.approx((0.3 - WIDE_DEAD) / WIDE_FULL)
+    assert w["eyeSquintLeft"] == pytest.approx(0.1 / SQUINT_FULL) and w["eyeSquintRight"] == 0
     assert all(0.0 <= v <= 1.0 for v in w.values())
+    # a speaker enrolled before the squint: no eyeSquint rather than a made-up 0
+    old = arkit_upper(face(lower=(None, None)))  # type: ignore[arg-type]
+    assert "eyeSquintLeft" not in old and "eyeBlinkLeft" in old
     # absent, not zero: nothing for eyes or brows not seen
     assert arkit_upper(UpperFace.absent("not_seen: head rig")) == {}
     assert arkit_upper(None) == {}
@@ -64,7 +76,8 @@ def test_eye_rotation_points_the_gaze():
 
 def test_fap_eyelids_eyeballs_brows_write_and_read_back(tmp_path: Path):
     enc = FapEncoder(MODEL, reference_rotation=FRONTAL)
-    frames = [face(c, 1 - c, 10 * c, -5 * c, (3 * c, c, -c, 2 * c)) for c in (0.0, 0.5, 1.0)]
+    frames = [face(c, 1 - c, 10 * c, -5 * c, (3 * c, c, -c, 2 * c), lower=(0.2 * c, -0.1 * c),
+                   squeeze=(2 * c, -c)) for c in (0.0, 0.5, 1.0)]
     vals = np.zeros((3, 68), np.int64)
     mask = enc.mask.copy()
     for i, f in enumerate(frames):
@@ -85,6 +98,13 @@ def test_fap_eyelids_eyeballs_brows_write_and_read_back(tmp_path: Path):
         ens = enc.fapu.ENS0 / 1024
         assert got["raise_inner_left_mm"] == pytest.approx(f.raise_inner_left_mm, abs=ens)
         assert got["raise_outer_right_mm"] == pytest.approx(f.raise_outer_right_mm, abs=ens)
+        # the lower lids (close_b, 21-22, up +) and the brows' squeeze (37-38, ES0 units)
+        assert got["lower_lid_left"] == pytest.approx(f.lower_lid_left, abs=1e-3)
+        assert got["lower_lid_right"] == pytest.approx(f.lower_lid_right, abs=1e-3)
+        es = enc.fapu.ES0 / 1024
+        assert got["squeeze_left_mm"] == pytest.approx(f.squeeze_left_mm, abs=es)
+        assert got["squeeze_right_mm"] == pytest.approx(f.squeeze_right_mm, abs=es)
+    assert vals[2, 36] == round(2.0 / (enc.fapu.ES0 / 1024))  # squeeze_l_eyebrow: 2 mm
     assert fap_upper(UpperFace.absent("x: y"), enc.fapu) == {}
 
 
@@ -171,10 +191,28 @@ def test_wire_frame_carries_eyes_and_brows_with_their_own_ok():
     assert m2.quality.ok and not m2.eyes.ok and m2.eyes.reason.startswith("turned")
     assert m2.eyes.closure_left is None
     assert "eyeBlinkLeft" not in m2.values.arkit and "19" not in m2.values.fap.values
+    # the binary encoding carries the same blocks
+    binary = seen.for_subscriber((("arkit", "fap"), "binary"), dropped=2)
+    assert isinstance(binary, bytes)
+    mb = parse_server_message(binary, {1: "s"}, {1: names})
+    assert isinstance(mb, Frame) and mb.dropped == 2 and mb.eyes is not None
+    assert mb.eyes.model_dump() == pytest.approx(msg.eyes.model_dump(), abs=1e-5)
+    assert mb.brows.model_dump() == pytest.approx(msg.brows.model_dump(), abs=1e-5)
+    from articast.client.protocol import ProtocolError
+    with pytest.raises(ProtocolError, match="truncated"):  # a cut block: one clear error
+        parse_server_message(binary[:-7], {1: "s"}, {1: names})
+    lost_b = parse_server_message(lost.for_subscriber((("arkit",), "binary"), dropped=0),
+                                  {1: "s"}, {1: names})
+    assert not lost_b.eyes.ok and lost_b.eyes.reason == m2.eyes.reason
+    assert lost_b.eyes.closure_left is None
     # a processor without the upper face (e.g. ground truth): no blocks
     m3 = parse_server_message(FrameEvent("s", 1, record(None), names,
                                          outputs=outputs).for_subscriber(streams, dropped=0))
     assert m3.eyes is None and m3.brows is None
+    m4 = parse_server_message(FrameEvent("s", 1, record(None), names, outputs=outputs)
+                              .for_subscriber((("arkit",), "binary"), dropped=0),
+                              {1: "s"}, {1: names})
+    assert m4.eyes is None and m4.brows is None
 
 
 def test_hostile_eye_blocks_in_a_recording_never_reach_an_output():

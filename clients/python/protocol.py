@@ -194,8 +194,8 @@ class Lips(_Message):
 
 
 class Eyes(_Message):
-    """The eyes of a frame (live tracking of an enrolled speaker; JSON encoding only). Values
-    are null when ``ok`` is false: the eyes were not seen (``reason``), not open."""
+    """The eyes of a frame (live tracking of an enrolled speaker). Values are null when
+    ``ok`` is false: the eyes were not seen (``reason``), not open."""
 
     ok: bool
     reason: str = ""
@@ -203,6 +203,12 @@ class Eyes(_Message):
     closure_right: float | None = None
     gaze_yaw_deg: float | None = Field(default=None, description="to the speaker's left +")
     gaze_pitch_deg: float | None = Field(default=None, description="up +")
+    wide_left: float | None = Field(default=None, description="open beyond the speaker's usual "
+                                    "open eye, in units of its open-to-closed travel, 0..1")
+    wide_right: float | None = None
+    lower_lid_left: float | None = Field(default=None, description="the lower lid's rise (a "
+                                         "squint), a fraction of the open eye, up +")
+    lower_lid_right: float | None = None
 
 
 class Brows(_Message):
@@ -217,6 +223,9 @@ class Brows(_Message):
     raise_inner_right_mm: float | None = None
     raise_outer_right_mm: float | None = None
     lowering_mm: float | None = Field(default=None, description="inner brows lowered, mm")
+    squeeze_left_mm: float | None = Field(default=None, description="inner brow towards the "
+                                          "face's midline, mm (a frown)")
+    squeeze_right_mm: float | None = None
 
 
 class Frame(_Message):
@@ -234,7 +243,7 @@ class Frame(_Message):
         "session's model has no inner-lip points")
     quality: Quality
     eyes: Eyes | None = Field(default=None, description="eyelids and gaze, with their own ok "
-                              "(eyes can be lost while the lips are fine); JSON encoding only")
+                              "(eyes can be lost while the lips are fine)")
     brows: Brows | None = Field(default=None, description="brow raise and lowering, own ok")
     dropped: int = Field(description="frames this subscriber lost because it read too slowly")
 
@@ -374,7 +383,58 @@ pose: 6 float32 (rotation rad, translation mm);
 fap: u16 count n, then n x (u16 number, i32 value);
 mesh: u32 count m, then m float32 (m = N*3);
 arkit: u16 count n, then n float32 (names: reserved, announced in hello).
+
+Then, when bit UPPER_BIT (15) of streams is set, the eyes and brows (live tracking of an
+enrolled speaker; the JSON encoding's ``eyes`` and ``brows`` blocks): u8 flags (bit 0 eyes
+ok, bit 1 brows ok), u8 n + n bytes the eyes' reason (UTF-8), u8 m + m bytes the brows'
+reason, then float32 x EYES_FIELDS and float32 x BROWS_FIELDS (NaN: null).
 """
+UPPER_BIT = 1 << 15
+EYES_FIELDS = ("closure_left", "closure_right", "gaze_yaw_deg", "gaze_pitch_deg", "wide_left",
+               "wide_right", "lower_lid_left", "lower_lid_right")
+BROWS_FIELDS = ("raise_left_mm", "raise_right_mm", "raise_inner_left_mm",
+                "raise_outer_left_mm", "raise_inner_right_mm", "raise_outer_right_mm",
+                "lowering_mm", "squeeze_left_mm", "squeeze_right_mm")
+
+
+def _reason_bytes(text: str) -> bytes:
+    """A reason as at most 255 bytes of UTF-8 (cut on a character boundary)."""
+    b = text.encode("utf-8")[:255].decode("utf-8", "ignore").encode("utf-8")
+    return bytes([len(b)]) + b
+
+
+def _nan(v: Any) -> float:
+    return math.nan if v is None else float(v)
+
+
+def _encode_upper(eyes: dict[str, Any], brows: dict[str, Any]) -> bytes:
+    flags = (1 if eyes.get("ok") else 0) | (2 if brows.get("ok") else 0)
+    return b"".join((bytes([flags]), _reason_bytes(str(eyes.get("reason", ""))),
+                     _reason_bytes(str(brows.get("reason", ""))),
+                     struct.pack(f"<{len(EYES_FIELDS)}f", *(_nan(eyes.get(k))
+                                                            for k in EYES_FIELDS)),
+                     struct.pack(f"<{len(BROWS_FIELDS)}f", *(_nan(brows.get(k))
+                                                             for k in BROWS_FIELDS))))
+
+
+def _decode_upper(data: bytes, off: int) -> tuple[dict[str, Any], dict[str, Any]]:
+    flags = data[off]
+    off += 1
+    reasons = []
+    for _ in range(2):
+        n = data[off]
+        reasons.append(data[off + 1:off + 1 + n].decode("utf-8", "replace"))
+        off += 1 + n
+    ev = struct.unpack_from(f"<{len(EYES_FIELDS)}f", data, off)
+    bv = struct.unpack_from(f"<{len(BROWS_FIELDS)}f", data, off + 4 * len(EYES_FIELDS))
+
+    def block(ok: bool, reason: str, names: tuple[str, ...], vals: tuple[float, ...]
+              ) -> dict[str, Any]:
+        return {"ok": ok, "reason": reason,
+                **{k: None if math.isnan(v) else v for k, v in zip(names, vals, strict=True)}}
+
+    return (block(bool(flags & 1), reasons[0], EYES_FIELDS, ev),
+            block(bool(flags & 2), reasons[1], BROWS_FIELDS, bv))
 KIND_FRAME = 1
 DROPPED_OFFSET = 2 + 1 + 1 + 2 + 2 + 4 + 4 + 8 * 5
 
@@ -397,10 +457,12 @@ def encode_frame_binary(msg: dict[str, Any], sid: int, param_names: list[str]) -
     """
     values = msg["values"]
     present = [s for s in STREAMS if values.get(s) is not None]
+    upper = msg.get("eyes") is not None and msg.get("brows") is not None
     q = msg["quality"]
     parts = [
         BINARY_HEADER.pack(
-            BINARY_MAGIC, PROTOCOL_VERSION, KIND_FRAME, stream_bits(present), sid,
+            BINARY_MAGIC, PROTOCOL_VERSION, KIND_FRAME,
+            stream_bits(present) | (UPPER_BIT if upper else 0), sid,
             msg["seq"] & 0xFFFFFFFF, msg["frame"] & 0xFFFFFFFF, msg["t"], msg["t_capture"],
             msg["t_tracked"], msg["t_sent"], *_lip_pair(msg.get("lips")), msg["dropped"],
             int(bool(q["ok"])),
@@ -423,6 +485,8 @@ def encode_frame_binary(msg: dict[str, Any], sid: int, param_names: list[str]) -
     if values.get("arkit") is not None:
         a = list(values["arkit"].values())
         parts.append(struct.pack(f"<H{len(a)}f", len(a), *a))
+    if upper:
+        parts.append(_encode_upper(msg["eyes"], msg["brows"]))
     return b"".join(parts)
 
 
@@ -459,8 +523,15 @@ def decode_frame_binary(data: bytes, session_of_sid: dict[int, str],
             off += 4 + 4 * m
         if bits & 16:
             (n,) = struct.unpack_from("<H", data, off)
-            values["arkit"] = dict(enumerate(struct.unpack_from(f"<{n}f", data, off + 2)))
-    except struct.error as exc:
+            # (keyed by position: the binary frame does not carry the names; str keys as
+            # FrameValues wants them, which int keys failed)
+            values["arkit"] = {str(i): v for i, v in enumerate(
+                struct.unpack_from(f"<{n}f", data, off + 2))}
+            off += 2 + 4 * n
+        eyes = brows = None
+        if bits & UPPER_BIT:
+            eyes, brows = _decode_upper(data, off)
+    except (struct.error, IndexError) as exc:
         raise ProtocolError("bad_message", f"truncated binary frame: {exc}") from None
     return Frame(
         session=session_of_sid.get(sid, str(sid)), seq=seq, frame=frame, t=t,
@@ -470,6 +541,8 @@ def decode_frame_binary(data: bytes, session_of_sid: dict[int, str],
               if math.isfinite(aperture) and math.isfinite(width) else None),
         quality=Quality(ok=bool(ok), residual=residual, ms=ms, evals=evals,
                         iterations=iterations),
+        eyes=None if eyes is None else Eyes.model_validate(eyes),
+        brows=None if brows is None else Brows.model_validate(brows),
         dropped=dropped,
     )
 

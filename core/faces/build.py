@@ -16,7 +16,7 @@
    (:func:`~articast.core.tracking.points.learn_point_model`), and the motion model's process
    noise from the clip's states (:func:`~articast.core.tracking.kalman.process_noise`).
 7. With the same readings on a desk camera: the speaker's own upper-face references
-   (:mod:`articast.core.faces.upper`: open and closed eye, neutral brows, gaze at the camera).
+   (:mod:`articast.core.faces.upper`: open and closed eye, neutral brows, iris radius).
 """
 
 from __future__ import annotations
@@ -233,10 +233,12 @@ def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> Upper
     first = calibrate(ms)
     if first is None:
         return None
-    # the photometric measure again with the ellipse at the speaker's open eye (as live)
+    # the measures again at the speaker's open eye, iris radius and open-eye grey levels (as
+    # live: a closed eye's lid gap needs the open eye's levels)
     ms = [None if m is None else measure_upper(
         img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), lm, canon,
-        first.open_mm) for m, img, lm in zip(ms, images, readings, strict=True)]
+        first.open_mm, first.iris_radius_mm, (first.eye_levels(0), first.eye_levels(1)))
+        for m, img, lm in zip(ms, images, readings, strict=True)]
     return calibrate(ms)
 
 
@@ -248,6 +250,9 @@ def upper_report(ref: UpperReference | None) -> dict:
             "open_eye_mm": [round(v, 2) for v in ref.open_mm],
             "closed_eye_mm": [round(v, 2) for v in ref.closed_mm],
             "neutral_brows_mm": [round(v, 2) for v in ref.brows_mm],
+            "iris_radius_mm": [round(v, 2) for v in ref.iris_radius_mm],
+            "brow_band_mm": [round(v, 2) for v in ref.brow_band_mm],
+            "photometric_kind": list(ref.photo_kind),
             "photometric_r": [round(v, 3) for v in ref.photo_r]}
 
 

@@ -10,21 +10,24 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
 - **eyelids**: the lid opening (mean of three upper/lower lid pairs, mm) against the speaker's
   open-eye and closed-eye references from enrolment -> closure 0 (open) .. 1 (closed), so a
   narrow-eyed speaker is not "half closed";
-- **blinks between readings**: the reader runs every other frame (``FusionPolicy.read_every``),
-  and a blink lasts 3-9 frames. On every frame a photometric eye measure is taken: the
-  contrast (grey-level s.d.: sclera, iris, lash line; a closed lid is skin) of an ellipse over
-  the open eye relative to the skin of a ring around it, the ellipse placed by the last
-  reading's eye corners moved with the tracked head. Enrolment fits it to the reader's
-  closure (a straight line per eye, :func:`calibrate`), and frames without a reading take
-  their closure from it (or hold the last reading's where that line fits poorly);
-- **gaze**: the iris is the darkest blob inside the eye's contour; its centre's offset from
-  the corners' midpoint, in mm of the aligned frame, less the speaker's own looking-at-the-
-  camera offset, over the eyeball's radius -> yaw (to the speaker's left +) and pitch (up +)
-  in degrees;
-- **brows**: inner / outer point heights above the eye corners' line, mm, less the speaker's
-  neutral (the enrolment's median): raise > 0, lowering = how far the inner brows come down.
-  These are the landmark network's brows, which follow its face prior more than the pixels
-  (on the synthetic speaker they moved 0.7 mm for a painted 6 mm raise: docs/UPPER_FACE.md).
+- **blinks between readings**: the reader runs every few frames (``FusionPolicy``), and a
+  blink lasts 3-9 frames. Between readings the closure comes from a photometric eye measure
+  placed by the last reading's eye corners moved with the tracked head: the lid gap
+  (:func:`lid_gap`, the eye's opening height, linear down to shut) or the contrast
+  (:func:`photo_measure`), whichever follows the speaker's lids better at enrolment
+  (:func:`calibrate`); a poorly fitting side holds the last reading's closure. On a
+  reading's frame the closure is the reader's (averaged with the contrast's, which is on its
+  scale);
+- **gaze**: an iris circle of the speaker's radius fitted to its visible edge
+  (:func:`fit_iris`: the chords' widths fix its height under the lids), its offset from the
+  eye opening's own centre (not the reader's corners), in mm of the aligned frame, over the
+  eyeball's radius -> yaw (to the speaker's left +) and pitch (up +) in degrees;
+- **brows**: the brow's dark band above the eye (:func:`brow_band_mm`, inner and outer halves),
+  mm above the eye corners' line, less the speaker's neutral (the enrolment's median): raise
+  > 0, lowering = how far the inner brows come down; the landmark network's brow points (which
+  follow its face prior more than the pixels: docs/UPPER_FACE.md) where no band is found;
+- **wide, squint, squeeze**: the eye open beyond its usual, the reader's lower lid's rise, its
+  inner brows' move towards the midline.
 
 Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll`` stores
 (speaker.json ``upper``).
@@ -44,6 +47,8 @@ from articast.core.errors import ModelFileError
 from articast.core.faces.canonical import CanonicalFace, canonical_face
 
 SIDES = ("left", "right")
+PHOTO_KINDS = ("gap", "contrast")
+"""The photometric eye measures between readings (:class:`UpperReference` ``photo_kind``)."""
 """The speaker's own left and right (ARKit's and VRM's convention)."""
 EYE_CORNERS = {"left": (362, 263), "right": (133, 33)}
 """(inner, outer) corners of each eye."""
@@ -75,12 +80,32 @@ class UpperReference:
         0.4 (docs/UPPER_FACE.md).
     brows_mm : (left inner, left outer, right inner, right outer) neutral brow heights above
         the eye line (the clip's median).
-    iris_mm : (left x, left y, right x, right y) the iris's offset from the corners' midpoint
-        when looking at the camera (the clip's median).
-    photo : (left a, left b, right a, right b): closure = a + b x the photometric eye measure;
-        photo_r : (left, right) its correlation with the reader's closure on the clip (a
-        side below 0.5 in magnitude is not used: frames between readings hold the last
-        closure).
+    iris_mm : (left x, left y, right x, right y) the iris's median offset from the eye
+        opening's centre over the clip, mm (reported: where the speaker looked while enrolling;
+        not the gaze's zero, which is the iris centred in the opening: docs/UPPER_FACE.md).
+    lower_mm, brow_x_mm : (left, right) the reader's neutral lower lids (:func:`lower_lids_mm`)
+        and inner brows (:func:`inner_brows_x_mm`), the clip's median; None in a speaker.json
+        from before them (no squint, no squeeze).
+    iris_radius_mm : (left, right) the speaker's visible iris radius (the clip's median of
+        each frame's widest iris chord / 2); 0: not measured (an older speaker.json), each
+        frame's own widest chord is used.
+    photo : (left a, left b, right a, right b): closure = a + b x the side's photometric
+        measure, ``photo_kind`` (left, right): ``gap`` the lid gap (:func:`lid_gap`: 0 at the
+        clip's median gap, the usual open eye, 1 at its 1st percentile, the deepest blinks;
+        without blinks, where a line through it against the reader's closure reaches 1) or
+        ``contrast`` (:func:`photo_measure`: a line fitted to the reader's closure), whichever
+        correlates better with the reader's closure on the clip; photo_r : (left, right)
+        that correlation (a side below 0.5 in magnitude is not used between readings: the
+        last closure is held). A speaker.json from before the gap has contrast lines.
+    brow_band_mm : (left inner, left outer, right inner, right outer) the neutral brow's
+        height above the eye line from the pixels (:func:`brow_band_mm`, the clip's
+        median); brow_floor_mm : (left, right) the open eye's top (its photometric opening)
+        + 1.5 mm, below which no brow is looked for; all 0: not measured (the reader's brow
+        points are used, as in a speaker.json from before).
+    levels : (left skin, white, iris, right skin, white, iris) grey levels of the open eyes
+        (the clip's median): the lid gap's until the live tracker has fitted an iris; all 0
+        in a speaker.json from before the lid gap (its ``photo`` was another measure's, and
+        is not used).
     blinks : blinks the clip held (closure runs above 0.5); frames : frames measured.
     """
 
@@ -92,17 +117,54 @@ class UpperReference:
     photo_r: tuple[float, float] = (0.0, 0.0)
     blinks: int = 0
     frames: int = 0
+    iris_radius_mm: tuple[float, float] = (0.0, 0.0)
+    levels: tuple[float, float, float, float, float, float] = (0.0,) * 6
+    brow_band_mm: tuple[float, float, float, float] = (0.0,) * 4
+    brow_floor_mm: tuple[float, float] = (0.0, 0.0)
+    lower_mm: tuple[float, float] | None = None
+    brow_x_mm: tuple[float, float] | None = None
+    photo_kind: tuple[str, str] = ("contrast", "contrast")
+
+    def brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
+        """Side ``i``'s live brow search windows (inner, outer: mm above the eye line; None
+        for a half whose band was not found at enrolment), None when neither was."""
+        band = self.brow_band_mm[2 * i:2 * i + 2]
+        if max(band) <= 0:
+            return None
+        floor = self.brow_floor_mm[i]
+        return tuple(None if b <= 0 else (max(floor, b - BROW_WINDOW_MM), b + BROW_WINDOW_MM)
+                     for b in band)
+
+    def eye_levels(self, i: int) -> tuple[float, float, float] | None:
+        """Eye ``i``'s (skin, white, iris) levels, None when not measured."""
+        lv = tuple(float(v) for v in self.levels[3 * i:3 * i + 3])
+        return lv if lv[1] > 0 else None  # type: ignore[return-value]
 
     def to_dict(self) -> dict[str, Any]:
         return {"open_mm": list(self.open_mm), "closed_mm": list(self.closed_mm),
                 "brows_mm": list(self.brows_mm), "iris_mm": list(self.iris_mm),
                 "photo": list(self.photo), "photo_r": list(self.photo_r),
-                "blinks": int(self.blinks), "frames": int(self.frames)}
+                "blinks": int(self.blinks), "frames": int(self.frames),
+                "iris_radius_mm": list(self.iris_radius_mm), "levels": list(self.levels),
+                "brow_band_mm": list(self.brow_band_mm),
+                "brow_floor_mm": list(self.brow_floor_mm),
+                **({} if self.lower_mm is None else {"lower_mm": list(self.lower_mm)}),
+                **({} if self.brow_x_mm is None else {"brow_x_mm": list(self.brow_x_mm)}),
+                "photo_kind": list(self.photo_kind)}
 
     @classmethod
     def from_dict(cls, d: Any, where: str) -> UpperReference:
         sizes = {"open_mm": 2, "closed_mm": 2, "brows_mm": 4, "iris_mm": 4, "photo": 4,
                  "photo_r": 2}
+        if isinstance(d, dict) and "iris_radius_mm" in d:  # (absent before it was measured)
+            sizes["iris_radius_mm"] = 2
+        if isinstance(d, dict) and "levels" in d:  # (absent before the lid gap)
+            sizes["levels"] = 6
+        if isinstance(d, dict) and "brow_band_mm" in d:  # (absent before the brow band)
+            sizes["brow_band_mm"], sizes["brow_floor_mm"] = 4, 2
+        for k in ("lower_mm", "brow_x_mm"):  # (absent before the squint and the squeeze)
+            if isinstance(d, dict) and k in d:
+                sizes[k] = 2
         try:
             vals = {k: tuple(float(x) for x in d[k]) for k in sizes}
             blinks, frames = int(d["blinks"]), int(d["frames"])
@@ -115,7 +177,13 @@ class UpperReference:
                                                     strict=True)):
             raise ModelFileError(f"{where}: the upper-face block needs finite numbers and an "
                                  f"open eye wider than the closed one ({', '.join(bad)})")
-        return cls(**vals, blinks=blinks, frames=frames)  # type: ignore[arg-type]
+        kind = d.get("photo_kind", ["contrast", "contrast"])  # (before the gap: contrast)
+        if (not isinstance(kind, list | tuple) or len(kind) != 2
+                or not all(k in PHOTO_KINDS for k in kind)):
+            raise ModelFileError(f"{where}: the upper-face block's photo_kind must be two of "
+                                 f"{', '.join(PHOTO_KINDS)}")
+        return cls(**vals, blinks=blinks, frames=frames,  # type: ignore[arg-type]
+                   photo_kind=(str(kind[0]), str(kind[1])))
 
 
 @dataclass(frozen=True)
@@ -127,7 +195,12 @@ class UpperFace:
 
     closure_* : 0 open .. 1 closed; source ``reader`` (the landmarks this frame) or ``photo``
     (the photometric measure between readings). gaze_* : degrees, yaw to the speaker's left +,
-    pitch up +. raise_* : mm above the neutral brow; lowering_mm : inner brows below it."""
+    pitch up +. raise_* : mm above the neutral brow; lowering_mm : inner brows below it.
+    wide_* : how far the eye is open beyond the speaker's usual open eye (the unclipped
+    closure's negative part, in units of the open-to-closed travel; 0 .. 1). lower_lid_* :
+    the lower lid's rise above its neutral (the reader's lower lid, a fraction of the open
+    eye; + up: a squint, the cheeks pushing it). squeeze_*_mm : the inner brow's move towards
+    the face's midline from its neutral (the reader's inner brow points; a frown's corrugator)."""
 
     eyes_ok: bool
     eyes_reason: str = ""
@@ -143,6 +216,12 @@ class UpperFace:
     raise_inner_right_mm: float | None = None
     raise_outer_right_mm: float | None = None
     lowering_mm: float | None = None
+    wide_left: float | None = None
+    wide_right: float | None = None
+    lower_lid_left: float | None = None
+    lower_lid_right: float | None = None
+    squeeze_left_mm: float | None = None
+    squeeze_right_mm: float | None = None
 
     @classmethod
     def absent(cls, reason: str) -> UpperFace:
@@ -152,7 +231,10 @@ class UpperFace:
         """The ``eyes`` block of a track line / wire frame."""
         return {"ok": self.eyes_ok, "reason": self.eyes_reason,
                 "closure_left": _r(self.closure_left), "closure_right": _r(self.closure_right),
-                "gaze_yaw_deg": _r(self.gaze_yaw_deg), "gaze_pitch_deg": _r(self.gaze_pitch_deg)}
+                "gaze_yaw_deg": _r(self.gaze_yaw_deg), "gaze_pitch_deg": _r(self.gaze_pitch_deg),
+                "wide_left": _r(self.wide_left), "wide_right": _r(self.wide_right),
+                "lower_lid_left": _r(self.lower_lid_left),
+                "lower_lid_right": _r(self.lower_lid_right)}
 
     def brows_dict(self) -> dict[str, Any]:
         """The ``brows`` block of a track line / wire frame."""
@@ -163,7 +245,9 @@ class UpperFace:
                 "raise_outer_left_mm": _r(self.raise_outer_left_mm),
                 "raise_inner_right_mm": _r(self.raise_inner_right_mm),
                 "raise_outer_right_mm": _r(self.raise_outer_right_mm),
-                "lowering_mm": _r(self.lowering_mm)}
+                "lowering_mm": _r(self.lowering_mm),
+                "squeeze_left_mm": _r(self.squeeze_left_mm),
+                "squeeze_right_mm": _r(self.squeeze_right_mm)}
 
     @classmethod
     def from_dicts(cls, eyes: Any, brows: Any) -> UpperFace | None:
@@ -188,7 +272,11 @@ class UpperFace:
         brows_ok = bool(brows.get("ok")) and None not in br
         return cls(eyes_ok, str(eyes.get("reason", ""))[:200], cl[0], cl[1], gz[0], gz[1], "",
                    brows_ok, str(brows.get("reason", ""))[:200], br[0], br[1], br[2], br[3],
-                   num(brows, "lowering_mm", *mm))
+                   num(brows, "lowering_mm", *mm),
+                   num(eyes, "wide_left", 0.0, 1.0), num(eyes, "wide_right", 0.0, 1.0),
+                   num(eyes, "lower_lid_left", -1.0, 1.0),
+                   num(eyes, "lower_lid_right", -1.0, 1.0),
+                   num(brows, "squeeze_left_mm", *mm), num(brows, "squeeze_right_mm", *mm))
 
 
 def _r(v: float | None, nd: int = 4) -> float | None:
@@ -245,6 +333,22 @@ def lid_opening_mm(points: np.ndarray) -> tuple[float, float]:
                  for s in SIDES)  # type: ignore[return-value]
 
 
+def lower_lids_mm(points: np.ndarray) -> tuple[float, float]:
+    """(left, right) the lower lid's height above its eye's corners' line, mm (the mean of
+    the three lid pairs' lower points)."""
+    return tuple(float(np.mean([points[lo, 1] for _, lo in LID_PAIRS[s]])
+                       - points[list(EYE_CORNERS[s]), 1].mean())
+                 for s in SIDES)  # type: ignore[return-value]
+
+
+def inner_brows_x_mm(points: np.ndarray) -> tuple[float, float]:
+    """(left, right) the inner brow's distance from the face's midline, mm (x of the
+    inner brow points' mean: + to the speaker's left for the left brow, mirrored for the
+    right)."""
+    return (float(points[list(BROW_POINTS["left"]["inner"]), 0].mean()),
+            -float(points[list(BROW_POINTS["right"]["inner"]), 0].mean()))
+
+
 def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     """(left inner, left outer, right inner, right outer) brow heights above the eye line,
     mm (each brow point pair's mean height minus its eye corners' mean height)."""
@@ -256,46 +360,249 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
-                   side: str) -> tuple[float, float] | None:
-    """The iris's offset (x to the speaker's left, y up; mm) from the eye corners' midpoint:
-    the darkness-weighted centre of what is darker than midway between the
-    eye's darkest and lightest tenths; None when the
-    eye is too closed or outside the image."""
-    poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
-    x0, y0 = np.floor(poly.min(0)).astype(int) - 1
-    x1, y1 = np.ceil(poly.max(0)).astype(int) + 2
+BROW_SEARCH_MM = 20.0
+"""At enrolment a brow is looked for from just above the open eye's upper lid to this many mm
+above the eyes' corners (a person's brow is ~10-18 mm above them; further up, a fringe or the
+synthetic head's hair, 26 mm above its eyes, would win the search: at 30 mm it found the
+hair). Where no band is found inside the window, the reader's brow points are used."""
+BROW_WINDOW_MM = 8.0
+"""Live, a brow is looked for this many mm either side of the speaker's neutral brow."""
+
+
+def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side: str,
+                 window: tuple[tuple[float, float] | None, ...]
+                 ) -> tuple[float | None, float | None] | None:
+    """The brow's height above the eye's corners' line (mm; inner half, outer half), from
+    the pixels: the landmark network's brow points follow its face prior more than the
+    brow (docs/UPPER_FACE.md).
+
+    A strip along the eye's axis, 1.2 eye widths wide and up from the corners' line, is
+    resampled (rotation removed; 1 px per px, heights in mm by the alignment's scale) and
+    smoothed vertically; in each column the brow is the darkest point within ``window``
+    (inner (lo, hi), outer (lo, hi) mm, None: that half is not looked for; at enrolment from
+    just above the open eye's lid to
+    ``BROW_SEARCH_MM``, live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
+    through its neighbours; each half's height is the median of its columns (the nasal half
+    is ``inner``). None outside the image; a half is None when it has no dark band (a
+    minimum on the window's edge in most of its columns: e.g. a brow gone under a fringe, or
+    raised off the synthetic face's mesh)."""
+    lm = np.asarray(landmarks, np.float64)
+    inner, outer = lm[EYE_CORNERS[side][0], :2], lm[EYE_CORNERS[side][1], :2]
+    axis = outer - inner
+    length = float(np.linalg.norm(axis))
+    if not np.isfinite(length) or length < 6.0:
+        return None
+    u = axis / length
+    if u[0] < 0:
+        u = -u  # left to right in the image
+    v = np.array([u[1], -u[0]])  # up in the image
+    scale = aligned.scale
+    wins = [w for w in window if w is not None]
+    if not wins:
+        return None
+    lo = min(w[0] for w in wins)
+    hi = max(w[1] for w in wins)
+    r0, r1 = int(math.floor(max(lo, 0.0) * scale)) - 2, int(math.ceil(hi * scale)) + 2
+    wide = int(round(1.2 * length))
+    centre = (inner + outer) / 2.0
+    corners = np.array([centre + s_ * u * wide / 2.0 + t * v
+                        for s_ in (-1, 1) for t in (max(r0, 0), r1)])
     h, w = grey.shape[:2]
-    if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 6 or y1 - y0 < 3:
+    if corners.min() < 0 or corners[:, 0].max() > w - 1 or corners[:, 1].max() > h - 1:
+        return None
+    x0, y0 = np.floor(corners.min(0)).astype(int)
+    x1, y1 = np.ceil(corners.max(0)).astype(int) + 1
+    crop = _grey(grey[y0:y1, x0:x1])
+    # strip pixel (j, i) <- image centre - u wide/2 + j u + (r1 - i) v: row 0 is the top
+    top = centre - [x0, y0] - u * wide / 2.0 + r1 * v
+    m = np.array([[u[0], -v[0], top[0]], [u[1], -v[1], top[1]]])
+    rows = r1 - max(r0, 0) + 1
+    strip = cv2.GaussianBlur(
+        cv2.warpAffine(crop, m, (wide + 1, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                       borderMode=cv2.BORDER_REPLICATE).astype(np.float32),
+        (1, 0), sigmaX=0.1, sigmaY=max(0.5, 1.5 * scale))  # ~ a brow's half thickness
+    heights = (r1 - np.arange(rows)) / scale  # mm above the corners' line, per row
+    cols = np.arange(wide + 1) - wide / 2.0
+    nasal = (cols * float(np.dot(inner - centre, u))) > 0
+    out: list[float | None] = []
+    for half, win in zip((nasal, ~nasal), window, strict=True):
+        if win is None:
+            out.append(None)
+            continue
+        sel = (heights >= win[0]) & (heights <= win[1])
+        if sel.sum() < 3 or half.sum() < 3:
+            out.append(None)
+            continue
+        sub = strip[np.ix_(np.flatnonzero(sel), np.flatnonzero(half))]
+        k = np.argmin(sub, axis=0)
+        inside = (k > 0) & (k < sub.shape[0] - 1)
+        if inside.mean() < 0.5:
+            out.append(None)  # no dark band inside the window
+            continue
+        kk, cc = k[inside], np.flatnonzero(inside)
+        y_m, y_0, y_p = sub[kk - 1, cc], sub[kk, cc], sub[kk + 1, cc]
+        den = y_m - 2.0 * y_0 + y_p
+        frac = np.where(den > 1e-6, 0.5 * (y_m - y_p) / np.maximum(den, 1e-6), 0.0)
+        hs = heights[np.flatnonzero(sel)[0]] - (kk + np.clip(frac, -0.5, 0.5)) / scale
+        out.append(float(np.median(hs)))
+    return out[0], out[1]
+
+
+@dataclass(frozen=True)
+class IrisFit:
+    """One eye's iris and opening in image px: ``centre`` (2,) the iris circle's centre;
+    ``half_width`` the widest chord of the visible iris over 2 (the radius, when the iris's
+    equator is visible); ``eye`` (2,) the eye opening's own centre (horizontally the middle of
+    the opening on its widest rows, vertically its widest row); ``rows`` the iris rows used."""
+
+    centre: np.ndarray
+    half_width: float
+    eye: np.ndarray
+    rows: int
+    levels: tuple[float, float, float] = (0.0, 0.0, 0.0)  # (skin, white, iris) grey levels
+
+
+IRIS_MIN_ROWS = 3
+"""An iris seen on fewer rows (chords bounded by white on both sides) is not fitted."""
+_SUB = np.array([-0.25, 0.25])  # sub-rows of a pixel row (a chord is a row's mean)
+
+
+def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
+             radius_px: float | None = None) -> IrisFit | None:
+    """The iris as a circle fitted to its visible edge, and the eye opening it sits in.
+
+    In the eye's crop (the reader's contour grown by 3 px: the contour is a guide, the pixels
+    decide), the grey levels give the iris (the median of what is darker than midway between
+    the contour's darkest and lightest tenths), the white (the 75th percentile of the rest)
+    and the skin (the median round the contour). Each row's **chord** is the run of iris
+    round the iris's column, bounded by white on both sides (a row that meets a lid, a lash
+    line or the crop's edge is left out), its width the sum of the pixels' iris fractions
+    (sub-pixel). The lids cover the iris's top and bottom, so its dark centroid hardly moves
+    vertically; the chords' widths do: a circle of radius r whose centre is at height c has
+    chords 2 sqrt(r^2 - (y - c)^2), and c is the height that fits the widths best (least
+    absolute deviations on a grid of 1/20 px), r the speaker's iris radius (``radius_px``,
+    from enrolment) or this frame's widest chord / 2. The iris's x is the chords' centroid.
+
+    The **eye's own centre** replaces the reader's corners (which jitter by ~1 px and move
+    with the iris on a rendered eye): the opening is what is whiter than midway between skin
+    and white inside the grown contour; its widest row is its height (a parabola through the
+    widths round the widest), the middle of its ends on the rows within 2 of it (ends
+    sub-pixel from the next pixel's white fraction) its x. None when the eye is too closed,
+    too small or outside the image, or no iris/white contrast is found."""
+    poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
+    if not np.all(np.isfinite(poly)):
+        return None
+    x0, y0 = np.floor(poly.min(0)).astype(int) - 3
+    x1, y1 = np.ceil(poly.max(0)).astype(int) + 4
+    h, w = grey.shape[:2]
+    if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 12 or y1 - y0 < 8:
         return None
     patch = _grey(grey[y0:y1, x0:x1]).astype(np.float32)
-    mask = np.zeros(patch.shape, np.uint8)
-    cv2.fillPoly(mask, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
-    inside = patch[mask > 0]
-    if inside.size < 8:
+    contour = np.zeros(patch.shape, np.uint8)
+    cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
+    grown = cv2.dilate(contour, np.ones((5, 5), np.uint8))
+    inside = patch[contour > 0]
+    outside = patch[grown == 0]
+    if inside.size < 12 or outside.size < 12:
         return None
-    lo, hi = np.percentile(inside, [10, 90])
-    thr = float(lo + hi) / 2.0  # between the iris's dark and the sclera's light
-    wgt = np.clip(thr - patch, 0.0, None) * mask
-    tot = float(wgt.sum())
-    if tot <= 0:
+    srt = np.sort(inside)
+    n = srt.size
+    thr = float(srt[n // 10] + srt[(9 * n) // 10]) / 2.0
+    nd = int(np.searchsorted(srt, thr))
+    if nd < 4 or n - nd < 4:
         return None
-    ys, xs = np.mgrid[y0:y1, x0:x1]
-    c = np.array([(wgt * xs).sum() / tot, (wgt * ys).sum() / tot])
+    iris_l, white = float(srt[nd // 2]), float(srt[nd + (3 * (n - nd)) // 4])
+    skin = float(np.partition(outside, outside.size // 2)[outside.size // 2])
+    if white - iris_l < 20.0 or white - skin < 8.0:
+        return None  # no iris/white contrast (a closed or unlit eye)
+    # --- the iris's chords
+    cov = np.clip((white - patch) / (white - iris_l), 0.0, 1.0) * (grown > 0)
+    wgt = np.clip(thr - patch, 0.0, None) * contour
+    if float(wgt.sum()) <= 0:
+        return None
+    cols = np.arange(patch.shape[1], dtype=np.float64)
+    cx0 = float((wgt.sum(0) * cols).sum() / wgt.sum())
+    brk = cov <= 0.12  # white (or outside): a chord's bound
+    run = np.cumsum(brk, axis=1)
+    dist = np.where(cov > 0.5, np.abs(cols - cx0)[None, :], np.inf)
+    j = np.argmin(dist, axis=1)
+    rows_ok = dist[np.arange(len(j)), j] < 0.5 * patch.shape[1] / 2
+    mine = (run == run[np.arange(len(j)), j][:, None]) & ~brk
+    first = np.argmax(mine, axis=1)
+    last = patch.shape[1] - 1 - np.argmax(mine[:, ::-1], axis=1)
+    bounded = rows_ok & (first > 0) & (last < patch.shape[1] - 1)
+    bounded &= grown[np.arange(len(j)), np.maximum(first - 1, 0)] > 0
+    bounded &= grown[np.arange(len(j)), np.minimum(last + 1, patch.shape[1] - 1)] > 0
+    widths = (cov * mine).sum(1)
+    cxs = (cov * mine * cols).sum(1) / np.maximum(widths, 1e-9)
+    half = float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0
+    r = float(radius_px) if radius_px else half
+    keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
+    if keep.sum() < IRIS_MIN_ROWS or r < 1.5:
+        return None
+    ys = np.flatnonzero(keep).astype(np.float64)
+    wk = widths[keep]
+    cy = 0.0
+    for cys in (np.arange(ys[0] - r, ys[-1] + r, 0.5), None):  # coarse, then fine
+        if cys is None:
+            cys = cy + np.arange(-0.5, 0.5001, 0.05)
+        yy = (ys[:, None] + _SUB[None, :]).ravel()[None, :] - cys[:, None]
+        pred = (2.0 * np.sqrt(np.clip(r * r - yy * yy, 0.0, None))).reshape(
+            len(cys), len(ys), len(_SUB)).mean(-1)
+        cy = float(cys[int(np.argmin(np.abs(pred - wk[None, :]).sum(1)))])
+    cx = float(np.average(cxs[keep], weights=wk))
+    # --- the eye opening's own centre
+    frac = np.clip((patch - skin) / (white - skin), 0.0, 1.0) * (grown > 0)
+    bright = frac >= 0.5
+    has = bright.any(1)
+    if has.sum() < 3:
+        return None
+    a = np.argmax(bright, axis=1)
+    b = patch.shape[1] - 1 - np.argmax(bright[:, ::-1], axis=1)
+    ri = np.arange(len(a))
+    left = a - 0.5 - np.where(a > 0, frac[ri, np.maximum(a - 1, 0)], 0.0)
+    right = b + 0.5 + np.where(b < patch.shape[1] - 1,
+                               frac[ri, np.minimum(b + 1, patch.shape[1] - 1)], 0.0)
+    width = np.where(has, right - left, 0.0)
+    k = int(np.argmax(width))
+    near = (np.abs(ri - k) <= 2) & (width > 0.6 * width[k])
+    ex = float(np.mean((left[near] + right[near]) / 2.0))
+    ey = float(k)
+    round_k = (np.abs(ri - k) <= 3) & (width > 0)
+    if round_k.sum() >= 3:  # a parabola through the widths round the widest row
+        t = (ri[round_k] - k).astype(np.float64)
+        v = np.stack([t * t, t, np.ones_like(t)], axis=1)
+        a2, b2, _ = np.linalg.solve(v.T @ v + 1e-9 * np.eye(3), v.T @ width[round_k])
+        if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
+            ey = k - float(b2 / (2.0 * a2))
+    return IrisFit(np.array([cx + x0, cy + y0]), half, np.array([ex + x0, ey + y0]),
+                   int(keep.sum()), (skin, white, iris_l))
+
+
+def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
+                   side: str, radius_mm: float | None = None, fit: IrisFit | None = None
+                   ) -> tuple[float, float, float] | None:
+    """The iris's offset (x to the speaker's left, y up; mm of the aligned frame) from the eye
+    opening's own centre (:func:`fit_iris`, or ``fit`` when given), and the visible iris's
+    widest half-chord (mm); None when the iris is not fitted. ``radius_mm``: the speaker's
+    iris radius (enrolment)."""
+    if fit is None:
+        fit = fit_iris(grey, landmarks, side,
+                       None if not radius_mm else radius_mm * aligned.scale)
+    if fit is None:
+        return None
     inner, outer = EYE_CORNERS[side]
     lm = np.asarray(landmarks, np.float64)
-    mid = (lm[inner, :2] + lm[outer, :2]) / 2.0
-    # image px -> the aligned frame's x, y (its in-plane rotation and scale): the corners'
-    # axis in the image against the same axis in the aligned points
+    # image px -> the aligned frame's x, y: the in-plane rotation of the corners' axis (its
+    # angle: ~1 px of jitter over the eye's width moves a 2 mm offset by < 0.1 mm) and the
+    # alignment's scale (all the rigid points: steadier than the corners' distance)
     ax_img = lm[outer, :2] - lm[inner, :2]
     ax_al = aligned.points[outer, :2] - aligned.points[inner, :2]
-    ax_img = np.array([ax_img[0], -ax_img[1]])  # y up
-    ang = math.atan2(ax_al[1], ax_al[0]) - math.atan2(ax_img[1], ax_img[0])
-    k = float(np.linalg.norm(ax_al)) / max(float(np.linalg.norm(ax_img)), 1e-9)
-    d = np.array([c[0] - mid[0], -(c[1] - mid[1])])
+    ang = math.atan2(ax_al[1], ax_al[0]) - math.atan2(-ax_img[1], ax_img[0])
+    d = np.array([fit.centre[0] - fit.eye[0], -(fit.centre[1] - fit.eye[1])]) / aligned.scale
     ca, sa = math.cos(ang), math.sin(ang)
-    off = k * np.array([ca * d[0] - sa * d[1], sa * d[0] + ca * d[1]])
-    return float(off[0]), float(off[1])
+    return (float(ca * d[0] - sa * d[1]), float(sa * d[0] + ca * d[1]),
+            fit.half_width / aligned.scale)
 
 
 def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
@@ -334,6 +641,58 @@ def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
     return float(s_eye / m_ring)
 
 
+LEVELS_MIN_CONTRAST = 8.0
+"""Grey levels whose white or iris is closer than this to the skin cannot tell an open eye."""
+
+
+def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float,
+            levels: tuple[float, float, float]) -> float | None:
+    """The eye's opening height in units of ``open_px`` (the speaker's open eye at this
+    distance): linear in the upper lid's travel, 0 for a lid shut on the lower one (bar its
+    lash line).
+
+    A strip along the eye's axis (the corners ``inner``, ``outer`` (2,) px), ``open_px`` each
+    side of it, is resampled (rotation removed); each pixel counts as the eye by how far it
+    is from the skin towards the white or the iris (``levels`` = (skin, white, iris): the
+    eye's own, from the last open-eye fit), with a soft threshold between a quarter and
+    three quarters of the way (a lid's shade, a quarter darker than the skin round it, is
+    skin); the opening is the columns' eye-pixel count, averaged over the middle half of the
+    eye. (Its predecessor, the grey levels' s.d. in an ellipse, is not linear in the visible
+    area: s.d. ~ sqrt(p (1 - p)); the reader's lids saturate near closed.) None outside the
+    image or with levels that cannot tell the eye from the skin."""
+    skin, white, iris = (float(v) for v in levels)
+    if white - skin < LEVELS_MIN_CONTRAST or skin - iris < LEVELS_MIN_CONTRAST:
+        return None
+    inner = np.asarray(inner, np.float64)
+    outer = np.asarray(outer, np.float64)
+    axis = outer - inner
+    length = float(np.linalg.norm(axis))
+    if not np.isfinite(length) or length < 4.0 or not open_px > 1.0:
+        return None
+    u = axis / length
+    v = np.array([-u[1], u[0]])
+    wide, high = int(round(length)), int(math.ceil(open_px))
+    centre = (inner + outer) / 2.0
+    du, dv = u * wide / 2.0, v * high
+    corners = np.array([centre - du - dv, centre + du - dv, centre - du + dv, centre + du + dv])
+    h, w = grey.shape[:2]
+    if corners.min() < 0 or corners[:, 0].max() > w - 1 or corners[:, 1].max() > h - 1:
+        return None
+    x0, y0 = np.floor(corners.min(0)).astype(int)
+    x1, y1 = np.ceil(corners.max(0)).astype(int) + 1
+    crop = _grey(grey[y0:y1, x0:x1])
+    c = centre - [x0, y0]
+    m = np.array([[u[0], v[0], c[0] - u[0] * wide / 2.0 - v[0] * high],
+                  [u[1], v[1], c[1] - u[1] * wide / 2.0 - v[1] * high]])
+    j0, j1 = int(round(wide * 0.25)), int(round(wide * 0.75)) + 1
+    strip = cv2.warpAffine(crop, m, (wide + 1, 2 * high + 1),
+                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_REPLICATE)[:, j0:j1].astype(np.float32)
+    eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
+    eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
+    return float(eye.sum(0).mean()) / float(open_px)
+
+
 def _grey(patch: np.ndarray) -> np.ndarray:
     """A crop of a grey or BGR image, grey (only the crop is converted: cheaper than the
     frame)."""
@@ -348,28 +707,73 @@ class Measures:
 
     opening: tuple[float, float]
     brows: np.ndarray
-    iris: tuple[tuple[float, float] | None, tuple[float, float] | None]
+    iris: tuple[tuple[float, float, float] | None, tuple[float, float, float] | None]
     photo: tuple[float | None, float | None]
     yaw_deg: float
     scale: float  # px per mm
+    levels: tuple[tuple[float, float, float] | None, tuple[float, float, float] | None] = (
+        None, None)  # each eye's (skin, white, iris) when its iris was fitted
+    band: tuple[tuple[float | None, float | None] | None, ...] = (None, None)
+    # each side's brow band (inner, outer mm above the eye line), None where not found
+    floor: tuple[float | None, float | None] = (None, None)  # each open eye's top + 1.5 mm
+    contrast: tuple[float | None, float | None] = (None, None)  # photo_measure, per eye
+    lower: tuple[float, float] = (0.0, 0.0)  # the reader's lower lids (lower_lids_mm)
+    brow_x: tuple[float, float] = (0.0, 0.0)  # the reader's inner brows (inner_brows_x_mm)
 
 
 def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
-            open_mm: tuple[float, float] | None = None) -> Measures | None:
-    """The raw measures of one reading (``open_mm``: the ellipse height of the photometric
-    measure; default: this reading's own opening)."""
+            open_mm: tuple[float, float] | None = None,
+            iris_radius_mm: tuple[float, float] | None = None,
+            levels: tuple[tuple[float, float, float] | None, ...] | None = None,
+            brow_windows: tuple[Any, ...] | None = None,
+            kinds: tuple[str, ...] = PHOTO_KINDS) -> Measures | None:
+    """The raw measures of one reading (``open_mm``: the strip height of the photometric lid
+    gap; default: this reading's own opening; ``iris_radius_mm``: the speaker's iris
+    radius, default each frame's own widest chord; ``levels``: each eye's grey levels for
+    the lid gap, e.g. the last open eye's (a half-closed eye's own put its lid among the
+    iris); where None, this frame's own when its iris is fitted, else no gap);
+    ``brow_windows``: each side's brow search window (:meth:`UpperReference.brow_window`),
+    default from just above this frame's open eye to ``BROW_SEARCH_MM``); ``kinds``: the
+    photometric measures wanted, default both)."""
     al = align(landmarks, canon)
     if al is None:
         return None
     opening = lid_opening_mm(al.points)
     lm = np.asarray(landmarks, np.float64)
-    iris = tuple(iris_offset_mm(grey, lm, al, s) for s in SIDES)
+    fits = [fit_iris(grey, lm, s, None if not iris_radius_mm or not iris_radius_mm[i]
+                     else iris_radius_mm[i] * al.scale) for i, s in enumerate(SIDES)]
+    iris = tuple(iris_offset_mm(grey, lm, al, s, fit=f) if f is not None else None
+                 for s, f in zip(SIDES, fits, strict=True))
+    lv = [levels[i] if levels is not None and levels[i] is not None
+          else (None if f is None else f.levels) for i, f in enumerate(fits)]
     ref = open_mm or opening
-    photo = tuple(photo_measure(grey, lm[EYE_CORNERS[s][0], :2], lm[EYE_CORNERS[s][1], :2],
-                                max(ref[i], 1.0) * al.scale)
-                  for i, s in enumerate(SIDES))
+    gap = "gap" in kinds or brow_windows is None  # (the enrolment's brow floor needs it)
+    photo = tuple(None if lv[i] is None or not gap else lid_gap(
+        grey, lm[EYE_CORNERS[s][0], :2], lm[EYE_CORNERS[s][1], :2],
+        max(ref[i], 1.0) * al.scale, lv[i]) for i, s in enumerate(SIDES))  # type: ignore[arg-type]
+    floor: list[float | None] = []
+    for i, s in enumerate(SIDES):  # the open eye's top: its centre + half its lid gap, mm
+        f, x = fits[i], photo[i]
+        if f is None or x is None:
+            floor.append(None)
+            continue
+        mid = (lm[EYE_CORNERS[s][0], :2] + lm[EYE_CORNERS[s][1], :2]) / 2.0
+        above = float(mid[1] - f.eye[1]) / al.scale  # (image y down; roll ignored)
+        floor.append(above + 0.5 * x * max(ref[i], 1.0) + 1.5)
+    band = []
+    for i, s in enumerate(SIDES):
+        win = None if brow_windows is None else brow_windows[i]
+        if win is None and floor[i] is not None:
+            win = ((floor[i], BROW_SEARCH_MM),) * 2
+        band.append(None if win is None else brow_band_mm(grey, lm, al, s, win))
     return Measures(opening, brow_heights_mm(al.points), iris, photo,  # type: ignore[arg-type]
-                    al.yaw_deg, al.scale)
+                    al.yaw_deg, al.scale,
+                    tuple(None if f is None else f.levels for f in fits),  # type: ignore[arg-type]
+                    tuple(band), tuple(floor),  # type: ignore[arg-type]
+                    tuple(photo_measure(grey, lm[EYE_CORNERS[s][0], :2],  # type: ignore[arg-type]
+                                        lm[EYE_CORNERS[s][1], :2], max(ref[i], 1.0) * al.scale)
+                          if "contrast" in kinds else None for i, s in enumerate(SIDES)),
+                    lower_lids_mm(al.points), inner_brows_x_mm(al.points))
 
 
 def closure(opening: float, open_mm: float, closed_mm: float) -> float:
@@ -395,28 +799,63 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     closed = np.where(blinked, np.minimum(low, 0.6 * open_mm), CLOSED_FRACTION * open_mm)
     closed = np.minimum(closed, 0.8 * open_mm)
     brows = np.median(np.array([m.brows for m in ms]), axis=0)
-    iris = []
-    for i in range(2):
-        pts = np.array([m.iris[i] for m in ms if m.iris[i] is not None])
-        iris += list(np.median(pts, axis=0)) if len(pts) else [0.0, 0.0]
     # closure per frame, then a line from the photometric measure to it
     cl = np.array([[closure(m.opening[i], open_mm[i], closed[i]) for i in range(2)]
                    for m in ms])
-    photo, photo_r = [], []
+    iris, radius = [], []
     for i in range(2):
-        x = np.array([np.nan if m.photo[i] is None else m.photo[i] for m in ms])
-        ok = np.isfinite(x)
-        if ok.sum() >= 10 and np.std(x[ok]) > 1e-6 and np.std(cl[ok, i]) > 1e-6:
-            b, a = np.polyfit(x[ok], cl[ok, i], 1)
+        pts = np.array([m.iris[i] for m, c in zip(ms, cl[:, i], strict=True)
+                        if m.iris[i] is not None and c < 0.3])
+        iris += list(np.median(pts[:, :2], axis=0)) if len(pts) else [0.0, 0.0]
+        radius.append(float(np.median(pts[:, 2])) if len(pts) >= 5 else 0.0)
+    photo, photo_r, levels, kinds = [], [], [], []
+    for i in range(2):
+        lv = np.array([m.levels[i] for m, c in zip(ms, cl[:, i], strict=True)
+                       if m.levels[i] is not None and c < 0.3]).reshape(-1, 3)
+        levels += list(np.median(lv, axis=0)) if len(lv) >= 5 else [0.0, 0.0, 0.0]
+        best = (0.0, 0.0, 0.0, "gap")
+        for kind in PHOTO_KINDS:
+            x = np.array([np.nan if v is None else v for v in
+                          ((m.photo if kind == "gap" else m.contrast)[i] for m in ms)])
+            ok = np.isfinite(x)
+            if ok.sum() < 10 or np.std(x[ok]) <= 1e-6 or np.std(cl[ok, i]) <= 1e-6:
+                continue
             r = float(np.corrcoef(x[ok], cl[ok, i])[0, 1])
-        else:
-            a, b, r = 0.0, 0.0, 0.0
-        photo += [float(a), float(b)]
-        photo_r.append(r)
+            k, c0 = np.polyfit(x[ok], cl[ok, i], 1)
+            a, b = float(c0), float(k)
+            if kind == "gap":  # its own open (median) and shut (deepest blinks) references
+                x_open = float(np.median(x[ok]))
+                x_shut = (float(np.percentile(x[ok], 1)) if blinked[i]
+                          else (1.0 - c0) / k if abs(k) > 1e-9 else x_open)
+                if x_open - x_shut <= 1e-6:
+                    continue
+                a, b = x_open / (x_open - x_shut), -1.0 / (x_open - x_shut)
+            if abs(r) > abs(best[2]):
+                best = (a, b, r, kind)
+        photo += [best[0], best[1]]
+        photo_r.append(best[2])
+        kinds.append(best[3])
+    bands, floors = [], []
+    for i in range(2):
+        for j in range(2):  # each half on its own: the other may be hidden (docstring)
+            hb = [float(v) for m, c in zip(ms, cl[:, i], strict=True)
+                  if (bd := m.band[i]) is not None and (v := bd[j]) is not None and c < 0.3]
+            ok = len(hb) >= 10 and len(hb) >= 0.3 * len(ms)
+            bands.append(float(np.median(hb)) if ok else 0.0)
+        fl = [float(f) for m, c in zip(ms, cl[:, i], strict=True)
+              if (f := m.floor[i]) is not None and c < 0.3]
+        floors.append(float(np.median(fl)) if fl and max(bands[-2:]) > 0 else 0.0)
     runs = _runs(cl.max(axis=1) > 0.5)
     return UpperReference(tuple(open_mm), tuple(closed), tuple(brows),
                           tuple(iris), tuple(photo), tuple(photo_r),  # type: ignore[arg-type]
-                          len(runs), len(ms))
+                          len(runs), len(ms), tuple(radius),  # type: ignore[arg-type]
+                          tuple(levels), tuple(bands), tuple(floors),  # type: ignore[arg-type]
+                          _pair(np.median([m.lower for m in ms], axis=0)),
+                          _pair(np.median([m.brow_x for m in ms], axis=0)), (kinds[0], kinds[1]))
+
+
+def _pair(v: np.ndarray) -> tuple[float, float]:
+    return float(v[0]), float(v[1])
 
 
 def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
@@ -438,7 +877,9 @@ class UpperTracker:
 
     reference: UpperReference | None
     rig: str = "desk"
-    fuse: bool = True  # on a reading's frame, the mean of its closure and the photometric one
+    photometric: bool = False  # the closure from the photometric measure alone on every
+    # frame when usable (else, the default, on a reading's frame the mean of the reader's and
+    # the photometric closure, the photometric alone between readings: docs/UPPER_FACE.md)
     clock: Callable[[], float] | None = None  # (given: ``spent_s`` adds up the steps' time)
     spent_s: float = 0.0
     canon: CanonicalFace = field(default_factory=canonical_face)
@@ -447,10 +888,30 @@ class UpperTracker:
     _anchor: np.ndarray | None = None  # (2,) px where the head's point was then
     _gaze: tuple[float, float] | None = None
     _closure: tuple[float, float] | None = None
+    _wide: tuple[float, float] | None = None
+    _levels: list[tuple[float, float, float] | None] = field(
+        default_factory=lambda: [None, None])  # each eye's grey levels at its last fit
 
     def reset(self) -> None:
         self._last = self._corners = self._anchor = None
         self._gaze = self._closure = None
+
+    def _photo(self, grey: np.ndarray, i: int, inner: np.ndarray, outer: np.ndarray
+               ) -> float | None:
+        """Eye i's photometric measure of the speaker's kind, placed at ``inner``, ``outer``."""
+        ref = self.reference
+        assert ref is not None and self._last is not None
+        open_px = ref.open_mm[i] * self._last.scale
+        if ref.photo_kind[i] == "contrast":
+            return photo_measure(grey, inner, outer, open_px)
+        lv = self._eye_levels(i)
+        return None if lv is None else lid_gap(grey, inner, outer, open_px, lv)
+
+    def _eye_levels(self, i: int) -> tuple[float, float, float] | None:
+        """Eye i's grey levels: the last fitted open eye's, else the enrolment's."""
+        lv = self._levels[i]
+        return lv if lv is not None or self.reference is None else \
+            self.reference.eye_levels(i)
 
     def step(self, image: np.ndarray, landmarks: np.ndarray | None, anchor: np.ndarray | None,
              ok: bool) -> UpperFace:
@@ -478,11 +939,17 @@ class UpperTracker:
             return UpperFace.absent("no_face: the face is not tracked in this frame")
         grey = image  # (grey or BGR: only the eyes' crops are converted)
         if landmarks is not None:
-            m = measure(grey, landmarks, self.canon, ref.open_mm)
+            m = measure(grey, landmarks, self.canon, ref.open_mm, ref.iris_radius_mm,
+                        (self._eye_levels(0), self._eye_levels(1)),
+                        (ref.brow_window(0), ref.brow_window(1)), ref.photo_kind)
             if m is None:
                 self.reset()
                 return UpperFace.absent("no_face: the landmarks are degenerate")
             lm = np.asarray(landmarks, np.float64)
+            for i in range(2):  # the grey levels of an open eye (reader's closure < 0.3)
+                if m.levels[i] is not None and closure(m.opening[i], ref.open_mm[i],
+                                                       ref.closed_mm[i]) < 0.3:
+                    self._levels[i] = m.levels[i]
             self._last = m
             self._corners = np.array([[lm[EYE_CORNERS[s][0], :2], lm[EYE_CORNERS[s][1], :2]]
                                       for s in SIDES])
@@ -492,9 +959,8 @@ class UpperTracker:
             return UpperFace.absent("no_face: no reading of the eyes yet")
         shift = (np.zeros(2) if anchor is None or self._anchor is None
                  else np.asarray(anchor, np.float64) - self._anchor)
-        photo = tuple(photo_measure(grey, self._corners[i, 0] + shift,
-                                    self._corners[i, 1] + shift,
-                                    ref.open_mm[i] * self._last.scale) for i in range(2))
+        photo = tuple(self._photo(grey, i, self._corners[i, 0] + shift,
+                                  self._corners[i, 1] + shift) for i in range(2))
         return self._from(self._last, "photo", photo)  # type: ignore[arg-type]
 
     def _from(self, m: Measures, source: str,
@@ -504,33 +970,58 @@ class UpperTracker:
         if abs(m.yaw_deg) > MAX_YAW_DEG:
             why = f"turned: the head is turned {abs(m.yaw_deg):.0f} deg from the camera"
             return UpperFace.absent(why)
-        cl = []
+        cl, wide = [], []
         for i in range(2):
             c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
-            x_now = m.photo[i]
-            if (photo is None and self.fuse and x_now is not None
-                    and abs(ref.photo_r[i]) >= PHOTO_MIN_R):  # a reading: both measures
-                c = 0.5 * (c + float(np.clip(ref.photo[2 * i] + ref.photo[2 * i + 1] * x_now,
-                                             0.0, 1.0)))
-            if photo is not None:
-                x = photo[i]
-                if x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R:
-                    c = float(np.clip(ref.photo[2 * i] + ref.photo[2 * i + 1] * x, 0.0, 1.0))
-                elif self._closure is not None:
-                    c = self._closure[i]
+            w = (m.opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
+            x = (m.photo[i] if ref.photo_kind[i] == "gap" else m.contrast[i]) \
+                if photo is None else photo[i]
+            usable = x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R
+            # on a reading's frame (unless ``photometric``) both measures are averaged: two
+            # estimates of the closure with their own errors (the reader's saturates near
+            # closed; the average keeps a laugh's squint, which the reader reads 0.5-0.7, under
+            # 0.5 on franck and pexels_woman: docs/UPPER_FACE.md)
+            reading = photo is None and not self.photometric
+            if usable:
+                raw = ref.photo[2 * i] + ref.photo[2 * i + 1] * float(x)  # type: ignore[arg-type]
+                if reading:
+                    raw = 0.5 * (raw - w)
+                c, w = float(np.clip(raw, 0.0, 1.0)), -raw
+            elif photo is not None and self._closure is not None:
+                c = self._closure[i]  # between readings without a usable gap: held
+                w = 0.0 if self._wide is None else self._wide[i]
             cl.append(c)
+            wide.append(float(np.clip(w, 0.0, 1.0)))
+        self._wide = (wide[0], wide[1])
         self._closure = (cl[0], cl[1])
         gaze = self._gaze
         if source == "reader":
-            offs = [(iris[0] - ref.iris_mm[2 * i], iris[1] - ref.iris_mm[2 * i + 1])
-                    for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
+            # the gaze's zero is the iris centred in the eye's opening (not the enrolment's
+            # median: a speaker who looked round while enrolling would shift it)
+            offs = [iris[:2] for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
             if offs:
                 dx, dy = np.mean(offs, axis=0)
                 gaze = (math.degrees(math.asin(float(np.clip(dx / EYE_RADIUS_MM, -1, 1)))),
                         math.degrees(math.asin(float(np.clip(dy / EYE_RADIUS_MM, -1, 1)))))
                 self._gaze = gaze
+        lower = [None, None] if ref.lower_mm is None else [
+            float(np.clip((m.lower[i] - ref.lower_mm[i]) / ref.open_mm[i], -1.0, 1.0))
+            for i in range(2)]
+        squeeze = [None, None] if ref.brow_x_mm is None else [
+            ref.brow_x_mm[i] - m.brow_x[i] for i in range(2)]
         d = m.brows - np.asarray(ref.brows_mm)
+        for i in range(2):  # the brow band from the pixels where measured (module docstring)
+            band = m.band[i]
+            if band is None or ref.brow_window(i) is None or band == (None, None):
+                continue
+            up = [None if h is None or ref.brow_band_mm[2 * i + j] <= 0
+                  else h - ref.brow_band_mm[2 * i + j] for j, h in enumerate(band)]
+            if up == [None, None]:
+                continue
+            # a half not seen (under hair, off the face) rises with the other
+            d[2 * i:2 * i + 2] = [up[j] if up[j] is not None else up[1 - j] for j in range(2)]
         lowering = float(max(0.0, -(d[0] + d[2]) / 2.0))
         return UpperFace(True, "", cl[0], cl[1], None if gaze is None else gaze[0],
                          None if gaze is None else gaze[1], source, True, "",
-                         float(d[0]), float(d[1]), float(d[2]), float(d[3]), lowering)
+                         float(d[0]), float(d[1]), float(d[2]), float(d[3]), lowering,
+                         wide[0], wide[1], lower[0], lower[1], squeeze[0], squeeze[1])

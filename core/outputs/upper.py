@@ -14,16 +14,21 @@ eyeLookUp/Down Left/Right   gaze pitch up / down / :data:`GAZE_FULL_DEG`
 browInnerUp                 the inner brows' mean raise / :data:`BROW_FULL_MM`
 browOuterUpLeft/Right       that outer brow's raise / :data:`BROW_FULL_MM`
 browDownLeft/Right          that inner brow's lowering / :data:`BROW_DOWN_FULL_MM`
+eyeWideLeft/Right           the eye open beyond the speaker's usual open eye (``wide_*``, in
+                            units of its open-to-closed travel), less :data:`WIDE_DEAD` (the
+                            open eye's own noise), over :data:`WIDE_FULL`
+eyeSquintLeft/Right         the lower lid's rise (``lower_lid_*``, a fraction of the open eye)
+                            over :data:`SQUINT_FULL`
 ==========================  =================================================================
-
-(eyeWide and eyeSquint are not produced: the closure is clipped at the speaker's open eye.)
 
 FAPs (FAP.md; units FAPU/1024): ``close_t_l/r_eyelid`` (19, 20) the top lid's travel down,
 closure x IRISD0 (the open eye's lid opening is IRISD0 by the FAPU's definition, 3.1.y - 3.3.y:
-a closed eye is 1024); ``close_b_*`` (21, 22) 0 (the lower lid is not told apart); eyeball yaw
-(23, 24, to the left +) and pitch (25, 26, down +) in AU (1e-5 rad), both eyes the gaze;
-``raise_l/r_i/m/o_eyebrow`` (31-36) the raise in ENS0 units (the middle: the mean of the inner
-and outer). ``squeeze_*_eyebrow`` (37, 38) are not produced.
+a closed eye is 1024); ``close_b_*`` (21, 22) the lower lid's rise (up +) in the same units
+(``lower_lid_*`` x 1024; 0 when not measured); eyeball yaw (23, 24, to the left +) and pitch
+(25, 26, down +) in AU (1e-5 rad), both eyes the gaze; ``raise_l/r_i/m/o_eyebrow`` (31-36)
+the raise in ENS0 units (the middle: the mean of the inner and outer);
+``squeeze_l/r_eyebrow`` (37, 38) the inner brow's move towards the midline (FAP.md: the left
+brow's "right", the right brow's "left") in ES0 units, when measured.
 """
 
 from __future__ import annotations
@@ -39,14 +44,21 @@ BROW_FULL_MM = 8.0
 """Brow raise of a full browInnerUp / browOuterUp weight (a full raise is ~8-12 mm)."""
 BROW_DOWN_FULL_MM = 4.0
 """Inner-brow lowering of a full browDown weight."""
+WIDE_DEAD, WIDE_FULL = 0.1, 0.4
+"""eyeWide = (wide - WIDE_DEAD) / WIDE_FULL, clipped: an open eye reads within ~0.1 of its
+usual opening (the measure's noise on the synthetic speaker: docs/UPPER_FACE.md); a full
+eyeWide is an eye opened by half its open-to-closed travel beyond the usual."""
+SQUINT_FULL = 0.25
+"""Lower-lid rise (a fraction of the open eye) of a full eyeSquint."""
 
 EYE_SHAPES = ("eyeBlinkLeft", "eyeBlinkRight", "eyeLookDownLeft", "eyeLookDownRight",
               "eyeLookInLeft", "eyeLookInRight", "eyeLookOutLeft", "eyeLookOutRight",
-              "eyeLookUpLeft", "eyeLookUpRight")
+              "eyeLookUpLeft", "eyeLookUpRight", "eyeSquintLeft", "eyeSquintRight",
+              "eyeWideLeft", "eyeWideRight")
 BROW_SHAPES = ("browDownLeft", "browDownRight", "browInnerUp", "browOuterUpLeft",
                "browOuterUpRight")
 EYE_FAPS = (19, 20, 21, 22, 23, 24, 25, 26)
-BROW_FAPS = (31, 32, 33, 34, 35, 36)
+BROW_FAPS = (31, 32, 33, 34, 35, 36, 37, 38)
 
 
 def _unit(x: float) -> float:
@@ -70,6 +82,13 @@ def arkit_upper(u: Any) -> dict[str, float]:
                     "eyeLookInLeft": to_right, "eyeLookOutRight": to_right,
                     "eyeLookUpLeft": up, "eyeLookUpRight": up,
                     "eyeLookDownLeft": down, "eyeLookDownRight": down})
+        for side in ("Left", "Right"):
+            wide = getattr(u, f"wide_{side.lower()}", None)
+            if wide is not None:
+                out[f"eyeWide{side}"] = _unit((wide - WIDE_DEAD) / WIDE_FULL)
+            lower = getattr(u, f"lower_lid_{side.lower()}", None)
+            if lower is not None:
+                out[f"eyeSquint{side}"] = _unit(lower / SQUINT_FULL)
     if u.brows_ok and u.raise_inner_left_mm is not None:
         inner = (u.raise_inner_left_mm + u.raise_inner_right_mm) / 2.0
         out["browInnerUp"] = _unit(inner / BROW_FULL_MM)
@@ -89,7 +108,9 @@ def fap_upper(u: Any, fapu: Any) -> dict[int, int]:
     if u.eyes_ok and u.closure_left is not None and u.closure_right is not None:
         out[19] = int(round(_unit(u.closure_left) * 1024))
         out[20] = int(round(_unit(u.closure_right) * 1024))
-        out[21] = out[22] = 0
+        for n, lower in ((21, getattr(u, "lower_lid_left", None)),
+                         (22, getattr(u, "lower_lid_right", None))):
+            out[n] = 0 if lower is None else int(round(float(np.clip(lower, -1, 1)) * 1024))
         if u.gaze_yaw_deg is not None and u.gaze_pitch_deg is not None:
             yaw = int(round(math.radians(u.gaze_yaw_deg) / 1e-5))
             pitch = int(round(-math.radians(u.gaze_pitch_deg) / 1e-5))
@@ -101,6 +122,11 @@ def fap_upper(u: Any, fapu: Any) -> dict[int, int]:
         for n, mm in ((31, li), (32, ri), (33, (li + lo) / 2), (34, (ri + ro) / 2), (35, lo),
                       (36, ro)):
             out[n] = int(round(mm / ens))
+        es = float(fapu.ES0) / 1024.0
+        for n, sq in ((37, getattr(u, "squeeze_left_mm", None)),
+                      (38, getattr(u, "squeeze_right_mm", None))):
+            if sq is not None:
+                out[n] = int(round(sq / es))
     return out
 
 
@@ -111,6 +137,9 @@ def upper_from_faps(values: dict[int, int], fapu: Any) -> dict[str, float]:
     if 19 in values:
         out["closure_left"] = values[19] / 1024.0
         out["closure_right"] = values[20] / 1024.0
+    if 21 in values:
+        out["lower_lid_left"] = values[21] / 1024.0
+        out["lower_lid_right"] = values[22] / 1024.0
     if 23 in values:
         out["gaze_yaw_deg"] = math.degrees(values[23] * 1e-5)
         out["gaze_pitch_deg"] = -math.degrees(values[25] * 1e-5)
@@ -119,6 +148,10 @@ def upper_from_faps(values: dict[int, int], fapu: Any) -> dict[str, float]:
         out.update({"raise_inner_left_mm": values[31] * ens, "raise_inner_right_mm":
                     values[32] * ens, "raise_outer_left_mm": values[35] * ens,
                     "raise_outer_right_mm": values[36] * ens})
+    if 37 in values:
+        es = float(fapu.ES0) / 1024.0
+        out["squeeze_left_mm"] = values[37] * es
+        out["squeeze_right_mm"] = values[38] * es
     return out
 
 

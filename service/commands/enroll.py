@@ -305,6 +305,12 @@ def _print_report(folder: Path, speaker, report: dict) -> None:
         print(f"eyes: open {o[0]:.1f} / {o[1]:.1f} mm, closed {c[0]:.1f} / {c[1]:.1f} mm "
               f"(left / right lid opening), {up['blinks']} blinks in {up['frames']} frames; "
               f"neutral brows {b[0]:.1f} / {b[2]:.1f} mm (inner, left / right) above the eyes")
+        ir = up.get("iris_radius_mm") or [0.0, 0.0]
+        if min(ir) > 0:
+            print(f"irises: radius {ir[0]:.1f} / {ir[1]:.1f} mm (the gaze's circle)")
+        else:
+            print("irises: not measured (no iris/white contrast): the gaze is fitted to each "
+                  "frame's own widest iris chord")
     r = speaker.residual
     print(f"appearance: {report['appearance']['kind']}, {report['appearance']['sample_points']} "
           f"points, trained on {report['training_frames']} frames; residual on "
