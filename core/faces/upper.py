@@ -407,12 +407,10 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     centre = (inner + outer) / 2.0
     corners = np.array([centre + s_ * u * wide / 2.0 + t * v
                         for s_ in (-1, 1) for t in (max(r0, 0), r1)])
-    h, w = grey.shape[:2]
-    if corners.min() < 0 or corners[:, 0].max() > w - 1 or corners[:, 1].max() > h - 1:
+    boxed = _inside(grey, corners)
+    if boxed is None:
         return None
-    x0, y0 = np.floor(corners.min(0)).astype(int)
-    x1, y1 = np.ceil(corners.max(0)).astype(int) + 1
-    crop = _grey(grey[y0:y1, x0:x1])
+    crop, x0, y0 = boxed
     # strip pixel (j, i) <- image centre - u wide/2 + j u + (r1 - i) v: row 0 is the top
     top = centre - [x0, y0] - u * wide / 2.0 + r1 * v
     m = np.array([[u[0], -v[0], top[0]], [u[1], -v[1], top[1]]])
@@ -675,12 +673,10 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     centre = (inner + outer) / 2.0
     du, dv = u * wide / 2.0, v * high
     corners = np.array([centre - du - dv, centre + du - dv, centre - du + dv, centre + du + dv])
-    h, w = grey.shape[:2]
-    if corners.min() < 0 or corners[:, 0].max() > w - 1 or corners[:, 1].max() > h - 1:
+    boxed = _inside(grey, corners)
+    if boxed is None:
         return None
-    x0, y0 = np.floor(corners.min(0)).astype(int)
-    x1, y1 = np.ceil(corners.max(0)).astype(int) + 1
-    crop = _grey(grey[y0:y1, x0:x1])
+    crop, x0, y0 = boxed
     c = centre - [x0, y0]
     m = np.array([[u[0], v[0], c[0] - u[0] * wide / 2.0 - v[0] * high],
                   [u[1], v[1], c[1] - u[1] * wide / 2.0 - v[1] * high]])
@@ -691,6 +687,17 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
     eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
     return float(eye.sum(0).mean()) / float(open_px)
+
+
+def _inside(grey: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, int, int] | None:
+    """The grey crop (float) of ``grey`` holding the points ``corners`` (N, 2) px and its
+    top-left corner, or None when a corner falls outside the image."""
+    h, w = grey.shape[:2]
+    if corners.min() < 0 or corners[:, 0].max() > w - 1 or corners[:, 1].max() > h - 1:
+        return None
+    x0, y0 = np.floor(corners.min(0)).astype(int)
+    x1, y1 = np.ceil(corners.max(0)).astype(int) + 1
+    return _grey(grey[y0:y1, x0:x1]), int(x0), int(y0)
 
 
 def _grey(patch: np.ndarray) -> np.ndarray:
