@@ -24,30 +24,18 @@ sys.path.insert(0, str(ROOT))
 from articast.core.faces.speaker import Speaker  # noqa: E402
 from articast.service.app import ServiceConfig  # noqa: E402
 from articast.service.settings import ServerSettings  # noqa: E402
-from articast.service.wire import describe  # noqa: E402
 from articast.service.worker import SessionSpec  # noqa: E402
 from tests.browser import Browser  # noqa: E402
 from tests.service_helpers import ServerThread  # noqa: E402
+from tests.test_avatar_latency import talking_recording  # noqa: E402
 
 FPS = 60.0
 
 
 def recording(path: Path, speaker: Speaker, frames: int = 240) -> Path:
-    model = speaker.model
-    desc = describe(model, speaker.camera, model.param_names)
-    pose = {"rotation": [3.14159, 0.0, 0.0], "translation": [0.0, 0.0, 450.0]}
-    with path.open("w") as fh:
-        fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
-                             "session": "talk", "source": {"kind": "test", "fps": FPS},
-                             **desc}) + "\n")
-        for i in range(frames):
-            alpha = {n: float(1.5 * np.sin(2 * np.pi * (i / FPS) * (1 + k / 3)))
-                     for k, n in enumerate(model.param_names)}
-            fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / FPS,
-                                 "alpha": alpha, "pose": pose,
-                                 "quality": {"ok": True, "reason": "", "residual": 0.0,
-                                             "evals": 0, "iterations": 0, "ms": 0.0}}) + "\n")
-    return path
+    """The speaker's own model talking at 60 Hz, 1.5 s.d., face-on at 450 mm."""
+    return talking_recording(path, FPS, frames, speaker.model, speaker.camera, 1.5,
+                             {"rotation": [3.14159, 0.0, 0.0], "translation": [0.0, 0.0, 450.0]})
 
 
 def run(spec: SessionSpec, delegates: bool, seconds: float) -> dict:

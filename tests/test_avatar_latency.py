@@ -41,21 +41,25 @@ SECONDS = float(os.environ.get("ARTICAST_AVATAR_SECONDS", "20"))
 MAX_GROWTH_MS_PER_S = 50.0
 
 
-def talking_recording(path, fps=FPS, frames=240):
-    """A replayable recording of the synthetic speaker talking (jaw and lips moving) at fps."""
+def talking_recording(path, fps=FPS, frames=240, model=None, camera=None, amplitude=1.0,
+                      pose=None):
+    """A replayable recording of a speaker talking (every parameter a sine of its own rate,
+    ``amplitude`` training s.d.) at fps: the synthetic speaker 1 seen by a default 640x480
+    camera from the head rig's rest pose, unless ``model``, ``camera`` or ``pose`` (a dict)
+    are given."""
     from articast.core.model.camera import Camera
     from articast.core.synthetic import default_speaker, rest_pose
     from articast.service.wire import describe
 
-    model = default_speaker(1).model()
-    desc = describe(model, Camera.default(640, 480), model.param_names)
-    pose = rest_pose("head").to_dict()
+    model = model if model is not None else default_speaker(1).model()
+    desc = describe(model, camera or Camera.default(640, 480), model.param_names)
+    pose = pose if pose is not None else rest_pose("head").to_dict()
     with path.open("w") as fh:
         fh.write(json.dumps({"type": "header", "format": "articast-record", "version": 1,
                              "session": "talk", "source": {"kind": "test", "fps": fps},
                              **desc}) + "\n")
         for i in range(frames):
-            alpha = {n: float(np.sin(2 * np.pi * (i / fps) * (1 + k / 3)))
+            alpha = {n: float(amplitude * np.sin(2 * np.pi * (i / fps) * (1 + k / 3)))
                      for k, n in enumerate(model.param_names)}
             fh.write(json.dumps({"type": "frame", "seq": i, "frame": i, "t": i / fps,
                                  "alpha": alpha, "pose": pose,
