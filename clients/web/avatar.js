@@ -7,7 +7,8 @@
 // it (and updates the panel) at most once per display frame. However slow the machine, nothing
 // queues in the page: frames that arrive between two display frames are counted, not drawn.
 // Latency shown = capture -> on screen (wall clock; the server's `t_capture`).
-import { mat4Perspective, mat4Multiply, mat4Translate, rotationFromAxisAngle, transpose3 } from "./math.js";
+import { faceNormals, mat4Perspective, mat4Multiply, mat4Translate, morph, normalise3,
+         rotationFromAxisAngle, transpose3 } from "./math.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
 import { drawUpper, upperAnchors } from "./eyes.js";
@@ -87,26 +88,9 @@ class Mesh {
     }
   }
   update(alpha) {
-    const n = this.mean.length, pos = this.pos, nrm = this.nrm;
-    pos.set(this.mean);
-    for (let k = 0; k < this.k; k++) {
-      const a = alpha[k]; if (!a) continue;
-      const off = k * n, b = this.basis;
-      for (let i = 0; i < n; i++) pos[i] += a * b[off + i];
-    }
-    nrm.fill(0);
-    const t = this.tri;
-    for (let i = 0; i < t.length; i += 3) {
-      const a = 3 * t[i], b = 3 * t[i + 1], c = 3 * t[i + 2];
-      const ux = pos[b] - pos[a], uy = pos[b + 1] - pos[a + 1], uz = pos[b + 2] - pos[a + 2];
-      const vx = pos[c] - pos[a], vy = pos[c + 1] - pos[a + 1], vz = pos[c + 2] - pos[a + 2];
-      const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
-      for (const j of [a, b, c]) { nrm[j] += nx; nrm[j + 1] += ny; nrm[j + 2] += nz; }
-    }
-    for (let i = 0; i < n; i += 3) {
-      const l = Math.hypot(nrm[i], nrm[i + 1], nrm[i + 2]) || 1;
-      nrm[i] /= l; nrm[i + 1] /= l; nrm[i + 2] /= l;
-    }
+    morph(this.pos, this.mean, this.basis, alpha, this.k);
+    faceNormals(this.pos, this.tri, this.nrm);
+    normalise3(this.nrm);
   }
   draw(mvp, rot, colour, wire) {
     gl.useProgram(prog);

@@ -5,6 +5,8 @@
 // Fetched once per hello from hello.delegate_url with the page's token
 // (GET /api/sessions/NAME/delegate, service/delegate.py documents the JSON).
 
+import { faceNormals, morph, normalise3 } from "./math.js";
+
 const VS = `attribute vec3 p; attribute vec3 n; attribute vec2 uv; uniform mat4 mvp;
 uniform mat3 rot; varying vec3 vn; varying vec2 vuv;
 void main() { vn = rot * n; vuv = uv; gl_Position = mvp * vec4(p, 1.0); }`;
@@ -72,25 +74,11 @@ export class Delegate {
     this.alpha = new Float32Array(MAX_MODES);
   }
   update(alpha) { // the shape at alpha, and its vertex normals
-    const n = this.mean.length, pos = this.pos, nrm = this.nrm, b = this.basis;
-    pos.set(this.mean); this.alpha.fill(0);
-    for (let k = 0; k < this.k; k++) {
-      const a = alpha[k] || 0; this.alpha[k] = a; if (!a) continue;
-      const off = k * n; for (let i = 0; i < n; i++) pos[i] += a * b[off + i];
-    }
-    nrm.fill(0);
-    const t = this.tri;
-    for (let i = 0; i < t.length; i += 3) {
-      const a = 3 * t[i], c1 = 3 * t[i + 1], c2 = 3 * t[i + 2];
-      const ux = pos[c1] - pos[a], uy = pos[c1 + 1] - pos[a + 1], uz = pos[c1 + 2] - pos[a + 2];
-      const vx = pos[c2] - pos[a], vy = pos[c2 + 1] - pos[a + 1], vz = pos[c2 + 2] - pos[a + 2];
-      const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
-      for (const j of [a, c1, c2]) { nrm[j] += nx; nrm[j + 1] += ny; nrm[j + 2] += nz; }
-    }
-    for (let i = 0; i < n; i += 3) {
-      const l = Math.hypot(nrm[i], nrm[i + 1], nrm[i + 2]) || 1;
-      nrm[i] /= l; nrm[i + 1] /= l; nrm[i + 2] /= l;
-    }
+    this.alpha.fill(0);
+    for (let k = 0; k < this.k; k++) this.alpha[k] = alpha[k] || 0;
+    morph(this.pos, this.mean, this.basis, alpha, this.k);
+    faceNormals(this.pos, this.tri, this.nrm);
+    normalise3(this.nrm);
   }
   draw(mvp, rot) {
     const gl = this.gl, loc = this.loc;

@@ -24,3 +24,31 @@ export function rotationFromAxisAngle(r) { // Rodrigues, row-major 3x3
           t * x * z - s * y, t * y * z + s * x, t * z * z + c];
 }
 export function transpose3(m) { return [m[0], m[3], m[6], m[1], m[4], m[7], m[2], m[5], m[8]]; }
+
+// A linear mesh's points at alpha: pos = mean + sum_k alpha_k basis_k (basis: k blocks of
+// mean.length values).
+export function morph(pos, mean, basis, alpha, k) {
+  const n = mean.length;
+  pos.set(mean);
+  for (let m = 0; m < k; m++) {
+    const a = alpha[m]; if (!a) continue;
+    const off = m * n; for (let i = 0; i < n; i++) pos[i] += a * basis[off + i];
+  }
+}
+// Area-weighted vertex normals of the triangles tri (not normalised: normalise3 does that).
+export function faceNormals(pos, tri, nrm) {
+  nrm.fill(0);
+  for (let i = 0; i < tri.length; i += 3) {
+    const a = 3 * tri[i], b = 3 * tri[i + 1], c = 3 * tri[i + 2];
+    const ux = pos[b] - pos[a], uy = pos[b + 1] - pos[a + 1], uz = pos[b + 2] - pos[a + 2];
+    const vx = pos[c] - pos[a], vy = pos[c + 1] - pos[a + 1], vz = pos[c + 2] - pos[a + 2];
+    const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
+    for (const j of [a, b, c]) { nrm[j] += nx; nrm[j + 1] += ny; nrm[j + 2] += nz; }
+  }
+}
+export function normalise3(v) {
+  for (let i = 0; i < v.length; i += 3) {
+    const l = Math.hypot(v[i], v[i + 1], v[i + 2]) || 1;
+    v[i] /= l; v[i + 1] /= l; v[i + 2] /= l;
+  }
+}

@@ -8,6 +8,8 @@
 //
 // loadScan(...) resolves to null when the server shows no scan (404), so the page is unchanged.
 
+import { faceNormals, morph } from "./math.js";
+
 const VS = `attribute vec3 p; attribute vec3 n; attribute vec2 uv; uniform mat4 mvp;
 uniform mat3 rot; varying vec3 vn; varying vec2 vuv;
 void main() { vn = rot * n; vuv = vec2(uv.x, 1.0 - uv.y); gl_Position = mvp * vec4(p, 1.0); }`;
@@ -59,22 +61,9 @@ class Scan {
       gl.texParameteri(gl.TEXTURE_2D, p, v);
   }
   update(alpha) {
-    const n = this.mean.length, pos = this.pos, nrm = this.nrm, b = this.basis;
-    pos.set(this.mean);
-    for (let k = 0; k < this.k; k++) {
-      const a = alpha[k]; if (!a) continue;
-      const off = k * n;
-      for (let i = 0; i < n; i++) pos[i] += a * b[off + i];
-    }
-    nrm.fill(0);
-    const t = this.tri;
-    for (let i = 0; i < t.length; i += 3) {
-      const a = 3 * t[i], bb = 3 * t[i + 1], c = 3 * t[i + 2];
-      const ux = pos[bb] - pos[a], uy = pos[bb + 1] - pos[a + 1], uz = pos[bb + 2] - pos[a + 2];
-      const vx = pos[c] - pos[a], vy = pos[c + 1] - pos[a + 1], vz = pos[c + 2] - pos[a + 2];
-      const nx = uy * vz - uz * vy, ny = uz * vx - ux * vz, nz = ux * vy - uy * vx;
-      for (const j of [a, bb, c]) { nrm[j] += nx; nrm[j + 1] += ny; nrm[j + 2] += nz; }
-    }
+    const pos = this.pos, nrm = this.nrm;
+    morph(pos, this.mean, this.basis, alpha, this.k);
+    faceNormals(pos, this.tri, nrm);
     const idx = this.index, rp = this.rpos, rn = this.rnrm;
     for (let r = 0; r < idx.length; r++) {
       const i = 3 * idx[r], l = Math.hypot(nrm[i], nrm[i + 1], nrm[i + 2]) || 1;
