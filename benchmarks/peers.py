@@ -107,6 +107,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "iterations_2": LivePolicy(fusion=FusionPolicy(max_iterations=2)),
     "points_1": LivePolicy(fusion=FusionPolicy(points_weight=1.0)),
     "points_0.1": LivePolicy(fusion=FusionPolicy(points_weight=0.1)),
+    "no_speaker_prior": LivePolicy(fusion=FusionPolicy(speaker_prior=None)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
 MAX_LAG = 5

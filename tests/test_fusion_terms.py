@@ -265,3 +265,40 @@ def test_the_motion_models_prediction_covariance_is_f_p_ft_plus_q():
     want = f @ p0 @ f.T + qm
     np.testing.assert_allclose(cv._pred[3], want, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(prior.information @ want[:n, :n], np.eye(n), atol=1e-6)
+
+
+def test_the_speakers_prior_is_the_product_of_the_two_gaussians():
+    # the combined prior's cost must equal the prediction's plus w |alpha|^2 up to a
+    # constant, at any state: compare the gradients (zero at the combined mean, equal
+    # elsewhere), with the pose correlated to alpha so that it moves too
+    rng = np.random.default_rng(3)
+    k, n = 7, 13
+    a = rng.normal(size=(n, n))
+    # correlated, with the pose's own scales (0.02 rad, 5 mm): small turns stay small
+    d = np.sqrt(np.r_[np.ones(k), np.full(3, 0.02**-2), np.full(3, 5.0**-2)])
+    info = d[:, None] * (a @ a.T / n + 0.5 * np.eye(n)) * d[None, :]
+    pred = StatePrior(rng.normal(size=k) * 2.0, rotation_matrix(np.array([0.05, -0.1, 0.02])),
+                      np.array([3.0, -2.0, 600.0]), info)
+    for w in (1.0, 0.3):
+        both = pred.with_speaker(w)
+
+        def grad_sum(alpha, rot, t, w=w):
+            return pred.terms(alpha, rot, t)[1] + np.r_[2.0 * w * alpha, np.zeros(6)]
+
+        g = grad_sum(both.alpha, both.rotation, both.translation)
+        # zero, to the small-turn approximation of the rotation (second order in its 0.02 rad)
+        assert np.abs(g[:k]).max() < 1e-3 and np.abs(g[k + 3:]).max() < 1e-3
+        assert np.abs(g[k:k + 3]).max() < 1e-2 * np.sqrt(info[k, k])
+        # its mean is pulled towards the speaker's mean, not past it
+        assert np.linalg.norm(both.alpha) < np.linalg.norm(pred.alpha)
+        assert not np.allclose(both.translation, pred.translation)  # correlated: moves too
+        # and its information is the sum (the Hessians of the two costs)
+        assert np.allclose(both.information[:k, :k] - info[:k, :k], w * np.eye(k))
+        x = (rng.normal(size=k), rotation_matrix(rng.normal(size=3) * 0.02) @ pred.rotation,
+             pred.translation + rng.normal(size=3))
+        gx = grad_sum(*x)
+        diff = np.abs(both.terms(*x)[1] - gx)
+        assert np.delete(diff, np.s_[k:k + 3]).max() < 1e-2 * np.abs(gx).max()
+    # weight 0: the prediction itself
+    same = pred.with_speaker(0.0)
+    assert np.allclose(same.alpha, pred.alpha) and np.allclose(same.rotation, pred.rotation)

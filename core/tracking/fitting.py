@@ -95,6 +95,23 @@ class StatePrior:
     translation: np.ndarray
     information: np.ndarray
 
+    def with_speaker(self, weight: float = 1.0) -> StatePrior:
+        """This prior times the speaker's own distribution of articulations, N(0, I / weight)
+        on ``alpha`` (the model's parameters are in units of the enrolment's s.d. about its
+        mean): the Gaussian whose cost is the sum of the two (the pose moves with ``alpha``
+        where the prediction correlates them). Where the frame's evidence pins an
+        articulation the term changes nothing; where it does not (a direction the landmarks
+        and the appearance hardly see), the estimate stays where the speaker's mouth goes
+        instead of wandering several s.d. away with the reader's noise."""
+        k = len(self.alpha)
+        info = self.information.copy()
+        idx = np.arange(k)
+        info[idx, idx] += weight
+        # minimise e^T I e + w |alpha + e_alpha|^2 over the offset e from this prior's mean
+        e = -np.linalg.solve(info, np.concatenate([weight * self.alpha, np.zeros(6)]))
+        return StatePrior(self.alpha + e[:k], rotation_matrix(e[k:k + 3]) @ self.rotation,
+                          self.translation + e[k + 3:], info)
+
     def terms(self, alpha: np.ndarray, rot: np.ndarray, t: np.ndarray
               ) -> tuple[float, np.ndarray, np.ndarray]:
         """Cost, gradient (K + 6,) and Gauss-Newton Hessian (K + 6, K + 6) at a state."""
