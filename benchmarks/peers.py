@@ -108,6 +108,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "points_1": LivePolicy(fusion=FusionPolicy(points_weight=1.0)),
     "points_0.1": LivePolicy(fusion=FusionPolicy(points_weight=0.1)),
     "no_speaker_prior": LivePolicy(fusion=FusionPolicy(speaker_prior=None)),
+    "no_cadence": LivePolicy(fusion=FusionPolicy(cadence=None)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
 MAX_LAG = 5
