@@ -85,3 +85,16 @@ def test_the_cadence_canceller_follows_rereads_and_gaps():
         CadenceCanceller(1)
     with pytest.raises(ValueError):
         CadenceCanceller(3, 0.0)
+
+
+def test_a_jump_is_not_learned_as_the_cadence():
+    n = 300
+    phase = np.arange(n) % 3
+    saw = np.array([-1.0, 0.4, 0.6])[phase] * 0.2
+    step = np.where(np.arange(n) >= 150, 10.0, 0.0)  # a lost state found again, unannounced
+    out = _cadence_run((saw + step)[:, None])[:, 0]
+    err = out - step
+    # the sawtooth stays cancelled right after the jump: the jump's deviations (50x the
+    # cadence's) are clipped at a few times the phases' own spread
+    assert np.sqrt(np.mean(err[153:190] ** 2)) < 0.4 * np.sqrt(np.mean(saw ** 2))
+    assert np.abs(err[153:]).max() < 0.1

@@ -180,7 +180,9 @@ class FusionPolicy:
         a slowly varying bias, so the raw fit steps at each reading and drifts back between
         (cap13's still mouth: 1.4 % of the mouth's width RMS); the filter's 3 Hz passes a
         third of that 8-10 Hz sawtooth. Per phase (frames since the reading) a running mean
-        of the frame's deviation from the last ``read_every`` frames is taken off. Offline on
+        of the frame's deviation from the last ``read_every`` frames is taken off (each
+        update clipped at 3x the phase's running spread, none while a jump settles, each
+        phase's offset shrunk by how well it is known). Offline on
         the same raw fits (franck, cap13, pexels_woman, single_face, cap12): still-mouth
         jitter 0.115 / 0.291 / 0.344 / 0.160 / 0.088 -> 0.090 / 0.213 / 0.264 / 0.156 /
         0.075, r within 0.002, lag unchanged (rates 0.05-0.3 alike; 0.1: about ten readings,
@@ -457,9 +459,13 @@ class LiveTracker:
                 prior = self.kalman.predict(dt)
                 scale = None
                 self.regated += 1
+                if self._cadence is not None:  # a jump, not the cadence's steady component
+                    self._cadence.reset()
             if fu.speaker_prior is not None:
                 prior = prior.with_speaker(fu.speaker_prior)
         if restart:  # (re)start: the detector and the finding landmarks
+            if self._cadence is not None:
+                self._cadence.forget()
             was = self._started
             self._started = False
             face = self._finder(image)

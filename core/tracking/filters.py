@@ -74,34 +74,60 @@ class CadenceCanceller:
     running mean (``rate`` per update) of each frame's deviation from the mean of the last
     ``period`` frames, and subtracted, less the mean over the phases (a steady motion
     deviates alike at every phase and is left alone). Causal: no lag is added. An estimate
-    without a cadence averages to zero.
+    without a cadence averages to zero. Each update is clipped at ``clip`` times the phase's
+    running RMS deviation: a jump (a fast turn, the fit recovering from a lost state) is not
+    the cadence, and would otherwise be subtracted from the next second of frames.
     """
 
-    def __init__(self, period: int, rate: float = 0.1) -> None:
-        if period < 2 or not 0.0 < rate <= 1.0:
-            raise ValueError("a cadence needs a period >= 2 and a rate in (0, 1]")
-        self.period, self.rate = int(period), float(rate)
+    def __init__(self, period: int, rate: float = 0.1, clip: float = 3.0) -> None:
+        if period < 2 or not 0.0 < rate <= 1.0 or not clip > 0.0:
+            raise ValueError("a cadence needs a period >= 2, a rate in (0, 1] and a clip > 0")
+        self.period, self.rate, self.clip = int(period), float(rate), float(clip)
         self.forget()
 
     def reset(self) -> None:
-        """Forget the recent frames (after a gap; the per-phase offsets are kept: they change
-        slowly)."""
+        """Forget the recent frames (after a gap or a jump; the per-phase offsets are kept:
+        they change slowly). The next ``2 period - 1`` frames are not learned from (a fit
+        settling after a jump is not the cadence)."""
         self._recent: list[np.ndarray] = []
+        self._settling = self.period - 1
 
     def forget(self) -> None:
         """Forget everything (a new face, a restart)."""
         self.reset()
         self._offset: np.ndarray | None = None
+        self._spread: np.ndarray | None = None  # per phase, the running mean square update
 
     def __call__(self, x: np.ndarray, phase: int) -> np.ndarray:
         """``x`` (any shape) with the cadence's component at ``phase`` (frames since the last
         reading, clipped to period - 1) removed."""
         x = np.asarray(x, np.float64)
-        if self._offset is None or self._offset.shape[1:] != x.shape:
+        if self._offset is None or self._spread is None or self._offset.shape[1:] != x.shape:
             self._offset = np.zeros((self.period, *x.shape))
+            self._spread = np.full((self.period, *x.shape), np.nan)
         p = min(max(int(phase), 0), self.period - 1)
         self._recent = [*self._recent, x][-self.period:]
-        if len(self._recent) == self.period:
-            dev = x - np.mean(self._recent, axis=0)
-            self._offset[p] += self.rate * (dev - self._offset[p])
-        return x - (self._offset[p] - self._offset.mean(axis=0))
+        if len(self._recent) == self.period and self._settling > 0:
+            self._settling -= 1
+        elif len(self._recent) == self.period:
+            e = x - np.mean(self._recent, axis=0) - self._offset[p]
+            sp = self._spread[p]
+            if np.all(np.isfinite(sp)):
+                lim = self.clip * np.sqrt(sp)
+                e = np.clip(e, -lim, lim)
+                self._spread[p] = sp + self.rate * (e * e - sp)
+            else:
+                self._spread[p] = e * e
+            self._offset[p] += self.rate * e
+        return x - self._correction(p)
+
+    def _correction(self, p: int) -> np.ndarray:
+        """Phase ``p``'s offset less the mean over the phases, each phase's offset shrunk by
+        how well it is known (Wiener: d^2 / (d^2 + v), v the variance of a running mean of
+        that phase's deviations): a cadence that is not there is not subtracted."""
+        assert self._offset is not None and self._spread is not None
+        v = self.rate / (2.0 - self.rate) * np.nan_to_num(self._spread, nan=np.inf)
+        d = self._offset
+        known = np.where(np.isfinite(v), d * d / np.maximum(d * d + v, 1e-300), 0.0)
+        shrunk = d * known
+        return shrunk[p] - shrunk.mean(axis=0)
