@@ -118,12 +118,12 @@ def test_gaze_from_the_iris_between_the_corners():
 
 def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE,
                      iris_radius_mm: float = 5.5, roll_deg: float = 0.0,
-                     closure: float = 0.0, lash_mm: float = 0.0) -> np.ndarray:
+                     closure: float = 0.0, lash_mm: float = 0.0, lid: int = 130) -> np.ndarray:
     """Skin, per eye an opening (an ellipse between the corners, a quarter as high as wide:
     the lids cover the iris's top and bottom) and a dark iris at ``iris_mm`` (x left, y up,
     head frame; the head rolled by ``roll_deg`` as :func:`reading`) from the opening's
     centre; an upper lid (skin, shaded) down to ``closure`` of the opening's height at every
-    column (1: on the lower lid); a dark lash line ``lash_mm`` thick straddling the opening's
+    column (1: on the lower lid), grey ``lid``; a dark lash line ``lash_mm`` thick straddling the opening's
     upper arc; drawn 8x larger and averaged down (edges fall between pixels)."""
     ca, sa = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
     off = np.array([ca * iris_mm[0] - sa * iris_mm[1], -(sa * iris_mm[0] + ca * iris_mm[1])])
@@ -156,8 +156,8 @@ def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float 
             pv = -px * math.sin(th) + py * math.cos(th)
             half_h = 0.25 * a * k * np.sqrt(np.clip(1 - (pu / (a * k)) ** 2, 0, 1))
             up = (half_h - pv) / np.maximum(2 * half_h, 1e-9)  # 0 lower lid .. 1 top
-            lid = up > 1.0 - closure
-            big[ys[lid], xs[lid]] = 130
+            shut = up > 1.0 - closure
+            big[ys[shut], xs[shut]] = lid
         if lash_mm > 0:  # every point within lash_mm / 2 (across the eye's axis) of the
             # opening's upper arc, between the corners
             ys, xs = np.mgrid[0:big.shape[0], 0:big.shape[1]]
@@ -242,6 +242,53 @@ def test_lid_gap_is_linear_in_the_lids_travel_down_to_shut():
         assert gaps[-1] < 0.05 * gaps[0]
     assert U.lid_gap(grey, inner, outer, open_px, (150.0, 152.0, 40.0)) is None  # no white
     assert U.lid_gap(grey, inner - 1000, outer - 1000, open_px, fit.levels) is None
+
+
+def test_iris_height_sees_a_shut_eye_under_a_lid_as_bright_as_the_white():
+    """The visible iris's height against an upper lid painted down to 0 .. 1: a line to 0
+    shut, whatever the lid's grey; a lid as bright as the white (a lit lid, a pale face:
+    pexels_woman) makes the lid gap read the shut eye open, not the iris's height."""
+    lm = reading(CANON.vertices_mm, 0.0, 6.0)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    fit = U.fit_iris(cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), roll_deg=6.0),
+                                  cv2.COLOR_BGR2GRAY), lm, "left")
+    assert fit is not None
+    open_px = OPEN * SCALE
+    cs = np.linspace(0.0, 1.0, 9)
+    for lid in (130, 225):
+        greys = [cv2.cvtColor(lidded_eye_image(lm, (2.5, -1.5), roll_deg=6.0, closure=c,
+                                               lid=lid), cv2.COLOR_BGR2GRAY) for c in cs]
+        hs = np.array([U.iris_height(g, inner, outer, open_px, fit.levels) for g in greys])
+        slope, icpt = np.polyfit(cs, hs, 1)
+        assert np.abs(hs - (icpt + slope * cs)).max() < 0.05 * icpt, hs
+        assert hs[-1] < 0.05 * hs[0]
+        gap = U.lid_gap(greys[-1], inner, outer, open_px, fit.levels)
+        assert gap is not None and (gap < 0.1 if lid == 130 else gap > 0.8)
+    assert U.iris_height(greys[0], inner, outer, open_px, (150.0, 235.0, 145.0)) is None
+
+
+def test_calibration_picks_the_iris_height_where_the_lid_gap_fails():
+    """Under a lid as bright as the white the lid gap does not follow the reader's lids; the
+    iris's height does, is picked at enrolment, and sees the blinks between readings."""
+    lm = reading(CANON.vertices_mm)
+    cs = np.zeros(60)
+    cs[[10, 11, 12, 40, 41]] = [0.5, 1.0, 0.5, 0.8, 1.0]
+    lids = (OPEN - 0.8) * cs
+    greys = [cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), closure=c, lid=225),
+                          cv2.COLOR_BGR2GRAY) for c in cs]
+    first = U.calibrate([U.measure(g, reading(with_lids(d)), CANON)
+                         for g, d in zip(greys, lids, strict=True)])
+    assert first is not None
+    ref = U.calibrate([U.measure(g, reading(with_lids(d)), CANON, first.open_mm,
+                                 first.iris_radius_mm, (first.eye_levels(0),
+                                                        first.eye_levels(1)))
+                       for g, d in zip(greys, lids, strict=True)])
+    assert ref is not None and ref.photo_kind == ("iris", "iris")
+    assert U.UpperReference.from_dict(ref.to_dict(), "x").photo_kind == ("iris", "iris")
+    tracker = U.UpperTracker(ref, photometric=True)
+    got = [tracker.step(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), reading(with_lids(d)), None,
+                        True).closure_left for g, d in zip(greys, lids, strict=True)]
+    assert np.abs(np.array(got) - cs).max() < 0.1, np.round(got, 2)
 
 
 def test_calibration_maps_the_usual_open_eye_to_0_and_the_deepest_blinks_to_1():

@@ -13,11 +13,11 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
 - **blinks between readings**: the reader runs every few frames (``FusionPolicy``), and a
   blink lasts 3-9 frames. Between readings the closure comes from a photometric eye measure
   placed by the last reading's eye corners moved with the tracked head: the lid gap
-  (:func:`lid_gap`, the eye's opening height, linear down to shut) or the contrast
-  (:func:`photo_measure`), whichever follows the speaker's lids better at enrolment
+  (:func:`lid_gap`, the eye's opening height, linear down to shut), the visible iris's
+  height (:func:`iris_height`: a lid as bright as the white is not taken for the eye) or the
+  contrast (:func:`photo_measure`), whichever follows the speaker's lids better at enrolment
   (:func:`calibrate`); a poorly fitting side holds the last reading's closure. On a
-  reading's frame the closure is the reader's (averaged with the contrast's, which is on its
-  scale);
+  reading's frame the closure is the mean of the reader's and the photometric one;
 - **gaze**: an iris circle of the speaker's radius fitted to its visible edge
   (:func:`fit_iris`: the chords' widths fix its height under the lids), its offset from the
   eye opening's own centre (not the reader's corners), in mm of the aligned frame, over the
@@ -47,8 +47,11 @@ from articast.core.errors import ModelFileError
 from articast.core.faces.canonical import CanonicalFace, canonical_face
 
 SIDES = ("left", "right")
-PHOTO_KINDS = ("gap", "contrast")
-"""The photometric eye measures between readings (:class:`UpperReference` ``photo_kind``)."""
+PHOTO_KINDS = ("gap", "iris", "contrast")
+"""The photometric eye measures between readings (:class:`UpperReference` ``photo_kind``), in
+the order of preference (:func:`calibrate`): the lid gap (linear in the lid's travel down to
+shut, whatever the gaze), the iris's height (it also falls as the lid follows the gaze down),
+the contrast (not linear)."""
 """The speaker's own left and right (ARKit's and VRM's convention)."""
 EYE_CORNERS = {"left": (362, 263), "right": (133, 33)}
 """(inner, outer) corners of each eye."""
@@ -92,11 +95,14 @@ class UpperReference:
     photo : (left a, left b, right a, right b): closure = a + b x the side's photometric
         measure, ``photo_kind`` (left, right): ``gap`` the lid gap (:func:`lid_gap`: 0 at the
         clip's median gap, the usual open eye, 1 at its 1st percentile, the deepest blinks;
-        without blinks, where a line through it against the reader's closure reaches 1) or
+        without blinks, where a line through it against the reader's closure reaches 1),
+        ``iris`` the visible iris's height (:func:`iris_height`, calibrated as the gap) or
         ``contrast`` (:func:`photo_measure`: a line fitted to the reader's closure), whichever
-        correlates better with the reader's closure on the clip; photo_r : (left, right)
-        that correlation (a side below 0.5 in magnitude is not used between readings: the
-        last closure is held). A speaker.json from before the gap has contrast lines.
+        correlates better with the reader's closure on the clip (by more than the
+        correlation's standard error, else the earlier in :data:`PHOTO_KINDS`); photo_r :
+        (left, right) that correlation (a side below 0.5 in magnitude is not used between
+        readings: the last closure is held). A speaker.json from before the gap has contrast
+        lines.
     brow_band_mm : (left inner, left outer, right inner, right outer) the neutral brow's
         height above the eye line from the pixels (:func:`brow_band_mm`, the clip's
         median); brow_floor_mm : (left, right) the open eye's top (its photometric opening)
@@ -688,6 +694,47 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     skin, white, iris = (float(v) for v in levels)
     if white - skin < LEVELS_MIN_CONTRAST or skin - iris < LEVELS_MIN_CONTRAST:
         return None
+    strip = _eye_strip(grey, inner, outer, open_px)
+    if strip is None:
+        return None
+    wide = strip.shape[1] - 1
+    strip = strip[:, int(round(wide * 0.25)):int(round(wide * 0.75)) + 1]
+    eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
+    eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
+    return float(eye.sum(0).mean()) / float(open_px)
+
+
+def iris_height(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float,
+                levels: tuple[float, float, float]) -> float | None:
+    """The visible iris's height in units of ``open_px``: what of the iris the lids leave
+    uncovered, the lash line alone when the eye is shut.
+
+    The lid gap's strip (:func:`lid_gap`); each pixel counts as dark by how far it is from
+    the skin towards the iris (the same soft threshold), and only the dark counts: a lid
+    as bright as the white (a lit lid, a pale face) is not taken for the eye. The height is
+    the mean dark count of the tallest quarter of the columns over the eye's middle 70 % (the
+    iris's middle, about a third of the eye wide, wherever the gaze puts it). A shut eye's
+    lash line still counts (thick with mascara: pexels_woman's shut eye reads half its open
+    one), which the calibration's shut reference (the enrolment's deepest blinks) takes
+    out. None outside the image or with levels that cannot tell the iris from the skin."""
+    skin, _, iris = (float(v) for v in levels)
+    if skin - iris < LEVELS_MIN_CONTRAST:
+        return None
+    strip = _eye_strip(grey, inner, outer, open_px)
+    if strip is None:
+        return None
+    wide = strip.shape[1] - 1
+    strip = strip[:, int(round(wide * 0.15)):int(round(wide * 0.85)) + 1]
+    dark = np.clip(((skin - strip) / (skin - iris) - 0.25) * 2.0, 0.0, 1.0).sum(0)
+    tall = np.sort(dark)[(3 * dark.size) // 4:]
+    return float(tall.mean()) / float(open_px)
+
+
+def _eye_strip(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float
+               ) -> np.ndarray | None:
+    """The strip along the eye's axis between the corners ``inner``, ``outer`` (2,) px,
+    ``open_px`` either side of it, resampled with the rotation removed (float32, rows
+    across the axis, a column per px along it); None outside the image."""
     inner = np.asarray(inner, np.float64)
     outer = np.asarray(outer, np.float64)
     axis = outer - inner
@@ -707,13 +754,9 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     c = centre - [x0, y0]
     m = np.array([[u[0], v[0], c[0] - u[0] * wide / 2.0 - v[0] * high],
                   [u[1], v[1], c[1] - u[1] * wide / 2.0 - v[1] * high]])
-    j0, j1 = int(round(wide * 0.25)), int(round(wide * 0.75)) + 1
-    strip = cv2.warpAffine(crop, m, (wide + 1, 2 * high + 1),
-                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                           borderMode=cv2.BORDER_REPLICATE)[:, j0:j1].astype(np.float32)
-    eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
-    eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
-    return float(eye.sum(0).mean()) / float(open_px)
+    return cv2.warpAffine(crop, m, (wide + 1, 2 * high + 1),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
 
 
 def _inside(grey: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, int, int] | None:
@@ -753,6 +796,12 @@ class Measures:
     contrast: tuple[float | None, float | None] = (None, None)  # photo_measure, per eye
     lower: tuple[float, float] = (0.0, 0.0)  # the reader's lower lids (lower_lids_mm)
     brow_x: tuple[float, float] = (0.0, 0.0)  # the reader's inner brows (inner_brows_x_mm)
+    iris_h: tuple[float | None, float | None] = (None, None)  # iris_height, per eye
+
+    def photometric(self, kind: str, i: int) -> float | None:
+        """Eye i's photometric measure of ``kind`` (:data:`PHOTO_KINDS`) on this reading."""
+        return (self.photo if kind == "gap" else self.contrast if kind == "contrast"
+                else self.iris_h)[i]
 
 
 def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
@@ -807,7 +856,12 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
                     tuple(photo_measure(grey, lm[EYE_CORNERS[s][0], :2],  # type: ignore[arg-type]
                                         lm[EYE_CORNERS[s][1], :2], max(ref[i], 1.0) * al.scale)
                           if "contrast" in kinds else None for i, s in enumerate(SIDES)),
-                    lower_lids_mm(al.points), inner_brows_x_mm(al.points))
+                    lower_lids_mm(al.points), inner_brows_x_mm(al.points),
+                    tuple(None if (v := lv[i]) is None or "iris" not in kinds
+                          else iris_height(grey, lm[EYE_CORNERS[s][0], :2],
+                                           lm[EYE_CORNERS[s][1], :2],
+                                           max(ref[i], 1.0) * al.scale, v)
+                          for i, s in enumerate(SIDES)))  # type: ignore[arg-type]
 
 
 def closure(opening: float, open_mm: float, closed_mm: float) -> float:
@@ -847,25 +901,29 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
         lv = np.array([m.levels[i] for m, c in zip(ms, cl[:, i], strict=True)
                        if m.levels[i] is not None and c < 0.3]).reshape(-1, 3)
         levels += list(np.median(lv, axis=0)) if len(lv) >= 5 else [0.0, 0.0, 0.0]
-        best = (0.0, 0.0, 0.0, "gap")
-        for kind in PHOTO_KINDS:
+        best, n_best = (0.0, 0.0, 0.0, "gap"), 0
+        for kind in PHOTO_KINDS:  # (in the order of preference)
             x = np.array([np.nan if v is None else v for v in
-                          ((m.photo if kind == "gap" else m.contrast)[i] for m in ms)])
+                          (m.photometric(kind, i) for m in ms)])
             ok = np.isfinite(x)
             if ok.sum() < 10 or np.std(x[ok]) <= 1e-6 or np.std(cl[ok, i]) <= 1e-6:
                 continue
             r = float(np.corrcoef(x[ok], cl[ok, i])[0, 1])
             k, c0 = np.polyfit(x[ok], cl[ok, i], 1)
             a, b = float(c0), float(k)
-            if kind == "gap":  # its own open (median) and shut (deepest blinks) references
+            if kind != "contrast":  # its own open (median) and shut (deepest blinks) refs
                 x_open = float(np.median(x[ok]))
                 x_shut = (float(np.percentile(x[ok], 1)) if blinked[i]
                           else (1.0 - c0) / k if abs(k) > 1e-9 else x_open)
                 if x_open - x_shut <= 1e-6:
                     continue
                 a, b = x_open / (x_open - x_shut), -1.0 / (x_open - x_shut)
-            if abs(r) > abs(best[2]):
-                best = (a, b, r, kind)
+            # a measure later in the order replaces the one kept only when it follows the
+            # reader better by more than the kept one's correlation's standard error,
+            # (1 - r^2) / sqrt(n - 1): a tie on the synthetic eye (0.766 / 0.764) keeps the gap
+            if not n_best or abs(r) > abs(best[2]) + (1.0 - best[2] ** 2) / math.sqrt(
+                    n_best - 1):
+                best, n_best = (a, b, r, kind), int(ok.sum())
         photo += [best[0], best[1]]
         photo_r.append(best[2])
         kinds.append(best[3])
@@ -939,7 +997,8 @@ class UpperTracker:
         if ref.photo_kind[i] == "contrast":
             return photo_measure(grey, inner, outer, open_px)
         lv = self._eye_levels(i)
-        return None if lv is None else lid_gap(grey, inner, outer, open_px, lv)
+        fn = lid_gap if ref.photo_kind[i] == "gap" else iris_height
+        return None if lv is None else fn(grey, inner, outer, open_px, lv)
 
     def _eye_levels(self, i: int) -> tuple[float, float, float] | None:
         """Eye i's grey levels: the last fitted open eye's, else the enrolment's."""
@@ -1008,8 +1067,7 @@ class UpperTracker:
         for i in range(2):
             c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
             w = (m.opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
-            x = (m.photo[i] if ref.photo_kind[i] == "gap" else m.contrast[i]) \
-                if photo is None else photo[i]
+            x = m.photometric(ref.photo_kind[i], i) if photo is None else photo[i]
             usable = x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R
             # on a reading's frame (unless ``photometric``) both measures are averaged: two
             # estimates of the closure with their own errors (the reader's saturates near
