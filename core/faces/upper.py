@@ -437,7 +437,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         if sel.sum() < 3 or half.sum() < 3:
             out.append(None)
             continue
-        sub = strip[np.ix_(np.flatnonzero(sel), np.flatnonzero(half))]
+        rs, cs = np.flatnonzero(sel), np.flatnonzero(half)  # (both contiguous)
+        sub = strip[rs[0]:rs[-1] + 1, cs[0]:cs[-1] + 1]
         k = np.argmin(sub, axis=0)
         inside = (k > 0) & (k < sub.shape[0] - 1)
         if inside.mean() < 0.5:
@@ -448,7 +449,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         den = y_m - 2.0 * y_0 + y_p
         frac = np.where(den > 1e-6, 0.5 * (y_m - y_p) / np.maximum(den, 1e-6), 0.0)
         hs = heights[np.flatnonzero(sel)[0]] - (kk + np.clip(frac, -0.5, 0.5)) / scale
-        out.append(float(np.median(hs)))
+        hs = np.sort(hs)  # (the median: np.median's own overhead is most of this step's)
+        out.append(float(hs[(hs.size - 1) // 2] + hs[hs.size // 2]) / 2.0)
     return out[0], out[1]
 
 
@@ -495,7 +497,7 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     dark lash line over the opening's top: the white alone ends at the line's lower edge, the
     white with what is darker than midway between skin and iris at its upper edge; the lid's
     margin is taken between them (the line straddles it: lashes over the eye below, over the
-    lid above), the mean of the two openings' centres (:func:`_opening_centre`). None when
+    lid above), the mean of the two openings' centres (:func:`_opening_centres`). None when
     the eye is too closed, too small or outside the image, or no iris/white contrast is
     found."""
     poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
@@ -567,47 +569,79 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     # docs/UPPER_FACE.md), the mean of both openings' centres (-0.08 mm; both agree, +0.06
     # and +0.01 mm, on an eye without a lash line)
     white_frac = np.clip((patch - skin) / (white - skin), 0.0, 1.0) * (grown > 0)
-    eye = _opening_centre(white_frac)
-    if eye is None:
-        return None
+    fracs = [white_frac]
     if skin - iris_l >= LEVELS_MIN_CONTRAST:  # (a lash line darker than the skin can be told)
         dark = np.clip((skin - patch) / (skin - iris_l), 0.0, 1.0) * (grown > 0)
-        with_lash = _opening_centre(np.maximum(white_frac, dark))
-        if with_lash is not None:
-            eye = (eye + with_lash) / 2.0
-    ex, ey = float(eye[0]), float(eye[1])
+        fracs.append(np.maximum(white_frac, dark))
+    eyes = _opening_centres(fracs)
+    if eyes[0] is None:
+        return None
+    ex, ey = (eyes[0] if len(eyes) < 2 or eyes[1] is None
+              else ((eyes[0][0] + eyes[1][0]) / 2.0, (eyes[0][1] + eyes[1][1]) / 2.0))
     return IrisFit(np.array([cx + x0, cy + y0]), half, np.array([ex + x0, ey + y0]),
                    int(keep.sum()), (skin, white, iris_l))
 
 
-def _opening_centre(frac: np.ndarray) -> np.ndarray | None:
-    """(x, y) px in the crop of an opening given by each pixel's fraction ``frac`` (0 .. 1):
-    vertically its widest row (a parabola through the widths round the widest), horizontally
-    the middle of its ends on the rows within 2 of it (ends sub-pixel from the next pixel's
-    fraction); None when fewer than 3 rows hold any of it."""
+def _opening_centres(fracs: list[np.ndarray]) -> list[tuple[float, float] | None]:
+    """(x, y) px in the crop of each opening given by its pixels' fractions (0 .. 1; arrays
+    of one shape): vertically its widest row (a parabola through the widths round the
+    widest), horizontally the middle of its ends on the rows within 2 of it (ends sub-pixel
+    from the next pixel's fraction); None for an opening with fewer than 3 rows. (The rows of
+    all of them in one array: the row-wise steps once.)"""
+    rows, cols = fracs[0].shape
+    frac = np.concatenate(fracs, axis=0) if len(fracs) > 1 else fracs[0]
     bright = frac >= 0.5
     has = bright.any(1)
-    if has.sum() < 3:
-        return None
     a = np.argmax(bright, axis=1)
-    b = frac.shape[1] - 1 - np.argmax(bright[:, ::-1], axis=1)
+    b = cols - 1 - np.argmax(bright[:, ::-1], axis=1)
     ri = np.arange(len(a))
     left = a - 0.5 - np.where(a > 0, frac[ri, np.maximum(a - 1, 0)], 0.0)
-    right = b + 0.5 + np.where(b < frac.shape[1] - 1,
-                               frac[ri, np.minimum(b + 1, frac.shape[1] - 1)], 0.0)
-    width = np.where(has, right - left, 0.0)
-    k = int(np.argmax(width))
-    near = (np.abs(ri - k) <= 2) & (width > 0.6 * width[k])
-    ex = float(np.mean((left[near] + right[near]) / 2.0))
-    ey = float(k)
-    round_k = (np.abs(ri - k) <= 3) & (width > 0)
-    if round_k.sum() >= 3:  # a parabola through the widths round the widest row
-        t = (ri[round_k] - k).astype(np.float64)
-        v = np.stack([t * t, t, np.ones_like(t)], axis=1)
-        a2, b2, _ = np.linalg.solve(v.T @ v + 1e-9 * np.eye(3), v.T @ width[round_k])
-        if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
-            ey = k - float(b2 / (2.0 * a2))
-    return np.array([ex, ey])
+    right = b + 0.5 + np.where(b < cols - 1, frac[ri, np.minimum(b + 1, cols - 1)], 0.0)
+    widths = np.where(has, right - left, 0.0)
+    mids = (left + right) / 2.0
+    out: list[tuple[float, float] | None] = []
+    for n in range(len(fracs)):
+        sl = slice(n * rows, (n + 1) * rows)
+        if int(has[sl].sum()) < 3:
+            out.append(None)
+            continue
+        width, mid = widths[sl], mids[sl]
+        k = int(np.argmax(width))
+        near = (np.abs(ri[:rows] - k) <= 2) & (width > 0.6 * width[k])
+        ex = float(mid[near].mean())
+        ey = float(k)
+        lo, hi = max(k - 3, 0), min(k + 4, rows)
+        pts = [(float(t - k), w) for t, w in zip(range(lo, hi), width[lo:hi].tolist(),
+                                                  strict=True) if w > 0]
+        if len(pts) >= 3:  # a parabola through the widths round the widest row
+            a2, b2 = _parabola(pts)
+            if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
+                ey = k - b2 / (2.0 * a2)
+        out.append((ex, ey))
+    return out
+
+
+def _parabola(pts: list[tuple[float, float]]) -> tuple[float, float]:
+    """(a, b) of the least-squares parabola a t^2 + b t + c through the points (t, w)
+    (3 or more, t distinct), by the normal equations in closed form (a 3 x 3 system: numpy's
+    solver costs more than the sums on these 3-7 points)."""
+    s0 = float(len(pts))
+    s1 = sum(t for t, _ in pts)
+    s2 = sum(t * t for t, _ in pts)
+    s3 = sum(t ** 3 for t, _ in pts)
+    s4 = sum(t ** 4 for t, _ in pts)
+    w0 = sum(w for _, w in pts)
+    w1 = sum(t * w for t, w in pts)
+    w2 = sum(t * t * w for t, w in pts)
+    # | s4 s3 s2 | |a|   |w2|
+    # | s3 s2 s1 | |b| = |w1|   (Cramer's rule)
+    # | s2 s1 s0 | |c|   |w0|
+    det = s4 * (s2 * s0 - s1 * s1) - s3 * (s3 * s0 - s1 * s2) + s2 * (s3 * s1 - s2 * s2)
+    if abs(det) < 1e-12:
+        return 0.0, 0.0
+    da = w2 * (s2 * s0 - s1 * s1) - s3 * (w1 * s0 - s1 * w0) + s2 * (w1 * s1 - s2 * w0)
+    db = s4 * (w1 * s0 - w0 * s1) - w2 * (s3 * s0 - s1 * s2) + s2 * (s3 * w0 - w1 * s2)
+    return da / det, db / det
 
 
 def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
