@@ -348,7 +348,7 @@ def test_brow_band_from_the_pixels_above_the_eye():
     lm = reading(CANON.vertices_mm)
     al = U.align(lm, CANON)
     assert al is not None
-    wide = ((6.0, U.BROW_SEARCH_MM),) * 2
+    wide = ((6.0, 20.0),) * 2
     for h in (10.0, 13.0, 16.0):
         for side in U.SIDES:
             band = U.brow_band_mm(brow_image(lm, h), lm, al, side, wide)
@@ -375,6 +375,28 @@ def test_brow_band_from_the_pixels_above_the_eye():
                                   None, True)
     assert g.raise_outer_left_mm == pytest.approx(3.0, abs=0.3)
     assert g.raise_outer_right_mm == pytest.approx(g.raise_inner_right_mm)
+
+
+def test_enrolment_looks_for_the_brow_up_to_above_the_readers_own_brow_points():
+    """The enrolment's brow search ends BROW_ABOVE_READER_MM above the reader's brow points
+    (the canonical face's: inner 19.5 mm above the eye line), not at a fixed height: a brow
+    22 mm up is found (a fixed 20 mm cap missed it), and a darker band further up (hair,
+    9 mm above the reader's points) does not take the brow's place."""
+    lm = reading(CANON.vertices_mm)
+    inner = float(U.brow_heights_mm(CANON.vertices_mm)[0])
+    m = U.measure(brow_image(lm, 22.0), lm, CANON)
+    assert m is not None
+    for band in m.band:
+        assert band is not None and band[0] == pytest.approx(22.0, abs=0.4)
+    hair = brow_image(lm, 16.0)
+    for side in U.SIDES:
+        a, b = lm[U.EYE_CORNERS[side][0], :2], lm[U.EYE_CORNERS[side][1], :2]
+        y = int(round((a[1] + b[1]) / 2.0 - (inner + 9.0) * SCALE))
+        hair[y - 6:y + 7, int(min(a[0], b[0])) - 20:int(max(a[0], b[0])) + 20] = 30
+    m = U.measure(hair, lm, CANON)
+    assert m is not None
+    for band in m.band:
+        assert band is not None and band[0] == pytest.approx(16.0, abs=0.4)
 
 
 def test_photometric_measure_tells_an_open_eye_from_a_closed_one():

@@ -371,11 +371,14 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-BROW_SEARCH_MM = 20.0
-"""At enrolment a brow is looked for from just above the open eye's upper lid to this many mm
-above the eyes' corners (a person's brow is ~10-18 mm above them; further up, a fringe or the
-synthetic head's hair, 26 mm above its eyes, would win the search: at 30 mm it found the
-hair). Where no band is found inside the window, the reader's brow points are used."""
+BROW_ABOVE_READER_MM = 6.0
+"""At enrolment a brow half is looked for from just above the open eye's upper lid to this
+many mm above the reader's own brow points for that half (the speaker's geometry, not a fixed
+height: a person's brow is ~10-25 mm above the eyes' corners). The reader's points are within
+a few mm of the brow (the synthetic one's band lies 4 mm below them, franck's within 2 mm);
+further up, a fringe or the synthetic head's hair (26 mm above its eyes, its brows' points
+15 mm) would win the search: 8 mm found the hair. Where no band is found inside the window,
+the reader's brow points are used."""
 BROW_WINDOW_MM = 8.0
 """Live, a brow is looked for this many mm either side of the speaker's neutral brow."""
 
@@ -391,8 +394,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     resampled (rotation removed; 1 px per px, heights in mm by the alignment's scale) and
     smoothed vertically; in each column the brow is the darkest point within ``window``
     (inner (lo, hi), outer (lo, hi) mm, None: that half is not looked for; at enrolment from
-    just above the open eye's lid to
-    ``BROW_SEARCH_MM``, live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
+    just above the open eye's lid to ``BROW_ABOVE_READER_MM`` above the reader's brow points,
+    live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
     through its neighbours; each half's height is the median of its columns (the nasal half
     is ``inner``). None outside the image; a half is None when it has no dark band (a
     minimum on the window's edge in most of its columns: e.g. a brow gone under a fringe, or
@@ -596,7 +599,7 @@ def _opening_centres(fracs: list[np.ndarray]) -> list[tuple[float, float] | None
     rows, cols = fracs[0].shape
     frac = np.concatenate(fracs, axis=0) if len(fracs) > 1 else fracs[0]
     bright = frac >= 0.5
-    has = bright.any(1)
+    has = np.asarray(bright.any(axis=1))
     a = np.argmax(bright, axis=1)
     b = cols - 1 - np.argmax(bright[:, ::-1], axis=1)
     ri = np.arange(len(a))
@@ -855,7 +858,8 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
     the lid gap, e.g. the last open eye's (a half-closed eye's own put its lid among the
     iris); where None, this frame's own when its iris is fitted, else no gap);
     ``brow_windows``: each side's brow search window (:meth:`UpperReference.brow_window`),
-    default from just above this frame's open eye to ``BROW_SEARCH_MM``); ``kinds``: the
+    default from just above this frame's open eye to ``BROW_ABOVE_READER_MM`` above the
+    reader's brow points); ``kinds``: the
     photometric measures wanted, default both)."""
     al = align(landmarks, canon)
     if al is None:
@@ -883,12 +887,14 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
         above = float(mid[1] - f.eye[1]) / al.scale  # (image y down; roll ignored)
         floor.append(above + 0.5 * x * max(ref[i], 1.0) + 1.5)
     band = []
+    brows = brow_heights_mm(al.points)
     for i, s in enumerate(SIDES):
         win = None if brow_windows is None else brow_windows[i]
-        if win is None and floor[i] is not None:
-            win = ((floor[i], BROW_SEARCH_MM),) * 2
+        if win is None and (fl := floor[i]) is not None:  # (enrolment: see BROW_ABOVE_READER_MM)
+            win = tuple((fl, max(fl + 3.0, float(brows[2 * i + j]) + BROW_ABOVE_READER_MM))
+                        for j in range(2))
         band.append(None if win is None else brow_band_mm(grey, lm, al, s, win))
-    return Measures(opening, brow_heights_mm(al.points), iris, photo,  # type: ignore[arg-type]
+    return Measures(opening, brows, iris, photo,  # type: ignore[arg-type]
                     al.yaw_deg, al.scale,
                     tuple(None if f is None else f.levels for f in fits),  # type: ignore[arg-type]
                     tuple(band), tuple(floor),  # type: ignore[arg-type]
