@@ -118,13 +118,13 @@ def test_gaze_from_the_iris_between_the_corners():
 
 def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE,
                      iris_radius_mm: float = 5.5, roll_deg: float = 0.0,
-                     closure: float = 0.0) -> np.ndarray:
+                     closure: float = 0.0, lash_mm: float = 0.0, lid: int = 130) -> np.ndarray:
     """Skin, per eye an opening (an ellipse between the corners, a quarter as high as wide:
     the lids cover the iris's top and bottom) and a dark iris at ``iris_mm`` (x left, y up,
     head frame; the head rolled by ``roll_deg`` as :func:`reading`) from the opening's
     centre; an upper lid (skin, shaded) down to ``closure`` of the opening's height at every
-    column (1: on the lower lid); drawn 8x larger and averaged down (edges fall between
-    pixels)."""
+    column (1: on the lower lid), grey ``lid``; a dark lash line ``lash_mm`` thick straddling the opening's
+    upper arc; drawn 8x larger and averaged down (edges fall between pixels)."""
     ca, sa = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
     off = np.array([ca * iris_mm[0] - sa * iris_mm[1], -(sa * iris_mm[0] + ca * iris_mm[1])])
     k = 8
@@ -156,8 +156,17 @@ def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float 
             pv = -px * math.sin(th) + py * math.cos(th)
             half_h = 0.25 * a * k * np.sqrt(np.clip(1 - (pu / (a * k)) ** 2, 0, 1))
             up = (half_h - pv) / np.maximum(2 * half_h, 1e-9)  # 0 lower lid .. 1 top
-            lid = up > 1.0 - closure
-            big[ys[lid], xs[lid]] = 130
+            shut = up > 1.0 - closure
+            big[ys[shut], xs[shut]] = lid
+        if lash_mm > 0:  # every point within lash_mm / 2 (across the eye's axis) of the
+            # opening's upper arc, between the corners
+            ys, xs = np.mgrid[0:big.shape[0], 0:big.shape[1]]
+            th = math.radians(ang if math.cos(math.radians(ang)) > 0 else ang + 180.0)
+            px, py = xs - mid[0] * k - o, ys - mid[1] * k - o
+            pu = px * math.cos(th) + py * math.sin(th)
+            pv = -px * math.sin(th) + py * math.cos(th)
+            arc = 0.25 * a * k * np.sqrt(np.clip(1 - (pu / (a * k)) ** 2, 0, 1))
+            big[(np.abs(pv + arc) < lash_mm * scale * k / 2.0) & (np.abs(pu) < a * k)] = 15
         img[y0:y0 + side_px, x0:x0 + side_px] = cv2.resize(big, (side_px, side_px),
                                                           interpolation=cv2.INTER_AREA)
     return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
@@ -178,6 +187,22 @@ def test_gaze_pitch_although_the_lids_cover_the_iris_top_and_bottom():
             want = [math.degrees(math.asin(v / U.EYE_RADIUS_MM)) for v in (dx, dy)]
             assert f.gaze_yaw_deg == pytest.approx(want[0], abs=1.0), (roll, dx, dy)
             assert f.gaze_pitch_deg == pytest.approx(want[1], abs=1.0), (roll, dx, dy)
+
+
+def test_gaze_pitch_is_not_pulled_down_by_the_lash_line():
+    """A dark lash line 1.6 mm thick straddling the upper lid's margin covers the opening's
+    top 0.8 mm: the white alone puts the opening's centre ~0.5 mm low (the pitch 2.4 deg high);
+    the opening is taken between the white's and the white-and-lash line's (both
+    openings' centres averaged), and the pitch stays within 1 deg of the truth."""
+    ref = U.UpperReference(REF.open_mm, REF.closed_mm, REF.brows_mm, (0.0,) * 4,
+                           iris_radius_mm=(5.5, 5.5))
+    lm = reading(CANON.vertices_mm)
+    for dx, dy in ((0.0, 0.0), (0.0, 1.5), (2.0, -1.0)):
+        f = U.UpperTracker(ref).step(lidded_eye_image(lm, (dx, dy), lash_mm=1.6), lm, None,
+                                     True)
+        want = [math.degrees(math.asin(v / U.EYE_RADIUS_MM)) for v in (dx, dy)]
+        assert f.gaze_yaw_deg == pytest.approx(want[0], abs=1.0), (dx, dy)
+        assert f.gaze_pitch_deg == pytest.approx(want[1], abs=1.0), (dx, dy)
 
 
 def test_iris_fit_finds_the_radius_and_the_opening():
@@ -217,6 +242,53 @@ def test_lid_gap_is_linear_in_the_lids_travel_down_to_shut():
         assert gaps[-1] < 0.05 * gaps[0]
     assert U.lid_gap(grey, inner, outer, open_px, (150.0, 152.0, 40.0)) is None  # no white
     assert U.lid_gap(grey, inner - 1000, outer - 1000, open_px, fit.levels) is None
+
+
+def test_iris_height_sees_a_shut_eye_under_a_lid_as_bright_as_the_white():
+    """The visible iris's height against an upper lid painted down to 0 .. 1: a line to 0
+    shut, whatever the lid's grey; a lid as bright as the white (a lit lid, a pale face:
+    pexels_woman) makes the lid gap read the shut eye open, not the iris's height."""
+    lm = reading(CANON.vertices_mm, 0.0, 6.0)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    fit = U.fit_iris(cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), roll_deg=6.0),
+                                  cv2.COLOR_BGR2GRAY), lm, "left")
+    assert fit is not None
+    open_px = OPEN * SCALE
+    cs = np.linspace(0.0, 1.0, 9)
+    for lid in (130, 225):
+        greys = [cv2.cvtColor(lidded_eye_image(lm, (2.5, -1.5), roll_deg=6.0, closure=c,
+                                               lid=lid), cv2.COLOR_BGR2GRAY) for c in cs]
+        hs = np.array([U.iris_height(g, inner, outer, open_px, fit.levels) for g in greys])
+        slope, icpt = np.polyfit(cs, hs, 1)
+        assert np.abs(hs - (icpt + slope * cs)).max() < 0.05 * icpt, hs
+        assert hs[-1] < 0.05 * hs[0]
+        gap = U.lid_gap(greys[-1], inner, outer, open_px, fit.levels)
+        assert gap is not None and (gap < 0.1 if lid == 130 else gap > 0.8)
+    assert U.iris_height(greys[0], inner, outer, open_px, (150.0, 235.0, 145.0)) is None
+
+
+def test_calibration_picks_the_iris_height_where_the_lid_gap_fails():
+    """Under a lid as bright as the white the lid gap does not follow the reader's lids; the
+    iris's height does, is picked at enrolment, and sees the blinks between readings."""
+    lm = reading(CANON.vertices_mm)
+    cs = np.zeros(60)
+    cs[[10, 11, 12, 40, 41]] = [0.5, 1.0, 0.5, 0.8, 1.0]
+    lids = (OPEN - 0.8) * cs
+    greys = [cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), closure=c, lid=225),
+                          cv2.COLOR_BGR2GRAY) for c in cs]
+    first = U.calibrate([U.measure(g, reading(with_lids(d)), CANON)
+                         for g, d in zip(greys, lids, strict=True)])
+    assert first is not None
+    ref = U.calibrate([U.measure(g, reading(with_lids(d)), CANON, first.open_mm,
+                                 first.iris_radius_mm, (first.eye_levels(0),
+                                                        first.eye_levels(1)))
+                       for g, d in zip(greys, lids, strict=True)])
+    assert ref is not None and ref.photo_kind == ("iris", "iris")
+    assert U.UpperReference.from_dict(ref.to_dict(), "x").photo_kind == ("iris", "iris")
+    tracker = U.UpperTracker(ref, photometric=True)
+    got = [tracker.step(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), reading(with_lids(d)), None,
+                        True).closure_left for g, d in zip(greys, lids, strict=True)]
+    assert np.abs(np.array(got) - cs).max() < 0.1, np.round(got, 2)
 
 
 def test_calibration_maps_the_usual_open_eye_to_0_and_the_deepest_blinks_to_1():
@@ -276,7 +348,7 @@ def test_brow_band_from_the_pixels_above_the_eye():
     lm = reading(CANON.vertices_mm)
     al = U.align(lm, CANON)
     assert al is not None
-    wide = ((6.0, U.BROW_SEARCH_MM),) * 2
+    wide = ((6.0, 20.0),) * 2
     for h in (10.0, 13.0, 16.0):
         for side in U.SIDES:
             band = U.brow_band_mm(brow_image(lm, h), lm, al, side, wide)
@@ -303,6 +375,28 @@ def test_brow_band_from_the_pixels_above_the_eye():
                                   None, True)
     assert g.raise_outer_left_mm == pytest.approx(3.0, abs=0.3)
     assert g.raise_outer_right_mm == pytest.approx(g.raise_inner_right_mm)
+
+
+def test_enrolment_looks_for_the_brow_up_to_above_the_readers_own_brow_points():
+    """The enrolment's brow search ends BROW_ABOVE_READER_MM above the reader's brow points
+    (the canonical face's: inner 19.5 mm above the eye line), not at a fixed height: a brow
+    22 mm up is found (a fixed 20 mm cap missed it), and a darker band further up (hair,
+    9 mm above the reader's points) does not take the brow's place."""
+    lm = reading(CANON.vertices_mm)
+    inner = float(U.brow_heights_mm(CANON.vertices_mm)[0])
+    m = U.measure(brow_image(lm, 22.0), lm, CANON)
+    assert m is not None
+    for band in m.band:
+        assert band is not None and band[0] == pytest.approx(22.0, abs=0.4)
+    hair = brow_image(lm, 16.0)
+    for side in U.SIDES:
+        a, b = lm[U.EYE_CORNERS[side][0], :2], lm[U.EYE_CORNERS[side][1], :2]
+        y = int(round((a[1] + b[1]) / 2.0 - (inner + 9.0) * SCALE))
+        hair[y - 6:y + 7, int(min(a[0], b[0])) - 20:int(max(a[0], b[0])) + 20] = 30
+    m = U.measure(hair, lm, CANON)
+    assert m is not None
+    for band in m.band:
+        assert band is not None and band[0] == pytest.approx(16.0, abs=0.4)
 
 
 def test_photometric_measure_tells_an_open_eye_from_a_closed_one():

@@ -13,11 +13,11 @@ FaceLandmarker v2's 478 are the same points) and the frame's pixels:
 - **blinks between readings**: the reader runs every few frames (``FusionPolicy``), and a
   blink lasts 3-9 frames. Between readings the closure comes from a photometric eye measure
   placed by the last reading's eye corners moved with the tracked head: the lid gap
-  (:func:`lid_gap`, the eye's opening height, linear down to shut) or the contrast
-  (:func:`photo_measure`), whichever follows the speaker's lids better at enrolment
+  (:func:`lid_gap`, the eye's opening height, linear down to shut), the visible iris's
+  height (:func:`iris_height`: a lid as bright as the white is not taken for the eye) or the
+  contrast (:func:`photo_measure`), whichever follows the speaker's lids better at enrolment
   (:func:`calibrate`); a poorly fitting side holds the last reading's closure. On a
-  reading's frame the closure is the reader's (averaged with the contrast's, which is on its
-  scale);
+  reading's frame the closure is the mean of the reader's and the photometric one;
 - **gaze**: an iris circle of the speaker's radius fitted to its visible edge
   (:func:`fit_iris`: the chords' widths fix its height under the lids), its offset from the
   eye opening's own centre (not the reader's corners), in mm of the aligned frame, over the
@@ -47,8 +47,11 @@ from articast.core.errors import ModelFileError
 from articast.core.faces.canonical import CanonicalFace, canonical_face
 
 SIDES = ("left", "right")
-PHOTO_KINDS = ("gap", "contrast")
-"""The photometric eye measures between readings (:class:`UpperReference` ``photo_kind``)."""
+PHOTO_KINDS = ("gap", "iris", "contrast")
+"""The photometric eye measures between readings (:class:`UpperReference` ``photo_kind``), in
+the order of preference (:func:`calibrate`): the lid gap (linear in the lid's travel down to
+shut, whatever the gaze), the iris's height (it also falls as the lid follows the gaze down),
+the contrast (not linear)."""
 """The speaker's own left and right (ARKit's and VRM's convention)."""
 EYE_CORNERS = {"left": (362, 263), "right": (133, 33)}
 """(inner, outer) corners of each eye."""
@@ -92,11 +95,14 @@ class UpperReference:
     photo : (left a, left b, right a, right b): closure = a + b x the side's photometric
         measure, ``photo_kind`` (left, right): ``gap`` the lid gap (:func:`lid_gap`: 0 at the
         clip's median gap, the usual open eye, 1 at its 1st percentile, the deepest blinks;
-        without blinks, where a line through it against the reader's closure reaches 1) or
+        without blinks, where a line through it against the reader's closure reaches 1),
+        ``iris`` the visible iris's height (:func:`iris_height`, calibrated as the gap) or
         ``contrast`` (:func:`photo_measure`: a line fitted to the reader's closure), whichever
-        correlates better with the reader's closure on the clip; photo_r : (left, right)
-        that correlation (a side below 0.5 in magnitude is not used between readings: the
-        last closure is held). A speaker.json from before the gap has contrast lines.
+        correlates better with the reader's closure on the clip (by more than the
+        correlation's standard error, else the earlier in :data:`PHOTO_KINDS`); photo_r :
+        (left, right) that correlation (a side below 0.5 in magnitude is not used between
+        readings: the last closure is held). A speaker.json from before the gap has contrast
+        lines.
     brow_band_mm : (left inner, left outer, right inner, right outer) the neutral brow's
         height above the eye line from the pixels (:func:`brow_band_mm`, the clip's
         median); brow_floor_mm : (left, right) the open eye's top (its photometric opening)
@@ -279,6 +285,11 @@ class UpperFace:
                    num(brows, "squeeze_left_mm", *mm), num(brows, "squeeze_right_mm", *mm))
 
 
+def _clip(v: float, lo: float, hi: float) -> float:
+    """A scalar clipped (np.clip costs microseconds on a scalar; this step runs per frame)."""
+    return lo if v < lo else hi if v > hi else v
+
+
 def _r(v: float | None, nd: int = 4) -> float | None:
     return None if v is None else round(float(v), nd)
 
@@ -360,11 +371,14 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-BROW_SEARCH_MM = 20.0
-"""At enrolment a brow is looked for from just above the open eye's upper lid to this many mm
-above the eyes' corners (a person's brow is ~10-18 mm above them; further up, a fringe or the
-synthetic head's hair, 26 mm above its eyes, would win the search: at 30 mm it found the
-hair). Where no band is found inside the window, the reader's brow points are used."""
+BROW_ABOVE_READER_MM = 6.0
+"""At enrolment a brow half is looked for from just above the open eye's upper lid to this
+many mm above the reader's own brow points for that half (the speaker's geometry, not a fixed
+height: a person's brow is ~10-25 mm above the eyes' corners). The reader's points are within
+a few mm of the brow (the synthetic one's band lies 4 mm below them, franck's within 2 mm);
+further up, a fringe or the synthetic head's hair (26 mm above its eyes, its brows' points
+15 mm) would win the search: 8 mm found the hair. Where no band is found inside the window,
+the reader's brow points are used."""
 BROW_WINDOW_MM = 8.0
 """Live, a brow is looked for this many mm either side of the speaker's neutral brow."""
 
@@ -380,8 +394,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     resampled (rotation removed; 1 px per px, heights in mm by the alignment's scale) and
     smoothed vertically; in each column the brow is the darkest point within ``window``
     (inner (lo, hi), outer (lo, hi) mm, None: that half is not looked for; at enrolment from
-    just above the open eye's lid to
-    ``BROW_SEARCH_MM``, live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
+    just above the open eye's lid to ``BROW_ABOVE_READER_MM`` above the reader's brow points,
+    live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
     through its neighbours; each half's height is the median of its columns (the nasal half
     is ``inner``). None outside the image; a half is None when it has no dark band (a
     minimum on the window's edge in most of its columns: e.g. a brow gone under a fringe, or
@@ -431,7 +445,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         if sel.sum() < 3 or half.sum() < 3:
             out.append(None)
             continue
-        sub = strip[np.ix_(np.flatnonzero(sel), np.flatnonzero(half))]
+        rs, cs = np.flatnonzero(sel), np.flatnonzero(half)  # (both contiguous)
+        sub = strip[rs[0]:rs[-1] + 1, cs[0]:cs[-1] + 1]
         k = np.argmin(sub, axis=0)
         inside = (k > 0) & (k < sub.shape[0] - 1)
         if inside.mean() < 0.5:
@@ -442,7 +457,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         den = y_m - 2.0 * y_0 + y_p
         frac = np.where(den > 1e-6, 0.5 * (y_m - y_p) / np.maximum(den, 1e-6), 0.0)
         hs = heights[np.flatnonzero(sel)[0]] - (kk + np.clip(frac, -0.5, 0.5)) / scale
-        out.append(float(np.median(hs)))
+        hs = np.sort(hs)  # (the median: np.median's own overhead is most of this step's)
+        out.append(float(hs[(hs.size - 1) // 2] + hs[hs.size // 2]) / 2.0)
     return out[0], out[1]
 
 
@@ -485,8 +501,13 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     with the iris on a rendered eye): the opening is what is whiter than midway between skin
     and white inside the grown contour; its widest row is its height (a parabola through the
     widths round the widest), the middle of its ends on the rows within 2 of it (ends
-    sub-pixel from the next pixel's white fraction) its x. None when the eye is too closed,
-    too small or outside the image, or no iris/white contrast is found."""
+    sub-pixel from the next pixel's white fraction) its x. The upper lid's margin carries a
+    dark lash line over the opening's top: the white alone ends at the line's lower edge, the
+    white with what is darker than midway between skin and iris at its upper edge; the lid's
+    margin is taken between them (the line straddles it: lashes over the eye below, over the
+    lid above), the mean of the two openings' centres (:func:`_opening_centres`). None when
+    the eye is too closed, too small or outside the image, or no iris/white contrast is
+    found."""
     poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
     if not np.all(np.isfinite(poly)):
         return None
@@ -548,33 +569,87 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
         pred = (2.0 * np.sqrt(np.clip(r * r - yy * yy, 0.0, None))).reshape(
             len(cys), len(ys), len(_SUB)).mean(-1)
         cy = float(cys[int(np.argmin(np.abs(pred - wk[None, :]).sum(1)))])
-    cx = float(np.average(cxs[keep], weights=wk))
-    # --- the eye opening's own centre
-    frac = np.clip((patch - skin) / (white - skin), 0.0, 1.0) * (grown > 0)
-    bright = frac >= 0.5
-    has = bright.any(1)
-    if has.sum() < 3:
+    cx = float((cxs[keep] * wk).sum() / wk.sum())
+    # --- the eye opening's own centre: the upper lid's dark lash line covers the opening's
+    # top, so the white alone puts the lid's margin at the line's lower edge (its widest row
+    # 0.44 mm low on the synthetic eye), the white with what is darker than the skin at its
+    # upper edge (0.29 mm high); the margin is taken between the two (the line straddles it:
+    # docs/UPPER_FACE.md), the mean of both openings' centres (-0.08 mm; both agree, +0.06
+    # and +0.01 mm, on an eye without a lash line)
+    white_frac = np.clip((patch - skin) / (white - skin), 0.0, 1.0) * (grown > 0)
+    fracs = [white_frac]
+    if skin - iris_l >= LEVELS_MIN_CONTRAST:  # (a lash line darker than the skin can be told)
+        dark = np.clip((skin - patch) / (skin - iris_l), 0.0, 1.0) * (grown > 0)
+        fracs.append(np.maximum(white_frac, dark))
+    eyes = _opening_centres(fracs)
+    if eyes[0] is None:
         return None
-    a = np.argmax(bright, axis=1)
-    b = patch.shape[1] - 1 - np.argmax(bright[:, ::-1], axis=1)
-    ri = np.arange(len(a))
-    left = a - 0.5 - np.where(a > 0, frac[ri, np.maximum(a - 1, 0)], 0.0)
-    right = b + 0.5 + np.where(b < patch.shape[1] - 1,
-                               frac[ri, np.minimum(b + 1, patch.shape[1] - 1)], 0.0)
-    width = np.where(has, right - left, 0.0)
-    k = int(np.argmax(width))
-    near = (np.abs(ri - k) <= 2) & (width > 0.6 * width[k])
-    ex = float(np.mean((left[near] + right[near]) / 2.0))
-    ey = float(k)
-    round_k = (np.abs(ri - k) <= 3) & (width > 0)
-    if round_k.sum() >= 3:  # a parabola through the widths round the widest row
-        t = (ri[round_k] - k).astype(np.float64)
-        v = np.stack([t * t, t, np.ones_like(t)], axis=1)
-        a2, b2, _ = np.linalg.solve(v.T @ v + 1e-9 * np.eye(3), v.T @ width[round_k])
-        if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
-            ey = k - float(b2 / (2.0 * a2))
+    ex, ey = (eyes[0] if len(eyes) < 2 or eyes[1] is None
+              else ((eyes[0][0] + eyes[1][0]) / 2.0, (eyes[0][1] + eyes[1][1]) / 2.0))
     return IrisFit(np.array([cx + x0, cy + y0]), half, np.array([ex + x0, ey + y0]),
                    int(keep.sum()), (skin, white, iris_l))
+
+
+def _opening_centres(fracs: list[np.ndarray]) -> list[tuple[float, float] | None]:
+    """(x, y) px in the crop of each opening given by its pixels' fractions (0 .. 1; arrays
+    of one shape): vertically its widest row (a parabola through the widths round the
+    widest), horizontally the middle of its ends on the rows within 2 of it (ends sub-pixel
+    from the next pixel's fraction); None for an opening with fewer than 3 rows. (The rows of
+    all of them in one array: the row-wise steps once.)"""
+    rows, cols = fracs[0].shape
+    frac = np.concatenate(fracs, axis=0) if len(fracs) > 1 else fracs[0]
+    bright = frac >= 0.5
+    has = np.asarray(bright.any(axis=1))
+    a = np.argmax(bright, axis=1)
+    b = cols - 1 - np.argmax(bright[:, ::-1], axis=1)
+    ri = np.arange(len(a))
+    left = a - 0.5 - np.where(a > 0, frac[ri, np.maximum(a - 1, 0)], 0.0)
+    right = b + 0.5 + np.where(b < cols - 1, frac[ri, np.minimum(b + 1, cols - 1)], 0.0)
+    widths = np.where(has, right - left, 0.0)
+    mids = (left + right) / 2.0
+    out: list[tuple[float, float] | None] = []
+    for n in range(len(fracs)):
+        sl = slice(n * rows, (n + 1) * rows)
+        if int(has[sl].sum()) < 3:
+            out.append(None)
+            continue
+        width, mid = widths[sl], mids[sl]
+        k = int(np.argmax(width))
+        near = (np.abs(ri[:rows] - k) <= 2) & (width > 0.6 * width[k])
+        ex = float(mid[near].mean())
+        ey = float(k)
+        lo, hi = max(k - 3, 0), min(k + 4, rows)
+        pts = [(float(t - k), w) for t, w in zip(range(lo, hi), width[lo:hi].tolist(),
+                                                  strict=True) if w > 0]
+        if len(pts) >= 3:  # a parabola through the widths round the widest row
+            a2, b2 = _parabola(pts)
+            if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
+                ey = k - b2 / (2.0 * a2)
+        out.append((ex, ey))
+    return out
+
+
+def _parabola(pts: list[tuple[float, float]]) -> tuple[float, float]:
+    """(a, b) of the least-squares parabola a t^2 + b t + c through the points (t, w)
+    (3 or more, t distinct), by the normal equations in closed form (a 3 x 3 system: numpy's
+    solver costs more than the sums on these 3-7 points)."""
+    s0 = float(len(pts))
+    s1 = sum(t for t, _ in pts)
+    s2 = sum(t * t for t, _ in pts)
+    s3 = sum(t ** 3 for t, _ in pts)
+    s4 = sum(t ** 4 for t, _ in pts)
+    w0 = sum(w for _, w in pts)
+    w1 = sum(t * w for t, w in pts)
+    w2 = sum(t * t * w for t, w in pts)
+    # | s4 s3 s2 | |a|   |w2|
+    # | s3 s2 s1 | |b| = |w1|   (Cramer's rule)
+    # | s2 s1 s0 | |c|   |w0|
+    det = s4 * (s2 * s0 - s1 * s1) - s3 * (s3 * s0 - s1 * s2) + s2 * (s3 * s1 - s2 * s2)
+    if abs(det) < 1e-12:
+        return 0.0, 0.0
+    da = w2 * (s2 * s0 - s1 * s1) - s3 * (w1 * s0 - s1 * w0) + s2 * (w1 * s1 - s2 * w0)
+    db = s4 * (w1 * s0 - w0 * s1) - w2 * (s3 * s0 - s1 * s2) + s2 * (s3 * w0 - w1 * s2)
+    return da / det, db / det
 
 
 def iris_offset_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned,
@@ -661,6 +736,47 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     skin, white, iris = (float(v) for v in levels)
     if white - skin < LEVELS_MIN_CONTRAST or skin - iris < LEVELS_MIN_CONTRAST:
         return None
+    strip = _eye_strip(grey, inner, outer, open_px)
+    if strip is None:
+        return None
+    wide = strip.shape[1] - 1
+    strip = strip[:, int(round(wide * 0.25)):int(round(wide * 0.75)) + 1]
+    eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
+    eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
+    return float(eye.sum(0).mean()) / float(open_px)
+
+
+def iris_height(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float,
+                levels: tuple[float, float, float]) -> float | None:
+    """The visible iris's height in units of ``open_px``: what of the iris the lids leave
+    uncovered, the lash line alone when the eye is shut.
+
+    The lid gap's strip (:func:`lid_gap`); each pixel counts as dark by how far it is from
+    the skin towards the iris (the same soft threshold), and only the dark counts: a lid
+    as bright as the white (a lit lid, a pale face) is not taken for the eye. The height is
+    the mean dark count of the tallest quarter of the columns over the eye's middle 70 % (the
+    iris's middle, about a third of the eye wide, wherever the gaze puts it). A shut eye's
+    lash line still counts (thick with mascara: pexels_woman's shut eye reads half its open
+    one), which the calibration's shut reference (the enrolment's deepest blinks) takes
+    out. None outside the image or with levels that cannot tell the iris from the skin."""
+    skin, _, iris = (float(v) for v in levels)
+    if skin - iris < LEVELS_MIN_CONTRAST:
+        return None
+    strip = _eye_strip(grey, inner, outer, open_px)
+    if strip is None:
+        return None
+    wide = strip.shape[1] - 1
+    strip = strip[:, int(round(wide * 0.15)):int(round(wide * 0.85)) + 1]
+    dark = np.clip(((skin - strip) / (skin - iris) - 0.25) * 2.0, 0.0, 1.0).sum(0)
+    tall = np.sort(dark)[(3 * dark.size) // 4:]
+    return float(tall.mean()) / float(open_px)
+
+
+def _eye_strip(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float
+               ) -> np.ndarray | None:
+    """The strip along the eye's axis between the corners ``inner``, ``outer`` (2,) px,
+    ``open_px`` either side of it, resampled with the rotation removed (float32, rows
+    across the axis, a column per px along it); None outside the image."""
     inner = np.asarray(inner, np.float64)
     outer = np.asarray(outer, np.float64)
     axis = outer - inner
@@ -680,13 +796,9 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     c = centre - [x0, y0]
     m = np.array([[u[0], v[0], c[0] - u[0] * wide / 2.0 - v[0] * high],
                   [u[1], v[1], c[1] - u[1] * wide / 2.0 - v[1] * high]])
-    j0, j1 = int(round(wide * 0.25)), int(round(wide * 0.75)) + 1
-    strip = cv2.warpAffine(crop, m, (wide + 1, 2 * high + 1),
-                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                           borderMode=cv2.BORDER_REPLICATE)[:, j0:j1].astype(np.float32)
-    eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
-    eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
-    return float(eye.sum(0).mean()) / float(open_px)
+    return cv2.warpAffine(crop, m, (wide + 1, 2 * high + 1),
+                          flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
 
 
 def _inside(grey: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, int, int] | None:
@@ -726,6 +838,12 @@ class Measures:
     contrast: tuple[float | None, float | None] = (None, None)  # photo_measure, per eye
     lower: tuple[float, float] = (0.0, 0.0)  # the reader's lower lids (lower_lids_mm)
     brow_x: tuple[float, float] = (0.0, 0.0)  # the reader's inner brows (inner_brows_x_mm)
+    iris_h: tuple[float | None, float | None] = (None, None)  # iris_height, per eye
+
+    def photometric(self, kind: str, i: int) -> float | None:
+        """Eye i's photometric measure of ``kind`` (:data:`PHOTO_KINDS`) on this reading."""
+        return (self.photo if kind == "gap" else self.contrast if kind == "contrast"
+                else self.iris_h)[i]
 
 
 def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
@@ -740,7 +858,8 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
     the lid gap, e.g. the last open eye's (a half-closed eye's own put its lid among the
     iris); where None, this frame's own when its iris is fitted, else no gap);
     ``brow_windows``: each side's brow search window (:meth:`UpperReference.brow_window`),
-    default from just above this frame's open eye to ``BROW_SEARCH_MM``); ``kinds``: the
+    default from just above this frame's open eye to ``BROW_ABOVE_READER_MM`` above the
+    reader's brow points); ``kinds``: the
     photometric measures wanted, default both)."""
     al = align(landmarks, canon)
     if al is None:
@@ -768,24 +887,31 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
         above = float(mid[1] - f.eye[1]) / al.scale  # (image y down; roll ignored)
         floor.append(above + 0.5 * x * max(ref[i], 1.0) + 1.5)
     band = []
+    brows = brow_heights_mm(al.points)
     for i, s in enumerate(SIDES):
         win = None if brow_windows is None else brow_windows[i]
-        if win is None and floor[i] is not None:
-            win = ((floor[i], BROW_SEARCH_MM),) * 2
+        if win is None and (fl := floor[i]) is not None:  # (enrolment: see BROW_ABOVE_READER_MM)
+            win = tuple((fl, max(fl + 3.0, float(brows[2 * i + j]) + BROW_ABOVE_READER_MM))
+                        for j in range(2))
         band.append(None if win is None else brow_band_mm(grey, lm, al, s, win))
-    return Measures(opening, brow_heights_mm(al.points), iris, photo,  # type: ignore[arg-type]
+    return Measures(opening, brows, iris, photo,  # type: ignore[arg-type]
                     al.yaw_deg, al.scale,
                     tuple(None if f is None else f.levels for f in fits),  # type: ignore[arg-type]
                     tuple(band), tuple(floor),  # type: ignore[arg-type]
                     tuple(photo_measure(grey, lm[EYE_CORNERS[s][0], :2],  # type: ignore[arg-type]
                                         lm[EYE_CORNERS[s][1], :2], max(ref[i], 1.0) * al.scale)
                           if "contrast" in kinds else None for i, s in enumerate(SIDES)),
-                    lower_lids_mm(al.points), inner_brows_x_mm(al.points))
+                    lower_lids_mm(al.points), inner_brows_x_mm(al.points),
+                    tuple(None if (v := lv[i]) is None or "iris" not in kinds
+                          else iris_height(grey, lm[EYE_CORNERS[s][0], :2],
+                                           lm[EYE_CORNERS[s][1], :2],
+                                           max(ref[i], 1.0) * al.scale, v)
+                          for i, s in enumerate(SIDES)))  # type: ignore[arg-type]
 
 
 def closure(opening: float, open_mm: float, closed_mm: float) -> float:
     """0 (the speaker's open eye) .. 1 (closed), clipped."""
-    return float(np.clip((open_mm - opening) / (open_mm - closed_mm), 0.0, 1.0))
+    return _clip(float((open_mm - opening) / (open_mm - closed_mm)), 0.0, 1.0)
 
 
 CLOSED_FRACTION = 0.25
@@ -820,25 +946,29 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
         lv = np.array([m.levels[i] for m, c in zip(ms, cl[:, i], strict=True)
                        if m.levels[i] is not None and c < 0.3]).reshape(-1, 3)
         levels += list(np.median(lv, axis=0)) if len(lv) >= 5 else [0.0, 0.0, 0.0]
-        best = (0.0, 0.0, 0.0, "gap")
-        for kind in PHOTO_KINDS:
+        best, n_best = (0.0, 0.0, 0.0, "gap"), 0
+        for kind in PHOTO_KINDS:  # (in the order of preference)
             x = np.array([np.nan if v is None else v for v in
-                          ((m.photo if kind == "gap" else m.contrast)[i] for m in ms)])
+                          (m.photometric(kind, i) for m in ms)])
             ok = np.isfinite(x)
             if ok.sum() < 10 or np.std(x[ok]) <= 1e-6 or np.std(cl[ok, i]) <= 1e-6:
                 continue
             r = float(np.corrcoef(x[ok], cl[ok, i])[0, 1])
             k, c0 = np.polyfit(x[ok], cl[ok, i], 1)
             a, b = float(c0), float(k)
-            if kind == "gap":  # its own open (median) and shut (deepest blinks) references
+            if kind != "contrast":  # its own open (median) and shut (deepest blinks) refs
                 x_open = float(np.median(x[ok]))
                 x_shut = (float(np.percentile(x[ok], 1)) if blinked[i]
                           else (1.0 - c0) / k if abs(k) > 1e-9 else x_open)
                 if x_open - x_shut <= 1e-6:
                     continue
                 a, b = x_open / (x_open - x_shut), -1.0 / (x_open - x_shut)
-            if abs(r) > abs(best[2]):
-                best = (a, b, r, kind)
+            # a measure later in the order replaces the one kept only when it follows the
+            # reader better by more than the kept one's correlation's standard error,
+            # (1 - r^2) / sqrt(n - 1): a tie on the synthetic eye (0.766 / 0.764) keeps the gap
+            if not n_best or abs(r) > abs(best[2]) + (1.0 - best[2] ** 2) / math.sqrt(
+                    n_best - 1):
+                best, n_best = (a, b, r, kind), int(ok.sum())
         photo += [best[0], best[1]]
         photo_r.append(best[2])
         kinds.append(best[3])
@@ -912,7 +1042,8 @@ class UpperTracker:
         if ref.photo_kind[i] == "contrast":
             return photo_measure(grey, inner, outer, open_px)
         lv = self._eye_levels(i)
-        return None if lv is None else lid_gap(grey, inner, outer, open_px, lv)
+        fn = lid_gap if ref.photo_kind[i] == "gap" else iris_height
+        return None if lv is None else fn(grey, inner, outer, open_px, lv)
 
     def _eye_levels(self, i: int) -> tuple[float, float, float] | None:
         """Eye i's grey levels: the last fitted open eye's, else the enrolment's."""
@@ -981,8 +1112,7 @@ class UpperTracker:
         for i in range(2):
             c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
             w = (m.opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
-            x = (m.photo[i] if ref.photo_kind[i] == "gap" else m.contrast[i]) \
-                if photo is None else photo[i]
+            x = m.photometric(ref.photo_kind[i], i) if photo is None else photo[i]
             usable = x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R
             # on a reading's frame (unless ``photometric``) both measures are averaged: two
             # estimates of the closure with their own errors (the reader's saturates near
@@ -993,12 +1123,12 @@ class UpperTracker:
                 raw = ref.photo[2 * i] + ref.photo[2 * i + 1] * float(x)  # type: ignore[arg-type]
                 if reading:
                     raw = 0.5 * (raw - w)
-                c, w = float(np.clip(raw, 0.0, 1.0)), -raw
+                c, w = _clip(raw, 0.0, 1.0), -raw
             elif photo is not None and self._closure is not None:
                 c = self._closure[i]  # between readings without a usable gap: held
                 w = 0.0 if self._wide is None else self._wide[i]
             cl.append(c)
-            wide.append(float(np.clip(w, 0.0, 1.0)))
+            wide.append(_clip(float(w), 0.0, 1.0))
         self._wide = (wide[0], wide[1])
         self._closure = (cl[0], cl[1])
         gaze = self._gaze
@@ -1008,11 +1138,11 @@ class UpperTracker:
             offs = [iris[:2] for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
             if offs:
                 dx, dy = np.mean(offs, axis=0)
-                gaze = (math.degrees(math.asin(float(np.clip(dx / EYE_RADIUS_MM, -1, 1)))),
-                        math.degrees(math.asin(float(np.clip(dy / EYE_RADIUS_MM, -1, 1)))))
+                gaze = (math.degrees(math.asin(_clip(float(dx) / EYE_RADIUS_MM, -1.0, 1.0))),
+                        math.degrees(math.asin(_clip(float(dy) / EYE_RADIUS_MM, -1.0, 1.0))))
                 self._gaze = gaze
         lower = [None, None] if ref.lower_mm is None else [
-            float(np.clip((m.lower[i] - ref.lower_mm[i]) / ref.open_mm[i], -1.0, 1.0))
+            _clip(float((m.lower[i] - ref.lower_mm[i]) / ref.open_mm[i]), -1.0, 1.0)
             for i in range(2)]
         squeeze = [None, None] if ref.brow_x_mm is None else [
             ref.brow_x_mm[i] - m.brow_x[i] for i in range(2)]
