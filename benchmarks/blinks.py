@@ -16,7 +16,8 @@ scored on the held-out 40 %:
   over both eyes; a blink frame is one whose EAR is below ``EAR_FRACTION`` x the clip's
   median EAR (the clip's open eye);
 - events are runs of blink frames (runs apart by one frame are merged); an articast event and
-  a reference event match when they overlap within ``TOLERANCE`` frames. precision = matched
+  a reference event match when they overlap within ``TOLERANCE`` frames, one to one (a blink
+  read as several short events matches once). precision = matched
   articast events / articast events, recall = matched reference events / reference events;
   ``onset`` = articast's first blink frame minus the reference's, per matched pair;
 - ``brows_vs_dlib_r``: the correlation of articast's brow raise (both sides' mean, mm) with
@@ -55,6 +56,7 @@ from peers import (  # noqa: E402
 )
 from real_clips import enrol_speaker  # noqa: E402
 
+from articast.core.evaluation.upper import events, match_events  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -98,36 +100,10 @@ def ear(points: np.ndarray) -> np.ndarray:
     return np.mean(out, axis=0)
 
 
-def events(flags: np.ndarray, merge: int = 1) -> list[tuple[int, int]]:
-    """(start, end exclusive) runs of True, runs apart by <= ``merge`` frames merged."""
-    f = np.concatenate([[False], np.asarray(flags, bool), [False]])
-    d = np.flatnonzero(np.diff(f.astype(int)))
-    runs = list(zip(d[::2].tolist(), d[1::2].tolist(), strict=True))
-    out: list[tuple[int, int]] = []
-    for s, e in runs:
-        if out and s - out[-1][1] <= merge:
-            out[-1] = (out[-1][0], e)
-        else:
-            out.append((s, e))
-    return out
-
-
 def match(ours: list[tuple[int, int]], ref: list[tuple[int, int]],
           tol: int = TOLERANCE) -> tuple[float | None, float | None, list[int]]:
-    """precision, recall, onsets (ours - ref) of matched pairs."""
-    def hit(a, b):
-        return a[0] < b[1] + tol and b[0] < a[1] + tol
-
-    m_ours = [any(hit(a, b) for b in ref) for a in ours]
-    m_ref = [any(hit(a, b) for a in ours) for b in ref]
-    onsets = []
-    for b in ref:
-        cands = [a for a in ours if hit(a, b)]
-        if cands:
-            onsets.append(cands[0][0] - b[0])
-    prec = float(np.mean(m_ours)) if ours else None
-    rec = float(np.mean(m_ref)) if ref else None
-    return prec, rec, onsets
+    """precision, recall, onsets (ours - ref) of the pairs matched one to one."""
+    return match_events(ours, ref, tol)
 
 
 def track(speaker, held, fps):
@@ -218,7 +194,7 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
                    "median_deg": np.median(gz, axis=0).round(2).tolist() if len(gz) else None,
                    "iqr_deg": (np.percentile(gz, 75, axis=0) - np.percentile(gz, 25, axis=0)
                                ).round(2).tolist() if len(gz) else None}
-    ours = events(np.nan_to_num(cl) > 0.5)
+    ours = events(np.nan_to_num(cl) > 0.5, merge=1)
     out["articast_events"] = len(ours)
     if "dlib" not in peers:
         out["reference"] = "dlib is not set up (benchmarks/setup_peers.py)"
@@ -230,7 +206,7 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
         return out
     e = ear(got["points"])
     ratio = e / np.nanmedian(e)
-    ref = events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION)
+    ref = events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION, merge=1)
     prec, rec, onsets = match(ours, ref)
     both = np.isfinite(cl) & np.isfinite(e)
     br = np.array([np.nan if r.upper is None or not r.upper.brows_ok else

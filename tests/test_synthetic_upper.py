@@ -114,3 +114,19 @@ def test_evaluate_refuses_a_bad_upper_length(capsys):
 
     assert main(["evaluate", "--quick", "--upper", "--upper-seconds", "0.5"]) == 2
     assert "--upper-seconds" in capsys.readouterr().err
+
+
+def test_a_flickering_blink_matches_once():
+    from articast.core.evaluation.upper import match_events
+
+    ref = [(10, 18), (40, 44)]
+    # the first blink read as three short events, the second missed, one false event
+    ours = [(10, 12), (13, 15), (16, 18), (70, 72)]
+    prec, rec, onsets = match_events(ours, ref)
+    assert rec == 0.5 and onsets == [0]
+    assert prec == 0.25  # the flicker's two extra pieces are false events
+    prec, rec, onsets = match_events([(11, 17), (39, 45)], ref)
+    assert prec == rec == 1.0 and onsets == [1, -1]
+    # within a tolerance: a tracked event just after the true one still matches
+    assert match_events([(19, 21)], [(10, 18)], tol=2)[1] == 1.0
+    assert match_events([(19, 21)], [(10, 18)], tol=0)[1] == 0.0
