@@ -256,7 +256,7 @@ class PointTerm:
         self.basis: np.ndarray = pm.basis if every else pm.basis[:, ok]
         # (M, 3, K) basis, the shared modes in whitened units (2M, R), (I + V^T V)^-1
         self._basis_mk, self._v, self._c = pm.every_point if every else _term_setup(pm, ok)
-        self.uv = uv if every else uv[ok]
+        self.uv = np.ascontiguousarray(uv if every else uv[ok])
         self.camera = camera
         px_per_mm = 0.5 * (camera.fx + camera.fy) / max(float(depth_mm), 1.0)
         self.inv_sigma = np.sqrt(weight) / (pm.sigma_mm[ok] * px_per_mm)
@@ -269,6 +269,17 @@ class PointTerm:
     @property
     def n_points(self) -> int:
         return len(self.uv)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether :meth:`residuals` runs the compiled kernel (a camera without distortion)."""
+        return self._jit
+
+    def kernel_args(self) -> tuple:
+        """The landmark term's arguments of :func:`~articast.core.tracking.kernels.fit_terms`
+        (p_mean to p_scale)."""
+        return (self._mean, self._basis_mk, self._intr, self.inv_sigma, self.uv,
+                -1.0 if self.scale is None else float(self.scale))
 
     def shared(self, r: np.ndarray, jac: np.ndarray
                ) -> tuple[float, np.ndarray, np.ndarray]:
