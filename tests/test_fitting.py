@@ -431,3 +431,43 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * max(np.abs(b).max(), 1.0),
                                    err_msg=name)
     assert np.abs(fast.alpha - start[0]).max() > 0.05  # the fit moved: a real comparison
+
+
+def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
+    """kernels._smooth_pixel (the lazy maps' blur) is exactly the separable Gaussian with
+    OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
+    float32, then the column pass the same way -- bit for bit, inside and at every border,
+    whichever pixel asks first."""
+    import cv2
+
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(4)
+    h, w = 23, 31
+    src = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    taps = cv2.getGaussianKernel(17, 2.5).ravel()
+    rad = len(taps) // 2
+
+    def reflect(i, n):
+        i = -i if i < 0 else i
+        return 2 * n - 2 - i if i >= n else i
+
+    def row_pass(yy, x):
+        acc = np.zeros(3)
+        for i in range(-rad, rad + 1):
+            acc += taps[i + rad] * src[yy, reflect(x + i, w)].astype(np.float64)
+        return acc.astype(np.float32)
+
+    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 3), np.float32)
+    done, rdone = np.zeros((h, w), np.uint8), np.zeros((h, w), np.uint8)
+    pixels = [(0, 0), (h - 1, w - 1), (11, 15), (12, 15), (3, 29), (20, 1)]
+    pixels += [tuple(p) for p in rng.integers(0, [h, w], (30, 2))]
+    for y, x in pixels:
+        kernels._smooth_pixel(src, sm, done, rows, rdone, taps, y, x)
+        want = np.zeros(3)
+        for j in range(-rad, rad + 1):
+            want += taps[j + rad] * row_pass(reflect(y + j, h), x).astype(np.float64)
+        assert done[y, x] == 1
+        np.testing.assert_array_equal(sm[y, x], want.astype(np.float32))

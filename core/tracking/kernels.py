@@ -63,24 +63,44 @@ def _reflect(i, n):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover - compiled
     """Gaussian-smooth pixel (y, x) of src into sm (separable: a horizontal pass kept per
-    pixel in rows, then a vertical pass), unless done already."""
+    pixel in rows, then a vertical pass), unless done already. (Each value is summed in the
+    same order as ever, tap by tap: the three channels of a row pass share one loop, and a
+    row away from the left and right borders reads its pixels without the border rule.)"""
     if done[y, x]:
         return
     h, w = src.shape[0], src.shape[1]
-    rad = taps.shape[0] // 2
-    for c in range(3):
-        acc = 0.0
-        for j in range(-rad, rad + 1):
-            yy = _reflect(y + j, h)
-            if not rdone[yy, x]:  # the horizontal pass of this row, all channels, once
-                for cc in range(3):
-                    row = 0.0
-                    for i in range(-rad, rad + 1):
-                        row += taps[i + rad] * src[yy, _reflect(x + i, w), cc]
-                    rows[yy, x, cc] = row
-                rdone[yy, x] = 1
-            acc += taps[j + rad] * rows[yy, x, c]
-        sm[y, x, c] = acc
+    n = taps.shape[0]
+    rad = n // 2
+    inside = x - rad >= 0 and x + rad < w
+    for j in range(-rad, rad + 1):
+        yy = _reflect(y + j, h)
+        if rdone[yy, x]:
+            continue
+        r0 = 0.0
+        r1 = 0.0
+        r2 = 0.0
+        for i in range(n):  # the horizontal pass of this row, all channels, once
+            xx = x - rad + i if inside else _reflect(x - rad + i, w)
+            tap = taps[i]
+            r0 += tap * src[yy, xx, 0]
+            r1 += tap * src[yy, xx, 1]
+            r2 += tap * src[yy, xx, 2]
+        rows[yy, x, 0] = r0
+        rows[yy, x, 1] = r1
+        rows[yy, x, 2] = r2
+        rdone[yy, x] = 1
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    for j in range(n):
+        yy = _reflect(y - rad + j, h)
+        tap = taps[j]
+        a0 += tap * rows[yy, x, 0]
+        a1 += tap * rows[yy, x, 1]
+        a2 += tap * rows[yy, x, 2]
+    sm[y, x, 0] = a0
+    sm[y, x, 1] = a1
+    sm[y, x, 2] = a2
     done[y, x] = 1
 
 
