@@ -480,23 +480,30 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
 
     cost, (r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared) = evaluate(alpha, rot, t, gain)
     evals, costs, converged, it = 1, [cost], False, 0
+    jtj, jtj_of = None, None  # J^T J of the data rows jw (kept for the information)
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
-        h = jw.T @ jw
-        g = jw.T @ rw
-        h[np.arange(k), np.arange(k)] += h_p / 2 + wa
-        g[:k] += g_p / 2 + wa * (alpha - a_ref)
-        h[:k + 6, :k + 6] += h_s / 2
-        g[:k + 6] += g_s / 2
-        if h.shape[0] > k + 6:  # gain prior around its start value
-            h[k + 6, k + 6] += wg
-            g[k + 6] += wg * (gain - gain0)
-        diag = np.diag(h).copy()
-        diag[diag <= 0] = 1.0
+        jtj, jtj_of = jw.T @ jw, jw
+        if compiled:  # the same sums, one compiled call (kernels.lm_system)
+            h, g = kernels.lm_system(jtj, jw.T @ rw, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg,
+                                     gain, gain0)
+        else:
+            h = jtj.copy()
+            g = jw.T @ rw
+            h[np.arange(k), np.arange(k)] += h_p / 2 + wa
+            g[:k] += g_p / 2 + wa * (alpha - a_ref)
+            h[:k + 6, :k + 6] += h_s / 2
+            g[:k + 6] += g_s / 2
+            if h.shape[0] > k + 6:  # gain prior around its start value
+                h[k + 6, k + 6] += wg
+                g[k + 6] += wg * (gain - gain0)
+            diag = np.diag(h).copy()
+            diag[diag <= 0] = 1.0
         accepted = False
         rejected = 0
         while not accepted:
             try:
-                step = -np.linalg.solve(h + lam * np.diag(diag), g)
+                step = (kernels.lm_solve(h, g, lam) if compiled
+                        else -np.linalg.solve(h + lam * np.diag(diag), g))
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -528,7 +535,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
     info = None
     if state_prior is not None:  # what a motion model's update needs (fused tracking only)
-        hd = jw.T @ jw
+        hd = jtj.copy() if jtj is not None and jtj_of is jw else jw.T @ jw
         hd[:k + 6, :k + 6] -= h_shared
         info = _marginal_information(hd, k + 6, wg)
     n = max(r.size * vf, 1.0)

@@ -493,6 +493,42 @@ def fit_terms(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, i
     return rw, jw, r, valid, rc, pc, prior, g_p, h_p, sp, g_s, h_s, pp
 
 
+@njit(cache=True, nogil=True)
+def lm_system(jtj, jtr, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain,
+              gain0):  # pragma: no cover - compiled
+    """The normal equations (h, g) of one Levenberg-Marquardt iteration of
+    :func:`articast.core.tracking.fitting.fit_gauss_newton` from the data's J^T J and J^T r
+    and the priors' terms: the same sums, element by element, as its numpy code."""
+    k = alpha.shape[0]
+    p = jtj.shape[0]
+    h = jtj.copy()
+    g = jtr.copy()
+    for i in range(k):
+        h[i, i] += h_p[i] / 2 + wa
+        g[i] += g_p[i] / 2 + wa * (alpha[i] - a_ref[i])
+    for i in range(k + 6):
+        for j in range(k + 6):
+            h[i, j] += h_s[i, j] / 2
+        g[i] += g_s[i] / 2
+    if p > k + 6:  # gain prior around its start value
+        h[k + 6, k + 6] += wg
+        g[k + 6] += wg * (gain - gain0)
+    return h, g
+
+
+@njit(cache=True, nogil=True)
+def lm_solve(h, g, lam):  # pragma: no cover - compiled
+    """The damped step -(h + lam diag(d))^-1 g, d the diagonal of h (1 where not positive);
+    raises numpy's LinAlgError on a singular system."""
+    a = h.copy()
+    for i in range(h.shape[0]):
+        d = h[i, i]
+        if d <= 0:
+            d = 1.0
+        a[i, i] = h[i, i] + lam * d
+    return -np.linalg.solve(a, g)
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
     types, so that a session's first frame does not pay a few seconds of compilation."""
@@ -526,6 +562,9 @@ def warm_up() -> None:
               np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), intr, np.ones(1), np.zeros((1, 2)),
               3.0, np.ones(1), 1.0, 0.25, np.zeros(1), np.eye(3), np.zeros(3), np.eye(7),
               np.eye(3), np.zeros(3), 1.0, 1.0)
+    h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
+                     np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
+    lm_solve(h, g, 1e-3)
 
 
 def compiled_on_disk() -> bool:
@@ -534,7 +573,8 @@ def compiled_on_disk() -> bool:
     if not AVAILABLE:
         return True
     try:
-        kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms)
+        kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
+                                    lm_system, lm_solve)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
     except AttributeError:  # another numba's internals

@@ -11,6 +11,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
+import cv2
 import numpy as np
 
 from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
@@ -30,6 +31,12 @@ from articast.core.tracking.points import PointTerm
 from articast.core.tracking.result import TrackResult
 
 OPTIMISERS = ("gauss-newton", "nelder-mead")
+
+
+def _spread(pixels: np.ndarray) -> float:
+    """``pixels.std()`` (any shape), by OpenCV's one pass over a contiguous copy instead of
+    numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper)."""
+    return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
 # s.d. of the head's motion between frames, (rad, mm), per camera rig: the fit's pose prior,
@@ -367,7 +374,7 @@ class Tracker:
         roi = roi_of(uv, pol.roi_margin_px)
         x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
         patch = image[y0:y1:4, x0:x1:4, 1]  # green, every 4th pixel: contrast is coarse
-        if patch.size == 0 or float(patch.std()) < pol.min_contrast:
+        if patch.size == 0 or _spread(patch) < pol.min_contrast:
             return self._lost(t, t0, "blank: no contrast where the face should be", 0)
         ref = self.pose_prior_centre
         if translation_hint is not None and ref is not None:
