@@ -265,3 +265,33 @@ def test_the_motion_models_prediction_covariance_is_f_p_ft_plus_q():
     want = f @ p0 @ f.T + qm
     np.testing.assert_allclose(cv._pred[3], want, rtol=1e-12, atol=1e-9)
     np.testing.assert_allclose(prior.information @ want[:n, :n], np.eye(n), atol=1e-6)
+
+
+def test_the_compiled_offset_of_a_state_is_the_numpy_one():
+    """state_offset (the live tracker's gate, re-read and agreement tests) runs a compiled
+    kernel on a camera without distortion; the numpy reference is the definition: same
+    fraction, with points not read (NaN rows) and at a turned head."""
+    from articast.core.tracking import kernels
+    from articast.core.tracking.points import state_offset, state_offset_numpy
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(6)
+    mean, basis = _points(rng, 90, 7)
+    pm = PointModel("v1", np.arange(90), mean, basis, rng.uniform(0.3, 1.0, 90))
+    values = []
+    for trial in range(5):
+        a = rng.normal(0, 1, 7)
+        rot = rotation_matrix(FRONTAL + rng.normal(0, 0.2, 3))
+        t = np.array([rng.normal(0, 20), rng.normal(0, 20), rng.uniform(300, 700)])
+        seen = CAM.project((mean + np.tensordot(a, basis, 1)) @ rot.T + t)
+        seen = seen + rng.normal(0, 1.0 + 3 * trial, seen.shape)
+        seen[rng.choice(90, 7, replace=False)] = np.nan
+        fast = state_offset(pm, CAM, a, rot, t, seen)
+        ref = state_offset_numpy(pm, CAM, a, rot, t, seen)
+        assert fast == pytest.approx(ref, rel=1e-12)
+        values.append(ref)
+    assert len(set(np.round(values, 6))) == 5 and all(0 < v < 1 for v in values)
+    nothing = np.full((90, 2), np.nan)
+    assert np.isnan(state_offset(pm, CAM, a, rot, t, nothing))
+    assert np.isnan(state_offset_numpy(pm, CAM, a, rot, t, nothing))

@@ -529,6 +529,52 @@ def lm_solve(h, g, lam):  # pragma: no cover - compiled
     return -np.linalg.solve(a, g)
 
 
+@njit(cache=True, nogil=True)
+def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover - compiled
+    """:func:`articast.core.tracking.points.offset_fraction` of readings ``seen`` (M, 2) px from
+    the points mean + basis_mk @ alpha (M, 3) posed by (rot, t) and projected by a camera
+    without distortion (intr: fx, fy, cx, cy), as :func:`articast.core.tracking.points.
+    state_offset` computes it in numpy."""
+    m, k = mean.shape[0], alpha.shape[0]
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    uv = np.empty((m, 2))
+    for i in range(m):
+        hx, hy, hz = mean[i, 0], mean[i, 1], mean[i, 2]
+        for kk in range(k):
+            hx += alpha[kk] * basis_mk[i, 0, kk]
+            hy += alpha[kk] * basis_mk[i, 1, kk]
+            hz += alpha[kk] * basis_mk[i, 2, kk]
+        x = rot[0, 0] * hx + rot[0, 1] * hy + rot[0, 2] * hz + t[0]
+        y = rot[1, 0] * hx + rot[1, 1] * hy + rot[1, 2] * hz + t[1]
+        z = rot[2, 0] * hx + rot[2, 1] * hy + rot[2, 2] * hz + t[2]
+        iz = 1.0 / z if z > 1e-6 else np.nan
+        uv[i, 0] = fx * (x * iz) + cx
+        uv[i, 1] = fy * (y * iz) + cy
+    d = np.empty(m)
+    n = 0
+    for i in range(m):
+        e0 = seen[i, 0] - uv[i, 0]
+        e1 = seen[i, 1] - uv[i, 1]
+        di = np.sqrt(e0 * e0 + e1 * e1)
+        if np.isfinite(di):
+            d[n] = di
+            n += 1
+    if n == 0:
+        return np.nan
+    c0 = 0.0
+    c1 = 0.0
+    for i in range(m):
+        c0 += uv[i, 0]
+        c1 += uv[i, 1]
+    c0 /= m
+    c1 /= m
+    ss = 0.0
+    for i in range(m):
+        ss += (uv[i, 0] - c0) ** 2 + (uv[i, 1] - c1) ** 2
+    size = np.sqrt(ss / m)
+    return np.median(d[:n]) / max(size, 1.0)
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
     types, so that a session's first frame does not pay a few seconds of compilation."""
@@ -565,6 +611,8 @@ def warm_up() -> None:
     h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
                      np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
     lm_solve(h, g, 1e-3)
+    point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8), np.eye(3),
+                 np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
 
 
 def compiled_on_disk() -> bool:
@@ -574,7 +622,7 @@ def compiled_on_disk() -> bool:
         return True
     try:
         kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                    lm_system, lm_solve)
+                                    lm_system, lm_solve, point_offset)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
     except AttributeError:  # another numba's internals
