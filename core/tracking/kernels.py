@@ -579,6 +579,80 @@ def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover
     return np.median(d[:n]) / max(size, 1.0)
 
 
+@njit(cache=True, nogil=True)
+def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict`'s covariance
+    F P F^T + Q by blocks (p (2n, 2n); q3, q2, q1 (n,) the noise's dt^3/3, dt^2/2 and dt
+    terms) and the information of its state block, in one call: the same element-wise sums
+    as its numpy code, the inverse by LAPACK's gesv on the identity, as numpy's inv."""
+    n = p.shape[0] // 2
+    out = np.empty_like(p)
+    dt2 = dt * dt
+    for a in range(n):
+        for b in range(n):
+            out[a, b] = p[a, b] + dt * (p[a, n + b] + p[b, n + a]) + dt2 * p[n + a, n + b]
+            out[a, n + b] = p[a, n + b] + dt * p[n + a, n + b]
+            out[n + a, b] = p[b, n + a] + dt * p[n + b, n + a]
+            out[n + a, n + b] = p[n + a, n + b]
+    for i in range(n):
+        out[i, i] += q3[i]
+        out[i, n + i] += q2[i]
+        out[n + i, i] += q2[i]
+        out[n + i, n + i] += q1[i]
+    a = np.ascontiguousarray(out[:n, :n])
+    for i in range(n):
+        a[i, i] += 1e-12
+    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
+
+
+@njit(cache=True, nogil=True)
+def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.kalman.ConstantVelocity.update`'s algebra in one call:
+    the gain P_{:,x} Pxx^-1 (``info`` = Pxx^-1), the velocity ``v`` moved by the gain times
+    the innovation ``e``, and the covariance P - G (Pxx - post) G^T made symmetric, post the
+    inverse of info + ``information`` ((0, 0): none, P kept). Returns (P, v)."""
+    n = info.shape[0]
+    m = p.shape[0]
+    g = np.empty((m, n))
+    for r in range(m):
+        for c in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += info[c, j] * p[j, r]
+            g[r, c] = acc
+    v_new = v.copy()
+    for r in range(n, m):
+        acc = 0.0
+        for c in range(n):
+            acc += g[r, c] * e[c]
+        v_new[r - n] += acc
+    out = p.copy()
+    if information.shape[0] > 0:
+        post = np.linalg.solve(info + information, np.eye(n))
+        d = np.empty((n, n))
+        for a in range(n):
+            for b in range(n):
+                d[a, b] = p[a, b] - post[a, b]
+        gd = np.empty((m, n))
+        for r in range(m):
+            for c in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += g[r, j] * d[j, c]
+                gd[r, c] = acc
+        for r in range(m):
+            for s in range(m):
+                acc = 0.0
+                for c in range(n):
+                    acc += gd[r, c] * g[s, c]
+                out[r, s] = p[r, s] - acc
+    sym = np.empty_like(out)
+    for r in range(m):
+        for s in range(m):
+            sym[r, s] = 0.5 * (out[r, s] + out[s, r])
+    return sym, v_new
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
     types, so that a session's first frame does not pay a few seconds of compilation."""
@@ -617,6 +691,9 @@ def warm_up() -> None:
     lm_solve(h, g, 1e-3)
     point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8), np.eye(3),
                  np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
+    cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
+    for information in (np.eye(2), np.zeros((0, 0))):
+        cv_update(cov, info, np.zeros(2), np.zeros(2), information)
 
 
 def compiled_on_disk() -> bool:
@@ -626,7 +703,8 @@ def compiled_on_disk() -> bool:
         return True
     try:
         kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                    lm_system, lm_solve, point_offset)
+                                    lm_system, lm_solve, point_offset, cv_predict,
+                                    cv_update)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
     except AttributeError:  # another numba's internals

@@ -268,15 +268,16 @@ class Tracker:
     def _fit(self, image: np.ndarray, theta0: np.ndarray, levels: tuple[int, ...],
              cache: dict[int, ImageMaps], policy: FitPolicy | None = None,
              pose_ref: np.ndarray | None = None, refine_gain: bool = True,
-             alpha_ref: np.ndarray | None = None, evidence: Evidence | None = None
-             ) -> FitResult:
+             alpha_ref: np.ndarray | None = None, evidence: Evidence | None = None,
+             uv0: np.ndarray | None = None) -> FitResult:
+        """uv0 : the sample points projected at theta0, if the caller has them."""
         pol = self.policy
         ev = evidence or Evidence()
         theta = theta0
         result: FitResult | None = None
         evals = 0
         if any(lv not in cache for lv in levels):  # one ROI and colour conversion per frame
-            uv = self.problem.project(theta0)
+            uv = self.problem.project(theta0) if uv0 is None else uv0
             sig = self.problem.appearance.sigma
             margin = pol.roi_margin_px + 4 * sig * 2 ** max(levels)
             # lazy level 0 (compiled kernel) smooths only what the fit samples: no need to
@@ -391,13 +392,13 @@ class Tracker:
             # most frames are easy: try the full-resolution fit from the prediction alone, and
             # pay for coarse-to-fine only when its residual says the motion was not predicted
             quick = self._fit(image, theta0, (0,), cache, pose_ref=ref, alpha_ref=a_ref,
-                              evidence=ev)
+                              evidence=ev, uv0=uv)
             evals += quick.evals
             if self._good(quick) and quick.residual <= pol.fast_path_factor * self._level:
                 fit = quick
         if fit is None:
             fit = self._fit(image, theta0, levels, cache, pose_ref=ref, alpha_ref=a_ref,
-                            evidence=ev)
+                            evidence=ev, uv0=uv)
             evals += fit.evals
         if self._gap and self._good(fit, landmarks):
             # first frame after a gap: the last good state may be far from the face that
