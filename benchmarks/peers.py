@@ -155,6 +155,8 @@ def consensus(series: dict[str, np.ndarray], leave_out: str | None = None,
     """Per-frame median of the series other than ``leave_out``; NaN where fewer than
     ``min_others`` of them are finite."""
     others = np.array([v for k, v in series.items() if k != leave_out])
+    if len(others) == 0:  # the method alone (the others skipped or not asked for)
+        return np.full(len(next(iter(series.values()))), np.nan)
     count = np.isfinite(others).sum(0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)

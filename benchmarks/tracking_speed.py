@@ -2,7 +2,9 @@
 paper's Nelder-Mead baseline on the same frames, so their ratio is measured in one run;
 memory per tracker. Video decoding and rendering are excluded (frames are pre-rendered), and
 so is the one-off compilation of the cost kernel (warmed up first); the numpy reference path
-of the cost runs on the same frames too, so the kernel's gain is a ratio from one run.
+of the cost runs on the same frames too, so the kernel's gain is a ratio from one run; and so
+does the compiled kernels' path with each Gauss-Newton evaluation assembled in numpy around
+them (``fitting.FIT_TERMS`` off), the gain of ``kernels.fit_terms`` and the compiled LM step.
 
     python benchmarks/tracking_speed.py [--frames 150] [--nm-frames 40] [--repeats 3]
 
@@ -88,7 +90,7 @@ def main() -> None:
                 "rms_mm_mean": float(err.mean()),
                 "peak_heap_mib": memory(policy) if heap else None}
 
-    from articast.core.tracking import kernels
+    from articast.core.tracking import fitting, kernels
 
     kernels.warm_up()  # compilation (or loading the on-disk cache) is not a frame's work
     base = TrackingPolicy.for_rig("head")
@@ -101,11 +103,16 @@ def main() -> None:
         gn = run(base, te.n_frames, heap=r == 0)
         nm = run(nm_policy, n_nm, heap=r == 0)
         gn_same = run(base, n_nm, heap=False)
-        numpy_path = None
+        numpy_path = assembled = None
         if kernels.AVAILABLE:  # the same tracker on the numpy reference code of the cost
             kernels.AVAILABLE = False
             numpy_path = run(base, n_nm, heap=False)
             kernels.AVAILABLE = True
+            # the kernels, but each Gauss-Newton evaluation assembled in numpy around them
+            # (fitting.FIT_TERMS off: the reference of kernels.fit_terms)
+            fitting.FIT_TERMS = False
+            assembled = run(base, n_nm, heap=False)
+            fitting.FIT_TERMS = True
         repeats.append({
             "gauss_newton_ms": gn["ms_per_frame_mean"], "gauss_newton_p95_ms":
                 gn["ms_per_frame_p95"], "nelder_mead_ms": nm["ms_per_frame_mean"],
@@ -114,6 +121,9 @@ def main() -> None:
             "compiled_kernel_speedup_same_frames": (
                 numpy_path["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"]
                 if numpy_path else None),
+            "compiled_evaluation_speedup_same_frames": (
+                assembled["ms_per_frame_mean"] / gn_same["ms_per_frame_mean"]
+                if assembled else None),
             "load_1min": load_average()[0]})
         if r == 0:
             first = (gn, nm, gn_same)
@@ -132,7 +142,8 @@ def main() -> None:
         "repeats": repeats,
         "min_median_max": {k: spread(k) for k in (
             "gauss_newton_ms", "gauss_newton_p95_ms", "nelder_mead_ms",
-            "speedup_vs_nelder_mead_same_frames", "compiled_kernel_speedup_same_frames")},
+            "speedup_vs_nelder_mead_same_frames", "compiled_kernel_speedup_same_frames",
+            "compiled_evaluation_speedup_same_frames")},
         "load_average_before": load_before, "load_average_after": load_average(),
         "cpus": os.cpu_count(),
     }

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from articast.core.appearance.maps import image_maps, roi_of, sample_la
-from articast.core.model.camera import rotation_matrix
-from articast.core.tracking.fitting import Problem, fit_gauss_newton, fit_nelder_mead
+from articast.core.model.camera import Pose, rotation_matrix
+from articast.core.tracking.fitting import FitPolicy, Problem, fit_gauss_newton, fit_nelder_mead
 from tests.blobface import blob_trained, render_blobs
 
 
@@ -336,3 +336,139 @@ def test_the_compiled_kernels_are_what_the_product_runs():
     if os.environ.get("ARTICAST_JIT") == "0":
         pytest.skip("disabled by ARTICAST_JIT=0")
     assert kernels.AVAILABLE
+
+
+@pytest.fixture(scope="module")
+def rotation_trained():
+    """The blob face, la quad with rotation terms (a desk camera's model), trained on turned
+    heads."""
+    from articast.core.appearance.models import TrainingFrame, train_appearance
+    from tests.blobface import blob_setup
+
+    model, camera, pose = blob_setup()
+    rng = np.random.default_rng(3)
+    frames = []
+    for _ in range(30):
+        a = rng.normal(size=7) * 0.8
+        p = Pose(pose.rotation + rng.normal(size=3) * 0.04, pose.translation + rng.normal(size=3) * 3)
+        frames.append(TrainingFrame(render_blobs(model, camera, a, p), a, p))
+    app = train_appearance(model, camera, frames, "la_quad", sigma=2.0, levels=(0, 1),
+                           per_param=6, rotation_terms=True)
+    assert app.rotation_weights is not None
+    return model, camera, pose, app
+
+
+@pytest.mark.parametrize("case", ["fused", "plain", "least_squares"])
+def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, monkeypatch,
+                                                            case):
+    """fit_gauss_newton evaluates each state in one compiled call (kernels.fit_terms: la cost
+    with rotation terms, Cauchy weights, landmark term, priors) where it can; the numpy
+    assembly is the definition. Same fit to re-ordering precision: fused live tracking (the
+    landmarks with shared error modes, a state prior, the gain, on lazy maps), the plain
+    tracker's fit (pose and motion priors, full maps) and least squares."""
+    from articast.core.appearance.maps import image_pyramid
+    from articast.core.tracking import fitting, kernels
+    from articast.core.tracking.fitting import StatePrior
+    from articast.core.tracking.points import PointModel, PointTerm
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = rotation_trained
+    rng = np.random.default_rng(11)
+    truth = rng.normal(size=7) * 0.6
+    turned = Pose(pose.rotation + [0.03, -0.02, 0.01], pose.translation + [2.0, -1.0, 4.0])
+    img = render_blobs(model, camera, truth, turned)
+    prob = Problem(model, app, camera)
+    k = model.n_params
+    roi = roi_of(prob.project(np.r_[truth, turned.as_vector()]), 30)
+    m = model.mean.shape[0]
+    pm = PointModel("v1", np.arange(m), model.mean, model.basis, rng.uniform(0.5, 1.5, m),
+                    rng.normal(0, 0.5, (3, m, 2)))
+    cam_pts = model.shape(truth) @ turned.matrix.T + turned.translation
+    uv = camera.project(cam_pts) + rng.normal(0, 1.0, (m, 2))
+    uv[[3, 7]] = np.nan  # points not read
+    # (writable arrays, as the tracker's: a Pose's read-only ones are another type to numba)
+    start = (truth + rng.normal(size=7) * 0.3, pose.rotation.copy(), pose.translation.copy())
+    kw: dict = {}
+    if case == "fused":
+        info = np.diag(np.r_[np.full(k, 2.0), np.full(3, 1e3), np.full(3, 0.5)])
+        kw = dict(points=PointTerm(pm, camera, uv, float(turned.translation[2]), 3.0, 0.3),
+                  state_prior=StatePrior(start[0], rotation_matrix(start[1]), start[2], info),
+                  appearance_weight=0.7, estimate_gain=True, gain0=1.05)
+        pol = FitPolicy(max_iterations=4, max_rejections=2)
+    else:
+        kw = dict(pose_ref=(start[1], start[2]), alpha_ref=start[0])
+        pol = FitPolicy(max_iterations=6, pose_sigma_rad=0.003, pose_sigma_mm=0.5,
+                        alpha_sigma=0.5, robust_scale=None if case == "least_squares" else 2.0)
+    calls = []
+    real = kernels.fit_terms
+    kernels.warm_up()
+    compiled = (real, kernels.lm_system, kernels.lm_solve)
+    compiled_types = [set(f.signatures) for f in compiled]
+
+    def counted(*args):
+        calls.append(1)
+        return real(*args)
+
+    monkeypatch.setattr(kernels, "fit_terms", counted)
+    fits = []
+    for on in (True, False):
+        monkeypatch.setattr(fitting, "FIT_TERMS", on)
+        maps = image_pyramid(img, roi, app.sigma, (0,), lazy=case == "fused")[0]
+        fits.append(fit_gauss_newton(prob, maps, 0, *start, pol, **kw))
+    assert len(calls) == fits[0].evals > 2  # the compiled path ran, every evaluation
+    # kernels.warm_up() compiled it for the types a fit passes (no compilation on a first frame)
+    assert [set(f.signatures) for f in compiled] == compiled_types
+    fast, ref = fits
+    assert (fast.evals, fast.iterations, fast.converged) == (ref.evals, ref.iterations,
+                                                            ref.converged)
+    for name in ("alpha", "rotation", "translation", "cost", "residual", "gain",
+                 "robust_residual", "valid_fraction", "point_q", "costs", "information"):
+        a, b = getattr(fast, name), getattr(ref, name)
+        if b is None:
+            assert a is None, name
+            continue
+        b = np.asarray(b, float)
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-9 * max(np.abs(b).max(), 1.0),
+                                   err_msg=name)
+    assert np.abs(fast.alpha - start[0]).max() > 0.05  # the fit moved: a real comparison
+
+
+def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
+    """kernels._smooth_pixel (the lazy maps' blur) is exactly the separable Gaussian with
+    OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
+    float32, then the column pass the same way -- bit for bit, inside and at every border,
+    whichever pixel asks first."""
+    import cv2
+
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(4)
+    h, w = 23, 31
+    src = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    taps = cv2.getGaussianKernel(17, 2.5).ravel()
+    rad = len(taps) // 2
+
+    def reflect(i, n):
+        i = -i if i < 0 else i
+        return 2 * n - 2 - i if i >= n else i
+
+    def row_pass(yy, x):
+        acc = np.zeros(3)
+        for i in range(-rad, rad + 1):
+            acc += taps[i + rad] * src[yy, reflect(x + i, w)].astype(np.float64)
+        return acc.astype(np.float32)
+
+    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 3), np.float32)
+    done, rdone = np.zeros((h, w), np.uint8), np.zeros((h, w), np.uint8)
+    pixels = [(0, 0), (h - 1, w - 1), (11, 15), (12, 15), (3, 29), (20, 1)]
+    pixels += [tuple(p) for p in rng.integers(0, [h, w], (30, 2))]
+    for y, x in pixels:
+        kernels._smooth_pixel(src, sm, done, rows, rdone, taps, y, x)
+        want = np.zeros(3)
+        for j in range(-rad, rad + 1):
+            want += taps[j + rad] * row_pass(reflect(y + j, h), x).astype(np.float64)
+        assert done[y, x] == 1
+        np.testing.assert_array_equal(sm[y, x], want.astype(np.float32))

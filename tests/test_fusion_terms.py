@@ -302,3 +302,72 @@ def test_the_speakers_prior_is_the_product_of_the_two_gaussians():
     # weight 0: the prediction itself
     same = pred.with_speaker(0.0)
     assert np.allclose(same.alpha, pred.alpha) and np.allclose(same.rotation, pred.rotation)
+
+
+def test_the_compiled_offset_of_a_state_is_the_numpy_one():
+    """state_offset (the live tracker's gate, re-read and agreement tests) runs a compiled
+    kernel on a camera without distortion; the numpy reference is the definition: same
+    fraction, with points not read (NaN rows) and at a turned head."""
+    from articast.core.tracking import kernels
+    from articast.core.tracking.points import state_offset, state_offset_numpy
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(6)
+    mean, basis = _points(rng, 90, 7)
+    pm = PointModel("v1", np.arange(90), mean, basis, rng.uniform(0.3, 1.0, 90))
+    values = []
+    for trial in range(5):
+        a = rng.normal(0, 1, 7)
+        rot = rotation_matrix(FRONTAL + rng.normal(0, 0.2, 3))
+        t = np.array([rng.normal(0, 20), rng.normal(0, 20), rng.uniform(300, 700)])
+        seen = CAM.project((mean + np.tensordot(a, basis, 1)) @ rot.T + t)
+        seen = seen + rng.normal(0, 1.0 + 3 * trial, seen.shape)
+        seen[rng.choice(90, 7, replace=False)] = np.nan
+        fast = state_offset(pm, CAM, a, rot, t, seen)
+        ref = state_offset_numpy(pm, CAM, a, rot, t, seen)
+        assert fast == pytest.approx(ref, rel=1e-12)
+        values.append(ref)
+    assert len(set(np.round(values, 6))) == 5 and all(0 < v < 1 for v in values)
+    nothing = np.full((90, 2), np.nan)
+    assert np.isnan(state_offset(pm, CAM, a, rot, t, nothing))
+    assert np.isnan(state_offset_numpy(pm, CAM, a, rot, t, nothing))
+
+
+@pytest.mark.parametrize("told", [True, False])
+def test_the_compiled_motion_model_steps_are_the_numpy_ones(monkeypatch, told):
+    """ConstantVelocity.predict and update run one compiled call each (kernels.cv_predict,
+    cv_update); their numpy code is the reference: the same prior, covariance and velocity
+    over a few steps, with the frame's information and without (None: the prediction's
+    covariance is kept)."""
+    from articast.core.tracking import kernels
+    from articast.core.tracking.kalman import ConstantVelocity
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    k = 7
+    n = k + 6
+    runs = []
+    for compiled in (True, False):
+        monkeypatch.setattr(kernels, "AVAILABLE", compiled)
+        r = np.random.default_rng(3)
+        cv = ConstantVelocity(k)
+        cv.start(r.normal(size=k), FRONTAL + 0.1 * r.normal(size=3), r.normal(size=3))
+        a = r.normal(size=(2 * n, 2 * n))
+        cv.p = a @ a.T / n
+        out = []
+        for step in range(4):
+            prior = cv.predict(0.04 + 0.01 * step)
+            x = r.normal(size=(3 * n, n))
+            info = x.T @ x if told else None
+            cv.update(prior.alpha + 0.1 * r.normal(size=k),
+                      FRONTAL + 0.01 * r.normal(size=3),
+                      prior.translation + r.normal(size=3), info)
+            out.append((prior.information, prior.alpha, prior.rotation, cv.p.copy(),
+                        cv.v.copy()))
+        runs.append(out)
+    fast, ref = runs
+    for got, want in zip(fast, ref, strict=True):
+        for x, y in zip(got, want, strict=True):
+            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9 * np.abs(y).max())
+    assert np.abs(ref[-1][4]).max() > 1e-3  # the velocity moved: a real comparison

@@ -28,6 +28,17 @@ def test_consensus_leaves_the_scored_method_out_and_needs_two_others():
     np.testing.assert_allclose(with_a[:3], [4.0, 6.0, 7.0])
 
 
+def test_a_method_alone_has_no_consensus_and_is_still_scored():
+    """--methods articast facemesh_v1 on a clip articast cannot enrol (no face) leaves one
+    method: no consensus, no lag, its jitter still (it crashed the run before)."""
+    rng = np.random.default_rng(0)
+    ap = rng.normal(0.2, 0.05, 60)
+    assert np.isnan(peers.consensus({"v1": ap}, leave_out="v1")).all()
+    got = peers.score({"v1": ap}, [slice(0, 10), slice(30, 40)])["v1"]
+    assert got["consensus_r"] is None and got["consensus_n"] == 0 and got["lag_frames"] is None
+    assert got["jitter_pct_width"] is not None and got["jitter_pct_width"] > 0
+
+
 def test_lag_is_positive_when_the_method_is_late():
     rng = np.random.default_rng(0)
     ref = np.convolve(rng.normal(size=300), np.ones(4) / 4, mode="same")

@@ -50,7 +50,7 @@ from articast.core.outputs.lips import lip_measures, lips_dict
 from articast.core.tracking.filters import CadenceCanceller, OneEuroFilter, OneEuroPolicy
 from articast.core.tracking.fitting import StatePrior
 from articast.core.tracking.kalman import ConstantVelocity
-from articast.core.tracking.points import PointTerm, offset_fraction
+from articast.core.tracking.points import PointTerm, state_offset
 from articast.core.tracking.result import TrackResult
 from articast.core.tracking.tracker import Evidence, Tracker, TrackingPolicy
 
@@ -540,8 +540,8 @@ class LiveTracker:
                 seen: np.ndarray) -> float:
         """:func:`~articast.core.tracking.points.offset_fraction` of a reading's points
         ``seen`` (M, 2) px from the state (alpha, rotation matrix, translation mm)."""
-        cam = self.point_model.points(alpha) @ rotation.T + translation
-        return offset_fraction(self.speaker.camera.project(cam), seen)
+        return state_offset(self.point_model, self.speaker.camera, alpha, rotation,
+                            translation, seen)
 
     def _unfamiliar(self, alpha: np.ndarray) -> bool:
         """Whether the lips at ``alpha`` open or stretch beyond what the enrolment showed

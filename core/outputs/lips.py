@@ -9,6 +9,8 @@ these two curves).
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from articast.core.model.face import FaceModel
@@ -22,15 +24,30 @@ def has_lip_points(model: FaceModel) -> bool:
     return all(label in model.feature_points for label in LIP_POINTS)
 
 
+_LIP_POINTS: weakref.WeakKeyDictionary[FaceModel, tuple[np.ndarray, np.ndarray]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _lip_points(model: FaceModel) -> tuple[np.ndarray, np.ndarray]:
+    """The four points' mean (4, 3) and basis (K, 4, 3) of a model, taken once per model (a
+    live tracker measures the lips two or three times a frame)."""
+    got = _LIP_POINTS.get(model)
+    if got is None:
+        idx = [model.point(label) for label in LIP_POINTS]
+        got = (model.mean[idx], model.basis[:, idx, :])
+        _LIP_POINTS[model] = got
+    return got
+
+
 def lip_measures(model: FaceModel, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(aperture_mm, width_mm), each of shape alpha.shape[:-1].
 
     alpha : (..., K) articulatory parameters. Raises KeyError if a point is not labelled.
     """
-    idx = [model.point(label) for label in LIP_POINTS]
+    mean, basis = _lip_points(model)
     a = np.asarray(alpha, np.float64)
     # only the four points are needed: x_i(alpha) = mean_i + alpha @ basis[:, i]
-    pts = model.mean[idx] + np.einsum("...k,kpc->...pc", a, model.basis[:, idx, :])
+    pts = mean + np.einsum("...k,kpc->...pc", a, basis)
     aperture = np.linalg.norm(pts[..., 0, :] - pts[..., 1, :], axis=-1)
     width = np.linalg.norm(pts[..., 2, :] - pts[..., 3, :], axis=-1)
     return aperture, width

@@ -21,6 +21,7 @@ downhill simplex centred on the start, the baseline).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -40,6 +41,13 @@ from articast.core.tracking.points import PointTerm
 _NO_W2 = np.zeros((0, 0))
 _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
              np.zeros((0, 0, 3), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0))
+_EYE = np.eye(3)
+FIT_TERMS = kernels.AVAILABLE
+"""Evaluate a Gauss-Newton state in one compiled call (:func:`kernels.fit_terms`) where the
+la cost and the landmark term are compiled (False: the numpy assembly, the reference)."""
+_NO_POINTS = (np.zeros((0, 3)), np.zeros((0, 3, 0)), np.ones(4), np.zeros(0), np.zeros((0, 2)),
+              -1.0)
+_NO_STATE_PRIOR = (np.zeros(0), np.eye(3), np.zeros(3), np.zeros((0, 0)))
 
 
 @dataclass(frozen=True)
@@ -192,6 +200,8 @@ class Problem:
                                                                       strict=True)]
         self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+        self._rot_ref = (None if rw is None or appearance.rotation_ref is None
+                         else rotation_matrix(appearance.rotation_ref))
 
     # -------------------------------------------------------------- geometry
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
@@ -303,6 +313,26 @@ class Problem:
               else _NOT_LAZY))
         return r, (jac if jacobian else None), np.asarray(valid, bool)
 
+    def kernel_args(self, maps: ImageMaps, level_index: int) -> tuple[tuple, tuple]:
+        """The fixed arguments of :func:`~articast.core.tracking.kernels.fit_terms` for one
+        map: those before the state (alpha, rot, t) and those between the state and the gain.
+        """
+        w = self.appearance.weights[level_index]
+        k = self.k
+        return ((maps.smooth, float(maps.origin[0]), float(maps.origin[1]), float(maps.scale),
+                 float(maps.sigma)),
+                (self._s_mean, self._basis_sdk, self._intr, self.camera.dist, w[0], w[1:k + 1],
+                 w[k + 1:] if self._quad else _NO_W2))
+
+    def kernel_tail(self, maps: ImageMaps, level_index: int) -> tuple:
+        """The arguments of :func:`~articast.core.tracking.kernels.fit_terms` from the
+        channel weights to the rotation terms' unit."""
+        lazy = ((maps.source, maps.done, maps.rows, maps.rows_done, maps.taps) if maps.lazy
+                else _NOT_LAZY)
+        rot = ((self._rot_w[level_index], self._rot_ref) if self._rot_ref is not None
+               else (_NO_W2, _EYE))
+        return (self._cw[level_index], *lazy, *rot, ROTATION_SCALE)
+
     def cost(self, maps: ImageMaps, level_index: int, theta: np.ndarray,
              robust_scale: float | None = None) -> float:
         """E(theta) for the Nelder-Mead baseline (theta with absolute axis-angle rotation)."""
@@ -389,10 +419,46 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     use_app = appearance_weight > 0
     sw = float(np.sqrt(appearance_weight))
     with_gain = estimate_gain and use_app
+    # one compiled call per evaluation (kernels.fit_terms) where the la cost and the landmark
+    # term are compiled; `evaluate_numpy` below is the reference
+    compiled = FIT_TERMS and problem.jit and use_app and (points is None or points.compiled)
+    if compiled:
+        head, middle = problem.kernel_args(maps, li)
+        tail = (*problem.kernel_tail(maps, li), appearance_weight,
+                -1.0 if scale is None else float(scale))
+        pts = points.kernel_args() if points is not None and points.n_points else _NO_POINTS
+        pr_ = problem.prior
+        sp_args = ((state_prior.alpha, state_prior.rotation, state_prior.translation,
+                    state_prior.information) if state_prior is not None else _NO_STATE_PRIOR)
+        ref_args: tuple = (_EYE, np.zeros(3), -1.0, -1.0)  # as _pose_prior: none
+        if ref is not None and pol.pose_sigma_mm is not None and pol.pose_sigma_rad is not None:
+            ref_args = (ref[0], np.asarray(ref[1], np.float64), 1.0 / pol.pose_sigma_rad**2,
+                        1.0 / pol.pose_sigma_mm**2)
+        fixed = (*tail, *pts, problem.bound, float(pr_.weight), float(pr_.softness), *sp_args,
+                 *ref_args)
 
     def evaluate(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray, g_: float):
         """Everything at one state: the total cost, the data rows (whitened, IRLS-weighted)
         and the priors' gradient and Hessian."""
+        if not compiled:
+            return evaluate_numpy(a_, rot_, t_, g_)
+        args: tuple[Any, ...] = (*head, a_, rot_, t_, *middle, float(g_), *fixed[:1],
+                                 bool(with_gain), *fixed[1:])
+        (rw_, jw_, r_, valid_, rc_, pc_, prior_, g_p_, h_p_, sp_, g_s, h_s, pp_) = (
+            kernels.fit_terms(*args))
+        h_shared = np.zeros((k + 6, k + 6))
+        if points is not None and points.n_points:
+            na = r_.size
+            shared_c, shared_g, shared_h = points.shared(rw_[na:], jw_[na:, :k + 6])
+            pc_ -= shared_c  # the errors the landmarks share count once
+            g_s -= 2.0 * shared_g
+            h_s -= 2.0 * shared_h
+            h_shared = shared_h
+        cost_ = (rc_ + pc_ + prior_ + pp_ + sp_ + wa * float((a_ - a_ref) @ (a_ - a_ref))
+                 + wg * (g_ - gain0) ** 2 * with_gain)
+        return cost_, (r_, float(valid_.mean()), rc_, rw_, jw_, g_p_, h_p_, g_s, h_s, h_shared)
+
+    def evaluate_numpy(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray, g_: float):
         if use_app:
             r_, jac_, vf_ = problem.residuals(maps, li, a_, rot_, t_, True, g_, with_gain)
             rc_, rw_, jw_o = _robust(r_, jac_, nc, scale)
@@ -431,23 +497,30 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
 
     cost, (r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared) = evaluate(alpha, rot, t, gain)
     evals, costs, converged, it = 1, [cost], False, 0
+    jtj, jtj_of = None, None  # J^T J of the data rows jw (kept for the information)
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
-        h = jw.T @ jw
-        g = jw.T @ rw
-        h[np.arange(k), np.arange(k)] += h_p / 2 + wa
-        g[:k] += g_p / 2 + wa * (alpha - a_ref)
-        h[:k + 6, :k + 6] += h_s / 2
-        g[:k + 6] += g_s / 2
-        if h.shape[0] > k + 6:  # gain prior around its start value
-            h[k + 6, k + 6] += wg
-            g[k + 6] += wg * (gain - gain0)
-        diag = np.diag(h).copy()
-        diag[diag <= 0] = 1.0
+        jtj, jtj_of = jw.T @ jw, jw
+        if compiled:  # the same sums, one compiled call (kernels.lm_system)
+            h, g = kernels.lm_system(jtj, jw.T @ rw, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg,
+                                     gain, gain0)
+        else:
+            h = jtj.copy()
+            g = jw.T @ rw
+            h[np.arange(k), np.arange(k)] += h_p / 2 + wa
+            g[:k] += g_p / 2 + wa * (alpha - a_ref)
+            h[:k + 6, :k + 6] += h_s / 2
+            g[:k + 6] += g_s / 2
+            if h.shape[0] > k + 6:  # gain prior around its start value
+                h[k + 6, k + 6] += wg
+                g[k + 6] += wg * (gain - gain0)
+            diag = np.diag(h).copy()
+            diag[diag <= 0] = 1.0
         accepted = False
         rejected = 0
         while not accepted:
             try:
-                step = -np.linalg.solve(h + lam * np.diag(diag), g)
+                step = (kernels.lm_solve(h, g, lam) if compiled
+                        else -np.linalg.solve(h + lam * np.diag(diag), g))
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
@@ -479,7 +552,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
     info = None
     if state_prior is not None:  # what a motion model's update needs (fused tracking only)
-        hd = jw.T @ jw
+        hd = jtj.copy() if jtj is not None and jtj_of is jw else jw.T @ jw
         hd[:k + 6, :k + 6] -= h_shared
         info = _marginal_information(hd, k + 6, wg)
     n = max(r.size * vf, 1.0)

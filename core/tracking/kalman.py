@@ -25,7 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from articast.core.model.camera import axis_angle, rotation_matrix, small_turn
+from articast.core.tracking import kernels
 from articast.core.tracking.fitting import StatePrior
+
+_NONE = np.zeros((0, 0))  # cv_update: no information
 
 
 @dataclass(frozen=True)
@@ -134,23 +137,26 @@ class ConstantVelocity:
         dt = float(np.clip(dt, 1e-3, 1.0))
         # F P F^T + Q by blocks, F = [[I, dt I], [0, I]] (the 2n x 2n products cost more)
         q = self.noise.q
-        i = np.arange(n)
-        pxx, pxv, pvv = self.p[:n, :n], self.p[:n, n:], self.p[n:, n:]
-        cross = pxv + dt * pvv
-        p = np.empty_like(self.p)
-        p[:n, :n] = pxx + dt * (pxv + pxv.T) + dt * dt * pvv
-        p[:n, n:] = cross
-        p[n:, :n] = cross.T
-        p[n:, n:] = pvv
-        p[i, i] += q * dt**3 / 3.0
-        p[i, n + i] += q * dt**2 / 2.0
-        p[n + i, i] += q * dt**2 / 2.0
-        p[n + i, n + i] += q * dt
+        if kernels.AVAILABLE:  # the same sums and inverse in one compiled call
+            p, info = kernels.cv_predict(self.p, q * dt**3 / 3.0, q * dt**2 / 2.0, q * dt, dt)
+        else:
+            i = np.arange(n)
+            pxx, pxv, pvv = self.p[:n, :n], self.p[:n, n:], self.p[n:, n:]
+            cross = pxv + dt * pvv
+            p = np.empty_like(self.p)
+            p[:n, :n] = pxx + dt * (pxv + pxv.T) + dt * dt * pvv
+            p[:n, n:] = cross
+            p[n:, :n] = cross.T
+            p[n:, n:] = pvv
+            p[i, i] += q * dt**3 / 3.0
+            p[i, n + i] += q * dt**2 / 2.0
+            p[n + i, i] += q * dt**2 / 2.0
+            p[n + i, n + i] += q * dt
+            info = np.linalg.inv(p[:n, :n] + 1e-12 * np.eye(n))
         k = self.k
         alpha = self.alpha + dt * self.v[:k]
         rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
         t = self.t + dt * self.v[k + 3:]
-        info = np.linalg.inv(p[:n, :n] + 1e-12 * np.eye(n))
         self._pred = (alpha, rot, t, p)
         self._info = info
         return StatePrior(alpha, rot, t, info)
@@ -165,15 +171,19 @@ class ConstantVelocity:
         r_f = rotation_matrix(np.asarray(rotation, np.float64))
         e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
                             np.asarray(translation) - t_p])
-        pxx = p[:n, :n]
-        gain = (self._info @ p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1 (predict's inverse)
-        v = self.v + (gain @ e)[n:]
-        if information is None:
-            post = pxx
+        if kernels.AVAILABLE:  # the same algebra in one compiled call
+            self.p, v = kernels.cv_update(p, self._info, e, self.v, _NONE if information is None
+                                          else np.asarray(information, np.float64))
         else:
-            post = np.linalg.inv(self._info + information)
-        self.p = p - gain @ (pxx - post) @ gain.T
-        self.p = 0.5 * (self.p + self.p.T)
+            pxx = p[:n, :n]
+            gain = (self._info @ p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1 (predict's inverse)
+            v = self.v + (gain @ e)[n:]
+            if information is None:
+                post = pxx
+            else:
+                post = np.linalg.inv(self._info + information)
+            self.p = p - gain @ (pxx - post) @ gain.T
+            self.p = 0.5 * (self.p + self.p.T)
         self.alpha, self.rot, self.t, self.v = (np.array(alpha, np.float64), r_f,
                                                 np.array(translation, np.float64), v)
         self._pred = None

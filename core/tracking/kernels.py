@@ -11,6 +11,12 @@ Lazy maps (:class:`core.appearance.ImageMaps` made with ``lazy=True``): the kern
 Gaussian-smooths the full-resolution image itself, one pixel when a sample first reads it
 (:func:`_smooth_pixel`), instead of the tracker blurring the whole face box every frame.
 
+:func:`fit_terms` is one Gauss-Newton evaluation of
+:func:`articast.core.tracking.fitting.fit_gauss_newton` in one call (the la cost with its
+rotation terms, the Cauchy weights, the landmark term, the priors), the dense products left to
+numpy's BLAS: assembled in numpy, the ~40 small array operations around the kernels cost as
+much as the la kernel itself (~0.3 ms a frame of fused live tracking).
+
 ``ARTICAST_JIT=0`` in the environment (or numba missing) selects the numpy path.
 Compiled functions are cached on disk (numba's ``cache=True``) so only the first process
 pays the compilation (a few seconds).
@@ -57,24 +63,44 @@ def _reflect(i, n):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover - compiled
     """Gaussian-smooth pixel (y, x) of src into sm (separable: a horizontal pass kept per
-    pixel in rows, then a vertical pass), unless done already."""
+    pixel in rows, then a vertical pass), unless done already. (Each value is summed in the
+    same order as ever, tap by tap: the three channels of a row pass share one loop, and a
+    row away from the left and right borders reads its pixels without the border rule.)"""
     if done[y, x]:
         return
     h, w = src.shape[0], src.shape[1]
-    rad = taps.shape[0] // 2
-    for c in range(3):
-        acc = 0.0
-        for j in range(-rad, rad + 1):
-            yy = _reflect(y + j, h)
-            if not rdone[yy, x]:  # the horizontal pass of this row, all channels, once
-                for cc in range(3):
-                    row = 0.0
-                    for i in range(-rad, rad + 1):
-                        row += taps[i + rad] * src[yy, _reflect(x + i, w), cc]
-                    rows[yy, x, cc] = row
-                rdone[yy, x] = 1
-            acc += taps[j + rad] * rows[yy, x, c]
-        sm[y, x, c] = acc
+    n = taps.shape[0]
+    rad = n // 2
+    inside = x - rad >= 0 and x + rad < w
+    for j in range(-rad, rad + 1):
+        yy = _reflect(y + j, h)
+        if rdone[yy, x]:
+            continue
+        r0 = 0.0
+        r1 = 0.0
+        r2 = 0.0
+        for i in range(n):  # the horizontal pass of this row, all channels, once
+            xx = x - rad + i if inside else _reflect(x - rad + i, w)
+            tap = taps[i]
+            r0 += tap * src[yy, xx, 0]
+            r1 += tap * src[yy, xx, 1]
+            r2 += tap * src[yy, xx, 2]
+        rows[yy, x, 0] = r0
+        rows[yy, x, 1] = r1
+        rows[yy, x, 2] = r2
+        rdone[yy, x] = 1
+    a0 = 0.0
+    a1 = 0.0
+    a2 = 0.0
+    for j in range(n):
+        yy = _reflect(y - rad + j, h)
+        tap = taps[j]
+        a0 += tap * rows[yy, x, 0]
+        a1 += tap * rows[yy, x, 1]
+        a2 += tap * rows[yy, x, 2]
+    sm[y, x, 0] = a0
+    sm[y, x, 1] = a1
+    sm[y, x, 2] = a2
     done[y, x] = 1
 
 
@@ -155,12 +181,16 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
         fx = mx - ix
         fy = my - iy
         if lazy:  # the 12 pixels the cell's values and central differences read
+            # (done checked here: a call passes every buffer, ~30 ns, mostly to find it done)
             for a in range(2):
                 for b in range(-1, 3):
-                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + a, ix + b)
+                    if not done[iy + a, ix + b]:
+                        _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + a, ix + b)
             for b in range(2):
-                _smooth_pixel(src, smooth, done, rows, rdone, taps, iy - 1, ix + b)
-                _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + 2, ix + b)
+                if not done[iy - 1, ix + b]:
+                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy - 1, ix + b)
+                if not done[iy + 2, ix + b]:
+                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + 2, ix + b)
         for ch in range(3):
             for a in range(2):
                 for b in range(2):
@@ -304,6 +334,325 @@ def point_residuals(mean, basis_mk, alpha, rot, t, intr, inv_sigma, uv,
     return r, jac
 
 
+@njit(cache=True, nogil=True)
+def _axis_angle(rot):  # pragma: no cover - compiled
+    """:func:`articast.core.model.camera.axis_angle` (all three branches), compiled."""
+    tr = rot[0, 0] + rot[1, 1] + rot[2, 2]
+    cos = min(max((tr - 1.0) / 2.0, -1.0), 1.0)
+    theta = np.arccos(cos)
+    w = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    if theta < 1e-8:
+        return w / 2
+    if np.pi - theta < 1e-4:
+        theta = np.arctan2(np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) / 2.0,
+                           (tr - 1.0) / 2.0)
+        m = ((rot + rot.T) / 2.0 - np.cos(theta) * np.eye(3)) / (1.0 - np.cos(theta))
+        i = 0
+        for j in range(1, 3):
+            if m[j, j] > m[i, i]:
+                i = j
+        axis = m[i] / np.sqrt(m[i, i])
+        if w[0] * axis[0] + w[1] * axis[1] + w[2] * axis[2] < 0:
+            axis = -axis
+        return axis / np.sqrt(axis[0] * axis[0] + axis[1] * axis[1] + axis[2] * axis[2]) * theta
+    return w / (2.0 * np.sin(theta)) * theta
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mul_t(a, b):  # pragma: no cover - compiled
+    """a @ b.T of two (3, 3) matrices (loops: numba's @ would call BLAS)."""
+    d = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            d[i, j] = a[i, 0] * b[j, 0] + a[i, 1] * b[j, 1] + a[i, 2] * b[j, 2]
+    return d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _dot(a, b):  # pragma: no cover - compiled
+    acc = 0.0
+    for i in range(a.shape[0]):
+        acc += a[i] * b[i]
+    return acc
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _small_turn(a, b):  # pragma: no cover - compiled
+    """:func:`articast.core.model.camera.small_turn` of a @ b.T (both (3, 3))."""
+    d = _mul_t(a, b)
+    return 0.5 * np.array([d[2, 1] - d[1, 2], d[0, 2] - d[2, 0], d[1, 0] - d[0, 1]])
+
+
+@njit(cache=True, nogil=True)
+def _weigh(r, jac, c, scale, factor, out_r, out_j, row0):  # pragma: no cover - compiled
+    """The per-point Cauchy loss of ``cauchy`` (scale <= 0: least squares), its weighted rows
+    times ``factor`` written into out_r, out_j from ``row0`` (the columns jac has; the others
+    left 0). Returns the cost."""
+    n = r.shape[0] // c
+    s2 = scale * scale
+    p = jac.shape[1]
+    cost = 0.0
+    for i in range(n):
+        qq = 0.0
+        for j in range(c):
+            qq += r[i * c + j] * r[i * c + j]
+        if scale > 0:
+            cost += s2 * np.log1p(qq / s2)
+            w = 1.0 / np.sqrt(1.0 + qq / s2)
+        else:
+            cost += qq
+            w = 1.0
+        for j in range(c):
+            row = i * c + j
+            out_r[row0 + row] = r[row] * w * factor
+            for q in range(p):
+                out_j[row0 + row, q] = jac[row, q] * w * factor
+    return cost
+
+
+@njit(cache=True, nogil=True)
+def fit_terms(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist,
+              w0, w1, w2, gain, cw, with_gain, src, done, rows, rdone, taps,
+              rot_w, rot_ref, rot_scale, app_weight, app_scale,
+              p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
+              bound, prior_weight, prior_softness,
+              sp_alpha, sp_rot, sp_t, sp_info,
+              ref_rot, ref_t, ref_wr, ref_wt):  # pragma: no cover - compiled
+    """Everything one Gauss-Newton evaluation of
+    :func:`articast.core.tracking.fitting.fit_gauss_newton` needs at one state, in one call
+    (its ``evaluate`` in numpy is the reference; a test checks the fits agree):
+
+    - the la residuals (``la_residuals``, these arguments) with the rotation terms
+      (``rot_w`` (3, S*8) weighted by the channel weights, (0, 0): none; ``rot_ref`` the
+      reference rotation matrix, ``rot_scale`` their unit), Cauchy-weighted (``app_scale``,
+      <= 0: least squares) and scaled by sqrt(``app_weight``);
+    - the landmark term (``point_residuals`` on ``p_*``, M = 0 rows: none), Cauchy-weighted
+      (``p_scale``, <= 0: least squares), its rows padded with 0 for the gain;
+    - the priors: on alpha (``bound``, ``prior_weight``, ``prior_softness``), the state
+      prior (``sp_*``, ``sp_info`` of 0 rows: none) and the pose prior (``ref_*``,
+      ``ref_wr`` <= 0: none).
+
+    Returns the stacked weighted rows rw (N,) and jw (N, P) (appearance rows first), the
+    appearance residuals r (S*8,) and valid (S,), the appearance's robust cost (x
+    app_weight), the landmarks' (before the shared-error correction), the alpha prior's
+    cost, gradient and diagonal Hessian (K,), the state and pose priors' cost, gradient
+    (K + 6,) and Hessian (K + 6, K + 6) together, and the pose prior's cost."""
+    k = alpha.shape[0]
+    r, jac, valid = la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean,
+                                 basis_sdk, intr, dist, w0, w1, w2, gain, cw, True, with_gain,
+                                 src, done, rows, rdone, taps)
+    n_app = r.shape[0]
+    p_count = jac.shape[1]
+    if rot_w.shape[0] > 0:  # f(alpha) + om @ Wr (Problem.residuals)
+        om = _axis_angle(_mul_t(rot, rot_ref)) / rot_scale
+        for row in range(n_app):
+            if not valid[row // 8]:
+                continue  # invalid samples contribute 0
+            d = om[0] * rot_w[0, row] + om[1] * rot_w[1, row] + om[2] * rot_w[2, row]
+            r[row] = r[row] - gain * d
+            for j in range(3):
+                jac[row, k + j] -= gain * rot_w[j, row] / rot_scale
+            if p_count > k + 6:
+                jac[row, k + 6] -= d
+    m = p_mean.shape[0]
+    rw = np.zeros(n_app + 2 * m)
+    jw = np.zeros((n_app + 2 * m, p_count))
+    rc = app_weight * _weigh(r, jac, 8, app_scale, np.sqrt(app_weight), rw, jw, 0)
+    pc = 0.0
+    if m > 0:
+        pr, pj = point_residuals(p_mean, p_basis_mk, alpha, rot, t, p_intr, p_inv_sigma, p_uv,
+                                 True)
+        pc = _weigh(pr, pj, 2, p_scale, 1.0, rw, jw, n_app)
+    # the articulation's prior (Problem.prior_terms)
+    e = np.empty(k)
+    for i in range(k):
+        e[i] = prior_weight * np.exp(min((np.abs(alpha[i]) - bound[i]) / prior_softness, 50.0))
+    prior = e.sum()
+    g_p = np.sign(alpha) * e / prior_softness
+    h_p = e / prior_softness ** 2
+    g_s = np.zeros(k + 6)
+    h_s = np.zeros((k + 6, k + 6))
+    sp = 0.0
+    if sp_info.shape[0] > 0:  # StatePrior.terms
+        d = np.empty(k + 6)
+        d[:k] = alpha - sp_alpha
+        d[k:k + 3] = _small_turn(rot, sp_rot)
+        d[k + 3:] = t - sp_t
+        le = np.empty(k + 6)
+        for i in range(k + 6):
+            le[i] = _dot(sp_info[i], d)
+        sp = _dot(d, le)
+        g_s += 2.0 * le
+        h_s += 2.0 * sp_info
+    pp = 0.0
+    if ref_wr > 0:  # _pose_prior
+        d_rot = _small_turn(rot, ref_rot)
+        d_t = t - ref_t
+        for i in range(3):
+            g_s[k + i] += 2 * ref_wr * d_rot[i]
+            g_s[k + 3 + i] += 2 * ref_wt * d_t[i]
+            h_s[k + i, k + i] += 2 * ref_wr
+            h_s[k + 3 + i, k + 3 + i] += 2 * ref_wt
+        pp = ref_wr * _dot(d_rot, d_rot) + ref_wt * _dot(d_t, d_t)
+    return rw, jw, r, valid, rc, pc, prior, g_p, h_p, sp, g_s, h_s, pp
+
+
+@njit(cache=True, nogil=True)
+def lm_system(jtj, jtr, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain,
+              gain0):  # pragma: no cover - compiled
+    """The normal equations (h, g) of one Levenberg-Marquardt iteration of
+    :func:`articast.core.tracking.fitting.fit_gauss_newton` from the data's J^T J and J^T r
+    and the priors' terms: the same sums, element by element, as its numpy code."""
+    k = alpha.shape[0]
+    p = jtj.shape[0]
+    h = jtj.copy()
+    g = jtr.copy()
+    for i in range(k):
+        h[i, i] += h_p[i] / 2 + wa
+        g[i] += g_p[i] / 2 + wa * (alpha[i] - a_ref[i])
+    for i in range(k + 6):
+        for j in range(k + 6):
+            h[i, j] += h_s[i, j] / 2
+        g[i] += g_s[i] / 2
+    if p > k + 6:  # gain prior around its start value
+        h[k + 6, k + 6] += wg
+        g[k + 6] += wg * (gain - gain0)
+    return h, g
+
+
+@njit(cache=True, nogil=True)
+def lm_solve(h, g, lam):  # pragma: no cover - compiled
+    """The damped step -(h + lam diag(d))^-1 g, d the diagonal of h (1 where not positive);
+    raises numpy's LinAlgError on a singular system."""
+    a = h.copy()
+    for i in range(h.shape[0]):
+        d = h[i, i]
+        if d <= 0:
+            d = 1.0
+        a[i, i] = h[i, i] + lam * d
+    return -np.linalg.solve(a, g)
+
+
+@njit(cache=True, nogil=True)
+def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover - compiled
+    """:func:`articast.core.tracking.points.offset_fraction` of readings ``seen`` (M, 2) px from
+    the points mean + basis_mk @ alpha (M, 3) posed by (rot, t) and projected by a camera
+    without distortion (intr: fx, fy, cx, cy), as :func:`articast.core.tracking.points.
+    state_offset` computes it in numpy."""
+    m, k = mean.shape[0], alpha.shape[0]
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    uv = np.empty((m, 2))
+    for i in range(m):
+        hx, hy, hz = mean[i, 0], mean[i, 1], mean[i, 2]
+        for kk in range(k):
+            hx += alpha[kk] * basis_mk[i, 0, kk]
+            hy += alpha[kk] * basis_mk[i, 1, kk]
+            hz += alpha[kk] * basis_mk[i, 2, kk]
+        x = rot[0, 0] * hx + rot[0, 1] * hy + rot[0, 2] * hz + t[0]
+        y = rot[1, 0] * hx + rot[1, 1] * hy + rot[1, 2] * hz + t[1]
+        z = rot[2, 0] * hx + rot[2, 1] * hy + rot[2, 2] * hz + t[2]
+        iz = 1.0 / z if z > 1e-6 else np.nan
+        uv[i, 0] = fx * (x * iz) + cx
+        uv[i, 1] = fy * (y * iz) + cy
+    d = np.empty(m)
+    n = 0
+    for i in range(m):
+        e0 = seen[i, 0] - uv[i, 0]
+        e1 = seen[i, 1] - uv[i, 1]
+        di = np.sqrt(e0 * e0 + e1 * e1)
+        if np.isfinite(di):
+            d[n] = di
+            n += 1
+    if n == 0:
+        return np.nan
+    c0 = 0.0
+    c1 = 0.0
+    for i in range(m):
+        c0 += uv[i, 0]
+        c1 += uv[i, 1]
+    c0 /= m
+    c1 /= m
+    ss = 0.0
+    for i in range(m):
+        ss += (uv[i, 0] - c0) ** 2 + (uv[i, 1] - c1) ** 2
+    size = np.sqrt(ss / m)
+    return np.median(d[:n]) / max(size, 1.0)
+
+
+@njit(cache=True, nogil=True)
+def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict`'s covariance
+    F P F^T + Q by blocks (p (2n, 2n); q3, q2, q1 (n,) the noise's dt^3/3, dt^2/2 and dt
+    terms) and the information of its state block, in one call: the same element-wise sums
+    as its numpy code, the inverse by LAPACK's gesv on the identity, as numpy's inv."""
+    n = p.shape[0] // 2
+    out = np.empty_like(p)
+    dt2 = dt * dt
+    for a in range(n):
+        for b in range(n):
+            out[a, b] = p[a, b] + dt * (p[a, n + b] + p[b, n + a]) + dt2 * p[n + a, n + b]
+            out[a, n + b] = p[a, n + b] + dt * p[n + a, n + b]
+            out[n + a, b] = p[b, n + a] + dt * p[n + b, n + a]
+            out[n + a, n + b] = p[n + a, n + b]
+    for i in range(n):
+        out[i, i] += q3[i]
+        out[i, n + i] += q2[i]
+        out[n + i, i] += q2[i]
+        out[n + i, n + i] += q1[i]
+    a = np.ascontiguousarray(out[:n, :n])
+    for i in range(n):
+        a[i, i] += 1e-12
+    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
+
+
+@njit(cache=True, nogil=True)
+def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.kalman.ConstantVelocity.update`'s algebra in one call:
+    the gain P_{:,x} Pxx^-1 (``info`` = Pxx^-1), the velocity ``v`` moved by the gain times
+    the innovation ``e``, and the covariance P - G (Pxx - post) G^T made symmetric, post the
+    inverse of info + ``information`` ((0, 0): none, P kept). Returns (P, v)."""
+    n = info.shape[0]
+    m = p.shape[0]
+    g = np.empty((m, n))
+    for r in range(m):
+        for c in range(n):
+            acc = 0.0
+            for j in range(n):
+                acc += info[c, j] * p[j, r]
+            g[r, c] = acc
+    v_new = v.copy()
+    for r in range(n, m):
+        acc = 0.0
+        for c in range(n):
+            acc += g[r, c] * e[c]
+        v_new[r - n] += acc
+    out = p.copy()
+    if information.shape[0] > 0:
+        post = np.linalg.solve(info + information, np.eye(n))
+        d = np.empty((n, n))
+        for a in range(n):
+            for b in range(n):
+                d[a, b] = p[a, b] - post[a, b]
+        gd = np.empty((m, n))
+        for r in range(m):
+            for c in range(n):
+                acc = 0.0
+                for j in range(n):
+                    acc += g[r, j] * d[j, c]
+                gd[r, c] = acc
+        for r in range(m):
+            for s in range(m):
+                acc = 0.0
+                for c in range(n):
+                    acc += gd[r, c] * g[s, c]
+                out[r, s] = p[r, s] - acc
+    sym = np.empty_like(out)
+    for r in range(m):
+        for s in range(m):
+            sym[r, s] = 0.5 * (out[r, s] + out[s, r])
+    return sym, v_new
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
     types, so that a session's first frame does not pay a few seconds of compilation."""
@@ -327,6 +676,24 @@ def warm_up() -> None:
                         np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
                         jacobian)
     cauchy(np.zeros(8, f8), np.zeros((0, 0), f8), 8, 2.0)
+    intr = np.array([100.0, 100.0, 10.0, 10.0])
+    fit_terms(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8), np.eye(3),
+              np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), intr,
+              dist, np.zeros(8, f8), np.zeros((1, 8), f8), np.zeros((0, 0), f8), 1.0,
+              np.ones((1, 8), f8), True, src, np.zeros((20, 20), np.uint8),
+              np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8), np.full(5, 0.2),
+              np.zeros((3, 8), f8), np.eye(3), 0.05, 1.0, 2.0,
+              np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), intr, np.ones(1), np.zeros((1, 2)),
+              3.0, np.ones(1), 1.0, 0.25, np.zeros(1), np.eye(3), np.zeros(3), np.eye(7),
+              np.eye(3), np.zeros(3), 1.0, 1.0)
+    h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
+                     np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
+    lm_solve(h, g, 1e-3)
+    point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8), np.eye(3),
+                 np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
+    cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
+    for information in (np.eye(2), np.zeros((0, 0))):
+        cv_update(cov, info, np.zeros(2), np.zeros(2), information)
 
 
 def compiled_on_disk() -> bool:
@@ -335,7 +702,9 @@ def compiled_on_disk() -> bool:
     if not AVAILABLE:
         return True
     try:
-        kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals)
+        kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
+                                    lm_system, lm_solve, point_offset, cv_predict,
+                                    cv_update)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
     except AttributeError:  # another numba's internals

@@ -157,6 +157,29 @@ def offset_fraction(predicted_px: np.ndarray, readings_px: np.ndarray) -> float:
     return float(np.median(d)) / max(size, 1.0)
 
 
+def state_offset(pm: PointModel, camera: Camera, alpha: np.ndarray, rotation: np.ndarray,
+                 translation: np.ndarray, seen: np.ndarray) -> float:
+    """:func:`offset_fraction` of a reading's points ``seen`` (M, 2) px (those of
+    ``pm.landmarks``) from the state (alpha (K,), rotation matrix (3, 3), translation (3,)
+    mm). Compiled (:func:`~articast.core.tracking.kernels.point_offset`) where the camera has
+    no distortion; :func:`state_offset_numpy` is the reference."""
+    if kernels.AVAILABLE and not np.any(np.asarray(camera.dist) != 0):
+        intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+        return float(kernels.point_offset(
+            np.ascontiguousarray(pm.mean, np.float64), pm.every_point[0],
+            np.array(alpha, np.float64), np.array(rotation, np.float64),
+            np.array(translation, np.float64), intr,
+            np.ascontiguousarray(seen, np.float64)))
+    return state_offset_numpy(pm, camera, alpha, rotation, translation, seen)
+
+
+def state_offset_numpy(pm: PointModel, camera: Camera, alpha: np.ndarray,
+                       rotation: np.ndarray, translation: np.ndarray, seen: np.ndarray) -> float:
+    """The reference of :func:`state_offset` (any camera)."""
+    cam = pm.points(alpha) @ np.asarray(rotation).T + translation
+    return offset_fraction(camera.project(cam), seen)
+
+
 def model_point_model(model: FaceModel, landmarks: np.ndarray, network: str,
                       sigma_mm: float = 1.0) -> PointModel:
     """The observation model that assumes the network reads the model's own points (a
@@ -256,7 +279,7 @@ class PointTerm:
         self.basis: np.ndarray = pm.basis if every else pm.basis[:, ok]
         # (M, 3, K) basis, the shared modes in whitened units (2M, R), (I + V^T V)^-1
         self._basis_mk, self._v, self._c = pm.every_point if every else _term_setup(pm, ok)
-        self.uv = uv if every else uv[ok]
+        self.uv = np.ascontiguousarray(uv if every else uv[ok])
         self.camera = camera
         px_per_mm = 0.5 * (camera.fx + camera.fy) / max(float(depth_mm), 1.0)
         self.inv_sigma = np.sqrt(weight) / (pm.sigma_mm[ok] * px_per_mm)
@@ -269,6 +292,17 @@ class PointTerm:
     @property
     def n_points(self) -> int:
         return len(self.uv)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether :meth:`residuals` runs the compiled kernel (a camera without distortion)."""
+        return self._jit
+
+    def kernel_args(self) -> tuple:
+        """The landmark term's arguments of :func:`~articast.core.tracking.kernels.fit_terms`
+        (p_mean to p_scale)."""
+        return (self._mean, self._basis_mk, self._intr, self.inv_sigma, self.uv,
+                -1.0 if self.scale is None else float(self.scale))
 
     def shared(self, r: np.ndarray, jac: np.ndarray
                ) -> tuple[float, np.ndarray, np.ndarray]:
