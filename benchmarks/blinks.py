@@ -16,10 +16,14 @@ scored on the held-out 40 %:
   over both eyes; a blink frame is one whose EAR is below ``EAR_FRACTION`` x the clip's
   median EAR (the clip's open eye);
 - events are runs of blink frames (runs apart by one frame are merged); an articast event and
-  a reference event match when they overlap within ``TOLERANCE`` frames, one to one (a blink
-  read as several short events matches once). precision = matched
+  a reference event match when they overlap within ``TOLERANCE`` frames (dlib's own events
+  fragment: an event of articast's over three of its pieces is one true event, each piece
+  found). precision = matched
   articast events / articast events, recall = matched reference events / reference events;
   ``onset`` = articast's first blink frame minus the reference's, per matched pair;
+  ``precision_one_to_one`` / ``recall_one_to_one``: each reference event matched by one of
+  articast's at most, the rest false (a blink read as ten flickering events is one true and
+  nine false);
 - ``brows_vs_dlib_r``: the correlation of articast's brow raise (both sides' mean, mm) with
   dlib's (the brow points' mean height above the eye corners over the inter-ocular
   distance, :func:`brow_raise`) over the held-out frames;
@@ -100,10 +104,11 @@ def ear(points: np.ndarray) -> np.ndarray:
     return np.mean(out, axis=0)
 
 
-def match(ours: list[tuple[int, int]], ref: list[tuple[int, int]],
-          tol: int = TOLERANCE) -> tuple[float | None, float | None, list[int]]:
-    """precision, recall, onsets (ours - ref) of the pairs matched one to one."""
-    return match_events(ours, ref, tol)
+def match(ours: list[tuple[int, int]], ref: list[tuple[int, int]], tol: int = TOLERANCE,
+          one_to_one: bool = False) -> tuple[float | None, float | None, list[int]]:
+    """precision, recall, onsets (ours - ref) of the matched pairs (by overlap, or one to
+    one: :func:`~articast.core.evaluation.upper.match_events`)."""
+    return match_events(ours, ref, tol, one_to_one)
 
 
 def track(speaker, held, fps):
@@ -208,6 +213,7 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
     ratio = e / np.nanmedian(e)
     ref = events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION, merge=1)
     prec, rec, onsets = match(ours, ref)
+    prec_1, rec_1, _ = match(ours, ref, one_to_one=True)
     both = np.isfinite(cl) & np.isfinite(e)
     br = np.array([np.nan if r.upper is None or not r.upper.brows_ok else
                    (r.upper.brows_dict()["raise_left_mm"] + r.upper.brows_dict()["raise_right_mm"])
@@ -217,6 +223,7 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
     out["brows_vs_dlib_r"] = (float(np.corrcoef(br[both_b], ref_br[both_b])[0, 1])
                               if both_b.sum() > 10 and np.std(br[both_b]) > 0 else None)
     out.update({"reference_events": len(ref), "precision": prec, "recall": rec,
+                "precision_one_to_one": prec_1, "recall_one_to_one": rec_1,
                 "onset_median": float(np.median(onsets)) if onsets else None,
                 "onset_within_1": (float(np.mean(np.abs(onsets) <= 1)) if onsets else None),
                 "closure_vs_ear_r": float(np.corrcoef(cl[both], -e[both])[0, 1])

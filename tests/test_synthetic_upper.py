@@ -130,3 +130,8 @@ def test_a_flickering_blink_matches_once():
     # within a tolerance: a tracked event just after the true one still matches
     assert match_events([(19, 21)], [(10, 18)], tol=2)[1] == 1.0
     assert match_events([(19, 21)], [(10, 18)], tol=0)[1] == 0.0
+    # by overlap alone (against another detector whose events fragment too): each piece of
+    # the flicker is a true event, and one event over two reference pieces finds both
+    assert match_events(ours, ref, one_to_one=False)[:2] == (0.75, 0.5)
+    assert match_events([(10, 30)], [(10, 12), (20, 25)], one_to_one=False)[:2] == (1.0, 1.0)
+    assert match_events([(10, 30)], [(10, 12), (20, 25)])[:2] == (1.0, 0.5)

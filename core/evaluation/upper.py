@@ -59,17 +59,30 @@ def events(flags: np.ndarray, merge: int = 0) -> list[tuple[int, int]]:
     return out
 
 
-def match_events(ours: list[tuple[int, int]], ref: list[tuple[int, int]], tol: int = 0
-                 ) -> tuple[float | None, float | None, list[int]]:
-    """Precision, recall and the onsets (ours - ref, frames) of two event lists matched one
-    to one: each reference event takes the first of ours that overlaps it (within ``tol``
-    frames) and is not taken yet. A blink read as several short events (a closure flickering
-    about the threshold) matches once; the rest are false events."""
+def match_events(ours: list[tuple[int, int]], ref: list[tuple[int, int]], tol: int = 0,
+                 one_to_one: bool = True) -> tuple[float | None, float | None, list[int]]:
+    """Precision, recall and the onsets (ours - ref, frames) of two event lists, an event of
+    one matching an event of the other that it overlaps (within ``tol`` frames).
+
+    one_to_one: each reference event takes the first of ours that overlaps it and is not
+    taken yet, so a blink read as several short events (a closure flickering about the
+    threshold) matches once and the rest are false events; against a truth that does not
+    flicker (the synthetic speaker) this is the honest count. Else overlap alone (the usual
+    count against another detector whose own events fragment too: an event of ours covering
+    three pieces of the reference's is one true event, and each piece is found)."""
     def hit(a: tuple[int, int], b: tuple[int, int]) -> bool:
         return a[0] < b[1] + tol and b[0] < a[1] + tol
 
-    taken: set[int] = set()
     onsets: list[int] = []
+    if not one_to_one:
+        hits = [a for a in ours if any(hit(a, b) for b in ref)]
+        for b in ref:
+            a = next((a for a in ours if hit(a, b)), None)
+            if a is not None:
+                onsets.append(a[0] - b[0])
+        return (len(hits) / len(ours) if ours else None,
+                len(onsets) / len(ref) if ref else None, onsets)
+    taken: set[int] = set()
     for b in ref:
         j = next((j for j, a in enumerate(ours) if j not in taken and hit(a, b)), None)
         if j is not None:
