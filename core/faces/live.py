@@ -182,11 +182,11 @@ class FusionPolicy:
         third of that 8-10 Hz sawtooth. Per phase (frames since the reading) a running mean
         of the frame's deviation from the last ``read_every`` frames is taken off (each
         update clipped at 3x the phase's running spread, none while a jump settles, each
-        phase's offset shrunk by how well it is known). Offline on
-        the same raw fits (franck, cap13, pexels_woman, single_face, cap12): still-mouth
-        jitter 0.115 / 0.291 / 0.344 / 0.160 / 0.088 -> 0.090 / 0.213 / 0.264 / 0.156 /
-        0.075, r within 0.002, lag unchanged (rates 0.05-0.3 alike; 0.1: about ten readings,
-        ~1 s, the bias's time scale). The fit itself is not changed.
+        phase's offset shrunk by how well it is known). ``peers.py`` with and without
+        (``--variant no_cadence``): still-mouth jitter franck 0.117 -> 0.092, cap12 0.094 ->
+        0.087, cap13 0.303 -> 0.219, pexels_woman 0.344 -> 0.267, r within 0.002, lag
+        unchanged (offline on the same raw fits, rates 0.05-0.3 did alike; 0.1: about ten
+        readings, ~1 s, the bias's time scale). The fit itself is not changed.
     """
 
     reader: str = "v1"
