@@ -76,32 +76,30 @@ def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover -
         yy = _reflect(y + j, h)
         if rdone[yy, x]:
             continue
-        r0 = 0.0
-        r1 = 0.0
-        r2 = 0.0
+        r0 = r1 = r2 = 0.0
         for i in range(n):  # the horizontal pass of this row, all channels, once
             xx = x - rad + i if inside else _reflect(x - rad + i, w)
-            tap = taps[i]
-            r0 += tap * src[yy, xx, 0]
-            r1 += tap * src[yy, xx, 1]
-            r2 += tap * src[yy, xx, 2]
-        rows[yy, x, 0] = r0
-        rows[yy, x, 1] = r1
-        rows[yy, x, 2] = r2
+            r0, r1, r2 = _tap3(src, yy, xx, taps[i], r0, r1, r2)
+        _put3(rows, yy, x, r0, r1, r2)
         rdone[yy, x] = 1
-    a0 = 0.0
-    a1 = 0.0
-    a2 = 0.0
+    a0 = a1 = a2 = 0.0
     for j in range(n):
-        yy = _reflect(y - rad + j, h)
-        tap = taps[j]
-        a0 += tap * rows[yy, x, 0]
-        a1 += tap * rows[yy, x, 1]
-        a2 += tap * rows[yy, x, 2]
-    sm[y, x, 0] = a0
-    sm[y, x, 1] = a1
-    sm[y, x, 2] = a2
+        a0, a1, a2 = _tap3(rows, _reflect(y - rad + j, h), x, taps[j], a0, a1, a2)
+    _put3(sm, y, x, a0, a1, a2)
     done[y, x] = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _tap3(a, y, x, tap, s0, s1, s2):  # pragma: no cover - compiled
+    """The three channels' sums plus ``tap`` x a[y, x] (each channel summed as before)."""
+    return s0 + tap * a[y, x, 0], s1 + tap * a[y, x, 1], s2 + tap * a[y, x, 2]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _put3(a, y, x, s0, s1, s2):  # pragma: no cover - compiled
+    a[y, x, 0] = s0
+    a[y, x, 1] = s1
+    a[y, x, 2] = s2
 
 
 @njit(cache=True, nogil=True)
@@ -284,6 +282,20 @@ def cauchy(r, jac, c, scale):  # pragma: no cover - compiled
     return cost, rw, jw
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _posed(mean, basis_mk, alpha, rot, i):  # pragma: no cover - compiled
+    """Point i of mean + basis_mk @ alpha in the head frame (hx, hy, hz) and turned by rot
+    (p0, p1, p2; the translation not added)."""
+    hx, hy, hz = mean[i, 0], mean[i, 1], mean[i, 2]
+    for kk in range(alpha.shape[0]):
+        hx += alpha[kk] * basis_mk[i, 0, kk]
+        hy += alpha[kk] * basis_mk[i, 1, kk]
+        hz += alpha[kk] * basis_mk[i, 2, kk]
+    return (hx, hy, hz, rot[0, 0] * hx + rot[0, 1] * hy + rot[0, 2] * hz,
+            rot[1, 0] * hx + rot[1, 1] * hy + rot[1, 2] * hz,
+            rot[2, 0] * hx + rot[2, 1] * hy + rot[2, 2] * hz)
+
+
 @njit(cache=True, nogil=True)
 def point_residuals(mean, basis_mk, alpha, rot, t, intr, inv_sigma, uv,
                     jacobian):  # pragma: no cover - compiled
@@ -296,14 +308,7 @@ def point_residuals(mean, basis_mk, alpha, rot, t, intr, inv_sigma, uv,
     r = np.empty(2 * m)
     jac = np.zeros((2 * m if jacobian else 0, k + 6))
     for i in range(m):
-        hx, hy, hz = mean[i, 0], mean[i, 1], mean[i, 2]
-        for kk in range(k):
-            hx += alpha[kk] * basis_mk[i, 0, kk]
-            hy += alpha[kk] * basis_mk[i, 1, kk]
-            hz += alpha[kk] * basis_mk[i, 2, kk]
-        p0 = rot[0, 0] * hx + rot[0, 1] * hy + rot[0, 2] * hz
-        p1 = rot[1, 0] * hx + rot[1, 1] * hy + rot[1, 2] * hz
-        p2 = rot[2, 0] * hx + rot[2, 1] * hy + rot[2, 2] * hz
+        hx, hy, hz, p0, p1, p2 = _posed(mean, basis_mk, alpha, rot, i)
         x, y, z = p0 + t[0], p1 + t[1], p2 + t[2]
         iz = 1.0 / z
         w = inv_sigma[i]
@@ -539,18 +544,12 @@ def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover
     the points mean + basis_mk @ alpha (M, 3) posed by (rot, t) and projected by a camera
     without distortion (intr: fx, fy, cx, cy), as :func:`articast.core.tracking.points.
     state_offset` computes it in numpy."""
-    m, k = mean.shape[0], alpha.shape[0]
+    m = mean.shape[0]
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
     uv = np.empty((m, 2))
     for i in range(m):
-        hx, hy, hz = mean[i, 0], mean[i, 1], mean[i, 2]
-        for kk in range(k):
-            hx += alpha[kk] * basis_mk[i, 0, kk]
-            hy += alpha[kk] * basis_mk[i, 1, kk]
-            hz += alpha[kk] * basis_mk[i, 2, kk]
-        x = rot[0, 0] * hx + rot[0, 1] * hy + rot[0, 2] * hz + t[0]
-        y = rot[1, 0] * hx + rot[1, 1] * hy + rot[1, 2] * hz + t[1]
-        z = rot[2, 0] * hx + rot[2, 1] * hy + rot[2, 2] * hz + t[2]
+        _, _, _, p0, p1, p2 = _posed(mean, basis_mk, alpha, rot, i)
+        x, y, z = p0 + t[0], p1 + t[1], p2 + t[2]
         iz = 1.0 / z if z > 1e-6 else np.nan
         uv[i, 0] = fx * (x * iz) + cx
         uv[i, 1] = fy * (y * iz) + cy
@@ -605,6 +604,20 @@ def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
     return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _mm(a, b):  # pragma: no cover - compiled
+    """a @ b by plain loops (each entry summed in order over the inner index: small
+    matrices, where BLAS's call costs more than the sums)."""
+    out = np.empty((a.shape[0], b.shape[1]))
+    for r in range(a.shape[0]):
+        for c in range(b.shape[1]):
+            acc = 0.0
+            for j in range(a.shape[1]):
+                acc += a[r, j] * b[j, c]
+            out[r, c] = acc
+    return out
+
+
 @njit(cache=True, nogil=True)
 def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.kalman.ConstantVelocity.update`'s algebra in one call:
@@ -613,13 +626,7 @@ def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
     inverse of info + ``information`` ((0, 0): none, P kept). Returns (P, v)."""
     n = info.shape[0]
     m = p.shape[0]
-    g = np.empty((m, n))
-    for r in range(m):
-        for c in range(n):
-            acc = 0.0
-            for j in range(n):
-                acc += info[c, j] * p[j, r]
-            g[r, c] = acc
+    g = _mm(p[:n, :].T, info.T)  # (m, n)
     v_new = v.copy()
     for r in range(n, m):
         acc = 0.0
@@ -629,23 +636,7 @@ def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
     out = p.copy()
     if information.shape[0] > 0:
         post = np.linalg.solve(info + information, np.eye(n))
-        d = np.empty((n, n))
-        for a in range(n):
-            for b in range(n):
-                d[a, b] = p[a, b] - post[a, b]
-        gd = np.empty((m, n))
-        for r in range(m):
-            for c in range(n):
-                acc = 0.0
-                for j in range(n):
-                    acc += g[r, j] * d[j, c]
-                gd[r, c] = acc
-        for r in range(m):
-            for s in range(m):
-                acc = 0.0
-                for c in range(n):
-                    acc += gd[r, c] * g[s, c]
-                out[r, s] = p[r, s] - acc
+        out -= _mm(_mm(g, p[:n, :n] - post), g.T)
     sym = np.empty_like(out)
     for r in range(m):
         for s in range(m):
