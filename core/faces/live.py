@@ -461,8 +461,6 @@ class LiveTracker:
                 self.regated += 1
                 if self._cadence is not None:  # a jump, not the cadence's steady component
                     self._cadence.reset()
-            if fu.speaker_prior is not None:
-                prior = prior.with_speaker(fu.speaker_prior)
         if restart:  # (re)start: the detector and the finding landmarks
             if self._cadence is not None:
                 self._cadence.forget()
@@ -483,8 +481,8 @@ class LiveTracker:
                 return self._lost(t, "no_face: the landmarks lost the face")
             self._since_read = 0
             prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
-            if prior is not None and fu.speaker_prior is not None:
-                prior = prior.with_speaker(fu.speaker_prior)
+        if prior is not None and fu.speaker_prior is not None:
+            prior = prior.with_speaker(fu.speaker_prior)
         self._phase = 0 if reading is not None else self._phase + 1
         term = None
         if reading is not None:
