@@ -47,7 +47,10 @@ Scores per clip and method (held-out frames):
   start-up and the pipe (measured inside the worker);
 - ``synthetic`` only: ``truth_r``, the correlation with the true aperture ratio (the truth's
   parameters through the true model: inner midpoints 2.2-2.3 over outer corners 8.3-8.4), and
-  for articast the mean absolute error of its aperture and width in mm.
+  for articast the mean absolute error of its aperture and width in mm; ``consensus_vs_truth``:
+  whether the consensus ranks the methods as the truth does (Spearman's rank correlation of
+  ``consensus_r`` with ``truth_r`` over the methods, and both rankings): the one place where
+  the real clips' yardstick can itself be checked.
 
 ``--json`` prints one object per clip with the machine's load (``os.getloadavg``) at start and
 end; otherwise a markdown table. Progress goes to stderr.
@@ -492,9 +495,28 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
             row.update(v["info"])
         rows[k] = row
     pair = {a: {b: _round(pearson(aps[a], aps[b])[0], 3) for b in aps if b != a} for a in aps}
-    return {"clip": name, "fps": round(fps, 3), "held_out_frames": len(held),
-            "still_windows": len(windows), "methods": rows, "pairwise_r": pair,
-            "articast_vs_best": against_best(aps, scores, windows, fps)}
+    out = {"clip": name, "fps": round(fps, 3), "held_out_frames": len(held),
+           "still_windows": len(windows), "methods": rows, "pairwise_r": pair,
+           "articast_vs_best": against_best(aps, scores, windows, fps)}
+    if truth is not None:
+        out["consensus_vs_truth"] = consensus_validity(rows)
+    return out
+
+
+def consensus_validity(rows: dict[str, dict]) -> dict | None:
+    """Where the truth is known: does the consensus rank the methods as the truth does?
+    ``spearman``: rank correlation, over the methods, of ``consensus_r`` with ``truth_r``;
+    each ranking best first."""
+    pairs = [(k, r["consensus_r"], r["truth_r"]) for k, r in rows.items()
+             if r.get("consensus_r") is not None and r.get("truth_r") is not None]
+    if len(pairs) < 3:
+        return None
+    from scipy.stats import spearmanr
+
+    rho = float(spearmanr([p[1] for p in pairs], [p[2] for p in pairs])[0])
+    return {"spearman": _round(rho, 3),
+            "by_consensus": [p[0] for p in sorted(pairs, key=lambda p: -p[1])],
+            "by_truth": [p[0] for p in sorted(pairs, key=lambda p: -p[2])]}
 
 
 def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: int = 8) -> None:

@@ -124,3 +124,19 @@ def test_against_best_names_the_best_peer_of_each_score():
     assert got["jitter"]["peer"] == min(("a", "b", "c"),
                                         key=lambda k: scores[k]["jitter_pct_width"])
     assert got["jitter"]["gap"] > 0
+
+
+def test_consensus_validity_compares_the_two_rankings_where_the_truth_is_known():
+    """The consensus that ranks the methods backwards against the truth scores -1; a method
+    without one of the two figures is left out of both rankings."""
+    rows = {"a": {"consensus_r": 0.90, "truth_r": 0.80},
+            "b": {"consensus_r": 0.95, "truth_r": 0.70},
+            "c": {"consensus_r": 0.80, "truth_r": 0.90},
+            "d": {"consensus_r": None, "truth_r": 0.99},
+            "e": {"skipped": "not set up"}}
+    got = peers.consensus_validity(rows)
+    assert got["spearman"] == -1.0
+    assert got["by_consensus"] == ["b", "a", "c"] and got["by_truth"] == ["c", "a", "b"]
+    rows["c"]["consensus_r"] = 0.99  # now c first by both, a and b swapped: 0.5
+    assert peers.consensus_validity(rows)["spearman"] == 0.5
+    assert peers.consensus_validity({"a": rows["a"], "b": rows["b"]}) is None
