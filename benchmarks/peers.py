@@ -519,7 +519,7 @@ def consensus_validity(rows: dict[str, dict]) -> dict | None:
             "by_truth": [p[0] for p in sorted(pairs, key=lambda p: -p[2])]}
 
 
-def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: int = 8) -> None:
+def write_occluded_grid(path: Path, held, run: dict, tile: int = 160, per_row: int = 10) -> None:
     """Every held-out frame articast marked ``occluded``, with its fitted mesh."""
     frames = run["info"]["occluded_frames"]
     if not frames:
@@ -536,7 +536,8 @@ def write_occluded_grid(path: Path, held, run: dict, tile: int = 200, per_row: i
         tiles.append(np.zeros_like(tiles[0]))
     path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(path), np.vstack([np.hstack(tiles[r:r + per_row])
-                                      for r in range(0, len(tiles), per_row)]))
+                                      for r in range(0, len(tiles), per_row)]),
+                [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
 def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict],
@@ -562,7 +563,7 @@ def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | No
     row.update({"frames": n, "size": list(held[0].shape[1::-1]) if held else None,
                 "enrol_fraction": ENROL_FRACTION})
     if grid is not None and "error" not in runs.get("articast", {"error": 1}):
-        write_occluded_grid(grid / f"{name}_occluded.png", held, runs["articast"])
+        write_occluded_grid(grid / f"{name}_occluded.jpg", held, runs["articast"])
     return row
 
 
