@@ -15,7 +15,9 @@ scored on the held-out 40 %:
   ratio (Soukupova & Cech 2016) of each eye, ``(|p2-p6| + |p3-p5|) / (2 |p1-p4|)``, averaged
   over both eyes; a blink frame is one whose EAR is below ``EAR_FRACTION`` x the clip's
   median EAR (the clip's open eye);
-- events are runs of blink frames (runs apart by one frame are merged); an articast event and
+- events are runs of blink frames, runs apart by at most 50 ms merged (one frame at 24-30
+  fps; :func:`~articast.core.evaluation.upper.blink_events`, the synthetic scorer's count
+  too); an articast event and
   a reference event match when they overlap within ``TOLERANCE`` frames (dlib's own events
   fragment: an event of articast's over three of its pieces is one true event, each piece
   found). precision = matched
@@ -60,7 +62,12 @@ from peers import (  # noqa: E402
 )
 from real_clips import enrol_speaker  # noqa: E402
 
-from articast.core.evaluation.upper import events, match_events  # noqa: E402
+from articast.core.evaluation.upper import (  # noqa: E402
+    BLINK_CLOSURE,
+    blink_events,
+    events,
+    match_events,
+)
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -199,7 +206,7 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
                    "median_deg": np.median(gz, axis=0).round(2).tolist() if len(gz) else None,
                    "iqr_deg": (np.percentile(gz, 75, axis=0) - np.percentile(gz, 25, axis=0)
                                ).round(2).tolist() if len(gz) else None}
-    ours = events(np.nan_to_num(cl) > 0.5, merge=1)
+    ours = blink_events(np.nan_to_num(cl) > BLINK_CLOSURE, fps)
     out["articast_events"] = len(ours)
     if "dlib" not in peers:
         out["reference"] = "dlib is not set up (benchmarks/setup_peers.py)"
@@ -211,7 +218,7 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
         return out
     e = ear(got["points"])
     ratio = e / np.nanmedian(e)
-    ref = events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION, merge=1)
+    ref = blink_events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION, fps)
     prec, rec, onsets = match(ours, ref)
     prec_1, rec_1, _ = match(ours, ref, one_to_one=True)
     both = np.isfinite(cl) & np.isfinite(e)

@@ -11,8 +11,9 @@ product's policy: the reader every other frame) on a test sentence of ``--second
 ``--fps``. Scores against the truth:
 
 - ``blink_f1`` (precision, recall): events = runs of frames whose mean closure (left, right) is
-  above 0.5, in the truth and in the tracked; a tracked and a true event match when they
-  overlap; ``onset``: tracked onset minus true onset (frames) per matched blink,
+  above 0.5 (runs apart by <= 50 ms merged: ``blink_events``, as ``benchmarks/blinks.py``
+  counts), in the truth and in the tracked; a tracked and a true event match when they
+  overlap, one to one; ``onset``: tracked onset minus true onset (frames) per matched blink,
   ``onset_within_1`` the fraction within one frame;
 - ``closure_r``: correlation of the tracked closure (each eye) with the true one;
 - ``gaze_median_error_deg``: median over frames with open eyes (true closure < 0.2) of the
@@ -87,9 +88,9 @@ def corr(a, b) -> float | None:
     return round(float(np.corrcoef(a[ok], b[ok])[0, 1]), 4)
 
 
-def score(res, truth) -> dict:
+def score(res, truth, fps: float) -> dict:
     """The figures of ``articast evaluate --upper`` (core/evaluation/upper.py)."""
-    return score_upper([r.upper for r in res], truth)
+    return score_upper([r.upper for r in res], truth, fps)
 
 
 def lips(res, speaker, true_model, seq) -> dict:
@@ -135,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
     log("tracking")
     res, cost = track(speaker, frames, args.fps, photometric=args.photometric_closure)
     out = {"seconds": args.seconds, "fps": args.fps, "enrolment": speaker.report.get("upper"),
-           **score(res, up), **cost, "lips": lips(res, speaker, true_model, test)}
+           **score(res, up, args.fps), **cost, "lips": lips(res, speaker, true_model, test)}
     if not args.no_static:
         log("tracking the same sentence with static eyes (the lips' check)")
         static = [sp.render(test.controls[i], test.pose(i), test.camera,

@@ -98,14 +98,14 @@ def test_upper_scores_against_the_truth():
                                  b[0], b[0], b[1], b[1], 0.0))
         return out
 
-    exact = score_upper(faces(), truth)
+    exact = score_upper(faces(), truth, 30.0)
     assert exact["blink_f1"] == 1.0 and exact["true_blinks"] == exact["tracked_blinks"] > 5
     assert exact["onset_within_1"] == 1.0 and exact["gaze_median_error_deg"] == 0.0
     assert exact["closure_r"] == [1.0, 1.0] and exact["brow_r"] == [1.0, 1.0]
-    late = score_upper(faces(shift=3), truth)  # three frames late: found, but late
+    late = score_upper(faces(shift=3), truth, 30.0)  # three frames late: found, but late
     assert late["blink_f1"] == 1.0 and late["onset_within_1"] == 0.0
     assert set(late["onset_frames"]) == {3}
-    gone = score_upper(faces(absent=True), truth)
+    gone = score_upper(faces(absent=True), truth, 30.0)
     assert gone["eyes_ok"] == 0.0 and gone["blink_recall"] == 0.0 and gone["blink_f1"] == 0.0
 
 
@@ -114,6 +114,22 @@ def test_evaluate_refuses_a_bad_upper_length(capsys):
 
     assert main(["evaluate", "--quick", "--upper", "--upper-seconds", "0.5"]) == 2
     assert "--upper-seconds" in capsys.readouterr().err
+
+
+def test_a_blink_is_not_split_by_a_gap_shorter_than_a_reopening():
+    """Runs of blink frames apart by <= 50 ms (one frame at 30 fps, three at 60) are one
+    blink, in the synthetic scorer and benchmarks/blinks.py alike; a longer gap (the eye
+    seen open for two frames at 30 fps: 67 ms) parts two blinks."""
+    from articast.core.evaluation.upper import blink_events
+
+    flags = np.zeros(40, bool)
+    flags[[5, 6, 8, 9, 20, 21, 24, 25]] = True  # a one-frame gap, then a two-frame one
+    assert blink_events(flags, 30.0) == [(5, 10), (20, 22), (24, 26)]
+    assert blink_events(flags, 24.0) == [(5, 10), (20, 22), (24, 26)]
+    assert blink_events(flags, 60.0) == [(5, 10), (20, 26)]  # 2 frames at 60 fps: 33 ms
+    assert blink_events(flags, 12.0) == [(5, 7), (8, 10), (20, 22), (24, 26)]  # 83 ms
+    with pytest.raises(InputError, match="frame rate"):
+        blink_events(flags, 0.0)
 
 
 def test_a_flickering_blink_matches_once():

@@ -437,6 +437,42 @@ def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
     assert held.closure_left == pytest.approx(0.0, abs=0.02)
 
 
+def test_between_readings_a_lasting_disagreement_with_the_reader_is_carried():
+    """A photometric measure blind to a shut lid (pexels_woman's lid as bright as her white)
+    reads the eye open while the reader's lids read it shut: on a reading's frame the closure
+    is the two's mean; between readings it is not the photometric one alone (a closure that
+    jumps at the reader's cadence, a shut eye read as several blinks) but moved by the
+    readings' disagreement, the lasting part of it whole, one reading's by half."""
+    lm = reading(CANON.vertices_mm)
+    shut_lm = reading(with_lids(OPEN - 1.0))  # the reader's lids: closure 1
+    img = eye_image(lm, (0.0, 0.0))  # the pixels: an open eye
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    fit = U.fit_iris(grey, lm, "left")
+    assert fit is not None
+    m_open = U.lid_gap(grey, inner, outer, OPEN * SCALE, fit.levels)
+    assert m_open is not None
+    b = -1.0 / m_open
+    ref = U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
+                           photo=(1.0, b, 1.0, b), photo_r=(-0.9, -0.9),
+                           photo_kind=("gap", "gap"))
+    tracker = U.UpperTracker(ref)
+    tracker.step(img, lm, np.zeros(2), True)  # an open eye: both measures agree
+    got = []
+    for _ in range(8):  # the reader every other frame, reading the lids shut
+        got.append(tracker.step(img, shut_lm, np.zeros(2), True))
+        got.append(tracker.step(img, None, np.zeros(2), True))
+    assert [f.source for f in got[:2]] == ["reader", "photo"]
+    cl = np.array([f.closure_left for f in got])
+    assert cl[0] == pytest.approx(0.5, abs=0.05)  # the reading: the two measures' mean
+    assert cl[1] == pytest.approx(0.25, abs=0.05)  # after one reading: half its disagreement
+    assert np.abs(cl[-6:] - 0.5).max() < 0.05, np.round(cl, 2)  # lasting: no jump
+    # the photometric measure alone (``photometric``) keeps its own reading between
+    alone = U.UpperTracker(ref, photometric=True)
+    alone.step(img, shut_lm, np.zeros(2), True)
+    assert alone.step(img, None, np.zeros(2), True).closure_left == pytest.approx(0.0, abs=0.05)
+
+
 def test_absent_not_zero():
     img = np.full((400, 640, 3), 128, np.uint8)
     lm = reading(CANON.vertices_mm)

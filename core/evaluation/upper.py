@@ -7,8 +7,10 @@ upper face's references) on one sentence with its own blinks, then tracked live
 (:class:`~articast.core.faces.live.LiveTracker`, the product's policy) on another, and scored:
 
 - ``blink_f1`` (``blink_precision``, ``blink_recall``): events are runs of frames whose mean
-  closure (left, right) is above 0.5, in the truth and in the tracked; a tracked and a true
-  event match when they overlap, one to one (:func:`match_events`); ``onset_within_1``: the
+  closure (left, right) is above 0.5, runs apart by a gap of at most ``REOPEN_S`` one event
+  (:func:`blink_events`, the count of ``benchmarks/blinks.py`` too), in the truth and in the
+  tracked; a tracked and a true event match when they overlap, one to one
+  (:func:`match_events`); ``onset_within_1``: the
   fraction of matched blinks whose tracked onset is within one frame of the true one
   (``onset_frames``: each difference);
 - ``closure_r``: correlation of each eye's tracked closure with the true one;
@@ -25,12 +27,14 @@ No files here; ``clock`` (e.g. time.perf_counter) is passed in for the times.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from articast.core.errors import InputError
 from articast.core.synthetic.upper import UpperTruth
 
 
@@ -57,6 +61,22 @@ def events(flags: np.ndarray, merge: int = 0) -> list[tuple[int, int]]:
         else:
             out.append((s, e))
     return out
+
+
+BLINK_CLOSURE = 0.5
+"""A blink frame: the mean closure of both eyes above this (issue 19)."""
+REOPEN_S = 0.05
+"""Runs of blink frames apart by a gap this short (or shorter) are one event: an eye does not
+reopen and close again within it (a blink's reopening alone takes ~100 ms or more), so the gap
+is the measurement's. At 20-39 fps a gap of one frame, at 60 fps three."""
+
+
+def blink_events(flags: np.ndarray, fps: float) -> list[tuple[int, int]]:
+    """(start, end exclusive) of each blink: runs of blink frames (``flags``, e.g. the mean
+    closure > :data:`BLINK_CLOSURE`), those apart by at most :data:`REOPEN_S` merged."""
+    if not fps > 0:
+        raise InputError(f"blink events need a frame rate > 0, got {fps}")
+    return events(flags, merge=int(math.floor(REOPEN_S * fps + 1e-9)))
 
 
 def match_events(ours: list[tuple[int, int]], ref: list[tuple[int, int]], tol: int = 0,
@@ -100,9 +120,9 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float | None:
     return round(float(np.corrcoef(a[ok], b[ok])[0, 1]), 4)
 
 
-def score_upper(uppers: list[Any], truth: UpperTruth) -> dict[str, Any]:
+def score_upper(uppers: list[Any], truth: UpperTruth, fps: float) -> dict[str, Any]:
     """The module docstring's figures of tracked upper faces (F UpperFace or None) against
-    ``truth`` (F frames)."""
+    ``truth`` (F frames at ``fps``)."""
     n = len(uppers)
     cl = np.full((n, 2), np.nan)
     gz = np.full((n, 2), np.nan)
@@ -115,8 +135,8 @@ def score_upper(uppers: list[Any], truth: UpperTruth) -> dict[str, Any]:
         if u is not None and u.brows_ok:
             br[i] = ((u.raise_inner_left_mm + u.raise_outer_left_mm) / 2,
                      (u.raise_inner_right_mm + u.raise_outer_right_mm) / 2)
-    true_ev = events(truth.closure.mean(axis=1) > 0.5)
-    ours = events(np.nan_to_num(cl.mean(axis=1)) > 0.5)
+    true_ev = blink_events(truth.closure.mean(axis=1) > BLINK_CLOSURE, fps)
+    ours = blink_events(np.nan_to_num(cl.mean(axis=1)) > BLINK_CLOSURE, fps)
 
     prec, rec, onsets = match_events(ours, true_ev)
     f1 = 2 * prec * rec / (prec + rec) if prec and rec else 0.0
@@ -190,7 +210,7 @@ def evaluate_upper(cfg: UpperEvalConfig = UpperEvalConfig(),
         frame_s += (clock() - t0) if clock else 0.0
     out = {"config": {"seed": cfg.seed, "seconds": cfg.seconds, "fps": cfg.fps},
            "enrolment": speaker.report.get("upper"),
-           **score_upper([r.upper for r in results], up)}
+           **score_upper([r.upper for r in results], up, cfg.fps)}
     ok = np.array([r.ok for r in results])
     ap, _ = lip_measures(speaker.model, np.array([r.alpha for r in results]))
     ap_true, _ = lip_measures(true_model, invert(true_model, test.points))

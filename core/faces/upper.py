@@ -1002,6 +1002,14 @@ def _runs(flags: np.ndarray) -> list[tuple[int, int]]:
     return list(zip(d[::2].tolist(), d[1::2].tolist(), strict=True))
 
 
+OFFSET_WEIGHT = 0.5
+"""Between readings each eye's closure is its photometric closure moved by the readings'
+disagreement with it (:meth:`UpperTracker._from`): a running mean over the readings in which
+the last one weighs this much. A disagreement that lasts (a measure blind to a lid, an
+expression held) is carried whole, one reading's alone (the reader's lids saturating at a
+blink's deepest) by half. The ablation (1: the last reading's alone; 0.5; 0.3) over every
+clip with blinks and the synthetic speaker is in docs/UPPER_FACE.md."""
+
 PHOTO_MIN_R = 0.5
 """A side whose photometric measure correlated less than this (in magnitude: the contrast
 falls as the lid closes, r < 0) with the reader's closure at enrolment is not used between
@@ -1026,12 +1034,15 @@ class UpperTracker:
     _gaze: tuple[float, float] | None = None
     _closure: tuple[float, float] | None = None
     _wide: tuple[float, float] | None = None
+    _offset: list[float | None] = field(default_factory=lambda: [None, None])
+    # each eye's running disagreement of the readings with its photometric closure (:meth:`_from`)
     _levels: list[tuple[float, float, float] | None] = field(
         default_factory=lambda: [None, None])  # each eye's grey levels at its last fit
 
     def reset(self) -> None:
         self._last = self._corners = self._anchor = None
         self._gaze = self._closure = None
+        self._offset = [None, None]
 
     def _photo(self, grey: np.ndarray, i: int, inner: np.ndarray, outer: np.ndarray
                ) -> float | None:
@@ -1122,9 +1133,27 @@ class UpperTracker:
             if usable:
                 raw = ref.photo[2 * i] + ref.photo[2 * i + 1] * float(x)  # type: ignore[arg-type]
                 if reading:
+                    # the mean is the photometric closure moved by half the two measures'
+                    # disagreement (closures, 0..1); that move, a running mean over the
+                    # readings (:data:`OFFSET_WEIGHT`), is carried to the frames between
+                    d = 0.5 * (c - _clip(raw, 0.0, 1.0))
+                    off = self._offset[i]
+                    self._offset[i] = d if off is None else (
+                        OFFSET_WEIGHT * d + (1.0 - OFFSET_WEIGHT) * off)
                     raw = 0.5 * (raw - w)
+                elif (off := self._offset[i]) is not None and not self.photometric:
+                    # between readings the photometric measure gives the change, the readings
+                    # the level: where the two measures disagree for longer than a reading
+                    # (pexels_woman's left lid as bright as her white, read open while shut;
+                    # her right eye's iris height, read half closed while open) the closure
+                    # does not jump at the reader's cadence (docs/UPPER_FACE.md)
+                    cl.append(_clip(_clip(raw, 0.0, 1.0) + off, 0.0, 1.0))
+                    wide.append(_clip(-raw, 0.0, 1.0))
+                    continue
                 c, w = _clip(raw, 0.0, 1.0), -raw
-            elif photo is not None and self._closure is not None:
+            elif photo is None:
+                self._offset[i] = None  # a reading without the photometric measure
+            elif self._closure is not None:
                 c = self._closure[i]  # between readings without a usable gap: held
                 w = 0.0 if self._wide is None else self._wide[i]
             cl.append(c)
