@@ -424,6 +424,8 @@ def test_live_lips_are_measured_on_the_state_streamed_every_frame(enrolled):
     frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
     live = _fused(sp)
     assert not live.tracker.measure_lips
+    # the reader runs no detector: it shares the finder's session instead of loading one
+    assert live.reader.detector_session is live.finder.detector_session
     seq = frames[:12] + [np.zeros_like(frames[0])] + frames[12:20]
     res = [live.track(img, i / 25) for i, img in enumerate(seq)]
     assert not res[12].ok  # the blank frame is lost, then tracked again

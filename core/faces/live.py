@@ -280,8 +280,10 @@ class LiveTracker:
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         if fu is not None:
-            if reader is None:  # the bundled one, on one thread
-                self.reader = FaceFinder.load(landmarks=fu.reader)
+            if reader is None:  # the bundled one, on one thread (it runs no detector: the
+                # finder's session is shared rather than loaded again)
+                self.reader = FaceFinder.load(landmarks=fu.reader, detector=getattr(
+                    finder, "detector_session", None))
             assert speaker.points is not None
             if speaker.points.network != fu.reader:
                 raise ValueError(f"the speaker's observation model is of the "
