@@ -10,15 +10,16 @@ scaled to 640 px wide (aspect kept); every method sees exactly these frames. art
 the first 60 % (at most 600 frames analysed, as ``articast enroll`` strides) and everything is
 scored on the remaining 40 % (held out), where all methods run:
 
-- ``articast``: ``real_clips.track_live`` (the live path: landmark checks, optical flow, fit,
-  filter); its aperture is ``lips.aperture_mm`` over the fitted outer lip width (8.3-8.4), as in
+- ``articast``: the live path as a user's loop (``ArticastLoop``: ``FaceFinder.load`` and a
+  ``LiveTracker``, then ``track`` per frame: reader, fused fit, motion model, filter, eyes and
+  brows); its aperture is ``lips.aperture_mm`` over the fitted outer lip width (8.3-8.4), as in
   ``benchmarks/real_clips.py``. Frames not ok are NaN in its scores, counted in ``ok``.
 - ``facemesh_v1``: the loop a user would write with MediaPipe FaceMesh v1 on onnxruntime: the
   bundled BlazeFace detector on the first frame and when lost, then the 468-point model (192 px)
   on a crop re-made from the previous frame's landmarks (``FinderPolicy(refine=0,
   keep_roi=0)``). Its mean ms per frame is the **speed baseline** of every ratio.
-- ``facelandmarker_v2``: the bundled ``FaceFinder`` (478 points, its default policy), as
-  ``real_clips.landmarks_every_frame``.
+- ``facelandmarker_v2``: the bundled ``FaceFinder`` (478 points, its default policy) in the
+  same loop (``FinderLoop``).
 - ``openseeface``, ``mediapipe`` (its own FaceMesh solution), ``dlib`` (68 points): each in its
   own venv (``benchmarks/setup_peers.py``), run as a subprocess (``benchmarks/peer_worker.py``)
   that receives the frames through a pipe and times its own per-frame work *inside* the
@@ -43,8 +44,20 @@ Scores per clip and method (held-out frames):
   thread (onnxruntime sessions with one intra-op thread, ``cv2.setNumThreads(1)`` here and in
   the workers; mediapipe's graph runs its own calculators); ``cpu_ms``: its process CPU time
   per frame (less sensitive to other jobs on the machine); ``x_v1``: ms over the FaceMesh v1
-  loop's in the same run. Timings exclude model loading and, for the workers, process
-  start-up and the pipe (measured inside the worker);
+  loop's in the same run. Timings exclude the construction (a user's loop builds its
+  sessions once): for articast and the in-process landmark loops it is timed apart,
+  ``build_ms`` / ``build_cpu_ms`` (ONNX sessions loaded, articast's ``LiveTracker`` made);
+  for the workers, process start-up, model loading and the pipe are not timed (measured
+  inside the worker). The first frame (articast's start: detector, finding landmarks, reader;
+  the loop's detector) is a frame's work and is timed;
+- ``interleaved`` (articast, when the FaceMesh v1 loop runs too; ``--cpu-repeats`` passes,
+  default 3, 0 for none): the CPU figure robust to the machine's load drifting. After the
+  full run, both loops are built afresh and run again on the same frames, taking turns every
+  ``--cpu-chunk`` frames (default 25; who goes first alternates), each keeping its state
+  across its turns; per pass, each one's mean CPU (and wall) ms per frame. ``cpu_x_v1`` and
+  ``x_v1`` give the pass-by-pass ratios' median, min, max; the per-pass figures and both
+  constructions are listed. A load change during a pass then falls on both alike, within
+  a turn of ~0.1-0.3 s. Accuracy is scored on the full run alone;
 - ``synthetic`` only: ``truth_r``, the correlation with the true aperture ratio (the truth's
   parameters through the true model: inner midpoints 2.2-2.3 over outer corners 8.3-8.4), and
   for articast the mean absolute error of its aperture and width in mm; ``consensus_vs_truth``:
@@ -67,7 +80,9 @@ import sys
 import tempfile
 import time
 import warnings
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -75,16 +90,12 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from face_landmarks_clips import box_motion, jitter, still_windows, window_frames  # noqa: E402
-from real_clips import (  # noqa: E402
-    enrol_speaker,
-    landmarks_every_frame,
-    outer_width_mm,
-    track_live,
-)
+from real_clips import enrol_speaker, outer_width_mm  # noqa: E402
 
 from articast.core.faces.build import analysed_frames  # noqa: E402
 from articast.core.faces.finder import FaceFinder, FinderPolicy, models_dir  # noqa: E402
-from articast.core.faces.live import FusionPolicy, LivePolicy  # noqa: E402
+from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker  # noqa: E402
+from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
 from articast.service.overlay import fit_tile, lip_contours  # noqa: E402
 
@@ -278,6 +289,102 @@ def _round(x: float | None, k: int) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), k)
 
 
+# ---------------------------------------------------------------------------- timing
+CPU_REPEATS = 3  # --cpu-repeats: interleaved passes of articast and the v1 loop
+CPU_CHUNK = 25  # --cpu-chunk: frames per turn in an interleaved pass
+
+#: a method's loop: ``build()`` makes its sessions and state (a user's set-up, timed apart)
+#: and returns ``step(i)``, its whole work on frame i (frames in order, from 0)
+Builder = Callable[[], Callable[[int], Any]]
+Clock = Callable[[], float]
+
+
+def timed_pass(build: Builder, n: int, wall: Clock = time.perf_counter,
+               cpu: Clock = time.process_time) -> dict:
+    """One pass of a method over frames 0..n-1: ``outputs`` (step's per frame), ``step``,
+    ``build_ms``
+    and ``build_cpu_ms`` (its construction: sessions, tracker), ``ms`` and ``cpu_ms`` (mean
+    per frame, construction not included)."""
+    w0, c0 = wall(), cpu()
+    step = build()
+    w1, c1 = wall(), cpu()
+    outputs = [step(i) for i in range(n)]
+    w2, c2 = wall(), cpu()
+    per = 1e3 / max(n, 1)
+    return {"outputs": outputs, "step": step, "build_ms": (w1 - w0) * 1e3,
+            "build_cpu_ms": (c1 - c0) * 1e3, "ms": (w2 - w1) * per, "cpu_ms": (c2 - c1) * per}
+
+
+def chunk_schedule(n: int, chunk: int, k: int) -> list[tuple[int, int, tuple[int, ...]]]:
+    """The turns of an interleaved pass of ``k`` methods over ``n`` frames: (start, stop,
+    order of the methods) per chunk of ``chunk`` frames. Every method sees every frame once,
+    in order; the order of the methods is reversed every other chunk, so that none always
+    runs first (after another's caches, or first when the load changes)."""
+    if n < 0 or chunk < 1 or k < 1:
+        raise ValueError(f"need n >= 0, chunk >= 1, k >= 1; got {n}, {chunk}, {k}")
+    forward = tuple(range(k))
+    return [(a, min(a + chunk, n), forward if (a // chunk) % 2 == 0 else forward[::-1])
+            for a in range(0, n, chunk)]
+
+
+def interleaved_cost(builders: dict[str, Builder], n: int, repeats: int = CPU_REPEATS,
+                     chunk: int = CPU_CHUNK, wall: Clock = time.perf_counter,
+                     cpu: Clock = time.process_time) -> dict[str, dict[str, list[float]]]:
+    """Each method's cost on the same ``n`` frames, in ``repeats`` passes where the methods
+    take turns every ``chunk`` frames (:func:`chunk_schedule`), so that a change of the
+    machine's load falls on all of them alike. Every pass builds every method afresh (timed
+    apart). Per method, one value per pass: ``build_ms``, ``build_cpu_ms`` (construction)
+    and ``ms``, ``cpu_ms`` (mean per frame, construction not included)."""
+    names = list(builders)
+    out: dict[str, dict[str, list[float]]] = {
+        m: {"build_ms": [], "build_cpu_ms": [], "ms": [], "cpu_ms": []} for m in names}
+    schedule = chunk_schedule(n, chunk, len(names))
+    for _ in range(repeats):
+        steps, spent = {}, {m: [0.0, 0.0] for m in names}
+        for m in names:
+            w0, c0 = wall(), cpu()
+            steps[m] = builders[m]()
+            out[m]["build_ms"].append((wall() - w0) * 1e3)
+            out[m]["build_cpu_ms"].append((cpu() - c0) * 1e3)
+        for start, stop, order in schedule:
+            for j in order:
+                m = names[j]
+                w0, c0 = wall(), cpu()
+                for i in range(start, stop):
+                    steps[m](i)
+                spent[m][0] += wall() - w0
+                spent[m][1] += cpu() - c0
+        for m in names:
+            out[m]["ms"].append(spent[m][0] * 1e3 / max(n, 1))
+            out[m]["cpu_ms"].append(spent[m][1] * 1e3 / max(n, 1))
+    return out
+
+
+def ratio_spread(values: Sequence[float], base: Sequence[float]) -> dict:
+    """The ratios values[i] / base[i] of paired passes: their median, min, max and the list
+    (rounded to 3 digits; None where a base is not positive)."""
+    if len(values) != len(base):
+        raise ValueError(f"{len(values)} values for {len(base)} bases")
+    r = [v / b for v, b in zip(values, base, strict=True) if b > 0]
+    if not r:
+        return {"median": None, "min": None, "max": None, "runs": []}
+    return {"median": _round(float(np.median(r)), 3), "min": _round(min(r), 3),
+            "max": _round(max(r), 3), "runs": [_round(x, 3) for x in r]}
+
+
+def interleaved_ratios(costs: dict[str, dict[str, list[float]]], method: str,
+                       base: str = BASELINE) -> dict:
+    """``method``'s per-frame cost over ``base``'s, pass by pass (wall ``x_v1`` and CPU
+    ``cpu_x_v1``), with both methods' per-pass figures."""
+    a, b = costs[method], costs[base]
+    return {"passes": len(a["ms"]), "x_v1": ratio_spread(a["ms"], b["ms"]),
+            "cpu_x_v1": ratio_spread(a["cpu_ms"], b["cpu_ms"]),
+            "cpu_ms": [_round(x, 2) for x in a["cpu_ms"]],
+            "base_cpu_ms": [_round(x, 2) for x in b["cpu_ms"]],
+            "build_cpu_ms": [_round(x, 1) for x in a["build_cpu_ms"]],
+            "base_build_cpu_ms": [_round(x, 1) for x in b["build_cpu_ms"]]}
+
+
 # ---------------------------------------------------------------------------- frames
 def scaled(frame: np.ndarray) -> np.ndarray:
     h, w = frame.shape[:2]
@@ -314,6 +421,34 @@ def read_clip(path: Path) -> tuple[list[np.ndarray], list[np.ndarray], float, in
 
 
 # ---------------------------------------------------------------------------- methods
+class ArticastLoop:
+    """articast's live loop as a user writes it: the finding landmarks' sessions and the
+    :class:`LiveTracker` (which loads the reader) made once, then one ``track`` per frame."""
+
+    def __init__(self, speaker, frames: list[np.ndarray], fps: float,
+                 policy: LivePolicy | None = None) -> None:
+        self.frames, self.fps = frames, fps
+        self.live = LiveTracker(speaker, FaceFinder.load(threads=1),
+                                mediapipe_scheme(speaker.rig), policy, clock=time.perf_counter)
+
+    def __call__(self, i: int) -> Any:
+        return self.live.track(self.frames[i], i / self.fps)
+
+
+class FinderLoop:
+    """A landmark model's loop: the detector on the first frame and when lost, else the
+    landmarks in a crop grown from the previous frame's (``FaceFinder.track``)."""
+
+    def __init__(self, finder: FaceFinder, frames: list[np.ndarray]) -> None:
+        self.finder, self.frames, self.prev = finder, frames, None
+
+    def __call__(self, i: int) -> Any:
+        f = self.frames[i]
+        face = self.finder.track(f, self.prev) if self.prev is not None else None
+        self.prev = face = face or self.finder.find(f)
+        return face
+
+
 def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                  times=None) -> dict:
     """Enrol on ``enrol`` (already selected, taken at ``times``), track ``held`` live."""
@@ -322,12 +457,13 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                                 max_frames=None, times=times)
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
-    kernels.warm_up()
-    finder = FaceFinder.load(threads=1)
-    c0 = time.process_time()
-    results, ms, live = track_live(speaker, held, fps, finder=finder,
-                                   live_policy=ARTICAST_POLICY)
-    cpu = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+    kernels.warm_up()  # numba's compilation: once per process, not a session's
+
+    def build() -> ArticastLoop:
+        return ArticastLoop(speaker, held, fps, ARTICAST_POLICY)
+
+    got = timed_pass(build, len(held))
+    results, live = got["outputs"], got["step"].live
     m, cam = speaker.model, speaker.camera
     ok = np.array([r.ok for r in results])
     alpha = np.array([r.alpha for r in results])
@@ -346,7 +482,7 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
         if not r.ok:
             code = r.reason.split(":", 1)[0]
             reasons[code] = reasons.get(code, 0) + 1
-    return {"ratio": ratio, "boxes": boxes, "ms": ms, "cpu_ms": cpu, "found": ok,
+    return {"ratio": ratio, "boxes": boxes, **_costs(got), "found": ok, "builder": build,
             "speaker": speaker, "results": results, "aperture_mm": ap_mm,
             "width_mm": width_mm, "ok": ok,
             "info": {"ok": _round(ok.mean(), 4), "reasons": reasons,
@@ -358,25 +494,40 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                      "enrol_build_s": _round(speaker.report["build_s"], 1)}}
 
 
-def run_finder(finder: FaceFinder, held, scheme="mediapipe") -> dict:
-    c0 = time.process_time()
-    marks, found, ms = landmarks_every_frame(finder, held)
-    cpu = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+def _costs(got: dict) -> dict:
+    return {k: got[k] for k in ("ms", "cpu_ms", "build_ms", "build_cpu_ms")}
+
+
+def run_finder(make: Callable[[], FaceFinder], held, scheme="mediapipe") -> dict:
+    """A landmark model's loop (:class:`FinderLoop`) on ``held``; ``make`` loads its sessions
+    (timed apart)."""
+    def build() -> FinderLoop:
+        return FinderLoop(make(), held)
+
+    got = timed_pass(build, len(held))
+    faces = got["outputs"]
+    # NaN where no face, as many points as the model gives (478 for v2, 468 for FaceMesh v1)
+    shape = next((f.landmarks.shape for f in faces if f is not None), (478, 3))
+    marks = np.array([f.landmarks if f is not None else np.full(shape, np.nan)
+                      for f in faces])
     pts = marks[:, :, :2]
-    return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme), "ms": ms,
-            "cpu_ms": cpu, "found": found}
+    return {"ratio": aperture_ratio(pts, scheme), "boxes": lip_box(pts, scheme),
+            **_costs(got), "found": np.array([f is not None for f in faces]),
+            "builder": build}
 
 
 def facemesh_v1_finder(path: Path) -> FaceFinder:
+    """The FaceMesh v1 loop's sessions: the bundled detector and the v1 model at ``path``,
+    one thread each."""
     import onnxruntime as ort
 
-    v2 = FaceFinder.load(threads=1)
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = 1
     opts.inter_op_num_threads = 1
     opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    lm = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-    return FaceFinder(v2.detector_session, lm, FinderPolicy(refine=0, keep_roi=0.0))
+    detector, lm = (ort.InferenceSession(str(f), opts, providers=["CPUExecutionProvider"])
+                    for f in (models_dir() / "face_detector.onnx", path))
+    return FaceFinder(detector, lm, FinderPolicy(refine=0, keep_roi=0.0))
 
 
 def run_worker(name: str, peer: dict, held: list[np.ndarray]) -> dict:
@@ -440,9 +591,9 @@ def run_methods(methods, held, fps, enrol, facemesh_v1: Path | None, peers: dict
                 out[name] = {"error": f"no FaceMesh v1 ONNX at {facemesh_v1}: run "
                                       "tools/convert_face_models.py --with-v1"}
             else:
-                out[name] = run_finder(facemesh_v1_finder(facemesh_v1), held)
+                out[name] = run_finder(lambda: facemesh_v1_finder(facemesh_v1), held)
         elif name == "facelandmarker_v2":
-            out[name] = run_finder(FaceFinder.load(threads=1), held)
+            out[name] = run_finder(lambda: FaceFinder.load(threads=1), held)
         else:
             peer = peers.get(name)
             if not peer or not peer.get("ok"):
@@ -455,6 +606,14 @@ def run_methods(methods, held, fps, enrol, facemesh_v1: Path | None, peers: dict
         else:
             log(f"  {name}: {out[name]['ms']:.2f} ms/frame "
                 f"({time.perf_counter() - t0:.0f} s in all)")
+    a, b = out.get("articast", {}), out.get(BASELINE, {})
+    if CPU_REPEATS > 0 and "builder" in a and "builder" in b:
+        log(f"  articast and {BASELINE} interleaved: {CPU_REPEATS} passes, turns of "
+            f"{CPU_CHUNK} frames")
+        costs = interleaved_cost({"articast": a["builder"], BASELINE: b["builder"]},
+                                 len(held), CPU_REPEATS, CPU_CHUNK)
+        a["interleaved"] = interleaved_ratios(costs, "articast")
+        log(f"  CPU x v1 interleaved: {a['interleaved']['cpu_x_v1']}")
     return out
 
 
@@ -488,7 +647,11 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
                "ms": _round(v["ms"], 2), "cpu_ms": _round(v["cpu_ms"], 2),
                "x_v1": _round(v["ms"] / base, 3) if base else None,
                "cpu_x_v1": _round(v["cpu_ms"] / base_cpu, 3)
-               if base_cpu and v["cpu_ms"] else None}
+               if base_cpu and v["cpu_ms"] else None,
+               "build_ms": _round(v.get("build_ms"), 1),
+               "build_cpu_ms": _round(v.get("build_cpu_ms"), 1)}
+        if "interleaved" in v:
+            row["interleaved"] = v["interleaved"]
         if truth is not None:
             row["truth_r"] = _round(pearson(v["ratio"], truth)[0], 4)
         if "info" in v:
@@ -612,7 +775,17 @@ COLUMNS = (("found / ok", lambda r: r.get("ok", r.get("found"))),
                                         f"({_fmt(r['lag_velocity_frames'])})"),
            ("ms/frame", lambda r: r["ms"]),
            ("x v1", lambda r: r["x_v1"]),
-           ("CPU ms (x v1)", lambda r: f"{_fmt(r['cpu_ms'])} ({_fmt(r['cpu_x_v1'])})"))
+           ("CPU ms (x v1)", lambda r: f"{_fmt(r['cpu_ms'])} ({_fmt(r['cpu_x_v1'])})"),
+           ("CPU x v1 interleaved", lambda r: _spread(r.get("interleaved"))),
+           ("build CPU ms", lambda r: r.get("build_cpu_ms")))
+
+
+def _spread(inter: dict | None) -> str:
+    """The interleaved passes' CPU ratio: median (min-max, passes)."""
+    if not inter or inter["cpu_x_v1"]["median"] is None:
+        return "–"
+    c = inter["cpu_x_v1"]
+    return f"{c['median']} ({c['min']}-{c['max']}, {inter['passes']})"
 
 
 def _fmt(x) -> str:
@@ -625,6 +798,7 @@ SUMMARY = (("r against the consensus of the others", "consensus_r"),
            ("lag of the frame-to-frame changes, frames", "lag_velocity_frames"),
            ("wall ms per frame / FaceMesh v1 loop's", "x_v1"),
            ("CPU ms per frame / FaceMesh v1 loop's", "cpu_x_v1"),
+           ("the same, interleaved passes: median (min-max, passes)", "interleaved"),
            ("frames with a face (articast: ok)", None))
 
 
@@ -644,6 +818,8 @@ def summary(rows: list[dict]) -> list[str]:
                     cells.append("–")
                 elif key is None:
                     cells.append(_fmt(v.get("ok", v.get("found"))))
+                elif key == "interleaved":
+                    cells.append(_spread(v.get(key)))
                 else:
                     cells.append(_fmt(v.get(key)))
             lines.append(f"| {m} | " + " | ".join(cells) + " |")
@@ -704,6 +880,7 @@ def clip_paths(cache: Path) -> dict[str, Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
+    global ARTICAST_POLICY, CPU_REPEATS, CPU_CHUNK
     clips = clip_paths(CLIP_CACHE)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
@@ -722,10 +899,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--variant", choices=list(VARIANTS), default="fused",
                     help="articast's live policy (the ablation of docs/TRACKING.md; default: "
                          "the product's, fused)")
+    ap.add_argument("--cpu-repeats", type=int, default=CPU_REPEATS,
+                    help="passes of articast and the FaceMesh v1 loop interleaved on the "
+                         "same frames for the CPU ratio's median and spread (0: none; "
+                         f"default {CPU_REPEATS})")
+    ap.add_argument("--cpu-chunk", type=int, default=CPU_CHUNK,
+                    help=f"frames per turn in an interleaved pass (default {CPU_CHUNK})")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    global ARTICAST_POLICY
+    if args.cpu_repeats < 0 or args.cpu_chunk < 1:
+        ap.error("--cpu-repeats must be >= 0 and --cpu-chunk >= 1")
     ARTICAST_POLICY = VARIANTS[args.variant]
+    CPU_REPEATS, CPU_CHUNK = args.cpu_repeats, args.cpu_chunk
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)
     names = args.only or [*clips, "synthetic"]

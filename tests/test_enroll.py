@@ -414,6 +414,29 @@ def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
     assert np.corrcoef(ap[32:], ap_true[32:])[0, 1] > 0.9
 
 
+def test_live_lips_are_measured_on_the_state_streamed_every_frame(enrolled):
+    """The lips of every live frame (ok, filtered, lost on a blank frame, restarted) are those
+    of the alpha it streams, measured once (the tracker inside measures none)."""
+    from articast.core.outputs.lips import lips_dict
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    live = _fused(sp)
+    assert not live.tracker.measure_lips
+    # the reader runs no detector: it shares the finder's session instead of loading one
+    assert live.reader.detector_session is live.finder.detector_session
+    seq = frames[:12] + [np.zeros_like(frames[0])] + frames[12:20]
+    res = [live.track(img, i / 25) for i, img in enumerate(seq)]
+    assert not res[12].ok  # the blank frame is lost, then tracked again
+    assert sum(r.ok for r in res[13:]) >= 6
+    for r in res:
+        assert r.lips is not None and r.lips == lips_dict(sp.model, r.alpha)
+    # the streamed alpha is the filtered one: its lips, not the raw fit's
+    raw = [r for r in res if r.ok and "alpha_raw" in r.extra]
+    assert raw and any(r.lips != lips_dict(sp.model, r.extra["alpha_raw"]) for r in raw)
+
+
 def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monkeypatch):
     """kernels.warm_up() (run before a session's first frame) calls every compiled kernel a
     fused live frame calls with the same argument types: nothing is compiled while tracking

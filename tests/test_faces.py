@@ -194,3 +194,22 @@ def test_lip_contours_run_corner_to_corner_through_the_midpoints():
         pairs = {tuple(sorted(e)) for e in canon.edges["lips"].tolist()}
         assert all(tuple(sorted(p)) in pairs for p in zip(c[:-1], c[1:]))
         assert np.all(np.diff(canon.vertices_mm[c, 0]) > 0)  # right corner -> left corner
+
+
+def test_crop_is_the_rgb_patch_scaled_to_unit_range_in_float32():
+    """The network input: the warped patch, channels reversed to RGB, x 1/255 in float32
+    (written with cv2.cvtColor and an in-place scale: the same floats as the plain formula)."""
+    from articast.core.faces.landmarks import Roi, crop
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (90, 120, 3), dtype=np.uint8)
+    roi = Roi(np.array([61.0, 44.0]), 70.0, 0.3)
+    got = crop(img, roi, 64)
+    patch = cv2.warpAffine(img, roi.crop_to_image(64), (64, 64),
+                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                           borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0, 0))
+    want = (patch[:, :, ::-1].astype(np.float32) * (1.0 / 255.0))[None]
+    assert got.dtype == np.float32 and got.shape == (1, 64, 64, 3)
+    assert np.array_equal(got, want)
+    # channel 0 is the image's red (BGR's last)
+    np.testing.assert_allclose(got[0, :, :, 0], patch[:, :, 2] / 255.0, atol=1e-6)

@@ -140,3 +140,77 @@ def test_consensus_validity_compares_the_two_rankings_where_the_truth_is_known()
     rows["c"]["consensus_r"] = 0.99  # now c first by both, a and b swapped: 0.5
     assert peers.consensus_validity(rows)["spearman"] == 0.5
     assert peers.consensus_validity({"a": rows["a"], "b": rows["b"]}) is None
+
+# ---------------------------------------------------------------------------- timing
+class _Virtual:
+    """A clock that moves only when a fake method works: its cost per frame, and per build."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def _fake(clock: _Virtual, build_s: float, frame_s, seen: list):
+    """A builder whose construction costs build_s and whose frame i costs frame_s(i); it
+    records (pass, frame) as it works."""
+    passes = []
+
+    def build():
+        clock.now += build_s
+        passes.append(len(passes))
+        p = passes[-1]
+
+        def step(i):
+            seen.append((p, i))
+            clock.now += frame_s(i)
+            return i * 10
+        return step
+    return build
+
+
+def test_chunk_schedule_gives_every_frame_once_in_order_and_alternates_who_goes_first():
+    sched = peers.chunk_schedule(7, 3, 2)
+    assert [(a, b) for a, b, _ in sched] == [(0, 3), (3, 6), (6, 7)]
+    assert [o for _, _, o in sched] == [(0, 1), (1, 0), (0, 1)]
+    assert peers.chunk_schedule(0, 3, 2) == []
+    with pytest.raises(ValueError):
+        peers.chunk_schedule(5, 0, 2)
+
+
+def test_timed_pass_keeps_construction_out_of_the_per_frame_cost():
+    clock, seen = _Virtual(), []
+    got = peers.timed_pass(_fake(clock, 0.5, lambda i: 0.002, seen), 4, clock, clock)
+    assert got["outputs"] == [0, 10, 20, 30]
+    assert got["build_ms"] == pytest.approx(500.0) and got["build_cpu_ms"] == pytest.approx(500.0)
+    assert got["ms"] == pytest.approx(2.0) and got["cpu_ms"] == pytest.approx(2.0)
+
+
+def test_interleaved_cost_times_each_method_on_its_own_turns_fresh_every_pass():
+    clock, seen_a, seen_b = _Virtual(), [], []
+    # a costs 3 ms a frame plus 30 ms on its first frame (a start); b 2 ms; builds 1 s / 2 s
+    a = _fake(clock, 1.0, lambda i: 0.003 + (0.030 if i == 0 else 0.0), seen_a)
+    b = _fake(clock, 2.0, lambda i: 0.002, seen_b)
+    costs = peers.interleaved_cost({"a": a, "b": b}, 10, repeats=2, chunk=4, wall=clock,
+                                   cpu=clock)
+    # every pass builds afresh and runs every frame once, in order
+    assert seen_a == [(p, i) for p in range(2) for i in range(10)]
+    assert seen_b == [(p, i) for p in range(2) for i in range(10)]
+    assert costs["a"]["ms"] == pytest.approx([6.0, 6.0])  # (10 * 3 + 30) / 10
+    assert costs["b"]["cpu_ms"] == pytest.approx([2.0, 2.0])
+    assert costs["a"]["build_ms"] == pytest.approx([1000.0, 1000.0])
+    assert costs["b"]["build_cpu_ms"] == pytest.approx([2000.0, 2000.0])
+    got = peers.interleaved_ratios(costs, "a", base="b")
+    assert got["passes"] == 2
+    assert got["cpu_x_v1"]["median"] == pytest.approx(3.0)
+    assert got["x_v1"]["runs"] == [3.0, 3.0]
+
+
+def test_ratio_spread_pairs_the_passes():
+    got = peers.ratio_spread([6.0, 4.0, 9.0], [3.0, 4.0, 3.0])
+    assert got["runs"] == [2.0, 1.0, 3.0]  # pass by pass, not the ratio of the means
+    assert (got["median"], got["min"], got["max"]) == (2.0, 1.0, 3.0)
+    assert peers.ratio_spread([1.0], [0.0])["median"] is None
+    with pytest.raises(ValueError):
+        peers.ratio_spread([1.0, 2.0], [1.0])

@@ -14,6 +14,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -104,12 +105,14 @@ class FaceFinder:
 
     @classmethod
     def load(cls, models: str | Path | None = None, *, threads: int = 1,
-             policy: FinderPolicy = FinderPolicy(), landmarks: str = "v2") -> FaceFinder:
+             policy: FinderPolicy = FinderPolicy(), landmarks: str = "v2",
+             detector: Any = None) -> FaceFinder:
         """Create the onnxruntime sessions once.
 
         models : folder holding ``face_detector.onnx`` and the landmark network (default: the
             bundled ones). threads : intra-op threads of each session. landmarks : which
-            landmark network, a key of :data:`LANDMARK_MODELS`.
+            landmark network, a key of :data:`LANDMARK_MODELS`. detector : an already loaded
+            detector session to share (another finder's ``detector_session``), else loaded.
         """
         if landmarks not in LANDMARK_MODELS:
             raise InputError(f"landmarks must be one of {sorted(LANDMARK_MODELS)}, "
@@ -128,6 +131,9 @@ class FaceFinder:
             path = folder / name
             if not path.is_file():
                 raise ModelFileError(f"face model not found: {path}")
+            if name == DETECTOR_FILE and detector is not None:
+                sessions.append(detector)
+                continue
             sessions.append(ort.InferenceSession(str(path), opts,
                                                  providers=["CPUExecutionProvider"]))
         return cls(sessions[0], sessions[1], policy)

@@ -242,8 +242,9 @@ class LiveTracker:
             tracking = replace(tracking, fit=replace(
                 tracking.fit, max_iterations=self.policy.fusion.max_iterations,
                 max_rejections=2))
+        # the lips are measured once a frame, on the state streamed (track)
         self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera, tracking,
-                               clock=clock)
+                               clock=clock, measure_lips=False)
         self.clock = clock
         self._face: Any = None
         self._since_check = 0
@@ -279,8 +280,10 @@ class LiveTracker:
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         if fu is not None:
-            if reader is None:  # the bundled one, on one thread
-                self.reader = FaceFinder.load(landmarks=fu.reader)
+            if reader is None:  # the bundled one, on one thread (it runs no detector: the
+                # finder's session is shared rather than loaded again)
+                self.reader = FaceFinder.load(landmarks=fu.reader, detector=getattr(
+                    finder, "detector_session", None))
             assert speaker.points is not None
             if speaker.points.network != fu.reader:
                 raise ValueError(f"the speaker's observation model is of the "
@@ -361,11 +364,14 @@ class LiveTracker:
                 out = self._filter(out, t)
             result = replace(result, alpha=out, lips=lips_dict(self.speaker.model, out),
                              extra={**result.extra, "alpha_raw": result.alpha})
-        elif not result.ok:
-            if self._filter is not None:
-                self._filter.reset()
-            if self._cadence is not None:
-                self._cadence.reset()
+        else:
+            if not result.ok:
+                if self._filter is not None:
+                    self._filter.reset()
+                if self._cadence is not None:
+                    self._cadence.reset()
+            if result.lips is None:  # the tracker's result (its lips not measured)
+                result = replace(result, lips=lips_dict(self.speaker.model, result.alpha))
         if result.ok:
             self._last = result
         return result

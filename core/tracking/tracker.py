@@ -195,8 +195,11 @@ class Tracker:
 
     def __init__(self, model: FaceModel, appearance: AppearanceModel, camera: Camera,
                  policy: TrackingPolicy | None = None, initial_pose: Pose | None = None,
-                 clock: Callable[[], float] | None = None) -> None:
+                 clock: Callable[[], float] | None = None, measure_lips: bool = True) -> None:
+        """measure_lips : False leaves ``TrackResult.lips`` None (a caller that measures
+        the lips of the state it streams, e.g. a smoothed one, once a frame)."""
         self.policy = policy or TrackingPolicy()
+        self.measure_lips = measure_lips
         pol = self.policy
         fitted = {}
         for name in ("levels", "reinit_levels", "init_levels"):
@@ -525,7 +528,7 @@ class Tracker:
                                 fit.robust_residual, "point_q": fit.point_q,
                                 "alpha_fit": fit.alpha.copy(), "theta_fit": fit.theta,
                                 "information": fit.information},
-                               lips_dict(self.model, alpha))
+                               self._lips(alpha))
         if force and self._level is None and fit.valid_fraction < pol.min_valid_fraction:
             return self._lost(t, t0, "no_face: the initial search did not find the face",
                               evals, fit)
@@ -557,7 +560,7 @@ class Tracker:
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
                             "gain": fit.gain, "robust_residual": fit.robust_residual,
                             "point_q": fit.point_q, "information": fit.information},
-                           lips_dict(self.model, fit.alpha))
+                           self._lips(fit.alpha))
 
     def _lost(self, t: float, t0: float, reason: str, evals: int,
               fit: FitResult | None = None) -> TrackResult:
@@ -574,7 +577,10 @@ class Tracker:
                            fit.residual if fit else float("nan"), evals,
                            fit.iterations if fit else 0, self._ms(t0),
                            {"robust_residual": fit.robust_residual} if fit else {},
-                           lips_dict(self.model, alpha))
+                           self._lips(alpha))
+
+    def _lips(self, alpha: np.ndarray) -> dict[str, float] | None:
+        return lips_dict(self.model, alpha) if self.measure_lips else None
 
     def _ms(self, t0: float) -> float:
         return (self.clock() - t0) * 1000.0 if self.clock else 0.0
