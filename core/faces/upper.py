@@ -736,13 +736,10 @@ def lid_gap(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: flo
     skin, white, iris = (float(v) for v in levels)
     if white - skin < LEVELS_MIN_CONTRAST or skin - iris < LEVELS_MIN_CONTRAST:
         return None
-    strip = _eye_strip(grey, inner, outer, open_px)
+    strip = _middle_strip(grey, inner, outer, open_px, 0.25)
     if strip is None:
         return None
-    wide = strip.shape[1] - 1
-    strip = strip[:, int(round(wide * 0.25)):int(round(wide * 0.75)) + 1]
-    eye = np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris))
-    eye = np.clip((eye - 0.25) * 2.0, 0.0, 1.0)
+    eye = _soft(np.maximum((strip - skin) / (white - skin), (skin - strip) / (skin - iris)))
     return float(eye.sum(0).mean()) / float(open_px)
 
 
@@ -762,14 +759,28 @@ def iris_height(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px:
     skin, _, iris = (float(v) for v in levels)
     if skin - iris < LEVELS_MIN_CONTRAST:
         return None
+    strip = _middle_strip(grey, inner, outer, open_px, 0.15)
+    if strip is None:
+        return None
+    dark = _soft((skin - strip) / (skin - iris)).sum(0)
+    tall = np.sort(dark)[(3 * dark.size) // 4:]
+    return float(tall.mean()) / float(open_px)
+
+
+def _soft(x: np.ndarray) -> np.ndarray:
+    """The soft threshold of the eye measures: 0 up to a quarter of the way from the skin,
+    1 from three quarters."""
+    return np.clip((x - 0.25) * 2.0, 0.0, 1.0)
+
+
+def _middle_strip(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float,
+                  margin: float) -> np.ndarray | None:
+    """The eye's strip (:func:`_eye_strip`) without ``margin`` of its width at each end."""
     strip = _eye_strip(grey, inner, outer, open_px)
     if strip is None:
         return None
     wide = strip.shape[1] - 1
-    strip = strip[:, int(round(wide * 0.15)):int(round(wide * 0.85)) + 1]
-    dark = np.clip(((skin - strip) / (skin - iris) - 0.25) * 2.0, 0.0, 1.0).sum(0)
-    tall = np.sort(dark)[(3 * dark.size) // 4:]
-    return float(tall.mean()) / float(open_px)
+    return strip[:, int(round(wide * margin)):int(round(wide * (1.0 - margin))) + 1]
 
 
 def _eye_strip(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float
