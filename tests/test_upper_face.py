@@ -505,6 +505,32 @@ def test_calibration_finds_the_open_and_closed_eye_and_counts_blinks():
     assert U.calibrate([None] * 30) is None
 
 
+def test_a_blink_the_reader_reads_shallow_is_the_closed_eye_when_it_lies_far_outside_the_open():
+    """A small face (carphone: its reader's lids stop at 0.62 of the open eye at a blink) with
+    one blink frame in 72: the 1st percentile lies among the open eyes, and the fixed fraction
+    would put the shut eye so deep that its blinks read 0.4; the blink, an outlier of the open
+    eye's spread, is the shut reference. A dip the open eye's spread explains is not."""
+    img = cv2.cvtColor(np.full((400, 640, 3), 128, np.uint8), cv2.COLOR_BGR2GRAY)
+    rng = np.random.default_rng(3)
+    open_canon = U.lid_opening_mm(CANON.vertices_mm)[0]
+    closing = np.abs(rng.normal(0.0, 0.04 * open_canon, 72))  # the open eye's spread
+    closing[40] = 0.38 * open_canon  # the blink, read at 0.62 of the open eye
+    ms = [U.measure(img, reading(with_lids(c), 10.0), CANON) for c in closing]
+    ref = U.calibrate(ms)
+    assert ref is not None and ref.blinks == 1
+    opened = ref.open_mm[0]
+    assert ref.closed_mm[0] == pytest.approx(U.lid_opening_mm(with_lids(closing[40]))[0],
+                                             abs=0.05)
+    assert U.closure(ms[40].opening[0], opened, ref.closed_mm[0]) > 0.9  # it reads shut
+    # the same dip where the open eye's own spread is wide (a speaker whose eyes roam): held
+    # to the fixed fraction, not taken for the shut eye
+    wide = np.abs(rng.normal(0.0, 0.12 * open_canon, 72))
+    wide[40] = 0.38 * open_canon
+    ref_w = U.calibrate([U.measure(img, reading(with_lids(c), 10.0), CANON) for c in wide])
+    assert ref_w is not None
+    assert ref_w.closed_mm[0] == pytest.approx(U.CLOSED_FRACTION * ref_w.open_mm[0], abs=0.01)
+
+
 def test_reference_round_trip_and_malformed():
     d = REF.to_dict()
     back = U.UpperReference.from_dict(d, "x")

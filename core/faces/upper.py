@@ -77,10 +77,12 @@ class UpperReference:
 
     open_mm, closed_mm : (left, right) lid opening of the open eye (the clip's median: the
         speaker's usual open eye) and of the closed eye (the clip's deepest blinks, its 1st
-        percentile; when the clip has none, a fixed fraction of the open eye and ``blinks`` is
-        0). With the 90th percentile as the open eye, a laughing speaker's squint (the
-        cheeks push the lower lids up) read 0.52-0.58 on franck, a blink; with the median
-        0.4 (docs/UPPER_FACE.md).
+        percentile; with blink frames fewer than 1 % of the clip's, the mean of those whose
+        opening lies :data:`BLINK_OUTLIER_SD` robust s.d. below the open eye's; when the clip
+        has none, a fixed fraction of the open eye and ``blinks`` is 0). With the 90th
+        percentile as the open eye, a laughing speaker's squint (the cheeks push the lower
+        lids up) read 0.52-0.58 on franck, a blink; with the median 0.4
+        (docs/UPPER_FACE.md).
     brows_mm : (left inner, left outer, right inner, right outer) neutral brow heights above
         the eye line (the clip's median).
     iris_mm : (left x, left y, right x, right y) the iris's median offset from the eye
@@ -927,7 +929,16 @@ def closure(opening: float, open_mm: float, closed_mm: float) -> float:
 
 CLOSED_FRACTION = 0.25
 """Without a blink in the enrolment clip, the closed eye's opening is taken as this fraction
-of the open eye's (FaceMesh v1's lids stay apart by ~20-35 % of the open eye on closed eyes)."""
+of the open eye's (FaceMesh v1's lids stay apart by ~20-35 % of the open eye on the synthetic
+speaker's closed eyes; on real faces its deepest reading of a blink is 0.46-0.65 of the open
+eye: docs/UPPER_FACE.md, so a speaker enrolled without a blink reads low closures)."""
+
+BLINK_OUTLIER_SD = 5.0
+"""An enrolment frame whose lid opening (both eyes' mean) lies this many robust standard
+deviations (1.4826 x the median absolute deviation) below the clip's median is a blink, however
+shallow the reader reads it (on a 176 x 144 face its lids stop at 0.62 of the open eye): no
+open eye's spread reaches that far (4 s.d. did, twice: cap12 and cap13's gaze dips to 0.78-0.8
+of the open eye, dlib's eyes open)."""
 
 
 def calibrate(measures: list[Measures | None]) -> UpperReference | None:
@@ -940,7 +951,12 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     open_mm = np.median(op, axis=0)  # the usual open eye (blinks are < 10 % of the time)
     low = np.percentile(op, 1, axis=0)
     blinked = low < 0.6 * open_mm
-    closed = np.where(blinked, np.minimum(low, 0.6 * open_mm), CLOSED_FRACTION * open_mm)
+    # fewer blink frames than 1 % of the clip leave the 1st percentile among the open eyes:
+    # then the blinks found as outliers of the open eye's spread give the shut reference
+    sd = 1.4826 * np.median(np.abs(op - open_mm), axis=0)
+    dips = ((op - open_mm) / np.maximum(sd, 1e-6)).mean(axis=1) < -BLINK_OUTLIER_SD
+    shut = op[dips].mean(axis=0) if dips.any() else CLOSED_FRACTION * open_mm
+    closed = np.where(blinked, np.minimum(low, 0.6 * open_mm), shut)
     closed = np.minimum(closed, 0.8 * open_mm)
     brows = np.median(np.array([m.brows for m in ms]), axis=0)
     # closure per frame, then a line from the photometric measure to it
