@@ -126,6 +126,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     # (re)starts as before issue 18's start change: the finding landmarks, the detector after
     # every diverged fit
     "finder_start": LivePolicy(fusion=FusionPolicy(start="finder", resume=False)),
+    "finder_start_resume": LivePolicy(fusion=FusionPolicy(start="finder")),
     "no_resume": LivePolicy(fusion=FusionPolicy(resume=False)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
