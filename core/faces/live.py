@@ -9,7 +9,8 @@ The landmark model runs
 
 - on the first frame and after every loss: detector + landmarks, then the articulation and
   pose are read off the landmarks (:func:`~articast.core.faces.enrol.state_from_landmarks`)
-  and the tracker starts there;
+  and the tracker starts there (fused tracking: the reader's landmarks, and after a
+  ``diverged`` fit without the detector: ``FusionPolicy.start``, ``.resume``);
 - every ``verify_every`` frames, and on any frame the tracker doubts: landmarks only, in a crop
   grown from the previous landmarks (no detector). No face there -> ``no_face``, and the next
   frame starts over with the detector. A tracked head whose depth is far from the landmarks'
