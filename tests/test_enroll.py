@@ -436,6 +436,13 @@ def _counting_finders():
     return finder, Counting.load(landmarks="v1", detector=finder.detector_session)
 
 
+def test_a_start_policy_it_does_not_know_is_refused_in_one_line():
+    from articast.core.faces.live import FusionPolicy
+
+    with pytest.raises(ValueError, match="start must be 'reader' or 'finder', got 'v2'"):
+        FusionPolicy(start="v2")
+
+
 def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enrolled):
     """A fit the frame's landmarks disown (``diverged``: the state knocked off the face, the
     face still read) restarts on the next frame from the landmarks read in the crop grown from
