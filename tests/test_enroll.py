@@ -414,6 +414,117 @@ def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
     assert np.corrcoef(ap[32:], ap_true[32:])[0, 1] > 0.9
 
 
+def _counting_finders():
+    """The finding landmarks and the reader (sharing one detector session), each counting
+    its detector's runs and its own ``find`` / ``track`` calls."""
+    from articast.core.faces.finder import FaceFinder
+
+    class Counting(FaceFinder):
+        def detect(self, image_bgr):
+            self.detections = getattr(self, "detections", 0) + 1
+            return super().detect(image_bgr)
+
+        def find(self, image_bgr, **kw):
+            self.finds = getattr(self, "finds", 0) + 1
+            return super().find(image_bgr, **kw)
+
+        def track(self, image_bgr, previous):
+            self.tracks = getattr(self, "tracks", 0) + 1
+            return super().track(image_bgr, previous)
+
+    finder = Counting.load()
+    return finder, Counting.load(landmarks="v1", detector=finder.detector_session)
+
+
+def test_a_start_policy_it_does_not_know_is_refused_in_one_line():
+    from articast.core.faces.live import FusionPolicy
+
+    with pytest.raises(ValueError, match="start must be 'reader' or 'finder', got 'v2'"):
+        FusionPolicy(start="v2")
+
+
+def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enrolled):
+    """A fit the frame's landmarks disown (``diverged``: the state knocked off the face, the
+    face still read) restarts on the next frame from the landmarks read in the crop grown from
+    that reading: one reader call, no detector, no finding landmarks; with
+    ``FusionPolicy(resume=False)`` the same frame runs the detector."""
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    runs = {}
+    for resume in (True, False):
+        finder, reader = _counting_finders()
+        live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
+                           LivePolicy(fusion=FusionPolicy(resume=resume)), reader=reader)
+        for i, img in enumerate(frames[:50]):
+            live.track(img, i / 25)
+        kf = live.kalman
+        kf.t = kf.t + np.array([60.0, 0.0, 120.0])  # 6 cm aside, 12 cm further
+        kf.alpha = kf.alpha + 3.0
+        i = 50
+        res = live.track(frames[i], i / 25)
+        while not res.reason.startswith("diverged") and i < 53:
+            i += 1
+            res = live.track(frames[i], i / 25)
+        assert res.reason.startswith("diverged"), res.reason
+        before = (reader.detections, getattr(finder, "finds", 0), getattr(finder, "tracks", 0),
+                  live.finder_calls, live.restarts)
+        nxt = live.track(frames[i + 1], (i + 1) / 25)
+        runs[resume] = (nxt, before, (reader.detections, getattr(finder, "finds", 0),
+                                      getattr(finder, "tracks", 0), live.finder_calls,
+                                      live.restarts))
+    nxt, before, after = runs[True]
+    assert nxt.ok and after[4] == before[4] + 1  # restarted, and fits
+    assert after[0] == before[0] and after[1:3] == before[1:3]  # no detector, no v2
+    assert after[3] == before[3] + 1  # one reader call: the frame's reading
+    _, before, after = runs[False]
+    assert after[0] == before[0] + 1 and after[4] == before[4] + 1
+
+
+def test_a_start_from_the_readers_landmarks_is_as_close_to_the_truth_as_the_finders(enrolled):
+    """``FusionPolicy.start``: a tracker started on frames 0, 6, ..., 72 of the rendered
+    speaker from the reader's own landmarks (FaceMesh v1 found as the finder finds, no
+    FaceLandmarker v2 call) reads the first frame's lip aperture as well as one started from
+    the finding landmarks (r with the truth across the starts), and no further from what a
+    tracker running through the clip reads there."""
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    truth = _track_lines(enrolled / "test" / "truth.jsonl")
+    true_model = FaceModel.load(enrolled / "test" / "model.npz")
+    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
+    ap_true, _ = lip_measures(true_model, at)
+    starts = np.arange(0, len(frames), 6)
+    finder, reader = _counting_finders()
+
+    def tracker(start):
+        return LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
+                           LivePolicy(fusion=FusionPolicy(start=start)), reader=reader)
+
+    through = tracker("finder")
+    ref = np.array([through.track(img, i / 25).lips["aperture_mm"]
+                    for i, img in enumerate(frames)])[starts]
+    got = {}
+    for start in ("finder", "reader"):
+        finds = getattr(finder, "finds", 0)
+        got[start] = []
+        for k in starts:
+            res = tracker(start).track(frames[k], k / 25)
+            assert res.ok, (start, k, res.reason)
+            got[start].append(res.lips["aperture_mm"])
+        assert (getattr(finder, "finds", 0) - finds == 0) == (start == "reader")
+    r = {k: np.corrcoef(v, ap_true[starts])[0, 1] for k, v in got.items()}
+    mae = {k: np.abs(np.array(v) - ref).mean() for k, v in got.items()}
+    assert r["reader"] >= r["finder"] - 0.003, r
+    assert mae["reader"] <= 1.1 * mae["finder"], mae
+
+
 def test_live_lips_are_measured_on_the_state_streamed_every_frame(enrolled):
     """The lips of every live frame (ok, filtered, lost on a blank frame, restarted) are those
     of the alpha it streams, measured once (the tracker inside measures none)."""

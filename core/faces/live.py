@@ -9,7 +9,8 @@ The landmark model runs
 
 - on the first frame and after every loss: detector + landmarks, then the articulation and
   pose are read off the landmarks (:func:`~articast.core.faces.enrol.state_from_landmarks`)
-  and the tracker starts there;
+  and the tracker starts there (fused tracking: the reader's landmarks, and after a
+  ``diverged`` fit without the detector: ``FusionPolicy.start``, ``.resume``);
 - every ``verify_every`` frames, and on any frame the tracker doubts: landmarks only, in a crop
   grown from the previous landmarks (no detector). No face there -> ``no_face``, and the next
   frame starts over with the detector. A tracked head whose depth is far from the landmarks'
@@ -187,6 +188,20 @@ class FusionPolicy:
         0.087, cap13 0.303 -> 0.219, pexels_woman 0.344 -> 0.267, r within 0.002, lag
         unchanged (offline on the same raw fits, rates 0.05-0.3 did alike; 0.1: about ten
         readings, ~1 s, the bias's time scale). The fit itself is not changed.
+    start : which landmarks a (re)start reads. "reader": the reader's own, found as the
+        finder finds (the detector, then the reader in its box and twice more in the crop
+        grown from what it read: ~3 FaceMesh v1 calls); the start's state and the frame's
+        reading are the same landmarks (the scheme reads none of the finding network's iris
+        points, the only ones FaceMesh v1 lacks). "finder": the finding landmarks
+        (FaceLandmarker v2, three calls), then the reader seeded from them: ~40 ms more CPU
+        per start, which on a 2 s clip is most of articast's excess over the FaceMesh v1 loop.
+        On the rendered speaker (the knock test's clip), 25 starts 3 frames apart: the first
+        frame's aperture 0.54 vs 0.65 mm from the tracked one (MAE), r with the truth 0.992 vs
+        0.990; recovery after eight knocks r 0.900 vs 0.899 (docs/REAL_SPEAKERS.md).
+    resume : after a ``diverged`` frame (the fit, not the face, was lost: the reader read the
+        face this frame or within ``read_every``), the restart reads the landmarks in the
+        crop grown from that last reading instead of running the detector (which still runs
+        when that reading finds no face, or when the start it resumed diverges at once).
     """
 
     reader: str = "v1"
@@ -203,6 +218,12 @@ class FusionPolicy:
     adapt: float | None = 0.1
     speaker_prior: float | None = 1.0
     cadence: float | None = 0.1
+    start: str = "reader"
+    resume: bool = True
+
+    def __post_init__(self) -> None:
+        if self.start not in ("reader", "finder"):
+            raise ValueError(f"start must be 'reader' or 'finder', got {self.start!r}")
 
 
 LIVE_ALPHA_SIGMA = 0.5
@@ -266,6 +287,8 @@ class LiveTracker:
         self.fusion = fu
         self.reader = reader
         self._reading: Any = None
+        self._resume: Any = None  # the last reading, after a frame whose fit diverged
+        self._resumed = -1  # the last frame started from it
         self._since_read = 0
         self.regated = 0  # readings far from the prediction (the motion model restarted)
         self.rereads = 0  # readings that asked for the next frame to be read too
@@ -303,8 +326,14 @@ class LiveTracker:
         return face
 
     def _start(self, face: Any, keep_levels: bool = False) -> bool:
+        marks = np.asarray(face.landmarks)
+        n = self.scheme.n_landmarks
+        if len(marks) < n and len(marks) > int(np.max(self.scheme.points)):
+            # the reader's (FaceMesh v1, 468 points): the finding network's topology without
+            # its iris points, none of which the scheme reads
+            marks = np.concatenate([marks, np.repeat(marks[-1:], n - len(marks), 0)])
         state = state_from_landmarks(self.speaker.model, self.scheme, self.speaker.camera,
-                                     face.landmarks)
+                                     marks)
         if state is None:
             return False
         alpha, pose = state
@@ -335,6 +364,7 @@ class LiveTracker:
         self._started = False
         self._face = None
         self._reading = None
+        self._resume = None
         if self._cadence is not None:
             self._cadence.forget()
         if self._motion is not None:
@@ -467,24 +497,17 @@ class LiveTracker:
                 self.regated += 1
                 if self._cadence is not None:  # a jump, not the cadence's steady component
                     self._cadence.reset()
-        if restart:  # (re)start: the detector and the finding landmarks
+        if restart:  # (re)start from landmarks (FusionPolicy.start, .resume)
             if self._cadence is not None:
                 self._cadence.forget()
             was = self._started
             self._started = False
-            face = self._finder(image)
-            if face is None:
-                return self._lost(t, "no_face: the face finder sees no face")
-            if not self._start(face, keep_levels=was):
-                return self._lost(t, "no_face: the landmarks do not fit the speaker")
+            reading = self._restart(image, fu, keep_levels=was)
+            if isinstance(reading, str):
+                return self._lost(t, reading)
             alpha, pose = self.tracker.state or (None, None)
             assert alpha is not None and pose is not None
             self.kalman.start(alpha, pose.rotation, pose.translation)
-            self.finder_calls += 1
-            reading = self.reader.track(image, reader_seed(face))
-            self._fresh = reading
-            if reading is None:
-                return self._lost(t, "no_face: the landmarks lost the face")
             self._since_read = 0
             prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
         if prior is not None and fu.speaker_prior is not None:
@@ -528,7 +551,47 @@ class LiveTracker:
                 self.kalman.hold()
         if not result.ok and not result.reason.startswith("occluded"):
             self._started = False  # diverged, left the image, blank: find the face again
+            # a diverged fit: the face was read (this frame or within the last read_every),
+            # the fit was lost; unless it was a resumed start's (the reading is suspect)
+            self._resume = (self._reading if fu.resume and result.reason.startswith("diverged")
+                            and self._resumed != self._frame else None)
         return result
+
+    def _restart(self, image: np.ndarray, fu: FusionPolicy, keep_levels: bool) -> Any:
+        """Start the tracker from landmarks of this frame (:attr:`FusionPolicy.start`,
+        :attr:`FusionPolicy.resume`); returns the frame's reading, or the reason (a str) of a
+        lost frame."""
+        assert self.reader is not None
+        seed, self._resume = self._resume, None
+        reader_start = fu.start == "reader"
+        face = None
+        if seed is not None:  # last frame's fit diverged from its reading: no detector
+            if reader_start:
+                self.finder_calls += 1
+                face = self.reader.track(image, seed)
+                self._fresh = face
+            else:
+                face = self._finder(image, seed)
+            self._resumed = self._frame if face is not None else -1
+        if face is None:
+            if reader_start:
+                self.finder_calls += 1
+                face = self.reader.find(image)
+                self._fresh = face
+            else:
+                face = self._finder(image)
+        if face is None:
+            return "no_face: the face finder sees no face"
+        if not self._start(face, keep_levels=keep_levels):
+            return "no_face: the landmarks do not fit the speaker"
+        if reader_start:
+            return face
+        self.finder_calls += 1
+        reading = self.reader.track(image, reader_seed(face))
+        self._fresh = reading
+        if reading is None:
+            return "no_face: the landmarks lost the face"
+        return reading
 
     def _term(self, reading: Any, prior: StatePrior | None, weight: float = 1.0,
               scale: float | None = None) -> PointTerm:
