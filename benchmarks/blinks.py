@@ -29,6 +29,17 @@ scored on the held-out 40 %:
 - ``brows_vs_dlib_r``: the correlation of articast's brow raise (both sides' mean, mm) with
   dlib's (the brow points' mean height above the eye corners over the inter-ocular
   distance, :func:`brow_raise`) over the held-out frames;
+- ``gaze``: ``frames``, the fraction of held-out frames with a gaze (held between readings);
+  its median and interquartile range (deg); and against an independent iris,
+  ``vs_iris_r`` (yaw, pitch): the correlation of articast's gaze yaw and pitch with
+  mediapipe's iris offset over the frames where both have one. The reference is mediapipe's
+  legacy FaceMesh with ``refine_landmarks=True`` (its attention model's iris points, in the
+  mediapipe venv: ``benchmarks/peer_worker.py`` ``mediapipe_iris``; articast never imports
+  it): each eye's iris centre (468, 473) from the middle of its corners (33-133, 362-263),
+  along and across the corners' axis over the eye's width (x to the image's right, the
+  speaker's left; y up), both eyes averaged (:func:`iris_offsets`). It is in the image, not
+  the head's frame: a head turn moves it a little too. ``ref_sd`` is its spread (a clip
+  whose speaker hardly moves his eyes has little to correlate);
 - ``upper_ms`` / ``upper_cpu_ms``: the time of the upper face's own step per frame
   (``UpperTracker.step``, timed inside the same live run) next to the whole frame's
   (``frame_ms``), one thread.
@@ -75,7 +86,7 @@ from articast.core.tracking import kernels  # noqa: E402
 
 EAR_FRACTION = 0.7
 TOLERANCE = 2
-SERIES = ("ours", "ref", "closure", "ear_ratio")  # only in --json
+SERIES = ("ours", "ref", "closure", "ear_ratio", "gaze_series")  # only in --json
 IBUG_EYES = ((36, 37, 38, 39, 40, 41), (42, 43, 44, 45, 46, 47))
 IBUG_BROWS = ((17, 18, 19, 20, 21), (22, 23, 24, 25, 26))  # (image left, image right)
 
@@ -94,6 +105,42 @@ def brow_raise(points: np.ndarray) -> np.ndarray:
         h = ((points[:, list(brow)].mean(axis=1) - corners) * up).sum(-1)
         out.append(h / iod)
     return np.mean(out, axis=0)
+
+
+MP_IRIS = ((473, 362, 263), (468, 133, 33))  # (iris centre, corners) per eye, mediapipe 478
+
+
+def iris_offsets(points: np.ndarray) -> np.ndarray:
+    """(N, 2) the iris centre's offset from the middle of its eye's corners, along the
+    corners' axis (to the image's right) and across it (up), over the eye's width, both eyes
+    averaged, from mediapipe's refined FaceMesh points (N, 478, 2) px; NaN where none."""
+    out = []
+    for c, a, b in MP_IRIS:
+        pa, pb = points[:, a], points[:, b]
+        swap = (pa[:, 0] > pb[:, 0])[:, None]
+        lo, hi = np.where(swap, pb, pa), np.where(swap, pa, pb)
+        axis = hi - lo
+        width = np.linalg.norm(axis, axis=-1)
+        u = axis / width[:, None]
+        v = np.stack([u[:, 1], -u[:, 0]], -1)  # up in the image
+        d = points[:, c] - (lo + hi) / 2.0
+        out.append(np.stack([(d * u).sum(-1), (d * v).sum(-1)], -1) / width[:, None])
+    with warnings.catch_warnings():  # (frames without a face: NaN)
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmean(out, axis=0)
+
+
+def gaze_vs_iris(gaze: np.ndarray, ref: np.ndarray) -> dict:
+    """The correlation of articast's gaze (N, 2: yaw, pitch deg, NaN where none) with the
+    reference's iris offsets (N, 2) over the frames where both are given."""
+    both = np.all(np.isfinite(gaze), 1) & np.all(np.isfinite(ref), 1)
+    rs = [float(np.corrcoef(gaze[both, k], ref[both, k])[0, 1])
+          if both.sum() > 10 and np.std(gaze[both, k]) > 0 and np.std(ref[both, k]) > 0
+          else None for k in range(2)]
+    return {"vs_iris_r": [None if r is None else round(r, 3) for r in rs],
+            "vs_iris_frames": int(both.sum()),
+            "ref_sd": np.nanstd(ref, axis=0).round(4).tolist() if np.isfinite(ref).any()
+            else None}
 
 
 def log(msg: str) -> None:
@@ -198,14 +245,26 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
            "upper": speaker.report.get("upper"), **{k: round(v, 3) for k, v in cost.items()},
            "eyes_ok": round(float(np.isfinite(cl).mean()), 4),
            "photo_frames": int(sum(s == "photo" for s in src))}
-    gz = np.array([(r.upper.gaze_yaw_deg, r.upper.gaze_pitch_deg) for r in res
-                   if r.upper is not None and r.upper.eyes_ok
-                   and r.upper.gaze_yaw_deg is not None], float).reshape(-1, 2)
+    gaze = np.array([(r.upper.gaze_yaw_deg, r.upper.gaze_pitch_deg)
+                     if r.upper is not None and r.upper.eyes_ok
+                     and r.upper.gaze_yaw_deg is not None else (np.nan, np.nan)
+                     for r in res], float).reshape(-1, 2)
+    gz = gaze[np.isfinite(gaze[:, 0])]
     # no gaze truth on real clips: how often a gaze is given, and its spread (a sanity check)
     out["gaze"] = {"frames": round(len(gz) / max(len(res), 1), 4),
                    "median_deg": np.median(gz, axis=0).round(2).tolist() if len(gz) else None,
                    "iqr_deg": (np.percentile(gz, 75, axis=0) - np.percentile(gz, 25, axis=0)
                                ).round(2).tolist() if len(gz) else None}
+    if "mediapipe" in peers:
+        log(f"{name}: mediapipe's iris on the same frames")
+        try:
+            iris = worker_points("mediapipe_iris", peers["mediapipe"], held)
+        except KeyError:  # (no face in any frame: the scheme has no NaN template)
+            iris = {"error": "mediapipe found no face"}
+        out["gaze"].update(gaze_vs_iris(gaze, iris_offsets(iris["points"])) if "points"
+                           in iris else {"vs_iris_r": iris["error"]})
+        out["gaze_series"] = [[None if not np.isfinite(v) else round(float(v), 2) for v in g]
+                              for g in gaze]
     ours = blink_events(np.nan_to_num(cl) > BLINK_CLOSURE, fps)
     out["articast_events"] = len(ours)
     if "dlib" not in peers:

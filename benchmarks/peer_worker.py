@@ -56,6 +56,22 @@ class MediaPipeFaceMesh:
         return np.array([[p.x, p.y] for p in lm]) * self.size
 
 
+class MediaPipeIris(MediaPipeFaceMesh):
+    """mediapipe's legacy FaceMesh with ``refine_landmarks=True`` (its attention model): the
+    468 points and the irises, 468-472 (the speaker's left: centre, then four round its edge)
+    and 473-477 (right). Only ``benchmarks/gaze.py``'s independent gaze reference."""
+
+    scheme = "mediapipe_iris"
+
+    def __init__(self, cfg: dict, w: int, h: int) -> None:
+        import mediapipe as mp
+
+        self.mesh = mp.solutions.face_mesh.FaceMesh(
+            static_image_mode=False, max_num_faces=1, refine_landmarks=True,
+            min_detection_confidence=0.5, min_tracking_confidence=0.5)
+        self.size = np.array([w, h], float)
+
+
 class Dlib68:
     """dlib's HOG face detector and its 68-point shape predictor (iBUG 300-W scheme). The
     loop a user would write: the detector on the whole frame when the face is lost, else on
@@ -129,7 +145,8 @@ class OpenSeeFace:
         return np.column_stack([lms[:, 1], lms[:, 0]]).astype(float)  # (y, x) -> (x, y)
 
 
-METHODS = {"mediapipe": MediaPipeFaceMesh, "dlib": Dlib68, "openseeface": OpenSeeFace}
+METHODS = {"mediapipe": MediaPipeFaceMesh, "mediapipe_iris": MediaPipeIris, "dlib": Dlib68,
+           "openseeface": OpenSeeFace}
 
 
 def main() -> None:

@@ -118,17 +118,21 @@ def test_gaze_from_the_iris_between_the_corners():
 
 def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE,
                      iris_radius_mm: float = 5.5, roll_deg: float = 0.0,
-                     closure: float = 0.0, lash_mm: float = 0.0, lid: int = 130) -> np.ndarray:
+                     closure: float = 0.0, lash_mm: float = 0.0, lid: int = 130,
+                     skin: int = 150, white: int = 235, nasal_white: int | None = None
+                     ) -> np.ndarray:
     """Skin, per eye an opening (an ellipse between the corners, a quarter as high as wide:
     the lids cover the iris's top and bottom) and a dark iris at ``iris_mm`` (x left, y up,
     head frame; the head rolled by ``roll_deg`` as :func:`reading`) from the opening's
     centre; an upper lid (skin, shaded) down to ``closure`` of the opening's height at every
     column (1: on the lower lid), grey ``lid``; a dark lash line ``lash_mm`` thick straddling the opening's
-    upper arc; drawn 8x larger and averaged down (edges fall between pixels)."""
+    upper arc; drawn 8x larger and averaged down (edges fall between pixels). ``skin``,
+    ``white``: their greys; ``nasal_white``: the white's grey on the nose's side of the
+    opening's middle (a shaded sclera), default ``white``."""
     ca, sa = math.cos(math.radians(roll_deg)), math.sin(math.radians(roll_deg))
     off = np.array([ca * iris_mm[0] - sa * iris_mm[1], -(sa * iris_mm[0] + ca * iris_mm[1])])
     k = 8
-    img = np.full((400, 640), 150, np.uint8)
+    img = np.full((400, 640), skin, np.uint8)
     for side in U.SIDES:
         inner, outer = U.EYE_CORNERS[side]
         a = float(np.linalg.norm(lm[outer, :2] - lm[inner, :2])) / 2.0
@@ -136,7 +140,7 @@ def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float 
         x0, y0 = np.floor((lm[inner, :2] + lm[outer, :2]) / 2.0 - a - 2).astype(int)
         side_px = int(2 * a + 4)
         mid = (lm[inner, :2] + lm[outer, :2]) / 2.0 - [x0, y0]  # in the eye's tile
-        big = np.full((side_px * k, side_px * k), 150, np.uint8)
+        big = np.full((side_px * k, side_px * k), skin, np.uint8)
         o = (k - 1) / 2.0  # small pixel j's centre is big pixel k j + (k - 1) / 2's
         opening = np.zeros_like(big)
         cv2.ellipse(opening, ((mid[0] * k + o, mid[1] * k + o),
@@ -145,7 +149,12 @@ def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float 
         disc = np.zeros_like(big)
         cv2.circle(disc, (int(round(c[0])), int(round(c[1]))),
                    int(round(iris_radius_mm * scale * k)), 1, -1)
-        big[opening > 0] = 235
+        big[opening > 0] = white
+        if nasal_white is not None:  # the inner corner's half of the opening
+            ys, xs = np.mgrid[0:big.shape[0], 0:big.shape[1]]
+            nose = (lm[inner, :2] - lm[outer, :2]) @ np.array(
+                [xs.ravel() - mid[0] * k - o, ys.ravel() - mid[1] * k - o]) > 0
+            big[(opening > 0) & nose.reshape(big.shape)] = nasal_white
         big[(opening > 0) & (disc > 0)] = 40
         if closure > 0:  # the lid: each point of the opening whose height above the lower
             # lid (in the opening's own frame) is above (1 - closure) x the column's height
@@ -203,6 +212,54 @@ def test_gaze_pitch_is_not_pulled_down_by_the_lash_line():
         want = [math.degrees(math.asin(v / U.EYE_RADIUS_MM)) for v in (dx, dy)]
         assert f.gaze_yaw_deg == pytest.approx(want[0], abs=1.0), (dx, dy)
         assert f.gaze_pitch_deg == pytest.approx(want[1], abs=1.0), (dx, dy)
+
+
+@pytest.mark.parametrize("skin, white, nasal", [
+    (150, 156, None),  # a sclera as grey as the skin round it (cap12, cap13's desk light)
+    (150, 235, 200),   # a sclera shaded on the nose's side (franck, single_face)
+])
+def test_gaze_on_a_shaded_sclera(skin, white, nasal):
+    """Real scleras are not the rendered eye's uniform white: under a brow, lit from one
+    side, the white can be no brighter than the skin round the eye, or darker on one side of
+    the iris than on the other. The iris is still fitted (each row's chord bounded by its
+    own side's white; the opening from the reader's corners where the pixels cannot tell it
+    from the skin) and the gaze read within 1.5 deg (on main: no iris, no gaze, on either
+    eye for the grey sclera). An eye fitted only since gives the closure's measures no grey
+    levels: the closure stays as calibrated before."""
+    ref = U.UpperReference(REF.open_mm, REF.closed_mm, REF.brows_mm, (0.0,) * 4,
+                           iris_radius_mm=(5.5, 5.5))
+    lm = reading(CANON.vertices_mm)
+    for dx, dy in ((0.0, 0.0), (2.5, 0.0), (-2.0, 1.5), (1.0, -2.0)):
+        img = lidded_eye_image(lm, (dx, dy), skin=skin, white=white, nasal_white=nasal)
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        fits = [U.fit_iris(grey, lm, s, 5.5 * SCALE) for s in U.SIDES]
+        assert all(fit is not None for fit in fits)
+        if nasal is None:
+            assert all(fit.levels is None for fit in fits)  # type: ignore[union-attr]
+        f = U.UpperTracker(ref).step(img, lm, None, True)
+        want = [math.degrees(math.asin(v / U.EYE_RADIUS_MM)) for v in (dx, dy)]
+        assert f.gaze_yaw_deg == pytest.approx(want[0], abs=1.5), (dx, dy)
+        assert f.gaze_pitch_deg == pytest.approx(want[1], abs=1.5), (dx, dy)
+
+
+def test_iris_chords_end_at_each_sides_own_white():
+    """A row's chord ends where the row reaches its own side's white (sub-pixel, by the
+    pixels' iris fractions): with the nasal white darker, the chord is as wide as the
+    iris (2 r at its equator) and centred on it; a row whose side is only a lid's skin (no
+    sclera) is not bounded; a one-pixel glint inside the iris does not end the chord."""
+    row = np.array([120, 200, 200, 200, 40, 40, 40, 40, 40, 40, 235, 235, 235, 120],
+                   np.float32)
+    lid = np.array([120, 130, 130, 130, 40, 40, 40, 40, 40, 40, 235, 235, 235, 120],
+                   np.float32)
+    glint = row.copy()
+    glint[7] = 250
+    patch = np.stack([row, glint, lid])
+    inside = np.zeros(patch.shape, np.uint8)
+    inside[:, 1:-1] = 1
+    widths, centres, bounded = U._chords(patch, inside, np.ones_like(inside), 120.0, 40.0,
+                                         235.0, 6.5)
+    assert list(bounded) == [True, True, False]
+    assert widths[:2] == pytest.approx([6.0, 6.0]) and centres[:2] == pytest.approx([6.5, 6.5])
 
 
 def test_iris_fit_finds_the_radius_and_the_opening():

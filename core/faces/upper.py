@@ -475,7 +475,9 @@ class IrisFit:
     half_width: float
     eye: np.ndarray
     rows: int
-    levels: tuple[float, float, float] = (0.0, 0.0, 0.0)  # (skin, white, iris) grey levels
+    levels: tuple[float, float, float] | None = (0.0, 0.0, 0.0)
+    # (skin, white, iris) grey levels, for the closure's measures: None where the eye is
+    # fitted but would not have been before the shaded scleras (:func:`_former_accepts`)
 
 
 IRIS_MIN_ROWS = 3
@@ -493,11 +495,13 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     and the skin (the median round the contour). Each row's **chord** is the run of iris
     round the iris's column, bounded by white on both sides (a row that meets a lid, a lash
     line or the crop's edge is left out), its width the sum of the pixels' iris fractions
-    (sub-pixel). The lids cover the iris's top and bottom, so its dark centroid hardly moves
-    vertically; the chords' widths do: a circle of radius r whose centre is at height c has
-    chords 2 sqrt(r^2 - (y - c)^2), and c is the height that fits the widths best (least
-    absolute deviations on a grid of 1/20 px), r the speaker's iris radius (``radius_px``,
-    from enrolment) or this frame's widest chord / 2. The iris's x is the chords' centroid.
+    (sub-pixel); the white is each row's own on each side (:func:`_chords`: a real sclera
+    is shaded, darker on one side than on the other). The lids cover the iris's top and
+    bottom, so its dark centroid hardly moves vertically; the chords' widths do: a circle of
+    radius r whose centre is at height c has chords 2 sqrt(r^2 - (y - c)^2), and c is the
+    height that fits the widths best (least absolute deviations on a grid of 1/20 px), r
+    the speaker's iris radius (``radius_px``, from enrolment) or this frame's widest chord
+    / 2. The iris's x is the chords' centroid.
 
     The **eye's own centre** replaces the reader's corners (which jitter by ~1 px and move
     with the iris on a rendered eye): the opening is what is whiter than midway between skin
@@ -507,9 +511,11 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     dark lash line over the opening's top: the white alone ends at the line's lower edge, the
     white with what is darker than midway between skin and iris at its upper edge; the lid's
     margin is taken between them (the line straddles it: lashes over the eye below, over the
-    lid above), the mean of the two openings' centres (:func:`_opening_centres`). None when
-    the eye is too closed, too small or outside the image, or no iris/white contrast is
-    found."""
+    lid above), the mean of the two openings' centres (:func:`_opening_centres`). Where the
+    white is no brighter than the skin round the eye (a shaded sclera under a lit brow: the
+    desk webcams of cap12 and cap13) the pixels cannot tell the opening from the skin and
+    the middle of the reader's corners is its centre. None when the eye is too closed, too
+    small or outside the image, or no iris/white contrast is found."""
     poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
     if not np.all(np.isfinite(poly)):
         return None
@@ -534,33 +540,21 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
         return None
     iris_l, white = float(srt[nd // 2]), float(srt[nd + (3 * (n - nd)) // 4])
     skin = float(np.partition(outside, outside.size // 2)[outside.size // 2])
-    if white - iris_l < 20.0 or white - skin < 8.0:
+    if white - iris_l < 20.0:
         return None  # no iris/white contrast (a closed or unlit eye)
     # --- the iris's chords
-    cov = np.clip((white - patch) / (white - iris_l), 0.0, 1.0) * (grown > 0)
     wgt = np.clip(thr - patch, 0.0, None) * contour
     if float(wgt.sum()) <= 0:
         return None
-    cols = np.arange(patch.shape[1], dtype=np.float64)
-    cx0 = float((wgt.sum(0) * cols).sum() / wgt.sum())
-    brk = cov <= 0.12  # white (or outside): a chord's bound
-    run = np.cumsum(brk, axis=1)
-    dist = np.where(cov > 0.5, np.abs(cols - cx0)[None, :], np.inf)
-    j = np.argmin(dist, axis=1)
-    rows_ok = dist[np.arange(len(j)), j] < 0.5 * patch.shape[1] / 2
-    mine = (run == run[np.arange(len(j)), j][:, None]) & ~brk
-    first = np.argmax(mine, axis=1)
-    last = patch.shape[1] - 1 - np.argmax(mine[:, ::-1], axis=1)
-    bounded = rows_ok & (first > 0) & (last < patch.shape[1] - 1)
-    bounded &= grown[np.arange(len(j)), np.maximum(first - 1, 0)] > 0
-    bounded &= grown[np.arange(len(j)), np.minimum(last + 1, patch.shape[1] - 1)] > 0
-    widths = (cov * mine).sum(1)
-    cxs = (cov * mine * cols).sum(1) / np.maximum(widths, 1e-9)
+    cx0 = float((wgt.sum(0) * np.arange(patch.shape[1])).sum() / wgt.sum())
+    widths, cxs, bounded = _chords(patch, contour, grown, thr, iris_l, white, cx0)
     half = float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0
     r = float(radius_px) if radius_px else half
     keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
     if keep.sum() < IRIS_MIN_ROWS or r < 1.5:
         return None
+    levels = ((skin, white, iris_l) if white - skin >= LEVELS_MIN_CONTRAST
+              and _former_accepts(patch, grown, iris_l, white, cx0, radius_px) else None)
     ys = np.flatnonzero(keep).astype(np.float64)
     wk = widths[keep]
     cy = 0.0
@@ -572,6 +566,16 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
             len(cys), len(ys), len(_SUB)).mean(-1)
         cy = float(cys[int(np.argmin(np.abs(pred - wk[None, :]).sum(1)))])
     cx = float((cxs[keep] * wk).sum() / wk.sum())
+    if white - skin < LEVELS_MIN_CONTRAST:
+        # a sclera no brighter than the skin round the eye (shaded under the brow and the
+        # lid, the skin lit: desk webcams, cap12, cap13): the pixels cannot tell the opening
+        # from the skin, and the reader's corners are its only evidence; the opening's
+        # widest row joins its corners, so their midpoint is its centre (noisier: ~1 px of
+        # the corners' jitter, docs/UPPER_FACE.md)
+        lm = np.asarray(landmarks, np.float64)
+        ex, ey = (lm[EYE_CORNERS[side][0], :2] + lm[EYE_CORNERS[side][1], :2]) / 2.0 - [x0, y0]
+        return IrisFit(np.array([cx + x0, cy + y0]), half, np.array([ex + x0, ey + y0]),
+                       int(keep.sum()), levels)
     # --- the eye opening's own centre: the upper lid's dark lash line covers the opening's
     # top, so the white alone puts the lid's margin at the line's lower edge (its widest row
     # 0.44 mm low on the synthetic eye), the white with what is darker than the skin at its
@@ -589,7 +593,101 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     ex, ey = (eyes[0] if len(eyes) < 2 or eyes[1] is None
               else ((eyes[0][0] + eyes[1][0]) / 2.0, (eyes[0][1] + eyes[1][1]) / 2.0))
     return IrisFit(np.array([cx + x0, cy + y0]), half, np.array([ex + x0, ey + y0]),
-                   int(keep.sum()), (skin, white, iris_l))
+                   int(keep.sum()), levels)
+
+
+ROW_WHITE = 0.75
+"""A row's side is sclera when its brightest pixel inside the reader's contour is at least
+this far from the iris's grey to that side's white (:func:`_chords`): a lid's skin in the
+contour, on the rendered eye about half way from the iris to the white, is not (with it
+taken for sclera, the rendered eye rolled by 8 deg read 0.8 px off)."""
+
+
+def _chords(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray, thr: float,
+            iris: float, white: float, cx0: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's iris chord (widths, centres px, bounded): the run of iris round the
+    row's dark pixel nearest ``cx0``, bounded on both sides by sclera, each pixel counted
+    by its iris fraction (sub-pixel), as :func:`fit_iris` describes, with **each side's own
+    white**: the row's brightest pixel on that side inside the ``contour``. The sclera is a
+    sphere lit from one side and shaded by the lids and the brow: its grey differs between
+    the sides and along the rows (franck's inner white is darker than his outer; cap12's
+    right eye's a fifth darker than the 75th percentile ``white``), so one eye-wide white
+    (the former bound) left the rows on the shaded side unbounded: their sclera never came
+    within 12 % of it. Where the sclera is uniform (the rendered eye) each side's white is
+    ``white`` and the chords are the former ones. A row's side counts as sclera when its
+    white is :data:`ROW_WHITE` of the way from ``iris`` to the side's own (the 75th
+    percentile of that side's bright pixels; a lid's skin in the contour is not sclera);
+    a specular glint narrower than 3 px is removed first (a grey opening along the rows: it
+    would end the chord inside the iris; a monotonic edge is kept as it is)."""
+    p = cv2.morphologyEx(patch, cv2.MORPH_OPEN, np.ones((1, 3), np.uint8))
+    h, w = p.shape
+    cols = np.arange(w, dtype=np.float64)
+    ri = np.arange(h)
+    inside = contour > 0
+    dist = np.where((p < thr) & inside, np.abs(cols - cx0)[None, :], np.inf)
+    j = np.argmin(dist, axis=1)
+    rows_ok = dist[ri, j] < 0.25 * w
+    left = cols[None, :] < j[:, None]
+    bright = inside & (p >= thr)
+    white_l, white_r = (_white(p[bright & (cols[None, :] < cx0)], white),
+                        _white(p[bright & (cols[None, :] >= cx0)], white))
+    lo = np.where(left & inside, p, -np.inf).max(1)
+    hi = np.where(~left & inside, p, -np.inf).max(1)
+    rows_ok &= (lo - iris >= ROW_WHITE * (white_l - iris)) & (
+        hi - iris >= ROW_WHITE * (white_r - iris))
+    side = np.where(left, lo[:, None], hi[:, None])  # each pixel's row's side's white
+    cov = np.clip((side - p) / np.maximum(side - iris, 1e-6), 0.0, 1.0) * (grown > 0)
+    brk = cov <= 0.12  # (the side's) white, or outside: a chord's bound
+    run = np.cumsum(brk, axis=1)
+    mine = (run == run[ri, j][:, None]) & ~brk
+    first = np.argmax(mine, axis=1)
+    last = w - 1 - np.argmax(mine[:, ::-1], axis=1)
+    bounded = rows_ok & (first > 0) & (last < w - 1)
+    bounded &= grown[ri, np.maximum(first - 1, 0)] > 0
+    bounded &= grown[ri, np.minimum(last + 1, w - 1)] > 0
+    widths = (cov * mine).sum(1)
+    cxs = (cov * mine * cols).sum(1) / np.maximum(widths, 1e-9)
+    return widths, cxs, bounded
+
+
+def _former_accepts(patch: np.ndarray, grown: np.ndarray, iris: float, white: float,
+                    cx0: float, radius_px: float | None) -> bool:
+    """Whether the iris fit before the shaded scleras would have fitted this eye (its
+    chords bounded by one eye-wide white, ``IRIS_MIN_ROWS`` of them): only such fits give
+    the closure's measures their grey levels (:class:`IrisFit` ``levels``). The closure's
+    calibration (the lid gap's and the iris height's levels, which measure is kept, the brow
+    band's floor) was chosen on these frames; letting the newly fitted ones in moved
+    franck's blink recall from 1.00 to 0.93 and pexels_woman's from 1.00 to 0.75 (its right
+    eye then took the lid gap), a change for the closure's owner to make on its own
+    evidence, not a side effect of the gaze (docs/UPPER_FACE.md)."""
+    cov = np.clip((white - patch) / (white - iris), 0.0, 1.0) * (grown > 0)
+    w = patch.shape[1]
+    cols = np.arange(w, dtype=np.float64)
+    ri = np.arange(patch.shape[0])
+    brk = cov <= 0.12
+    run = np.cumsum(brk, axis=1)
+    dist = np.where(cov > 0.5, np.abs(cols - cx0)[None, :], np.inf)
+    j = np.argmin(dist, axis=1)
+    mine = (run == run[ri, j][:, None]) & ~brk
+    first = np.argmax(mine, axis=1)
+    last = w - 1 - np.argmax(mine[:, ::-1], axis=1)
+    bounded = (dist[ri, j] < 0.25 * w) & (first > 0) & (last < w - 1)
+    bounded &= grown[ri, np.maximum(first - 1, 0)] > 0
+    bounded &= grown[ri, np.minimum(last + 1, w - 1)] > 0
+    widths = (cov * mine).sum(1)
+    r = float(radius_px) if radius_px else (
+        float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0)
+    keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
+    return bool(keep.sum() >= IRIS_MIN_ROWS and r >= 1.5)
+
+
+def _white(vals: np.ndarray, white: float) -> float:
+    """One side's white: the 75th percentile of its pixels brighter than the eye's midway
+    (as :func:`fit_iris`'s ``white``), the eye's ``white`` when it has fewer than 4."""
+    if vals.size < 4:
+        return white
+    v = np.sort(vals)
+    return float(v[(3 * v.size) // 4])
 
 
 def _opening_centres(fracs: list[np.ndarray]) -> list[tuple[float, float] | None]:
