@@ -37,12 +37,13 @@ class MediaPipeFaceMesh:
     468 points of FaceMesh v1 (``refine_landmarks=False``), video mode."""
 
     scheme = "mediapipe"
+    refine = False  # mediapipe's refine_landmarks (the irises: MediaPipeIris)
 
     def __init__(self, cfg: dict, w: int, h: int) -> None:
         import mediapipe as mp
 
         self.mesh = mp.solutions.face_mesh.FaceMesh(
-            static_image_mode=False, max_num_faces=1, refine_landmarks=False,
+            static_image_mode=False, max_num_faces=1, refine_landmarks=self.refine,
             min_detection_confidence=0.5, min_tracking_confidence=0.5)
         self.size = np.array([w, h], float)
 
@@ -59,17 +60,10 @@ class MediaPipeFaceMesh:
 class MediaPipeIris(MediaPipeFaceMesh):
     """mediapipe's legacy FaceMesh with ``refine_landmarks=True`` (its attention model): the
     468 points and the irises, 468-472 (the speaker's left: centre, then four round its edge)
-    and 473-477 (right). Only ``benchmarks/gaze.py``'s independent gaze reference."""
+    and 473-477 (right). Only ``benchmarks/blinks.py``'s independent gaze reference."""
 
     scheme = "mediapipe_iris"
-
-    def __init__(self, cfg: dict, w: int, h: int) -> None:
-        import mediapipe as mp
-
-        self.mesh = mp.solutions.face_mesh.FaceMesh(
-            static_image_mode=False, max_num_faces=1, refine_landmarks=True,
-            min_detection_confidence=0.5, min_tracking_confidence=0.5)
-        self.size = np.array([w, h], float)
+    refine = True
 
 
 class Dlib68:

@@ -376,6 +376,19 @@ def test_a_desk_enrolment_learns_how_the_live_reader_sees_the_face(enrolled):
     assert sp.report["reader"]["network"] == "v1"
 
 
+def _test_clip(enrolled):
+    """The enrolled speaker, its test clip's frames and their true lip aperture (mm)."""
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    truth = _track_lines(enrolled / "test" / "truth.jsonl")
+    true_model = FaceModel.load(enrolled / "test" / "model.npz")
+    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
+    ap_true, _ = lip_measures(true_model, at)
+    return sp, frames, ap_true
+
+
 def _fused(sp):
     from articast.core.faces.finder import FaceFinder
     from articast.core.faces.live import LiveTracker
@@ -388,14 +401,7 @@ def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
     """A state knocked off the face (as a missed fast turn would leave it): the reading is
     far from the motion model's prediction, the motion model restarts there and every
     landmark pulls, and the lips are followed again within two frames."""
-    from articast.service.video import iter_video
-
-    sp = Speaker.load(enrolled / "speaker")
-    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
-    truth = _track_lines(enrolled / "test" / "truth.jsonl")
-    true_model = FaceModel.load(enrolled / "test" / "model.npz")
-    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
-    ap_true, _ = lip_measures(true_model, at)
+    sp, frames, ap_true = _test_clip(enrolled)
     live = _fused(sp)
     assert live.fusion is not None
     res = [live.track(img, i / 25) for i, img in enumerate(frames[:30])]
@@ -492,14 +498,8 @@ def test_a_start_from_the_readers_landmarks_is_as_close_to_the_truth_as_the_find
     tracker running through the clip reads there."""
     from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
     from articast.core.faces.scheme import mediapipe_scheme
-    from articast.service.video import iter_video
 
-    sp = Speaker.load(enrolled / "speaker")
-    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
-    truth = _track_lines(enrolled / "test" / "truth.jsonl")
-    true_model = FaceModel.load(enrolled / "test" / "model.npz")
-    at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
-    ap_true, _ = lip_measures(true_model, at)
+    sp, frames, ap_true = _test_clip(enrolled)
     starts = np.arange(0, len(frames), 6)
     finder, reader = _counting_finders()
 
