@@ -548,11 +548,10 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
         return None
     cx0 = float((wgt.sum(0) * np.arange(patch.shape[1])).sum() / wgt.sum())
     widths, cxs, bounded = _chords(patch, contour, grown, thr, iris_l, white, cx0)
-    half = float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0
-    r = float(radius_px) if radius_px else half
-    keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
-    if keep.sum() < IRIS_MIN_ROWS or r < 1.5:
+    rows = _iris_rows(widths, bounded, radius_px)
+    if rows is None:
         return None
+    keep, r, half = rows
     levels = ((skin, white, iris_l) if white - skin >= LEVELS_MIN_CONTRAST
               and _former_accepts(patch, grown, iris_l, white, cx0, radius_px) else None)
     ys = np.flatnonzero(keep).astype(np.float64)
@@ -637,7 +636,19 @@ def _chords(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray, thr: floa
         hi - iris >= ROW_WHITE * (white_r - iris))
     side = np.where(left, lo[:, None], hi[:, None])  # each pixel's row's side's white
     cov = np.clip((side - p) / np.maximum(side - iris, 1e-6), 0.0, 1.0) * (grown > 0)
-    brk = cov <= 0.12  # (the side's) white, or outside: a chord's bound
+    return _runs_round(cov, j, rows_ok, grown)
+
+
+def _runs_round(cov: np.ndarray, j: np.ndarray, rows_ok: np.ndarray, grown: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's run of iris (``cov``: the pixels' iris fractions) round its column ``j``,
+    ended where the fraction falls to 0.12 (white, or outside the grown contour): widths
+    (the fractions' sum), centres px, and whether the row (``rows_ok``) is bounded inside
+    the ``grown`` contour on both sides."""
+    h, w = cov.shape
+    cols = np.arange(w, dtype=np.float64)
+    ri = np.arange(h)
+    brk = cov <= 0.12  # white, or outside: a chord's bound
     run = np.cumsum(brk, axis=1)
     mine = (run == run[ri, j][:, None]) & ~brk
     first = np.argmax(mine, axis=1)
@@ -648,6 +659,19 @@ def _chords(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray, thr: floa
     widths = (cov * mine).sum(1)
     cxs = (cov * mine * cols).sum(1) / np.maximum(widths, 1e-9)
     return widths, cxs, bounded
+
+
+def _iris_rows(widths: np.ndarray, bounded: np.ndarray, radius_px: float | None
+               ) -> tuple[np.ndarray, float, float] | None:
+    """The rows whose chords an iris of radius r can have (bounded, no wider than 2 r + 1
+    px), r (``radius_px``, else the widest bounded chord / 2) and that half width; None with
+    fewer than :data:`IRIS_MIN_ROWS` of them or r under 1.5 px."""
+    half = float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0
+    r = float(radius_px) if radius_px else half
+    keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
+    if keep.sum() < IRIS_MIN_ROWS or r < 1.5:
+        return None
+    return keep, r, half
 
 
 def _former_accepts(patch: np.ndarray, grown: np.ndarray, iris: float, white: float,
@@ -662,23 +686,10 @@ def _former_accepts(patch: np.ndarray, grown: np.ndarray, iris: float, white: fl
     evidence, not a side effect of the gaze (docs/UPPER_FACE.md)."""
     cov = np.clip((white - patch) / (white - iris), 0.0, 1.0) * (grown > 0)
     w = patch.shape[1]
-    cols = np.arange(w, dtype=np.float64)
-    ri = np.arange(patch.shape[0])
-    brk = cov <= 0.12
-    run = np.cumsum(brk, axis=1)
-    dist = np.where(cov > 0.5, np.abs(cols - cx0)[None, :], np.inf)
+    dist = np.where(cov > 0.5, np.abs(np.arange(w) - cx0)[None, :], np.inf)
     j = np.argmin(dist, axis=1)
-    mine = (run == run[ri, j][:, None]) & ~brk
-    first = np.argmax(mine, axis=1)
-    last = w - 1 - np.argmax(mine[:, ::-1], axis=1)
-    bounded = (dist[ri, j] < 0.25 * w) & (first > 0) & (last < w - 1)
-    bounded &= grown[ri, np.maximum(first - 1, 0)] > 0
-    bounded &= grown[ri, np.minimum(last + 1, w - 1)] > 0
-    widths = (cov * mine).sum(1)
-    r = float(radius_px) if radius_px else (
-        float(widths[bounded].max()) / 2.0 if bounded.any() else 0.0)
-    keep = bounded & (widths <= 2.0 * r + 1.0) & (widths > 0.5)
-    return bool(keep.sum() >= IRIS_MIN_ROWS and r >= 1.5)
+    widths, _, bounded = _runs_round(cov, j, dist[np.arange(len(j)), j] < 0.25 * w, grown)
+    return _iris_rows(widths, bounded, radius_px) is not None
 
 
 def _white(vals: np.ndarray, white: float) -> float:
