@@ -318,10 +318,12 @@ class LiveTracker:
             self._motion = None  # the landmarks give the head's translation every frame
 
     # ------------------------------------------------------------------ helpers
-    def _finder(self, image: np.ndarray, previous: Any = None) -> Any:
+    def _finder(self, image: np.ndarray, previous: Any = None, network: Any = None) -> Any:
+        """A landmark call (counted; the frame's fresh landmarks): ``network`` (default the
+        finder) tracks from ``previous``, or finds with the detector."""
+        net = self.finder if network is None else network
         self.finder_calls += 1
-        face = (self.finder.track(image, previous) if previous is not None
-                else self.finder.find(image))
+        face = net.track(image, previous) if previous is not None else net.find(image)
         self._fresh = face
         return face
 
@@ -468,9 +470,7 @@ class LiveTracker:
         self._since_read += 1
         skip = self._started and self._since_read < fu.read_every
         if self._started and self._reading is not None and not skip:
-            self.finder_calls += 1
-            reading = self.reader.track(image, self._reading)
-            self._fresh = reading
+            reading = self._finder(image, self._reading, self.reader)
             self._since_read = 0
         restart = not self._started or (reading is None and not skip)
         prior = None
@@ -564,31 +564,20 @@ class LiveTracker:
         assert self.reader is not None
         seed, self._resume = self._resume, None
         reader_start = fu.start == "reader"
+        net = self.reader if reader_start else self.finder
         face = None
         if seed is not None:  # last frame's fit diverged from its reading: no detector
-            if reader_start:
-                self.finder_calls += 1
-                face = self.reader.track(image, seed)
-                self._fresh = face
-            else:
-                face = self._finder(image, seed)
+            face = self._finder(image, seed, net)
             self._resumed = self._frame if face is not None else -1
         if face is None:
-            if reader_start:
-                self.finder_calls += 1
-                face = self.reader.find(image)
-                self._fresh = face
-            else:
-                face = self._finder(image)
+            face = self._finder(image, None, net)
         if face is None:
             return "no_face: the face finder sees no face"
         if not self._start(face, keep_levels=keep_levels):
             return "no_face: the landmarks do not fit the speaker"
         if reader_start:
             return face
-        self.finder_calls += 1
-        reading = self.reader.track(image, reader_seed(face))
-        self._fresh = reading
+        reading = self._finder(image, reader_seed(face), self.reader)
         if reading is None:
             return "no_face: the landmarks lost the face"
         return reading
