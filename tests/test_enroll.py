@@ -405,19 +405,23 @@ def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
     live = _fused(sp)
     assert live.fusion is not None
     res = [live.track(img, i / 25) for i, img in enumerate(frames[:30])]
-    # the reader, every third frame (FusionPolicy.read_every), and the finder once
+    # the reader, every third frame (FusionPolicy.read_every; a frame or two more for the
+    # eyes, FusionPolicy.eye_reads), and the finder once
     assert 30 // 3 <= live.finder_calls <= 30 // 3 + 4
+    while live._since_read < live.fusion.read_every - 1:  # the knock just before a reading
+        res.append(live.track(frames[len(res)], len(res) / 25))
+    knock = len(res)
     kf = live.kalman
     kf.t = kf.t + np.array([60.0, 0.0, 120.0])  # 6 cm aside, 12 cm further
     kf.alpha = kf.alpha + 3.0
     regated = live.regated
-    res += [live.track(img, (30 + i) / 25) for i, img in enumerate(frames[30:])]
+    res += [live.track(img, (knock + i) / 25) for i, img in enumerate(frames[knock:])]
     assert live.regated >= regated + 1
     assert live.rereads >= 1  # (the next frame was read too)
     ok = np.array([r.ok for r in res])
-    assert ok[32:].all()
+    assert ok[knock + 2:].all()
     ap = np.array([r.lips["aperture_mm"] for r in res])
-    assert np.corrcoef(ap[32:], ap_true[32:])[0, 1] > 0.9
+    assert np.corrcoef(ap[knock + 2:], ap_true[knock + 2:])[0, 1] > 0.9
 
 
 def _counting_finders():
@@ -447,6 +451,58 @@ def test_a_start_policy_it_does_not_know_is_refused_in_one_line():
 
     with pytest.raises(ValueError, match="start must be 'reader' or 'finder', got 'v2'"):
         FusionPolicy(start="v2")
+
+
+def _shut_eyes(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """``image`` with both eyes (their contours in ``landmarks``, grown by 2 px) painted over
+    with the skin's colour below them: the eyes shut."""
+    from articast.core.faces.upper import EYE_CONTOUR, SIDES
+
+    out = image.copy()
+    for side in SIDES:
+        poly = np.round(landmarks[list(EYE_CONTOUR[side]), :2]).astype(np.int32)
+        mask = np.zeros(image.shape[:2], np.uint8)
+        cv2.fillPoly(mask, [poly], 1)
+        mask = cv2.dilate(mask, np.ones((5, 5), np.uint8))
+        x, y, w, h = cv2.boundingRect(poly)
+        below = image[y + 2 * h:y + 3 * h, x:x + w].reshape(-1, 3)
+        out[mask > 0] = np.median(below, axis=0).astype(np.uint8)
+    return out
+
+
+def test_an_eye_the_pixels_cannot_follow_is_read_the_frame_it_shuts(enrolled):
+    """Speaker 4 enrolled with eyes that never moved: no photometric measure follows its
+    lids, so between readings the closure is held and a blink of two frames could fall
+    between them. Its eyes are watched instead (``FusionPolicy.eye_reads``): the frame after
+    a reading, painted with the eyes shut, is read itself;
+    without the policy it is not read."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    assert sp.upper is not None and max(abs(r) for r in sp.upper.photo_r) < 0.5
+    assert min(sp.upper.change_limit) > 0
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    for eye_reads in (True, False):
+        live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
+                           LivePolicy(fusion=FusionPolicy(eye_reads=eye_reads)))
+        assert live.upper.watched() == [0, 1]
+        i = 0
+        while True:  # on to a frame read on the cadence, the next one not read for the lips
+            res = live.track(frames[i], i / 25)
+            if i >= 20 and res.upper.source == "reader" and live._since_read == 0:
+                break
+            i += 1
+        marks = np.asarray(live._fresh.landmarks)
+        before = live.eye_reads
+        res = live.track(_shut_eyes(frames[i + 1], marks), (i + 1) / 25)
+        assert res.ok
+        if eye_reads:
+            assert res.upper.source == "reader" and live.eye_reads == before + 1
+        else:
+            assert res.upper.source == "photo" and live.eye_reads == before == 0
 
 
 def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enrolled):

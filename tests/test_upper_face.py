@@ -3,6 +3,7 @@ against readings made from the canonical face with known lids, brows, iris and h
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -530,6 +531,53 @@ def test_between_readings_a_lasting_disagreement_with_the_reader_is_carried():
     assert alone.step(img, None, np.zeros(2), True).closure_left == pytest.approx(0.0, abs=0.05)
 
 
+def _open_eyes_moving(n: int = 30) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Frames of open eyes as the head moves them by a pixel or so and they look about
+    (greys, readings): the changes an open eye shows from frame to frame."""
+    lm = reading(CANON.vertices_mm)
+    greys, lms = [], []
+    for t in range(n):
+        shift = np.array([1.5 * math.sin(0.7 * t), 1.0 * math.cos(0.5 * t), 0.0])
+        at = lm + shift
+        img = lidded_eye_image(at, (0.6 * math.sin(0.3 * t), 0.3 * math.cos(0.4 * t)))
+        greys.append(cv2.cvtColor(img, cv2.COLOR_BGR2GRAY))
+        lms.append(at)
+    return greys, lms
+
+
+def test_between_readings_an_eye_it_cannot_follow_is_read_when_it_changes():
+    """An eye whose photometric measure did not follow the reader at enrolment (carphone's
+    ~10 px eyes: its closure is held between readings) is watched: when its pixels change
+    more than the enrolment's open eyes changed between frames (a lid closing), the frame is
+    asked to be read; the open eye moved a pixel or two with the head is not."""
+    greys, lms = _open_eyes_moving()
+    ms = [U.measure(g, lm, CANON) for g, lm in zip(greys, lms, strict=True)]
+    limits = U.change_limits(greys, lms, ms, REF)
+    assert all(0.0 < x < 0.3 for x in limits), limits
+    lm = lms[0]
+    shut = cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), closure=1.0), cv2.COLOR_BGR2GRAY)
+    half_shut = cv2.cvtColor(lidded_eye_image(lm, (0.0, 0.0), closure=0.6),
+                             cv2.COLOR_BGR2GRAY)
+    inner, outer = lm[U.EYE_CORNERS["left"][0], :2], lm[U.EYE_CORNERS["left"][1], :2]
+    tpl = U.eye_template(greys[0], inner, outer, OPEN * SCALE)
+    assert tpl is not None
+    assert U.eye_change(tpl, shut, inner, outer, OPEN * SCALE) > 3 * limits[0]
+    assert U.eye_change(tpl, half_shut, inner, outer, OPEN * SCALE) > limits[0]
+
+    weak = dataclasses.replace(REF, photo_r=(-0.2, -0.2), change_limit=limits)
+    tracker = U.UpperTracker(weak)
+    assert tracker.watched() == [0, 1]
+    tracker.step(cv2.cvtColor(greys[0], cv2.COLOR_GRAY2BGR), lm, np.zeros(2), True)
+    moved = lms[1][0, :2] - lm[0, :2]  # where the head's motion puts the eyes next frame
+    assert not tracker.wants_reading(greys[1], moved)
+    assert tracker.wants_reading(shut, np.zeros(2))
+    # the eyes a calibrated measure follows, and a speaker.json from before: not watched
+    for ref in (dataclasses.replace(weak, photo_r=(-0.9, -0.9)), REF):
+        other = U.UpperTracker(ref)
+        other.step(cv2.cvtColor(greys[0], cv2.COLOR_GRAY2BGR), lm, np.zeros(2), True)
+        assert other.watched() == [] and not other.wants_reading(shut, np.zeros(2))
+
+
 def test_absent_not_zero():
     img = np.full((400, 640, 3), 128, np.uint8)
     lm = reading(CANON.vertices_mm)
@@ -596,6 +644,12 @@ def test_reference_round_trip_and_malformed():
         U.UpperReference.from_dict({**d, "open_mm": [1.0, 1.0]}, "x")  # not above closed
     with pytest.raises(ModelFileError, match="upper-face"):
         U.UpperReference.from_dict({**d, "brows_mm": [1.0]}, "x")
+    watched = dataclasses.replace(REF, change_limit=(0.12, 0.2))
+    assert U.UpperReference.from_dict(watched.to_dict(), "x") == watched
+    with pytest.raises(ModelFileError, match="change_limit"):
+        U.UpperReference.from_dict({**d, "change_limit": [-0.1, 0.2]}, "x")
+    old = {k: v for k, v in d.items() if k != "change_limit"}  # (before it): never watched
+    assert U.UpperReference.from_dict(old, "x").change_limit == (0.0, 0.0)
 
 
 def test_track_line_carries_eyes_and_brows():

@@ -22,7 +22,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,7 +33,7 @@ from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geomet
 from articast.core.faces.fit import fit_pose
 from articast.core.faces.flow import default_for, refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
-from articast.core.faces.upper import Measures, UpperReference, calibrate
+from articast.core.faces.upper import Measures, UpperReference, calibrate, change_limits
 from articast.core.faces.upper import measure as measure_upper
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
@@ -223,23 +223,23 @@ def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> Upper
     import cv2
 
     canon = canonical_face()
-    ms: list[Measures | None] = []
-    for img, lm in zip(images, readings, strict=True):
-        if not np.all(np.isfinite(lm[:468, :2])):
-            ms.append(None)
-            continue
-        grey = img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-        ms.append(measure_upper(grey, lm, canon))
+    greys = [img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) for img in images]
+    seen = [lm if np.all(np.isfinite(lm[:468, :2])) else None for lm in readings]
+    ms: list[Measures | None] = [None if lm is None else measure_upper(g, lm, canon)
+                                 for g, lm in zip(greys, seen, strict=True)]
     first = calibrate(ms)
     if first is None:
         return None
     # the measures again at the speaker's open eye, iris radius and open-eye grey levels (as
     # live: a closed eye's lid gap needs the open eye's levels)
-    ms = [None if m is None else measure_upper(
-        img if img.ndim == 2 else cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), lm, canon,
-        first.open_mm, first.iris_radius_mm, (first.eye_levels(0), first.eye_levels(1)))
-        for m, img, lm in zip(ms, images, readings, strict=True)]
-    return calibrate(ms)
+    ms = [None if m is None or lm is None else measure_upper(
+        g, lm, canon, first.open_mm, first.iris_radius_mm,
+        (first.eye_levels(0), first.eye_levels(1)))
+        for m, g, lm in zip(ms, greys, seen, strict=True)]
+    ref = calibrate(ms)
+    if ref is None:
+        return None
+    return replace(ref, change_limit=change_limits(greys, seen, ms, ref))
 
 
 def upper_report(ref: UpperReference | None) -> dict:

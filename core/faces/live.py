@@ -202,6 +202,11 @@ class FusionPolicy:
         face this frame or within ``read_every``), the restart reads the landmarks in the
         crop grown from that last reading instead of running the detector (which still runs
         when that reading finds no face, or when the start it resumed diverges at once).
+    eye_reads : a frame between readings is read too when an eye the upper face cannot follow
+        from its pixels changed more than the speaker's open eye does between frames
+        (:meth:`~articast.core.faces.upper.UpperTracker.wants_reading`: a blink of two frames
+        falls between readings every 3rd frame one time in three otherwise); that reading's
+        time is counted as the upper face's (docs/UPPER_FACE.md).
     """
 
     reader: str = "v1"
@@ -220,6 +225,7 @@ class FusionPolicy:
     cadence: float | None = 0.1
     start: str = "reader"
     resume: bool = True
+    eye_reads: bool = True
 
     def __post_init__(self) -> None:
         if self.start not in ("reader", "finder"):
@@ -292,6 +298,7 @@ class LiveTracker:
         self._since_read = 0
         self.regated = 0  # readings far from the prediction (the motion model restarted)
         self.rereads = 0  # readings that asked for the next frame to be read too
+        self.eye_reads = 0  # frames between readings read for the eyes (FusionPolicy.eye_reads)
         self._t_last: float | None = None
         self._phase = 0  # frames since the last reading (fused tracking)
         self._cadence = (CadenceCanceller(fu.read_every, fu.cadence)
@@ -418,6 +425,15 @@ class LiveTracker:
         return self.upper.step(image, marks, anchor,
                                result.ok or result.reason.startswith("occluded"))
 
+    def _eyes_changed(self, image: np.ndarray) -> bool:
+        """Whether the upper face asks for this frame between readings to be read (the head's
+        point placed at the last tracked pose: this frame's is not fitted yet)."""
+        last = self._last
+        if last is None or not self.upper.watched():
+            return False
+        anchor = self.speaker.camera.project_head(self._head_point[None], last.pose)[0]
+        return self.upper.wants_reading(image, anchor)
+
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
         if _contrast(image[::8, ::8]) < self.tracker.policy.min_contrast:
             return self._lost(t, "blank: the frame has no contrast")
@@ -469,9 +485,16 @@ class LiveTracker:
         reading = None
         self._since_read += 1
         skip = self._started and self._since_read < fu.read_every
-        if self._started and self._reading is not None and not skip:
+        for_eyes = skip and fu.eye_reads and self._eyes_changed(image)
+        if self._started and self._reading is not None and (for_eyes or not skip):
+            t0 = self.clock() if for_eyes and self.clock else 0.0
             reading = self._finder(image, self._reading, self.reader)
             self._since_read = 0
+            skip = False
+            if for_eyes:
+                self.eye_reads += 1
+                if self.clock:  # (the upper face's cost: it asked for the reading)
+                    self.upper.spent_s += self.clock() - t0
         restart = not self._started or (reading is None and not skip)
         prior = None
         scale = fu.points_scale

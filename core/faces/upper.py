@@ -36,7 +36,7 @@ Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll``
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -115,6 +115,11 @@ class UpperReference:
         in a speaker.json from before the lid gap (its ``photo`` was another measure's, and
         is not used).
     blinks : blinks the clip held (closure runs above 0.5); frames : frames measured.
+    change_limit : (left, right) how far the eye's pixels changed (:func:`eye_change`)
+        between open-eye frames :data:`CHANGE_LAGS` apart in the clip (its
+        :data:`CHANGE_QUANTILE`): between readings, an eye without a usable photometric
+        measure that changes further has the frame read (:meth:`UpperTracker.wants_reading`);
+        0: not measured (a speaker.json from before it), never read for the eyes.
     """
 
     open_mm: tuple[float, float]
@@ -132,6 +137,7 @@ class UpperReference:
     lower_mm: tuple[float, float] | None = None
     brow_x_mm: tuple[float, float] | None = None
     photo_kind: tuple[str, str] = ("contrast", "contrast")
+    change_limit: tuple[float, float] = (0.0, 0.0)
 
     def brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
         """Side ``i``'s live brow search windows (inner, outer: mm above the eye line; None
@@ -158,7 +164,7 @@ class UpperReference:
                 "brow_floor_mm": list(self.brow_floor_mm),
                 **({} if self.lower_mm is None else {"lower_mm": list(self.lower_mm)}),
                 **({} if self.brow_x_mm is None else {"brow_x_mm": list(self.brow_x_mm)}),
-                "photo_kind": list(self.photo_kind)}
+                "photo_kind": list(self.photo_kind), "change_limit": list(self.change_limit)}
 
     @classmethod
     def from_dict(cls, d: Any, where: str) -> UpperReference:
@@ -170,7 +176,7 @@ class UpperReference:
             sizes["levels"] = 6
         if isinstance(d, dict) and "brow_band_mm" in d:  # (absent before the brow band)
             sizes["brow_band_mm"], sizes["brow_floor_mm"] = 4, 2
-        for k in ("lower_mm", "brow_x_mm"):  # (absent before the squint and the squeeze)
+        for k in ("lower_mm", "brow_x_mm", "change_limit"):  # (absent before them)
             if isinstance(d, dict) and k in d:
                 sizes[k] = 2
         try:
@@ -181,6 +187,8 @@ class UpperReference:
         bad = [k for k, n in sizes.items()
                if len(vals[k]) != n or not all(math.isfinite(v) and abs(v) < 1e3
                                                for v in vals[k])]
+        if min(vals.get("change_limit", (0.0,))) < 0:
+            bad.append("change_limit")
         if bad or not all(o > c > 0 for o, c in zip(vals["open_mm"], vals["closed_mm"],
                                                     strict=True)):
             raise ModelFileError(f"{where}: the upper-face block needs finite numbers and an "
@@ -825,6 +833,104 @@ def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
     return float(s_eye / m_ring)
 
 
+CHANGE_SEARCH = 0.3
+"""How far round the eye's expected place :func:`eye_change` looks for it, as a fraction of
+half the corners' distance (at least 2 px): the place between readings comes from the head's
+tracked motion, a pixel or two off on a 10 px eye."""
+
+CHANGE_QUANTILE = 0.975
+"""The change an open eye shows between frames that an eye without a usable photometric
+measure may show between readings before the frame is read (:attr:`UpperReference.change_limit`):
+one frame in 40 of the enrolment's open eyes, per eye, would be read for nothing."""
+
+CHANGE_LAGS = (1, 2)
+"""Frames apart whose changes the limit is taken over: the frames between two readings at the
+live reader's cadence (every 3rd frame)."""
+
+
+def _eye_box(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float,
+             margin: int = 0) -> np.ndarray | None:
+    """The grey levels (float32) of the box over the eye whose corners are ``inner``,
+    ``outer`` px: as wide as the corners apart, 1.6 times ``open_px`` high (the open eye at
+    this distance), grown by ``margin`` px on every side; None where it leaves the image."""
+    c = (np.asarray(inner, np.float64) + np.asarray(outer, np.float64)) / 2.0
+    hw = float(np.linalg.norm(np.asarray(outer, np.float64) - inner)) / 2.0
+    hh = max(0.8 * open_px, 1.0)
+    if not (np.isfinite(c).all() and np.isfinite(hw)) or hw < 2.0:
+        return None
+    x0, x1 = int(round(c[0] - hw)) - margin, int(round(c[0] + hw)) + 1 + margin
+    y0, y1 = int(round(c[1] - hh)) - margin, int(round(c[1] + hh)) + 1 + margin
+    h, w = grey.shape[:2]
+    if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
+        return None
+    return _grey(grey[y0:y1, x0:x1]).astype(np.float32)
+
+
+def eye_template(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: float
+                 ) -> np.ndarray | None:
+    """The eye's pixels at a reading, for :func:`eye_change` (None outside the image or
+    uniform)."""
+    box = _eye_box(grey, inner, outer, open_px)
+    return None if box is None or float(box.std()) < 1e-3 else box
+
+
+def eye_change(template: np.ndarray, grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
+               open_px: float) -> float | None:
+    """How much the eye changed since ``template`` (:func:`eye_template`) was taken: 1 - the
+    best normalised cross-correlation of the template within :data:`CHANGE_SEARCH` of where
+    the eye is now expected (corners ``inner``, ``outer`` px). 0: the same pixels, shifted at
+    most; a lid closing over an open eye, ~0.3-1. None outside the image. (The eye's contrast
+    relative to the reading's, tried first, moved as much with a pixel's misplacement on
+    carphone's 10 px eyes: 13 % of its open frames read for nothing, against none:
+    docs/UPPER_FACE.md.)"""
+    half = float(np.linalg.norm(np.asarray(outer, np.float64) - inner)) / 2.0
+    if not np.isfinite(half):
+        return None
+    margin = max(2, int(math.ceil(CHANGE_SEARCH * half)))
+    area = _eye_box(grey, inner, outer, open_px, margin)
+    if area is None or area.shape[0] < template.shape[0] or area.shape[1] < template.shape[1]:
+        return None
+    return 1.0 - float(cv2.matchTemplate(area, template, cv2.TM_CCOEFF_NORMED).max())
+
+
+def change_limits(greys: Sequence[np.ndarray], readings: Sequence[np.ndarray | None],
+                  measures: Sequence[Measures | None], ref: UpperReference
+                  ) -> tuple[float, float]:
+    """Each eye's :data:`CHANGE_QUANTILE` of :func:`eye_change` between enrolment frames
+    :data:`CHANGE_LAGS` apart, both open (closure < 0.3 in both), the template from the
+    earlier frame and looked for where the face's points moved it (as live, where the head's
+    motion moves it); 0 with fewer than 20 such pairs. ``greys``, ``readings`` (468+, 2+)
+    px and ``measures`` per frame in clip order (None where no face was read)."""
+    n = len(measures)
+    ok = np.zeros(n, bool)
+    for t, m in enumerate(measures):
+        ok[t] = m is not None and abs(m.yaw_deg) < MAX_YAW_DEG and readings[t] is not None \
+            and max(closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
+                    for i in range(2)) < 0.3
+    out = []
+    for i, side in enumerate(SIDES):
+        a, b = EYE_CORNERS[side]
+        ch = []
+        for k in CHANGE_LAGS:
+            for t in range(k, n):
+                if not (ok[t] and ok[t - k]):
+                    continue
+                lm0 = np.asarray(readings[t - k], np.float64)[:, :2]
+                lm1 = np.asarray(readings[t], np.float64)[:, :2]
+                m0 = measures[t - k]
+                assert m0 is not None
+                open_px = ref.open_mm[i] * m0.scale
+                tpl = eye_template(greys[t - k], lm0[a], lm0[b], open_px)
+                if tpl is None:
+                    continue
+                shift = np.mean(lm1[:468] - lm0[:468], axis=0)
+                x = eye_change(tpl, greys[t], lm0[a] + shift, lm0[b] + shift, open_px)
+                if x is not None:
+                    ch.append(x)
+        out.append(float(np.quantile(ch, CHANGE_QUANTILE)) if len(ch) >= 20 else 0.0)
+    return out[0], out[1]
+
+
 LEVELS_MIN_CONTRAST = 8.0
 """Grey levels whose white or iris is closer than this to the skin cannot tell an open eye."""
 
@@ -1174,11 +1280,14 @@ class UpperTracker:
     # each eye's running disagreement of the readings with its photometric closure (:meth:`_from`)
     _levels: list[tuple[float, float, float] | None] = field(
         default_factory=lambda: [None, None])  # each eye's grey levels at its last fit
+    _templates: list[np.ndarray | None] = field(
+        default_factory=lambda: [None, None])  # each watched eye's pixels at the last reading
 
     def reset(self) -> None:
         self._last = self._corners = self._anchor = None
         self._gaze = self._closure = None
         self._offset = [None, None]
+        self._templates = [None, None]
 
     def _photo(self, grey: np.ndarray, i: int, inner: np.ndarray, outer: np.ndarray
                ) -> float | None:
@@ -1239,14 +1348,64 @@ class UpperTracker:
             self._corners = np.array([[lm[EYE_CORNERS[s][0], :2], lm[EYE_CORNERS[s][1], :2]]
                                       for s in SIDES])
             self._anchor = None if anchor is None else np.asarray(anchor, np.float64)
+            self._templates = [None, None]
+            for i in self.watched():  # (an eye read shut: its reopening waits for the cadence)
+                if closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i]) < 0.5:
+                    self._templates[i] = eye_template(
+                        grey, self._corners[i, 0], self._corners[i, 1], ref.open_mm[i] * m.scale)
             return self._from(m, "reader")
         if self._last is None or self._corners is None:
             return UpperFace.absent("no_face: no reading of the eyes yet")
-        shift = (np.zeros(2) if anchor is None or self._anchor is None
-                 else np.asarray(anchor, np.float64) - self._anchor)
+        shift = self._shift(anchor)
         photo = tuple(self._photo(grey, i, self._corners[i, 0] + shift,
-                                  self._corners[i, 1] + shift) for i in range(2))
+                                  self._corners[i, 1] + shift)
+                      if abs(ref.photo_r[i]) >= PHOTO_MIN_R else None for i in range(2))
         return self._from(self._last, "photo", photo)  # type: ignore[arg-type]
+
+    def _shift(self, anchor: np.ndarray | None) -> np.ndarray:
+        """How far the head's point moved since the last reading (px; 0 without anchors)."""
+        return (np.zeros(2) if anchor is None or self._anchor is None
+                else np.asarray(anchor, np.float64) - self._anchor)
+
+    def watched(self) -> list[int]:
+        """The eyes without a usable photometric measure whose pixels are watched
+        between readings (:meth:`wants_reading`)."""
+        ref = self.reference
+        if ref is None or self.rig == "head":
+            return []
+        return [i for i in range(2)
+                if ref.change_limit[i] > 0 and abs(ref.photo_r[i]) < PHOTO_MIN_R]
+
+    def wants_reading(self, image: np.ndarray, anchor: np.ndarray | None) -> bool:
+        """Whether a frame between readings should be read for the eyes: an eye whose
+        closure cannot be followed from its pixels (a photometric measure under
+        :data:`PHOTO_MIN_R` at enrolment: carphone's ~10 px eyes) but whose pixels changed
+        since the last reading (:func:`eye_change`) further than the speaker's open eye does
+        between frames (:attr:`UpperReference.change_limit`): a lid closing, or the face
+        turning, either worth a reading. A blink of two frames falls between readings one
+        time in three otherwise (docs/UPPER_FACE.md). ``anchor`` as in :meth:`step`; the
+        time is added to ``spent_s`` when there is a clock."""
+        t0 = self.clock() if self.clock is not None else 0.0
+        try:
+            return self._wants_reading(image, anchor)
+        finally:
+            if self.clock is not None:
+                self.spent_s += self.clock() - t0
+
+    def _wants_reading(self, image: np.ndarray, anchor: np.ndarray | None) -> bool:
+        ref, m = self.reference, self._last
+        if ref is None or m is None or self._corners is None:
+            return False
+        shift = self._shift(anchor)
+        for i in self.watched():
+            tpl = self._templates[i]
+            if tpl is None:
+                continue
+            x = eye_change(tpl, image, self._corners[i, 0] + shift, self._corners[i, 1] + shift,
+                           ref.open_mm[i] * m.scale)
+            if x is not None and x > ref.change_limit[i]:
+                return True
+        return False
 
     def _from(self, m: Measures, source: str,
               photo: tuple[float | None, float | None] | None = None) -> UpperFace:
