@@ -57,7 +57,11 @@ Scores per clip and method (held-out frames):
   across its turns; per pass, each one's mean CPU (and wall) ms per frame. ``cpu_x_v1`` and
   ``x_v1`` give the pass-by-pass ratios' median, min, max; the per-pass figures and both
   constructions are listed. A load change during a pass then falls on both alike, within
-  a turn of ~0.1-0.3 s. Accuracy is scored on the full run alone;
+  a turn of ~0.1-0.3 s. Accuracy is scored on the full run alone. ``interleaved_lips``:
+  the same for articast's lips alone, a third loop in the same passes (the speaker's upper
+  face references left out: no eyes or brows measured, no frame read for the eyes), issue
+  18's figure, the upper face having its own budget (issue 19: +1 ms a frame,
+  ``benchmarks/blinks.py``);
 - ``synthetic`` only: ``truth_r``, the correlation with the true aperture ratio (the truth's
   parameters through the true model: inner midpoints 2.2-2.3 over outer corners 8.3-8.4), and
   for articast the mean absolute error of its aperture and width in mm; ``consensus_vs_truth``:
@@ -81,6 +85,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -467,6 +472,9 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     def build() -> ArticastLoop:
         return ArticastLoop(speaker, held, fps, ARTICAST_POLICY)
 
+    def build_lips() -> ArticastLoop:  # (the lips alone: the upper face's references left out)
+        return ArticastLoop(replace(speaker, upper=None), held, fps, ARTICAST_POLICY)
+
     got = timed_pass(build, len(held))
     results, live = got["outputs"], got["step"].live
     m, cam = speaker.model, speaker.camera
@@ -488,6 +496,7 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
             code = r.reason.split(":", 1)[0]
             reasons[code] = reasons.get(code, 0) + 1
     return {"ratio": ratio, "boxes": boxes, **_costs(got), "found": ok, "builder": build,
+            "lips_builder": build_lips,
             "speaker": speaker, "results": results, "aperture_mm": ap_mm,
             "width_mm": width_mm, "ok": ok,
             "info": {"ok": _round(ok.mean(), 4), "reasons": reasons,
@@ -615,10 +624,13 @@ def run_methods(methods, held, fps, enrol, facemesh_v1: Path | None, peers: dict
     if CPU_REPEATS > 0 and "builder" in a and "builder" in b:
         log(f"  articast and {BASELINE} interleaved: {CPU_REPEATS} passes, turns of "
             f"{CPU_CHUNK} frames")
-        costs = interleaved_cost({"articast": a["builder"], BASELINE: b["builder"]},
+        costs = interleaved_cost({"articast": a["builder"], BASELINE: b["builder"],
+                                  "articast_lips": a["lips_builder"]},
                                  len(held), CPU_REPEATS, CPU_CHUNK)
         a["interleaved"] = interleaved_ratios(costs, "articast")
-        log(f"  CPU x v1 interleaved: {a['interleaved']['cpu_x_v1']}")
+        a["interleaved_lips"] = interleaved_ratios(costs, "articast_lips")
+        log(f"  CPU x v1 interleaved: {a['interleaved']['cpu_x_v1']}; the lips alone: "
+            f"{a['interleaved_lips']['cpu_x_v1']}")
     return out
 
 
@@ -655,8 +667,9 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
                if base_cpu and v["cpu_ms"] else None,
                "build_ms": _round(v.get("build_ms"), 1),
                "build_cpu_ms": _round(v.get("build_cpu_ms"), 1)}
-        if "interleaved" in v:
-            row["interleaved"] = v["interleaved"]
+        for key in ("interleaved", "interleaved_lips"):
+            if key in v:
+                row[key] = v[key]
         if truth is not None:
             row["truth_r"] = _round(pearson(v["ratio"], truth)[0], 4)
         if "info" in v:
@@ -804,6 +817,8 @@ SUMMARY = (("r against the consensus of the others", "consensus_r"),
            ("wall ms per frame / FaceMesh v1 loop's", "x_v1"),
            ("CPU ms per frame / FaceMesh v1 loop's", "cpu_x_v1"),
            ("the same, interleaved passes: median (min-max, passes)", "interleaved"),
+           ("articast's lips alone (the upper face left out), the same passes",
+            "interleaved_lips"),
            ("frames with a face (articast: ok)", None))
 
 
@@ -823,7 +838,7 @@ def summary(rows: list[dict]) -> list[str]:
                     cells.append("–")
                 elif key is None:
                     cells.append(_fmt(v.get("ok", v.get("found"))))
-                elif key == "interleaved":
+                elif key.startswith("interleaved"):
                     cells.append(_spread(v.get(key)))
                 else:
                     cells.append(_fmt(v.get(key)))
