@@ -484,6 +484,7 @@ def test_an_eye_the_pixels_cannot_follow_is_read_the_frame_it_shuts(enrolled):
     sp = Speaker.load(enrolled / "speaker")
     assert sp.upper is not None and max(abs(r) for r in sp.upper.photo_r) < 0.5
     assert min(sp.upper.change_limit) > 0
+    assert sp.report["upper"]["watched"] == [True, True]  # (enroll reports it)
     frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
     for eye_reads in (True, False):
         live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),

@@ -33,7 +33,13 @@ from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geomet
 from articast.core.faces.fit import fit_pose
 from articast.core.faces.flow import default_for, refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
-from articast.core.faces.upper import Measures, UpperReference, calibrate, change_limits
+from articast.core.faces.upper import (
+    PHOTO_MIN_R,
+    Measures,
+    UpperReference,
+    calibrate,
+    change_limits,
+)
 from articast.core.faces.upper import measure as measure_upper
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
@@ -253,7 +259,10 @@ def upper_report(ref: UpperReference | None) -> dict:
             "iris_radius_mm": [round(v, 2) for v in ref.iris_radius_mm],
             "brow_band_mm": [round(v, 2) for v in ref.brow_band_mm],
             "photometric_kind": list(ref.photo_kind),
-            "photometric_r": [round(v, 3) for v in ref.photo_r]}
+            "photometric_r": [round(v, 3) for v in ref.photo_r],
+            # (left, right) eyes no photometric measure follows: read when they change
+            "watched": [bool(ref.change_limit[i] > 0 and abs(ref.photo_r[i]) < PHOTO_MIN_R)
+                        for i in range(2)]}
 
 
 def fusion_model(model: FaceModel, camera: Camera, scheme: LandmarkScheme,

@@ -311,6 +311,11 @@ def _print_report(folder: Path, speaker, report: dict) -> None:
         else:
             print("irises: not measured (no iris/white contrast): the gaze is fitted to each "
                   "frame's own widest iris chord")
+        watched = [side for side, w in zip(("left", "right"), up.get("watched") or [],
+                                           strict=False) if w]
+        if watched:
+            print(f"blinks between readings: the {' and '.join(watched)} eye's pixels do not "
+                  "follow its lids; a frame where it changes is read for it")
     r = speaker.residual
     print(f"appearance: {report['appearance']['kind']}, {report['appearance']['sample_points']} "
           f"points, trained on {report['training_frames']} frames; residual on "
