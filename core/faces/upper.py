@@ -1079,7 +1079,8 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
             iris_radius_mm: tuple[float, float] | None = None,
             levels: tuple[tuple[float, float, float] | None, ...] | None = None,
             brow_windows: tuple[Any, ...] | None = None,
-            kinds: tuple[str, ...] = PHOTO_KINDS) -> Measures | None:
+            kinds: tuple[str, ...] = PHOTO_KINDS,
+            photo_eyes: tuple[bool, bool] = (True, True)) -> Measures | None:
     """The raw measures of one reading (``open_mm``: the strip height of the photometric lid
     gap; default: this reading's own opening; ``iris_radius_mm``: the speaker's iris
     radius, default each frame's own widest chord; ``levels``: each eye's grey levels for
@@ -1087,8 +1088,9 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
     iris); where None, this frame's own when its iris is fitted, else no gap);
     ``brow_windows``: each side's brow search window (:meth:`UpperReference.brow_window`),
     default from just above this frame's open eye to ``BROW_ABOVE_READER_MM`` above the
-    reader's brow points); ``kinds``: the
-    photometric measures wanted, default both)."""
+    reader's brow points; given with a side's None, that side's band is not looked for);
+    ``kinds``: the photometric measures wanted, default all; ``photo_eyes``: the eyes they
+    are wanted for, default both (the others' are None))."""
     al = align(landmarks, canon)
     if al is None:
         return None
@@ -1102,7 +1104,7 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
           else (None if f is None else f.levels) for i, f in enumerate(fits)]
     ref = open_mm or opening
     gap = "gap" in kinds or brow_windows is None  # (the enrolment's brow floor needs it)
-    photo = tuple(None if lv[i] is None or not gap else lid_gap(
+    photo = tuple(None if lv[i] is None or not gap or not photo_eyes[i] else lid_gap(
         grey, lm[EYE_CORNERS[s][0], :2], lm[EYE_CORNERS[s][1], :2],
         max(ref[i], 1.0) * al.scale, lv[i]) for i, s in enumerate(SIDES))  # type: ignore[arg-type]
     floor: list[float | None] = []
@@ -1114,9 +1116,12 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
         mid = (lm[EYE_CORNERS[s][0], :2] + lm[EYE_CORNERS[s][1], :2]) / 2.0
         above = float(mid[1] - f.eye[1]) / al.scale  # (image y down; roll ignored)
         floor.append(above + 0.5 * x * max(ref[i], 1.0) + 1.5)
-    band = []
+    band: list[tuple[float | None, float | None] | None] = []
     brows = brow_heights_mm(al.points)
     for i, s in enumerate(SIDES):
+        if brow_windows is not None and brow_windows[i] is None:
+            band.append(None)  # (a side whose band the enrolment did not find)
+            continue
         win = None if brow_windows is None else brow_windows[i]
         if win is None and (fl := floor[i]) is not None:  # (enrolment: see BROW_ABOVE_READER_MM)
             win = tuple((fl, max(fl + 3.0, float(brows[2 * i + j]) + BROW_ABOVE_READER_MM))
@@ -1128,10 +1133,11 @@ def measure(grey: np.ndarray, landmarks: np.ndarray, canon: CanonicalFace,
                     tuple(band), tuple(floor),  # type: ignore[arg-type]
                     tuple(photo_measure(grey, lm[EYE_CORNERS[s][0], :2],  # type: ignore[arg-type]
                                         lm[EYE_CORNERS[s][1], :2], max(ref[i], 1.0) * al.scale)
-                          if "contrast" in kinds else None for i, s in enumerate(SIDES)),
+                          if "contrast" in kinds and photo_eyes[i] else None
+                          for i, s in enumerate(SIDES)),
                     lower_lids_mm(al.points), inner_brows_x_mm(al.points),
                     tuple(None if (v := lv[i]) is None or "iris" not in kinds
-                          else iris_height(grey, lm[EYE_CORNERS[s][0], :2],
+                          or not photo_eyes[i] else iris_height(grey, lm[EYE_CORNERS[s][0], :2],
                                            lm[EYE_CORNERS[s][1], :2],
                                            max(ref[i], 1.0) * al.scale, v)
                           for i, s in enumerate(SIDES)))  # type: ignore[arg-type]
@@ -1335,7 +1341,8 @@ class UpperTracker:
         if landmarks is not None:
             m = measure(grey, landmarks, self.canon, ref.open_mm, ref.iris_radius_mm,
                         (self._eye_levels(0), self._eye_levels(1)),
-                        (ref.brow_window(0), ref.brow_window(1)), ref.photo_kind)
+                        (ref.brow_window(0), ref.brow_window(1)), ref.photo_kind,
+                        self._followed())
             if m is None:
                 self.reset()
                 return UpperFace.absent("no_face: the landmarks are degenerate")
@@ -1359,13 +1366,20 @@ class UpperTracker:
         shift = self._shift(anchor)
         photo = tuple(self._photo(grey, i, self._corners[i, 0] + shift,
                                   self._corners[i, 1] + shift)
-                      if abs(ref.photo_r[i]) >= PHOTO_MIN_R else None for i in range(2))
+                      if used else None for i, used in enumerate(self._followed()))
         return self._from(self._last, "photo", photo)  # type: ignore[arg-type]
 
     def _shift(self, anchor: np.ndarray | None) -> np.ndarray:
         """How far the head's point moved since the last reading (px; 0 without anchors)."""
         return (np.zeros(2) if anchor is None or self._anchor is None
                 else np.asarray(anchor, np.float64) - self._anchor)
+
+    def _followed(self) -> tuple[bool, bool]:
+        """Whether each eye's photometric measure is used (:data:`PHOTO_MIN_R`): the
+        others' are not measured."""
+        ref = self.reference
+        assert ref is not None
+        return (abs(ref.photo_r[0]) >= PHOTO_MIN_R, abs(ref.photo_r[1]) >= PHOTO_MIN_R)
 
     def watched(self) -> list[int]:
         """The eyes without a usable photometric measure whose pixels are watched
