@@ -571,6 +571,14 @@ def test_between_readings_an_eye_it_cannot_follow_is_read_when_it_changes():
     moved = lms[1][0, :2] - lm[0, :2]  # where the head's motion puts the eyes next frame
     assert not tracker.wants_reading(greys[1], moved)
     assert tracker.wants_reading(shut, np.zeros(2))
+    # one eye changed alone (the head rolling moved one template more): a blink shuts both
+    one = greys[0].copy()
+    x, y, w, h = cv2.boundingRect(np.round(lm[list(U.EYE_CONTOUR["left"]), :2]).astype(
+        np.int32))
+    one[y - 5:y + h + 5, x - 5:x + w + 5] = shut[y - 5:y + h + 5, x - 5:x + w + 5]
+    assert not tracker.wants_reading(one, np.zeros(2))
+    assert dataclasses.replace(tracker, reference=dataclasses.replace(
+        weak, photo_r=(-0.2, -0.9))).wants_reading(one, np.zeros(2))  # the left eye alone
     # the eyes a calibrated measure follows, and a speaker.json from before: not watched
     for ref in (dataclasses.replace(weak, photo_r=(-0.9, -0.9)), REF):
         other = U.UpperTracker(ref)

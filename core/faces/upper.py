@@ -1396,8 +1396,9 @@ class UpperTracker:
         :data:`PHOTO_MIN_R` at enrolment: carphone's ~10 px eyes) but whose pixels changed
         since the last reading (:func:`eye_change`) further than the speaker's open eye does
         between frames (:attr:`UpperReference.change_limit`): a lid closing, or the face
-        turning, either worth a reading. A blink of two frames falls between readings one
-        time in three otherwise (docs/UPPER_FACE.md). ``anchor`` as in :meth:`step`; the
+        turning, either worth a reading; where both eyes are watched, both must have changed.
+        A blink of two frames falls between readings one time in three otherwise
+        (docs/UPPER_FACE.md). ``anchor`` as in :meth:`step`; the
         time is added to ``spent_s`` when there is a clock."""
         t0 = self.clock() if self.clock is not None else 0.0
         try:
@@ -1411,15 +1412,18 @@ class UpperTracker:
         if ref is None or m is None or self._corners is None:
             return False
         shift = self._shift(anchor)
+        changed = []
         for i in self.watched():
             tpl = self._templates[i]
             if tpl is None:
                 continue
             x = eye_change(tpl, image, self._corners[i, 0] + shift, self._corners[i, 1] + shift,
                            ref.open_mm[i] * m.scale)
-            if x is not None and x > ref.change_limit[i]:
-                return True
-        return False
+            if x is not None:
+                changed.append(x > ref.change_limit[i])
+        # both eyes, where both are watched: a blink shuts both; one eye's change alone was
+        # the head rolling on carphone (a template is moved with the head, not turned)
+        return bool(changed) and all(changed)
 
     def _from(self, m: Measures, source: str,
               photo: tuple[float | None, float | None] | None = None) -> UpperFace:
