@@ -510,7 +510,8 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     """A fit the frame's landmarks disown (``diverged``: the state knocked off the face, the
     face still read) restarts on the next frame from the landmarks read in the crop grown from
     that reading: one reader call, no detector, no finding landmarks; with
-    ``FusionPolicy(resume=False)`` the same frame runs the detector."""
+    ``FusionPolicy(resume=False)`` the same frame runs the detector, and so does a resumed
+    start whose reading finds no face (the face gone: a frame of noise)."""
     from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
     from articast.core.faces.scheme import mediapipe_scheme
     from articast.service.video import iter_video
@@ -518,7 +519,8 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     sp = Speaker.load(enrolled / "speaker")
     frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
     runs = {}
-    for resume in (True, False):
+    noise = np.random.default_rng(0).integers(0, 256, frames[0].shape, np.uint8)
+    for resume, gone in ((True, False), (False, False), (True, True)):
         finder, reader = _counting_finders()
         live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
                            LivePolicy(fusion=FusionPolicy(resume=resume)), reader=reader)
@@ -535,16 +537,20 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
         assert res.reason.startswith("diverged"), res.reason
         before = (reader.detections, getattr(finder, "finds", 0), getattr(finder, "tracks", 0),
                   live.finder_calls, live.restarts)
-        nxt = live.track(frames[i + 1], (i + 1) / 25)
-        runs[resume] = (nxt, before, (reader.detections, getattr(finder, "finds", 0),
-                                      getattr(finder, "tracks", 0), live.finder_calls,
-                                      live.restarts))
-    nxt, before, after = runs[True]
+        nxt = live.track(noise if gone else frames[i + 1], (i + 1) / 25)
+        runs[resume, gone] = (nxt, before, (reader.detections, getattr(finder, "finds", 0),
+                                            getattr(finder, "tracks", 0), live.finder_calls,
+                                            live.restarts))
+    nxt, before, after = runs[True, False]
     assert nxt.ok and after[4] == before[4] + 1  # restarted, and fits
     assert after[0] == before[0] and after[1:3] == before[1:3]  # no detector, no v2
     assert after[3] == before[3] + 1  # one reader call: the frame's reading
-    _, before, after = runs[False]
+    _, before, after = runs[False, False]
     assert after[0] == before[0] + 1 and after[4] == before[4] + 1
+    nxt, before, after = runs[True, True]  # the resumed reading finds nothing: the detector
+    assert not nxt.ok and nxt.reason.startswith("no_face"), nxt.reason
+    assert after[0] == before[0] + 1 and after[4] == before[4]  # ran, found none: no start
+    assert after[3] == before[3] + 2  # the resumed reading, then the detector's search
 
 
 def test_a_start_from_the_readers_landmarks_is_as_close_to_the_truth_as_the_finders(enrolled):
