@@ -9,7 +9,8 @@ Each clip is read as ``benchmarks/peers.py`` reads it (640 px wide; articast enr
 scored on the held-out 40 %:
 
 - **articast**: the live tracker (``LiveTracker``, the product's policy: the FaceMesh v1 reader
-  every other frame); a blink frame is one whose mean eyelid closure (left, right) is > 0.5;
+  every third frame, and the frames its eyes ask for); a blink frame is one whose mean
+  eyelid closure (left, right) is > 0.5;
 - **reference**: dlib's 68-point shape predictor (its own HOG detector), in its own venv
   (``benchmarks/peer_worker.py``), a landmark model articast does not use: the eye aspect
   ratio (Soukupova & Cech 2016) of each eye, ``(|p2-p6| + |p3-p5|) / (2 |p1-p4|)``, averaged
@@ -60,7 +61,6 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -76,7 +76,7 @@ from peers import (  # noqa: E402
     read_clip,
     worker_points,
 )
-from real_clips import enrol_speaker  # noqa: E402
+from real_clips import cost_over_lips, enrol_speaker  # noqa: E402
 
 from articast.core.evaluation.upper import (  # noqa: E402
     BLINK_CLOSURE,
@@ -170,48 +170,31 @@ def match(ours: list[tuple[int, int]], ref: list[tuple[int, int]], tol: int = TO
     return match_events(ours, ref, tol, one_to_one)
 
 
-def _pass(speaker, held, fps, step_time: dict | None = None):
-    """One live run over the held-out frames: its results and CPU seconds; ``step_time``
-    (wall, cpu) gets the upper face's own step time added when given."""
+def track(speaker, held, fps):
+    """The tracked frames and their cost: the whole frame's, the upper face's own step
+    (timed inside the run) and the upper face's whole cost over the lips alone
+    (:func:`~real_clips.cost_over_lips`, the first pair's full run this one)."""
+    kernels.warm_up()
     live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme(speaker.rig),
                        clock=time.perf_counter)
-    if step_time is not None:
-        step = live.upper.step
-
-        def timed(*a, **k):
-            w0, c0 = time.perf_counter(), time.process_time()
-            out = step(*a, **k)
-            step_time["wall"] += time.perf_counter() - w0
-            step_time["cpu"] += time.process_time() - c0
-            return out
-
-        live.upper.step = timed  # type: ignore[method-assign]
-    c0 = time.process_time()
-    res = [live.track(f, i / fps) for i, f in enumerate(held)]
-    return res, time.process_time() - c0, live
-
-
-def track(speaker, held, fps, repeats: int = 3):
-    """The tracked frames and their cost: the whole frame's, the upper face's own step, and
-    the cost over the lips alone: the median over ``repeats`` interleaved pairs of runs of
-    the CPU per frame with the upper face less that of the same tracker without it (the
-    speaker's upper references left out: no eyes measured, no frame read for the eyes)."""
-    kernels.warm_up()
-    n = max(len(held), 1)
+    step = live.upper.step
     spent = {"wall": 0.0, "cpu": 0.0}
-    w0 = time.perf_counter()
-    res, cpu, live = _pass(speaker, held, fps, spent)
-    wall = time.perf_counter() - w0
-    lips_only = replace(speaker, upper=None)
-    over = []
-    for k in range(repeats):
-        full = cpu if k == 0 else _pass(speaker, held, fps)[1]
-        over.append((full - _pass(lips_only, held, fps)[1]) * 1e3 / n)
-    return res, {"frame_ms": wall * 1e3 / n, "frame_cpu_ms": cpu * 1e3 / n,
+
+    def timed(*a, **k):
+        w0, c0 = time.perf_counter(), time.process_time()
+        out = step(*a, **k)
+        spent["wall"] += time.perf_counter() - w0
+        spent["cpu"] += time.process_time() - c0
+        return out
+
+    live.upper.step = timed  # type: ignore[method-assign]
+    w0, c0 = time.perf_counter(), time.process_time()
+    res = [live.track(f, i / fps) for i, f in enumerate(held)]
+    n = max(len(held), 1)
+    cpu = (time.process_time() - c0) * 1e3 / n
+    return res, {"frame_ms": (time.perf_counter() - w0) * 1e3 / n, "frame_cpu_ms": cpu,
                  "upper_ms": spent["wall"] * 1e3 / n, "upper_cpu_ms": spent["cpu"] * 1e3 / n,
-                 "over_lips_cpu_ms": float(np.median(over)),
-                 "over_lips_spread_ms": [round(min(over), 3), round(max(over), 3)],
-                 "eye_reads": live.eye_reads}
+                 **cost_over_lips(speaker, held, fps, first=cpu), "eye_reads": live.eye_reads}
 
 
 def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,

@@ -29,6 +29,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -154,6 +155,31 @@ def track_live(speaker: Speaker, frames: list[np.ndarray], fps: float, *,
         results.append(live.track(f, t0 + i / fps))
     ms = (time.perf_counter() - start) * 1000 / max(len(frames), 1)
     return results, ms, live
+
+
+def cost_over_lips(speaker: Speaker, frames: list[np.ndarray], fps: float,
+                   repeats: int = 3, first: float | None = None) -> dict:
+    """What the upper face costs a frame, all of it (its step, the frames read for the eyes,
+    their fits), in the same run: the CPU ms per frame of the live tracker less that of the
+    same tracker without the speaker's upper-face references (no eyes measured, none read
+    for), the median over ``repeats`` interleaved pairs of runs, and their range. ``first``:
+    a run with the upper face already made (its CPU ms per frame), used as the first pair's."""
+    kernels.warm_up()
+    lips_only = replace(speaker, upper=None)
+
+    def cpu_ms(sp: Speaker) -> float:
+        live = LiveTracker(sp, FaceFinder.load(threads=1), mediapipe_scheme(sp.rig))
+        c0 = time.process_time()
+        for i, f in enumerate(frames):
+            live.track(f, i / fps)
+        return (time.process_time() - c0) * 1e3 / max(len(frames), 1)
+
+    over = []
+    for k in range(repeats):
+        full = first if k == 0 and first is not None else cpu_ms(speaker)
+        over.append(full - cpu_ms(lips_only))
+    return {"over_lips_cpu_ms": round(float(np.median(over)), 3),
+            "over_lips_spread_ms": [round(min(over), 3), round(max(over), 3)]}
 
 
 def outer_width_mm(model, alpha: np.ndarray) -> np.ndarray:

@@ -7,7 +7,7 @@ The built-in speaker (seed 0) on the desk rig, its eyes and brows animated by
 fixations and saccades; brow raises). It is enrolled as ``articast enroll`` would (the finding
 landmarks, the live reader, ``build_speaker``, upper-face references included) on another
 sentence of 300 frames at 12 fps with its own blinks, then tracked live (``LiveTracker``, the
-product's policy: the reader every other frame) on a test sentence of ``--seconds`` at
+product's policy: the reader every third frame) on a test sentence of ``--seconds`` at
 ``--fps``. Scores against the truth:
 
 - ``blink_f1`` (precision, recall): events = runs of frames whose mean closure (left, right) is
@@ -23,7 +23,10 @@ product's policy: the reader every other frame) on a test sentence of ``--second
 - ``lips``: the lip aperture's correlation and mean absolute error against the truth on the
   same frames, with the eyes animated and with the static eyes (the lips must not change);
 - ``upper_cpu_ms``: the upper face's own step per frame (``UpperTracker.step``, timed in the
-  same run), next to the frame's (``frame_cpu_ms``), one thread.
+  same run), next to the frame's (``frame_cpu_ms``), one thread; ``over_lips_cpu_ms``: the
+  upper face's whole cost over the lips alone, in the same run (the same tracker without the
+  upper-face references, 3 interleaved pairs of runs: ``benchmarks/real_clips.py``
+  ``cost_over_lips``).
 
 Note: the synthetic eye and the tracker's gaze both take the iris 11.5 mm from the eyeball's
 centre (``EYE_RADIUS_MM``): the gaze figure checks the measurement, not that assumption.
@@ -42,7 +45,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-from real_clips import enrol_speaker  # noqa: E402
+from real_clips import cost_over_lips, enrol_speaker  # noqa: E402
 
 from articast.core.evaluation.upper import score_upper  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
@@ -59,7 +62,7 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def track(speaker, frames, fps, photometric: bool = False):
+def track(speaker, frames, fps, photometric: bool = False, cost: bool = True):
     kernels.warm_up()
     live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme(speaker.rig),
                        clock=time.perf_counter)
@@ -77,8 +80,10 @@ def track(speaker, frames, fps, photometric: bool = False):
     c0 = time.process_time()
     res = [live.track(f, i / fps) for i, f in enumerate(frames)]
     n = max(len(frames), 1)
-    return res, {"frame_cpu_ms": round((time.process_time() - c0) * 1e3 / n, 3),
-                 "upper_cpu_ms": round(spent[0] * 1e3 / n, 3)}
+    cpu = (time.process_time() - c0) * 1e3 / n
+    over = cost_over_lips(speaker, frames, fps, first=cpu) if cost else {}
+    return res, {"frame_cpu_ms": round(cpu, 3), "upper_cpu_ms": round(spent[0] * 1e3 / n, 3),
+                 **over}
 
 
 def corr(a, b) -> float | None:
@@ -134,14 +139,15 @@ def main(argv: list[str] | None = None) -> None:
     speaker = enrol_speaker(enrol_imgs, 12.0, camera=enrol.camera, max_frames=None,
                             times=np.arange(300) / 12.0)
     log("tracking")
-    res, cost = track(speaker, frames, args.fps, photometric=args.photometric_closure)
+    res, cost = track(speaker, frames, args.fps, photometric=args.photometric_closure,
+                      cost=not args.photometric_closure)
     out = {"seconds": args.seconds, "fps": args.fps, "enrolment": speaker.report.get("upper"),
            **score(res, up, args.fps), **cost, "lips": lips(res, speaker, true_model, test)}
     if not args.no_static:
         log("tracking the same sentence with static eyes (the lips' check)")
         static = [sp.render(test.controls[i], test.pose(i), test.camera,
                             RenderOptions(seed=20_000 + i)) for i in range(n)]
-        res_s, _ = track(speaker, static, args.fps)
+        res_s, _ = track(speaker, static, args.fps, cost=False)
         out["lips_static_eyes"] = lips(res_s, speaker, true_model, test)
     print(json.dumps(out, indent=1 if args.json else None))
 
