@@ -470,6 +470,52 @@ def _shut_eyes(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
     return out
 
 
+def _on_to_a_reading(live, frames, first: int = 20) -> int:
+    """Track ``frames`` from 0 on to a frame read on the cadence (at or after ``first``) whose
+    next frame is not to be read for the lips; its index."""
+    i = 0
+    while True:
+        res = live.track(frames[i], i / 25)
+        if i >= first and res.upper.source == "reader" and live._since_read == 0:
+            return i
+        i += 1
+
+
+def _inverted_eyes(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """``image`` with both eyes' grey levels inverted inside their contours: eyes that change
+    and stay open (the reader reads their lids where they were)."""
+    from articast.core.faces.upper import EYE_CONTOUR, SIDES
+
+    out = image.copy()
+    for side in SIDES:
+        mask = np.zeros(image.shape[:2], np.uint8)
+        cv2.fillPoly(mask, [np.round(landmarks[list(EYE_CONTOUR[side]), :2]).astype(np.int32)],
+                     1)
+        out[mask > 0] = 255 - out[mask > 0]
+    return out
+
+
+def test_frames_read_for_the_eyes_do_not_follow_each_other(enrolled):
+    """An eye that changes on every frame (a glint on glasses) is not read on every frame:
+    after a frame read for the eyes, the next one is not (at most every other reading is one),
+    though its eyes changed again."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.video import iter_video
+
+    sp = Speaker.load(enrolled / "speaker")
+    frames = [img for _, _, img in iter_video(enrolled / "test" / "video.mp4")]
+    live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig))
+    i = _on_to_a_reading(live, frames)
+    marks = np.asarray(live._fresh.landmarks)
+    changed = live.track(_inverted_eyes(frames[i + 1], marks), (i + 1) / 25)
+    assert changed.upper.source == "reader" and live.eye_reads == 1
+    assert max(changed.upper.closure_left, changed.upper.closure_right) < 0.5  # (read open)
+    back = live.track(frames[i + 2], (i + 2) / 25)  # changed again, back as they were
+    assert back.upper.source == "photo" and live.eye_reads == 1
+
+
 def test_an_eye_the_pixels_cannot_follow_is_read_the_frame_it_shuts(enrolled):
     """Speaker 4 enrolled with eyes that never moved: no photometric measure follows its
     lids, so between readings the closure is held and a blink of two frames could fall
@@ -490,12 +536,7 @@ def test_an_eye_the_pixels_cannot_follow_is_read_the_frame_it_shuts(enrolled):
         live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
                            LivePolicy(fusion=FusionPolicy(eye_reads=eye_reads)))
         assert live.upper.watched() == [0, 1]
-        i = 0
-        while True:  # on to a frame read on the cadence, the next one not read for the lips
-            res = live.track(frames[i], i / 25)
-            if i >= 20 and res.upper.source == "reader" and live._since_read == 0:
-                break
-            i += 1
+        i = _on_to_a_reading(live, frames)
         marks = np.asarray(live._fresh.landmarks)
         before = live.eye_reads
         res = live.track(_shut_eyes(frames[i + 1], marks), (i + 1) / 25)

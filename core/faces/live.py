@@ -205,8 +205,9 @@ class FusionPolicy:
     eye_reads : a frame between readings is read too when an eye the upper face cannot follow
         from its pixels changed more than the speaker's open eye does between frames
         (:meth:`~articast.core.faces.upper.UpperTracker.wants_reading`: a blink of two frames
-        falls between readings every 3rd frame one time in three otherwise); that reading's
-        time is counted as the upper face's (docs/UPPER_FACE.md).
+        falls between readings every 3rd frame one time in three otherwise), unless the last
+        reading was one such (at most every other reading is one); that reading's time is
+        counted as the upper face's (docs/UPPER_FACE.md).
     """
 
     reader: str = "v1"
@@ -299,6 +300,7 @@ class LiveTracker:
         self.regated = 0  # readings far from the prediction (the motion model restarted)
         self.rereads = 0  # readings that asked for the next frame to be read too
         self.eye_reads = 0  # frames between readings read for the eyes (FusionPolicy.eye_reads)
+        self._eyes_read = False  # the last reading was one of those
         self._t_last: float | None = None
         self._phase = 0  # frames since the last reading (fused tracking)
         self._cadence = (CadenceCanceller(fu.read_every, fu.cadence)
@@ -485,11 +487,15 @@ class LiveTracker:
         reading = None
         self._since_read += 1
         skip = self._started and self._since_read < fu.read_every
-        for_eyes = skip and fu.eye_reads and self._eyes_changed(image)
+        # (one frame read for the eyes between two others: an eye that changes on every
+        # frame, a glint on glasses, costs a reading in two at worst, not one per frame)
+        for_eyes = (skip and fu.eye_reads and not self._eyes_read
+                    and self._eyes_changed(image))
         if self._started and self._reading is not None and (for_eyes or not skip):
             t0 = self.clock() if for_eyes and self.clock else 0.0
             reading = self._finder(image, self._reading, self.reader)
             self._since_read = 0
+            self._eyes_read = for_eyes
             skip = False
             if for_eyes:
                 self.eye_reads += 1
@@ -532,6 +538,7 @@ class LiveTracker:
             assert alpha is not None and pose is not None
             self.kalman.start(alpha, pose.rotation, pose.translation)
             self._since_read = 0
+            self._eyes_read = False
             prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
         if prior is not None and fu.speaker_prior is not None:
             prior = prior.with_speaker(fu.speaker_prior)
