@@ -301,6 +301,7 @@ class LiveTracker:
         self.rereads = 0  # readings that asked for the next frame to be read too
         self.eye_reads = 0  # frames between readings read for the eyes (FusionPolicy.eye_reads)
         self._eyes_read = False  # the last reading was one of those
+        self._last_anchor: np.ndarray | None = None  # the head's point at the last ok frame
         self._t_last: float | None = None
         self._phase = 0  # frames since the last reading (fused tracking)
         self._cadence = (CadenceCanceller(fu.read_every, fu.cadence)
@@ -424,17 +425,17 @@ class LiveTracker:
         anchor = None
         if result.ok or result.reason.startswith("occluded"):
             anchor = self.speaker.camera.project_head(self._head_point[None], result.pose)[0]
+        if result.ok:  # (where the next frame's eyes are looked for, :meth:`_eyes_changed`)
+            self._last_anchor = anchor
         return self.upper.step(image, marks, anchor,
                                result.ok or result.reason.startswith("occluded"))
 
     def _eyes_changed(self, image: np.ndarray) -> bool:
         """Whether the upper face asks for this frame between readings to be read (the head's
         point placed at the last tracked pose: this frame's is not fitted yet)."""
-        last = self._last
-        if last is None or not self.upper.watched():
+        if self._last is None or self._last_anchor is None or not self.upper.watched():
             return False
-        anchor = self.speaker.camera.project_head(self._head_point[None], last.pose)[0]
-        return self.upper.wants_reading(image, anchor)
+        return self.upper.wants_reading(image, self._last_anchor)
 
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
         if _contrast(image[::8, ::8]) < self.tracker.policy.min_contrast:

@@ -853,13 +853,13 @@ def _eye_box(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px: fl
     """The grey levels (float32) of the box over the eye whose corners are ``inner``,
     ``outer`` px: as wide as the corners apart, 1.6 times ``open_px`` high (the open eye at
     this distance), grown by ``margin`` px on every side; None where it leaves the image."""
-    c = (np.asarray(inner, np.float64) + np.asarray(outer, np.float64)) / 2.0
-    hw = float(np.linalg.norm(np.asarray(outer, np.float64) - inner)) / 2.0
+    cx, cy = (float(inner[0]) + float(outer[0])) / 2.0, (float(inner[1]) + float(outer[1])) / 2.0
+    hw = math.hypot(float(outer[0] - inner[0]), float(outer[1] - inner[1])) / 2.0
     hh = max(0.8 * open_px, 1.0)
-    if not (np.isfinite(c).all() and np.isfinite(hw)) or hw < 2.0:
+    if not (math.isfinite(cx) and math.isfinite(cy) and math.isfinite(hw)) or hw < 2.0:
         return None
-    x0, x1 = int(round(c[0] - hw)) - margin, int(round(c[0] + hw)) + 1 + margin
-    y0, y1 = int(round(c[1] - hh)) - margin, int(round(c[1] + hh)) + 1 + margin
+    x0, x1 = int(round(cx - hw)) - margin, int(round(cx + hw)) + 1 + margin
+    y0, y1 = int(round(cy - hh)) - margin, int(round(cy + hh)) + 1 + margin
     h, w = grey.shape[:2]
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h:
         return None
@@ -883,8 +883,8 @@ def eye_change(template: np.ndarray, grey: np.ndarray, inner: np.ndarray, outer:
     relative to the reading's, tried first, moved as much with a pixel's misplacement on
     carphone's 10 px eyes: 13 % of its open frames read for nothing, against none:
     docs/UPPER_FACE.md.)"""
-    half = float(np.linalg.norm(np.asarray(outer, np.float64) - inner)) / 2.0
-    if not np.isfinite(half):
+    half = math.hypot(float(outer[0] - inner[0]), float(outer[1] - inner[1])) / 2.0
+    if not math.isfinite(half):
         return None
     margin = max(2, int(math.ceil(CHANGE_SEARCH * half)))
     area = _eye_box(grey, inner, outer, open_px, margin)
@@ -1412,18 +1412,22 @@ class UpperTracker:
         if ref is None or m is None or self._corners is None:
             return False
         shift = self._shift(anchor)
-        changed = []
+        measured = False
         for i in self.watched():
             tpl = self._templates[i]
             if tpl is None:
                 continue
             x = eye_change(tpl, image, self._corners[i, 0] + shift, self._corners[i, 1] + shift,
                            ref.open_mm[i] * m.scale)
-            if x is not None:
-                changed.append(x > ref.change_limit[i])
-        # both eyes, where both are watched: a blink shuts both; one eye's change alone was
-        # the head rolling on carphone (a template is moved with the head, not turned)
-        return bool(changed) and all(changed)
+            if x is None:
+                continue
+            # both eyes, where both are watched: a blink shuts both; one eye's change alone
+            # was the head rolling on carphone (a template is moved with the head, not
+            # turned); an eye that did not change ends it (most frames: one eye looked at)
+            if x <= ref.change_limit[i]:
+                return False
+            measured = True
+        return measured
 
     def _from(self, m: Measures, source: str,
               photo: tuple[float | None, float | None] | None = None) -> UpperFace:
