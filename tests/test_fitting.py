@@ -435,10 +435,11 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
 
 
 def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
-    """kernels._smooth_pixel (the lazy maps' blur) is exactly the separable Gaussian with
-    OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
+    """kernels._smooth_pixel and _smooth_column (the lazy maps' blur: one pixel, or up to
+    four of a column with their passes side by side) are exactly the separable Gaussian
+    with OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
     float32, then the column pass the same way -- bit for bit, inside and at every border,
-    whichever pixel asks first."""
+    whichever pixel asks first (the row passes kept column-major: rows (w, h, 3))."""
     import cv2
 
     from articast.core.tracking import kernels
@@ -461,14 +462,28 @@ def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
             acc += taps[i + rad] * src[yy, reflect(x + i, w)].astype(np.float64)
         return acc.astype(np.float32)
 
-    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 3), np.float32)
-    done, rdone = np.zeros((h, w), np.uint8), np.zeros((h, w), np.uint8)
+    def want(y, x):
+        acc = np.zeros(3)
+        for j in range(-rad, rad + 1):
+            acc += taps[j + rad] * row_pass(reflect(y + j, h), x).astype(np.float64)
+        return acc.astype(np.float32)
+
+    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((w, h, 3), np.float32)
+    done, rdone = np.zeros((h, w), np.uint8), np.zeros((w, h), np.uint8)
     pixels = [(0, 0), (h - 1, w - 1), (11, 15), (12, 15), (3, 29), (20, 1)]
     pixels += [tuple(p) for p in rng.integers(0, [h, w], (30, 2))]
     for y, x in pixels:
         kernels._smooth_pixel(src, sm, done, rows, rdone, taps, y, x)
-        want = np.zeros(3)
-        for j in range(-rad, rad + 1):
-            want += taps[j + rad] * row_pass(reflect(y + j, h), x).astype(np.float64)
         assert done[y, x] == 1
-        np.testing.assert_array_equal(sm[y, x], want.astype(np.float32))
+        np.testing.assert_array_equal(sm[y, x], want(y, x))
+    # columns of 1-4 pixels, some already done, at the borders and inside
+    need = np.empty(len(taps) + 3, np.int64)
+    for x, y0, y1 in [(0, 0, 3), (w - 1, h - 4, h - 1), (15, 10, 13), (15, 9, 14), (7, 2, 3),
+                      (29, 20, 22), (16, 11, 11)]:
+        for y in range(y0, y1 + 1, 4):
+            kernels._smooth_column(src, sm, done, rows, rdone, taps, x, y, min(y + 3, y1),
+                                   need)
+        for y in range(y0, y1 + 1):
+            assert done[y, x] == 1
+            np.testing.assert_array_equal(sm[y, x], want(y, x))
+    assert done.sum() > 40

@@ -63,30 +63,95 @@ def _reflect(i, n):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover - compiled
     """Gaussian-smooth pixel (y, x) of src into sm (separable: a horizontal pass kept per
-    pixel in rows, then a vertical pass), unless done already. (Each value is summed in the
-    same order as ever, tap by tap: the three channels of a row pass share one loop, and a
-    row away from the left and right borders reads its pixels without the border rule.)"""
-    if done[y, x]:
-        return
+    pixel in rows, then a vertical pass), unless done already: :func:`_smooth_column` of one
+    pixel."""
+    _smooth_column(src, sm, done, rows, rdone, taps, x, y, y, np.empty(taps.shape[0] + 3,
+                                                                         np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _smooth_column(src, sm, done, rows, rdone, taps, x, y0, y1,
+                   need):  # pragma: no cover - compiled
+    """Gaussian-smooth the pixels (y0..y1, x) of src into sm that are not done (at most 4;
+    separable: a horizontal pass kept per pixel in rows, then a vertical pass). Each value is
+    summed in the same order as ever, tap by tap in float64 and kept in float32; the passes
+    of up to four rows (or pixels) run side by side, so that their sums do not wait on each
+    other (one pass's 17 sums are a chain of dependent additions). ``need`` : a scratch
+    buffer of at least len(taps) + 3 ints."""
     h, w = src.shape[0], src.shape[1]
     n = taps.shape[0]
     rad = n // 2
-    inside = x - rad >= 0 and x + rad < w
-    for j in range(-rad, rad + 1):
-        yy = _reflect(y + j, h)
-        if rdone[yy, x]:
+    # the row passes the pixels read that no earlier pixel did
+    cnt = 0
+    for y in range(y0, y1 + 1):
+        if done[y, x]:
             continue
+        for j in range(-rad, rad + 1):
+            yy = _reflect(y + j, h)
+            if rdone[x, yy]:
+                continue
+            rdone[x, yy] = 1
+            need[cnt] = yy
+            cnt += 1
+    inside = x - rad >= 0 and x + rad < w
+    i = 0
+    while i + 4 <= cnt:
+        _rows4(src, rows, taps, x, inside, need[i], need[i + 1], need[i + 2], need[i + 3])
+        i += 4
+    while i < cnt:
+        yy = need[i]
         r0 = r1 = r2 = 0.0
-        for i in range(n):  # the horizontal pass of this row, all channels, once
-            xx = x - rad + i if inside else _reflect(x - rad + i, w)
-            r0, r1, r2 = _tap3(src, yy, xx, taps[i], r0, r1, r2)
-        _put3(rows, yy, x, r0, r1, r2)
-        rdone[yy, x] = 1
-    a0 = a1 = a2 = 0.0
-    for j in range(n):
-        a0, a1, a2 = _tap3(rows, _reflect(y - rad + j, h), x, taps[j], a0, a1, a2)
-    _put3(sm, y, x, a0, a1, a2)
-    done[y, x] = 1
+        for m in range(n):
+            xx = x - rad + m if inside else _reflect(x - rad + m, w)
+            r0, r1, r2 = _tap3(src, yy, xx, taps[m], r0, r1, r2)
+        _put3(rows, x, yy, r0, r1, r2)
+        i += 1
+    # the vertical passes
+    cnt = 0
+    for y in range(y0, y1 + 1):
+        if not done[y, x]:
+            need[cnt] = y
+            cnt += 1
+    i = 0
+    while i + 2 <= cnt:
+        ya, yb = need[i], need[i + 1]
+        a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+        for m in range(n):
+            tp = taps[m]
+            a0, a1, a2 = _tap3(rows, x, _reflect(ya - rad + m, h), tp, a0, a1, a2)
+            b0, b1, b2 = _tap3(rows, x, _reflect(yb - rad + m, h), tp, b0, b1, b2)
+        _put3(sm, ya, x, a0, a1, a2)
+        _put3(sm, yb, x, b0, b1, b2)
+        done[ya, x] = 1
+        done[yb, x] = 1
+        i += 2
+    if i < cnt:
+        y = need[i]
+        a0 = a1 = a2 = 0.0
+        for m in range(n):
+            a0, a1, a2 = _tap3(rows, x, _reflect(y - rad + m, h), taps[m], a0, a1, a2)
+        _put3(sm, y, x, a0, a1, a2)
+        done[y, x] = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rows4(src, rows, taps, x, inside, ya, yb, yc, yd):  # pragma: no cover - compiled
+    """The horizontal passes of four rows at column x (each as one row's)."""
+    w = src.shape[1]
+    n = taps.shape[0]
+    rad = n // 2
+    a0 = a1 = a2 = b0 = b1 = b2 = c0 = c1 = c2 = d0 = d1 = d2 = 0.0
+    for m in range(n):
+        xx = x - rad + m if inside else _reflect(x - rad + m, w)
+        tp = taps[m]
+        a0, a1, a2 = _tap3(src, ya, xx, tp, a0, a1, a2)
+        b0, b1, b2 = _tap3(src, yb, xx, tp, b0, b1, b2)
+        c0, c1, c2 = _tap3(src, yc, xx, tp, c0, c1, c2)
+        d0, d1, d2 = _tap3(src, yd, xx, tp, d0, d1, d2)
+    _put3(rows, x, ya, a0, a1, a2)
+    _put3(rows, x, yb, b0, b1, b2)
+    _put3(rows, x, yc, c0, c1, c2)
+    _put3(rows, x, yd, d0, d1, d2)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -138,6 +203,7 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
     jp = np.empty((2, 3))
     dcam = np.zeros((3, p_count))
     duv = np.empty((2, p_count))
+    need = np.empty(taps.shape[0] + 3 if lazy else 0, np.int64)  # _smooth_column's scratch
     for s in range(s_count):
         # geometry: head-frame point, camera-frame point, projection and its Jacobian
         for d in range(3):
@@ -179,16 +245,19 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
         fx = mx - ix
         fy = my - iy
         if lazy:  # the 12 pixels the cell's values and central differences read
-            # (done checked here: a call passes every buffer, ~30 ns, mostly to find it done)
-            for a in range(2):
-                for b in range(-1, 3):
-                    if not done[iy + a, ix + b]:
-                        _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + a, ix + b)
-            for b in range(2):
-                if not done[iy - 1, ix + b]:
-                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy - 1, ix + b)
-                if not done[iy + 2, ix + b]:
-                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + 2, ix + b)
+            # (done checked here: a call passes every buffer, mostly to find it done)
+            if not (done[iy, ix - 1] and done[iy, ix] and done[iy, ix + 1]
+                    and done[iy, ix + 2] and done[iy + 1, ix - 1] and done[iy + 1, ix]
+                    and done[iy + 1, ix + 1] and done[iy + 1, ix + 2] and done[iy - 1, ix]
+                    and done[iy - 1, ix + 1] and done[iy + 2, ix] and done[iy + 2, ix + 1]):
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix - 1, iy, iy + 1,
+                               need)
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix, iy - 1, iy + 2,
+                               need)
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 1, iy - 1, iy + 2,
+                               need)
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 2, iy, iy + 1,
+                               need)
         for ch in range(3):
             for a in range(2):
                 for b in range(2):
