@@ -435,10 +435,11 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
 
 
 def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
-    """kernels._smooth_pixel (the lazy maps' blur) is exactly the separable Gaussian with
-    OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
+    """kernels._smooth_pixel and _smooth_column (the lazy maps' blur: one pixel, or up to
+    four of a column with their passes side by side) are exactly the separable Gaussian
+    with OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
     float32, then the column pass the same way -- bit for bit, inside and at every border,
-    whichever pixel asks first."""
+    whichever pixel asks first (the row passes kept column-major: rows (w, h, 3))."""
     import cv2
 
     from articast.core.tracking import kernels
@@ -461,14 +462,100 @@ def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
             acc += taps[i + rad] * src[yy, reflect(x + i, w)].astype(np.float64)
         return acc.astype(np.float32)
 
-    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((h, w, 3), np.float32)
-    done, rdone = np.zeros((h, w), np.uint8), np.zeros((h, w), np.uint8)
+    def want(y, x):
+        acc = np.zeros(3)
+        for j in range(-rad, rad + 1):
+            acc += taps[j + rad] * row_pass(reflect(y + j, h), x).astype(np.float64)
+        return acc.astype(np.float32)
+
+    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((w, h, 3), np.float32)
+    done, rdone = np.zeros((h, w), np.uint8), np.zeros((w, h), np.uint8)
     pixels = [(0, 0), (h - 1, w - 1), (11, 15), (12, 15), (3, 29), (20, 1)]
     pixels += [tuple(p) for p in rng.integers(0, [h, w], (30, 2))]
     for y, x in pixels:
         kernels._smooth_pixel(src, sm, done, rows, rdone, taps, y, x)
-        want = np.zeros(3)
-        for j in range(-rad, rad + 1):
-            want += taps[j + rad] * row_pass(reflect(y + j, h), x).astype(np.float64)
         assert done[y, x] == 1
-        np.testing.assert_array_equal(sm[y, x], want.astype(np.float32))
+        np.testing.assert_array_equal(sm[y, x], want(y, x))
+    # columns of 1-4 pixels, some already done, at the borders and inside
+    need = np.empty(len(taps) + 3, np.int64)
+    for x, y0, y1 in [(0, 0, 3), (w - 1, h - 4, h - 1), (15, 10, 13), (15, 9, 14), (7, 2, 3),
+                      (29, 20, 22), (16, 11, 11)]:
+        for y in range(y0, y1 + 1, 4):
+            kernels._smooth_column(src, sm, done, rows, rdone, taps, x, y, min(y + 3, y1),
+                                   need)
+        for y in range(y0, y1 + 1):
+            assert done[y, x] == 1
+            np.testing.assert_array_equal(sm[y, x], want(y, x))
+    assert done.sum() > 40
+
+
+def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
+    """The start's fit (faces.fit.fit_to_landmarks) keeps a rejected step's normal equations
+    (the state, hence they, did not move: only the damping grows) instead of forming them
+    again: the same state bit for bit as the plain loop that recomputes them every
+    iteration, here with several rejected steps and the state moved by the fit."""
+    from articast.core.faces.fit import fit_to_landmarks
+    from articast.core.model.camera import Camera, axis_angle, turn_jacobian
+    from articast.core.synthetic import default_speaker
+
+    model = default_speaker(0).model()
+    camera = Camera.default()
+    rng = np.random.default_rng(3)
+    k = model.n_params
+    true_alpha = rng.normal(0.0, 0.8, k)
+    truth = Pose(np.array([0.1, -0.2, 0.05]), np.array([5.0, -8.0, 420.0]))
+    uv = camera.project(model.shape(true_alpha) @ truth.matrix.T + truth.translation)
+    uv = uv + rng.normal(0.0, 1.5, uv.shape)
+    alpha0 = true_alpha + rng.normal(0.0, 0.5, k)
+    pose0 = Pose(truth.rotation + 0.03, truth.translation + [4.0, -3.0, 15.0])
+
+    def plain(iterations=10, sigma_px=2.0, alpha_sd=1.5):  # the former loop, verbatim
+        a = np.array(alpha0, np.float64)
+        rot = rotation_matrix(pose0.rotation)
+        tr = np.array(pose0.translation, np.float64)
+        w_prior = (sigma_px / alpha_sd) ** 2
+        live = np.ptp(model.basis.reshape(k, -1), axis=1) > 0
+        lam = 1e-3
+
+        def cost_of(a_, rot_, t_):
+            pc = model.shape(a_) @ rot_.T + t_
+            proj, jac = camera.project_jacobian(pc)
+            r = (proj - uv).ravel()
+            return float(r @ r + w_prior * a_ @ a_), r, jac, pc
+
+        cost, r, jac, pc = cost_of(a, rot, tr)
+        rejected = 0
+        for _ in range(iterations):
+            rb = np.einsum("ij,knj->kni", rot, model.basis)
+            d_alpha = np.einsum("nij,knj->nik", jac, rb)
+            d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(pc - tr))
+            full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(
+                len(uv) * 2, -1)
+            ok = np.isfinite(full).all(1) & np.isfinite(r)
+            jj, rr = full[ok], r[ok]
+            h = jj.T @ jj
+            g = jj.T @ rr
+            na = int(live.sum())
+            h[:na, :na] += w_prior * np.eye(na)
+            g[:na] += w_prior * a[live]
+            step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
+            a_new = a.copy()
+            a_new[live] += step[:na]
+            rot_new = rotation_matrix(step[na:na + 3]) @ rot
+            t_new = tr + step[na + 3:]
+            c_new, r_new, jac_new, pc_new = cost_of(a_new, rot_new, t_new)
+            if np.isfinite(c_new) and c_new < cost:
+                a, rot, tr, cost, r, jac, pc = a_new, rot_new, t_new, c_new, r_new, jac_new, pc_new
+                lam = max(lam / 10, 1e-7)
+            else:
+                lam *= 10
+                rejected += 1
+        return a, Pose(axis_angle(rot), tr), rejected
+
+    want_alpha, want_pose, rejected = plain()
+    alpha, pose = fit_to_landmarks(model, camera, uv, alpha0, pose0)
+    assert rejected >= 2  # the kept equations were used
+    assert np.abs(want_alpha - alpha0).max() > 0.1  # and the fit moved
+    np.testing.assert_array_equal(alpha, want_alpha)
+    np.testing.assert_array_equal(pose.rotation, want_pose.rotation)
+    np.testing.assert_array_equal(pose.translation, want_pose.translation)

@@ -670,3 +670,67 @@ def test_track_line_carries_eyes_and_brows():
     back = TrackResult.from_dict(d, ("a", "b"))
     assert back.upper.closure_right == pytest.approx(f.closure_right, abs=1e-3)
     assert "eyes" not in TrackResult(0, 0.0, np.zeros(2), Pose()).to_dict(("a", "b"))
+
+
+def test_compiled_iris_chords_are_numpys_to_the_bit():
+    """kernels.iris_chords and iris_former_rows (the iris fit's chords in one compiled call
+    each) give numpy's reference (_chords_numpy, _former_rows_numpy) to the bit: its float32
+    arithmetic with the Python floats cast to float32 first, its pairwise sums, the same
+    dtypes; on rendered eyes with noise (gazes, rolls, lids half down, a shaded nasal white)
+    cropped as fit_iris crops them."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(7)
+    n_bounded = 0
+    for k, (gaze, roll, closure, nasal) in enumerate(
+            [((0.0, 0.0), 0.0, 0.0, None), ((2.5, -1.5), 6.0, 0.3, 200),
+             ((-2.0, 1.0), -4.0, 0.5, None), ((1.0, 0.5), 2.0, 0.1, 180)]):
+        lm = reading(CANON.vertices_mm, 0.0, roll)
+        img = lidded_eye_image(lm, gaze, roll_deg=roll, closure=closure, nasal_white=nasal)
+        grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY).astype(np.float32)
+        grey = np.clip(grey + rng.normal(0.0, 4.0, grey.shape), 0, 255).astype(np.uint8)
+        for side in U.SIDES:
+            poly = lm[list(U.EYE_CONTOUR[side]), :2]
+            x0, y0 = np.floor(poly.min(0)).astype(int) - 3
+            x1, y1 = np.ceil(poly.max(0)).astype(int) + 4
+            patch = grey[y0:y1, x0:x1].astype(np.float32)
+            contour = np.zeros(patch.shape, np.uint8)
+            cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
+            grown = cv2.dilate(contour, np.ones((5, 5), np.uint8))
+            srt = np.sort(patch[contour > 0])
+            thr = float(srt[srt.size // 10] + srt[(9 * srt.size) // 10]) / 2.0
+            nd = int(np.searchsorted(srt, thr))
+            iris, white = float(srt[nd // 2]), float(srt[nd + (3 * (srt.size - nd)) // 4])
+            cx0 = float(patch.shape[1]) / 2.0 + 0.37 * k
+            p = cv2.morphologyEx(patch, cv2.MORPH_OPEN, np.ones((1, 3), np.uint8))
+            got = kernels.iris_chords(p, contour, grown, thr, iris, white, cx0, U.ROW_WHITE)
+            want = U._chords_numpy(p, contour, grown, thr, iris, white, cx0)
+            for g, w in zip(got, want, strict=True):
+                assert g.dtype == w.dtype
+                np.testing.assert_array_equal(g, w)
+            n_bounded += int(want[2].sum())
+            got2 = kernels.iris_former_rows(patch, grown, iris, white, cx0)
+            want2 = U._former_rows_numpy(patch, grown, iris, white, cx0)
+            for g, w in zip(got2, want2, strict=True):
+                assert g.dtype == w.dtype
+                np.testing.assert_array_equal(g, w)
+    assert n_bounded >= 20  # chords were measured, not only empty rows
+
+
+def test_compiled_pairwise_sum_is_numpys_up_to_the_widest_eye_crop():
+    """kernels._pairwise_sum adds as numpy's sum does (eight running sums, halves of long
+    runs), float32 in float32: the same bits for every length up to IRIS_MAX_WIDTH."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(11)
+    lengths = [*range(1, 300), 511, 1000, 1537, 2900, kernels.IRIS_MAX_WIDTH]
+    for dtype in (np.float32, np.float64):
+        for n in lengths:
+            a = (rng.random(n) * rng.choice([1e-3, 1.0, 1e3], n)).astype(dtype)
+            assert kernels._pairwise_sum(a, 0, n) == a.sum(), (dtype, n)
+    a = rng.random(200).astype(np.float32)
+    assert kernels._pairwise_sum(a, 0, 200) != np.float32(sum(a.tolist()))  # not in order

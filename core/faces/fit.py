@@ -95,21 +95,25 @@ def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np
         r = (proj - uv).ravel()
         return float(r @ r + w_prior * a_ @ a_), r, jac, pc
 
+    na = int(live.sum())
     cost, r, jac, pc = cost_of(a, rot, tr)
+    h = g = None
     for _ in range(iterations):
-        # d uv / d alpha_k = J R b_k ; d uv / d t = J ; d uv / d omega = J [-(R x)]_x
-        rb = np.einsum("ij,knj->kni", rot, model.basis)  # (K, N, 3)
-        d_alpha = np.einsum("nij,knj->nik", jac, rb)  # (N, 2, K)
-        rx = pc - tr
-        d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(rx))
-        full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(len(uv) * 2, -1)
-        ok = np.isfinite(full).all(1) & np.isfinite(r)
-        jj, rr = full[ok], r[ok]
-        h = jj.T @ jj
-        g = jj.T @ rr
-        na = int(live.sum())
-        h[:na, :na] += w_prior * np.eye(na)
-        g[:na] += w_prior * a[live]
+        if h is None or g is None:  # the normal equations at this state (a rejected step
+            # leaves the state, hence them, as they were: only the damping grows)
+            # d uv / d alpha_k = J R b_k ; d uv / d t = J ; d uv / d omega = J [-(R x)]_x
+            rb = np.einsum("ij,knj->kni", rot, model.basis)  # (K, N, 3)
+            d_alpha = np.einsum("nij,knj->nik", jac, rb)  # (N, 2, K)
+            rx = pc - tr
+            d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(rx))
+            full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(
+                len(uv) * 2, -1)
+            ok = np.isfinite(full).all(1) & np.isfinite(r)
+            jj, rr = full[ok], r[ok]
+            h = jj.T @ jj
+            g = jj.T @ rr
+            h[:na, :na] += w_prior * np.eye(na)
+            g[:na] += w_prior * a[live]
         step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
         a_new = a.copy()
         a_new[live] += step[:na]
@@ -119,6 +123,7 @@ def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np
         if np.isfinite(c_new) and c_new < cost:
             a, rot, tr, cost, r, jac, pc = a_new, rot_new, t_new, c_new, r_new, jac_new, pc_new
             lam = max(lam / 10, 1e-7)
+            h = g = None
         else:
             lam *= 10
     return a, Pose(axis_angle(rot), tr)

@@ -395,9 +395,9 @@ class LiveTracker:
         t0 = self.clock() if self.clock else 0.0
         self._fresh = None
         result = self._track(image, t)
-        result = replace(result, upper=self._upper_face(image, result))
+        upper = self._upper_face(image, result)
         ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
-        result = replace(result, frame=self._frame, ms=ms)
+        result = replace(result, upper=upper, frame=self._frame, ms=ms)
         if result.ok and (self._filter is not None or self._cadence is not None):
             out = result.alpha
             if self._cadence is not None:

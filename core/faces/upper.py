@@ -45,6 +45,7 @@ import numpy as np
 
 from articast.core.errors import ModelFileError
 from articast.core.faces.canonical import CanonicalFace, canonical_face
+from articast.core.tracking import kernels
 
 SIDES = ("left", "right")
 PHOTO_KINDS = ("gap", "iris", "contrast")
@@ -627,6 +628,17 @@ def _chords(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray, thr: floa
     a specular glint narrower than 3 px is removed first (a grey opening along the rows: it
     would end the chord inside the iris; a monotonic edge is kept as it is)."""
     p = cv2.morphologyEx(patch, cv2.MORPH_OPEN, np.ones((1, 3), np.uint8))
+    if kernels.AVAILABLE and p.shape[1] <= kernels.IRIS_MAX_WIDTH:  # the same numbers in one
+        # compiled call (the numpy below: the reference)
+        return kernels.iris_chords(p, contour, grown, thr, iris, white, cx0, ROW_WHITE)
+    return _chords_numpy(p, contour, grown, thr, iris, white, cx0)
+
+
+def _chords_numpy(p: np.ndarray, contour: np.ndarray, grown: np.ndarray, thr: float,
+                  iris: float, white: float, cx0: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_chords` after the opening of the patch (``p``), in numpy (the reference of
+    :func:`~articast.core.tracking.kernels.iris_chords`)."""
     h, w = p.shape
     cols = np.arange(w, dtype=np.float64)
     ri = np.arange(h)
@@ -692,12 +704,24 @@ def _former_accepts(patch: np.ndarray, grown: np.ndarray, iris: float, white: fl
     franck's blink recall from 1.00 to 0.93 and pexels_woman's from 1.00 to 0.75 (its right
     eye then took the lid gap), a change for the closure's owner to make on its own
     evidence, not a side effect of the gaze (docs/UPPER_FACE.md)."""
+    if kernels.AVAILABLE and patch.shape[1] <= kernels.IRIS_MAX_WIDTH:  # the same numbers,
+        # one compiled call
+        widths, bounded = kernels.iris_former_rows(patch, grown, iris, white, cx0)
+    else:
+        widths, bounded = _former_rows_numpy(patch, grown, iris, white, cx0)
+    return _iris_rows(widths, bounded, radius_px) is not None
+
+
+def _former_rows_numpy(patch: np.ndarray, grown: np.ndarray, iris: float, white: float,
+                       cx0: float) -> tuple[np.ndarray, np.ndarray]:
+    """The chords' widths and bounded rows of :func:`_former_accepts`, in numpy (the
+    reference of :func:`~articast.core.tracking.kernels.iris_former_rows`)."""
     cov = np.clip((white - patch) / (white - iris), 0.0, 1.0) * (grown > 0)
     w = patch.shape[1]
     dist = np.where(cov > 0.5, np.abs(np.arange(w) - cx0)[None, :], np.inf)
     j = np.argmin(dist, axis=1)
     widths, _, bounded = _runs_round(cov, j, dist[np.arange(len(j)), j] < 0.25 * w, grown)
-    return _iris_rows(widths, bounded, radius_px) is not None
+    return widths, bounded
 
 
 def _white(vals: np.ndarray, white: float) -> float:

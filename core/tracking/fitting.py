@@ -527,7 +527,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             a_new = alpha + step[:k]
             rot_new = rotation_matrix(step[k:k + 3]) @ rot
             t_new = t + step[k + 3:k + 6]
-            g_new = float(np.clip(gain + step[k + 6], 0.2, 5.0)) if step.size > k + 6 else gain
+            # (min and max, not np.clip: its call on one number costs more than these sums)
+            g_new = float(min(max(gain + step[k + 6], 0.2), 5.0)) if step.size > k + 6 else gain
             cost_new, terms_new = evaluate(a_new, rot_new, t_new, g_new)
             evals += 1
             if cost_new <= cost or lam > 1e6:

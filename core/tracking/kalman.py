@@ -134,7 +134,7 @@ class ConstantVelocity:
     def predict(self, dt: float) -> StatePrior:
         """Move the state by its velocity over ``dt`` s; returns the prediction as a prior."""
         n = self.n
-        dt = float(np.clip(dt, 1e-3, 1.0))
+        dt = float(min(max(dt, 1e-3), 1.0))
         # F P F^T + Q by blocks, F = [[I, dt I], [0, I]] (the 2n x 2n products cost more)
         q = self.noise.q
         if kernels.AVAILABLE:  # the same sums and inverse in one compiled call

@@ -63,30 +63,95 @@ def _reflect(i, n):  # pragma: no cover - compiled
 @njit(cache=True, nogil=True)
 def _smooth_pixel(src, sm, done, rows, rdone, taps, y, x):  # pragma: no cover - compiled
     """Gaussian-smooth pixel (y, x) of src into sm (separable: a horizontal pass kept per
-    pixel in rows, then a vertical pass), unless done already. (Each value is summed in the
-    same order as ever, tap by tap: the three channels of a row pass share one loop, and a
-    row away from the left and right borders reads its pixels without the border rule.)"""
-    if done[y, x]:
-        return
+    pixel in rows, then a vertical pass), unless done already: :func:`_smooth_column` of one
+    pixel."""
+    _smooth_column(src, sm, done, rows, rdone, taps, x, y, y, np.empty(taps.shape[0] + 3,
+                                                                         np.int64))
+
+
+@njit(cache=True, nogil=True)
+def _smooth_column(src, sm, done, rows, rdone, taps, x, y0, y1,
+                   need):  # pragma: no cover - compiled
+    """Gaussian-smooth the pixels (y0..y1, x) of src into sm that are not done (at most 4;
+    separable: a horizontal pass kept per pixel in rows, then a vertical pass). Each value is
+    summed in the same order as ever, tap by tap in float64 and kept in float32; the passes
+    of up to four rows (or pixels) run side by side, so that their sums do not wait on each
+    other (one pass's 17 sums are a chain of dependent additions). ``need`` : a scratch
+    buffer of at least len(taps) + 3 ints."""
     h, w = src.shape[0], src.shape[1]
     n = taps.shape[0]
     rad = n // 2
-    inside = x - rad >= 0 and x + rad < w
-    for j in range(-rad, rad + 1):
-        yy = _reflect(y + j, h)
-        if rdone[yy, x]:
+    # the row passes the pixels read that no earlier pixel did
+    cnt = 0
+    for y in range(y0, y1 + 1):
+        if done[y, x]:
             continue
+        for j in range(-rad, rad + 1):
+            yy = _reflect(y + j, h)
+            if rdone[x, yy]:
+                continue
+            rdone[x, yy] = 1
+            need[cnt] = yy
+            cnt += 1
+    inside = x - rad >= 0 and x + rad < w
+    i = 0
+    while i + 4 <= cnt:
+        _rows4(src, rows, taps, x, inside, need[i], need[i + 1], need[i + 2], need[i + 3])
+        i += 4
+    while i < cnt:
+        yy = need[i]
         r0 = r1 = r2 = 0.0
-        for i in range(n):  # the horizontal pass of this row, all channels, once
-            xx = x - rad + i if inside else _reflect(x - rad + i, w)
-            r0, r1, r2 = _tap3(src, yy, xx, taps[i], r0, r1, r2)
-        _put3(rows, yy, x, r0, r1, r2)
-        rdone[yy, x] = 1
-    a0 = a1 = a2 = 0.0
-    for j in range(n):
-        a0, a1, a2 = _tap3(rows, _reflect(y - rad + j, h), x, taps[j], a0, a1, a2)
-    _put3(sm, y, x, a0, a1, a2)
-    done[y, x] = 1
+        for m in range(n):
+            xx = x - rad + m if inside else _reflect(x - rad + m, w)
+            r0, r1, r2 = _tap3(src, yy, xx, taps[m], r0, r1, r2)
+        _put3(rows, x, yy, r0, r1, r2)
+        i += 1
+    # the vertical passes
+    cnt = 0
+    for y in range(y0, y1 + 1):
+        if not done[y, x]:
+            need[cnt] = y
+            cnt += 1
+    i = 0
+    while i + 2 <= cnt:
+        ya, yb = need[i], need[i + 1]
+        a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+        for m in range(n):
+            tp = taps[m]
+            a0, a1, a2 = _tap3(rows, x, _reflect(ya - rad + m, h), tp, a0, a1, a2)
+            b0, b1, b2 = _tap3(rows, x, _reflect(yb - rad + m, h), tp, b0, b1, b2)
+        _put3(sm, ya, x, a0, a1, a2)
+        _put3(sm, yb, x, b0, b1, b2)
+        done[ya, x] = 1
+        done[yb, x] = 1
+        i += 2
+    if i < cnt:
+        y = need[i]
+        a0 = a1 = a2 = 0.0
+        for m in range(n):
+            a0, a1, a2 = _tap3(rows, x, _reflect(y - rad + m, h), taps[m], a0, a1, a2)
+        _put3(sm, y, x, a0, a1, a2)
+        done[y, x] = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rows4(src, rows, taps, x, inside, ya, yb, yc, yd):  # pragma: no cover - compiled
+    """The horizontal passes of four rows at column x (each as one row's)."""
+    w = src.shape[1]
+    n = taps.shape[0]
+    rad = n // 2
+    a0 = a1 = a2 = b0 = b1 = b2 = c0 = c1 = c2 = d0 = d1 = d2 = 0.0
+    for m in range(n):
+        xx = x - rad + m if inside else _reflect(x - rad + m, w)
+        tp = taps[m]
+        a0, a1, a2 = _tap3(src, ya, xx, tp, a0, a1, a2)
+        b0, b1, b2 = _tap3(src, yb, xx, tp, b0, b1, b2)
+        c0, c1, c2 = _tap3(src, yc, xx, tp, c0, c1, c2)
+        d0, d1, d2 = _tap3(src, yd, xx, tp, d0, d1, d2)
+    _put3(rows, x, ya, a0, a1, a2)
+    _put3(rows, x, yb, b0, b1, b2)
+    _put3(rows, x, yc, c0, c1, c2)
+    _put3(rows, x, yd, d0, d1, d2)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -138,6 +203,7 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
     jp = np.empty((2, 3))
     dcam = np.zeros((3, p_count))
     duv = np.empty((2, p_count))
+    need = np.empty(taps.shape[0] + 3 if lazy else 0, np.int64)  # _smooth_column's scratch
     for s in range(s_count):
         # geometry: head-frame point, camera-frame point, projection and its Jacobian
         for d in range(3):
@@ -179,16 +245,19 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
         fx = mx - ix
         fy = my - iy
         if lazy:  # the 12 pixels the cell's values and central differences read
-            # (done checked here: a call passes every buffer, ~30 ns, mostly to find it done)
-            for a in range(2):
-                for b in range(-1, 3):
-                    if not done[iy + a, ix + b]:
-                        _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + a, ix + b)
-            for b in range(2):
-                if not done[iy - 1, ix + b]:
-                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy - 1, ix + b)
-                if not done[iy + 2, ix + b]:
-                    _smooth_pixel(src, smooth, done, rows, rdone, taps, iy + 2, ix + b)
+            # (done checked here: a call passes every buffer, mostly to find it done)
+            if not (done[iy, ix - 1] and done[iy, ix] and done[iy, ix + 1]
+                    and done[iy, ix + 2] and done[iy + 1, ix - 1] and done[iy + 1, ix]
+                    and done[iy + 1, ix + 1] and done[iy + 1, ix + 2] and done[iy - 1, ix]
+                    and done[iy - 1, ix + 1] and done[iy + 2, ix] and done[iy + 2, ix + 1]):
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix - 1, iy, iy + 1,
+                               need)
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix, iy - 1, iy + 2,
+                               need)
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 1, iy - 1, iy + 2,
+                               need)
+                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 2, iy, iy + 1,
+                               need)
         for ch in range(3):
             for a in range(2):
                 for b in range(2):
@@ -644,6 +713,236 @@ def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
     return sym, v_new
 
 
+# ---------------------------------------------------------------------------- iris chords
+# core/faces/upper.py's iris fit (_chords, _runs_round, _former_accepts) in one compiled
+# call each: the same float32 arithmetic as numpy's (its Python float operands cast to
+# float32 first, NEP 50) and numpy's pairwise sums, so the same numbers to the bit; the
+# numpy functions are the reference (a test checks them against each other).
+
+
+IRIS_MAX_WIDTH = 4096
+"""The widest eye crop (px) the compiled iris chords take (their sums are numpy's up to it)."""
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_block(a, lo, n):  # pragma: no cover - compiled
+    """numpy's pairwise summation of a[lo:lo + n], n <= 128 (its leaves): below 8 in order,
+    else eight running sums combined as a tree, then the rest in order (float32 summed in
+    float32)."""
+    if n < 8:
+        res = a[lo] - a[lo]  # a zero of a's type
+        for i in range(n):
+            res += a[lo + i]
+        return res
+    r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+    r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
+    i = 8
+    while i < n - (n % 8):
+        r0 += a[lo + i]
+        r1 += a[lo + i + 1]
+        r2 += a[lo + i + 2]
+        r3 += a[lo + i + 3]
+        r4 += a[lo + i + 4]
+        r5 += a[lo + i + 5]
+        r6 += a[lo + i + 6]
+        r7 += a[lo + i + 7]
+        i += 8
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    while i < n:
+        res += a[lo + i]
+        i += 1
+    return res
+
+
+# numpy halves a longer run (each half a multiple of 8 long, the rest to the second) and adds
+# the halves' sums: one function per level, as numba's cache cannot hold a recursive one
+# (loaded from the cache, it crashed); five levels: runs of up to 4096 (an eye's rows are
+# tens of pixels; longer ones stay with numpy: IRIS_MAX_WIDTH)
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_2(a, lo, n):  # pragma: no cover - compiled
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    n2 = n // 2 - (n // 2) % 8
+    return _pairwise_block(a, lo, n2) + _pairwise_block(a, lo + n2, n - n2)
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_3(a, lo, n):  # pragma: no cover - compiled
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    n2 = n // 2 - (n // 2) % 8
+    return _pairwise_2(a, lo, n2) + _pairwise_2(a, lo + n2, n - n2)
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_4(a, lo, n):  # pragma: no cover - compiled
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    n2 = n // 2 - (n // 2) % 8
+    return _pairwise_3(a, lo, n2) + _pairwise_3(a, lo + n2, n - n2)
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_5(a, lo, n):  # pragma: no cover - compiled
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    n2 = n // 2 - (n // 2) % 8
+    return _pairwise_4(a, lo, n2) + _pairwise_4(a, lo + n2, n - n2)
+
+
+@njit(cache=True, nogil=True)
+def _pairwise_sum(a, lo, n):  # pragma: no cover - compiled
+    """numpy's pairwise summation of a[lo:lo + n] (1-D; float32 summed in float32): the
+    order of its additions, hence its rounding, exactly (n up to 4096)."""
+    if n <= 128:
+        return _pairwise_block(a, lo, n)
+    n2 = n // 2 - (n // 2) % 8
+    return _pairwise_5(a, lo, n2) + _pairwise_5(a, lo + n2, n - n2)
+
+
+@njit(cache=True, nogil=True)
+def iris_runs(cov, j, rows_ok, grown):  # pragma: no cover - compiled
+    """upper._runs_round: each row's run of iris (cov (h, w) float32) round its column j,
+    ended where the fraction falls to 0.12: widths (float32), centres (float64) and bounded."""
+    h, w = cov.shape
+    brk = np.float32(0.12)
+    zero = np.float32(0.0)
+    widths = np.empty(h, np.float32)
+    cxs = np.empty(h)
+    bounded = np.zeros(h, np.bool_)
+    m32 = np.empty(w, np.float32)
+    m64 = np.empty(w)
+    for y in range(h):
+        at = 0  # the run's index at j: the breaks up to j
+        for x in range(j[y] + 1):
+            if cov[y, x] <= brk:
+                at += 1
+        run = 0
+        first = -1
+        last = -1
+        for x in range(w):
+            c = cov[y, x]
+            if c <= brk:
+                run += 1
+                m32[x] = zero
+            elif run == at:
+                if first < 0:
+                    first = x
+                last = x
+                m32[x] = c
+            else:
+                m32[x] = zero
+            m64[x] = np.float64(m32[x]) * np.float64(x)
+        if first < 0:  # (numpy's argmax of a row without any: 0, and w - 1 from the end)
+            first, last = 0, w - 1
+        bounded[y] = (rows_ok[y] and first > 0 and last < w - 1
+                      and grown[y, max(first - 1, 0)] > 0 and grown[y, min(last + 1, w - 1)] > 0)
+        wy = _pairwise_sum(m32, 0, w)
+        widths[y] = wy
+        cxs[y] = _pairwise_sum(m64, 0, w) / np.float64(max(wy, np.float32(1e-9)))
+    return widths, cxs, bounded
+
+
+@njit(cache=True, nogil=True)
+def _white_of(vals, n, white):  # pragma: no cover - compiled
+    """upper._white of the first n of vals."""
+    if n < 4:
+        return white
+    v = np.sort(vals[:n])
+    return np.float64(v[(3 * n) // 4])
+
+
+@njit(cache=True, nogil=True)
+def iris_chords(p, contour, grown, thr, iris, white, cx0, row_white):  # pragma: no cover
+    """upper._chords after its opening ``p`` (h, w) float32: (widths, centres, bounded)."""
+    h, w = p.shape
+    thr32 = np.float32(thr)
+    iris32 = np.float32(iris)
+    j = np.zeros(h, np.int64)
+    rows_ok = np.zeros(h, np.bool_)
+    for y in range(h):
+        best = np.inf
+        for x in range(w):
+            if p[y, x] < thr32 and contour[y, x] > 0:
+                d = abs(np.float64(x) - cx0)
+                if d < best:
+                    best = d
+                    j[y] = x
+        rows_ok[y] = best < 0.25 * w
+    vl = np.empty(h * w, np.float32)
+    vr = np.empty(h * w, np.float32)
+    nl = nr = 0
+    for y in range(h):
+        for x in range(w):
+            if contour[y, x] > 0 and p[y, x] >= thr32:
+                if np.float64(x) < cx0:
+                    vl[nl] = p[y, x]
+                    nl += 1
+                else:
+                    vr[nr] = p[y, x]
+                    nr += 1
+    need_l = np.float32(row_white * (_white_of(vl, nl, white) - iris))
+    need_r = np.float32(row_white * (_white_of(vr, nr, white) - iris))
+    cov = np.empty((h, w), np.float32)
+    eps = np.float32(1e-6)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    for y in range(h):
+        lo = np.float32(-np.inf)
+        hi = np.float32(-np.inf)
+        for x in range(w):
+            if contour[y, x] > 0:
+                if x < j[y]:
+                    lo = max(lo, p[y, x])
+                else:
+                    hi = max(hi, p[y, x])
+        rows_ok[y] = rows_ok[y] and (lo - iris32 >= need_l) and (hi - iris32 >= need_r)
+        for x in range(w):
+            if grown[y, x] == 0:
+                cov[y, x] = zero
+                continue
+            side = lo if x < j[y] else hi
+            den = side - iris32
+            if not den > eps:
+                den = eps
+            v = (side - p[y, x]) / den
+            cov[y, x] = zero if v < zero else (one if v > one else v)
+    return iris_runs(cov, j, rows_ok, grown)
+
+
+@njit(cache=True, nogil=True)
+def iris_former_rows(patch, grown, iris, white, cx0):  # pragma: no cover - compiled
+    """upper._former_accepts's chords (one eye-wide white): (widths, bounded)."""
+    h, w = patch.shape
+    white32 = np.float32(white)
+    span32 = np.float32(white - iris)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    half = np.float32(0.5)
+    cov = np.empty((h, w), np.float32)
+    j = np.zeros(h, np.int64)
+    rows_ok = np.zeros(h, np.bool_)
+    for y in range(h):
+        best = np.inf
+        for x in range(w):
+            if grown[y, x] == 0:
+                cov[y, x] = zero
+                continue
+            v = (white32 - patch[y, x]) / span32
+            v = zero if v < zero else (one if v > one else v)
+            cov[y, x] = v
+            if v > half:
+                d = abs(np.float64(x) - cx0)
+                if d < best:
+                    best = d
+                    j[y] = x
+        rows_ok[y] = best < 0.25 * w
+    widths, _, bounded = iris_runs(cov, j, rows_ok, grown)
+    return widths, bounded
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
     types, so that a session's first frame does not pay a few seconds of compilation."""
@@ -682,6 +981,10 @@ def warm_up() -> None:
     lm_solve(h, g, 1e-3)
     point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8), np.eye(3),
                  np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
+    eye = np.zeros((8, 12), np.float32)
+    mask = np.ones((8, 12), np.uint8)
+    iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
+    iris_former_rows(eye, mask, 0.0, 30.0, 5.0)
     cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
     for information in (np.eye(2), np.zeros((0, 0))):
         cv_update(cov, info, np.zeros(2), np.zeros(2), information)
@@ -695,7 +998,7 @@ def compiled_on_disk() -> bool:
     try:
         kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
                                     lm_system, lm_solve, point_offset, cv_predict,
-                                    cv_update)
+                                    cv_update, iris_chords, iris_former_rows)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
     except AttributeError:  # another numba's internals
