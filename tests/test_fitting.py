@@ -494,8 +494,12 @@ def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
     (the state, hence they, did not move: only the damping grows) instead of forming them
     again: the same state bit for bit as the plain loop that recomputes them every
     iteration, here with several rejected steps and the state moved by the fit."""
-    from articast.core.faces.fit import fit_to_landmarks
-    from articast.core.model.camera import Camera, axis_angle, turn_jacobian
+    from articast.core.faces.fit import (
+        fit_to_landmarks,
+        landmark_cost,
+        landmark_normal_equations,
+    )
+    from articast.core.model.camera import Camera, axis_angle
     from articast.core.synthetic import default_speaker
 
     model = default_speaker(0).model()
@@ -509,41 +513,26 @@ def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
     alpha0 = true_alpha + rng.normal(0.0, 0.5, k)
     pose0 = Pose(truth.rotation + 0.03, truth.translation + [4.0, -3.0, 15.0])
 
-    def plain(iterations=10, sigma_px=2.0, alpha_sd=1.5):  # the former loop, verbatim
+    def plain(iterations=10, sigma_px=2.0, alpha_sd=1.5):  # the former loop: every
+        # iteration forms the normal equations afresh (the same two steps it is made of)
         a = np.array(alpha0, np.float64)
         rot = rotation_matrix(pose0.rotation)
         tr = np.array(pose0.translation, np.float64)
         w_prior = (sigma_px / alpha_sd) ** 2
         live = np.ptp(model.basis.reshape(k, -1), axis=1) > 0
+        na = int(live.sum())
         lam = 1e-3
-
-        def cost_of(a_, rot_, t_):
-            pc = model.shape(a_) @ rot_.T + t_
-            proj, jac = camera.project_jacobian(pc)
-            r = (proj - uv).ravel()
-            return float(r @ r + w_prior * a_ @ a_), r, jac, pc
-
-        cost, r, jac, pc = cost_of(a, rot, tr)
+        cost, r, jac, pc = landmark_cost(model, camera, uv, w_prior, a, rot, tr)
         rejected = 0
         for _ in range(iterations):
-            rb = np.einsum("ij,knj->kni", rot, model.basis)
-            d_alpha = np.einsum("nij,knj->nik", jac, rb)
-            d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(pc - tr))
-            full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(
-                len(uv) * 2, -1)
-            ok = np.isfinite(full).all(1) & np.isfinite(r)
-            jj, rr = full[ok], r[ok]
-            h = jj.T @ jj
-            g = jj.T @ rr
-            na = int(live.sum())
-            h[:na, :na] += w_prior * np.eye(na)
-            g[:na] += w_prior * a[live]
+            h, g = landmark_normal_equations(model, rot, tr, a, live, w_prior, r, jac, pc)
             step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
             a_new = a.copy()
             a_new[live] += step[:na]
             rot_new = rotation_matrix(step[na:na + 3]) @ rot
             t_new = tr + step[na + 3:]
-            c_new, r_new, jac_new, pc_new = cost_of(a_new, rot_new, t_new)
+            c_new, r_new, jac_new, pc_new = landmark_cost(model, camera, uv, w_prior, a_new,
+                                                          rot_new, t_new)
             if np.isfinite(c_new) and c_new < cost:
                 a, rot, tr, cost, r, jac, pc = a_new, rot_new, t_new, c_new, r_new, jac_new, pc_new
                 lam = max(lam / 10, 1e-7)

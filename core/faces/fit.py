@@ -70,6 +70,38 @@ def state_from_landmarks(model: FaceModel, scheme: LandmarkScheme, camera: Camer
     return fit_to_landmarks(model, camera, uv, alpha, pose)
 
 
+def landmark_cost(model: FaceModel, camera: Camera, uv: np.ndarray, w_prior: float,
+                  a: np.ndarray, rot: np.ndarray, t: np.ndarray
+                  ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_to_landmarks`' cost at (alpha ``a``, rotation matrix ``rot``, translation
+    ``t``): the squared reprojection error (px) plus ``w_prior`` |a|^2, the residuals (2N,),
+    the projection's Jacobian (N, 2, 3) and the points in the camera frame (N, 3)."""
+    pc = model.shape(a) @ rot.T + t
+    proj, jac = camera.project_jacobian(pc)
+    r = (proj - uv).ravel()
+    return float(r @ r + w_prior * a @ a), r, jac, pc
+
+
+def landmark_normal_equations(model: FaceModel, rot: np.ndarray, t: np.ndarray, a: np.ndarray,
+                              live: np.ndarray, w_prior: float, r: np.ndarray, jac: np.ndarray,
+                              pc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The Gauss-Newton normal equations (H, g) of :func:`landmark_cost` at a state, over the
+    ``live`` parameters, the rotation's 3 and the translation's 3."""
+    # d uv / d alpha_k = J R b_k ; d uv / d t = J ; d uv / d omega = J [-(R x)]_x
+    rb = np.einsum("ij,knj->kni", rot, model.basis)  # (K, N, 3)
+    d_alpha = np.einsum("nij,knj->nik", jac, rb)  # (N, 2, K)
+    d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(pc - t))
+    full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(len(pc) * 2, -1)
+    ok = np.isfinite(full).all(1) & np.isfinite(r)
+    jj, rr = full[ok], r[ok]
+    h = jj.T @ jj
+    g = jj.T @ rr
+    na = int(live.sum())
+    h[:na, :na] += w_prior * np.eye(na)
+    g[:na] += w_prior * a[live]
+    return h, g
+
+
 def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np.ndarray,
                      pose: Pose, iterations: int = 10, sigma_px: float = 2.0,
                      alpha_sd: float = 1.5) -> tuple[np.ndarray, Pose]:
@@ -88,38 +120,20 @@ def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np
     w_prior = (sigma_px / alpha_sd) ** 2
     live = np.ptp(model.basis.reshape(k, -1), axis=1) > 0  # parameters the model can move
     lam = 1e-3
-
-    def cost_of(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray) -> tuple[float, ...]:
-        pc = model.shape(a_) @ rot_.T + t_
-        proj, jac = camera.project_jacobian(pc)
-        r = (proj - uv).ravel()
-        return float(r @ r + w_prior * a_ @ a_), r, jac, pc
-
     na = int(live.sum())
-    cost, r, jac, pc = cost_of(a, rot, tr)
+    cost, r, jac, pc = landmark_cost(model, camera, uv, w_prior, a, rot, tr)
     h = g = None
     for _ in range(iterations):
         if h is None or g is None:  # the normal equations at this state (a rejected step
             # leaves the state, hence them, as they were: only the damping grows)
-            # d uv / d alpha_k = J R b_k ; d uv / d t = J ; d uv / d omega = J [-(R x)]_x
-            rb = np.einsum("ij,knj->kni", rot, model.basis)  # (K, N, 3)
-            d_alpha = np.einsum("nij,knj->nik", jac, rb)  # (N, 2, K)
-            rx = pc - tr
-            d_rot = np.einsum("nij,njk->nik", jac, turn_jacobian(rx))
-            full = np.concatenate([d_alpha[:, :, live], d_rot, jac], axis=2).reshape(
-                len(uv) * 2, -1)
-            ok = np.isfinite(full).all(1) & np.isfinite(r)
-            jj, rr = full[ok], r[ok]
-            h = jj.T @ jj
-            g = jj.T @ rr
-            h[:na, :na] += w_prior * np.eye(na)
-            g[:na] += w_prior * a[live]
+            h, g = landmark_normal_equations(model, rot, tr, a, live, w_prior, r, jac, pc)
         step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
         a_new = a.copy()
         a_new[live] += step[:na]
         rot_new = rotation_matrix(step[na:na + 3]) @ rot
         t_new = tr + step[na + 3:]
-        c_new, r_new, jac_new, pc_new = cost_of(a_new, rot_new, t_new)
+        c_new, r_new, jac_new, pc_new = landmark_cost(model, camera, uv, w_prior, a_new,
+                                                      rot_new, t_new)
         if np.isfinite(c_new) and c_new < cost:
             a, rot, tr, cost, r, jac, pc = a_new, rot_new, t_new, c_new, r_new, jac_new, pc_new
             lam = max(lam / 10, 1e-7)
