@@ -498,6 +498,7 @@ def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
         fit_to_landmarks,
         landmark_cost,
         landmark_normal_equations,
+        landmark_step,
     )
     from articast.core.model.camera import Camera, axis_angle
     from articast.core.synthetic import default_speaker
@@ -520,17 +521,12 @@ def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
         tr = np.array(pose0.translation, np.float64)
         w_prior = (sigma_px / alpha_sd) ** 2
         live = np.ptp(model.basis.reshape(k, -1), axis=1) > 0
-        na = int(live.sum())
         lam = 1e-3
         cost, r, jac, pc = landmark_cost(model, camera, uv, w_prior, a, rot, tr)
         rejected = 0
         for _ in range(iterations):
             h, g = landmark_normal_equations(model, rot, tr, a, live, w_prior, r, jac, pc)
-            step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
-            a_new = a.copy()
-            a_new[live] += step[:na]
-            rot_new = rotation_matrix(step[na:na + 3]) @ rot
-            t_new = tr + step[na + 3:]
+            a_new, rot_new, t_new = landmark_step(h, g, lam, live, a, rot, tr)
             c_new, r_new, jac_new, pc_new = landmark_cost(model, camera, uv, w_prior, a_new,
                                                           rot_new, t_new)
             if np.isfinite(c_new) and c_new < cost:

@@ -120,18 +120,13 @@ def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np
     w_prior = (sigma_px / alpha_sd) ** 2
     live = np.ptp(model.basis.reshape(k, -1), axis=1) > 0  # parameters the model can move
     lam = 1e-3
-    na = int(live.sum())
     cost, r, jac, pc = landmark_cost(model, camera, uv, w_prior, a, rot, tr)
     h = g = None
     for _ in range(iterations):
         if h is None or g is None:  # the normal equations at this state (a rejected step
             # leaves the state, hence them, as they were: only the damping grows)
             h, g = landmark_normal_equations(model, rot, tr, a, live, w_prior, r, jac, pc)
-        step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
-        a_new = a.copy()
-        a_new[live] += step[:na]
-        rot_new = rotation_matrix(step[na:na + 3]) @ rot
-        t_new = tr + step[na + 3:]
+        a_new, rot_new, t_new = landmark_step(h, g, lam, live, a, rot, tr)
         c_new, r_new, jac_new, pc_new = landmark_cost(model, camera, uv, w_prior, a_new,
                                                       rot_new, t_new)
         if np.isfinite(c_new) and c_new < cost:
@@ -141,3 +136,14 @@ def fit_to_landmarks(model: FaceModel, camera: Camera, uv: np.ndarray, alpha: np
         else:
             lam *= 10
     return a, Pose(axis_angle(rot), tr)
+
+
+def landmark_step(h: np.ndarray, g: np.ndarray, lam: float, live: np.ndarray, a: np.ndarray,
+                  rot: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Levenberg-Marquardt step of the normal equations (H, g) damped by ``lam``, applied
+    to the state (alpha ``a``, rotation matrix ``rot``, translation ``t``): the new state."""
+    na = int(live.sum())
+    step = -np.linalg.solve(h + lam * np.diag(np.diag(h) + 1e-9), g)
+    a_new = a.copy()
+    a_new[live] += step[:na]
+    return a_new, rotation_matrix(step[na:na + 3]) @ rot, t + step[na + 3:]

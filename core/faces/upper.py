@@ -931,24 +931,23 @@ def change_limits(greys: Sequence[np.ndarray], readings: Sequence[np.ndarray | N
         ok[t] = m is not None and abs(m.yaw_deg) < MAX_YAW_DEG and readings[t] is not None \
             and max(closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
                     for i in range(2)) < 0.3
+    marks = [None if not ok[t] else np.asarray(readings[t], np.float64)[:, :2]
+             for t in range(n)]
+    centres = [None if lm is None else lm[:468].mean(axis=0) for lm in marks]
     out = []
     for i, side in enumerate(SIDES):
         a, b = EYE_CORNERS[side]
+        opens = [0.0 if m is None else ref.open_mm[i] * m.scale for m in measures]
+        tpls = [None if lm is None else eye_template(greys[t], lm[a], lm[b], opens[t])
+                for t, lm in enumerate(marks)]  # (each frame's once, for every lag)
         ch = []
         for k in CHANGE_LAGS:
             for t in range(k, n):
-                if not (ok[t] and ok[t - k]):
+                lm0, tpl, c0, c1 = marks[t - k], tpls[t - k], centres[t - k], centres[t]
+                if lm0 is None or tpl is None or c0 is None or c1 is None:
                     continue
-                lm0 = np.asarray(readings[t - k], np.float64)[:, :2]
-                lm1 = np.asarray(readings[t], np.float64)[:, :2]
-                m0 = measures[t - k]
-                assert m0 is not None
-                open_px = ref.open_mm[i] * m0.scale
-                tpl = eye_template(greys[t - k], lm0[a], lm0[b], open_px)
-                if tpl is None:
-                    continue
-                shift = np.mean(lm1[:468] - lm0[:468], axis=0)
-                x = eye_change(tpl, greys[t], lm0[a] + shift, lm0[b] + shift, open_px)
+                shift = c1 - c0
+                x = eye_change(tpl, greys[t], lm0[a] + shift, lm0[b] + shift, opens[t - k])
                 if x is not None:
                     ch.append(x)
         out.append(float(np.quantile(ch, CHANGE_QUANTILE)) if len(ch) >= 20 else 0.0)
