@@ -460,11 +460,12 @@ class FinderLoop:
 
 
 def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
-                 times=None) -> dict:
-    """Enrol on ``enrol`` (already selected, taken at ``times``), track ``held`` live."""
+                 times=None, build=None) -> dict:
+    """Enrol on ``enrol`` (already selected, taken at ``times``; ``build``: the enrolment's
+    BuildOptions, default its defaults), track ``held`` live."""
     try:
         speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig,
-                                max_frames=None, times=times)
+                                max_frames=None, times=times, build=build)
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
     kernels.warm_up()  # numba's compilation: once per process, not a session's
@@ -635,18 +636,24 @@ def run_methods(methods, held, fps, enrol, facemesh_v1: Path | None, peers: dict
 
 
 # ---------------------------------------------------------------------------- a clip
+def clip_windows(held, boxes: Sequence[np.ndarray], fps: float) -> list[slice]:
+    """The still-mouth windows of ``held``: the mouth placed by the per-frame median of the
+    methods' lip ``boxes`` (each (F, 4), NaN where none)."""
+    stack = np.array(boxes)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        box = np.nanmedian(stack, 0) if len(stack) else np.full((len(held), 4), np.nan)
+    grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in held]
+    length = window_frames(fps)
+    motion = box_motion(grey, [b if np.isfinite(b).all() else None for b in box], length)
+    return still_windows(motion, length)
+
+
 def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | None = None
              ) -> dict:
     live = {k: v for k, v in runs.items() if "error" not in v}
     aps = {k: v["ratio"] for k, v in live.items()}
-    boxes = np.array([v["boxes"] for v in live.values()])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        box = np.nanmedian(boxes, 0) if len(boxes) else np.full((len(held), 4), np.nan)
-    grey = [cv2.cvtColor(f, cv2.COLOR_BGR2GRAY) for f in held]
-    length = window_frames(fps)
-    motion = box_motion(grey, [b if np.isfinite(b).all() else None for b in box], length)
-    windows = still_windows(motion, length)
+    windows = clip_windows(held, [v["boxes"] for v in live.values()], fps)
     scores = score(aps, windows)
     base = live.get(BASELINE, {}).get("ms")
     base_cpu = live.get(BASELINE, {}).get("cpu_ms")
@@ -748,11 +755,11 @@ def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | No
     return row
 
 
-def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | None = None
-                  ) -> dict:
-    """The built-in speaker on the desk rig: enrolled from landmarks on a 25 s sentence read at
-    12 fps (as benchmarks/no_truth_path.py), the methods on another sentence at 50 fps, scored
-    against the truth too."""
+def synthetic_clip(seed: int = 0) -> dict:
+    """The built-in speaker on the desk rig: ``enrol`` (300 frames of a sentence read at 12
+    fps, as benchmarks/no_truth_path.py), ``held`` (another sentence at 50 fps), the
+    ``camera``, and the truth on ``held``: ``truth`` (aperture ratio), ``aperture_mm``,
+    ``width_mm``."""
     from articast.core.model.build import invert
     from articast.core.outputs.lips import lip_measures
     from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
@@ -768,9 +775,19 @@ def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | Non
                       RenderOptions(seed=20_000 + i)) for i in range(test.n_frames)]
     at = invert(true_model, test.points)
     ap_true, width_true = lip_measures(true_model, at)
-    truth = ap_true / outer_width_mm(true_model, at)
+    return {"enrol": enrol_imgs, "held": held, "camera": enrol.camera,
+            "truth": ap_true / outer_width_mm(true_model, at), "aperture_mm": ap_true,
+            "width_mm": width_true}
+
+
+def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | None = None
+                  ) -> dict:
+    """The built-in speaker (:func:`synthetic_clip`), scored against the truth too."""
+    clip = synthetic_clip(seed)
+    enrol_imgs, held, truth = clip["enrol"], clip["held"], clip["truth"]
+    ap_true, width_true = clip["aperture_mm"], clip["width_mm"]
     runs = run_methods(methods, held, 50.0, enrol_imgs, facemesh_v1, peers,
-                       {"camera": enrol.camera, "enrol_fps": 12.0})
+                       {"camera": clip["camera"], "enrol_fps": 12.0})
     save_series(series, "synthetic", 50.0, runs, truth)
     row = evaluate("synthetic", held, 50.0, runs, truth=truth)
     a = runs.get("articast", {})

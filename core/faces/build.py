@@ -55,7 +55,11 @@ class BuildOptions:
     : at most this many held-out frames for the residual statistics; refine : refinement
     rounds (0 = landmark states only); flow : the model points' pixels refined by optical flow
     before the geometry (:func:`~articast.core.faces.flow.refine_pixels`); None: the rig's
-    default (:data:`~articast.core.faces.flow.BY_RIG`: on for a head-mounted camera)."""
+    default (:data:`~articast.core.faces.flow.BY_RIG`: on for a head-mounted camera);
+    coverage_seed : None: the training frames' farthest-point sampling starts at the frame
+    nearest the clip's median posture (deterministic); a number: at a frame drawn with that
+    seed, another equally valid choice of training frames (benchmarks/enrolment_spread.py
+    measures how much the tracking depends on that choice)."""
 
     kind: str = "la_quad"
     train_frames: int = 90
@@ -66,6 +70,7 @@ class BuildOptions:
     # still-mouth jitter from 0.43 to 2.85 % of the mouth width (franck 0.067 -> 0.107).
     sigma: float | None = 2.5
     flow: bool | None = None
+    coverage_seed: int | None = None
 
 
 CONSECUTIVE_RUN = 100
@@ -101,6 +106,14 @@ def coverage_order(alpha: np.ndarray, n: int, start: int | None = None) -> np.nd
         chosen.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(a - a[nxt], axis=1))
     return np.array(chosen)
+
+
+def training_order(alpha: np.ndarray, seed: int | None = None) -> np.ndarray:
+    """Every row of alpha (F, K) in the order the enrolment takes training frames
+    (:func:`coverage_order`): from the median posture, or with ``seed`` from a row drawn with
+    it (``BuildOptions.coverage_seed``)."""
+    start = None if seed is None else int(np.random.default_rng(seed).integers(len(alpha)))
+    return coverage_order(alpha, len(alpha), start)
 
 
 def fit_states(model: FaceModel, appearance: AppearanceModel, camera: Camera, rig: str,
@@ -162,7 +175,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         raise InputError(f"only {len(states)} usable frames: enrol from a longer clip "
                          "(20-60 s of reading aloud)")
     alpha = geo.alpha[kept]
-    order = coverage_order(alpha, len(alpha))
+    order = training_order(alpha, opts.coverage_seed)
     n_train = min(opts.train_frames, max(2 * (model.n_params + 1), int(0.6 * len(order))))
     train = [states[i] for i in order[:n_train]]
     held = [states[i] for i in order[n_train:n_train + opts.stats_frames]]
