@@ -773,3 +773,66 @@ def test_an_appearance_unlike_the_enrolment_weighs_less_in_the_fit(enrolled):
         assert np.corrcoef(ap, ap_true)[0, 1] > 0.9
     assert weights["own"][-5:].min() > 0.3
     assert weights["unlike"][-5:].max() < 0.1
+
+
+def _hand_over_the_chin(image: np.ndarray, landmarks: np.ndarray) -> np.ndarray:
+    """``image`` with the lower 30 % of the face (the chin, the lower lip), between 20 % and
+    80 % of its width, painted the cheeks' colour: a hand from below."""
+    x0, y0 = landmarks[:, :2].min(0)
+    x1, y1 = landmarks[:, :2].max(0)
+    w, h = x1 - x0, y1 - y0
+    cheek = image[int(y0 + 0.5 * h):int(y0 + 0.6 * h), int(x0):int(x0 + 0.2 * w)]
+    out = image.copy()
+    out[int(y1 - 0.3 * h):int(y1) + 30, int(x0 + 0.2 * w):int(x1 - 0.2 * w)] = np.median(
+        cheek.reshape(-1, 3), axis=0).astype(np.uint8)
+    return out
+
+
+def test_a_hand_between_readings_is_read_and_stays_occluded(enrolled):
+    """A hand over the chin between two readings: the appearance suspects it, the frame is
+    read (``FusionPolicy.lag_check``), the reader reads a face under the hand where the fit
+    is, and the verdict stands: the same frames are ``occluded`` as without the check."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    sp, frames, _ = _test_clip(enrolled)
+    got = {}
+    for check in (True, False):
+        live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
+                           LivePolicy(fusion=FusionPolicy(lag_check=check)))
+        i = _on_to_a_reading(live, frames)
+        marks = np.asarray(live._fresh.landmarks)
+        res = [live.track(_hand_over_the_chin(frames[i + k], marks), (i + k) / 25)
+               for k in (1, 2, 3, 4)]
+        got[check] = ([r.reason.split(":")[0] for r in res], live.lag_reads)
+    reasons, reads = got[True]
+    assert reasons[1:] == ["occluded"] * 3 and reads >= 1
+    assert got[False] == (reasons, 0)
+
+
+def test_a_reading_far_from_a_fit_between_readings_is_the_fits_lag(enrolled):
+    """``LiveTracker._fit_lags``, the check of an appearance suspicion between readings, on
+    a real reading of the frame: a fit where the reader reads the face is not lagging (the
+    suspicion stands); one 4 cm aside is (not ``occluded``, and the next frame is read);
+    inside an occlusion nothing is read."""
+    from articast.core.model.camera import Pose
+
+    sp, frames, _ = _test_clip(enrolled)
+    live = _fused(sp)
+    fu = live.fusion
+    assert fu is not None and fu.lag_check
+    i = _on_to_a_reading(live, frames)
+    alpha, pose = live.tracker.state
+    since = live._since_read
+    assert not live._fit_lags(frames[i + 1], alpha, pose, fu)
+    assert live.lag_reads == 1 and live._since_read == since
+    aside = Pose(pose.rotation, pose.translation + np.array([40.0, 0.0, 0.0]))
+    assert live._fit_lags(frames[i + 1], alpha, aside, fu)
+    assert live.lag_reads == 2 and live._since_read == fu.read_every - 1
+    marks = np.asarray(live._fresh.landmarks)
+    for k in (1, 2, 3):
+        live.track(_hand_over_the_chin(frames[i + k], marks), (i + k) / 25)
+    assert live.tracker.occluding
+    reads = live.lag_reads
+    assert not live._fit_lags(frames[i + 3], alpha, aside, fu) and live.lag_reads == reads

@@ -261,6 +261,11 @@ class Tracker:
         return self._theta[:self.k].copy(), Pose.from_vector(self._theta[self.k:])
 
     @property
+    def occluding(self) -> bool:
+        """Whether the last frame was ``occluded`` (an occlusion is being tracked through)."""
+        return self._occluding
+
+    @property
     def pose_prior_centre(self) -> np.ndarray | None:
         """Pose (6,) the next frame's pose prior is centred on (None before a start)."""
         if self._anchor is not None:
