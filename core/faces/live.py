@@ -655,7 +655,8 @@ class LiveTracker:
         motion between readings, not an occluder's: True (not ``occluded``), and the next
         frame is read. Where the reading agrees with the fit, the suspicion stands (a hand
         under which the reader reads a face where the fit is)."""
-        if self.tracker.occluding or fu.reread is None:
+        assert fu.reread is not None  # (the caller's condition)
+        if self.tracker.occluding:
             return False
         late = self._finder(image, self._reading, self.reader)
         self.lag_reads += 1
