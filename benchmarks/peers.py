@@ -128,6 +128,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "points_0.1": LivePolicy(fusion=FusionPolicy(points_weight=0.1)),
     "no_speaker_prior": LivePolicy(fusion=FusionPolicy(speaker_prior=None)),
     "no_cadence": LivePolicy(fusion=FusionPolicy(cadence=None)),
+    "no_regression": LivePolicy(fusion=FusionPolicy(regression=False)),
     # (re)starts as before issue 18's start change: the finding landmarks, the detector after
     # every diverged fit
     "finder_start": LivePolicy(fusion=FusionPolicy(start="finder", resume=False)),

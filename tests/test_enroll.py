@@ -374,6 +374,11 @@ def test_a_desk_enrolment_learns_how_the_live_reader_sees_the_face(enrolled):
     assert sp.motion_noise is not None
     assert np.allclose(sp.motion_noise.q, MotionNoise.default(7).q)
     assert sp.report["reader"]["network"] == "v1"
+    # and the articulation read straight off a reading, with the error it expects
+    reg = pm.regression
+    assert reg is not None and reg.weights.shape == (2 * len(pm.mean), sp.model.n_params)
+    assert np.allclose(reg.information, reg.information.T)
+    assert np.linalg.eigvalsh(reg.information).min() >= -1e-9
 
 
 def _test_clip(enrolled):
@@ -395,6 +400,43 @@ def _fused(sp):
     from articast.core.faces.scheme import mediapipe_scheme
 
     return LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig))
+
+
+def test_the_articulation_read_off_a_reading_pulls_the_fit_to_it(enrolled):
+    """On a frame with a reading, the enrolment's regression reads the articulation off the
+    reader's points (``FusionPolicy.regression``), a measurement beside the landmark term:
+    the fused fit lands nearer what it read than without it, the motion model is surer after
+    it, and the lips still follow the truth."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    sp, frames, ap_true = _test_clip(enrolled)
+    pm = sp.points
+    assert pm is not None and pm.regression is not None
+    reg = pm.regression
+    runs = {}
+    for on in (True, False):
+        live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
+                           LivePolicy(fusion=FusionPolicy(regression=on)))
+        near, sure, ap = [], [], []
+        for i, img in enumerate(frames[:40]):
+            r = live.track(img, i / 25)
+            ap.append(r.lips["aperture_mm"] if r.ok else np.nan)
+            if r.ok and live._since_read == 0 and i > 0:  # a frame with a reading
+                seen = live._reading.landmarks[pm.landmarks, :2]
+                read = reg.alpha(reg.features(pm.mean, sp.camera, seen, r.pose.matrix,
+                                              r.pose.translation))
+                near.append(float(np.linalg.norm(np.asarray(r.extra["alpha_raw"]) - read)))
+                # (lar1, which no reading sees, grows without bound in both)
+                sure.append(float(np.trace(live.kalman.p[:6, :6])))
+        runs[on] = (np.array(near), np.array(sure), np.array(ap))
+    (near_on, sure_on, ap_on), (near_off, sure_off, _) = runs[True], runs[False]
+    assert len(near_on) >= 8 and len(near_on) == len(near_off)
+    assert np.mean(near_on < near_off) >= 0.8
+    assert np.median(sure_on) < np.median(sure_off)
+    ok = np.isfinite(ap_on)
+    assert ok.mean() > 0.95 and np.corrcoef(ap_on[ok], ap_true[:40][ok])[0, 1] > 0.9
 
 
 def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):

@@ -13,6 +13,7 @@ from articast.core.tracking.points import (
     PointModel,
     PointTerm,
     learn_point_model,
+    learn_reading_regression,
     offset_fraction,
 )
 from tests.blobface import blob_trained
@@ -371,3 +372,122 @@ def test_the_compiled_motion_model_steps_are_the_numpy_ones(monkeypatch, told):
         for x, y in zip(got, want, strict=True):
             np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9 * np.abs(y).max())
     assert np.abs(ref[-1][4]).max() > 1e-3  # the velocity moved: a real comparison
+
+
+def _regression_case(seed=7, n=300, own_sd=3.0):
+    """A network that reads the articulation its own way (offsets, an articulation-dependent
+    change of its points) with errors shared by all its points; its observation model and
+    reading regression learned from ``n`` enrolment frames; and 200 new frames it reads."""
+    rng = np.random.default_rng(seed)
+    model = _face_model(rng)
+    m, k = model.mean.shape[0], model.n_params
+    offset = rng.normal(0, 1.0, (m, 3)) * [1, 1, 0]
+    dbasis = rng.normal(0, 0.8, (k, m, 3)) * [1, 1, 0]
+    shared = np.tile([0.0, 1.0], (m, 1))
+    states = _states(rng, n, k)
+    reads = _readings(model, states, offset, dbasis, shared, own_sd, rng)
+    pm = learn_point_model(model, CAM, states, reads, np.arange(m), np.arange(m), "v1")
+    reg = learn_reading_regression(pm.mean, CAM, [p for _, p in states],
+                                   np.array([a for a, _ in states]), reads, np.arange(n) / 25.0)
+    test = _states(rng, 200, k)
+    return pm, reg, test, _readings(model, test, offset, dbasis, shared, own_sd, rng)
+
+
+def test_the_articulation_is_read_off_a_reading_and_says_how_sure_it_is():
+    """The enrolment's regression reads the articulation of new readings, and the error it
+    expects (its information, from a cross-validation in time at enrolment, each half
+    learned from the other: a little more than the whole's) is about the error it makes,
+    never much less."""
+    pm, reg, test, reads = _regression_case()
+    assert reg is not None and reg.weights.shape == (2 * len(pm.mean), 4)
+    got = np.array([reg.alpha(reg.features(pm.mean, CAM, uv, p.matrix, p.translation))
+                    for (_, p), uv in zip(test, reads, strict=True)])
+    err = got - np.array([a for a, _ in test])
+    assert np.sqrt((err ** 2).mean()) < 0.3  # of the articulation's 1 s.d.
+    assert np.allclose(reg.information, reg.information.T)
+    mahalanobis = float(np.einsum("fi,ij,fj->f", err, reg.information, err).mean()) / 4
+    assert 0.25 < mahalanobis < 1.2
+    # noisier readings: a larger error, and it says so
+    _, noisy, _, _ = _regression_case(own_sd=9.0)
+    assert noisy is not None
+    assert np.trace(np.linalg.inv(noisy.information)) > 2 * np.trace(
+        np.linalg.inv(reg.information))
+    # too few frames to learn it: none
+    assert _regression_case(n=12)[1] is None
+
+
+def _raw_offsets(mean, uv, rot, t):
+    cam = mean @ rot.T + t
+    pred = CAM.project(cam)
+    d = np.zeros((len(mean), 3))
+    d[:, 0] = (uv[:, 0] - pred[:, 0]) * cam[:, 2] / CAM.fx
+    d[:, 1] = (uv[:, 1] - pred[:, 1]) * cam[:, 2] / CAM.fy
+    return (d @ rot)[:, :2].reshape(-1)
+
+
+def test_a_small_error_of_the_predicted_pose_is_not_read_as_articulation():
+    """Live, the reading is placed at the motion model's predicted pose: a pose ~0.7 degrees
+    and 1-3 mm off moves every point's offset alike, which the features leave out (to first
+    order), so the articulation read barely moves."""
+    pm, reg, test, reads = _regression_case()
+    assert reg is not None
+    shifts, raw_shifts, moved = [], [], []
+    for (_, p), uv in list(zip(test, reads, strict=True))[:20]:
+        off = Pose(p.rotation + np.array([0.008, -0.006, 0.004]),
+                   p.translation + np.array([1.0, -1.0, 3.0]))
+        f0 = reg.features(pm.mean, CAM, uv, p.matrix, p.translation)
+        f1 = reg.features(pm.mean, CAM, uv, off.matrix, off.translation)
+        shifts.append(np.linalg.norm(f1 - f0))
+        raw_shifts.append(np.linalg.norm(_raw_offsets(pm.mean, uv, off.matrix, off.translation)
+                                         - _raw_offsets(pm.mean, uv, p.matrix, p.translation)))
+        moved.append(np.abs(reg.alpha(f1) - reg.alpha(f0)).max())
+    assert np.median(shifts) < 0.1 * np.median(raw_shifts)
+    assert max(moved) < 0.1
+
+
+def test_the_reading_regression_is_kept_with_the_observation_model(tmp_path):
+    from dataclasses import replace
+
+    pm, reg, _, _ = _regression_case()
+    assert reg is not None
+    with_reg = replace(pm, regression=reg)
+    with_reg.save(tmp_path / "p.npz")
+    back = PointModel.load(tmp_path / "p.npz", 4).regression
+    assert back is not None and back.ridge == reg.ridge
+    for key in ("feature_mean", "feature_scale", "weights", "alpha_mean", "information"):
+        assert np.array_equal(getattr(back, key), getattr(reg, key))
+    pm.save(tmp_path / "old.npz")  # a model saved before the regression existed
+    assert PointModel.load(tmp_path / "old.npz").regression is None
+    with pytest.raises(ModelFileError, match="regression"):
+        replace(pm, regression=replace(reg, weights=reg.weights[:, :3],
+                                       alpha_mean=reg.alpha_mean[:3],
+                                       information=reg.information[:3, :3]))
+    with pytest.raises(ModelFileError, match="regression"):
+        replace(reg, information=np.full((4, 4), np.nan))
+    with pytest.raises(ModelFileError, match="positive semi-definite"):
+        replace(reg, information=-reg.information)
+
+
+def test_a_measurement_of_the_articulation_is_the_product_of_the_two_gaussians():
+    rng = np.random.default_rng(4)
+    k, n = 7, 13
+    a = rng.normal(size=(n, n))
+    d = np.sqrt(np.r_[np.ones(k), np.full(3, 0.02**-2), np.full(3, 5.0**-2)])
+    info = d[:, None] * (a @ a.T / n + 0.5 * np.eye(n)) * d[None, :]
+    pred = StatePrior(rng.normal(size=k), rotation_matrix(np.array([0.05, -0.1, 0.02])),
+                      np.array([3.0, -2.0, 600.0]), info)
+    # the speaker's own distribution is a measurement of alpha = 0 with information w I
+    a1, a2 = pred.with_speaker(0.7), pred.with_measurement(np.zeros(k), 0.7 * np.eye(k))
+    assert np.allclose(a1.alpha, a2.alpha) and np.allclose(a1.translation, a2.translation)
+    assert np.allclose(a1.rotation, a2.rotation) and np.allclose(a1.information, a2.information)
+    # any other: the summed cost's gradient vanishes at the combined mean
+    b = rng.normal(size=(k, k))
+    m_info = b @ b.T / k + 0.1 * np.eye(k)
+    meas = rng.normal(size=k) * 2.0
+    both = pred.with_measurement(meas, m_info)
+    g = pred.terms(both.alpha, both.rotation, both.translation)[1]
+    g[:k] += 2.0 * m_info @ (both.alpha - meas)
+    assert np.abs(g[:k]).max() < 1e-3 and np.abs(g[k + 3:]).max() < 1e-3
+    assert np.allclose(both.information[:k, :k], info[:k, :k] + m_info)
+    # between the two means, nearer the surer
+    assert np.linalg.norm(both.alpha - meas) < np.linalg.norm(pred.alpha - meas)

@@ -13,8 +13,10 @@
    speaker should look like to the tracker (its 99th percentile bounds ``ok``).
 6. With the live reader's landmarks of the same frames (``readings``): how that network reads
    this face, with the errors its points share
-   (:func:`~articast.core.tracking.points.learn_point_model`), and the motion model's process
-   noise from the clip's states (:func:`~articast.core.tracking.kalman.process_noise`).
+   (:func:`~articast.core.tracking.points.learn_point_model`), the articulation read straight
+   off its points (:func:`~articast.core.tracking.points.learn_reading_regression`), and the
+   motion model's process noise from the clip's states
+   (:func:`~articast.core.tracking.kalman.process_noise`).
 7. With the same readings on a desk camera: the speaker's own upper-face references
    (:mod:`articast.core.faces.upper`: open and closed eye, neutral brows, iris radius).
 """
@@ -45,7 +47,11 @@ from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lip_measures
 from articast.core.tracking.kalman import MotionNoise, process_noise
-from articast.core.tracking.points import PointModel, learn_point_model
+from articast.core.tracking.points import (
+    PointModel,
+    learn_point_model,
+    learn_reading_regression,
+)
 from articast.core.tracking.tracker import Tracker, TrackingPolicy, appearance_options
 
 
@@ -224,8 +230,16 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         at = np.arange(len(images)) / 25.0 if times is None else np.asarray(times, float)
         points, motion = fusion_model(model, camera, scheme, states, idx,
                                       np.asarray(readings), reader, at)
-        report["reader"] = {"network": reader, "shared_error_modes": int(len(points.modes)),
-                            "sigma_mm_median": round(float(np.median(points.sigma_mm)), 3)}
+        reg = points.regression
+        report["reader"] = {
+            "network": reader, "shared_error_modes": int(len(points.modes)),
+            "sigma_mm_median": round(float(np.median(points.sigma_mm)), 3),
+            # the articulation read straight off a reading: its ridge and the error s.d. its
+            # cross-validation measured per parameter (training s.d.; None: not moved)
+            "regression": None if reg is None else {
+                "ridge": reg.ridge,
+                "error_sd": [round(float(1 / np.sqrt(d)), 3) if d > 0 else None
+                             for d in np.diag(reg.information)]}}
     upper = None
     if readings is not None and rig == "desk":
         say("calibrating the eyes and brows (open eye, closed eye, neutral brows, gaze)")
@@ -286,6 +300,10 @@ def fusion_model(model: FaceModel, camera: Camera, scheme: LandmarkScheme,
     uv = readings[frames][:, scheme.points, :2]
     pm = learn_point_model(model, camera, [(s.alpha, s.pose) for s in states], uv,
                            np.arange(len(scheme.points)), scheme.points, reader)
+    reg = learn_reading_regression(pm.mean, camera, [s.pose for s in states],
+                                   np.array([s.alpha for s in states]), uv,
+                                   np.asarray(times)[np.asarray(frames)])
+    pm = replace(pm, regression=reg)
     order = np.argsort(frames)
     rot = np.array([s.pose.rotation for s in states])[order]
     trans = np.array([s.pose.translation for s in states])[order]

@@ -120,6 +120,17 @@ class StatePrior:
         return StatePrior(self.alpha + e[:k], rotation_matrix(e[k:k + 3]) @ self.rotation,
                           self.translation + e[k + 3:], info)
 
+    def with_measurement(self, alpha: np.ndarray, information: np.ndarray) -> StatePrior:
+        """This prior times a Gaussian measurement of the articulation, N(``alpha``,
+        ``information``^-1) (K,), (K, K): the Gaussian whose cost is the sum of the two."""
+        k = len(self.alpha)
+        info = self.information.copy()
+        info[:k, :k] += information
+        e = -np.linalg.solve(info, np.concatenate([information @ (self.alpha - alpha),
+                                                   np.zeros(6)]))
+        return StatePrior(self.alpha + e[:k], rotation_matrix(e[k:k + 3]) @ self.rotation,
+                          self.translation + e[k + 3:], info)
+
     def terms(self, alpha: np.ndarray, rot: np.ndarray, t: np.ndarray
               ) -> tuple[float, np.ndarray, np.ndarray]:
         """Cost, gradient (K + 6,) and Gauss-Newton Hessian (K + 6, K + 6) at a state."""

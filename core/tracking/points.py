@@ -35,6 +35,140 @@ POINT_MODEL_VERSION = 1
 
 
 @dataclass(frozen=True, eq=False)
+class ReadingRegression:
+    """The articulation read straight off one reading: a ridge regression, learned at
+    enrolment, of the enrolled states on the reader's points (a discriminative estimate).
+
+    Through the observation model (:class:`PointModel`, generative) the 7 parameters are the
+    compromise that best explains all ~300 points: on the held-out parts of the real clips
+    that fit reproduced the reader's own lip opening at r 0.26-0.998 and read the aperture
+    against the consensus at r 0.91 (franck) where the reader's points give 0.96; the
+    regression, weighing each point by what it told about the states at enrolment, read it
+    at 0.96 from the same readings, and 0.98 against the rendered speaker's truth where the
+    fit read 0.977 (``benchmarks/landmark_term.py``).
+
+    feature_mean, feature_scale : (2M,) the enrolment's mean and s.d. of the features, the
+        reading's offsets from the observation model's mean points (:meth:`features`).
+    weights : (2M, K) on the standardised features. alpha_mean : (K,).
+    information : (K, K) the inverse covariance of its error, from a cross-validation over
+        two halves of the enrolment in time (a parameter the enrolment never moved: 0).
+    ridge : the ridge the cross-validation chose (x frames, on standardised features).
+    """
+
+    feature_mean: np.ndarray
+    feature_scale: np.ndarray
+    weights: np.ndarray
+    alpha_mean: np.ndarray
+    information: np.ndarray
+    ridge: float
+
+    def __post_init__(self) -> None:
+        f, k = self.weights.shape if self.weights.ndim == 2 else (-1, -1)
+        if (f < 0 or self.feature_mean.shape != (f,) or self.feature_scale.shape != (f,)
+                or self.alpha_mean.shape != (k,) or self.information.shape != (k, k)):
+            raise ModelFileError("reading regression: inconsistent shapes")
+        if not all(np.isfinite(a).all() for a in (self.feature_mean, self.feature_scale,
+                                                   self.weights, self.alpha_mean,
+                                                   self.information)) or np.any(
+                self.feature_scale <= 0):
+            raise ModelFileError("reading regression: non-finite values or a scale <= 0")
+        info = self.information
+        if (not np.allclose(info, info.T, atol=1e-9 * max(1.0, float(np.abs(info).max())))
+                or np.linalg.eigvalsh(0.5 * (info + info.T)).min() < -1e-9):
+            raise ModelFileError("reading regression: its information is not a covariance's "
+                                 "inverse (symmetric, positive semi-definite)")
+
+    @staticmethod
+    def features(mean: np.ndarray, camera: Camera, uv: np.ndarray, rotation: np.ndarray,
+                 translation: np.ndarray) -> np.ndarray:
+        """(2M,) the reading ``uv`` (M, 2) px as head-frame x, y offsets (mm, at each point's
+        depth) from the points ``mean`` (M, 3) seen at the pose (rotation matrix, mm), less
+        every part a small move of the head would make: the live pose is a prediction, and a
+        pose off by a millimetre shifts every offset alike, a pattern the enrolment never
+        showed the regression (which would read it as articulation)."""
+        cam = mean @ rotation.T + translation
+        pred, jac = camera.project_jacobian(cam, True)
+        assert jac is not None
+        d = np.zeros((len(mean), 3))
+        d[:, 0] = (uv[:, 0] - pred[:, 0]) * cam[:, 2] / camera.fx
+        d[:, 1] = (uv[:, 1] - pred[:, 1]) * cam[:, 2] / camera.fy
+        f = (d @ rotation)[:, :2].reshape(-1)
+        # the same offsets of a small head move (turn on the left, translation): (2M, 6)
+        dcam = np.zeros((len(mean), 3, 6))
+        dcam[:, :, :3] = turn_jacobian(cam - translation)
+        dcam[:, 0, 3] = dcam[:, 1, 4] = dcam[:, 2, 5] = 1.0
+        duv = np.matmul(jac, dcam)  # (M, 2, 6) px
+        dd = np.zeros((len(mean), 3, 6))
+        dd[:, 0] = duv[:, 0] * cam[:, 2:3] / camera.fx
+        dd[:, 1] = duv[:, 1] * cam[:, 2:3] / camera.fy
+        moves = np.einsum("mjp,ji->mip", dd, rotation)[:, :2].reshape(-1, 6)
+        q, _ = np.linalg.qr(moves)
+        return f - q @ (q.T @ f)
+
+    def alpha(self, features: np.ndarray) -> np.ndarray:
+        """(K,) the articulation the features (:meth:`features`) read."""
+        return self.alpha_mean + ((features - self.feature_mean) / self.feature_scale
+                                  ) @ self.weights
+
+
+RIDGES = (0.003, 0.01, 0.03, 0.1, 0.3)
+"""The ridges (x frames, standardised features) the enrolment's cross-validation chooses
+from."""
+
+
+def learn_reading_regression(mean: np.ndarray, camera: Camera, poses: list[Pose | None],
+                             alphas: np.ndarray, readings: np.ndarray, times: np.ndarray,
+                             ridges: tuple[float, ...] = RIDGES,
+                             floor: float = 0.01) -> ReadingRegression | None:
+    """Learn :class:`ReadingRegression` from the enrolment's articulations ``alphas`` (F, K),
+    the reader's points ``readings`` (F, M, 2) px (NaN: not read) taken at ``times`` (F,) s,
+    and the head ``poses`` (None: not posed). The ridge and the
+    error covariance come from a two-fold cross-validation over the first and second half
+    of the frames in time (neighbouring frames look alike: a random split would measure
+    the regression on frames it has all but seen); ``floor`` (s.d.^2) is added to each
+    error variance. None when there are too few frames to learn it."""
+    rows, ys, ts = [], [], []
+    for alpha, pose, uv, t in zip(alphas, poses, readings, times, strict=True):
+        if pose is None or not np.isfinite(uv).all():
+            continue
+        rows.append(ReadingRegression.features(mean, camera, uv, pose.matrix,
+                                               np.asarray(pose.translation, float)))
+        ys.append(np.asarray(alpha, float))
+        ts.append(float(t))
+    k = np.asarray(alphas).shape[1]
+    if len(rows) < 4 * (k + 1):
+        return None
+    x, y = np.array(rows), np.array(ys)
+    first = np.zeros(len(x), bool)
+    first[np.argsort(ts)[:len(x) // 2]] = True
+
+    def fit(xs: np.ndarray, yv: np.ndarray, ridge: float
+            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        mu, sd = xs.mean(0), xs.std(0) + 1e-6
+        z = (xs - mu) / sd
+        am = yv.mean(0)
+        w = np.linalg.solve(z.T @ z + ridge * len(z) * np.eye(z.shape[1]), z.T @ (yv - am))
+        return mu, sd, am, w
+
+    def errors(ridge: float) -> np.ndarray:
+        out = np.zeros_like(y)
+        for train in (first, ~first):
+            mu, sd, am, w = fit(x[train], y[train], ridge)
+            out[~train] = y[~train] - (am + ((x[~train] - mu) / sd) @ w)
+        return out
+
+    moved = y.var(0) > 1e-9
+    cv = {r: errors(r) for r in ridges}
+    best = min(ridges, key=lambda r: float((cv[r][:, moved] ** 2).mean()))
+    mu, sd, am, w = fit(x, y, best)
+    cov = np.cov(cv[best].T) + floor * np.eye(k)
+    info = np.linalg.inv(cov)
+    info[~moved, :] = 0.0
+    info[:, ~moved] = 0.0
+    return ReadingRegression(mu, sd, w, am, 0.5 * (info + info.T), float(best))
+
+
+@dataclass(frozen=True, eq=False)
 class PointModel:
     """How one landmark network reads one speaker's face.
 
@@ -52,6 +186,8 @@ class PointModel:
     offset_p99 : 99th percentile, over the enrolment frames, of :func:`offset_fraction` of
         the readings at the enrolled states (NaN: unknown, a model saved before it was kept).
         The live tracker's ``ok`` is judged against it.
+    regression : the articulation read straight off a reading (None: not learned, a model
+        saved before it was).
     """
 
     network: str
@@ -61,6 +197,7 @@ class PointModel:
     sigma_mm: np.ndarray
     modes: np.ndarray = field(default_factory=lambda: np.zeros((0, 0, 2)))
     offset_p99: float = float("nan")
+    regression: ReadingRegression | None = None
 
     def __post_init__(self) -> None:
         m = len(self.landmarks)
@@ -76,6 +213,10 @@ class PointModel:
                                                      self.modes))
         if not finite or np.any(self.sigma_mm <= 0):
             raise ModelFileError("landmark observation model: non-finite values or sigma <= 0")
+        reg = self.regression
+        if reg is not None and reg.weights.shape != (2 * m, self.basis.shape[0]):
+            raise ModelFileError(f"landmark observation model: a reading regression of shape "
+                                 f"{reg.weights.shape} for {m} points")
 
     @cached_property
     def every_point(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -93,11 +234,18 @@ class PointModel:
         return self.mean + np.tensordot(alpha, self.basis, axes=1)
 
     def save(self, path: str | os.PathLike[str]) -> None:
+        reg = self.regression
         save_bundle(path, POINT_MODEL_KIND, POINT_MODEL_VERSION,
                     {"landmarks": self.landmarks, "mean": self.mean, "basis": self.basis,
-                     "sigma_mm": self.sigma_mm, "modes": self.modes},
+                     "sigma_mm": self.sigma_mm, "modes": self.modes,
+                     **({} if reg is None else {
+                         "reg_feature_mean": reg.feature_mean,
+                         "reg_feature_scale": reg.feature_scale, "reg_weights": reg.weights,
+                         "reg_alpha_mean": reg.alpha_mean,
+                         "reg_information": reg.information})},
                     {"network": self.network, **({"offset_p99": self.offset_p99}
-                                                 if np.isfinite(self.offset_p99) else {})})
+                                                 if np.isfinite(self.offset_p99) else {}),
+                     **({} if reg is None else {"reg_ridge": reg.ridge})})
 
     @classmethod
     def load(cls, path: str | os.PathLike[str], n_params: int | None = None) -> PointModel:
@@ -122,7 +270,8 @@ class PointModel:
                      np.asarray(arrays["basis"], np.float64),
                      np.asarray(arrays["sigma_mm"], np.float64),
                      np.asarray(arrays["modes"], np.float64) if "modes" in arrays
-                     else np.zeros((0, 0, 2)), _offset(meta.get("offset_p99")))
+                     else np.zeros((0, 0, 2)), _offset(meta.get("offset_p99")),
+                     _regression(arrays, meta))
             require(n_params is None or pm.n_params == n_params, path,
                     f"{pm.n_params} parameters, the speaker's model has {n_params}")
         return pm
@@ -131,6 +280,17 @@ class PointModel:
 MIN_SIGMA_MM, MAX_SIGMA_MM = 1e-3, 1e3
 """A landmark's reading error a stored model may hold (enrolment floors it at
 ``min_sigma_mm``, far above the lower bound; real ones are 0.3-1 mm)."""
+
+
+def _regression(arrays: dict[str, np.ndarray], meta: dict) -> ReadingRegression | None:
+    """A stored :class:`ReadingRegression` (None: a model saved without one)."""
+    if "reg_weights" not in arrays:
+        return None
+    def arr(key: str) -> np.ndarray:
+        return np.asarray(arrays[f"reg_{key}"], np.float64)
+
+    return ReadingRegression(arr("feature_mean"), arr("feature_scale"), arr("weights"),
+                             arr("alpha_mean"), arr("information"), float(meta["reg_ridge"]))
 
 
 def _offset(value: object) -> float:
