@@ -2,6 +2,7 @@
 
     python benchmarks/peers.py --json --series DIR           # once: the peers' series
     python benchmarks/enrolment_spread.py --series DIR [--seeds 1 2 3 4] [--only CLIP ...]
+                                          [--variant V]
 
 An enrolment trains the appearance on at most 90 frames chosen by farthest-point sampling in
 the articulation space (core/faces/build.py, ``coverage_order``), started at the frame nearest
@@ -14,6 +15,9 @@ the outer lip width) on the windows ``peers.py`` chose (from the lip boxes in DI
 ok, and on the synthetic speaker r against the truth. The spread (min, max, s.d. over the
 enrolments) is the part of a single-enrolment figure that is the choice of frames, not the
 method: a gap between articast and a peer smaller than it is not measured by one enrolment.
+``--variant`` tracks with another live policy of ``peers.py``'s ablation (``peers.VARIANTS``):
+two runs, with and without a change, compare it enrolment by enrolment (the same frames
+train both).
 
 Accuracy does not depend on the machine's load. ~1-2 min per clip and enrolment on 2 cores.
 """
@@ -101,8 +105,12 @@ def main() -> None:
                     help="coverage seeds besides the default start (default 1 2 3 4)")
     ap.add_argument("--only", nargs="*", help="these clips (default: every clip in --series "
                                               "that is fetched, and synthetic)")
+    ap.add_argument("--variant", choices=list(peers.VARIANTS), default="fused",
+                    help="articast's live policy (peers.py's ablation; default: the "
+                         "product's, fused)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
+    peers.ARTICAST_POLICY = peers.VARIANTS[args.variant]
     if not args.series.is_dir():
         raise SystemExit(f"no series directory {args.series}: run benchmarks/peers.py --series "
                          f"{args.series} first")
@@ -121,7 +129,8 @@ def main() -> None:
             continue
         rows.append(run_clip(name, s, [None, *args.seeds]))
     if args.json:
-        print(json.dumps({"command": " ".join(sys.argv), "seeds": [None, *args.seeds],
+        print(json.dumps({"command": " ".join(sys.argv), "variant": args.variant,
+                          "seeds": [None, *args.seeds],
                           "clips": rows}, indent=1))
         return
     print("| clip | default start r / jitter | r min-max (s.d.) | jitter min-max (s.d.) "
