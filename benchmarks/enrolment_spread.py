@@ -42,14 +42,6 @@ import peers  # noqa: E402
 from articast.core.faces.build import BuildOptions  # noqa: E402
 
 
-def _series(path: Path) -> dict:
-    d = np.load(path, allow_pickle=False)
-    methods = [str(m) for m in d["methods"]]
-    return {"fps": float(d["fps"]), "ratio": {m: d[f"ratio_{m}"] for m in methods},
-            "boxes": [d[f"box_{m}"] for m in methods],
-            "truth": d["truth"] if "truth" in d.files else None}
-
-
 def spread_of(values: list[float]) -> dict:
     v = np.array([x for x in values if x is not None and math.isfinite(x)], float)
     if len(v) == 0:
@@ -111,22 +103,9 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
     peers.ARTICAST_POLICY = peers.VARIANTS[args.variant]
-    if not args.series.is_dir():
-        raise SystemExit(f"no series directory {args.series}: run benchmarks/peers.py --series "
-                         f"{args.series} first")
     cv2.setNumThreads(1)
-    fetched = peers.clip_paths(peers.CLIP_CACHE)
-    names = args.only or sorted(p.stem for p in args.series.glob("*.npz"))
     rows = []
-    for name in names:
-        path = args.series / f"{name}.npz"
-        if not path.is_file() or (name != "synthetic" and name not in fetched):
-            peers.log(f"{name}: skipped (no series in {args.series} or clip not fetched)")
-            continue
-        s = _series(path)
-        if "articast" not in s["ratio"] or len(s["ratio"]) < 3:
-            peers.log(f"{name}: skipped (fewer than two other methods in its series)")
-            continue
+    for name, s in peers.series_clips(args.series, args.only):
         rows.append(run_clip(name, s, [None, *args.seeds]))
     if args.json:
         print(json.dumps({"command": " ".join(sys.argv), "variant": args.variant,

@@ -43,7 +43,6 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 
 import peers  # noqa: E402
-from enrolment_spread import _series  # noqa: E402
 from face_landmarks_clips import jitter  # noqa: E402
 
 from articast.core.faces.finder import models_dir  # noqa: E402
@@ -163,22 +162,9 @@ def main() -> None:
                                               "that is fetched, and synthetic)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
-    if not args.series.is_dir():
-        raise SystemExit(f"no series directory {args.series}: run benchmarks/peers.py --series "
-                         f"{args.series} first")
     cv2.setNumThreads(1)
-    fetched = peers.clip_paths(peers.CLIP_CACHE)
-    names = args.only or sorted(p.stem for p in args.series.glob("*.npz"))
     rows = []
-    for name in names:
-        path = args.series / f"{name}.npz"
-        if not path.is_file() or (name != "synthetic" and name not in fetched):
-            peers.log(f"{name}: skipped (no series in {args.series} or clip not fetched)")
-            continue
-        s = _series(path)
-        if "articast" not in s["ratio"] or len(set(s["ratio"]) - set(LEFT_OUT)) < 2:
-            peers.log(f"{name}: skipped (fewer than two other methods in its series)")
-            continue
+    for name, s in peers.series_clips(args.series, args.only, LEFT_OUT):
         rows.append(run_clip(name, s))
     if args.json:
         print(json.dumps({"command": " ".join(sys.argv), "clips": rows}, indent=1))

@@ -637,6 +637,40 @@ def run_methods(methods, held, fps, enrol, facemesh_v1: Path | None, peers: dict
 
 
 # ---------------------------------------------------------------------------- a clip
+def read_series(path: Path) -> dict:
+    """One clip's ``--series`` file: fps, each method's aperture ratio and lip boxes, and the
+    truth (synthetic) or None."""
+    d = np.load(path, allow_pickle=False)
+    methods = [str(m) for m in d["methods"]]
+    return {"fps": float(d["fps"]), "ratio": {m: d[f"ratio_{m}"] for m in methods},
+            "boxes": [d[f"box_{m}"] for m in methods],
+            "truth": d["truth"] if "truth" in d.files else None}
+
+
+def series_clips(series: Path, only: Sequence[str] | None,
+                 left_out: Sequence[str] = ("articast",)) -> list[tuple[str, dict]]:
+    """The clips of a ``--series`` directory a script can rerun articast on: every clip in it
+    (or ``only``) that is fetched (or synthetic), whose series hold articast's and at least
+    two methods besides ``left_out``; (name, :func:`read_series`), the others logged as
+    skipped. A missing directory is one line (SystemExit)."""
+    if not series.is_dir():
+        raise SystemExit(f"no series directory {series}: run benchmarks/peers.py --series "
+                         f"{series} first")
+    fetched = clip_paths(CLIP_CACHE)
+    out = []
+    for name in only or sorted(p.stem for p in series.glob("*.npz")):
+        path = series / f"{name}.npz"
+        if not path.is_file() or (name != "synthetic" and name not in fetched):
+            log(f"{name}: skipped (no series in {series} or clip not fetched)")
+            continue
+        s = read_series(path)
+        if "articast" not in s["ratio"] or len(set(s["ratio"]) - set(left_out)) < 2:
+            log(f"{name}: skipped (fewer than two other methods in its series)")
+            continue
+        out.append((name, s))
+    return out
+
+
 def clip_windows(held, boxes: Sequence[np.ndarray], fps: float) -> list[slice]:
     """The still-mouth windows of ``held``: the mouth placed by the per-frame median of the
     methods' lip ``boxes`` (each (F, 4), NaN where none)."""

@@ -268,18 +268,25 @@ def test_the_motion_models_prediction_covariance_is_f_p_ft_plus_q():
     np.testing.assert_allclose(prior.information @ want[:n, :n], np.eye(n), atol=1e-6)
 
 
+def _correlated_prior(rng, k=7, alpha_sd=2.0):
+    """A prediction whose articulation and pose are correlated, with the pose's own scales
+    (0.02 rad, 5 mm: small turns stay small), and its information."""
+    n = k + 6
+    a = rng.normal(size=(n, n))
+    d = np.sqrt(np.r_[np.ones(k), np.full(3, 0.02**-2), np.full(3, 5.0**-2)])
+    info = d[:, None] * (a @ a.T / n + 0.5 * np.eye(n)) * d[None, :]
+    return StatePrior(rng.normal(size=k) * alpha_sd,
+                      rotation_matrix(np.array([0.05, -0.1, 0.02])),
+                      np.array([3.0, -2.0, 600.0]), info), info
+
+
 def test_the_speakers_prior_is_the_product_of_the_two_gaussians():
     # the combined prior's cost must equal the prediction's plus w |alpha|^2 up to a
     # constant, at any state: compare the gradients (zero at the combined mean, equal
     # elsewhere), with the pose correlated to alpha so that it moves too
     rng = np.random.default_rng(3)
-    k, n = 7, 13
-    a = rng.normal(size=(n, n))
-    # correlated, with the pose's own scales (0.02 rad, 5 mm): small turns stay small
-    d = np.sqrt(np.r_[np.ones(k), np.full(3, 0.02**-2), np.full(3, 5.0**-2)])
-    info = d[:, None] * (a @ a.T / n + 0.5 * np.eye(n)) * d[None, :]
-    pred = StatePrior(rng.normal(size=k) * 2.0, rotation_matrix(np.array([0.05, -0.1, 0.02])),
-                      np.array([3.0, -2.0, 600.0]), info)
+    k = 7
+    pred, info = _correlated_prior(rng)
     for w in (1.0, 0.3):
         both = pred.with_speaker(w)
 
@@ -470,12 +477,8 @@ def test_the_reading_regression_is_kept_with_the_observation_model(tmp_path):
 
 def test_a_measurement_of_the_articulation_is_the_product_of_the_two_gaussians():
     rng = np.random.default_rng(4)
-    k, n = 7, 13
-    a = rng.normal(size=(n, n))
-    d = np.sqrt(np.r_[np.ones(k), np.full(3, 0.02**-2), np.full(3, 5.0**-2)])
-    info = d[:, None] * (a @ a.T / n + 0.5 * np.eye(n)) * d[None, :]
-    pred = StatePrior(rng.normal(size=k), rotation_matrix(np.array([0.05, -0.1, 0.02])),
-                      np.array([3.0, -2.0, 600.0]), info)
+    k = 7
+    pred, info = _correlated_prior(rng, alpha_sd=1.0)
     # the speaker's own distribution is a measurement of alpha = 0 with information w I
     a1, a2 = pred.with_speaker(0.7), pred.with_measurement(np.zeros(k), 0.7 * np.eye(k))
     assert np.allclose(a1.alpha, a2.alpha) and np.allclose(a1.translation, a2.translation)

@@ -223,16 +223,17 @@ class FusionPolicy:
         of the articulation beside the landmark term (the prior times it, and the motion
         model's update takes its information). Through the observation model the fit is the
         articulation that best explains all ~300 points, a compromise in which the lips'
-        few points weigh little: each reading fitted alone read the aperture at r 0.91
-        against the consensus on franck where the reader's own lip points gave 0.96; the
+        few points weigh little: each reading fitted alone read the aperture at r 0.905
+        against the consensus on franck where the reader's own lip points gave 0.959; the
         regression, which learned at enrolment what each point tells of the articulation,
-        read 0.96-0.97 from the same readings (``benchmarks/landmark_term.py``). Both are
-        kept: the landmark term alone generalises to faces the enrolment never showed
-        (pexels_woman laughing after crying), which the regression does not; the two count
-        the same reading twice, as the term's 0.3 weight already allows for. Five
-        enrolments of each clip (``benchmarks/enrolment_spread.py``, with and without):
-        r against the consensus higher on every clip in nearly every enrolment (docs/
-        REAL_SPEAKERS.md), still-mouth jitter within the enrolments' spread.
+        read 0.964 from the same readings (``benchmarks/landmark_term.py``). Both are kept:
+        live and alone, the landmark term read faces the enrolment never showed
+        (pexels_woman laughing after crying) better than the regression; the two count the
+        same reading twice, as the term's 0.3 weight already allows for. Five enrolments of
+        each clip (``benchmarks/enrolment_spread.py``, with and without): r against the
+        consensus higher on every clip in five of five but carphone (three of five), the
+        still-mouth jitter within the enrolments' spread (docs/REAL_SPEAKERS.md); it reads
+        more frames where the face moves fast (carphone's CPU: docs/REAL_SPEAKERS.md).
     """
 
     reader: str = "v1"
