@@ -24,7 +24,6 @@ Accuracy does not depend on the machine's load. ~1-2 min per clip and enrolment 
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -52,18 +51,9 @@ def spread_of(values: list[float]) -> dict:
 
 
 def run_clip(name: str, series: dict, seeds: list[int | None]) -> dict:
-    if name == "synthetic":
-        clip = peers.synthetic_clip()
-        enrol, held, fps = clip["enrol"], clip["held"], 50.0
-        kw: dict = {"camera": clip["camera"], "enrol_fps": 12.0}
-    else:
-        enrol, held, fps, _, times = peers.read_clip(peers.clip_paths(peers.CLIP_CACHE)[name])
-        kw = {"times": times}
-    others = {k: v for k, v in series["ratio"].items() if k != "articast"}
-    if len(next(iter(others.values()), [])) != len(held):
-        raise SystemExit(f"{name}: the series in --series has another number of frames than "
-                         f"the clip ({len(held)}): a run of another clip or version")
-    windows = peers.clip_windows(held, series["boxes"], fps)
+    c = peers.series_clip(name, series)
+    enrol, held, fps, kw = c["enrol"], c["held"], c["fps"], c["kw"]
+    others, windows = c["others"], c["windows"]
     rows = []
     for seed in seeds:
         peers.log(f"{name}: enrolment with coverage seed {seed}")
@@ -88,15 +78,9 @@ def run_clip(name: str, series: dict, seeds: list[int | None]) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="See the module docstring for what is measured.")
-    ap.add_argument("--series", type=Path, required=True,
-                    help="a peers.py --series directory (the other methods' series)")
+    ap = peers.series_parser(__doc__)
     ap.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3, 4],
                     help="coverage seeds besides the default start (default 1 2 3 4)")
-    ap.add_argument("--only", nargs="*", help="these clips (default: every clip in --series "
-                                              "that is fetched, and synthetic)")
     ap.add_argument("--variant", choices=list(peers.VARIANTS), default="fused",
                     help="articast's live policy (peers.py's ablation; default: the "
                          "product's, fused)")

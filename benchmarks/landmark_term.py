@@ -31,7 +31,6 @@ Accuracy does not depend on the machine's load. ~1-2 min per clip on 2 cores.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -119,20 +118,10 @@ def model_ratio(m, alphas: np.ndarray) -> np.ndarray:
 
 
 def run_clip(name: str, series: dict) -> dict:
-    if name == "synthetic":
-        clip = peers.synthetic_clip()
-        enrol, held, fps = clip["enrol"], clip["held"], 50.0
-        kw: dict = {"camera": clip["camera"], "enrol_fps": 12.0}
-    else:
-        enrol, held, fps, _, times = peers.read_clip(peers.clip_paths(peers.CLIP_CACHE)[name])
-        kw = {"times": times}
-    others = {k: v for k, v in series["ratio"].items() if k not in LEFT_OUT}
-    if len(next(iter(others.values()), [])) != len(held):
-        raise SystemExit(f"{name}: the series in --series has another number of frames than "
-                         f"the clip ({len(held)}): a run of another clip or version")
-    windows = peers.clip_windows(held, series["boxes"], fps)
+    c = peers.series_clip(name, series, LEFT_OUT)
+    held, others, windows = c["held"], c["others"], c["windows"]
     peers.log(f"{name}: enrolling, then fitting each reading alone")
-    got = peers.run_articast(enrol, held, fps, **kw)
+    got = peers.run_articast(c["enrol"], held, c["fps"], **c["kw"])
     if "error" in got:
         return {"clip": name, "error": got["error"]}
     ser = readings_through_model(got["speaker"], held)
@@ -153,13 +142,7 @@ def run_clip(name: str, series: dict) -> dict:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter,
-                                 epilog="See the module docstring for what is measured.")
-    ap.add_argument("--series", type=Path, required=True,
-                    help="a peers.py --series directory (the other methods' series)")
-    ap.add_argument("--only", nargs="*", help="these clips (default: every clip in --series "
-                                              "that is fetched, and synthetic)")
+    ap = peers.series_parser(__doc__)
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
     cv2.setNumThreads(1)

@@ -671,6 +671,40 @@ def series_clips(series: Path, only: Sequence[str] | None,
     return out
 
 
+def series_parser(doc: str) -> argparse.ArgumentParser:
+    """The command line of a script that reruns articast on a ``--series`` directory's clips
+    (:func:`series_clips`): its docstring's first paragraph as the description, ``--series``
+    and ``--only``."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="See the module docstring for what is measured.")
+    ap.add_argument("--series", type=Path, required=True,
+                    help="a peers.py --series directory (the other methods' series)")
+    ap.add_argument("--only", nargs="*", help="these clips (default: every clip in --series "
+                                              "that is fetched, and synthetic)")
+    return ap
+
+
+def series_clip(name: str, series: dict, left_out: Sequence[str] = ("articast",)) -> dict:
+    """What rerunning articast on one ``--series`` clip needs: its ``enrol`` and ``held``
+    frames, ``fps``, :func:`run_articast`'s keywords ``kw``, the ``others``' series (without
+    ``left_out``) and the still ``windows``. SystemExit when the series does not match the
+    clip's frames (a run of another clip or version)."""
+    if name == "synthetic":
+        clip = synthetic_clip()
+        enrol, held, fps = clip["enrol"], clip["held"], 50.0
+        kw: dict = {"camera": clip["camera"], "enrol_fps": 12.0}
+    else:
+        enrol, held, fps, _, times = read_clip(clip_paths(CLIP_CACHE)[name])
+        kw = {"times": times}
+    others = {k: v for k, v in series["ratio"].items() if k not in left_out}
+    if len(next(iter(others.values()), [])) != len(held):
+        raise SystemExit(f"{name}: the series in --series has another number of frames than "
+                         f"the clip ({len(held)}): a run of another clip or version")
+    return {"enrol": enrol, "held": held, "fps": fps, "kw": kw, "others": others,
+            "windows": clip_windows(held, series["boxes"], fps)}
+
+
 def clip_windows(held, boxes: Sequence[np.ndarray], fps: float) -> list[slice]:
     """The still-mouth windows of ``held``: the mouth placed by the per-frame median of the
     methods' lip ``boxes`` (each (F, 4), NaN where none)."""
