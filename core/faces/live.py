@@ -577,10 +577,11 @@ class LiveTracker:
         self._phase = 0 if reading is not None else self._phase + 1
         term = None
         measured = None  # the information of the articulation read off the reading, if any
+        seen = None if reading is None else reading.landmarks[self.point_model.landmarks, :2]
         if reading is not None:
+            assert seen is not None
             self._reading = reading
             reg = self.point_model.regression
-            seen = reading.landmarks[self.point_model.landmarks, :2]
             if (fu.regression and reg is not None and prior is not None and not gated
                     and np.all(np.isfinite(seen))):
                 # the articulation the enrolment's regression reads off the same points, a
@@ -593,12 +594,12 @@ class LiveTracker:
                 measured = reg.information
             term = self._term(reading, prior, self.weights[0], scale)
         confirm = None
-        if reading is not None and np.isfinite(self.point_model.offset_p99):
-            seen = reading.landmarks[self.point_model.landmarks, :2]
+        if seen is not None and np.isfinite(self.point_model.offset_p99):
+            read_points = seen
 
             def confirm(alpha: np.ndarray, pose: Pose) -> bool:
                 return self._unfamiliar(alpha) and self._offset(
-                    alpha, pose.matrix, pose.translation, seen) <= (
+                    alpha, pose.matrix, pose.translation, read_points) <= (
                     fu.agreement * self.point_model.offset_p99)
         elif (fu.lag_check and fu.reread is not None
               and np.isfinite(self.point_model.offset_p99) and self._reading is not None):

@@ -89,10 +89,7 @@ class ReadingRegression:
         cam = mean @ rotation.T + translation
         pred, jac = camera.project_jacobian(cam, True)
         assert jac is not None
-        d = np.zeros((len(mean), 3))
-        d[:, 0] = (uv[:, 0] - pred[:, 0]) * cam[:, 2] / camera.fx
-        d[:, 1] = (uv[:, 1] - pred[:, 1]) * cam[:, 2] / camera.fy
-        f = (d @ rotation)[:, :2].reshape(-1)
+        f = head_offsets(cam, pred, uv, camera, rotation)[:, :2].reshape(-1)
         # the same offsets of a small head move (turn on the left, translation): (2M, 6)
         dcam = np.zeros((len(mean), 3, 6))
         dcam[:, :, :3] = turn_jacobian(cam - translation)
@@ -109,6 +106,17 @@ class ReadingRegression:
         """(K,) the articulation the features (:meth:`features`) read."""
         return self.alpha_mean + ((features - self.feature_mean) / self.feature_scale
                                   ) @ self.weights
+
+
+def head_offsets(cam: np.ndarray, pred: np.ndarray, uv: np.ndarray, camera: Camera,
+                 rotation: np.ndarray) -> np.ndarray:
+    """(M, 3) readings ``uv`` (M, 2) px off the points ``cam`` (M, 3, camera frame) projected
+    at ``pred``: px -> mm in the image plane at each point's depth, then turned to the head
+    frame (R^T d) by the head's ``rotation``."""
+    d = np.zeros((len(cam), 3))
+    d[:, 0] = (uv[:, 0] - pred[:, 0]) * cam[:, 2] / camera.fx
+    d[:, 1] = (uv[:, 1] - pred[:, 1]) * cam[:, 2] / camera.fy
+    return d @ rotation
 
 
 RIDGES = (0.003, 0.01, 0.03, 0.1, 0.3)
@@ -373,12 +381,7 @@ def learn_point_model(model: FaceModel, camera: Camera, states: list[tuple[np.nd
         head = model.shape(alpha)[model_points]
         rot = pose.matrix
         cam = head @ rot.T + pose.translation
-        pred = camera.project(cam)
-        # px -> mm in the image plane at each point's depth, then to the head frame
-        d_cam = np.zeros((len(head), 3))
-        d_cam[:, 0] = (uv[:, 0] - pred[:, 0]) * cam[:, 2] / camera.fx
-        d_cam[:, 1] = (uv[:, 1] - pred[:, 1]) * cam[:, 2] / camera.fy
-        offs.append(d_cam @ rot)  # R^T d
+        offs.append(head_offsets(cam, camera.project(cam), uv, camera, rot))
         rots.append(rot)
         rows.append(np.concatenate([[1.0], np.asarray(alpha) / sd]))
     if len(rows) < 2 * (k + 1):
