@@ -134,6 +134,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "finder_start": LivePolicy(fusion=FusionPolicy(start="finder", resume=False)),
     "finder_start_resume": LivePolicy(fusion=FusionPolicy(start="finder")),
     "no_resume": LivePolicy(fusion=FusionPolicy(resume=False)),
+    "no_recover": LivePolicy(fusion=FusionPolicy(recover=False)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
 MAX_LAG = 5

@@ -594,7 +594,8 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     face still read) restarts on the next frame from the landmarks read in the crop grown from
     that reading: one reader call, no detector, no finding landmarks; with
     ``FusionPolicy(resume=False)`` the same frame runs the detector, and so does a resumed
-    start whose reading finds no face (the face gone: a frame of noise)."""
+    start whose reading finds no face (the face gone: a frame of noise). (``recover`` off:
+    it starts the fit again within the frame, the next test.)"""
     from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
     from articast.core.faces.scheme import mediapipe_scheme
     from articast.service.video import iter_video
@@ -606,7 +607,8 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     for resume, gone in ((True, False), (False, False), (True, True)):
         finder, reader = _counting_finders()
         live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
-                           LivePolicy(fusion=FusionPolicy(resume=resume)), reader=reader)
+                           LivePolicy(fusion=FusionPolicy(resume=resume, recover=False)),
+                           reader=reader)
         for i, img in enumerate(frames[:50]):
             live.track(img, i / 25)
         kf = live.kalman
@@ -634,6 +636,43 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     assert not nxt.ok and nxt.reason.startswith("no_face"), nxt.reason
     assert after[0] == before[0] + 1 and after[4] == before[4]  # ran, found none: no start
     assert after[3] == before[3] + 2  # the resumed reading, then the detector's search
+
+
+def test_a_diverged_fit_starts_again_from_the_frames_reading_and_the_frame_is_kept(enrolled):
+    """``FusionPolicy.recover``: the state knocked 6 cm off the face, the frame whose fit the
+    landmarks disown is started again from its own reading (read then, in the crop grown from
+    the last one, if the frame had none) and fitted again within the frame: every frame after
+    the knock is ok, and from the frame started again on near what a tracker never knocked
+    reads (lip aperture within 1 mm: the output filter forgets the lost fit's frames), with
+    no detector run; without it the knocked track loses a frame as ``diverged``."""
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    sp, frames, _ = _test_clip(enrolled)
+    runs = {}
+    for recover, knock in ((True, True), (False, True), (True, False)):
+        finder, reader = _counting_finders()
+        live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
+                           LivePolicy(fusion=FusionPolicy(recover=recover)), reader=reader)
+        for i, img in enumerate(frames[:50]):
+            live.track(img, i / 25)
+        if knock:
+            kf = live.kalman
+            kf.t = kf.t + np.array([60.0, 0.0, 120.0])
+            kf.alpha = kf.alpha + 3.0
+        detections = reader.detections
+        after = [live.track(frames[i], i / 25) for i in range(50, 56)]
+        runs[recover, knock] = (after, reader.detections - detections, live.recovered)
+    kept, detections, recovered = runs[True, True]
+    assert all(r.ok for r in kept), [r.reason for r in kept]
+    assert recovered >= 1 and detections == 0
+    first = next(n for n, r in enumerate(kept) if r.extra.get("recovered"))
+    calm, _, _ = runs[True, False]
+    gap = [abs(a.lips["aperture_mm"] - b.lips["aperture_mm"])
+           for a, b in zip(kept[first:], calm[first:])]
+    assert max(gap) < 1.0, gap
+    lost, _, recovered = runs[False, True]
+    assert recovered == 0 and any(r.reason.startswith("diverged") for r in lost)
 
 
 def test_a_start_from_the_readers_landmarks_is_as_close_to_the_truth_as_the_finders(enrolled):

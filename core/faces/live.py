@@ -234,6 +234,14 @@ class FusionPolicy:
         consensus higher on every clip in five of five but carphone (three of five), the
         still-mouth jitter within the enrolments' spread (docs/REAL_SPEAKERS.md); it reads
         more frames where the face moves fast (carphone's CPU: docs/REAL_SPEAKERS.md).
+    recover : a fit that diverges on a started track is started again from the frame's own
+        reading (read then, in the crop grown from the last reading, on a frame between
+        readings) and fitted again within the frame; only if that fit diverges too is the
+        frame ``diverged`` (and the next frame starts as ``resume`` says). Without it, a fit
+        that lagged a fast move (carphone's shaking camera, the first reading after a start;
+        single_face turning away at its end) lost that frame and restarted on the next one.
+        The output filter forgets the frames before (they were of the lost fit). peers.py
+        with and without (``--variant no_recover``): see docs/REAL_SPEAKERS.md.
     """
 
     reader: str = "v1"
@@ -255,6 +263,7 @@ class FusionPolicy:
     eye_reads: bool = True
     lag_check: bool = True
     regression: bool = True
+    recover: bool = True
 
     def __post_init__(self) -> None:
         if self.start not in ("reader", "finder"):
@@ -328,6 +337,8 @@ class LiveTracker:
         self.regated = 0  # readings far from the prediction (the motion model restarted)
         self.rereads = 0  # readings that asked for the next frame to be read too
         self.lag_reads = 0  # frames read to tell a fit's lag from an occluder (_fit_lags)
+        self.recover_reads = 0  # frames read to start a diverged fit again (_recover)
+        self.recovered = 0  # diverged fits started again within their frame and then ok
         self.eye_reads = 0  # frames between readings read for the eyes (FusionPolicy.eye_reads)
         self._eyes_read = False  # the last reading was one of those
         self._last_anchor: np.ndarray | None = None  # the head's point at the last ok frame
@@ -428,6 +439,8 @@ class LiveTracker:
         ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
         result = replace(result, upper=upper, frame=self._frame, ms=ms)
         if result.ok and (self._filter is not None or self._cadence is not None):
+            if result.extra.get("recovered") and self._filter is not None:
+                self._filter.reset()
             out = result.alpha
             if self._cadence is not None:
                 out = self._cadence(out, self._phase)
@@ -575,6 +588,55 @@ class LiveTracker:
         if prior is not None and fu.speaker_prior is not None:
             prior = prior.with_speaker(fu.speaker_prior)
         self._phase = 0 if reading is not None else self._phase + 1
+        result = self._fit_frame(image, t, fu, reading, prior, scale, gated)
+        if fu.recover and not restart and result.reason.startswith("diverged"):
+            result = self._recover(image, t, fu, reading, result)
+        if not result.ok and not result.reason.startswith("occluded"):
+            self._started = False  # diverged, left the image, blank: find the face again
+            # a diverged fit: the face was read (this frame or within the last read_every),
+            # the fit was lost; unless it was a resumed start's (the reading is suspect)
+            self._resume = (self._reading if fu.resume and result.reason.startswith("diverged")
+                            and self._resumed != self._frame else None)
+        return result
+
+    def _recover(self, image: np.ndarray, t: float, fu: FusionPolicy, reading: Any,
+                 lost: TrackResult) -> TrackResult:
+        """A fit that diverged from a started track: start again from this frame's reading
+        (read now, in the crop grown from the last one, when the frame had none) and fit the
+        frame again (:attr:`FusionPolicy.recover`). Returns ``lost`` when the reader finds no
+        face, its landmarks do not fit the speaker, or the new fit diverges as well."""
+        if reading is None:
+            if self._reading is None:
+                return lost
+            reading = self._finder(image, self._reading, self.reader)
+            self.recover_reads += 1
+            if reading is None:
+                return lost
+            self._since_read = 0
+            self._eyes_read = False
+            self._phase = 0
+        if not self._start(reading, keep_levels=True):
+            return lost
+        self._resumed = self._frame  # (diverging again, the reading is suspect: no resume)
+        alpha, pose = self.tracker.state or (None, None)
+        assert alpha is not None and pose is not None
+        self.kalman.start(alpha, pose.rotation, pose.translation)
+        prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
+        if prior is not None and fu.speaker_prior is not None:
+            prior = prior.with_speaker(fu.speaker_prior)
+        if self._cadence is not None:  # a jump, not the cadence's steady component
+            self._cadence.reset()
+        again = self._fit_frame(image, t, fu, reading, prior, fu.points_scale, False)
+        if again.ok:
+            self.recovered += 1
+            # (the frames streamed before were of the lost fit: the output filter forgets them)
+            return replace(again, extra={**again.extra, "recovered": True})
+        return lost
+
+    def _fit_frame(self, image: np.ndarray, t: float, fu: FusionPolicy, reading: Any,
+                   prior: StatePrior | None, scale: float | None, gated: bool) -> TrackResult:
+        """The fused fit of one frame from ``prior`` (with this frame's ``reading``, if any),
+        judged, and the motion model updated with it."""
         term = None
         measured = None  # the information of the articulation read off the reading, if any
         seen = None if reading is None else reading.landmarks[self.point_model.landmarks, :2]
@@ -633,12 +695,6 @@ class LiveTracker:
                 self.kalman.update(th[:k], th[k:k + 3], th[k + 3:], info)
             else:
                 self.kalman.hold()
-        if not result.ok and not result.reason.startswith("occluded"):
-            self._started = False  # diverged, left the image, blank: find the face again
-            # a diverged fit: the face was read (this frame or within the last read_every),
-            # the fit was lost; unless it was a resumed start's (the reading is suspect)
-            self._resume = (self._reading if fu.resume and result.reason.startswith("diverged")
-                            and self._resumed != self._frame else None)
         return result
 
     def _restart(self, image: np.ndarray, fu: FusionPolicy, keep_levels: bool) -> Any:
