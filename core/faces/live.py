@@ -240,8 +240,11 @@ class FusionPolicy:
         frame ``diverged`` (and the next frame starts as ``resume`` says). Without it, a fit
         that lagged a fast move (carphone's shaking camera, the first reading after a start;
         single_face turning away at its end) lost that frame and restarted on the next one.
-        The output filter forgets the frames before (they were of the lost fit). peers.py
-        with and without (``--variant no_recover``): see docs/REAL_SPEAKERS.md.
+        The output filter forgets the frames before (they were of the lost fit), and the
+        next frame is read (the motion model restarted at rest, as after a reading it
+        mispredicted: single_face's last frame, between readings, diverged by the
+        appearance again and needed a second start without it). peers.py with and without
+        (``--variant no_recover``): see docs/REAL_SPEAKERS.md.
     """
 
     reader: str = "v1"
@@ -629,6 +632,7 @@ class LiveTracker:
         again = self._fit_frame(image, t, fu, reading, prior, fu.points_scale, False)
         if again.ok:
             self.recovered += 1
+            self._since_read = fu.read_every - 1  # (read the next frame: no velocity known)
             # (the frames streamed before were of the lost fit: the output filter forgets them)
             return replace(again, extra={**again.extra, "recovered": True})
         return lost
