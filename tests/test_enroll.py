@@ -589,6 +589,25 @@ def test_an_eye_the_pixels_cannot_follow_is_read_the_frame_it_shuts(enrolled):
             assert res.upper.source == "photo" and live.eye_reads == before == 0
 
 
+def _knocked(sp, frames, fusion, knock=True):
+    """A live tracker (fused by ``fusion``, counting finders) run over the first 50 frames,
+    then its motion model knocked 6 cm aside, 12 cm further and 3 s.d. of articulation off
+    (``knock``); returns it and its finder and reader."""
+    from articast.core.faces.live import LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    finder, reader = _counting_finders()
+    live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig), LivePolicy(fusion=fusion),
+                       reader=reader)
+    for i, img in enumerate(frames[:50]):
+        live.track(img, i / 25)
+    if knock:
+        kf = live.kalman
+        kf.t = kf.t + np.array([60.0, 0.0, 120.0])
+        kf.alpha = kf.alpha + 3.0
+    return live, finder, reader
+
+
 def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enrolled):
     """A fit the frame's landmarks disown (``diverged``: the state knocked off the face, the
     face still read) restarts on the next frame from the landmarks read in the crop grown from
@@ -596,8 +615,7 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     ``FusionPolicy(resume=False)`` the same frame runs the detector, and so does a resumed
     start whose reading finds no face (the face gone: a frame of noise). (``recover`` off:
     it starts the fit again within the frame, the next test.)"""
-    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
-    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.core.faces.live import FusionPolicy
     from articast.service.video import iter_video
 
     sp = Speaker.load(enrolled / "speaker")
@@ -605,15 +623,7 @@ def test_a_diverged_fit_restarts_from_the_last_reading_without_the_detector(enro
     runs = {}
     noise = np.random.default_rng(0).integers(0, 256, frames[0].shape, np.uint8)
     for resume, gone in ((True, False), (False, False), (True, True)):
-        finder, reader = _counting_finders()
-        live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
-                           LivePolicy(fusion=FusionPolicy(resume=resume, recover=False)),
-                           reader=reader)
-        for i, img in enumerate(frames[:50]):
-            live.track(img, i / 25)
-        kf = live.kalman
-        kf.t = kf.t + np.array([60.0, 0.0, 120.0])  # 6 cm aside, 12 cm further
-        kf.alpha = kf.alpha + 3.0
+        live, finder, reader = _knocked(sp, frames, FusionPolicy(resume=resume, recover=False))
         i = 50
         res = live.track(frames[i], i / 25)
         while not res.reason.startswith("diverged") and i < 53:
@@ -646,23 +656,14 @@ def test_a_diverged_fit_starts_again_from_the_frames_reading_and_the_frame_is_ke
     reads (lip aperture within 1 mm: the output filter forgets the lost fit's frames), with
     no detector run, and the frame after it is read (the motion model restarted at rest);
     without it the knocked track loses a frame as ``diverged``."""
-    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
-    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.core.faces.live import FusionPolicy
 
     sp, frames, _ = _test_clip(enrolled)
     runs = {}
     for recover, knock in ((True, True), (False, True), (True, False)):
-        finder, reader = _counting_finders()
         # (reread off: the frame after a recovery is read for the recovery's sake)
-        live = LiveTracker(sp, finder, mediapipe_scheme(sp.rig),
-                           LivePolicy(fusion=FusionPolicy(recover=recover, reread=None)),
-                           reader=reader)
-        for i, img in enumerate(frames[:50]):
-            live.track(img, i / 25)
-        if knock:
-            kf = live.kalman
-            kf.t = kf.t + np.array([60.0, 0.0, 120.0])
-            kf.alpha = kf.alpha + 3.0
+        live, finder, reader = _knocked(sp, frames, FusionPolicy(recover=recover, reread=None),
+                                        knock)
         detections = reader.detections
         after, calls = [], []
         for i in range(50, 56):
