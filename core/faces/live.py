@@ -582,12 +582,9 @@ class LiveTracker:
             reading = self._restart(image, fu, keep_levels=was)
             if isinstance(reading, str):
                 return self._lost(t, reading)
-            alpha, pose = self.tracker.state or (None, None)
-            assert alpha is not None and pose is not None
-            self.kalman.start(alpha, pose.rotation, pose.translation)
             self._since_read = 0
             self._eyes_read = False
-            prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
+            prior = self._motion_at_rest(fu)
         if prior is not None and fu.speaker_prior is not None:
             prior = prior.with_speaker(fu.speaker_prior)
         self._phase = 0 if reading is not None else self._phase + 1
@@ -621,10 +618,7 @@ class LiveTracker:
         if not self._start(reading, keep_levels=True):
             return lost
         self._resumed = self._frame  # (diverging again, the reading is suspect: no resume)
-        alpha, pose = self.tracker.state or (None, None)
-        assert alpha is not None and pose is not None
-        self.kalman.start(alpha, pose.rotation, pose.translation)
-        prior = self.kalman.predict(1.0 / 25.0) if fu.kalman else None
+        prior = self._motion_at_rest(fu)
         if prior is not None and fu.speaker_prior is not None:
             prior = prior.with_speaker(fu.speaker_prior)
         if self._cadence is not None:  # a jump, not the cadence's steady component
@@ -636,6 +630,14 @@ class LiveTracker:
             # (the frames streamed before were of the lost fit: the output filter forgets them)
             return replace(again, extra={**again.extra, "recovered": True})
         return lost
+
+    def _motion_at_rest(self, fu: FusionPolicy) -> StatePrior | None:
+        """The motion model started at rest at the tracker's (re)started state; its
+        prediction one frame on (None: no motion model in the fit)."""
+        alpha, pose = self.tracker.state or (None, None)
+        assert alpha is not None and pose is not None
+        self.kalman.start(alpha, pose.rotation, pose.translation)
+        return self.kalman.predict(1.0 / 25.0) if fu.kalman else None
 
     def _fit_frame(self, image: np.ndarray, t: float, fu: FusionPolicy, reading: Any,
                    prior: StatePrior | None, scale: float | None, gated: bool) -> TrackResult:

@@ -112,13 +112,7 @@ class StatePrior:
         and the appearance hardly see), the estimate stays where the speaker's mouth goes
         instead of wandering several s.d. away with the reader's noise."""
         k = len(self.alpha)
-        info = self.information.copy()
-        idx = np.arange(k)
-        info[idx, idx] += weight
-        # minimise e^T I e + w |alpha + e_alpha|^2 over the offset e from this prior's mean
-        e = -np.linalg.solve(info, np.concatenate([weight * self.alpha, np.zeros(6)]))
-        return StatePrior(self.alpha + e[:k], rotation_matrix(e[k:k + 3]) @ self.rotation,
-                          self.translation + e[k + 3:], info)
+        return self.with_measurement(np.zeros(k), weight * np.eye(k))
 
     def with_measurement(self, alpha: np.ndarray, information: np.ndarray) -> StatePrior:
         """This prior times a Gaussian measurement of the articulation, N(``alpha``,
@@ -126,6 +120,8 @@ class StatePrior:
         k = len(self.alpha)
         info = self.information.copy()
         info[:k, :k] += information
+        # minimise e^T I e + (alpha0 + e_alpha - alpha)^T J (...) over the offset e from this
+        # prior's mean alpha0
         e = -np.linalg.solve(info, np.concatenate([information @ (self.alpha - alpha),
                                                    np.zeros(6)]))
         return StatePrior(self.alpha + e[:k], rotation_matrix(e[k:k + 3]) @ self.rotation,
