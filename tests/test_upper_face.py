@@ -117,6 +117,31 @@ def test_gaze_from_the_iris_between_the_corners():
     assert right.gaze_yaw_deg < centred.gaze_yaw_deg - 8.0
 
 
+def test_a_gaze_no_reading_sees_is_absent_not_held():
+    """The gaze is held between readings and through one reading that fits no iris (the
+    fit's noise); an open eye read twice in a row without an iris makes it absent (None),
+    where it was held for good (carphone's ~10 px eyes: one value for 43 of 48 frames); a
+    shut eye, which hides the iris, keeps it held however long; a fitted iris brings it
+    back."""
+    lm = reading(CANON.vertices_mm)
+    shut = reading(with_lids(OPEN - 1.0))
+    blank = np.full((400, 640, 3), 128, np.uint8)  # no iris, no white: nothing to fit
+    tracker = U.UpperTracker(REF)
+    seen = tracker.step(eye_image(lm, (3.0, 0.0)), lm, None, True)
+    assert seen.gaze_yaw_deg is not None and seen.gaze_yaw_deg > 8.0
+    for _ in range(3):  # shut: held
+        f = tracker.step(blank, shut, None, True)
+        assert f.eyes_ok and (f.gaze_yaw_deg, f.gaze_pitch_deg) == (
+            seen.gaze_yaw_deg, seen.gaze_pitch_deg)
+    once = tracker.step(blank, lm, None, True)  # open, one miss: held
+    assert once.eyes_ok and once.gaze_yaw_deg == seen.gaze_yaw_deg
+    twice = tracker.step(blank, lm, None, True)  # open, a second miss in a row: absent
+    assert twice.eyes_ok and twice.gaze_yaw_deg is None and twice.gaze_pitch_deg is None
+    assert twice.closure_left is not None  # (the lids are still measured)
+    back = tracker.step(eye_image(lm, (-3.0, 0.0)), lm, None, True)
+    assert back.gaze_yaw_deg is not None and back.gaze_yaw_deg < -8.0
+
+
 def lidded_eye_image(lm: np.ndarray, iris_mm: tuple[float, float], scale: float = SCALE,
                      iris_radius_mm: float = 5.5, roll_deg: float = 0.0,
                      closure: float = 0.0, lash_mm: float = 0.0, lid: int = 130,
