@@ -4,6 +4,7 @@
     python tools/convert_face_models.py --with-v1         # once, in a tools venv: FaceMesh v1
     python benchmarks/setup_peers.py --openseeface-git GIT   # once: the peers' venvs, models
     python benchmarks/peers.py [--json] [--only CLIP ...] [--methods M ...] [--grid DIR]
+                               [--variant V] [--offline]
 
 Each clip (every clip ``tools/fetch_real_clips.py`` fetched, and ``synthetic``) is read once and
 scaled to 640 px wide (aspect kept); every method sees exactly these frames. articast enrols on
@@ -14,6 +15,9 @@ scored on the remaining 40 % (held out), where all methods run:
   ``LiveTracker``, then ``track`` per frame: reader, fused fit, motion model, filter, eyes and
   brows); its aperture is ``lips.aperture_mm`` over the fitted outer lip width (8.3-8.4), as in
   ``benchmarks/real_clips.py``. Frames not ok are NaN in its scores, counted in ``ok``.
+  ``--offline``: its results smoothed with the frames after, as ``articast track`` writes a
+  recorded clip (``core/faces/offline.py``); its CPU figures stay the live loop's, the
+  smoothing's own CPU per frame is ``offline_smoothing_cpu_ms``.
 - ``facemesh_v1``: the loop a user would write with MediaPipe FaceMesh v1 on onnxruntime: the
   bundled BlazeFace detector on the first frame and when lost, then the 468-point model (192 px)
   on a crop re-made from the previous frame's landmarks (``FinderPolicy(refine=0,
@@ -137,6 +141,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "no_recover": LivePolicy(fusion=FusionPolicy(recover=False)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
+OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 MAX_LAG = 5
 MIN_FRAMES = 10  # fewer frames in common: no correlation reported
 #: per scheme: inner upper and lower midpoints, outer corners, outer upper and lower midpoints
@@ -481,6 +486,18 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     got = timed_pass(build, len(held))
     results, live = got["outputs"], got["step"].live
     m, cam = speaker.model, speaker.camera
+    offline_cpu_ms = None
+    if OFFLINE and live.fusion is not None:  # as `articast track` writes them (not timed in
+        # the loop's figures, which stay the live loop's: the smoothing's own CPU apart)
+        from articast.core.faces.offline import OfflineSmoother, smoothed
+
+        c0 = time.process_time()
+        sm = OfflineSmoother(live.fusion.read_every, policy=live.policy.smoothing,
+                             cadence_rate=live.fusion.cadence)
+        for r in results:
+            sm.add(r)
+        results = [smoothed(r, f, m) for r, f in zip(results, sm.finish(), strict=True)]
+        offline_cpu_ms = (time.process_time() - c0) * 1e3 / max(len(held), 1)
     ok = np.array([r.ok for r in results])
     alpha = np.array([r.alpha for r in results])
     from articast.core.outputs.lips import lip_measures
@@ -507,6 +524,7 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                                          if not r.ok and r.reason.startswith("occluded")],
                      "restarts": live.restarts,
                      "finder_calls_per_frame": _round(live.finder_calls / max(len(held), 1), 3),
+                     "offline_smoothing_cpu_ms": _round(offline_cpu_ms, 3),
                      "enrol_frames": speaker.report["enrol_frames"],
                      "enrol_build_s": _round(speaker.report["build_s"], 1)}}
 
@@ -987,7 +1005,7 @@ def clip_paths(cache: Path) -> dict[str, Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    global ARTICAST_POLICY, CPU_REPEATS, CPU_CHUNK
+    global ARTICAST_POLICY, CPU_REPEATS, CPU_CHUNK, OFFLINE
     clips = clip_paths(CLIP_CACHE)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
@@ -1006,6 +1024,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--variant", choices=list(VARIANTS), default="fused",
                     help="articast's live policy (the ablation of docs/TRACKING.md; default: "
                          "the product's, fused)")
+    ap.add_argument("--offline", action="store_true",
+                    help="score articast's results smoothed with the frames after, as "
+                         "'articast track' writes a recorded clip (core/faces/offline.py); "
+                         "its CPU figures stay the live loop's, the smoothing's own cost is "
+                         "offline_smoothing_cpu_ms")
     ap.add_argument("--cpu-repeats", type=int, default=CPU_REPEATS,
                     help="passes of articast and the FaceMesh v1 loop interleaved on the "
                          "same frames for the CPU ratio's median and spread (0: none; "
@@ -1017,6 +1040,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.cpu_repeats < 0 or args.cpu_chunk < 1:
         ap.error("--cpu-repeats must be >= 0 and --cpu-chunk >= 1")
     ARTICAST_POLICY = VARIANTS[args.variant]
+    OFFLINE = args.offline
     CPU_REPEATS, CPU_CHUNK = args.cpu_repeats, args.cpu_chunk
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)
@@ -1039,7 +1063,7 @@ def main(argv: list[str] | None = None) -> None:
     load["end"] = [round(x, 2) for x in os.getloadavg()]
     if args.json:
         print(json.dumps({"load_average": load, "command": " ".join(sys.argv),
-                          "variant": args.variant,
+                          "variant": args.variant, "offline": args.offline,
                           "clips": rows}, indent=1))
     else:
         print(markdown(rows, load))

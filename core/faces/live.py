@@ -441,6 +441,9 @@ class LiveTracker:
         upper = self._upper_face(image, result)
         ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
         result = replace(result, upper=upper, frame=self._frame, ms=ms)
+        if self.fusion is not None:  # what an offline smoother needs (core/tracking/smoother.py)
+            result = replace(result, extra={**result.extra, "motion": self.kalman.step,
+                                            "phase": self._phase})
         if result.ok and (self._filter is not None or self._cadence is not None):
             if result.extra.get("recovered") and self._filter is not None:
                 self._filter.reset()
@@ -528,6 +531,7 @@ class LiveTracker:
         fitted together from the prediction, in the speaker's model, with the prediction as
         the prior; the fit updates the motion model."""
         assert self.reader is not None
+        self.kalman.step = None  # (this frame's, if the motion model is updated or held)
         dt = 1.0 / 25.0 if self._t_last is None else t - self._t_last
         self._t_last = t
         reading = None

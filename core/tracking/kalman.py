@@ -16,6 +16,10 @@ reference rotation, translation mm) -- n = K + 6 -- and their velocities. Each f
 No lag is added by the filter itself beyond what the data leave undetermined: where the
 frame's evidence is strong its fit is the state; where it is weak (a still mouth between
 noisy readings) the prediction holds it.
+
+Each update (or hold) leaves a :class:`MotionStep`, the prediction and the posterior of that
+frame, for a smoother that may wait for the frames after
+(:func:`~articast.core.tracking.smoother.rts_smooth`, offline ``articast track``).
 """
 
 from __future__ import annotations
@@ -46,6 +50,22 @@ class MotionNoise:
         q = np.concatenate([np.full(k, 2000.0), np.full(3, 5.0), np.full(3, 2e5)])
         v0 = np.concatenate([np.full(k, 10.0), np.full(3, 0.5), np.full(3, 200.0)])
         return cls(q, v0)
+
+
+@dataclass(frozen=True)
+class MotionStep:
+    """One frame of the motion model, as a smoother needs it. ``predicted`` and ``posterior``
+    are states (alpha (K,), rotation (3, 3), translation (3,), velocity (K + 6,)), ``p_pred``
+    and ``p_post`` their (2n, 2n) covariances (the rotation's block in the left increment's
+    axis-angle); ``dt`` the prediction's step (s); ``linked`` False where the model was
+    (re)started since the step before, which its prediction does not then continue."""
+
+    predicted: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    p_pred: np.ndarray
+    posterior: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+    p_post: np.ndarray
+    dt: float
+    linked: bool
 
 
 MAX_PERIOD_S = 0.05
@@ -110,6 +130,8 @@ class ConstantVelocity:
         self.k, self.n = k, k + 6
         self.noise = noise or MotionNoise.default(k)
         self.started = False
+        self.step: MotionStep | None = None  # the last update's or hold's (smoothers)
+        self._linked = False
 
     def start(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
               information: np.ndarray | None = None) -> None:
@@ -129,6 +151,7 @@ class ConstantVelocity:
         p[n:, n:] = np.diag(self.noise.initial_velocity_sd**2)
         self.p = p
         self.started = True
+        self._linked = False  # (the next step does not continue the one before)
         self._pred: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None
 
     def predict(self, dt: float) -> StatePrior:
@@ -159,6 +182,7 @@ class ConstantVelocity:
         t = self.t + dt * self.v[k + 3:]
         self._pred = (alpha, rot, t, p)
         self._info = info
+        self._dt = dt
         return StatePrior(alpha, rot, t, info)
 
     def update(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
@@ -184,12 +208,20 @@ class ConstantVelocity:
                 post = np.linalg.inv(self._info + information)
             self.p = p - gain @ (pxx - post) @ gain.T
             self.p = 0.5 * (self.p + self.p.T)
+        v_pred = self.v
         self.alpha, self.rot, self.t, self.v = (np.array(alpha, np.float64), r_f,
                                                 np.array(translation, np.float64), v)
+        self.step = MotionStep((a_p, r_p, t_p, v_pred), p, (self.alpha, r_f, self.t, v),
+                               self.p, self._dt, self._linked)
+        self._linked = True
         self._pred = None
 
     def hold(self) -> None:
         """A frame without a fit: keep the prediction as the state (velocity kept)."""
         assert self._pred is not None, "predict() first"
-        self.alpha, self.rot, self.t, self.p = self._pred
+        pred = self._pred
+        self.alpha, self.rot, self.t, self.p = pred
+        state = (self.alpha, self.rot, self.t, self.v)
+        self.step = MotionStep(state, self.p, state, self.p, self._dt, self._linked)
+        self._linked = True
         self._pred = None

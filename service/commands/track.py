@@ -63,12 +63,15 @@ def register(sub: argparse._SubParsersAction) -> None:
             "video. Output: one JSON object per line (frame, t, alpha by name, pose, quality), "
             "flushed as it goes. With --speaker (a folder from 'articast enroll') nothing else "
             "is needed: the face finder starts the tracker, checks every few frames that the "
-            "face is there, and restarts it after a loss. With --model/--appearance/--camera "
-            "(a bead-lab speaker), the first frame starts from --init-pose, or from the first "
-            "state of --init-truth, or else from a search around a frontal face "
-            "--distance-mm in front of the camera. A frame that cannot be tracked says so: "
-            "quality.ok false and a reason starting with blank, no_face, diverged, occluded "
-            "or left_image."
+            "face is there, and restarts it after a loss; the articulation and head pose "
+            "written are then smoothed with the frames after each one (the motion model's "
+            "fixed-lag smoother and the One Euro filter run both ways: steadier lips than "
+            "live, without the live filter's lag), unless --causal. With "
+            "--model/--appearance/--camera (a bead-lab speaker), the first frame starts from "
+            "--init-pose, or from the first state of --init-truth, or else from a search "
+            "around a frontal face --distance-mm in front of the camera. A frame that cannot "
+            "be tracked says so: quality.ok false and a reason starting with blank, no_face, "
+            "diverged, occluded or left_image."
         ),
     )
     tk.add_argument("video", type=Path, help="the video to track")
@@ -96,6 +99,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     tk.add_argument("--init-truth", type=Path, help="take the first frame's pose from this file")
     tk.add_argument("--distance-mm", type=float, default=300.0,
                     help="face distance for the initial search (default 300)")
+    tk.add_argument("--causal", action="store_true",
+                    help="with --speaker: write each frame's estimate as the live service "
+                         "streams it (from that frame and the ones before only), instead of "
+                         "smoothed with the frames after (docs/TRACKING.md, 'Offline')")
     tk.add_argument("--quiet", action="store_true", help="no progress line")
     tk.set_defaults(func=_track)
 
@@ -264,6 +271,13 @@ def _track(args: argparse.Namespace) -> int:
         raise InputError(f"-o {args.output}: is a folder, expected a file name (.jsonl)")
     span = Span(args.start, args.end)
     tracker, model, camera = _make_tracker(args, _frame_size(args.video))
+    smoother = None
+    fusion = getattr(tracker, "fusion", None)  # a LiveTracker's fused tracking
+    if fusion is not None and not args.causal:
+        from articast.core.faces.offline import OfflineSmoother
+
+        smoother = OfflineSmoother(fusion.read_every, policy=tracker.policy.smoothing,
+                                   cadence_rate=fusion.cadence)
     contours = _contours(args)
     total = video_frame_count(args.video)
     if span:
@@ -290,6 +304,8 @@ def _track(args: argparse.Namespace) -> int:
                 res = tracker.track(img, t)
                 out.write(dumps(res.to_dict(model.param_names)) + "\n")
                 out.flush()
+                if smoother is not None:
+                    smoother.add(res)
                 if video is not None:
                     from articast.service.overlay import draw_fit
 
@@ -302,6 +318,8 @@ def _track(args: argparse.Namespace) -> int:
                     reasons[code] = reasons.get(code, 0) + 1
                 prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
         prog.close()
+        if smoother is not None:
+            _rewrite_smoothed(tmp, smoother, model)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the part file only
@@ -323,6 +341,32 @@ def _track(args: argparse.Namespace) -> int:
     print(f"{n} frames tracked ({n_ok} ok{why}), median {np.median(ms):.2f} ms/frame "
           f"-> {args.output}" + (f", overlay {args.overlay}" if args.overlay else ""))
     return 0
+
+
+def _rewrite_smoothed(path: Path, smoother, model) -> None:
+    """The track file's lines (each frame's live estimate, written as it went) rewritten with
+    the smoothed articulation, lips and head pose (core/faces/offline.py)."""
+    import json
+    import os
+
+    from articast.core.outputs.lips import lips_dict
+
+    frames = smoother.finish()
+    part = path.with_name(path.name + ".smoothed")
+    try:
+        with open(path, encoding="utf-8") as src, open(part, "w", encoding="utf-8") as dst:
+            for line, frame in zip(src, frames, strict=True):
+                if frame is not None:
+                    d = json.loads(line)
+                    d["alpha"] = {n: float(v) for n, v in
+                                  zip(model.param_names, frame.alpha, strict=True)}
+                    d["pose"] = frame.pose.to_dict()
+                    d["lips"] = lips_dict(model, frame.alpha)
+                    line = dumps(d) + "\n"
+                dst.write(line)
+        os.replace(part, path)
+    finally:
+        part.unlink(missing_ok=True)
 
 
 def _fps(video: Path) -> float:

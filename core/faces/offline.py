@@ -1,0 +1,93 @@
+"""A recorded clip tracked offline: the live tracker's frames smoothed with the frames after.
+
+:class:`~articast.core.faces.live.LiveTracker` streams each frame's estimate as soon as the
+frame is fitted; ``articast track`` on a file need not. :class:`OfflineSmoother` takes the
+live results in order (:meth:`~OfflineSmoother.add`: bounded memory, the last
+:data:`~articast.core.tracking.smoother.LAG` frames' motion steps and a few numbers per
+frame) and gives at the end (:meth:`~OfflineSmoother.finish`) every frame's articulation
+and head pose smoothed (core/tracking/smoother.py: the motion model's fixed-lag RTS
+smoother, the cadence canceller, the One Euro filter forward and back); :func:`smoothed`
+makes the frame's result from them. Frames that are not ok, and frames without a motion
+step (a tracker without the fused motion model), are kept as tracked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from articast.core.model.camera import Pose, axis_angle
+from articast.core.model.face import FaceModel
+from articast.core.outputs.lips import lips_dict
+from articast.core.tracking.filters import OneEuroPolicy
+from articast.core.tracking.result import TrackResult
+from articast.core.tracking.smoother import LAG, FixedLag, State, offline_articulation
+
+
+@dataclass(frozen=True)
+class Smoothed:
+    """One frame's smoothed articulation (K,) and head pose."""
+
+    alpha: np.ndarray
+    pose: Pose
+
+
+class OfflineSmoother:
+    """Collects a live tracker's results frame by frame; :meth:`finish` smooths them.
+
+    read_every : the live tracker's reading period (its cadence canceller's; None: none).
+    policy : the One Euro filter's constants (None: the live tracker's defaults)."""
+
+    def __init__(self, read_every: int | None, lag: int = LAG,
+                 policy: OneEuroPolicy | None = None, cadence_rate: float | None = 0.1
+                 ) -> None:
+        self.read_every, self.policy, self.cadence_rate = read_every, policy, cadence_rate
+        self._lag = FixedLag(lag)
+        self._t: list[float] = []
+        self._ok: list[bool] = []
+        self._phase: list[int] = []
+        self._start: list[bool] = []
+        self._states: list[np.ndarray | None] = []  # per frame: smoothed alpha, rotation, t
+
+    def add(self, result: TrackResult) -> None:
+        """The next frame's live result (its ``extra["motion"]`` and ``extra["phase"]``)."""
+        step = result.extra.get("motion") if result.ok else None
+        self._t.append(float(result.t))
+        self._ok.append(bool(result.ok and step is not None))
+        self._phase.append(int(result.extra.get("phase", 0)))
+        self._start.append(step is None or not step.linked or bool(result.extra.get("recovered")))
+        self._states.extend(_compact(s) for s in self._lag.push(step))
+
+    def finish(self) -> list[Smoothed | None]:
+        """Every frame's smoothed articulation and pose, in order (None: keep the frame as
+        tracked)."""
+        states = [*self._states, *(_compact(s) for s in self._lag.flush())]
+        self._states = []
+        ok = np.array(self._ok, bool) & np.array([s is not None for s in states], bool)
+        if not ok.any():
+            return [None] * len(states)
+        k = len(next(s for s in states if s is not None)) - 6
+        alpha = np.zeros((len(states), k))
+        for i, s in enumerate(states):
+            if s is not None:
+                alpha[i] = s[:k]
+        out_alpha = offline_articulation(alpha, np.array(self._t), ok, np.array(self._phase),
+                                         np.array(self._start, bool), self.read_every,
+                                         self.cadence_rate, self.policy)
+        return [Smoothed(out_alpha[i], Pose(s[k:k + 3], s[k + 3:]))
+                if ok[i] and s is not None else None for i, s in enumerate(states)]
+
+
+def _compact(state: State | None) -> np.ndarray | None:
+    """A smoothed state kept per frame: alpha, the rotation's axis-angle, the translation."""
+    return None if state is None else np.concatenate([state[0], axis_angle(state[1]), state[2]])
+
+
+def smoothed(result: TrackResult, frame: Smoothed | None, model: FaceModel) -> TrackResult:
+    """``result`` with the smoothed articulation, lips and head pose (as it is for None)."""
+    if frame is None:
+        return result
+    return replace(result, alpha=frame.alpha, pose=frame.pose,
+                   lips=lips_dict(model, frame.alpha),
+                   extra={**result.extra, "alpha_live": result.alpha})
