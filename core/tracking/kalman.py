@@ -19,7 +19,7 @@ noisy readings) the prediction holds it.
 
 Each update (or hold) leaves a :class:`MotionStep`, the prediction and the posterior of that
 frame, for a smoother that may wait for the frames after
-(:func:`~articast.core.tracking.smoother.rts_smooth`, offline ``articast track``).
+(:func:`~articast.core.tracking.smoother.rts_window`, offline ``articast track``).
 """
 
 from __future__ import annotations
