@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -202,8 +203,6 @@ def _frame_size(video: Path) -> tuple[int, int]:
 
 def _sized(camera, size: tuple[int, int], quiet: bool):
     """The camera fitted to the video's frame size, saying so when it was scaled."""
-    import sys
-
     from articast.service.processors import fit_camera, scaling_note
 
     note = scaling_note(camera, *size)
@@ -319,6 +318,9 @@ def _track(args: argparse.Namespace) -> int:
                 prog.update(note="" if res.ok else f"frame {i}: {res.reason[:40]}")
         prog.close()
         if smoother is not None:
+            if not args.quiet and n > 0:
+                print(f"articast track: smoothing {n} frames with the frames after each "
+                      "(--causal: as streamed live)", file=sys.stderr, flush=True)
             _rewrite_smoothed(tmp, smoother, model)
         umask = os.umask(0)
         os.umask(umask)
