@@ -440,10 +440,10 @@ class LiveTracker:
         result = self._track(image, t)
         upper = self._upper_face(image, result)
         ms = (self.clock() - t0) * 1000.0 if self.clock else result.ms
-        result = replace(result, upper=upper, frame=self._frame, ms=ms)
+        extra = result.extra
         if self.fusion is not None:  # what an offline smoother needs (core/tracking/smoother.py)
-            result = replace(result, extra={**result.extra, "motion": self.kalman.step,
-                                            "phase": self._phase})
+            extra = {**extra, "motion": self.kalman.step, "phase": self._phase}
+        result = replace(result, upper=upper, frame=self._frame, ms=ms, extra=extra)
         if result.ok and (self._filter is not None or self._cadence is not None):
             if result.extra.get("recovered") and self._filter is not None:
                 self._filter.reset()
