@@ -2,7 +2,7 @@
 
     python benchmarks/peers.py --json --series DIR           # once: the peers' series
     python benchmarks/enrolment_spread.py --series DIR [--seeds 1 2 3 4] [--only CLIP ...]
-                                          [--variant V]
+                                          [--variant V] [--offline]
 
 An enrolment trains the appearance on at most 90 frames chosen by farthest-point sampling in
 the articulation space (core/faces/build.py, ``coverage_order``), started at the frame nearest
@@ -17,7 +17,8 @@ enrolments) is the part of a single-enrolment figure that is the choice of frame
 method: a gap between articast and a peer smaller than it is not measured by one enrolment.
 ``--variant`` tracks with another live policy of ``peers.py``'s ablation (``peers.VARIANTS``):
 two runs, with and without a change, compare it enrolment by enrolment (the same frames
-train both).
+train both). ``--offline`` scores the results smoothed with the frames after, as ``articast
+track`` writes a recorded clip (``peers.py --offline``).
 
 Accuracy does not depend on the machine's load. ~1-2 min per clip and enrolment on 2 cores.
 """
@@ -84,15 +85,20 @@ def main() -> None:
     ap.add_argument("--variant", choices=list(peers.VARIANTS), default="fused",
                     help="articast's live policy (peers.py's ablation; default: the "
                          "product's, fused)")
+    ap.add_argument("--offline", action="store_true",
+                    help="score articast's results smoothed with the frames after, as "
+                         "'articast track' writes them (peers.py --offline)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
     peers.ARTICAST_POLICY = peers.VARIANTS[args.variant]
+    peers.OFFLINE = args.offline
     cv2.setNumThreads(1)
     rows = []
     for name, s in peers.series_clips(args.series, args.only):
         rows.append(run_clip(name, s, [None, *args.seeds]))
     if args.json:
         print(json.dumps({"command": " ".join(sys.argv), "variant": args.variant,
+                          "offline": args.offline,
                           "seeds": [None, *args.seeds],
                           "clips": rows}, indent=1))
         return
