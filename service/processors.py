@@ -210,10 +210,12 @@ def make_processor(name: str, context: ProcessorContext) -> tuple[str, FrameProc
     """Build the named processor; returns (the name actually used, processor)."""
     kind = context.source.kind
     if name == "auto":
-        if context.speaker is not None:
-            name = "live"
-        elif kind == "replay-record":
+        if kind == "replay-record":  # a recording (or a track file) carries its states: the
+            # speaker, if given, is their model (an offline `articast track --speaker` file,
+            # smoothed, served to avatars); there are no images to track
             name = "truth"
+        elif context.speaker is not None:
+            name = "live"
         elif tracker_available() and context.appearance is not None:
             name = "tracker"
         elif kind == "synthetic":

@@ -132,6 +132,51 @@ def test_offline_track_is_the_live_estimate_smoothed_with_the_frames_after(enrol
     assert any(r["pose"] != q["pose"] for r, q in zip(off, live, strict=True))  # pose too
 
 
+def test_a_speakers_track_file_is_served_as_a_recording(enrolled):
+    """``articast serve --source rec=replay-record:track.jsonl --speaker DIR`` (the processor
+    left to choose) streams the file's states with the speaker's model, as a ``--record``
+    recording: a track file has no images to track (it failed with "this source has no
+    images to track" before)."""
+    import asyncio
+
+    import websockets
+
+    from articast.service.app import ServiceConfig
+    from articast.service.security import AccessPolicy
+    from articast.service.settings import ServerSettings
+    from articast.service.worker import SessionSpec
+    from tests.service_helpers import TIMEOUT, ServerThread
+
+    track = enrolled / "track-served.jsonl"
+    assert main(["track", str(enrolled / "test" / "video.mp4"), "--speaker",
+                 str(enrolled / "speaker"), "-o", str(track), "--quiet"]) == 0
+    lines = _track_lines(track)
+    names = Speaker.load(enrolled / "speaker").model.param_names
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=(
+        SessionSpec("rec", f"replay-record:{track}?loop=yes", speaker=str(enrolled / "speaker")),),
+        access=AccessPolicy(token="replay-token-0123456789"))
+
+    async def frames(url):
+        async with websockets.connect(url, open_timeout=TIMEOUT, max_size=2**24,
+                                      close_timeout=1) as ws:
+            await ws.send(json.dumps({"type": "subscribe", "session": "rec",
+                                      "streams": ["articulatory"]}))
+            got, hello = [], None
+            while len(got) < 5:
+                m = json.loads(await asyncio.wait_for(ws.recv(), TIMEOUT))
+                hello = m if m["type"] == "hello" else hello
+                if m["type"] == "frame":
+                    got.append(m)
+            return hello, got
+
+    with ServerThread(config) as srv:
+        hello, got = asyncio.run(frames(srv.url))
+    assert hello is not None and hello["param_names"] == list(names)
+    for f in got:
+        want = lines[f["frame"] % len(lines)]["alpha"]
+        assert f["values"]["articulatory"] == pytest.approx(want, abs=1e-6)
+
+
 @pytest.mark.parametrize("kind", ["noise", "blank"])
 def test_noise_and_blank_videos_are_never_ok(enrolled, tmp_path, kind):
     rng = np.random.default_rng(0)
