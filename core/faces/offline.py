@@ -61,10 +61,11 @@ class OfflineSmoother:
 
     def finish(self) -> list[Smoothed | None]:
         """Every frame's smoothed articulation and pose, in order (None: keep the frame as
-        tracked)."""
+        tracked); the smoother is empty again after."""
         states = [*self._states, *(_compact(s) for s in self._lag.flush())]
-        self._states = []
+        times, phase, starts = np.array(self._t), np.array(self._phase), np.array(self._start, bool)
         ok = np.array(self._ok, bool) & np.array([s is not None for s in states], bool)
+        self._t, self._ok, self._phase, self._start, self._states = [], [], [], [], []
         if not ok.any():
             return [None] * len(states)
         k = len(next(s for s in states if s is not None)) - 6
@@ -72,8 +73,7 @@ class OfflineSmoother:
         for i, s in enumerate(states):
             if s is not None:
                 alpha[i] = s[:k]
-        out_alpha = offline_articulation(alpha, np.array(self._t), ok, np.array(self._phase),
-                                         np.array(self._start, bool), self.read_every,
+        out_alpha = offline_articulation(alpha, times, ok, phase, starts, self.read_every,
                                          self.cadence_rate, self.policy)
         return [Smoothed(out_alpha[i], Pose(s[k:k + 3], s[k + 3:]))
                 if ok[i] and s is not None else None for i, s in enumerate(states)]
