@@ -492,8 +492,7 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
         from articast.core.faces.offline import OfflineSmoother, smoothed
 
         c0 = time.process_time()
-        sm = OfflineSmoother(live.fusion.read_every, policy=live.policy.smoothing,
-                             cadence_rate=live.fusion.cadence)
+        sm = OfflineSmoother.for_live(live)
         for r in results:
             sm.add(r)
         results = [smoothed(r, f, m) for r, f in zip(results, sm.finish(), strict=True)]

@@ -76,6 +76,11 @@ def test_the_smoother_uses_the_frames_after_and_is_nearer_the_truth(seed):
     full, _ = smooth_all(steps, 10_000)
     rms = [np.sqrt(np.mean((x - truth) ** 2)) for x in (six, full)]
     assert rms[0] < 1.02 * rms[1] and np.max(np.abs(six - full)) < SD
+    # the streamed smoother (each pair's gain computed once) is the window's RTS pass
+    _, states = smooth_all(steps, 3)
+    for i in (0, 70, len(steps) - 2):
+        direct = rts_window(steps[i:i + 4])
+        assert all(np.allclose(a, b) for a, b in zip(states[i], direct, strict=True))
 
 
 def test_the_smoother_does_not_lag_where_the_filter_does():

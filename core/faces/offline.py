@@ -14,6 +14,7 @@ step (a tracker without the fused motion model), are kept as tracked.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -49,6 +50,13 @@ class OfflineSmoother:
         self._phase: list[int] = []
         self._start: list[bool] = []
         self._states: list[np.ndarray | None] = []  # per frame: smoothed alpha, rotation, t
+
+    @classmethod
+    def for_live(cls, live: Any) -> OfflineSmoother:
+        """The smoother of a :class:`~articast.core.faces.live.LiveTracker`'s results, with its
+        reading period, cadence canceller and One Euro constants (its fusion policy needed)."""
+        fu = live.fusion
+        return cls(fu.read_every, policy=live.policy.smoothing, cadence_rate=fu.cadence)
 
     def add(self, result: TrackResult) -> None:
         """The next frame's live result (its ``extra["motion"]`` and ``extra["phase"]``)."""

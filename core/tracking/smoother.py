@@ -51,9 +51,20 @@ def _plus(a: State, d: np.ndarray) -> State:
             a[3] + d[k + 6:])
 
 
-def rts_window(steps: Sequence[MotionStep]) -> State:
+def rts_gain(now: MotionStep, nxt: MotionStep) -> np.ndarray:
+    """The smoother's gain from ``now`` to the step after it: G = P(t|t) F^T P(t+1|t)^-1, by
+    a solve (P(t+1|t) symmetric)."""
+    n = len(now.posterior[3])
+    f = np.eye(2 * n)
+    f[:n, n:] = nxt.dt * np.eye(n)
+    return np.linalg.solve(nxt.p_pred, f @ now.p_post).T
+
+
+def rts_window(steps: Sequence[MotionStep],
+               gains: Sequence[np.ndarray | None] | None = None) -> State:
     """``steps[0]``'s state smoothed with the steps after it: the backward RTS pass from the
-    last step that the motion model links to it (a restart ends the window)."""
+    last step that the motion model links to it (a restart ends the window). ``gains[u]``:
+    :func:`rts_gain` of steps u and u + 1 if known (None or missing: computed here)."""
     if not steps:
         raise ValueError("no steps to smooth")
     end = 1
@@ -62,11 +73,9 @@ def rts_window(steps: Sequence[MotionStep]) -> State:
     s = steps[end - 1].posterior
     for u in range(end - 2, -1, -1):
         now, nxt = steps[u], steps[u + 1]
-        n = len(now.posterior[3])
-        f = np.eye(2 * n)
-        f[:n, n:] = nxt.dt * np.eye(n)
-        # G = P(u|u) F^T P(u+1|u)^-1, by a solve (P(u+1|u) symmetric)
-        gain = np.linalg.solve(nxt.p_pred, f @ now.p_post).T
+        gain = gains[u] if gains is not None and u < len(gains) else None
+        if gain is None:
+            gain = rts_gain(now, nxt)
         s = _plus(now.posterior, gain @ _minus(s, nxt.predicted))
     return s
 
@@ -74,16 +83,18 @@ def rts_window(steps: Sequence[MotionStep]) -> State:
 class FixedLag:
     """Streams frames' steps and gives each one's smoothed state :data:`LAG` frames later
     (:meth:`push`), the rest at the end (:meth:`flush`). A frame without a step (not fitted)
-    is passed as None and given back as None."""
+    is passed as None and given back as None. Each pair of steps' gain is computed once, when
+    the second arrives (a frame is in ``lag`` windows)."""
 
     def __init__(self, lag: int = LAG) -> None:
         if lag < 0:
             raise ValueError("a smoother's lag is 0 frames or more")
         self.lag = lag
         self._buf: deque[MotionStep | None] = deque()
+        self._gains: deque[np.ndarray | None] = deque()  # _buf[u] to _buf[u + 1]
 
     def _oldest(self) -> State | None:
-        first = self._buf.popleft()
+        first, gain = self._buf.popleft(), self._gains.popleft()
         if first is None:
             return None
         window = [first]
@@ -91,12 +102,17 @@ class FixedLag:
             if st is None:
                 break
             window.append(st)
-        return rts_window(window)
+        return rts_window(window, [gain, *self._gains])
 
     def push(self, step: MotionStep | None) -> list[State | None]:
         """The frame's step in; out, the state of the frame ``lag`` frames before (a list of
         one), or nothing while the first frames wait."""
+        if self._buf:
+            last = self._buf[-1]
+            self._gains[-1] = (rts_gain(last, step) if last is not None and step is not None
+                               and step.linked else None)
         self._buf.append(step)
+        self._gains.append(None)
         return [self._oldest()] if len(self._buf) > self.lag else []
 
     def flush(self) -> list[State | None]:

@@ -271,12 +271,10 @@ def _track(args: argparse.Namespace) -> int:
     span = Span(args.start, args.end)
     tracker, model, camera = _make_tracker(args, _frame_size(args.video))
     smoother = None
-    fusion = getattr(tracker, "fusion", None)  # a LiveTracker's fused tracking
-    if fusion is not None and not args.causal:
+    if getattr(tracker, "fusion", None) is not None and not args.causal:  # fused LiveTracker
         from articast.core.faces.offline import OfflineSmoother
 
-        smoother = OfflineSmoother(fusion.read_every, policy=tracker.policy.smoothing,
-                                   cadence_rate=fusion.cadence)
+        smoother = OfflineSmoother.for_live(tracker)
     contours = _contours(args)
     total = video_frame_count(args.video)
     if span:
