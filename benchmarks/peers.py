@@ -139,6 +139,12 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "finder_start_resume": LivePolicy(fusion=FusionPolicy(start="finder")),
     "no_resume": LivePolicy(fusion=FusionPolicy(resume=False)),
     "no_recover": LivePolicy(fusion=FusionPolicy(recover=False)),
+    # FaceLandmarker v2 as the live reader, its observation model learned at enrolment from
+    # the finding landmarks' own readings (~3.4x a v1 call: not within issue 18's budget; a
+    # bound on what a better reader is worth through the speaker's model)
+    "reader_v2": LivePolicy(fusion=FusionPolicy(reader="v2")),
+    "reader_v2_every_frame": LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1,
+                                                            cadence=None)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
@@ -470,9 +476,11 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                  times=None, build=None) -> dict:
     """Enrol on ``enrol`` (already selected, taken at ``times``; ``build``: the enrolment's
     BuildOptions, default its defaults), track ``held`` live."""
+    fu = (ARTICAST_POLICY or LivePolicy()).fusion
     try:
         speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig,
-                                max_frames=None, times=times, build=build)
+                                max_frames=None, times=times, build=build,
+                                reader=fu.reader if fu is not None else "v1")
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
     kernels.warm_up()  # numba's compilation: once per process, not a session's

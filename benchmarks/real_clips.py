@@ -99,14 +99,16 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
                   finder: FaceFinder | None = None,
                   options: EnrolOptions | None = None, build: BuildOptions | None = None,
                   extra: list[np.ndarray] | None = None,
-                  times: np.ndarray | None = None) -> Speaker:
+                  times: np.ndarray | None = None, reader: str = "v1") -> Speaker:
     """Enrol a speaker on ``frames`` (BGR, all the same size) as ``articast enroll`` does: the
     frames it analyses (:func:`~articast.core.faces.build.analysed_frames`: strided to
     ``max_frames`` plus a consecutive run; None: the frames as given, taken at ``times`` s,
     default i / fps), the bundled landmark model on each and, on a desk camera, the live
     reader (FaceMesh v1), then ``build_speaker``. ``camera``: default a 60-degree webcam at
     the frames' size. ``extra``: more frames appended to the enrolment (a diagnosis:
-    --enrol-with-held). ``speaker.report["build_s"]`` is the time of ``build_speaker``."""
+    --enrol-with-held). ``reader``: the live reader whose observation model is learned
+    ("v1", the product's; "v2": the finding landmarks' own readings, for the benchmark's
+    ``reader_v2`` ablation). ``speaker.report["build_s"]`` is the time of ``build_speaker``."""
     finder = finder or FaceFinder.load(threads=1)
     h, w = frames[0].shape[:2]
     camera = camera or Camera.default(w, h, 60.0)
@@ -129,11 +131,12 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
                       for f in faces])
     readings = None
     if rig == "desk":
-        readings = read_every_frame(FaceFinder.load(threads=1, landmarks="v1"), enrol, faces)
+        readings = (marks if reader == "v2" else
+                    read_every_frame(FaceFinder.load(threads=1, landmarks=reader), enrol, faces))
     t0 = time.perf_counter()
     speaker = build_speaker(enrol, marks, found, mediapipe_scheme(rig), camera, rig,
                             options or EnrolOptions(), build or BuildOptions(),
-                            readings=readings, times=at)
+                            readings=readings, reader=reader, times=at)
     speaker.report["build_s"] = time.perf_counter() - t0
     speaker.report["enrol_frames"] = len(enrol)
     return speaker

@@ -1009,3 +1009,43 @@ def test_a_reading_far_from_a_fit_between_readings_is_the_fits_lag(enrolled):
     assert live.tracker.occluding
     reads = live.lag_reads
     assert not live._fit_lags(frames[i + 3], alpha, aside, fu) and live.lag_reads == reads
+
+
+def test_a_speaker_enrolled_for_the_finding_landmarks_is_read_by_them_on_every_frame(enrolled):
+    """The benchmark's ``reader_v2`` ablation (benchmarks/peers.py): the observation model is
+    learned from the finding landmarks' own readings (FaceLandmarker v2, already read on
+    every enrolment frame), and the live tracker reads v2 on every frame through it. The
+    speaker's model is refused by a tracker that reads another network, and the lips follow
+    the rendered truth."""
+    from articast.core.faces.build import build_speaker
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.video import iter_video
+
+    sp, frames, ap_true = _test_clip(enrolled)
+    images = [img for _, _, img in iter_video(enrolled / "clip" / "video.mp4")]
+    finder = FaceFinder.load()
+    faces, prev = [], None
+    for img in images:
+        face = finder.track(img, prev) if prev is not None else None
+        prev = face = face or finder.find(img)
+        faces.append(face)
+    found = np.array([f is not None for f in faces])
+    assert found.mean() > 0.9
+    marks = np.array([f.landmarks if f is not None else np.full((478, 3), np.nan)
+                      for f in faces])
+    scheme = mediapipe_scheme("desk")
+    sp2 = build_speaker(images, marks, found, scheme, sp.camera, readings=marks, reader="v2",
+                        times=np.arange(len(images)) / 6.0)
+    assert sp2.points is not None and sp2.points.network == "v2"
+    with pytest.raises(ValueError, match="'v2' landmarks, not 'v1'"):
+        LiveTracker(sp2, finder, scheme)  # the product's default reads v1
+    policy = LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1, cadence=None))
+    live = LiveTracker(sp2, finder, scheme, policy)
+    res = [live.track(f, i / 25.0) for i, f in enumerate(frames)]
+    ok = np.array([r.ok for r in res])
+    assert ok.mean() >= 0.95
+    assert live.finder_calls >= 0.95 * len(frames)  # a reading on every frame
+    ap = np.array([r.lips["aperture_mm"] if r.ok else np.nan for r in res])
+    assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
