@@ -2,7 +2,7 @@
 
     python benchmarks/peers.py --json --series DIR           # once: the peers' series
     python benchmarks/enrolment_spread.py --series DIR [--seeds 1 2 3 4] [--only CLIP ...]
-                                          [--variant V] [--offline]
+                                          [--variant V] [--offline [--single-reader]]
 
 An enrolment trains the appearance on at most 90 frames chosen by farthest-point sampling in
 the articulation space (core/faces/build.py, ``coverage_order``), started at the frame nearest
@@ -88,17 +88,21 @@ def main() -> None:
     ap.add_argument("--offline", action="store_true",
                     help="score articast's results smoothed with the frames after, as "
                          "'articast track' writes them (peers.py --offline)")
+    ap.add_argument("--single-reader", action="store_true",
+                    help="with --offline: FaceMesh v1's tracker alone (peers.py "
+                         "--single-reader)")
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
     peers.ARTICAST_POLICY = peers.VARIANTS[args.variant]
     peers.OFFLINE = args.offline
+    peers.SINGLE_READER = args.single_reader
     cv2.setNumThreads(1)
     rows = []
     for name, s in peers.series_clips(args.series, args.only):
         rows.append(run_clip(name, s, [None, *args.seeds]))
     if args.json:
         print(json.dumps({"command": " ".join(sys.argv), "variant": args.variant,
-                          "offline": args.offline,
+                          "offline": args.offline, "single_reader": args.single_reader,
                           "seeds": [None, *args.seeds],
                           "clips": rows}, indent=1))
         return

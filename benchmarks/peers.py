@@ -4,7 +4,7 @@
     python tools/convert_face_models.py --with-v1         # once, in a tools venv: FaceMesh v1
     python benchmarks/setup_peers.py --openseeface-git GIT   # once: the peers' venvs, models
     python benchmarks/peers.py [--json] [--only CLIP ...] [--methods M ...] [--grid DIR]
-                               [--variant V] [--offline]
+                               [--variant V] [--offline [--single-reader]]
 
 Each clip (every clip ``tools/fetch_real_clips.py`` fetched, and ``synthetic``) is read once and
 scaled to 640 px wide (aspect kept); every method sees exactly these frames. articast enrols on
@@ -16,8 +16,10 @@ scored on the remaining 40 % (held out), where all methods run:
   brows); its aperture is ``lips.aperture_mm`` over the fitted outer lip width (8.3-8.4), as in
   ``benchmarks/real_clips.py``. Frames not ok are NaN in its scores, counted in ``ok``.
   ``--offline``: its results smoothed with the frames after, as ``articast track`` writes a
-  recorded clip (``core/faces/offline.py``); its CPU figures stay the live loop's, the
-  smoothing's own CPU per frame is ``offline_smoothing_cpu_ms``.
+  recorded clip (``core/faces/offline.py``: smoothed, and averaged with the second
+  reader's tracker, FaceLandmarker v2 on every frame; ``--single-reader``: FaceMesh v1's
+  tracker alone); its CPU figures stay the live loop's, the smoothing's own CPU per frame
+  is ``offline_smoothing_cpu_ms`` and the second tracker's ``offline_second_reader_cpu_ms``.
 - ``facemesh_v1``: the loop a user would write with MediaPipe FaceMesh v1 on onnxruntime: the
   bundled BlazeFace detector on the first frame and when lost, then the 468-point model (192 px)
   on a crop re-made from the previous frame's landmarks (``FinderPolicy(refine=0,
@@ -148,6 +150,7 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
+SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
 MAX_LAG = 5
 MIN_FRAMES = 10  # fewer frames in common: no correlation reported
 #: per scheme: inner upper and lower midpoints, outer corners, outer upper and lower midpoints
@@ -495,16 +498,34 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     results, live = got["outputs"], got["step"].live
     m, cam = speaker.model, speaker.camera
     offline_cpu_ms = None
+    second_cpu_ms = None
     if OFFLINE and live.fusion is not None:  # as `articast track` writes them (not timed in
-        # the loop's figures, which stay the live loop's: the smoothing's own CPU apart)
-        from articast.core.faces.offline import OfflineSmoother, smoothed
+        # the loop's figures, which stay the live loop's: the smoothing's own CPU apart, and
+        # the second reader's tracker's)
+        from articast.core.faces.offline import (
+            SECOND_READER,
+            OfflineSmoother,
+            averaged,
+            second_reader,
+            smoothed,
+        )
 
         c0 = time.process_time()
         sm = OfflineSmoother.for_live(live)
         for r in results:
             sm.add(r)
-        results = [smoothed(r, f, m) for r, f in zip(results, sm.finish(), strict=True)]
+        frames = sm.finish()
         offline_cpu_ms = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+        sp2 = None if SINGLE_READER else second_reader(speaker)
+        if sp2 is not None:
+            c0 = time.process_time()
+            second = ArticastLoop(sp2, held, fps, SECOND_READER)
+            sm2 = OfflineSmoother.for_live(second.live)
+            for i in range(len(held)):
+                sm2.add(second(i))
+            frames = averaged(frames, sm2.finish())
+            second_cpu_ms = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+        results = [smoothed(r, f, m) for r, f in zip(results, frames, strict=True)]
     ok = np.array([r.ok for r in results])
     alpha = np.array([r.alpha for r in results])
     from articast.core.outputs.lips import lip_measures
@@ -532,6 +553,7 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                      "restarts": live.restarts,
                      "finder_calls_per_frame": _round(live.finder_calls / max(len(held), 1), 3),
                      "offline_smoothing_cpu_ms": _round(offline_cpu_ms, 3),
+                     "offline_second_reader_cpu_ms": _round(second_cpu_ms, 2),
                      "enrol_frames": speaker.report["enrol_frames"],
                      "enrol_build_s": _round(speaker.report["build_s"], 1)}}
 
@@ -1012,7 +1034,7 @@ def clip_paths(cache: Path) -> dict[str, Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    global ARTICAST_POLICY, CPU_REPEATS, CPU_CHUNK, OFFLINE
+    global ARTICAST_POLICY, CPU_REPEATS, CPU_CHUNK, OFFLINE, SINGLE_READER
     clips = clip_paths(CLIP_CACHE)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
@@ -1036,6 +1058,9 @@ def main(argv: list[str] | None = None) -> None:
                          "'articast track' writes a recorded clip (core/faces/offline.py); "
                          "its CPU figures stay the live loop's, the smoothing's own cost is "
                          "offline_smoothing_cpu_ms")
+    ap.add_argument("--single-reader", action="store_true",
+                    help="with --offline: FaceMesh v1's tracker alone, as 'articast track "
+                         "--single-reader' writes it")
     ap.add_argument("--cpu-repeats", type=int, default=CPU_REPEATS,
                     help="passes of articast and the FaceMesh v1 loop interleaved on the "
                          "same frames for the CPU ratio's median and spread (0: none; "
@@ -1048,6 +1073,7 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--cpu-repeats must be >= 0 and --cpu-chunk >= 1")
     ARTICAST_POLICY = VARIANTS[args.variant]
     OFFLINE = args.offline
+    SINGLE_READER = args.single_reader
     CPU_REPEATS, CPU_CHUNK = args.cpu_repeats, args.cpu_chunk
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)

@@ -95,17 +95,17 @@ def test_track_with_only_the_speaker_folder_follows_the_true_articulation(enroll
 
 
 def test_offline_track_is_the_live_estimate_smoothed_with_the_frames_after(enrolled):
-    """``articast track --speaker`` writes each frame smoothed with the frames after it
-    (core/faces/offline.py: the motion model's fixed-lag smoother, the One Euro filter both
-    ways); ``--causal`` writes what the live service streams. Same frames and verdicts; the
-    smoothed lip aperture is nearer the truth and steadier, and its lips are its own
-    articulation's."""
+    """``articast track --speaker --single-reader`` writes each frame smoothed with the frames
+    after it (core/faces/offline.py: the motion model's fixed-lag smoother, the One Euro
+    filter both ways); ``--causal`` writes what the live service streams. Same frames and
+    verdicts; the smoothed lip aperture is nearer the truth and steadier, and its lips are
+    its own articulation's."""
     got = {}
     for causal in (False, True):
         out = enrolled / f"track-{'causal' if causal else 'offline'}.jsonl"
         assert main(["track", str(enrolled / "test" / "video.mp4"), "--speaker",
                      str(enrolled / "speaker"), "-o", str(out), "--quiet",
-                     *(["--causal"] if causal else [])]) == 0
+                     *(["--causal"] if causal else ["--single-reader"])]) == 0
         got[causal] = _track_lines(out)
     off, live = got[False], got[True]
     assert [r["frame"] for r in off] == [r["frame"] for r in live]
@@ -130,6 +130,51 @@ def test_offline_track_is_the_live_estimate_smoothed_with_the_frames_after(enrol
     assert err[False] < err[True]
     assert rough[False] < 0.8 * rough[True]
     assert any(r["pose"] != q["pose"] for r, q in zip(off, live, strict=True))  # pose too
+
+
+def test_offline_track_averages_the_two_readers_trackers(enrolled):
+    """``articast track --speaker`` (offline, by default) also tracks the clip with the
+    finding landmarks read on every frame through the speaker's model
+    (core/faces/offline.py, ``second_reader``), smooths it alike, and writes the mean of the
+    two articulations: each line is the midpoint of ``--single-reader``'s and the second
+    tracker's, with ``--single-reader``'s verdicts and head pose, and its lips still follow
+    the truth."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker
+    from articast.core.faces.offline import SECOND_READER, OfflineSmoother, second_reader
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    got = {}
+    for mode in ("both", "single"):
+        out = enrolled / f"track-{mode}.jsonl"
+        assert main(["track", str(enrolled / "test" / "video.mp4"), "--speaker",
+                     str(enrolled / "speaker"), "-o", str(out), "--quiet",
+                     *(["--single-reader"] if mode == "single" else [])]) == 0
+        got[mode] = _track_lines(out)
+    sp, frames, ap_true = _test_clip(enrolled)
+    second = second_reader(sp)
+    assert second is not None
+    live = LiveTracker(second, FaceFinder.load(), mediapipe_scheme(sp.rig), SECOND_READER)
+    smoother = OfflineSmoother.for_live(live)
+    for i, f in enumerate(frames):
+        smoother.add(live.track(f, got["single"][i]["t"]))
+    other = smoother.finish()
+    names = sp.model.param_names
+    both, single = got["both"], got["single"]
+    assert [r["quality"]["ok"] for r in both] == [r["quality"]["ok"] for r in single]
+    assert all(r["pose"] == q["pose"] for r, q in zip(both, single, strict=True))
+    mixed = 0
+    for r, q, o in zip(both, single, other, strict=True):
+        a, b = (np.array([x["alpha"][n] for n in names]) for x in (r, q))
+        if o is None or not q["quality"]["ok"]:
+            assert np.allclose(a, b)
+        else:
+            assert np.allclose(a, 0.5 * (b + o.alpha), atol=1e-6)
+            mixed += not np.allclose(a, b, atol=1e-3)
+    assert mixed >= 0.9 * len(both)
+    ok = np.array([r["quality"]["ok"] for r in both])
+    ap = np.array([r["lips"]["aperture_mm"] for r in both])
+    assert ok.mean() >= 0.95 and np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.95
 
 
 def test_a_speakers_track_file_is_served_as_a_recording(enrolled):
@@ -462,6 +507,24 @@ def test_a_desk_enrolment_learns_how_the_live_reader_sees_the_face(enrolled):
     assert reg is not None and reg.weights.shape == (2 * len(pm.mean), sp.model.n_params)
     assert np.allclose(reg.information, reg.information.T)
     assert np.linalg.eigvalsh(reg.information).min() >= -1e-9
+    # and how the finding landmarks (read on every enrolment frame) see it: offline track's
+    # second reader, a model of its own (the enrolled states are theirs: it strays less)
+    assert (enrolled / "speaker" / "points_v2.npz").is_file()
+    fp = sp.finder_points
+    assert fp is not None and fp.network == "v2" and fp.mean.shape == pm.mean.shape
+    assert not np.allclose(fp.mean, pm.mean)
+    assert fp.offset_p99 < pm.offset_p99
+
+
+def test_a_speaker_whose_second_readers_model_is_of_another_network_is_refused(enrolled,
+                                                                                tmp_path):
+    import shutil
+
+    d = tmp_path / "speaker"
+    shutil.copytree(enrolled / "speaker", d)
+    shutil.copy(d / "points_v1.npz", d / "points_v2.npz")
+    with pytest.raises(ModelFileError, match="points_v2.npz: an observation model of the 'v1'"):
+        Speaker.load(d)
 
 
 def _test_clip(enrolled):

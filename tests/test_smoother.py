@@ -149,3 +149,30 @@ def test_frames_not_ok_are_left_as_tracked():
     out = offline_articulation(a, np.arange(40) / FPS, ok, np.arange(40) % 3,
                                np.zeros(40, bool), 3)
     assert np.array_equal(out[~ok], a[~ok]) and not np.allclose(out[ok], a[ok])
+
+
+def test_two_readers_are_averaged_only_where_both_have_the_frame():
+    """core/faces/offline.averaged: the mean articulation where both trackers smoothed the
+    frame, the first's head pose; the first's frame where the second has none; none where
+    the first has none (its verdict stands)."""
+    from articast.core.faces.offline import Smoothed, averaged
+    from articast.core.model.camera import Pose
+
+    rng = np.random.default_rng(4)
+
+    def frame(seed_alpha: np.ndarray, turn: float) -> Smoothed:
+        return Smoothed(seed_alpha, Pose(np.array([0.0, turn, 0.0]), np.array([0, 0, 600.0])))
+
+    a = [frame(rng.normal(size=K), 0.1) for _ in range(4)]
+    b = [frame(rng.normal(size=K), -0.2) for _ in range(4)]
+    first = [a[0], a[1], None, a[3]]
+    second = [b[0], None, b[2], b[3]]
+    out = averaged(first, second)
+    assert out[2] is None and out[1] is a[1]
+    for i in (0, 3):
+        got = out[i]
+        assert got is not None
+        assert np.allclose(got.alpha, 0.5 * (a[i].alpha + b[i].alpha))
+        assert np.allclose(got.pose.rotation, a[i].pose.rotation)
+    with pytest.raises(ValueError, match="3 frames against 4"):
+        averaged(first[:3], second)

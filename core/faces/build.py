@@ -32,6 +32,7 @@ from articast.core.appearance.models import AppearanceModel, TrainingFrame, trai
 from articast.core.errors import InputError
 from articast.core.faces.canonical import canonical_face
 from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
+from articast.core.faces.finder import FINDER_NETWORK
 from articast.core.faces.fit import fit_pose
 from articast.core.faces.flow import default_for, refine_pixels
 from articast.core.faces.speaker import ResidualStats, Speaker
@@ -223,13 +224,17 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         "unobserved": ["lar1"],
         "appearance": {"kind": app.kind, "sample_points": int(app.n_samples)},
     }
-    points = motion = None
+    points = motion = finder_points = None
     if readings is not None:
         say("learning how the live landmark reader sees this face, and the motion model")
         idx = np.asarray(geo.frames)[kept]
         at = np.arange(len(images)) / 25.0 if times is None else np.asarray(times, float)
         points, motion = fusion_model(model, camera, scheme, states, idx,
                                       np.asarray(readings), reader, at)
+        if reader != FINDER_NETWORK:  # the finding landmarks, read on every frame already:
+            # offline track's second reader (docs/TRACKING.md, "Offline")
+            finder_points, _ = fusion_model(model, camera, scheme, states, idx,
+                                            np.asarray(landmarks), FINDER_NETWORK, at)
         reg = points.regression
         report["reader"] = {
             "network": reader, "shared_error_modes": int(len(points.modes)),
@@ -246,7 +251,7 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         upper = upper_reference(images, np.asarray(readings))
         report["upper"] = upper_report(upper)
     return Speaker(model, app, camera, stats, rig, scheme.name, name, report, points, motion,
-                   upper)
+                   upper, finder_points)
 
 
 def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> UpperReference | None:

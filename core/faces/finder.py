@@ -28,6 +28,8 @@ LANDMARK_MODELS = {"v2": LANDMARKS_FILE, "v1": "face_landmarks_v1.onnx"}
 """The bundled landmark networks: FaceLandmarker v2 (478 points, 256 px input: the finder's
 default, for finding and enrolment) and FaceMesh v1 (468 points, 192 px input, ~4x cheaper:
 the live tracker's per-frame measurement; docs/FACES.md)."""
+FINDER_NETWORK = "v2"
+"""The network :meth:`FaceFinder.load` reads by default: the finding landmarks."""
 
 
 def models_dir() -> Path:
@@ -105,7 +107,7 @@ class FaceFinder:
 
     @classmethod
     def load(cls, models: str | Path | None = None, *, threads: int = 1,
-             policy: FinderPolicy = FinderPolicy(), landmarks: str = "v2",
+             policy: FinderPolicy = FinderPolicy(), landmarks: str = FINDER_NETWORK,
              detector: Any = None) -> FaceFinder:
         """Create the onnxruntime sessions once.
 

@@ -9,6 +9,14 @@ and head pose smoothed (core/tracking/smoother.py: the motion model's fixed-lag 
 smoother, the cadence canceller, the One Euro filter forward and back); :func:`smoothed`
 makes the frame's result from them. Frames that are not ok, and frames without a motion
 step (a tracker without the fused motion model), are kept as tracked.
+
+A recording may also be read twice (:func:`second_reader`): a second live tracker reads the
+finding landmarks (FaceLandmarker v2) on every frame through the speaker's model, with
+their own observation model learned at enrolment, and :func:`averaged` takes the mean of the
+two smoothed articulations where both trackers have the frame. Two readers through the same
+speaker's model, each with its own errors about the lips (no landmark network reads every
+face best: docs/REAL_SPEAKERS.md), and the mean of two articulations of a linear model is
+one of the model's too; the first tracker's verdicts, head pose and upper face stand.
 """
 
 from __future__ import annotations
@@ -18,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from articast.core.faces.live import FusionPolicy, LivePolicy
+from articast.core.faces.speaker import Speaker
 from articast.core.model.camera import Pose, axis_angle
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lips_dict
@@ -99,3 +109,29 @@ def smoothed(result: TrackResult, frame: Smoothed | None, model: FaceModel) -> T
     return replace(result, alpha=frame.alpha, pose=frame.pose,
                    lips=lips_dict(model, frame.alpha),
                    extra={**result.extra, "alpha_live": result.alpha})
+
+
+SECOND_READER = LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1, cadence=None))
+"""The second tracker's policy: the finding landmarks read on every frame (no cadence to
+cancel), the rest the live tracker's."""
+
+
+def second_reader(speaker: Speaker) -> Speaker | None:
+    """The speaker as the second tracker sees it (:data:`SECOND_READER`): the finding
+    landmarks' observation model as its reader's, no upper face (the first tracker's stands);
+    None when the enrolment learned none (enrolled before it was, or on a head-mounted
+    camera)."""
+    if speaker.finder_points is None or speaker.points is None:
+        return None
+    return replace(speaker, points=speaker.finder_points, upper=None)
+
+
+def averaged(first: list[Smoothed | None], second: list[Smoothed | None]
+             ) -> list[Smoothed | None]:
+    """The frames of two trackers of the same clip (each :meth:`OfflineSmoother.finish`):
+    the mean articulation where both have the frame, with the first's head pose; the first's
+    frame where the second has none; None (kept as tracked) where the first has none."""
+    if len(first) != len(second):
+        raise ValueError(f"{len(first)} frames against {len(second)}")
+    return [a if a is None or b is None else Smoothed(0.5 * (a.alpha + b.alpha), a.pose)
+            for a, b in zip(first, second, strict=True)]

@@ -13,6 +13,8 @@
       points_v1.npz     how the live landmark reader (FaceMesh v1) reads this face (kind
                         landmark-observation; optional: without it the model's own points
                         stand in)
+      points_v2.npz     how the finding landmarks (FaceLandmarker v2) read it: offline
+                        ``track``'s second reader (optional: without it one reader)
 
 speaker.json's optional ``motion`` holds the motion model's process noise learned from the
 clip (``q`` per unknown; without it the defaults); its optional ``upper`` the speaker's own
@@ -96,6 +98,7 @@ class Speaker:
     points: PointModel | None = None
     motion_noise: MotionNoise | None = None
     upper: UpperReference | None = None
+    finder_points: PointModel | None = None
 
     def save(self, folder: str | os.PathLike[str]) -> None:
         """Write the folder (created if needed); speaker.json last, so a folder with it is
@@ -109,6 +112,8 @@ class Speaker:
         self.camera.save(d / "camera.json")
         if self.points is not None:
             self.points.save(d / f"points_{self.points.network}.npz")
+        if self.finder_points is not None:
+            self.finder_points.save(d / f"points_{self.finder_points.network}.npz")
         meta = {"kind": SPEAKER_KIND, "version": SPEAKER_VERSION, "name": self.name,
                 "rig": self.rig, "scheme": self.scheme, "residual": self.residual.to_dict(),
                 "report": self.report}
@@ -155,6 +160,12 @@ class Speaker:
         if os.path.lexists(d / "points_v1.npz"):  # there: it must load (a FIFO, a folder
             # or a dangling link was skipped silently, the speaker tracked without its points)
             points = PointModel.load(d / "points_v1.npz", model.n_params)
+        finder_points = None
+        if os.path.lexists(d / "points_v2.npz"):
+            finder_points = PointModel.load(d / "points_v2.npz", model.n_params)
+            if finder_points.network != "v2":
+                raise ModelFileError(f"{d / 'points_v2.npz'}: an observation model of the "
+                                     f"{finder_points.network!r} landmarks, not 'v2'")
         return cls(model, AppearanceModel.load(d / "appearance.npz", model),
                    Camera.load(d / "camera.json"),
                    ResidualStats.from_dict(meta.get("residual") or {}, where), rig,
@@ -162,7 +173,7 @@ class Speaker:
                    meta.get("report") if isinstance(meta.get("report"), dict) else {},
                    points, _motion_noise(meta.get("motion"), model.n_params, where),
                    None if meta.get("upper") is None
-                   else UpperReference.from_dict(meta["upper"], where))
+                   else UpperReference.from_dict(meta["upper"], where), finder_points)
 
 
 def _motion_noise(d: Any, k: int, where: str) -> MotionNoise | None:

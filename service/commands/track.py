@@ -67,7 +67,9 @@ def register(sub: argparse._SubParsersAction) -> None:
             "face is there, and restarts it after a loss; the articulation and head pose "
             "written are then smoothed with the frames after each one (the motion model's "
             "fixed-lag smoother and the One Euro filter run both ways: steadier lips than "
-            "live, without the live filter's lag), unless --causal. With "
+            "live, without the live filter's lag) and averaged with a second tracker that "
+            "reads the finding landmarks on every frame (two readers' errors; ~5x the CPU: "
+            "--single-reader for one), unless --causal. With "
             "--model/--appearance/--camera (a bead-lab speaker), the first frame starts from "
             "--init-pose, or from the first state of --init-truth, or else from a search "
             "around a frontal face --distance-mm in front of the camera. A frame that cannot "
@@ -104,6 +106,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="with --speaker: write each frame's estimate as the live service "
                          "streams it (from that frame and the ones before only), instead of "
                          "smoothed with the frames after (docs/TRACKING.md, 'Offline')")
+    tk.add_argument("--single-reader", action="store_true",
+                    help="with --speaker, offline: track with the live reader (FaceMesh v1) "
+                         "alone, ~5x less CPU, instead of averaging it with a second tracker "
+                         "that reads the finding landmarks (FaceLandmarker v2) on every frame "
+                         "(docs/TRACKING.md, 'Offline')")
     tk.add_argument("--quiet", action="store_true", help="no progress line")
     tk.set_defaults(func=_track)
 
@@ -270,11 +277,14 @@ def _track(args: argparse.Namespace) -> int:
         raise InputError(f"-o {args.output}: is a folder, expected a file name (.jsonl)")
     span = Span(args.start, args.end)
     tracker, model, camera = _make_tracker(args, _frame_size(args.video))
-    smoother = None
+    smoother = second = second_smoother = None
     if getattr(tracker, "fusion", None) is not None and not args.causal:  # fused LiveTracker
         from articast.core.faces.offline import OfflineSmoother
 
         smoother = OfflineSmoother.for_live(tracker)
+        if not args.single_reader:
+            second = _second_tracker(args, tracker)
+            second_smoother = None if second is None else OfflineSmoother.for_live(second)
     contours = _contours(args)
     total = video_frame_count(args.video)
     if span:
@@ -303,6 +313,8 @@ def _track(args: argparse.Namespace) -> int:
                 out.flush()
                 if smoother is not None:
                     smoother.add(res)
+                if second is not None and second_smoother is not None:
+                    second_smoother.add(second.track(img, t))
                 if video is not None:
                     from articast.service.overlay import draw_fit
 
@@ -317,9 +329,16 @@ def _track(args: argparse.Namespace) -> int:
         prog.close()
         if smoother is not None:
             if not args.quiet and n > 0:
-                print(f"articast track: smoothing {n} frames with the frames after each "
-                      "(--causal: as streamed live)", file=sys.stderr, flush=True)
-            _rewrite_smoothed(tmp, smoother, model)
+                both = (" and averaging the two readers' trackers (--single-reader: FaceMesh "
+                        "v1's alone)" if second_smoother is not None else "")
+                print(f"articast track: smoothing {n} frames with the frames after each"
+                      f"{both} (--causal: as streamed live)", file=sys.stderr, flush=True)
+            frames = smoother.finish()
+            if second_smoother is not None:
+                from articast.core.faces.offline import averaged
+
+                frames = averaged(frames, second_smoother.finish())
+            _rewrite_smoothed(tmp, frames, model)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the part file only
@@ -343,7 +362,31 @@ def _track(args: argparse.Namespace) -> int:
     return 0
 
 
-def _rewrite_smoothed(path: Path, smoother, model) -> None:
+def _second_tracker(args: argparse.Namespace, first):
+    """Offline track's second tracker (core/faces/offline.py, ``second_reader``): the finding
+    landmarks read on every frame through the speaker's model; None for a speaker enrolled
+    without their observation model."""
+    import time
+
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker, live_policy
+    from articast.core.faces.offline import SECOND_READER, second_reader
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    speaker = second_reader(first.speaker)
+    if speaker is None:
+        if not args.quiet:
+            print("articast track: one reader (the speaker was enrolled without the finding "
+                  "landmarks' observation model: enrol again to read both)", file=sys.stderr,
+                  flush=True)
+        return None
+    rig = args.rig or speaker.rig
+    return LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(speaker.rig), SECOND_READER,
+                       tracking=live_policy(rig, optimiser=args.optimiser),
+                       clock=time.perf_counter)
+
+
+def _rewrite_smoothed(path: Path, frames: list, model) -> None:
     """The track file's lines (each frame's live estimate, written as it went) rewritten with
     the smoothed articulation, lips and head pose (core/faces/offline.py)."""
     import json
@@ -351,7 +394,6 @@ def _rewrite_smoothed(path: Path, smoother, model) -> None:
 
     from articast.core.outputs.lips import lips_dict
 
-    frames = smoother.finish()
     part = path.with_name(path.name + ".smoothed")
     try:
         with open(path, encoding="utf-8") as src, open(part, "w", encoding="utf-8") as dst:
