@@ -98,6 +98,18 @@ def test_track_errors_are_one_line(tmp_path, capsys):
     assert "no such" in err and "Traceback" not in err
 
 
+def test_single_reader_without_the_offline_speaker_track_is_refused(tmp_path, capsys):
+    """--single-reader chooses offline track's readers: with --causal, or without --speaker,
+    there is nothing to choose, and saying so beats ignoring it."""
+    for extra in (["--speaker", str(tmp_path), "--causal"],
+                  ["--model", "m.npz", "--appearance", "a.npz", "--camera", "c.json"]):
+        assert main(["track", str(tmp_path / "none.mp4"), *extra, "--single-reader", "-o",
+                     str(tmp_path / "t.jsonl")]) == 2
+        err = capsys.readouterr().err
+        assert "--single-reader is for offline tracking with --speaker" in err
+        assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
 def test_a_track_that_fails_midway_leaves_no_file(tmp_path, capsys):
     """A truncated video fails after some frames were tracked: no .jsonl (it used to be left
     behind, empty or half written)."""

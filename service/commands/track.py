@@ -275,6 +275,9 @@ def _track(args: argparse.Namespace) -> int:
 
     if args.output.is_dir():
         raise InputError(f"-o {args.output}: is a folder, expected a file name (.jsonl)")
+    if args.single_reader and (args.causal or not args.speaker):
+        raise InputError("--single-reader is for offline tracking with --speaker (without "
+                         "--causal, which reads one network as the live service does)")
     span = Span(args.start, args.end)
     tracker, model, camera = _make_tracker(args, _frame_size(args.video))
     smoother = second = second_smoother = None
@@ -375,7 +378,7 @@ def _second_tracker(args: argparse.Namespace, first):
 
     speaker = second_reader(first.speaker)
     if speaker is None:
-        if not args.quiet:
+        if not args.quiet and first.speaker.points is not None:  # (a head rig has neither)
             print("articast track: one reader (the speaker was enrolled without the finding "
                   "landmarks' observation model: enrol again to read both)", file=sys.stderr,
                   flush=True)
