@@ -1080,27 +1080,22 @@ def test_a_speaker_enrolled_for_the_finding_landmarks_is_read_by_them_on_every_f
     every enrolment frame), and the live tracker reads v2 on every frame through it. The
     speaker's model is refused by a tracker that reads another network, and the lips follow
     the rendered truth."""
-    from articast.core.faces.build import build_speaker
+    import sys
+    from pathlib import Path
+
     from articast.core.faces.finder import FaceFinder
     from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
     from articast.core.faces.scheme import mediapipe_scheme
     from articast.service.video import iter_video
 
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from real_clips import enrol_speaker
+
     sp, frames, ap_true = _test_clip(enrolled)
     images = [img for _, _, img in iter_video(enrolled / "clip" / "video.mp4")]
+    sp2 = enrol_speaker(images, 6.0, camera=sp.camera, max_frames=None, reader="v2")
     finder = FaceFinder.load()
-    faces, prev = [], None
-    for img in images:
-        face = finder.track(img, prev) if prev is not None else None
-        prev = face = face or finder.find(img)
-        faces.append(face)
-    found = np.array([f is not None for f in faces])
-    assert found.mean() > 0.9
-    marks = np.array([f.landmarks if f is not None else np.full((478, 3), np.nan)
-                      for f in faces])
     scheme = mediapipe_scheme("desk")
-    sp2 = build_speaker(images, marks, found, scheme, sp.camera, readings=marks, reader="v2",
-                        times=np.arange(len(images)) / 6.0)
     assert sp2.points is not None and sp2.points.network == "v2"
     with pytest.raises(ValueError, match="'v2' landmarks, not 'v1'"):
         LiveTracker(sp2, finder, scheme)  # the product's default reads v1
