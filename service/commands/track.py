@@ -68,8 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
             "written are then smoothed with the frames after each one (the motion model's "
             "fixed-lag smoother and the One Euro filter run both ways: steadier lips than "
             "live, without the live filter's lag) and averaged with a second tracker that "
-            "reads the finding landmarks on every frame (two readers' errors; ~5x the CPU: "
-            "--single-reader for one), unless --causal. With "
+            "reads the finding landmarks on every frame (two readers' errors; ~15-20 ms of "
+            "CPU a frame more: --single-reader for one), unless --causal. With "
             "--model/--appearance/--camera (a bead-lab speaker), the first frame starts from "
             "--init-pose, or from the first state of --init-truth, or else from a search "
             "around a frontal face --distance-mm in front of the camera. A frame that cannot "
@@ -108,9 +108,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "smoothed with the frames after (docs/TRACKING.md, 'Offline')")
     tk.add_argument("--single-reader", action="store_true",
                     help="with --speaker, offline: track with the live reader (FaceMesh v1) "
-                         "alone, ~5x less CPU, instead of averaging it with a second tracker "
-                         "that reads the finding landmarks (FaceLandmarker v2) on every frame "
-                         "(docs/TRACKING.md, 'Offline')")
+                         "alone, instead of averaging it with a second tracker that reads the "
+                         "finding landmarks (FaceLandmarker v2) on every frame, which costs "
+                         "~15-20 ms of CPU a frame more (docs/TRACKING.md, 'Offline')")
     tk.add_argument("--quiet", action="store_true", help="no progress line")
     tk.set_defaults(func=_track)
 
@@ -316,15 +316,18 @@ def _track(args: argparse.Namespace) -> int:
                 out.flush()
                 if smoother is not None:
                     smoother.add(res)
+                spent = res.ms
                 if second is not None and second_smoother is not None:
-                    second_smoother.add(second.track(img, t))
+                    again = second.track(img, t)
+                    second_smoother.add(again)
+                    spent += again.ms  # (the frame's cost is both readers')
                 if video is not None:
                     from articast.service.overlay import draw_fit
 
                     video.write(draw_fit(img, model, camera, res, contours))
                 n += 1
                 n_ok += res.ok
-                ms.append(res.ms)
+                ms.append(spent)
                 if not res.ok:
                     code = res.reason.split(":", 1)[0]
                     reasons[code] = reasons.get(code, 0) + 1
