@@ -514,6 +514,7 @@ def test_a_desk_enrolment_learns_how_the_live_reader_sees_the_face(enrolled):
     assert fp is not None and fp.network == "v2" and fp.mean.shape == pm.mean.shape
     assert not np.allclose(fp.mean, pm.mean)
     assert fp.offset_p99 < pm.offset_p99
+    assert sp.report["second_reader"]["network"] == "v2"
 
 
 def test_a_speaker_whose_second_readers_model_is_of_another_network_is_refused(enrolled,

@@ -245,6 +245,11 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
                 "ridge": reg.ridge,
                 "error_sd": [round(float(1 / np.sqrt(d)), 3) if d > 0 else None
                              for d in np.diag(reg.information)]}}
+        if finder_points is not None:  # offline track's second reader
+            report["second_reader"] = {
+                "network": finder_points.network,
+                "shared_error_modes": int(len(finder_points.modes)),
+                "sigma_mm_median": round(float(np.median(finder_points.sigma_mm)), 3)}
     upper = None
     if readings is not None and rig == "desk":
         say("calibrating the eyes and brows (open eye, closed eye, neutral brows, gaze)")
