@@ -336,9 +336,9 @@ def _track(args: argparse.Namespace) -> int:
         if smoother is not None:
             if not args.quiet and n > 0:
                 both = (" and averaging the two readers' trackers (--single-reader: FaceMesh "
-                        "v1's alone)" if second_smoother is not None else "")
+                        "v1's alone; " if second_smoother is not None else " (")
                 print(f"articast track: smoothing {n} frames with the frames after each"
-                      f"{both} (--causal: as streamed live)", file=sys.stderr, flush=True)
+                      f"{both}--causal: as streamed live)", file=sys.stderr, flush=True)
             frames = smoother.finish()
             if second_smoother is not None:
                 from articast.core.faces.offline import averaged
