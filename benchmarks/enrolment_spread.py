@@ -82,20 +82,10 @@ def main() -> None:
     ap = peers.series_parser(__doc__)
     ap.add_argument("--seeds", type=int, nargs="*", default=[1, 2, 3, 4],
                     help="coverage seeds besides the default start (default 1 2 3 4)")
-    ap.add_argument("--variant", choices=list(peers.VARIANTS), default="fused",
-                    help="articast's live policy (peers.py's ablation; default: the "
-                         "product's, fused)")
-    ap.add_argument("--offline", action="store_true",
-                    help="score articast's results smoothed with the frames after, as "
-                         "'articast track' writes them (peers.py --offline)")
-    ap.add_argument("--single-reader", action="store_true",
-                    help="with --offline: FaceMesh v1's tracker alone (peers.py "
-                         "--single-reader)")
+    peers.add_articast_options(ap)
     ap.add_argument("--json", action="store_true", help="print JSON instead of a table")
     args = ap.parse_args()
-    peers.ARTICAST_POLICY = peers.VARIANTS[args.variant]
-    peers.OFFLINE = args.offline
-    peers.SINGLE_READER = args.single_reader
+    peers.use_articast_options(args)
     cv2.setNumThreads(1)
     rows = []
     for name, s in peers.series_clips(args.series, args.only):

@@ -719,6 +719,29 @@ def series_clips(series: Path, only: Sequence[str] | None,
     return out
 
 
+def add_articast_options(ap: argparse.ArgumentParser) -> None:
+    """How articast runs in a benchmark that scores it: ``--variant``, ``--offline``,
+    ``--single-reader`` (:func:`use_articast_options` applies them)."""
+    ap.add_argument("--variant", choices=list(VARIANTS), default="fused",
+                    help="articast's live policy (the ablation of docs/TRACKING.md; default: "
+                         "the product's, fused)")
+    ap.add_argument("--offline", action="store_true",
+                    help="score articast's results as 'articast track' writes a recorded "
+                         "clip (core/faces/offline.py); its CPU figures stay the live loop's, "
+                         "the smoothing's own cost is offline_smoothing_cpu_ms, the second "
+                         "reader's offline_second_reader_cpu_ms")
+    ap.add_argument("--single-reader", action="store_true",
+                    help="with --offline: FaceMesh v1's tracker alone, as 'articast track "
+                         "--single-reader' writes it")
+
+
+def use_articast_options(args: argparse.Namespace) -> None:
+    """:func:`add_articast_options`' choices, for :func:`run_articast`."""
+    global ARTICAST_POLICY, OFFLINE, SINGLE_READER
+    ARTICAST_POLICY = VARIANTS[args.variant]
+    OFFLINE, SINGLE_READER = args.offline, args.single_reader
+
+
 def series_parser(doc: str) -> argparse.ArgumentParser:
     """The command line of a script that reruns articast on a ``--series`` directory's clips
     (:func:`series_clips`): its docstring's first paragraph as the description, ``--series``
@@ -1034,7 +1057,7 @@ def clip_paths(cache: Path) -> dict[str, Path]:
 
 
 def main(argv: list[str] | None = None) -> None:
-    global ARTICAST_POLICY, CPU_REPEATS, CPU_CHUNK, OFFLINE, SINGLE_READER
+    global CPU_REPEATS, CPU_CHUNK
     clips = clip_paths(CLIP_CACHE)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
@@ -1050,17 +1073,7 @@ def main(argv: list[str] | None = None) -> None:
                     help="write an overlay grid of every frame articast marks occluded here")
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-method aperture ratio and lip box series here")
-    ap.add_argument("--variant", choices=list(VARIANTS), default="fused",
-                    help="articast's live policy (the ablation of docs/TRACKING.md; default: "
-                         "the product's, fused)")
-    ap.add_argument("--offline", action="store_true",
-                    help="score articast's results smoothed with the frames after, as "
-                         "'articast track' writes a recorded clip (core/faces/offline.py); "
-                         "its CPU figures stay the live loop's, the smoothing's own cost is "
-                         "offline_smoothing_cpu_ms")
-    ap.add_argument("--single-reader", action="store_true",
-                    help="with --offline: FaceMesh v1's tracker alone, as 'articast track "
-                         "--single-reader' writes it")
+    add_articast_options(ap)
     ap.add_argument("--cpu-repeats", type=int, default=CPU_REPEATS,
                     help="passes of articast and the FaceMesh v1 loop interleaved on the "
                          "same frames for the CPU ratio's median and spread (0: none; "
@@ -1071,9 +1084,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if args.cpu_repeats < 0 or args.cpu_chunk < 1:
         ap.error("--cpu-repeats must be >= 0 and --cpu-chunk >= 1")
-    ARTICAST_POLICY = VARIANTS[args.variant]
-    OFFLINE = args.offline
-    SINGLE_READER = args.single_reader
+    use_articast_options(args)
     CPU_REPEATS, CPU_CHUNK = args.cpu_repeats, args.cpu_chunk
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)

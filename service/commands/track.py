@@ -374,7 +374,6 @@ def _second_tracker(args: argparse.Namespace, first):
     without their observation model."""
     import time
 
-    from articast.core.faces.finder import FaceFinder
     from articast.core.faces.live import LiveTracker, live_policy
     from articast.core.faces.offline import SECOND_READER, second_reader
     from articast.core.faces.scheme import mediapipe_scheme
@@ -387,9 +386,11 @@ def _second_tracker(args: argparse.Namespace, first):
                   flush=True)
         return None
     rig = args.rig or speaker.rig
-    return LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(speaker.rig), SECOND_READER,
+    # the first tracker's finder (detector and FaceLandmarker v2) finds and reads for it
+    # too: the same networks with the same policy, not loaded twice more
+    return LiveTracker(speaker, first.finder, mediapipe_scheme(speaker.rig), SECOND_READER,
                        tracking=live_policy(rig, optimiser=args.optimiser),
-                       clock=time.perf_counter)
+                       clock=time.perf_counter, reader=first.finder)
 
 
 def _rewrite_smoothed(path: Path, frames: list, model) -> None:
