@@ -108,6 +108,7 @@ from articast.core.faces.finder import FaceFinder, FinderPolicy, models_dir  # n
 from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
+from articast.core.tracking.filters import OneEuroPolicy  # noqa: E402
 from articast.service.overlay import fit_tile, lip_contours  # noqa: E402
 
 CLIP_CACHE = Path.home() / ".cache/articast/clips"
@@ -148,7 +149,8 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "reader_v2_every_frame": LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1,
                                                             cadence=None)),
 }
-ARTICAST_POLICY: LivePolicy | None = None  # set from --variant
+ARTICAST_POLICY: LivePolicy | None = None  # set from --variant (and --set)
+ENROL_BLEND = 0.0  # --enrol-blend: v1's share of the landmarks the speaker's model is built from
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
 MAX_LAG = 5
@@ -483,7 +485,8 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     try:
         speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig,
                                 max_frames=None, times=times, build=build,
-                                reader=fu.reader if fu is not None else "v1")
+                                reader=fu.reader if fu is not None else "v1",
+                                blend=ENROL_BLEND)
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
     kernels.warm_up()  # numba's compilation: once per process, not a session's
@@ -725,6 +728,16 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--variant", choices=list(VARIANTS), default="fused",
                     help="articast's live policy (the ablation of docs/TRACKING.md; default: "
                          "the product's, fused)")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    dest="policy_set",
+                    help="one field of articast's live policy changed on top of --variant "
+                         "(repeatable): a FusionPolicy field (appearance_weight=2, "
+                         "read_every=2, cadence=none, regression=false) or one_euro.FIELD "
+                         "(min_cutoff, beta, d_cutoff) of the streamed articulation's filter")
+    ap.add_argument("--enrol-blend", type=float, default=0.0, metavar="W",
+                    help="a diagnosis, not the product: build the speaker's model from "
+                         "(1 - W) x the finding landmarks (FaceLandmarker v2) + W x the live "
+                         "reader's (FaceMesh v1) on the same enrolment frames (default 0)")
     ap.add_argument("--offline", action="store_true",
                     help="score articast's results as 'articast track' writes a recorded "
                          "clip (core/faces/offline.py); its CPU figures stay the live loop's, "
@@ -737,9 +750,65 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
 
 def use_articast_options(args: argparse.Namespace) -> None:
     """:func:`add_articast_options`' choices, for :func:`run_articast`."""
-    global ARTICAST_POLICY, OFFLINE, SINGLE_READER
-    ARTICAST_POLICY = VARIANTS[args.variant]
-    OFFLINE, SINGLE_READER = args.offline, args.single_reader
+    global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND
+    try:
+        ARTICAST_POLICY = policy_with(VARIANTS[args.variant], args.policy_set)
+    except ValueError as e:
+        raise SystemExit(f"--set: {e}") from None
+    if not 0.0 <= args.enrol_blend <= 1.0:
+        raise SystemExit(f"--enrol-blend must be within 0..1, got {args.enrol_blend:g}")
+    OFFLINE, SINGLE_READER, ENROL_BLEND = args.offline, args.single_reader, args.enrol_blend
+
+
+def _value(text: str) -> Any:
+    low = text.strip().lower()
+    if low in ("none", "off"):
+        return None
+    if low in ("true", "false"):
+        return low == "true"
+    try:
+        return int(low)
+    except ValueError:
+        pass
+    try:
+        return float(low)
+    except ValueError:
+        raise ValueError(f"{text!r} is not a number, true, false or none") from None
+
+
+def policy_with(policy: LivePolicy | None, changes: Sequence[str]) -> LivePolicy | None:
+    """``policy`` (None: the default LivePolicy) with each ``FIELD=VALUE`` of ``changes``
+    applied: a :class:`FusionPolicy` field, or ``one_euro.FIELD`` of the streamed filter.
+    ValueError (one line) for an unknown field, a malformed change or a policy without
+    fusion."""
+    if not changes:
+        return policy
+    live = policy or LivePolicy()
+    fusion_fields = set(FusionPolicy.__dataclass_fields__)
+    euro_fields = set(OneEuroPolicy.__dataclass_fields__)
+    for change in changes:
+        name, sep, text = change.partition("=")
+        name = name.strip()
+        if not sep or not name:
+            raise ValueError(f"{change!r} is not FIELD=VALUE")
+        value = _value(text)
+        if name.startswith("one_euro."):
+            field = name.split(".", 1)[1]
+            if field not in euro_fields:
+                raise ValueError(f"one_euro has no field {field!r} "
+                                 f"({', '.join(sorted(euro_fields))})")
+            if value is None or isinstance(value, bool):
+                raise ValueError(f"{name} takes a number, got {text!r}")
+            live = replace(live, smoothing=replace(live.smoothing or OneEuroPolicy(),
+                                                   **{field: float(value)}))
+        elif name in fusion_fields:
+            if live.fusion is None:
+                raise ValueError(f"{name}: this variant tracks without fusion")
+            live = replace(live, fusion=replace(live.fusion, **{name: value}))
+        else:
+            raise ValueError(f"no policy field {name!r} (a FusionPolicy field or "
+                             f"one_euro.FIELD)")
+    return live
 
 
 def series_parser(doc: str) -> argparse.ArgumentParser:

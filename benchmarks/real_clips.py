@@ -99,7 +99,8 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
                   finder: FaceFinder | None = None,
                   options: EnrolOptions | None = None, build: BuildOptions | None = None,
                   extra: list[np.ndarray] | None = None,
-                  times: np.ndarray | None = None, reader: str = "v1") -> Speaker:
+                  times: np.ndarray | None = None, reader: str = "v1",
+                  blend: float = 0.0) -> Speaker:
     """Enrol a speaker on ``frames`` (BGR, all the same size) as ``articast enroll`` does: the
     frames it analyses (:func:`~articast.core.faces.build.analysed_frames`: strided to
     ``max_frames`` plus a consecutive run; None: the frames as given, taken at ``times`` s,
@@ -108,7 +109,11 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     the frames' size. ``extra``: more frames appended to the enrolment (a diagnosis:
     --enrol-with-held). ``reader``: the live reader whose observation model is learned
     ("v1", the product's; "v2": the finding landmarks' own readings, for the benchmark's
-    ``reader_v2`` ablation). ``speaker.report["build_s"]`` is the time of ``build_speaker``."""
+    ``reader_v2`` ablation). ``blend`` (a diagnosis, not the product; desk only): the model is
+    built from (1 - blend) x the finding landmarks + blend x the reader's on the frames both
+    read (their x, y; the finding network's iris points and depth kept), the observation
+    model still learned from the reader's own readings. ``speaker.report["build_s"]`` is the
+    time of ``build_speaker``."""
     finder = finder or FaceFinder.load(threads=1)
     h, w = frames[0].shape[:2]
     camera = camera or Camera.default(w, h, 60.0)
@@ -133,6 +138,12 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     if rig == "desk":
         readings = (marks if reader == "v2" else
                     read_every_frame(FaceFinder.load(threads=1, landmarks=reader), enrol, faces))
+    if blend and readings is not None:
+        both = found & np.isfinite(readings[:, :, :2]).all(axis=(1, 2))
+        marks = marks.copy()
+        n = readings.shape[1]
+        marks[both, :n, :2] = ((1.0 - blend) * marks[both, :n, :2]
+                               + blend * readings[both, :, :2])
     t0 = time.perf_counter()
     speaker = build_speaker(enrol, marks, found, mediapipe_scheme(rig), camera, rig,
                             options or EnrolOptions(), build or BuildOptions(),

@@ -214,3 +214,28 @@ def test_ratio_spread_pairs_the_passes():
     assert peers.ratio_spread([1.0], [0.0])["median"] is None
     with pytest.raises(ValueError):
         peers.ratio_spread([1.0, 2.0], [1.0])
+
+
+def test_set_changes_one_field_of_the_live_policy_and_refuses_what_is_not_one():
+    """``--set FIELD=VALUE`` (peers.py, enrolment_spread.py): a FusionPolicy field or the
+    streamed filter's, on top of the variant; anything else is a one-line error."""
+    from articast.core.faces.live import FusionPolicy, LivePolicy
+    from articast.core.tracking.filters import OneEuroPolicy
+
+    assert peers.policy_with(None, []) is None  # nothing set: the variant as it is
+    got = peers.policy_with(None, ["appearance_weight=2", "cadence=none", "regression=false",
+                                   "read_every=2", "one_euro.beta=3"])
+    assert got.fusion == FusionPolicy(appearance_weight=2.0, cadence=None, regression=False,
+                                      read_every=2)
+    assert got.smoothing == OneEuroPolicy(beta=3.0)
+    base = peers.VARIANTS["no_one_euro"]  # a variant's own changes are kept
+    kept = peers.policy_with(base, ["points_weight=0.1"])
+    assert kept.fusion.points_weight == 0.1 and kept.smoothing is None
+    for bad, says in (("appearnce_weight=2", "no policy field"), ("beta", "FIELD=VALUE"),
+                      ("one_euro.gamma=1", "one_euro has no field"),
+                      ("one_euro.beta=none", "takes a number"),
+                      ("read_every=often", "not a number")):
+        with pytest.raises(ValueError, match=says):
+            peers.policy_with(None, [bad])
+    with pytest.raises(ValueError, match="without fusion"):
+        peers.policy_with(LivePolicy(fusion=None), ["read_every=2"])
