@@ -5,6 +5,7 @@
     python benchmarks/setup_peers.py --openseeface-git GIT   # once: the peers' venvs, models
     python benchmarks/peers.py [--json] [--only CLIP ...] [--methods M ...] [--grid DIR]
                                [--variant V] [--offline [--single-reader]]
+                               [--set FIELD=VALUE ...] [--enrol-blend W]
 
 Each clip (every clip ``tools/fetch_real_clips.py`` fetched, and ``synthetic``) is read once and
 scaled to 640 px wide (aspect kept); every method sees exactly these frames. articast enrols on
