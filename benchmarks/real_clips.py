@@ -140,8 +140,7 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
                     read_every_frame(FaceFinder.load(threads=1, landmarks=reader), enrol, faces))
     if blend and readings is not None:
         both = found & np.isfinite(readings[:, :, :2]).all(axis=(1, 2))
-        marks = marks.copy()
-        n = readings.shape[1]
+        n = readings.shape[1]  # (marks is this function's own array: mixed in place)
         marks[both, :n, :2] = ((1.0 - blend) * marks[both, :n, :2]
                                + blend * readings[both, :, :2])
     t0 = time.perf_counter()
