@@ -68,6 +68,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+import peers as peers_mod  # noqa: E402
 from peers import (  # noqa: E402
     CLIP_CACHE,
     PEER_CACHE,
@@ -170,13 +171,13 @@ def match(ours: list[tuple[int, int]], ref: list[tuple[int, int]], tol: int = TO
     return match_events(ours, ref, tol, one_to_one)
 
 
-def track(speaker, held, fps):
+def track(speaker, held, fps, cost: bool = True):
     """The tracked frames and their cost: the whole frame's, the upper face's own step
     (timed inside the run) and the upper face's whole cost over the lips alone
     (:func:`~real_clips.cost_over_lips`, the first pair's full run this one)."""
     kernels.warm_up()
     live = LiveTracker(speaker, FaceFinder.load(threads=1), mediapipe_scheme(speaker.rig),
-                       clock=time.perf_counter)
+                       peers_mod.ARTICAST_POLICY, clock=time.perf_counter)
     step = live.upper.step
     spent = {"wall": 0.0, "cpu": 0.0}
 
@@ -194,7 +195,8 @@ def track(speaker, held, fps):
     cpu = (time.process_time() - c0) * 1e3 / n
     return res, {"frame_ms": (time.perf_counter() - w0) * 1e3 / n, "frame_cpu_ms": cpu,
                  "upper_ms": spent["wall"] * 1e3 / n, "upper_cpu_ms": spent["cpu"] * 1e3 / n,
-                 **cost_over_lips(speaker, held, fps, first=cpu), "eye_reads": live.eye_reads}
+                 **(cost_over_lips(speaker, held, fps, first=cpu, policy=peers_mod.ARTICAST_POLICY)
+                    if cost else {}), "eye_reads": live.eye_reads}
 
 
 def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,
@@ -238,19 +240,20 @@ def grid(path: Path, held, closure, ratio, ours, ref, eyes, per_row: int = 7,
         cv2.imwrite(str(path), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 75])
 
 
-def run(name: str, path: Path, peers: dict, grid_dir: Path | None) -> dict:
+def run(name: str, path: Path, peers: dict, grid_dir: Path | None, cost: bool = True) -> dict:
     log(f"{name}: reading")
     enrol, held, fps, n, times = read_clip(path)
-    log(f"{name}: enrolling on {len(enrol)} frames")
-    speaker = enrol_speaker(enrol, fps, max_frames=None, times=times)
+    log(f"{name}: enrolling on {len(enrol)} frames (or loading it from --speakers)")
+    speaker = peers_mod.enrolled(name, lambda: enrol_speaker(enrol, fps, max_frames=None,
+                                                             times=times), "v1")
     log(f"{name}: tracking {len(held)} held-out frames")
-    res, cost = track(speaker, held, fps)
+    res, cost_ = track(speaker, held, fps, cost)
     cl = np.array([np.nan if r.upper is None or not r.upper.eyes_ok
                    else (r.upper.closure_left + r.upper.closure_right) / 2.0 for r in res])
     src = [None if r.upper is None else r.upper.source for r in res]
     out = {"clip": name, "frames": len(held), "fps": fps,
            "upper": speaker.report.get("upper"),
-           **{k: round(v, 3) if isinstance(v, float) else v for k, v in cost.items()},
+           **{k: round(v, 3) if isinstance(v, float) else v for k, v in cost_.items()},
            "eyes_ok": round(float(np.isfinite(cl).mean()), 4),
            "photo_frames": int(sum(s == "photo" for s in src))}
     gaze = np.array([(r.upper.gaze_yaw_deg, r.upper.gaze_pitch_deg)
@@ -320,16 +323,24 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--only", nargs="*")
     ap.add_argument("--grid", type=Path)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--speakers", type=Path, help="keep and reuse the enrolments here (as "
+                                                  "benchmarks/peers.py --speakers: the same)")
+    ap.add_argument("--no-cost", action="store_true",
+                    help="skip the upper face's cost over the lips alone (3 interleaved "
+                         "pairs of runs): the accuracy alone, ~4x faster")
+    peers_mod.add_articast_options(ap)
     args = ap.parse_args(argv)
+    peers_mod.use_articast_options(args)
+    peers_mod.SPEAKERS = args.speakers
     cv2.setNumThreads(1)
     clips = clip_paths(args.clips)
     peers = load_peers(args.peers)
     rows = []
-    for name in args.only or [c for c in clips if "face" not in c or c == "single_face"]:
+    for name in args.only or list(clips):
         if name not in clips:
-            log(f"{name}: not fetched")
+            log(f"{name}: no such clip in {args.clips}")
             continue
-        row = run(name, clips[name], peers, args.grid)
+        row = run(name, clips[name], peers, args.grid, cost=not args.no_cost)
         rows.append(row)
         short = {k: v for k, v in row.items() if k not in SERIES}
         log(json.dumps(short))

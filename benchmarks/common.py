@@ -22,6 +22,30 @@ address, which the per-address limits (issue 20, row e/f: 256 connections, 256
 subscriptions, 20 subscribes/s) rightly refuse; without these the clients never connect."""
 
 
+VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm", ".y4m", ".mpg", ".mpeg")
+"""What a clips folder's videos end with (any case)."""
+
+
+SHARED_CLIPS = ROOT.parent / "shared/clips"
+#: the clips folder by default: the team's shared one beside the repository where it is there
+#: (read as it is: every video in it), else the one ``tools/fetch_real_clips.py`` fills
+CLIP_CACHE = SHARED_CLIPS if SHARED_CLIPS.is_dir() else Path.home() / ".cache/articast/clips"
+
+
+def clip_paths(folder: Path) -> dict[str, Path]:
+    """Every clip of a folder, by name, in name order: the entries of its ``clips.json`` where
+    there is one (``tools/fetch_real_clips.py`` writes it), else every video file in it, named
+    by its stem (``../shared/clips`` as it is: no list to write by hand). Empty when the
+    folder does not exist."""
+    meta = folder / "clips.json"
+    if meta.is_file():
+        return {r["name"]: Path(r["path"]) for r in json.loads(meta.read_text())}
+    if not folder.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(folder.iterdir())
+            if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES}
+
+
 def load_average() -> list[float]:
     """The machine's 1-, 5- and 15-minute load averages (``uptime``), rounded: every timing
     figure states the load it was taken at (the development machine's 2 cores are shared)."""

@@ -88,7 +88,7 @@ def main() -> None:
     peers.use_articast_options(args)
     cv2.setNumThreads(1)
     rows = []
-    for name, s in peers.series_clips(args.series, args.only):
+    for name, s in peers.series_clips(args.series, args.only, clips=args.clips):
         rows.append(run_clip(name, s, [None, *args.seeds]))
     if args.json:
         print(json.dumps({"command": " ".join(sys.argv), "variant": args.variant,

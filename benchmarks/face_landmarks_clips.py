@@ -30,6 +30,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import onnxruntime as ort
+from common import CLIP_CACHE as CLIP_DEFAULT
+from common import clip_paths
 
 from articast.core.faces import FaceFinder
 
@@ -196,20 +198,27 @@ def summarise(series, timing, motion, fps, n) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--clips", type=Path, default=Path.home() / ".cache/articast/clips")
+    ap.add_argument("--clips", type=Path, default=CLIP_DEFAULT,
+                    help=f"a clips.json's folder or any folder of videos (default "
+                         f"{CLIP_DEFAULT})")
     ap.add_argument("--face-models", type=Path,
                     default=Path.home() / ".cache/articast/face-models")
     ap.add_argument("--max-seconds", type=float, default=60.0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path, help="also write the results here")
     args = ap.parse_args(argv)
-    records = json.loads((args.clips / "clips.json").read_text())
+    clips = clip_paths(args.clips)
+    if not clips:
+        raise SystemExit(f"no clips in {args.clips} (a clips.json, or video files)")
     finders = sessions(args.face_models, args.threads)
     results = {}
-    for r in records:
-        max_frames = int(args.max_seconds * (r["fps"] or 25.0))
-        res = results[r["name"]] = run_clip(Path(r["path"]), finders, max_frames)
-        print(f"== {r['name']} ({r['package']} {r['version']}): {res['frames']} frames, "
+    for name, path in clips.items():
+        cap = cv2.VideoCapture(str(path))
+        fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+        cap.release()
+        max_frames = int(args.max_seconds * fps)
+        res = results[name] = run_clip(path, finders, max_frames)
+        print(f"== {name} ({path.name}): {res['frames']} frames, "
               f"{res['still_windows']} still windows")
         for name, m in res["models"].items():
             print(f"  {name:34s} faces {m['faces']:.3f}  aperture p1/50/99 "

@@ -147,7 +147,7 @@ def main() -> None:
     args = ap.parse_args()
     cv2.setNumThreads(1)
     rows = []
-    for name, s in peers.series_clips(args.series, args.only, LEFT_OUT):
+    for name, s in peers.series_clips(args.series, args.only, LEFT_OUT, clips=args.clips):
         rows.append(run_clip(name, s))
     if args.json:
         print(json.dumps({"command": " ".join(sys.argv), "clips": rows}, indent=1))

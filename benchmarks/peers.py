@@ -101,6 +101,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from common import CLIP_CACHE, clip_paths  # noqa: E402
 from face_landmarks_clips import box_motion, jitter, still_windows, window_frames  # noqa: E402
 from real_clips import enrol_speaker, outer_width_mm  # noqa: E402
 
@@ -112,7 +113,6 @@ from articast.core.tracking import kernels  # noqa: E402
 from articast.core.tracking.filters import OneEuroPolicy  # noqa: E402
 from articast.service.overlay import fit_tile, lip_contours  # noqa: E402
 
-CLIP_CACHE = Path.home() / ".cache/articast/clips"
 PEER_CACHE = Path.home() / ".cache/articast/peers"
 WIDTH = 640
 ENROL_FRACTION = 0.6
@@ -149,8 +149,15 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "reader_v2": LivePolicy(fusion=FusionPolicy(reader="v2")),
     "reader_v2_every_frame": LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1,
                                                             cadence=None)),
+    # issue 38: the reader read on every frame, its own lip gap the streamed opening
+    "gap": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, lip_gap=True)),
+    "gap_bias": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, lip_gap=True,
+                                               lip_gap_bias=0.05)),
+    "every_frame": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant (and --set)
+SPEAKERS: Path | None = None  # --speakers: the enrolments kept and reused
+OTHERS: Path | None = None  # --others: the methods not run, read from a --series run
 ENROL_BLEND = 0.0  # --enrol-blend: v1's share of the landmarks the speaker's model is built from
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
@@ -221,16 +228,53 @@ def lag(x: np.ndarray, ref: np.ndarray, max_lag: int = MAX_LAG) -> int | None:
     return best
 
 
+#: the model family of each method: one vote each in the judge. FaceMesh v1, mediapipe's
+#: FaceMesh and FaceLandmarker v2 are one family (v1 and mediapipe agree at r ~0.998), and
+#: articast reads with it.
+FAMILIES = {"articast": "facemesh", "facemesh_v1": "facemesh", "facelandmarker_v2": "facemesh",
+            "mediapipe": "facemesh", "openseeface": "openseeface", "dlib": "dlib"}
+READER_FAMILY = "facemesh"
+
+
+def judge(aps: dict[str, np.ndarray], method: str) -> np.ndarray:
+    """The independent judge of ``method``: per frame, the median of one vote per model family
+    outside articast's reader's family (FaceMesh) and outside ``method``'s own, each family's
+    vote the median of its members' series; NaN where no family has the frame. articast and
+    every FaceMesh-family method are thus scored against the same series (OpenSeeFace's and
+    dlib's)."""
+    own = FAMILIES.get(method, method)
+    votes = []
+    for fam in dict.fromkeys(FAMILIES.get(k, k) for k in aps):
+        if fam in (READER_FAMILY, own):
+            continue
+        members = np.array([v for k, v in aps.items() if FAMILIES.get(k, k) == fam])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            votes.append(np.nanmedian(members, 0))
+    n = len(next(iter(aps.values())))
+    if not votes:
+        return np.full(n, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(np.array(votes), 0)
+
+
 def score(aps: dict[str, np.ndarray], windows: list[slice]) -> dict[str, dict]:
-    """Consensus r, jitter and lag of every method's aperture series."""
+    """Every method's aperture series: r against the leave-one-out consensus and against the
+    independent judge (:func:`judge`), jitter, and lag (against the consensus; the
+    frame-to-frame changes' lag against the judge too)."""
     out = {}
     for name, ap in aps.items():
         cons = consensus(aps, leave_out=name)
         r, n = pearson(ap, cons)
+        ref = judge(aps, name)
+        jr, jn = pearson(ap, ref)
         out[name] = {"consensus_r": _round(r, 4), "consensus_n": n,
+                     "judge_r": _round(jr, 4), "judge_n": jn,
                      "jitter_pct_width": _round(jitter(ap, windows), 3),
                      "lag_frames": lag(ap, cons),
-                     "lag_velocity_frames": lag(np.diff(ap), np.diff(cons))}
+                     "lag_velocity_frames": lag(np.diff(ap), np.diff(cons)),
+                     "judge_lag_velocity_frames": lag(np.diff(ap), np.diff(ref))}
     return out
 
 
@@ -311,6 +355,36 @@ def against_best(aps: dict[str, np.ndarray], scores: dict[str, dict], windows: l
         if got is not None:
             out["jitter"] = {"peer": best, "gap": _round(got[0], 3),
                              "ci95": [_round(got[1], 3), _round(got[2], 3)]}
+    return out
+
+
+def against_reader(aps: dict[str, np.ndarray], scores: dict[str, dict], windows: list[slice],
+                   fps: float, method: str = "articast") -> dict:
+    """Issue 38's floor, under the independent judge (:func:`judge`, the same series for both
+    sides): ``method``'s r gap to its own reader (the FaceMesh v1 loop) and to the best
+    FaceMesh-family peer, each with its paired block-bootstrap interval; its jitter gap to the
+    reader; and the lag of its frame-to-frame changes behind the reader's own."""
+    if method not in aps:
+        return {}
+    ref = judge(aps, method)
+    block = max(2, int(round(BLOCK_S * fps)))
+    out: dict = {}
+    fam = {k: v["judge_r"] for k, v in scores.items()
+           if k != method and FAMILIES.get(k) == READER_FAMILY and v["judge_r"] is not None}
+    for key, peer in (("reader", BASELINE if BASELINE in fam else None),
+                      ("best_facemesh", max(fam, key=lambda k: fam[k]) if fam else None)):
+        if peer is None:
+            continue
+        got = gap_interval(aps[method], aps[peer], ref, ref, block)
+        if got is not None:
+            out[f"r_vs_{key}"] = {"peer": peer, "gap": _round(got[0], 4),
+                                  "ci95": [_round(got[1], 4), _round(got[2], 4)]}
+    if BASELINE in aps:
+        got = window_gap_interval(aps[method], aps[BASELINE], windows)
+        if got is not None:
+            out["jitter_vs_reader"] = {"gap": _round(got[0], 3),
+                                       "ci95": [_round(got[1], 3), _round(got[2], 3)]}
+        out["lag_velocity_vs_reader"] = lag(np.diff(aps[method]), np.diff(aps[BASELINE]))
     return out
 
 
@@ -478,16 +552,38 @@ class FinderLoop:
         return face
 
 
+def enrolled(name: str | None, make: Callable[[], Any], reader: str) -> Any:
+    """The speaker ``make`` enrols, kept in ``SPEAKERS``/<name> (``--speakers``) and loaded
+    from there on the next run: a live-policy experiment need not enrol again (the enrolment
+    does not depend on the live policy). Only the product's enrolment is kept (the v1
+    reader, no ``--enrol-blend``); the folder is the clip's name."""
+    folder = SPEAKERS / name if SPEAKERS is not None and name else None
+    if folder is None or reader != "v1" or ENROL_BLEND:
+        return make()
+    from articast.core.faces.speaker import Speaker
+
+    if (folder / "speaker.json").is_file():
+        try:
+            return Speaker.load(folder)
+        except Exception as e:  # noqa: BLE001 - a stale folder is enrolled again
+            log(f"  {name}: stored speaker not loaded ({type(e).__name__}: {e}), enrolling")
+    speaker = make()
+    folder.mkdir(parents=True, exist_ok=True)
+    speaker.save(folder)
+    return speaker
+
+
 def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
-                 times=None, build=None) -> dict:
+                 times=None, build=None, name: str | None = None) -> dict:
     """Enrol on ``enrol`` (already selected, taken at ``times``; ``build``: the enrolment's
-    BuildOptions, default its defaults), track ``held`` live."""
+    BuildOptions, default its defaults; ``name``: the clip's, for ``--speakers``), track
+    ``held`` live."""
     fu = (ARTICAST_POLICY or LivePolicy()).fusion
+    reader = fu.reader if fu is not None else "v1"
     try:
-        speaker = enrol_speaker(enrol, enrol_fps or fps, camera=camera, rig=rig,
-                                max_frames=None, times=times, build=build,
-                                reader=fu.reader if fu is not None else "v1",
-                                blend=ENROL_BLEND)
+        speaker = enrolled(name if build is None else None, lambda: enrol_speaker(
+            enrol, enrol_fps or fps, camera=camera, rig=rig, max_frames=None, times=times,
+            build=build, reader=reader, blend=ENROL_BLEND), reader)
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
     kernels.warm_up()  # numba's compilation: once per process, not a session's
@@ -700,15 +796,17 @@ def read_series(path: Path) -> dict:
 
 
 def series_clips(series: Path, only: Sequence[str] | None,
-                 left_out: Sequence[str] = ("articast",)) -> list[tuple[str, dict]]:
+                 left_out: Sequence[str] = ("articast",), clips: Path = CLIP_CACHE
+                 ) -> list[tuple[str, dict]]:
     """The clips of a ``--series`` directory a script can rerun articast on: every clip in it
     (or ``only``) that is fetched (or synthetic), whose series hold articast's and at least
-    two methods besides ``left_out``; (name, :func:`read_series`), the others logged as
-    skipped. A missing directory is one line (SystemExit)."""
+    two methods besides ``left_out``; (name, :func:`read_series` with the clip's ``path``),
+    the others logged as skipped. ``clips``: the clips folder (:func:`common.clip_paths`). A
+    missing directory is one line (SystemExit)."""
     if not series.is_dir():
         raise SystemExit(f"no series directory {series}: run benchmarks/peers.py --series "
                          f"{series} first")
-    fetched = clip_paths(CLIP_CACHE)
+    fetched = clip_paths(clips)
     out = []
     for name in only or sorted(p.stem for p in series.glob("*.npz")):
         path = series / f"{name}.npz"
@@ -716,6 +814,7 @@ def series_clips(series: Path, only: Sequence[str] | None,
             log(f"{name}: skipped (no series in {series} or clip not fetched)")
             continue
         s = read_series(path)
+        s["path"] = fetched.get(name)
         if "articast" not in s["ratio"] or len(set(s["ratio"]) - set(left_out)) < 2:
             log(f"{name}: skipped (fewer than two other methods in its series)")
             continue
@@ -823,6 +922,9 @@ def series_parser(doc: str) -> argparse.ArgumentParser:
                     help="a peers.py --series directory (the other methods' series)")
     ap.add_argument("--only", nargs="*", help="these clips (default: every clip in --series "
                                               "that is fetched, and synthetic)")
+    ap.add_argument("--clips", type=Path, default=CLIP_CACHE,
+                    help=f"the clips folder: a clips.json, or every video in it (default "
+                         f"{CLIP_CACHE})")
     return ap
 
 
@@ -836,7 +938,7 @@ def series_clip(name: str, series: dict, left_out: Sequence[str] = ("articast",)
         enrol, held, fps = clip["enrol"], clip["held"], 50.0
         kw: dict = {"camera": clip["camera"], "enrol_fps": 12.0}
     else:
-        enrol, held, fps, _, times = read_clip(clip_paths(CLIP_CACHE)[name])
+        enrol, held, fps, _, times = read_clip(series["path"])
         kw = {"times": times}
     others = {k: v for k, v in series["ratio"].items() if k not in left_out}
     if len(next(iter(others.values()), [])) != len(held):
@@ -895,7 +997,8 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
     pair = {a: {b: _round(pearson(aps[a], aps[b])[0], 3) for b in aps if b != a} for a in aps}
     out = {"clip": name, "fps": round(fps, 3), "held_out_frames": len(held),
            "still_windows": len(windows), "methods": rows, "pairwise_r": pair,
-           "articast_vs_best": against_best(aps, scores, windows, fps)}
+           "articast_vs_best": against_best(aps, scores, windows, fps),
+           "articast_vs_reader": against_reader(aps, scores, windows, fps)}
     if truth is not None:
         out["consensus_vs_truth"] = consensus_validity(rows)
     return out
@@ -951,11 +1054,36 @@ def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict
                         **({"truth": truth} if truth is not None else {}))
 
 
+def stored_runs(others: Path | None, name: str, n: int, methods: Sequence[str]
+                ) -> dict[str, dict]:
+    """The methods of ``others``/<name>.npz (a ``--series`` run's) that ``methods`` does not
+    run again, as runs with their stored aperture ratio and lip boxes (no timings): articast
+    scored against peers run once (``--others``). Empty without ``others``; SystemExit when
+    its series does not match the clip's ``n`` held-out frames."""
+    if others is None:
+        return {}
+    path = others / f"{name}.npz"
+    if not path.is_file():
+        raise SystemExit(f"{name}: no series in {others}: run peers.py --series {others} first")
+    s = read_series(path)
+    out = {}
+    for (k, ratio), box in zip(s["ratio"].items(), s["boxes"], strict=True):
+        if k in methods:
+            continue
+        if len(ratio) != n:
+            raise SystemExit(f"{name}: {path} holds {len(ratio)} frames, the clip {n}")
+        out[k] = {"ratio": ratio, "boxes": box, "found": np.isfinite(ratio), "ms": None,
+                  "cpu_ms": None}
+    return out
+
+
 def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | None,
              series: Path | None = None) -> dict:
     log(f"{name}: reading {path.name}")
     enrol, held, fps, n, times = read_clip(path)
-    runs = run_methods(methods, held, fps, enrol, facemesh_v1, peers, {"times": times})
+    runs = run_methods(methods, held, fps, enrol, facemesh_v1, peers,
+                       {"times": times, "name": name})
+    runs.update(stored_runs(OTHERS, name, len(held), methods))
     save_series(series, name, fps, runs)
     row = evaluate(name, held, fps, runs)
     row.update({"frames": n, "size": list(held[0].shape[1::-1]) if held else None,
@@ -997,7 +1125,8 @@ def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | Non
     enrol_imgs, held, truth = clip["enrol"], clip["held"], clip["truth"]
     ap_true, width_true = clip["aperture_mm"], clip["width_mm"]
     runs = run_methods(methods, held, 50.0, enrol_imgs, facemesh_v1, peers,
-                       {"camera": clip["camera"], "enrol_fps": 12.0})
+                       {"camera": clip["camera"], "enrol_fps": 12.0, "name": "synthetic"})
+    runs.update(stored_runs(OTHERS, "synthetic", len(held), methods))
     save_series(series, "synthetic", 50.0, runs, truth)
     row = evaluate("synthetic", held, 50.0, runs, truth=truth)
     a = runs.get("articast", {})
@@ -1014,6 +1143,7 @@ def run_synthetic(methods, facemesh_v1, peers, seed: int = 0, series: Path | Non
 
 # ---------------------------------------------------------------------------- output
 COLUMNS = (("found / ok", lambda r: r.get("ok", r.get("found"))),
+           ("r judge (n)", lambda r: f"{_fmt(r.get('judge_r'))} ({r.get('judge_n')})"),
            ("r consensus (n)", lambda r: f"{_fmt(r['consensus_r'])} ({r['consensus_n']})"),
            ("jitter % width", lambda r: r["jitter_pct_width"]),
            ("lag (velocity)", lambda r: f"{_fmt(r['lag_frames'])} "
@@ -1037,7 +1167,9 @@ def _fmt(x) -> str:
     return "–" if x is None else str(x)
 
 
-SUMMARY = (("r against the consensus of the others", "consensus_r"),
+SUMMARY = (("r against the independent judge (one vote per family outside FaceMesh's and the "
+            "method's own)", "judge_r"),
+           ("r against the consensus of the others", "consensus_r"),
            ("still-mouth jitter, % of the outer lip width", "jitter_pct_width"),
            ("lag, frames (positive: late; ±5: no peak in the range)", "lag_frames"),
            ("lag of the frame-to-frame changes, frames", "lag_velocity_frames"),
@@ -1107,6 +1239,18 @@ def markdown(rows: list[dict], load: dict) -> str:
                 g = vs[key]
                 lines.append(f"articast - best peer ({g['peer']}), {what}: {g['gap']} "
                              f"({g['ci95'][0]} .. {g['ci95'][1]})")
+        rd = row.get("articast_vs_reader") or {}
+        for key, what in (("r_vs_reader", "its reader"), ("r_vs_best_facemesh",
+                                                          "the best FaceMesh-family peer")):
+            if key in rd:
+                g = rd[key]
+                lines.append(f"articast - {what} ({g['peer']}), r against the judge: "
+                             f"{g['gap']} ({g['ci95'][0]} .. {g['ci95'][1]})")
+        if "jitter_vs_reader" in rd:
+            g = rd["jitter_vs_reader"]
+            lines.append(f"articast - its reader, jitter: {g['gap']} ({g['ci95'][0]} .. "
+                         f"{g['ci95'][1]}); lag of the changes behind the reader: "
+                         f"{rd.get('lag_velocity_vs_reader')}")
         names = list(row["pairwise_r"])
         if names:
             lines += ["", "pairwise r: | " + " | ".join(names) + " |",
@@ -1119,18 +1263,13 @@ def markdown(rows: list[dict], load: dict) -> str:
     return "\n".join(lines)
 
 
-def clip_paths(cache: Path) -> dict[str, Path]:
-    meta = cache / "clips.json"
-    if not meta.is_file():
-        return {}
-    return {r["name"]: Path(r["path"]) for r in json.loads(meta.read_text())}
-
-
 def main(argv: list[str] | None = None) -> None:
     global CPU_REPEATS, CPU_CHUNK
     clips = clip_paths(CLIP_CACHE)
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--clips", type=Path, default=CLIP_CACHE)
+    ap.add_argument("--clips", type=Path, default=CLIP_CACHE,
+                    help="the clips folder: its clips.json (tools/fetch_real_clips.py), or "
+                         f"every video file in it, by name (default {CLIP_CACHE})")
     ap.add_argument("--peers", type=Path, default=PEER_CACHE,
                     help="the peers' cache made by benchmarks/setup_peers.py")
     ap.add_argument("--facemesh-v1", type=Path, default=models_dir() / "face_landmarks_v1.onnx",
@@ -1143,6 +1282,15 @@ def main(argv: list[str] | None = None) -> None:
                     help="write an overlay grid of every frame articast marks occluded here")
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-method aperture ratio and lip box series here")
+    ap.add_argument("--others", type=Path,
+                    help="a --series directory of an earlier run: the methods not named by "
+                         "--methods are read from it instead of run (articast's variants "
+                         "scored against the same peers' series; no timings for those)")
+    ap.add_argument("--speakers", type=Path,
+                    help="keep each clip's enrolment here (a speaker folder per clip) and "
+                         "reuse it on the next run: live-policy experiments without enrolling "
+                         "again (only the product's enrolment: not with --enrol-blend or a "
+                         "v2-reader variant)")
     add_articast_options(ap)
     ap.add_argument("--cpu-repeats", type=int, default=CPU_REPEATS,
                     help="passes of articast and the FaceMesh v1 loop interleaved on the "
@@ -1156,6 +1304,8 @@ def main(argv: list[str] | None = None) -> None:
         ap.error("--cpu-repeats must be >= 0 and --cpu-chunk >= 1")
     use_articast_options(args)
     CPU_REPEATS, CPU_CHUNK = args.cpu_repeats, args.cpu_chunk
+    global SPEAKERS, OTHERS
+    SPEAKERS, OTHERS = args.speakers, args.others
     cv2.setNumThreads(1)  # one thread: OpenCV's own pool would otherwise use every core
     clips = clip_paths(args.clips)
     names = args.only or [*clips, "synthetic"]
@@ -1172,7 +1322,8 @@ def main(argv: list[str] | None = None) -> None:
             rows.append(run_real(name, clips[name], args.methods, args.facemesh_v1, peers,
                                  args.grid, args.series))
         else:
-            sys.exit(f"{name}: not in {args.clips}/clips.json: run tools/fetch_real_clips.py")
+            sys.exit(f"{name}: no such clip in {args.clips} (clips there: "
+                     f"{' '.join(clips) or 'none'})")
         rows[-1]["load_average_at_start"] = at
     load["end"] = [round(x, 2) for x in os.getloadavg()]
     if args.json:

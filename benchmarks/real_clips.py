@@ -171,17 +171,18 @@ def track_live(speaker: Speaker, frames: list[np.ndarray], fps: float, *,
 
 
 def cost_over_lips(speaker: Speaker, frames: list[np.ndarray], fps: float,
-                   repeats: int = 3, first: float | None = None) -> dict:
+                   repeats: int = 3, first: float | None = None, policy=None) -> dict:
     """What the upper face costs a frame, all of it (its step, the frames read for the eyes,
     their fits), in the same run: the CPU ms per frame of the live tracker less that of the
     same tracker without the speaker's upper-face references (no eyes measured, none read
     for), the median over ``repeats`` interleaved pairs of runs, and their range. ``first``:
-    a run with the upper face already made (its CPU ms per frame), used as the first pair's."""
+    a run with the upper face already made (its CPU ms per frame), used as the first pair's.
+    ``policy``: the live policy (default the product's)."""
     kernels.warm_up()
     lips_only = replace(speaker, upper=None)
 
     def cpu_ms(sp: Speaker) -> float:
-        live = LiveTracker(sp, FaceFinder.load(threads=1), mediapipe_scheme(sp.rig))
+        live = LiveTracker(sp, FaceFinder.load(threads=1), mediapipe_scheme(sp.rig), policy)
         c0 = time.process_time()
         for i, f in enumerate(frames):
             live.track(f, i / fps)

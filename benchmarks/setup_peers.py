@@ -24,10 +24,9 @@ venv of its own, and ``<cache>/peers.json`` says what is there (or why a peer is
   (the one fetched for this benchmark had only ``lm_model0_opt.onnx``, not the default
   ``lm_model3_opt.onnx``): the best present is used, higher numbers being better and slower
   (``MODEL_ORDER``), and ``peers.json`` names it.
-- **FaceMesh v1** (468 points, ONNX) is not set up here: ``tools/convert_face_models.py
-  --with-v1`` converts it into ``~/.cache/articast/face-models`` (its own tools venv:
-  ``pip install tensorflow-cpu==2.21.0 tf2onnx==1.17.0``); this script only checks that it
-  is there.
+- **FaceMesh v1** (468 points, ONNX) ships with articast (``core/faces/models``, the live
+  reader), which ``peers.py`` runs; this script checks that it is there (else a conversion by
+  ``tools/convert_face_models.py --with-v1`` in ``~/.cache/articast/face-models``).
 """
 
 from __future__ import annotations
@@ -161,7 +160,13 @@ def setup_openseeface(cache: Path, args) -> dict:
 
 
 def check_facemesh_v1(cache: Path, args) -> dict:
-    path = FACE_MODELS / "face_landmarks_v1.onnx"
+    """FaceMesh v1 as ``peers.py`` runs it: the bundled model (articast's live reader), else a
+    converted one in the face-models cache."""
+    from articast.core.faces.finder import models_dir
+
+    path = models_dir() / "face_landmarks_v1.onnx"
+    if not path.is_file():
+        path = FACE_MODELS / "face_landmarks_v1.onnx"
     if not path.is_file():
         raise SystemExit(f"{path} missing: run tools/convert_face_models.py --with-v1 "
                          "(in a venv with tensorflow-cpu==2.21.0 tf2onnx==1.17.0)")

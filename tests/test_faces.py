@@ -12,6 +12,7 @@ import pytest
 
 from articast.core.errors import InputError
 from articast.core.faces.canonical import canonical_face
+from articast.core.faces.detector import DetectorPolicy
 from articast.core.faces.finder import Face, FaceFinder, FinderPolicy
 from articast.core.synthetic import RenderOptions, default_speaker, make_sequence
 
@@ -63,6 +64,26 @@ def test_detector_finds_exactly_one_face_on_a_desk_render(finder, desk):
         assert x0 < mouth[0] < x1 and y0 < mouth[1] < y1
         # keypoint 3 is the mouth centre
         assert np.linalg.norm(found[0].keypoints[3] - mouth) < 0.15 * (x1 - x0)
+
+
+def test_a_face_small_in_a_wide_frame_is_found_in_tiles(finder, desk):
+    """A speaker at a lectern in a wide shot: the face a sixth of the frame's width, too small
+    for the detector's 128 px view of the whole frame; the tiles find it, where it is."""
+    image, truth = desk[0]
+    small = cv2.resize(image, (320, 240), interpolation=cv2.INTER_AREA)
+    wide = np.full((720, 1280, 3), 90, np.uint8)
+    x, y = 700, 300
+    wide[y:y + 240, x:x + 320] = small
+    mouth = (truth["8.3"] + truth["8.4"]) / 4 + [x, y]
+    untiled = FaceFinder.load(policy=FinderPolicy(detector=DetectorPolicy(tiles=None)))
+    assert untiled.detect(wide) == []  # the whole frame alone: too small
+    found = finder.detect(wide)
+    assert len(found) == 1
+    x0, y0, x1, y1 = found[0].box
+    assert x0 < mouth[0] < x1 and y0 < mouth[1] < y1
+    face = finder.find(wide)
+    assert face is not None
+    assert np.linalg.norm(face.landmarks[61, :2] - truth["8.4"] / 2 - [x, y]) < 4
 
 
 @pytest.mark.parametrize("kind", ["noise", "blank", "grey"])

@@ -239,3 +239,61 @@ def test_set_changes_one_field_of_the_live_policy_and_refuses_what_is_not_one():
             peers.policy_with(None, [bad])
     with pytest.raises(ValueError, match="without fusion"):
         peers.policy_with(LivePolicy(fusion=None), ["read_every=2"])
+
+
+def test_the_judge_gives_each_family_outside_facemesh_one_vote():
+    """articast and every FaceMesh-family method are scored against the same series, made of
+    the other families only (one vote each, however many members); a method of another family
+    is not its own judge."""
+    n = 5
+    osf = np.array([1.0, 2.0, 3.0, np.nan, np.nan])
+    dl = np.array([3.0, 4.0, 5.0, 7.0, np.nan])
+    fm = {k: np.full(n, 100.0) for k in ("articast", "facemesh_v1", "facelandmarker_v2",
+                                         "mediapipe")}
+    aps = {**fm, "openseeface": osf, "dlib": dl}
+    for k in fm:  # the FaceMesh family never votes, for any of its members
+        np.testing.assert_allclose(peers.judge(aps, k)[:4], [2.0, 3.0, 4.0, 7.0])
+        assert np.isnan(peers.judge(aps, k)[4])
+    np.testing.assert_allclose(peers.judge(aps, "openseeface")[:4], dl[:4])  # dlib alone
+    np.testing.assert_allclose(peers.judge(aps, "dlib")[:3], osf[:3])
+    # a second member of a family does not give the family a second vote
+    two = {**aps, "dlib_2": np.array([3.0, 4.0, 5.0, 7.0, np.nan])}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setitem(peers.FAMILIES, "dlib_2", "dlib")
+        np.testing.assert_allclose(peers.judge(two, "articast")[:3], [2.0, 3.0, 4.0])
+
+
+def test_against_reader_scores_articast_and_its_reader_on_the_same_judge():
+    rng = np.random.default_rng(4)
+    n = 500
+    truth = np.convolve(rng.normal(size=n), np.ones(8) / 8, mode="same")
+    aps = {"articast": truth + 0.02 * rng.normal(size=n),
+           "facemesh_v1": truth + 0.2 * rng.normal(size=n),  # the reader, noisier
+           "facelandmarker_v2": truth + 0.1 * rng.normal(size=n),
+           "openseeface": truth + 0.05 * rng.normal(size=n),
+           "dlib": truth + 0.05 * rng.normal(size=n)}
+    windows = [slice(s, s + 10) for s in range(0, n - 10, 40)]
+    scores = peers.score(aps, windows)
+    got = peers.against_reader(aps, scores, windows, fps=25.0)
+    assert got["r_vs_reader"]["peer"] == "facemesh_v1"
+    assert got["r_vs_reader"]["ci95"][0] > 0  # better than its reader, beyond the sampling
+    assert got["r_vs_best_facemesh"]["peer"] == "facelandmarker_v2"
+    assert got["jitter_vs_reader"]["gap"] < 0
+    assert got["lag_velocity_vs_reader"] == 0
+    late = {**aps, "articast": np.roll(aps["facemesh_v1"], 2)}  # the reader two frames late
+    assert peers.against_reader(late, peers.score(late, windows), windows, 25.0)[
+        "lag_velocity_vs_reader"] == 2
+
+
+def test_a_clips_folder_is_read_as_it_is(tmp_path):
+    """--clips takes ../shared/clips as it is: every video file by its stem, no list."""
+    import common
+
+    for name in ("b.mp4", "a.MOV", "notes.md", "c.txt", "d.y4m"):
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / "sub.mp4").mkdir()
+    got = common.clip_paths(tmp_path)
+    assert list(got) == ["a", "b", "d"] and got["a"] == tmp_path / "a.MOV"
+    assert common.clip_paths(tmp_path / "missing") == {}
+    (tmp_path / "clips.json").write_text('[{"name": "x", "path": "/somewhere/x.mp4"}]')
+    assert common.clip_paths(tmp_path) == {"x": Path("/somewhere/x.mp4")}  # a fetched cache

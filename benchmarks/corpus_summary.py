@@ -1,0 +1,148 @@
+"""Issue 38's figures from ``benchmarks/peers.py --json`` runs: every clip, by half of the people.
+
+    python benchmarks/peers.py --json --series DIR > run.json     # a run (any variant)
+    python benchmarks/corpus_summary.py run.json [other.json ...] [--half A|B] [--json]
+
+Per clip (the held-out 40 %): articast's live lip aperture r against the independent judge
+(``peers.judge``: one vote per family outside FaceMesh's — OpenSeeFace, dlib), its reader's
+(the FaceMesh v1 loop) and the best FaceMesh-family peer's against the same judge, the gaps with
+their paired 95 % block-bootstrap intervals (``peers.against_reader``): *not worse* when the
+interval reaches zero, *better* when its lower bound is above zero; still-mouth jitter against
+the reader's, with its interval; the lag of articast's frame-to-frame changes behind the
+reader's own and behind the judge's; the best single peer of any family (by its own judge
+r, which for a FaceMesh-family peer is the same judge as articast's). ``synthetic`` (the
+rendered speaker) keeps its truth r.
+
+Pooled, per half of the people (``benchmarks/people.py``) and over all: the mean gap to the
+reader over clips, and its 95 % interval by a bootstrap over *people* (a person's clips drawn
+together), the count of clips worse / not worse / better. Several runs: one block each, in
+the order given (e.g. the current design, then a variant).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from people import half, person  # noqa: E402
+
+
+def verdict(g: dict | None) -> str:
+    if not g:
+        return "–"
+    lo, hi = g["ci95"]
+    if lo is None or hi is None:
+        return "?"
+    return "better" if lo > 0 else ("worse" if hi < 0 else "not worse")
+
+
+def clip_row(c: dict) -> dict:
+    m = c["methods"]
+    a = m.get("articast", {})
+    rd = c.get("articast_vs_reader") or {}
+    peers = {k: v for k, v in m.items() if k != "articast" and v.get("judge_r") is not None}
+    best = max(peers, key=lambda k: peers[k]["judge_r"]) if peers else None
+    return {"clip": c["clip"], "half": half(c["clip"]) if c["clip"] != "synthetic" else "-",
+            "person": person(c["clip"]), "frames": c["held_out_frames"],
+            "ok": a.get("ok"), "occluded": len(a.get("occluded_frames") or []),
+            "articast": a.get("judge_r"), "reader": m.get("facemesh_v1", {}).get("judge_r"),
+            "gap_reader": rd.get("r_vs_reader"), "gap_family": rd.get("r_vs_best_facemesh"),
+            "jitter": a.get("jitter_pct_width"),
+            "reader_jitter": m.get("facemesh_v1", {}).get("jitter_pct_width"),
+            "jitter_gap": rd.get("jitter_vs_reader"),
+            "lag_vs_reader": rd.get("lag_velocity_vs_reader"),
+            "lag_vs_judge": a.get("judge_lag_velocity_frames"),
+            "best_peer": best, "best_peer_r": peers[best]["judge_r"] if best else None,
+            "consensus_r": a.get("consensus_r"), "truth_r": a.get("truth_r"),
+            "reader_truth_r": m.get("facemesh_v1", {}).get("truth_r")}
+
+
+def pooled(rows: list[dict], key: str = "gap_reader", resamples: int = 2000,
+           seed: int = 0) -> dict:
+    """Mean gap over the clips and its 95 % interval, people resampled."""
+    got = [(r["person"], r[key]["gap"]) for r in rows if r.get(key)]
+    if not got:
+        return {}
+    by: dict[str, list[float]] = {}
+    for p, g in got:
+        by.setdefault(p, []).append(g)
+    people = list(by)
+    rng = np.random.default_rng(seed)
+    means = []
+    for _ in range(resamples):
+        pick = rng.integers(0, len(people), len(people))
+        vals = [g for i in pick for g in by[people[i]]]
+        means.append(float(np.mean(vals)))
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    verdicts = [verdict(r[key]) for r in rows if r.get(key)]
+    return {"mean": round(float(np.mean([g for _, g in got])), 4),
+            "ci95": [round(float(lo), 4), round(float(hi), 4)], "clips": len(got),
+            "people": len(people), **{v: verdicts.count(v)
+                                      for v in ("worse", "not worse", "better")}}
+
+
+def _f(x, nd=3) -> str:
+    return "–" if x is None else (f"{x:.{nd}f}" if isinstance(x, float) else str(x))
+
+
+def _g(g: dict | None) -> str:
+    if not g:
+        return "–"
+    return f"{g['gap']:+.3f} ({g['ci95'][0]:+.3f}..{g['ci95'][1]:+.3f}) {verdict(g)}"
+
+
+def markdown(run: dict, rows: list[dict], pools: dict) -> str:
+    head = ("| clip | half | ok | articast r | reader r | gap to reader (95 %) | gap to best "
+            "FaceMesh (95 %) | best peer (r) | jitter (reader) | lag vs reader / judge | "
+            "occluded | truth r (reader) |")
+    out = [f"command: `{run.get('command')}`, variant {run.get('variant')}, offline "
+           f"{run.get('offline')}, load {run.get('load_average')}", "", head,
+           "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        out.append(f"| {r['clip']} | {r['half']} | {_f(r['ok'])} | {_f(r['articast'])} | "
+                   f"{_f(r['reader'])} | {_g(r['gap_reader'])} | {_g(r['gap_family'])} | "
+                   f"{r['best_peer']} ({_f(r['best_peer_r'])}) | {_f(r['jitter'])} "
+                   f"({_f(r['reader_jitter'])}) | {_f(r['lag_vs_reader'])} / "
+                   f"{_f(r['lag_vs_judge'])} | {r['occluded']} | {_f(r['truth_r'])} "
+                   f"({_f(r['reader_truth_r'])}) |")
+    out.append("")
+    for name, p in pools.items():
+        if p:
+            out.append(f"pooled {name}: mean gap to the reader {p['mean']:+.4f} "
+                       f"({p['ci95'][0]:+.4f}..{p['ci95'][1]:+.4f}, people resampled), "
+                       f"{p['clips']} clips of {p['people']} people: worse {p['worse']}, "
+                       f"not worse {p['not worse']}, better {p['better']}")
+    return "\n".join(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--half", choices=["A", "B"], help="only the clips of this half")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args()
+    out = []
+    for path in args.runs:
+        run = json.loads(path.read_text())
+        rows = [clip_row(c) for c in run["clips"]]
+        if args.half:
+            rows = [r for r in rows if r["half"] in (args.half, "-")]
+        real = [r for r in rows if r["clip"] != "synthetic"]
+        pools = {h: pooled([r for r in real if r["half"] == h]) for h in ("A", "B")}
+        pools["all"] = pooled(real)
+        if args.json:
+            out.append({"run": str(path), "rows": rows, "pooled": pools})
+        else:
+            print(f"## {path}\n\n{markdown(run, rows, pools)}\n")
+    if args.json:
+        print(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
