@@ -101,7 +101,7 @@ sun.position.set(-0.5, 1.0, 2.0);
 scene.add(sun);
 const loader = new GLTFLoader();
 loader.register((parser) => new VRMLoaderPlugin(parser));
-let vrm = null, perfectSync = false, faceMesh = null, vowels = null, clock = new THREE.Clock();
+let vrm = null, perfectSync = false, faceMesh = null, vowels = null, lastUpdate = performance.now();
 
 function frameHead() { // the camera in front of the face, looking at the eyes
   const head = vrm.humanoid.getNormalizedBoneNode("head");
@@ -165,7 +165,8 @@ function apply(f) {
       head.quaternion.setFromAxisAngle(th > 1e-12 ? r.divideScalar(th) : new THREE.Vector3(0, 1, 0), th);
     } else if (!$("headpose").checked) head.quaternion.identity();
   }
-  vrm.update(clock.getDelta());
+  const t = performance.now();
+  vrm.update(Math.min(0.1, (t - lastUpdate) / 1000)); lastUpdate = t;
   const morph = {};
   if (faceMesh) for (const [n, i] of Object.entries(faceMesh.morphTargetDictionary)) morph[n] = faceMesh.morphTargetInfluences[i];
   const expr = {};
