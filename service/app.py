@@ -730,6 +730,29 @@ def create_app(config: ServiceConfig | None = None,
         return Response(body, media_type="application/json",
                         headers={"Cache-Control": "no-store"})
 
+    @app.get("/api/sessions/{name}/vrm")
+    def speaker_vrm(name: str, request: Request) -> Response:
+        """The speaker's face as a VRM 1.0 avatar (service/vrm.py): token, no-store, as the
+        delegate."""
+        authorise(request)
+        session = svc.manager.sessions.get(name)
+        if session is None:
+            raise HTTPException(404, f"no session {name!r} on this server")
+        if not config.delegates:
+            raise HTTPException(404, "this server serves no delegate (--no-delegate)")
+        desc = session.description
+        path = session.delegate_file() if desc is not None else None
+        if desc is None or path is None:
+            raise HTTPException(404, f"session {name!r} has no delegate to make a VRM of")
+        from articast.service.vrm import vrm_bytes
+
+        try:
+            body = vrm_bytes(path, desc)
+        except ArticastError as exc:
+            raise HTTPException(404, str(exc)) from None
+        return Response(body, media_type="model/gltf-binary",
+                        headers={"Cache-Control": "no-store"})
+
     from articast.service.scan import ScanAsset
 
     scan = ScanAsset(config.server.scan) if config.server.scan else None

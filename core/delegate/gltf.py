@@ -90,10 +90,13 @@ class _Bin:
         return len(self.accessors) - 1
 
 
-def to_glb(mesh: DelegateMesh, param_names: tuple[str, ...], texture: np.ndarray | None = None,
-           arkit: dict[str, np.ndarray] | None = None, name: str = "speaker") -> bytes:
-    """The glTF 2.0 binary of ``mesh`` (module docstring). texture : (S, S, 3) uint8 BGR or
-    None (untextured, skin-coloured); arkit : extra named targets, (V, 3) mm each."""
+def mesh_document(mesh: DelegateMesh, param_names: tuple[str, ...],
+                  texture: np.ndarray | None = None, arkit: dict[str, np.ndarray] | None = None,
+                  name: str = "speaker", unlit: bool = False) -> tuple[dict, _Bin]:
+    """The glTF document (one node ``0`` holding mesh ``0``) and its binary buffer, not yet
+    packed: :func:`to_glb` packs it as is, :mod:`~articast.core.delegate.vrm` adds a skeleton
+    and the VRM extension first. unlit : the texture shown as it is (``KHR_materials_unlit``:
+    the texture already carries the enrolment's lighting)."""
     if len(param_names) != mesh.modes.shape[0]:
         raise InputError(f"{len(param_names)} names for {mesh.modes.shape[0]} modes")
     b = _Bin()
@@ -115,9 +118,13 @@ def to_glb(mesh: DelegateMesh, param_names: tuple[str, ...], texture: np.ndarray
                for d in shapes]
     material: dict = {"name": f"{name} skin", "pbrMetallicRoughness": {
         "metallicFactor": 0.0, "roughnessFactor": 0.85}}
+    if unlit:
+        material["extensions"] = {"KHR_materials_unlit": {}}
     doc: dict = {"asset": {"version": "2.0", "generator": "articast export-gltf"},
                  "scene": 0, "scenes": [{"nodes": [0]}],
                  "nodes": [{"name": name, "mesh": 0}]}
+    if unlit:
+        doc["extensionsUsed"] = ["KHR_materials_unlit"]
     if texture is not None:
         ok, png = cv2.imencode(".png", np.ascontiguousarray(texture))
         if not ok:
@@ -134,8 +141,12 @@ def to_glb(mesh: DelegateMesh, param_names: tuple[str, ...], texture: np.ndarray
                                                     "material": 0, "mode": 4,
                                                     "targets": targets}],
                       "weights": [0.0] * len(targets), "extras": {"targetNames": names}}]
-    doc["accessors"] = b.accessors
-    doc["bufferViews"] = b.views
+    return doc, b
+
+
+def pack_glb(doc: dict, b: _Bin) -> bytes:
+    """``doc`` and its buffer as one glTF 2.0 binary (``.glb``)."""
+    doc = {**doc, "accessors": b.accessors, "bufferViews": b.views}
     while len(b.data) % 4:
         b.data.append(0)
     doc["buffers"] = [{"byteLength": len(b.data)}]
@@ -145,3 +156,10 @@ def to_glb(mesh: DelegateMesh, param_names: tuple[str, ...], texture: np.ndarray
     return b"".join([struct.pack("<4sII", b"glTF", 2, total),
                      struct.pack("<I4s", len(js), b"JSON"), js,
                      struct.pack("<I4s", len(b.data), b"BIN\x00"), bytes(b.data)])
+
+
+def to_glb(mesh: DelegateMesh, param_names: tuple[str, ...], texture: np.ndarray | None = None,
+           arkit: dict[str, np.ndarray] | None = None, name: str = "speaker") -> bytes:
+    """The glTF 2.0 binary of ``mesh`` (module docstring). texture : (S, S, 3) uint8 BGR or
+    None (untextured, skin-coloured); arkit : extra named targets, (V, 3) mm each."""
+    return pack_glb(*mesh_document(mesh, param_names, texture, arkit, name))

@@ -1,5 +1,6 @@
-"""``articast delegate`` (the speaker's textured 3D face, made from their clip) and
-``articast export-gltf`` (that face as a glTF 2.0 binary with one morph target per parameter)."""
+"""``articast delegate`` (the speaker's textured 3D face, made from their clip),
+``articast export-gltf`` (that face as a glTF 2.0 binary with one morph target per parameter)
+and ``articast export-vrm`` (that face as a VRM 1.0 avatar)."""
 
 from __future__ import annotations
 
@@ -73,6 +74,35 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="morph targets for the articulatory parameters only")
     ex.add_argument("--json", action="store_true", help="print what was written as JSON")
     ex.set_defaults(func=_export)
+
+    vr = sub.add_parser(
+        "export-vrm",
+        help="export the speaker's face as a VRM 1.0 avatar (.vrm) for VRM apps",
+        description=(
+            "Write the speaker's face as a VRM 1.0 avatar (a glTF 2.0 binary with the VRMC_vrm "
+            "extension) that VRM apps and three-vrm load: the delegate's textured face on a "
+            "humanoid skeleton (the required bones, no body geometry), with the VRM "
+            "expressions an app drives (aa ih ou ee oh, blink blinkLeft blinkRight, lookUp "
+            "lookDown lookLeft lookRight, neutral), look-at by expression, and the 52 ARKit "
+            "blendshapes as custom expressions ('perfect sync'), each a morph target made "
+            "from the speaker's own model. A face is personal data: the file's licence lets "
+            "only its author use it as an avatar (meta.avatarPermission onlyAuthor), no "
+            "redistribution. The browser page /avatar/vrm.html drives it live. "
+            "Example: articast export-vrm me/ -o me.vrm"
+        ),
+    )
+    vr.add_argument("speaker", type=Path, metavar="SPEAKER_DIR",
+                    help="speaker folder from 'articast enroll'")
+    vr.add_argument("-o", "--output", type=Path, required=True, help="the .vrm file to write")
+    vr.add_argument("--name", help="the avatar's name (default: the speaker's)")
+    vr.add_argument("--author", action="append", default=[],
+                    help="an author named in the file's meta (repeatable; default: the name)")
+    vr.add_argument("--no-texture", action="store_true",
+                    help="leave the texture out (a face picture) even when there is one")
+    vr.add_argument("--no-arkit", action="store_true",
+                    help="no perfect-sync custom expressions: the VRM presets only")
+    vr.add_argument("--json", action="store_true", help="print what was written as JSON")
+    vr.set_defaults(func=_export_vrm)
 
 
 def read_clip(video: Path, span, max_frames: int) -> tuple[list[np.ndarray], np.ndarray]:
@@ -148,15 +178,16 @@ def _delegate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _export(args: argparse.Namespace) -> int:
+def _face(args: argparse.Namespace, command: str, suffix: str):
+    """(speaker, mesh, texture or None) of the speaker folder ``args.speaker``: the delegate's
+    when the folder has one, else the untextured fitted mesh (said on stderr)."""
     from articast.core.delegate.build import DELEGATE_FILE, Delegate
     from articast.core.delegate.geometry import fit_mesh
-    from articast.core.delegate.gltf import arkit_targets, to_glb
     from articast.core.faces.speaker import Speaker
 
     speaker = Speaker.load(args.speaker)
     if args.output.is_dir():
-        raise InputError(f"{args.output}: is a folder; give the .glb file to write")
+        raise InputError(f"{args.output}: is a folder; give the {suffix} file to write")
     path = args.speaker / DELEGATE_FILE
     texture = None
     if path.is_file():
@@ -170,13 +201,24 @@ def _export(args: argparse.Namespace) -> int:
     else:
         mesh = fit_mesh(speaker.model)
         if not args.no_texture:
-            print(f"articast export-gltf: {args.speaker} has no delegate: the mesh is "
+            print(f"articast {command}: {args.speaker} has no delegate: the mesh is "
                   "untextured ('articast delegate' makes one)", file=sys.stderr)
+    return speaker, mesh, texture
+
+
+def _write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+
+
+def _export(args: argparse.Namespace) -> int:
+    from articast.core.delegate.gltf import arkit_targets, to_glb
+
+    speaker, mesh, texture = _face(args, "export-gltf", ".glb")
     arkit = {} if args.no_arkit else arkit_targets(speaker.model, mesh)
     data = to_glb(mesh, speaker.model.param_names, texture, arkit, speaker.name)
-    tmp = args.output.with_name(args.output.name + ".tmp")
-    tmp.write_bytes(data)
-    tmp.replace(args.output)
+    _write(args.output, data)
     targets = list(speaker.model.param_names) + list(arkit)
     out = {"output": str(args.output), "bytes": len(data), "vertices": len(mesh.vertices),
            "triangles": len(mesh.triangles), "textured": texture is not None,
@@ -186,5 +228,28 @@ def _export(args: argparse.Namespace) -> int:
     else:
         print(f"wrote {args.output}: {out['vertices']} vertices, "
               f"{len(targets)} morph targets "
+              f"({'textured' if texture is not None else 'untextured'})")
+    return 0
+
+
+def _export_vrm(args: argparse.Namespace) -> int:
+    from articast.core.delegate.vrm import VRM_PRESETS, to_vrm, vrm_targets
+
+    speaker, mesh, texture = _face(args, "export-vrm", ".vrm")
+    name = (args.name or speaker.name or "speaker").strip() or "speaker"
+    data = to_vrm(speaker.model, mesh, texture, name=name,
+                  authors=tuple(a for a in args.author if a.strip()), arkit=not args.no_arkit)
+    _write(args.output, data)
+    targets = list(speaker.model.param_names) + list(vrm_targets(speaker.model, mesh,
+                                                                 not args.no_arkit))
+    out = {"output": str(args.output), "bytes": len(data), "vertices": len(mesh.vertices),
+           "textured": texture is not None, "morph_targets": targets,
+           "expressions": list(VRM_PRESETS), "perfect_sync": not args.no_arkit}
+    if args.json:
+        print(dumps(out, indent=1))
+    else:
+        print(f"wrote {args.output}: VRM 1.0, {out['vertices']} vertices, "
+              f"{len(targets)} morph targets, {len(VRM_PRESETS)} preset expressions"
+              f"{', 52 perfect-sync (ARKit) ones' if not args.no_arkit else ''} "
               f"({'textured' if texture is not None else 'untextured'})")
     return 0
