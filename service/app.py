@@ -459,8 +459,11 @@ class Service:
         hit = self._hellos.get(key)
         if hit is not None and hit[0] is session.description and hit[1] is session.source_info:
             return hit[2]
+        scan_url = (f"/api/sessions/{req.session}/scan"
+                    if self.config.server.scan and (session.description or {}).get("geometry")
+                    else None)
         text = hello(req.session, session.sid, session.description, session.source_info, req,
-                     session.state, streams)
+                     session.state, streams, scan_url)
         if len(self._hellos) >= 256:
             self._hellos.pop(next(iter(self._hellos)))
         self._hellos[key] = (session.description, session.source_info, text)

@@ -13,7 +13,16 @@ The JSON a browser animates (everything in the head frame, mm, like ``hello.geom
 triangles (3T), uv (2V, v down), texture (data URL, PNG: T0, the texture at alpha = 0),
 modes (data URL, PNG: the K texture modes side by side on a grid of modes_grid [columns,
 rows] tiles of the texture's size, byte b meaning (b - 128) * modes_scale grey levels per
-unit alpha), modes_grid, modes_scale}``
+unit alpha), modes_grid, modes_scale, upper}``
+
+``upper`` (null for a mesh other than MediaPipe's 468 points) moves the speaker's own lids,
+eyes and brows as the stream's ARKit eye and brow shapes say (the VRM export's targets,
+:func:`articast.core.delegate.vrm.upper_face_targets`: eyeBlink brings the upper lid onto the
+lower lid, eyeLook* moves the painted eye within its socket): ``{targets: {NAME: {index,
+delta}}}`` (the moved vertices and their moves, mm, 3 per vertex, at weight 1) and the full
+scales the page turns the frame's ``eyes`` and ``brows`` blocks into weights with
+(``gaze_full_deg``, ``brow_full_mm``, ``brow_down_full_mm``, ``wide_dead``, ``wide_full``,
+``squint_full``, :mod:`articast.core.outputs.upper`).
 """
 
 from __future__ import annotations
@@ -25,6 +34,7 @@ import cv2
 import numpy as np
 
 from articast.core.delegate.build import DELEGATE_FILE, Delegate
+from articast.core.delegate.geometry import DelegateMesh
 from articast.core.errors import InputError
 from articast.core.safe_io import check_confined
 from articast.service.jsonsafe import dumps
@@ -69,7 +79,26 @@ def delegate_payload(delegate: Delegate) -> dict:
             "triangles": m.triangles.ravel().tolist(),
             "uv": np.round(m.uv, 5).ravel().tolist(),
             "texture": _png(delegate.texture), "modes": _png(grid),
-            "modes_grid": [cols, rows], "modes_scale": MODES_SCALE}
+            "modes_grid": [cols, rows], "modes_scale": MODES_SCALE,
+            "upper": upper_payload(m)}
+
+
+def upper_payload(mesh: DelegateMesh) -> dict | None:
+    """The ``upper`` block of the module docstring (None for a mesh it cannot name the lids
+    of)."""
+    from articast.core.delegate.vrm import N_VERTICES, upper_face_targets
+    from articast.core.outputs import upper as U
+
+    if mesh.vertices.shape != (N_VERTICES, 3):
+        return None
+    targets = {}
+    for name, move in upper_face_targets(mesh).items():
+        index = np.flatnonzero(np.abs(move).max(1) >= 1e-3)
+        targets[name] = {"index": index.tolist(),
+                         "delta": np.round(move[index], 3).ravel().tolist()}
+    return {"targets": targets, "gaze_full_deg": U.GAZE_FULL_DEG, "brow_full_mm": U.BROW_FULL_MM,
+            "brow_down_full_mm": U.BROW_DOWN_FULL_MM, "wide_dead": U.WIDE_DEAD,
+            "wide_full": U.WIDE_FULL, "squint_full": U.SQUINT_FULL}
 
 
 def delegate_json(path: Path, param_names: list[str]) -> bytes:

@@ -220,8 +220,9 @@ def _upper(r: FrameRecord) -> Any:
 
 
 def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] | None,
-          sub: P.Subscribe, state: str, streams: list[Any]) -> str:
-    """The hello message for one subscription (JSON text)."""
+          sub: P.Subscribe, state: str, streams: list[Any], scan_url: str | None = None) -> str:
+    """The hello message for one subscription (JSON text); ``scan_url`` names the server's
+    head scan (``--scan``) for this session, so that a page asks for it only when there is one."""
     msg = P.Hello(
         session=session, sid=sid, streams=streams, encoding=sub.encoding, rate=sub.rate,
         param_names=desc["param_names"],
@@ -232,6 +233,7 @@ def hello(session: str, sid: int, desc: dict[str, Any], source: dict[str, Any] |
         dense_url=desc.get("dense_url"),
         preview_url=desc.get("preview_url"),
         delegate_url=desc.get("delegate_url"),
+        scan_url=scan_url,
         source=P.SourceDescription(**source) if source else None,
         state=state,
     )

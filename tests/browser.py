@@ -23,7 +23,7 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 class Browser:
     """One headless Chromium with one page; ``evaluate`` JS, ``screenshot`` PNG bytes."""
 
-    def __init__(self, url: str, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, timeout: float = 30.0, console: bool = False) -> None:
         if CHROMIUM is None:
             raise RuntimeError("chromium is not installed")
         self.dir = tempfile.mkdtemp(prefix="articast-chromium-")
@@ -45,7 +45,11 @@ class Browser:
         self._conn = connect(page["webSocketDebuggerUrl"], max_size=2**26, open_timeout=10)
         self.ws = self._conn.__enter__()
         self._id = 0
+        self.events: list[dict[str, Any]] = []  # what Chromium reported meanwhile (enable() first)
         self.call("Page.enable")
+        if console:
+            self.call("Log.enable")
+            self.call("Runtime.enable")
         self.call("Page.navigate", url=url)
 
     def call(self, method: str, **params: Any) -> dict[str, Any]:
@@ -57,6 +61,8 @@ class Browser:
                 if "error" in msg:
                     raise RuntimeError(f"{method}: {msg['error']}")
                 return msg.get("result", {})
+            if "method" in msg and len(self.events) < 10000:
+                self.events.append(msg)
 
     def evaluate(self, expression: str) -> Any:
         r = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
@@ -70,6 +76,24 @@ class Browser:
                 return v
             time.sleep(0.1)
         raise TimeoutError(f"{expression!r} stayed false for {timeout} s")
+
+    def console_errors(self) -> list[str]:
+        """The errors the page's console showed so far (failed requests, exceptions,
+        console.error): Log and Runtime must have been enabled before the page loaded, as
+        ``Browser(url, console=True)`` does."""
+        self.evaluate("0")  # collect what arrived meanwhile
+        out = []
+        for e in self.events:
+            p = e.get("params", {})
+            if e["method"] == "Log.entryAdded" and p["entry"]["level"] == "error":
+                out.append(f"{p['entry'].get('url', '')}: {p['entry']['text']}")
+            elif e["method"] == "Runtime.exceptionThrown":
+                out.append(p["exceptionDetails"].get("exception", {}).get("description", "")
+                           or p["exceptionDetails"]["text"])
+            elif e["method"] == "Runtime.consoleAPICalled" and p["type"] == "error":
+                out.append(" ".join(str(a.get("value", a.get("description", "")))
+                                    for a in p["args"]))
+        return out
 
     def screenshot(self) -> bytes:
         return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])

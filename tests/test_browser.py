@@ -194,3 +194,23 @@ def test_the_avatar_blinks_above_the_lips(tmp_path):
     assert rows.size and rows.max() < shots["open"].shape[0] * 0.5  # in the upper half
     # no eyes block (an older server, a ground-truth replay): faint eyes, no iris
     assert np.abs(shots["open"] - shots["absent"]).mean() > 0.2
+
+
+def test_the_page_loads_with_a_clean_console(sessions):
+    """A token server, a session with no scan: the page draws frames and its console shows no
+    error at all (it asked for /scan only when hello names one, the favicon needs no
+    request), and none after a while of drawing either."""
+    from articast.service.security import AccessPolicy
+
+    config = ServiceConfig(server=ServerSettings(log_level="critical"), sessions=sessions[:1],
+                           access=AccessPolicy(token="console-token"))
+    with ServerThread(config) as srv:
+        with Browser(page(srv, "closed") + "&token=console-token", console=True) as b:
+            b.wait_for("window.articast.mesh.startsWith('dense')", 60)
+            b.wait_for(f"window.articast.rendered > {b.evaluate('window.articast.rendered') + 10}", 30)
+            assert b.evaluate("window.articast.hello.scan_url") is None
+            assert b.evaluate("window.articast.drawn") == "generic"
+            time.sleep(1.0)
+            assert b.console_errors() == []
+            requests = [e for e in b.events if e["method"] == "Log.entryAdded"]
+            assert not [e for e in requests if "/scan" in e["params"]["entry"].get("url", "")]

@@ -143,6 +143,9 @@ class Hello(_Message):
         default=None, description="HTTP path of the speaker's own textured face (JSON: mesh, "
         "per-parameter modes, texture and its articulation modes); only for a speaker with "
         "a delegate, with the token, unless the server runs with --no-delegate")
+    scan_url: str | None = Field(
+        default=None, description="HTTP path of the server's bound head scan for this session "
+        "(JSON; its texture at scan_url + '/texture'); only when the server runs with --scan")
     source: SourceDescription | None = None
     state: str = "running"
 

@@ -1,17 +1,23 @@
 // articast browser avatar: subscribes over WebSocket, animates the face mesh linearly from the
 // streamed articulatory parameters (x = mean + sum_k alpha_k basis_k, the dense modes when the
-// server offers them), shades it with WebGL, shows the parameters, pose, latency and fps, and
-// reconnects by itself. No network but the articast server; no build step.
+// server offers them), draws it with three.js (served by the articast server itself:
+// clients/web/vendor, remade by tools/fetch_web_vendor.py), shows the parameters, pose, latency
+// and fps, and reconnects by itself. No network but the articast server; no build step.
+//
+// What it draws: the server's bound head scan (hello.scan_url, `serve --scan`), else the
+// speaker's own textured face (hello.delegate_url, delegate.js: its own eyes, whose lids close
+// on a blink), else the model's face (dense when served) completed into a closed head with
+// eyes and brows (eyes.js). Until the delegate or the scan has loaded, the generic head.
 //
 // Newest frame only: a message only replaces `latest`; one requestAnimationFrame loop draws
 // it (and updates the panel) at most once per display frame. However slow the machine, nothing
 // queues in the page: frames that arrive between two display frames are counted, not drawn.
 // Latency shown = capture -> on screen (wall clock; the server's `t_capture`).
-import { faceNormals, mat4Perspective, mat4Multiply, mat4Translate, morph, normalise3,
-         rotationFromAxisAngle, transpose3 } from "./math.js";
+import * as THREE from "three";
+import { LinearFace } from "./face.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
-import { drawUpper, upperAnchors } from "./eyes.js";
+import { Head } from "./eyes.js";
 
 const params = new URLSearchParams(location.search);
 // the server's token, if it has one, comes in this page's URL (?token=...) and goes on
@@ -23,141 +29,79 @@ function withToken(url) {
 }
 const state = (window.articast = {
   frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
-  error: "", final: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null,
+  error: "", final: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null, delegate: "",
   latencies: [], // capture -> on screen, ms, one per drawn frame (the last 20 000)
+  drawn: "", // what the last drawn frame showed: "scan", "delegate" or "generic"
 });
 const $ = (id) => document.getElementById(id);
-const canvas = $("canvas");
-const gl = canvas.getContext("webgl", { preserveDrawingBuffer: true, antialias: true });
+const SKIN = [0.86, 0.66, 0.56];
 
-// ----------------------------------------------------------------------------- rendering
-// per-point labels of the dense face (hello's dense mesh): 0 skin, 1 lips, 2 teeth, 3 mouth
-const VS = `attribute vec3 p; attribute vec3 n; attribute float lab; uniform mat4 mvp;
-uniform mat3 rot; uniform vec3 colour; varying vec3 vn; varying vec3 vc;
-void main() { vn = rot * n; gl_Position = mvp * vec4(p, 1.0);
-  vc = lab < 0.5 ? colour : lab < 1.5 ? vec3(0.72, 0.33, 0.36)
-     : lab < 2.5 ? vec3(0.93, 0.92, 0.86) : vec3(0.22, 0.05, 0.07); }`;
-const FS = `precision mediump float; varying vec3 vn; varying vec3 vc; uniform float unlit;
-void main() { vec3 l = normalize(vec3(-0.3, 0.4, 1.0));
-  float d = abs(dot(normalize(vn), l));
-  gl_FragColor = vec4(vc * mix(0.35 + 0.75 * d, 1.0, unlit), 1.0); }`;
-
-function shader(type, src) {
-  const s = gl.createShader(type); gl.shaderSource(s, src); gl.compileShader(s);
-  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
-  return s;
-}
-let prog = null, loc = {};
-if (gl) {
-  prog = gl.createProgram();
-  gl.attachShader(prog, shader(gl.VERTEX_SHADER, VS));
-  gl.attachShader(prog, shader(gl.FRAGMENT_SHADER, FS));
-  gl.linkProgram(prog);
-  loc = { p: gl.getAttribLocation(prog, "p"), n: gl.getAttribLocation(prog, "n"),
-          lab: gl.getAttribLocation(prog, "lab"),
-          mvp: gl.getUniformLocation(prog, "mvp"), rot: gl.getUniformLocation(prog, "rot"),
-          colour: gl.getUniformLocation(prog, "colour"), unlit: gl.getUniformLocation(prog, "unlit") };
-  gl.enable(gl.DEPTH_TEST);
+// ----------------------------------------------------------------------------- scene
+// The colours are used as given (no colour management): the shading is the earlier page's,
+// ambient 0.35 + diffuse 0.75 from the upper left (three.js divides a light by pi).
+THREE.ColorManagement.enabled = false;
+let renderer = null;
+try {
+  renderer = new THREE.WebGLRenderer({ canvas: $("canvas"), antialias: true, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(window.devicePixelRatio || 1);
+  renderer.outputColorSpace = THREE.LinearSRGBColorSpace;
+  renderer.setClearColor(new THREE.Color(0.19, 0.2, 0.23), 1);
+} catch (e) { renderer = null; }
+const scene = new THREE.Scene();
+scene.add(new THREE.AmbientLight(0xffffff, 0.35 * Math.PI));
+const sun = new THREE.DirectionalLight(0xffffff, 0.75 * Math.PI);
+sun.position.set(-0.3, 0.4, 1.0); // towards the light, from the origin (its target)
+scene.add(sun);
+// the head frame: x = speaker's left (the viewer's right), y up, z towards the viewer, mm
+const camera = new THREE.PerspectiveCamera(0.5 * 180 / Math.PI, 1, 50, 2000);
+const head = new THREE.Group(); // turned by the head pose about the face's centre (origin)
+const face = new THREE.Group(); // the head frame, shifted so that its centre is the origin
+head.add(face); scene.add(head);
+const headQ = new THREE.Quaternion(), firstQ = new THREE.Quaternion(), axis = new THREE.Vector3();
+function axisAngle(r, q) { // a rotation vector (axis * angle, radians) as a quaternion
+  const th = Math.hypot(r[0], r[1], r[2]);
+  return th < 1e-12 ? q.identity() : q.setFromAxisAngle(axis.set(r[0] / th, r[1] / th, r[2] / th), th);
 }
 
-class Mesh {
-  // mean: Float32Array(3M), basis: Float32Array(K*3M), triangles: array of indices
-  constructor(mean, basis, triangles, k, labels) {
-    this.mean = mean; this.basis = basis; this.k = k; this.m = mean.length / 3;
-    this.labels = labels && labels.length === this.m ? new Float32Array(labels) : null;
-    this.tri = new Uint32Array(triangles);
-    this.pos = new Float32Array(mean.length); this.nrm = new Float32Array(mean.length);
-    const edges = new Set();
-    for (let t = 0; t < this.tri.length; t += 3)
-      for (let e = 0; e < 3; e++) {
-        const a = this.tri[t + e], b = this.tri[t + (e + 1) % 3];
-        edges.add(a < b ? a * 1e6 + b : b * 1e6 + a);
-      }
-    this.lines = new Uint32Array(edges.size * 2);
-    let i = 0; for (const e of edges) { this.lines[i++] = Math.floor(e / 1e6); this.lines[i++] = e % 1e6; }
-    if (gl) {
-      this.pb = gl.createBuffer(); this.nb = gl.createBuffer();
-      if (this.labels) {
-        this.labb = gl.createBuffer(); gl.bindBuffer(gl.ARRAY_BUFFER, this.labb);
-        gl.bufferData(gl.ARRAY_BUFFER, this.labels, gl.STATIC_DRAW);
-      }
-      this.ib = gl.createBuffer(); gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.ib);
-      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, this.tri, gl.STATIC_DRAW);
-      this.lb = gl.createBuffer(); gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.lb);
-      gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, this.lines, gl.STATIC_DRAW);
-    }
-  }
-  update(alpha) {
-    morph(this.pos, this.mean, this.basis, alpha, this.k);
-    faceNormals(this.pos, this.tri, this.nrm);
-    normalise3(this.nrm);
-  }
-  draw(mvp, rot, colour, wire) {
-    gl.useProgram(prog);
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.pb); gl.bufferData(gl.ARRAY_BUFFER, this.pos, gl.DYNAMIC_DRAW);
-    gl.enableVertexAttribArray(loc.p); gl.vertexAttribPointer(loc.p, 3, gl.FLOAT, false, 0, 0);
-    gl.bindBuffer(gl.ARRAY_BUFFER, this.nb); gl.bufferData(gl.ARRAY_BUFFER, this.nrm, gl.DYNAMIC_DRAW);
-    gl.enableVertexAttribArray(loc.n); gl.vertexAttribPointer(loc.n, 3, gl.FLOAT, false, 0, 0);
-    if (this.labels && !wire) {
-      gl.bindBuffer(gl.ARRAY_BUFFER, this.labb);
-      gl.enableVertexAttribArray(loc.lab); gl.vertexAttribPointer(loc.lab, 1, gl.FLOAT, false, 0, 0);
-    } else { gl.disableVertexAttribArray(loc.lab); gl.vertexAttrib1f(loc.lab, 0); }
-    gl.uniformMatrix4fv(loc.mvp, false, mvp); gl.uniformMatrix3fv(loc.rot, false, rot);
-    gl.uniform3fv(loc.colour, colour); gl.uniform1f(loc.unlit, wire ? 1 : 0);
-    if (wire) {
-      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.lb);
-      gl.drawElements(gl.LINES, this.lines.length, gl.UNSIGNED_INT, 0);
-    } else {
-      gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, this.ib);
-      gl.drawElements(gl.TRIANGLES, this.tri.length, gl.UNSIGNED_INT, 0);
-    }
-  }
+let sparse = null, dense = null, wire = null, centre = [0, 0, 0], haveFirst = false, pose = null,
+    scan = null, delegate = null, generic = null;
+
+function show(objects) { // the face group holds exactly these
+  for (const o of [...face.children]) if (!objects.includes(o)) face.remove(o);
+  for (const o of objects) if (o && o.parent !== face) face.add(o);
 }
-if (gl) gl.getExtension("OES_element_index_uint");
-
-let sparse = null, dense = null, centre = [0, 0, 0], firstRot = null, pose = null, scan = null, delegate = null, upper = null;
-
 function render() {
-  if (!gl || !sparse || !state.alpha) return;
-  const w = canvas.clientWidth || canvas.width, h = canvas.clientHeight || canvas.height;
-  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
-  gl.viewport(0, 0, canvas.width, canvas.height);
-  gl.clearColor(0.19, 0.2, 0.23, 1); gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
-  // the head frame: x = speaker's left (the viewer's right), y up, z towards the viewer
-  let rot = [1, 0, 0, 0, 1, 0, 0, 0, 1];
+  if (!renderer || !sparse || !state.alpha) return;
+  const el = renderer.domElement, w = el.clientWidth || el.width, h = el.clientHeight || el.height;
+  const pr = renderer.getPixelRatio();
+  if (el.width !== Math.floor(w * pr) || el.height !== Math.floor(h * pr)) renderer.setSize(w, h, false);
+  if (camera.aspect !== w / h) { camera.aspect = w / h; camera.updateProjectionMatrix(); }
   if ($("headpose").checked && pose && pose.head) {
     // the server's head pose relative to the speaker's neutral (R_n^T R, in the head frame)
-    rot = rotationFromAxisAngle(pose.head.rotation);
-  } else if ($("headpose").checked && pose && firstRot) {
+    axisAngle(pose.head.rotation, head.quaternion);
+  } else if ($("headpose").checked && pose && haveFirst) {
     // an older server: relative to the first frame seen here, R0^T R
-    rot = mat3Mul(transpose3(firstRot), rotationFromAxisAngle(pose.rotation));
-  }
+    head.quaternion.copy(firstQ).invert().multiply(axisAngle(pose.rotation, headQ));
+  } else head.quaternion.identity();
   const useScan = scan && $("scan").checked; // a whole head: its own centre, further away
-  const model = mat4FromRot(rot, useScan ? scan.centre : centre);
-  const proj = mat4Perspective(0.5, canvas.width / canvas.height, 50, 2000);
-  const view = mat4Translate(0, 0, useScan ? -scan.distance : -380);
-  const mvp = mat4Multiply(proj, mat4Multiply(view, model));
-  const rot3 = new Float32Array([rot[0], rot[3], rot[6], rot[1], rot[4], rot[7], rot[2], rot[5], rot[8]]);
+  const c = useScan ? scan.centre : centre;
+  face.position.set(-c[0], -c[1], -c[2]);
+  camera.position.set(0, 0, useScan ? scan.distance : 380);
   const useDense = dense && $("dense").checked;
-  const mesh = useDense ? dense : sparse;
-  if (useScan) { scan.update(state.alpha); scan.draw(mvp, rot3); }
-  else if (delegate && $("delegate").checked) { delegate.update(state.alpha); delegate.draw(mvp, rot3); }
-  else { mesh.update(state.alpha); mesh.draw(mvp, rot3, [0.86, 0.66, 0.56], false); }
-  if ($("wire").checked) { sparse.update(state.alpha); sparse.draw(mvp, rot3, [0.2, 0.9, 0.6], true); }
-  drawUpper($("upper"), mvp, upper, state.eyes, state.brows); // eyes.js: eyes and brows
-}
-function mat3Mul(a, b) {
-  const o = new Array(9);
-  for (let i = 0; i < 3; i++) for (let j = 0; j < 3; j++)
-    o[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
-  return o;
-}
-function mat4FromRot(r, c) { // rotate about the face centre c (row-major r), column-major out
-  const t = [c[0] - (r[0] * c[0] + r[1] * c[1] + r[2] * c[2]),
-             c[1] - (r[3] * c[0] + r[4] * c[1] + r[5] * c[2]),
-             c[2] - (r[6] * c[0] + r[7] * c[1] + r[8] * c[2])];
-  return new Float32Array([r[0], r[3], r[6], 0, r[1], r[4], r[7], 0, r[2], r[5], r[8], 0,
-                           t[0] - c[0], t[1] - c[1], t[2] - c[2], 1]);
+  const shown = [];
+  if (useScan) { scan.update(state.alpha); shown.push(scan.object); state.drawn = "scan"; }
+  else if (delegate && $("delegate").checked) {
+    delegate.update(state.alpha, state.eyes, state.brows); shown.push(delegate.object);
+    state.drawn = "delegate";
+  } else {
+    const mesh = useDense ? dense : sparse;
+    mesh.update(state.alpha); shown.push(mesh.object);
+    if (generic) { generic.update(state.eyes, state.brows); shown.push(generic.object); }
+    state.drawn = "generic";
+  }
+  if ($("wire").checked) { if (shown[0] !== sparse.object) sparse.update(state.alpha); shown.push(wire); }
+  show(shown);
+  renderer.render(scene, camera);
 }
 
 // ----------------------------------------------------------------------------- panel
@@ -221,32 +165,36 @@ function startPreview(url) {
   previewTimer = setTimeout(next, 0);
 }
 async function onHello(h) {
-  state.hello = h; firstRot = null;
+  state.hello = h; haveFirst = false;
   startPreview(h.preview_url || null);
   $("session").textContent = h.session; setupBars(h.param_names);
   const g = h.geometry; if (!g) { status("this session has no face model", true); return; }
   const k = h.param_names.length;
-  sparse = new Mesh(new Float32Array(g.mean), new Float32Array(g.basis), g.triangles, k);
+  for (const old of [sparse, dense, delegate, scan, generic]) if (old && old.dispose) old.dispose();
+  sparse = new LinearFace(g.mean, g.basis, g.triangles, k, null, SKIN);
+  wire = sparse.wire([0.2, 0.9, 0.6]);
   centre = [0, 0, 0];
   for (let i = 0; i < g.mean.length; i += 3) for (let d = 0; d < 3; d++) centre[d] += g.mean[i + d] * 3 / g.mean.length;
-  upper = upperAnchors(g);
+  generic = new Head(g);
   state.mesh = `sparse ${sparse.m} points`; $("mesh").textContent = state.mesh;
-  dense = null; delegate = null; state.delegate = "";
-  loadDelegate(gl, h.delegate_url, authHeaders).then((d) => { // the speaker's own face
+  dense = null; delegate = null; scan = null; state.delegate = "";
+  if (!renderer) return;
+  loadDelegate(h.delegate_url, authHeaders).then((d) => { // the speaker's own face
     if (d && state.hello === h) { delegate = d; state.delegate = `textured, ${d.m} points`; }
   }).catch((e) => console.warn("delegate unavailable", e));
   if (h.dense_url) {
     try {
       const d = await (await fetch(h.dense_url, { headers: authHeaders })).json();
-      dense = new Mesh(new Float32Array(d.mean), new Float32Array(d.basis), d.triangles, k, d.labels);
+      dense = new LinearFace(d.mean, d.basis, d.triangles, k, d.labels, SKIN);
       state.mesh = `dense ${dense.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh;
     } catch (e) { console.warn("dense mesh unavailable", e); }
   }
-  scan = null;
-  try {
-    scan = await loadScan(gl, h.session, k, authHeaders);
-    if (scan) { state.mesh = `scan ${scan.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh; }
-  } catch (e) { console.warn("head scan unavailable", e); state.scanError = String(e); }
+  if (h.scan_url) { // only a server with --scan names one
+    try {
+      scan = await loadScan(h.scan_url, k, authHeaders);
+      state.mesh = `scan ${scan.m} points (sparse ${sparse.m})`; $("mesh").textContent = state.mesh;
+    } catch (e) { console.warn("head scan unavailable", e); state.scanError = String(e); }
+  }
 }
 let latest = null, rateMark = { t: 0, frames: 0 };
 function onFrame(f) { // cheap: the drawing happens in draw(), once per display frame
@@ -265,7 +213,10 @@ function draw(now) {
   const names = state.hello.param_names, a = f.values.articulatory || {};
   state.alpha = names.map((n) => a[n] || 0);
   state.eyes = f.eyes || null; state.brows = f.brows || null;
-  if (f.values.pose) { pose = f.values.pose; if (!firstRot && f.quality.ok) firstRot = rotationFromAxisAngle(pose.rotation); }
+  if (f.values.pose) {
+    pose = f.values.pose;
+    if (!haveFirst && f.quality.ok) { axisAngle(pose.rotation, firstQ); haveFirst = true; }
+  }
   showBars(state.alpha);
   $("quality").textContent = f.quality.ok ? `ok, ${f.quality.evals} evals` : `not ok: ${f.quality.reason}`;
   $("quality").className = f.quality.ok ? "good" : "bad";
@@ -330,7 +281,7 @@ function retry(why) {
   overlay(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s…`);
   setTimeout(connect, delay); delay = Math.min(delay * 2, 5000);
 }
-if (!gl) status("WebGL is not available in this browser", true);
+if (!renderer) status("WebGL is not available in this browser", true);
 overlay("connecting to the articast server…");
 requestAnimationFrame(draw);
 connect();

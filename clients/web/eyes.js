@@ -1,18 +1,27 @@
-// articast browser avatar: the upper face above the tracked lips: two eyes that blink (the
-// upper lid comes down with the closure) and look (the iris moves with the gaze), and brows
-// that rise and fall (mm from the speaker's neutral), drawn on a 2D canvas laid over the WebGL
-// view with the face mesh's own projection, so they turn with the head. Eyes or brows the
-// server says were not seen (ok false: a head-mounted camera, a turned head) are drawn faint
-// and still, never as open eyes looking ahead. No dependencies.
+// articast browser avatar: the generic face's upper half, in three.js, so that the generic
+// face (the model's sparse or dense mesh, which may stop at the nose) is a closed head with no
+// hole: a head (an ellipsoid whose middle is at the eyes, as a face's is, reaching from the
+// chin to as far above them; the face mesh lies in front of it), two eyeballs in it whose
+// upper lids come down with the stream's closure and whose irises turn with the gaze, and
+// brows that rise and fall (mm from the speaker's neutral). Eyes or brows the server says were
+// not seen (ok false: a head-mounted camera, a turned head) rest half shut and still, never as
+// open eyes looking ahead. Everything is in the head frame (mm: x the speaker's left, y up,
+// z towards the viewer) and turns with the face.
+import * as THREE from "three";
 
-const EYE_HALF_WIDTH = 13, EYE_HALF_HEIGHT = 5, IRIS = 5, EYE_RADIUS = 11.5; // mm
+const EYE_RADIUS = 11.5, EYE_HALF_HEIGHT = 5, IRIS = 5, PUPIL = 2.2; // mm
+const EYE_BULGE = 6; // mm of the eyeball in front of the head's surface
+const OPEN = Math.asin(EYE_HALF_HEIGHT / EYE_RADIUS); // the lids' edges, from the eye's middle
+const SHUT = 2 * OPEN; // how far the upper lid turns down to meet the lower one
+const UNSEEN = 0.55; // the closure of eyes the server did not see
 // brow ends: x from the face's middle, y above the eye centre (the canonical face's)
 const BROW_INNER = [18, 22], BROW_OUTER = [45, 15];
+const SKIN = [0.86, 0.66, 0.56];
 
-// Where the eyes sit (head frame, mm: x the speaker's left, y up, z towards the viewer): the
-// model's eye centres (MPEG-4 points 3.5, 3.6) when it has them; else from its lip corners
-// (8.3, 8.4) as on an average face (MediaPipe's canonical face: the eyes 70 mm above and 5 mm
-// behind the corners' middle, ES0 apart, 63 mm by default); else above the mesh.
+// Where the eyes sit (head frame): the model's eye centres (MPEG-4 points 3.5, 3.6) when it
+// has them; else from its lip corners (8.3, 8.4) as on an average face (MediaPipe's canonical
+// face: the eyes 70 mm above and 5 mm behind the corners' middle, ES0 apart, 63 mm by
+// default); else above the mesh.
 export function upperAnchors(g) {
   const fp = g.feature_points || {}, m = g.mean;
   const at = (name) => (name in fp ? [m[3 * fp[name]], m[3 * fp[name] + 1], m[3 * fp[name] + 2]] : null);
@@ -31,69 +40,107 @@ export function upperAnchors(g) {
   return { left, right, cx: (left[0] + right[0]) / 2 };
 }
 
-function project(mvp, p, w, h) { // column-major mvp, head-frame point -> canvas px
-  const x = mvp[0] * p[0] + mvp[4] * p[1] + mvp[8] * p[2] + mvp[12];
-  const y = mvp[1] * p[0] + mvp[5] * p[1] + mvp[9] * p[2] + mvp[13];
-  const q = mvp[3] * p[0] + mvp[7] * p[1] + mvp[11] * p[2] + mvp[15];
-  return [(x / q + 1) * w / 2, (1 - y / q) * h / 2];
+function irisTexture() { // the eyeball's colours, equirectangular: the iris where +z points
+  const c = document.createElement("canvas"); c.width = 256; c.height = 128;
+  const x = c.getContext("2d");
+  x.fillStyle = "#eeeae4"; x.fillRect(0, 0, 256, 128);
+  const r = 128 * IRIS / EYE_RADIUS / Math.PI, p = 128 * PUPIL / EYE_RADIUS / Math.PI;
+  x.fillStyle = "#5a3e2c"; x.beginPath(); x.arc(64, 64, r, 0, 2 * Math.PI); x.fill();
+  x.fillStyle = "#111"; x.beginPath(); x.arc(64, 64, p, 0, 2 * Math.PI); x.fill();
+  const t = new THREE.CanvasTexture(c);
+  t.colorSpace = THREE.NoColorSpace;
+  return t;
 }
 
-function path(ctx, mvp, pts, w, h, close) {
-  ctx.beginPath();
-  pts.forEach((p, i) => { const [u, v] = project(mvp, p, w, h); if (i) ctx.lineTo(u, v); else ctx.moveTo(u, v); });
-  if (close) ctx.closePath();
-}
-
-function ellipse(c, rx, ry, n = 24, from = 0, to = 2 * Math.PI) {
-  const out = [];
-  for (let i = 0; i <= n; i++) {
-    const t = from + (to - from) * i / n;
-    out.push([c[0] + rx * Math.cos(t), c[1] + ry * Math.sin(t), c[2]]);
-  }
-  return out;
-}
-
-// One frame: eyes = the frame's `eyes` block (or null), brows = its `brows` block (or null).
-export function drawUpper(canvas, mvp, anchors, eyes, brows) {
-  const w = canvas.clientWidth || canvas.width, h = canvas.clientHeight || canvas.height;
-  if (canvas.width !== w || canvas.height !== h) { canvas.width = w; canvas.height = h; }
-  const ctx = canvas.getContext("2d");
-  ctx.clearRect(0, 0, w, h);
-  if (!anchors) return;
-  const seen = !!(eyes && eyes.ok), browsSeen = !!(brows && brows.ok);
-  for (const side of ["left", "right"]) {
-    const c = anchors[side], sign = side === "left" ? 1 : -1;
-    const closure = seen ? Math.min(1, Math.max(0, eyes[`closure_${side}`] || 0)) : 0;
-    ctx.globalAlpha = seen ? 1 : 0.25;
-    // the eye's opening: an almond whose upper lid comes down with the closure
-    const open = EYE_HALF_HEIGHT * (1 - closure);
-    const lower = ellipse(c, EYE_HALF_WIDTH, EYE_HALF_HEIGHT, 16, 0, Math.PI).map(([x, y, z]) => [x, 2 * c[1] - y, z]);
-    const upper = ellipse(c, EYE_HALF_WIDTH, 2 * open - EYE_HALF_HEIGHT, 16, Math.PI, 0);
-    const almond = [...lower, ...upper.slice(1)];
-    path(ctx, mvp, almond, w, h, true);
-    ctx.fillStyle = "#eeeae4"; ctx.fill();
-    if (seen && closure < 0.95) { // the iris where the gaze points, clipped by the lids
-      ctx.save(); path(ctx, mvp, almond, w, h, true); ctx.clip();
-      const yaw = (eyes.gaze_yaw_deg || 0) * Math.PI / 180, pitch = (eyes.gaze_pitch_deg || 0) * Math.PI / 180;
-      const ic = [c[0] + EYE_RADIUS * Math.sin(yaw), c[1] + EYE_RADIUS * Math.sin(pitch), c[2] + 1];
-      path(ctx, mvp, ellipse(ic, IRIS, IRIS), w, h, true);
-      ctx.fillStyle = "#4a3426"; ctx.fill();
-      path(ctx, mvp, ellipse(ic, IRIS * 0.45, IRIS * 0.45), w, h, true);
-      ctx.fillStyle = "#111"; ctx.fill();
-      ctx.restore();
+// The generic head (module comment) for a face model: hello.geometry `g`.
+export class Head {
+  constructor(g) {
+    const a = (this.anchors = upperAnchors(g)), m = (this.mean = g.mean);
+    let lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+    for (let i = 0; i < m.length; i += 3)
+      for (let d = 0; d < 3; d++) { lo[d] = Math.min(lo[d], m[i + d]); hi[d] = Math.max(hi[d], m[i + d]); }
+    const eyeY = (a.left[1] + a.right[1]) / 2, eyeZ = (a.left[2] + a.right[2]) / 2;
+    const eyeX = Math.abs(a.left[0] - a.right[0]) / 2;
+    // the head: its middle at the eyes, from the chin (at most 1.35 times its half width) to as
+    // far above; as wide as the face (and
+    // wide enough for the eyes); deep as an adult's; its surface just behind the eyes' fronts
+    // and behind the face's middle between the eyes and the chin (so that it shows in front)
+    const rx = Math.max(1.04 * (hi[0] - lo[0]) / 2, 1.9 * eyeX), ry = Math.min(0.97 * (eyeY - lo[1]), 1.35 * rx);
+    const rz = 1.3 * rx, cx = a.cx, cy = eyeY + 0.03 * ry;
+    const front = (x, y) => rz * Math.sqrt(Math.max(0, 1 - ((x - cx) / rx) ** 2 - ((y - cy) / ry) ** 2));
+    let cz = eyeZ - 3 - front(a.left[0], eyeY);
+    for (let i = 0; i < m.length; i += 3)
+      if (m[i + 1] < eyeY - 15 && m[i + 1] > cy - 0.6 * ry && Math.abs(m[i] - cx) < 0.5 * rx)
+        cz = Math.min(cz, m[i + 2] - 2 - front(m[i], m[i + 1]));
+    this.centre = [cx, cy, cz];
+    this.radii = [rx, ry, rz];
+    this.object = new THREE.Group();
+    const skin = new THREE.MeshLambertMaterial({ color: new THREE.Color(...SKIN) });
+    const head = new THREE.Mesh(new THREE.SphereGeometry(1, 64, 48), skin);
+    head.scale.set(rx, ry, rz); head.position.set(...this.centre);
+    this.object.add(head);
+    const ball = new THREE.MeshLambertMaterial({ map: irisTexture() });
+    const lash = new THREE.MeshLambertMaterial({ color: 0x3a2620 });
+    this.eyes = {};
+    for (const side of ["left", "right"]) {
+      const c = a[side];
+      const eye = new THREE.Group(); // the eye's centre of rotation
+      // in front of the head's surface and of the face mesh where that reaches the eye
+      const z = Math.max(this.surfaceZ(c[0], c[1]) + EYE_BULGE, this.meshFront(m, c[0], c[1], 9) + 2);
+      eye.position.set(c[0], c[1], z - EYE_RADIUS);
+      const globe = new THREE.Mesh(new THREE.SphereGeometry(EYE_RADIUS, 32, 24), ball);
+      globe.rotation.order = "YXZ";
+      const upper = new THREE.Group(); // the upper lid, turned down about the eye's centre
+      const front = [0, Math.PI]; // phi: the front half (z >= 0)
+      upper.add(new THREE.Mesh(new THREE.SphereGeometry(EYE_RADIUS + 0.7, 32, 12, ...front, 0, Math.PI / 2 - OPEN), skin));
+      upper.add(new THREE.Mesh(new THREE.SphereGeometry(EYE_RADIUS + 0.8, 32, 2, ...front, Math.PI / 2 - OPEN - 0.09, 0.09), lash));
+      const lower = new THREE.Mesh(new THREE.SphereGeometry(EYE_RADIUS + 0.6, 32, 12, ...front, Math.PI / 2 + OPEN, Math.PI / 2 - OPEN), skin);
+      eye.add(globe, upper, lower);
+      this.object.add(eye);
+      this.eyes[side] = { globe, upper };
     }
-    path(ctx, mvp, almond, w, h, true);
-    ctx.strokeStyle = "#5a3a30"; ctx.lineWidth = 2; ctx.stroke();
-    // the brow: inner and outer ends raised by their mm from the neutral
-    ctx.globalAlpha = browsSeen ? 1 : 0.25;
-    const ri = browsSeen ? brows[`raise_inner_${side}_mm`] || 0 : 0;
-    const ro = browsSeen ? brows[`raise_outer_${side}_mm`] || 0 : 0;
-    const cx = anchors.cx;
-    const inner = [cx + sign * BROW_INNER[0], c[1] + BROW_INNER[1] + ri, c[2] + 4];
-    const outer = [cx + sign * BROW_OUTER[0], c[1] + BROW_OUTER[1] + ro, c[2] - 2];
-    const mid = [(inner[0] + outer[0]) / 2, (inner[1] + outer[1]) / 2 + 3, c[2] + 3];
-    path(ctx, mvp, [inner, mid, outer], w, h, false);
-    ctx.strokeStyle = "#3b2a22"; ctx.lineWidth = 6; ctx.lineCap = "round"; ctx.stroke();
+    this.browMaterial = new THREE.MeshLambertMaterial({ color: 0x3b2a22 });
+    this.brows = {}; this.browKey = "";
+    this.update(null, null);
   }
-  ctx.globalAlpha = 1;
+  meshFront(m, x, y, r) { // the face mesh's most forward z within r mm of (x, y)
+    let z = -Infinity;
+    for (let i = 0; i < m.length; i += 3)
+      if ((m[i] - x) ** 2 + (m[i + 1] - y) ** 2 < r * r) z = Math.max(z, m[i + 2]);
+    return z;
+  }
+  surfaceZ(x, y) { // the head's front at (x, y), head frame
+    const [cx, cy, cz] = this.centre, [rx, ry, rz] = this.radii;
+    return cz + rz * Math.sqrt(Math.max(0, 1 - ((x - cx) / rx) ** 2 - ((y - cy) / ry) ** 2));
+  }
+  // one frame: eyes = the frame's `eyes` block (or null), brows = its `brows` block (or null)
+  update(eyes, brows) {
+    const seen = !!(eyes && eyes.ok), browsSeen = !!(brows && brows.ok);
+    for (const side of ["left", "right"]) {
+      const e = this.eyes[side];
+      const closure = seen ? Math.min(1, Math.max(0, eyes[`closure_${side}`] || 0)) : UNSEEN;
+      e.upper.rotation.x = closure * SHUT;
+      const yaw = seen ? (eyes.gaze_yaw_deg || 0) * Math.PI / 180 : 0;
+      const pitch = seen ? (eyes.gaze_pitch_deg || 0) * Math.PI / 180 : 0;
+      e.globe.rotation.set(-pitch, yaw, 0);
+    }
+    const raise = (k) => (browsSeen ? brows[k] || 0 : 0);
+    const r = ["inner_left", "outer_left", "inner_right", "outer_right"].map((k) => raise(`raise_${k}_mm`));
+    const key = r.map((v) => v.toFixed(1)).join();
+    if (key === this.browKey) return;
+    this.browKey = key;
+    const a = this.anchors;
+    for (const [i, side] of [[0, "left"], [2, "right"]]) {
+      const sign = side === "left" ? 1 : -1, c = a[side];
+      const on = (x, y, lift) => new THREE.Vector3(x, y, Math.max(this.surfaceZ(x, y), this.meshFront(this.mean, x, y, 6)) + lift);
+      const inner = on(a.cx + sign * BROW_INNER[0], c[1] + BROW_INNER[1] + r[i], 1.5);
+      const outer = on(a.cx + sign * BROW_OUTER[0], c[1] + BROW_OUTER[1] + r[i + 1], 1.5);
+      const mx = (inner.x + outer.x) / 2, my = (inner.y + outer.y) / 2 + 3;
+      const curve = new THREE.CatmullRomCurve3([inner, on(mx, my, 1.5), outer]);
+      const old = this.brows[side];
+      if (old) { this.object.remove(old); old.geometry.dispose(); }
+      const brow = new THREE.Mesh(new THREE.TubeGeometry(curve, 16, 2.2, 6, false), this.browMaterial);
+      this.brows[side] = brow; this.object.add(brow);
+    }
+  }
 }
