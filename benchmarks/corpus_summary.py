@@ -97,6 +97,14 @@ def _g(g: dict | None) -> str:
     return f"{g['gap']:+.3f} ({g['ci95'][0]:+.3f}..{g['ci95'][1]:+.3f}) {verdict(g)}"
 
 
+def _jv(g: dict | None) -> str:
+    """The jitter gap's verdict (lower is better: *worse* when its interval is above 0)."""
+    if not g:
+        return ""
+    lo, hi = g["ci95"]
+    return "worse" if lo > 0 else ("better" if hi < 0 else "not worse")
+
+
 def markdown(run: dict, rows: list[dict], pools: dict) -> str:
     head = ("| clip | half | ok | articast r | reader r | gap to reader (95 %) | gap to best "
             "FaceMesh (95 %) | best peer (r) | jitter (reader) | lag vs reader / judge | "
@@ -108,10 +116,14 @@ def markdown(run: dict, rows: list[dict], pools: dict) -> str:
         out.append(f"| {r['clip']} | {r['half']} | {_f(r['ok'])} | {_f(r['articast'])} | "
                    f"{_f(r['reader'])} | {_g(r['gap_reader'])} | {_g(r['gap_family'])} | "
                    f"{r['best_peer']} ({_f(r['best_peer_r'])}) | {_f(r['jitter'])} "
-                   f"({_f(r['reader_jitter'])}) | {_f(r['lag_vs_reader'])} / "
+                   f"({_f(r['reader_jitter'])}) {_jv(r['jitter_gap'])} | "
+                   f"{_f(r['lag_vs_reader'])} / "
                    f"{_f(r['lag_vs_judge'])} | {r['occluded']} | {_f(r['truth_r'])} "
                    f"({_f(r['reader_truth_r'])}) |")
     out.append("")
+    jv = [_jv(r["jitter_gap"]) for r in rows if r["clip"] != "synthetic" and r["jitter_gap"]]
+    out.append(f"still-mouth jitter against the reader's: worse {jv.count('worse')}, not worse "
+               f"{jv.count('not worse')}, better {jv.count('better')}")
     for name, p in pools.items():
         if p:
             out.append(f"pooled {name}: mean gap to the reader {p['mean']:+.4f} "

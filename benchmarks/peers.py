@@ -149,11 +149,19 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
     "reader_v2": LivePolicy(fusion=FusionPolicy(reader="v2")),
     "reader_v2_every_frame": LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1,
                                                             cadence=None)),
-    # issue 38: the reader read on every frame, its own lip gap the streamed opening
-    "gap": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, lip_gap=True)),
-    "gap_bias": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, lip_gap=True,
-                                               lip_gap_bias=0.05)),
+    # issue 38: the reader read on every frame, its own lip gap in the streamed opening
     "every_frame": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None)),
+    "gap": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=1.0)),
+    "gap_eyes2": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=1.0,
+                                                eyes_every=2)),
+    "gap_0.5": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.5,
+                                              eyes_every=2)),
+    "gap_0.65": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.65,
+                                               eyes_every=2)),
+    "gap_0.5_it2": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.5,
+                                                  eyes_every=2, max_iterations=2)),
+    "gap_0.35": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.35,
+                                               eyes_every=2)),
 }
 ARTICAST_POLICY: LivePolicy | None = None  # set from --variant (and --set)
 SPEAKERS: Path | None = None  # --speakers: the enrolments kept and reused
@@ -981,7 +989,7 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
         row = {"found": _round(np.mean(v["found"]), 4), **scores[k],
                "aperture_median": _round(p50, 4),
                "ms": _round(v["ms"], 2), "cpu_ms": _round(v["cpu_ms"], 2),
-               "x_v1": _round(v["ms"] / base, 3) if base else None,
+               "x_v1": _round(v["ms"] / base, 3) if base and v["ms"] else None,
                "cpu_x_v1": _round(v["cpu_ms"] / base_cpu, 3)
                if base_cpu and v["cpu_ms"] else None,
                "build_ms": _round(v.get("build_ms"), 1),

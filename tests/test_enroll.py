@@ -1108,3 +1108,37 @@ def test_a_speaker_enrolled_for_the_finding_landmarks_is_read_by_them_on_every_f
     assert live.finder_calls >= 0.95 * len(frames)  # a reading on every frame
     ap = np.array([r.lips["aperture_mm"] if r.ok else np.nan for r in res])
     assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.9
+
+
+@pytest.mark.parametrize("share", [1.0, 0.5])
+def test_the_streamed_opening_is_the_readers_gap_mixed_with_the_fits(enrolled, share):
+    """``FusionPolicy.reader_gap``: on every frame the reader read, the streamed
+    articulation's projected opening (inner gap over mouth width, as the reader's points
+    measure it) is the given mix of the reader's own and the raw fused fit's, and the lips
+    still follow the truth; without it, the streamed opening is the filtered fit's."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.lipgap import model_ratios, reader_ratio
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    sp, frames, ap_true = _test_clip(enrolled)
+    fu = FusionPolicy(read_every=1, cadence=None, reader_gap=share)
+    live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig), LivePolicy(fusion=fu))
+    gaps, ap = [], []
+    for i, img in enumerate(frames[:40]):
+        r = live.track(img, i / 25)
+        ap.append(r.lips["aperture_mm"] if r.ok else np.nan)
+        if not r.ok or live._fresh is None:
+            continue
+        read = reader_ratio(np.asarray(live._fresh.landmarks)[:, :2])
+        raw = model_ratios(sp.model, sp.camera, np.asarray(r.extra["alpha_raw"])[None],
+                           r.pose)[0]
+        got = model_ratios(sp.model, sp.camera, r.alpha[None], r.pose)[0]
+        gaps.append((got, share * read + (1 - share) * raw, read, raw))
+    g = np.array(gaps)
+    assert len(g) >= 35  # every frame read
+    np.testing.assert_allclose(g[:, 0], g[:, 1], atol=5e-4)
+    assert np.abs(g[:, 2] - g[:, 3]).max() > 5e-3  # the two sources differ: the mix is real
+    ap = np.array(ap)
+    ok = np.isfinite(ap)
+    assert ok.mean() > 0.95 and np.corrcoef(ap[ok], ap_true[:40][ok])[0, 1] > 0.9

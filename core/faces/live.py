@@ -43,6 +43,7 @@ import numpy as np
 from articast.core.faces.enrol import LandmarkScheme
 from articast.core.faces.finder import FaceFinder, reader_seed
 from articast.core.faces.fit import state_from_landmarks
+from articast.core.faces.lipgap import matched, model_ratios, reader_ratio
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.faces.upper import UpperTracker
@@ -267,6 +268,8 @@ class FusionPolicy:
     lag_check: bool = True
     regression: bool = True
     recover: bool = True
+    reader_gap: float | None = None
+    eyes_every: int = 1
 
     def __post_init__(self) -> None:
         if self.start not in ("reader", "finder"):
@@ -354,6 +357,7 @@ class LiveTracker:
         # from the eyes' pixels (core/faces/upper.py)
         self.upper = UpperTracker(speaker.upper, speaker.rig, clock=clock)
         self._fresh: Any = None  # the landmarks read in this frame, if any
+        self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         if fu is not None:
             if reader is None:  # the bundled one, on one thread (it runs no detector: the
@@ -444,7 +448,8 @@ class LiveTracker:
         if self.fusion is not None:  # what an offline smoother needs (core/tracking/smoother.py)
             extra = {**extra, "motion": self.kalman.step, "phase": self._phase}
         result = replace(result, upper=upper, frame=self._frame, ms=ms, extra=extra)
-        if result.ok and (self._filter is not None or self._cadence is not None):
+        gap = self.fusion is not None and self.fusion.reader_gap is not None
+        if result.ok and (self._filter is not None or self._cadence is not None or gap):
             if result.extra.get("recovered") and self._filter is not None:
                 self._filter.reset()
             out = result.alpha
@@ -452,6 +457,7 @@ class LiveTracker:
                 out = self._cadence(out, self._phase)
             if self._filter is not None:
                 out = self._filter(out, t)
+            out = self._lip_gap(result, out)
             result = replace(result, alpha=out, lips=lips_dict(self.speaker.model, out),
                              extra={**result.extra, "alpha_raw": result.alpha})
         else:
@@ -466,10 +472,35 @@ class LiveTracker:
             self._last = result
         return result
 
+    def _lip_gap(self, result: TrackResult, alpha: np.ndarray) -> np.ndarray:
+        """The streamed ``alpha`` whose projected opening is this frame's mix of the reader's
+        own lip gap and the fused fit's (:mod:`articast.core.faces.lipgap`,
+        ``FusionPolicy.reader_gap``); unchanged on a frame the reader did not read."""
+        fu = self.fusion
+        if fu is None or fu.reader_gap is None or self._fresh is None:
+            return alpha
+        read = reader_ratio(np.asarray(self._fresh.landmarks)[:, :2])
+        if not np.isfinite(read):
+            return alpha
+        m, cam = self.speaker.model, self.speaker.camera
+        w = fu.reader_gap
+        target = read
+        if w < 1.0:  # the fit's own opening, raw (before the output filter: no lag)
+            fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
+            if np.isfinite(fitted):
+                target = w * read + (1.0 - w) * fitted
+        return matched(m, cam, alpha, result.pose, target)
+
     def _upper_face(self, image: np.ndarray, result: TrackResult) -> Any:
         """The eyes and brows of this frame (:class:`~articast.core.faces.upper.UpperFace`)."""
         fresh = self._fresh
+        fu = self.fusion
+        if (fresh is not None and fu is not None and fu.eyes_every > 1 and self._started
+                and self._frame - self._eyes_frame < fu.eyes_every):
+            fresh = None  # (the eyes measured on every eyes_every-th reading: pixels between)
         marks = None if fresh is None else np.asarray(fresh.landmarks)
+        if fresh is not None:
+            self._eyes_frame = self._frame
         anchor = None
         if result.ok or result.reason.startswith("occluded"):
             anchor = self.speaker.camera.project_head(self._head_point[None], result.pose)[0]

@@ -1,0 +1,117 @@
+"""The reader's own lip gap as the streamed lips' measurement (issue 38).
+
+Fitted through the speaker's model, a reading's ~300 points weigh the lips' few little: on
+faces the enrolment never saw, the fused live estimate read the lip aperture worse than the
+reader it reads with (against the networks of other families: r 0.74-0.84 where the FaceMesh
+v1 loop read 0.92-0.97, seven clips of seven new people), and a frame or two late. The
+reader's inner-lip gap over its mouth width is the one image measure of the opening every
+landmark network shares; here it becomes a measurement of the streamed articulation:
+
+    ratio(points) = ((lower - upper) . n) / |left - right|
+
+with ``n`` the unit normal of the corner line (the benchmark's measure, ``benchmarks/peers.py``
+``aperture_ratio``), read on the reader's landmarks 13, 14, 61, 291 and on the speaker's model
+at the corresponding points (inner midpoints 2.2, 2.3; outer corners 8.4, 8.3, which the model
+was built from), projected at the frame's pose. The streamed articulation is moved by the
+smallest step (in the model's s.d. units, the speaker's own prior metric) that makes the
+model's projected ratio equal the reader's: the other six directions of the articulation and
+the pose stay the fused estimate's, the opening is the reader's, frame by frame, with no
+filter between (no lag added to the reader's).
+
+Pure functions over numpy arrays; :class:`~articast.core.faces.live.LiveTracker` applies them.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import numpy as np
+
+from articast.core.model.camera import Camera, Pose
+from articast.core.model.face import FaceModel
+
+READER_POINTS = (13, 14, 61, 291)
+"""MediaPipe topology (FaceMesh v1 and FaceLandmarker v2 alike): inner upper and lower lip
+midpoints, then the outer corners (the subject's right, then left)."""
+MODEL_POINTS = ("2.2", "2.3", "8.4", "8.3")
+"""The model's MPEG-4 points the scheme builds from those four landmarks, in the same order."""
+
+
+def gap_ratio(points: np.ndarray) -> np.ndarray:
+    """(...,) inner-lip gap over mouth width of (..., 4, 2) image points (upper, lower, right
+    corner, left corner): the gap projected on the normal of the corner line. NaN where the
+    corners coincide."""
+    p = np.asarray(points, np.float64)
+    up, low, right, left = p[..., 0, :], p[..., 1, :], p[..., 2, :], p[..., 3, :]
+    across = left - right
+    width = np.linalg.norm(across, axis=-1)
+    down = np.stack([-across[..., 1], across[..., 0]], -1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.sum((low - up) * down, -1) / (width * width)
+
+
+def reader_ratio(landmarks: np.ndarray) -> float:
+    """The reader's ratio from its (L, 2+) landmarks in pixels (NaN if not finite)."""
+    marks = np.asarray(landmarks, np.float64)
+    if len(marks) <= max(READER_POINTS):
+        return float("nan")
+    return float(gap_ratio(marks[list(READER_POINTS), :2]))
+
+
+_POINTS: weakref.WeakKeyDictionary[FaceModel, tuple[np.ndarray, np.ndarray]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _points(model: FaceModel) -> tuple[np.ndarray, np.ndarray]:
+    """The four points' mean (4, 3) and basis (K, 12), taken once per model."""
+    got = _POINTS.get(model)
+    if got is None:
+        idx = [model.point(label) for label in MODEL_POINTS]
+        got = (model.mean[idx], model.basis[:, idx, :].reshape(model.n_params, -1))
+        _POINTS[model] = got
+    return got
+
+
+def model_ratios(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: Pose
+                 ) -> np.ndarray:
+    """(N,) the model's ratio at each of ``alphas`` (N, K), projected at ``pose``."""
+    mean, basis = _points(model)
+    a = np.atleast_2d(np.asarray(alphas, np.float64))
+    pts = (a @ basis).reshape(len(a), 4, 3) + mean
+    uv = camera.project_head(pts.reshape(-1, 3), pose).reshape(len(a), 4, 2)
+    return gap_ratio(uv)
+
+
+def matched(model: FaceModel, camera: Camera, alpha: np.ndarray, pose: Pose, target: float,
+            iterations: int = 2, step: float = 1e-3, max_change: float = 3.0,
+            tolerance: float = 1e-4) -> np.ndarray:
+    """``alpha`` moved by the smallest step (Euclidean, in the model's s.d. units) after which
+    the model's projected ratio is ``target`` (Gauss-Newton on the linearised constraint,
+    the gradient by central differences: the ratio is a smooth function of 7 numbers). The
+    step is at most ``max_change`` s.d. long (a reading that asks for more than the speaker's
+    articulation holds is followed that far). A second iteration only where the first left
+    more than ``tolerance`` (the ratio is nearly linear in the articulation). ``alpha``
+    unchanged when ``target`` is not finite or the ratio does not move with the
+    articulation."""
+    a = np.asarray(alpha, np.float64).copy()
+    if not np.isfinite(target):
+        return a
+    k = len(a)
+    eye = np.eye(k) * step
+    for _ in range(iterations):
+        probes = np.concatenate([a[None], a + eye, a - eye])
+        r = model_ratios(model, camera, probes, pose)
+        if not np.all(np.isfinite(r)):
+            return np.asarray(alpha, np.float64).copy()
+        if abs(target - r[0]) <= tolerance:
+            break
+        grad = (r[1:k + 1] - r[k + 1:]) / (2 * step)
+        g2 = float(grad @ grad)
+        if g2 <= 1e-18:
+            break
+        a = a + grad * (target - r[0]) / g2
+    change = a - alpha
+    norm = float(np.linalg.norm(change))
+    if norm > max_change:
+        a = alpha + change * (max_change / norm)
+    return a

@@ -1,0 +1,84 @@
+"""The reader's lip gap as the streamed opening (core/faces/lipgap.py), on the synthetic
+speaker's model, where the ratio of any articulation is known."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from articast.core.faces.lipgap import (
+    MODEL_POINTS,
+    READER_POINTS,
+    gap_ratio,
+    matched,
+    model_ratios,
+    reader_ratio,
+)
+from articast.core.model.camera import Camera, Pose
+from articast.core.synthetic import default_speaker
+
+
+@pytest.fixture(scope="module")
+def model():
+    return default_speaker(1).model()
+
+
+def test_the_ratio_is_the_gap_normal_to_the_corner_line_over_the_width():
+    # corners 100 px apart on a line tilted 30 deg; the lower lip 12 px below the upper,
+    # along the line's normal, and shifted along the line (which must not count)
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    along, normal = np.array([c, s]), np.array([-s, c])
+    right, left = np.array([50.0, 80.0]), np.array([50.0, 80.0]) + 100 * along
+    up = (right + left) / 2 - 3 * normal
+    low = up + 12 * normal + 7 * along
+    assert gap_ratio(np.array([up, low, right, left])) == pytest.approx(0.12)
+    assert gap_ratio(np.array([low, up, right, left])) == pytest.approx(-0.12)  # lips crossed
+    marks = np.zeros((478, 2))
+    marks[list(READER_POINTS)] = [up, low, right, left]
+    assert reader_ratio(marks) == pytest.approx(0.12)
+    assert np.isnan(reader_ratio(np.zeros((10, 2))))  # not the MediaPipe topology
+
+
+def test_the_model_ratio_is_read_on_the_points_the_reader_reads(model):
+    cam, pose = Camera.default(640, 480), Pose()
+    a = np.zeros(model.n_params)
+    idx = [model.point(x) for x in MODEL_POINTS]
+    uv = cam.project_head(model.shape(a)[idx], pose)
+    assert model_ratios(model, cam, a[None], pose)[0] == pytest.approx(gap_ratio(uv))
+    # jaw1 opens the mouth: the ratio grows with it
+    j = model.param_names.index("jaw1")
+    ratios = model_ratios(model, cam, np.outer([0.0, 1.0, 2.0], np.eye(model.n_params)[j]),
+                          pose)
+    assert ratios[0] < ratios[1] < ratios[2]
+
+
+@pytest.mark.parametrize("target_shift", [-0.03, 0.0, 0.02, 0.08])
+def test_matching_reaches_the_target_by_the_smallest_step(model, target_shift):
+    cam = Camera.default(640, 480)
+    pose = Pose(rotation=[0.1, -0.2, 0.05], translation=[10.0, -5.0, 450.0])
+    rng = np.random.default_rng(0)
+    a0 = rng.normal(0, 0.5, model.n_params)
+    r0 = model_ratios(model, cam, a0[None], pose)[0]
+    target = r0 + target_shift
+    a = matched(model, cam, a0, pose, target)
+    assert model_ratios(model, cam, a[None], pose)[0] == pytest.approx(target, abs=2e-4)
+    if target_shift == 0.0:
+        np.testing.assert_allclose(a, a0, atol=1e-6)
+        return
+    # the smallest step: no other step of the same length along the constraint does better;
+    # any step with a component orthogonal to the gradient is longer for the same ratio
+    step = a - a0
+    grad = np.array([(model_ratios(model, cam, (a0 + e)[None], pose)[0]
+                      - model_ratios(model, cam, (a0 - e)[None], pose)[0]) / 2e-3
+                     for e in np.eye(model.n_params) * 1e-3])
+    cos = abs(step @ grad) / (np.linalg.norm(step) * np.linalg.norm(grad))
+    assert cos > 0.99  # along the gradient: nothing else of the articulation moved
+
+
+def test_matching_leaves_the_articulation_when_the_reading_says_nothing(model):
+    cam, pose = Camera.default(640, 480), Pose()
+    a0 = np.full(model.n_params, 0.3)
+    np.testing.assert_array_equal(matched(model, cam, a0, pose, float("nan")), a0)
+    # a reading asking for far more than the articulation holds is followed max_change far
+    far = matched(model, cam, a0, pose, 5.0, max_change=2.0)
+    assert np.linalg.norm(far - a0) == pytest.approx(2.0)
