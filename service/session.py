@@ -26,7 +26,7 @@ from articast.service.metrics import SessionMetrics
 from articast.service.settings import CaptureSettings, SessionPolicy
 from articast.service.sources import check_uri, parse_uri
 from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
-from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker
+from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker, alive_interval
 
 log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -369,11 +369,12 @@ class SessionManager:
             light = s.spec.processor == "truth" or (
                 s.spec.processor == "auto" and parse_uri(s.spec.source).kind == "replay-record")
             kind = "thread" if light and self._thread_owner in (None, s) else "process"
+        alive_s = alive_interval(self.policy.worker_stall_s, self.policy.worker_start_s)
         if kind == "thread":
             self._thread_owner = self._thread_owner or s
-            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emitter())
+            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emitter(), alive_s)
         if kind == "process":
-            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emitter())
+            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emitter(), alive_s)
         raise InputError(f"worker must be auto, thread or process, not {kind!r}")
 
     def release_thread(self, s: Session) -> None:

@@ -10,7 +10,9 @@ tuples:
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
 ``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
-``("alive",)``                          once a second while a recording's gap is waited out
+``("alive",)``                          every ``alive_s`` while a recording's gap is waited
+                                        out (a fraction of the stall bound: see
+                                        :func:`alive_interval`)
 ``("done", outcome, detail)``           last message: ``ended``, ``failed`` (bad input, not
                                         restarted), ``crashed`` (restarted) or ``stopped``
 
@@ -89,8 +91,15 @@ class _Event(Protocol):  # what a worker needs of threading.Event
     def wait(self, timeout: float | None = None) -> bool: ...
 
 
+def alive_interval(*bounds: float) -> float:
+    """How often a worker that waits (a recording's gap) says it is alive: a quarter of the
+    shortest stall bound (0: none), at most 1 s. A sign of life once per bound raced the
+    watchdog: a message handed over late restarted the session."""
+    return min([1.0, *(b / 4 for b in bounds if b > 0)])
+
+
 def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir: str,
-               emit: Emit, stop: _Event, go: _Event) -> None:
+               emit: Emit, stop: _Event, go: _Event, alive_s: float = 1.0) -> None:
     """Run one session until its source ends, ``stop`` is set, or it fails. Never raises."""
     capture: Capture | None = None
     recorder: Recorder | None = None
@@ -157,7 +166,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
                 if capture.pacing and time.monotonic() >= next_alive:
                     # a recording's gap: the source is waiting for its media time, which the
                     # stall watchdog must not take for a hang (it restarted from frame 0)
-                    next_alive = time.monotonic() + 1.0
+                    next_alive = time.monotonic() + alive_s
                     emit(("alive",))
                 continue
             t0 = time.perf_counter()
@@ -253,10 +262,11 @@ class ThreadWorker:
     kind = "thread"
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
-                 emit: Emit) -> None:
+                 emit: Emit, alive_s: float = 1.0) -> None:
         self.stop_event, self.go = threading.Event(), threading.Event()
         self._thread = threading.Thread(
-            target=run_worker, args=(spec, capture, record_dir, emit, self.stop_event, self.go),
+            target=run_worker,
+            args=(spec, capture, record_dir, emit, self.stop_event, self.go, alive_s),
             name=f"session {spec.name}", daemon=True)
 
     def start(self) -> None:
@@ -293,7 +303,7 @@ class _Flag:
 
 
 def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
-                  conn: Any) -> None:
+                  conn: Any, alive_s: float = 1.0) -> None:
     """Worker process: control words (``go``, ``stop``) in, worker messages out, one pipe.
 
     A closed pipe (the server died) stops the worker, so no orphan keeps a camera open.
@@ -325,7 +335,7 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
 
     threading.Thread(target=control, daemon=True).start()
     try:
-        run_worker(spec, capture, record_dir, emit, stop, go)
+        run_worker(spec, capture, record_dir, emit, stop, go, alive_s)
     finally:
         conn.close()
 
@@ -377,12 +387,12 @@ class ProcessWorker:
     _ctx = _context()
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
-                 emit: Emit) -> None:
+                 emit: Emit, alive_s: float = 1.0) -> None:
         self._conn, child = self._ctx.Pipe(duplex=True)
         self._emit = emit
         self.stop_event, self.go = _Flag(self._conn, "stop"), _Flag(self._conn, "go")
         self.process = self._ctx.Process(
-            target=_process_main, args=(spec, capture, record_dir, child),
+            target=_process_main, args=(spec, capture, record_dir, child, alive_s),
             name=f"articast session {spec.name}", daemon=True)
         self._child = child
         self._reader = threading.Thread(target=self._read, name=f"reader {spec.name}",
