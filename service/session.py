@@ -295,12 +295,16 @@ class Session:
         self._m.hub.publish(self.spec.name, ev)
         self.settled.set()
         if self._m.vmc is not None and self._vmc_model is not None:
+            from articast.core.faces.upper import UpperFace
             from articast.core.model.camera import Pose
             from articast.core.tracking.result import TrackResult
 
+            # the eyes and brows travel as the record's blocks: without them VMC sent the
+            # head and the mouth only (no blinks, eye bones or brows; issue 39)
+            upper = UpperFace.from_dicts(rec.eyes, rec.brows)  # None without them
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
                               Pose(np.asarray(rec.rotation), np.asarray(rec.translation)),
-                              bool(rec.quality["ok"]))
+                              bool(rec.quality["ok"]), upper=upper)
             neutral = None if self.neutral is None else Pose(*map(np.asarray, self.neutral))
             self._m.vmc.send(res, self._vmc_model, neutral=neutral)  # UDP, never blocks
         t = now()
