@@ -46,6 +46,9 @@ class ProcessorContext:
     speaker: Any = None  # articast.core.faces.speaker.Speaker | None
     progress: Any = None
     """Callable(str) telling the session (and its console) what a slow first start does."""
+    busy: Any = None
+    """Callable(str) -> context manager: work known to finish (compiling), said once and
+    kept alive while it runs (:func:`articast.service.worker.busy`): not a stall."""
 
 
 COMPILING = "compiling the tracking kernels (first run only, a few seconds; numba caches them)"
@@ -56,9 +59,15 @@ def _warm_up(context: ProcessorContext) -> None:
     compiles: a worker that is starting is not stalled."""
     from articast.core.tracking import kernels
 
-    if context.progress is not None and not kernels.compiled_on_disk():
-        context.progress(COMPILING)
-    kernels.warm_up()
+    if kernels.compiled_on_disk():
+        kernels.warm_up()  # loaded from numba's cache
+    elif context.busy is not None:
+        with context.busy(COMPILING):
+            kernels.warm_up()
+    else:
+        if context.progress is not None:
+            context.progress(COMPILING)
+        kernels.warm_up()
 
 
 class TruthProcessor:
