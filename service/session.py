@@ -67,6 +67,9 @@ class Session:
         self.settled = asyncio.Event()
         """Set at the first frame, or when the session reports a problem (unavailable,
         failed, ended, restarting): what ``serve`` waits for before printing its URL."""
+        self.streaming = asyncio.Event()
+        """Set at the first frame: what ``serve`` waits for before printing its URL (a
+        problem is said on the console meanwhile)."""
         self._outcome: tuple[str, str] = ("", "")
         self._stopping = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -294,6 +297,7 @@ class Session:
                         self._mesh, self.outputs, self.neutral)
         self._m.hub.publish(self.spec.name, ev)
         self.settled.set()
+        self.streaming.set()
         if self._m.vmc is not None and self._vmc_model is not None:
             from articast.core.faces.upper import UpperFace
             from articast.core.model.camera import Pose
