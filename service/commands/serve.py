@@ -418,6 +418,9 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
                       "TOKEN'; browsers add token=TOKEN to the avatar URL", flush=True)
 
     serve(config, listening)
+    # Ctrl-C in a terminal ends as KeyboardInterrupt ("interrupted", cli.main); a SIGINT the
+    # shell had us ignore (a background job) or a handled stop returns here: say so too
+    print(f"articast {args.command}: stopped", file=sys.stderr, flush=True)
     return 0
 
 
