@@ -573,17 +573,13 @@ def check_uri(uri: str) -> None:
     """Fail fast on a bad URI or a missing file, without opening anything."""
     p = parse_uri(uri)
     src = make_source(uri)
-    try:  # what the path is instead, in one line: missing, a folder, a FIFO, a device
-        if p.kind == "file":
-            from articast.service.video import check_video_file
+    if p.kind in ("file", "replay-record"):  # what the path is instead, in one line (its
+        # status only: the worker opens and reads it, and fails the session if it is no video)
+        from articast.service.video import file_problem
 
-            check_video_file(p.target)
-        elif p.kind == "replay-record":
-            from articast.service.video import require_file
-
-            require_file(p.target)
-    except InputError as exc:
-        raise SourceError(str(exc)) from None
+        problem = file_problem(p.target)
+        if problem:
+            raise SourceError(f"{p.target}: {problem}")
     if p.kind == "images" and not Path(p.target).is_dir():
         raise SourceError(f"{p.target}: " + ("not a folder" if os.path.lexists(p.target)
                                               else "no such folder"))

@@ -33,6 +33,27 @@ TEXT_SUFFIXES = (".txt", ".text", ".md", ".nfo", ".asc", ".ans", ".art", ".diz",
 as 640x400 frames of its characters (a landmark progress bar over "84 frames" of notes)."""
 
 
+def file_problem(path: str | os.PathLike[str]) -> str:
+    """What ``path`` is instead of a regular file, from its status alone (nothing opened):
+    '' for a regular file, else "no such file", "is a folder, not a regular file", ..."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "no such file" if not os.path.lexists(path) else "a link to no file"
+    except OSError as exc:
+        return f"cannot open it ({exc.strerror or exc})"
+    except ValueError:
+        return "not a valid file name"
+    if stat.S_ISREG(mode):
+        return ""
+    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
+            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    return f"is {kind}, not a regular file"
+
+
 def require_file(path: str | os.PathLike[str], what: str = "") -> Path:
     """``path`` is a regular file, or one line saying what it is instead: no such file, a
     folder, a FIFO, a device (never "no such file" for something that is there)."""
