@@ -103,12 +103,12 @@ def _require_numbers(doc: dict[str, Any]) -> None:
     """``t`` and the alpha values are JSON numbers: float() read "t": "0" (a string) as 0 s
     and the file passed (issue 39), so another tool's wrong types went unnoticed."""
     if "t" in doc and not _number(doc["t"]):
-        raise ValueError(f"t must be a number of seconds, not {json.dumps(doc['t'])[:40]}")
+        raise ValueError(f"t must be a number of seconds, not {doc['t']!r:.40}")
     alpha = doc.get("alpha", {})
     if isinstance(alpha, dict):
         for name, v in alpha.items():
             if not _number(v):
-                raise ValueError(f"alpha {name} must be a number, not {json.dumps(v)[:40]}")
+                raise ValueError(f"alpha {name} must be a number, not {v!r:.40}")
 
 
 def hold_last_good(
