@@ -51,7 +51,10 @@ class ProcessorContext:
     kept alive while it runs (:func:`articast.service.worker.busy`): not a stall."""
 
 
-COMPILING = "compiling the tracking kernels (first run only, a few seconds; numba caches them)"
+COMPILING = ("compiling the tracking kernels (first run only: 1-2 minutes on a busy machine; "
+             "numba caches them)")
+"""Measured: 99 s (55 s of CPU) at load ~8 and 125 s to the first frame at load 5-6 on this
+2-core machine; "a few seconds" was read as a hang (issue 39)."""
 
 
 def _warm_up(context: ProcessorContext) -> None:
