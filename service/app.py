@@ -487,12 +487,20 @@ class Service:
 
     async def _announce(self) -> None:
         """Call ``on_live`` once every initial session streams (its first frame is on the
-        hub) or has said why it cannot (a session held for its first subscriber counts as
-        ready): a URL printed then shows a moving face, not an empty page. It is told which
-        sessions have failed already ({name: reason}): no URL is printed for those."""
-        waits = [s.settled.wait() for s in self.manager.sessions.values()
-                 if not s.spec.wait_for_subscriber]
-        await asyncio.gather(*waits)
+        hub) or has said why it cannot, and a face streams (a session held for its first
+        subscriber counts as streaming): a URL printed then shows a moving face, not an
+        empty page. It is told which sessions have failed already ({name: reason}): no URL
+        is printed for those."""
+        sessions = list(self.manager.sessions.values())
+        shown = [s for s in sessions if not s.spec.wait_for_subscriber]
+        await asyncio.gather(*(s.settled.wait() for s in shown))
+        # a URL only once a face streams (issue 39: it was printed for a missing camera and
+        # after a crash, over an empty page): a session that said why it cannot is waited
+        # for, its reason on the console; when every one has failed, nothing is served
+        while shown and len(shown) == len(sessions) and not any(
+                s.streaming.is_set() for s in shown) and not all(
+                s.state in ("failed", "ended", "stopped") for s in shown):
+            await asyncio.sleep(0.1)
         assert self.on_live is not None
         self.on_live({n: s.detail for n, s in self.manager.sessions.items()
                       if s.state == "failed"})

@@ -4,6 +4,11 @@
   the replaced frame is counted in :attr:`Capture.dropped` — a slow tracker never builds a
   queue, it just sees the newest frame.
 * ``pace=fast`` playback is lossless: the thread waits until the slot is taken.
+* ``pace=realtime`` playback drops a frame only for a consumer that did not keep up: each
+  frame stays in the slot for its media period (until the next frame's media time, counted
+  from when it was put), and a consumer already waiting for it is always handed it first. A
+  capture thread that was descheduled puts its late frames back to back, and replaced the one
+  an idle consumer had not been scheduled to take yet: a recording lost frames under load.
 * :class:`~articast.service.sources.SourceUnavailable` (missing, busy, unplugged camera) is reported
   through ``on_status("unavailable", reason)`` and retried with exponential backoff.
 * :class:`~articast.service.sources.SourceError` ends the capture with :attr:`Capture.error` set.
@@ -43,6 +48,10 @@ class Capture:
         self.pacing = False
         """Waiting for the next frame's media time (a gap in a recording): not a stall."""
         self._lost = False  # unavailable since the last "running": say when it is back
+        self._waiting = 0
+        """Consumers inside :meth:`get` for a frame: idle, perhaps not yet scheduled."""
+        self._slot_since = 0.0
+        """When the frame in the slot was put (monotonic)."""
 
     # ------------------------------------------------------------------ consumer side
     def start(self) -> Capture:
@@ -59,7 +68,11 @@ class Capture:
         """The newest frame, or None after ``timeout`` s (check :attr:`done`)."""
         with self._cond:
             if self._slot is None and not self.finished:
-                self._cond.wait(timeout)
+                self._waiting += 1
+                try:
+                    self._cond.wait(timeout)
+                finally:
+                    self._waiting -= 1
             frame, self._slot = self._slot, None
             self._cond.notify_all()
             return frame
@@ -72,12 +85,22 @@ class Capture:
     # ------------------------------------------------------------------ capture thread
     def _put(self, frame: Frame) -> None:
         lossless = not self.source.live and self.source.pace == "fast"
+        paced = not self.source.live and not lossless
         with self._cond:
-            while lossless and self._slot is not None and not self._stop.is_set():
-                self._cond.wait(0.1)
+            while self._slot is not None and not self._stop.is_set():
+                if lossless or (paced and self._waiting):
+                    self._cond.wait(0.1)
+                    continue
+                # the unread frame's own period (its media time to this one's, at most 1 s),
+                # from when it was put: a late capture thread does not shorten it
+                left = (self._slot_since + min(max(frame.t - self._slot.t, 0.0), 1.0)
+                        - time.monotonic()) if paced else 0.0
+                if left <= 0:
+                    break
+                self._cond.wait(min(left, 0.1))
             if self._slot is not None:
                 self.dropped += 1
-            self._slot = frame
+            self._slot, self._slot_since = frame, time.monotonic()
             self.frames += 1
             self._cond.notify_all()
 

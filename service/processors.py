@@ -46,9 +46,15 @@ class ProcessorContext:
     speaker: Any = None  # articast.core.faces.speaker.Speaker | None
     progress: Any = None
     """Callable(str) telling the session (and its console) what a slow first start does."""
+    busy: Any = None
+    """Callable(str) -> context manager: work known to finish (compiling), said once and
+    kept alive while it runs (:func:`articast.service.worker.busy`): not a stall."""
 
 
-COMPILING = "compiling the tracking kernels (first run only, a few seconds; numba caches them)"
+COMPILING = ("compiling the tracking kernels (first run only: 1-2 minutes on a busy machine; "
+             "numba caches them)")
+"""Measured: 99 s (55 s of CPU) at load ~8 and 125 s to the first frame at load 5-6 on this
+2-core machine; "a few seconds" was read as a hang (issue 39)."""
 
 
 def _warm_up(context: ProcessorContext) -> None:
@@ -56,9 +62,15 @@ def _warm_up(context: ProcessorContext) -> None:
     compiles: a worker that is starting is not stalled."""
     from articast.core.tracking import kernels
 
-    if context.progress is not None and not kernels.compiled_on_disk():
-        context.progress(COMPILING)
-    kernels.warm_up()
+    if kernels.compiled_on_disk():
+        kernels.warm_up()  # loaded from numba's cache
+    elif context.busy is not None:
+        with context.busy(COMPILING):
+            kernels.warm_up()
+    else:
+        if context.progress is not None:
+            context.progress(COMPILING)
+        kernels.warm_up()
 
 
 class TruthProcessor:

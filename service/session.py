@@ -26,7 +26,7 @@ from articast.service.metrics import SessionMetrics
 from articast.service.settings import CaptureSettings, SessionPolicy
 from articast.service.sources import check_uri, parse_uri
 from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
-from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker
+from articast.service.worker import ProcessWorker, SessionSpec, ThreadWorker, alive_interval
 
 log = logging.getLogger("articast.session")
 NAME_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -67,6 +67,9 @@ class Session:
         self.settled = asyncio.Event()
         """Set at the first frame, or when the session reports a problem (unavailable,
         failed, ended, restarting): what ``serve`` waits for before printing its URL."""
+        self.streaming = asyncio.Event()
+        """Set at the first frame: what ``serve`` waits for before printing its URL (a
+        problem is said on the console meanwhile)."""
         self._outcome: tuple[str, str] = ("", "")
         self._stopping = asyncio.Event()
         self._task: asyncio.Task[None] | None = None
@@ -294,13 +297,18 @@ class Session:
                         self._mesh, self.outputs, self.neutral)
         self._m.hub.publish(self.spec.name, ev)
         self.settled.set()
+        self.streaming.set()
         if self._m.vmc is not None and self._vmc_model is not None:
+            from articast.core.faces.upper import UpperFace
             from articast.core.model.camera import Pose
             from articast.core.tracking.result import TrackResult
 
+            # the eyes and brows travel as the record's blocks: without them VMC sent the
+            # head and the mouth only (no blinks, eye bones or brows; issue 39)
+            upper = UpperFace.from_dicts(rec.eyes, rec.brows)  # None without them
             res = TrackResult(rec.frame, rec.t, np.asarray(rec.alpha),
                               Pose(np.asarray(rec.rotation), np.asarray(rec.translation)),
-                              bool(rec.quality["ok"]))
+                              bool(rec.quality["ok"]), upper=upper)
             neutral = None if self.neutral is None else Pose(*map(np.asarray, self.neutral))
             self._m.vmc.send(res, self._vmc_model, neutral=neutral)  # UDP, never blocks
         t = now()
@@ -369,11 +377,12 @@ class SessionManager:
             light = s.spec.processor == "truth" or (
                 s.spec.processor == "auto" and parse_uri(s.spec.source).kind == "replay-record")
             kind = "thread" if light and self._thread_owner in (None, s) else "process"
+        alive_s = alive_interval(self.policy.worker_stall_s, self.policy.worker_start_s)
         if kind == "thread":
             self._thread_owner = self._thread_owner or s
-            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emitter())
+            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emitter(), alive_s)
         if kind == "process":
-            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emitter())
+            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emitter(), alive_s)
         raise InputError(f"worker must be auto, thread or process, not {kind!r}")
 
     def release_thread(self, s: Session) -> None:

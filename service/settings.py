@@ -88,8 +88,9 @@ class ServerSettings:
     scan: str = _opt("", "show this bound, textured head scan on the avatar page, animated by "
                      "the stream (a binding from 'articast bind-dense SCAN --landmarks FILE', "
                      "made against the sessions' model; docs/DENSE_TRANSFER.md)")
-    vmc: str = _opt("", "also send every session's mouth/jaw ARKit blendshapes and head pose "
-                        "over the VMC protocol (OSC/UDP) to HOST[:PORT] (default port 39539)")
+    vmc: str = _opt("", "also send every session's head pose, ARKit mouth/jaw blendshapes "
+                        "and, where seen, blinks, gaze (eye bones) and brows over the VMC "
+                        "protocol (OSC/UDP) to HOST[:PORT] (default port 39539)")
     vmc_names: str = _opt("perfect-sync", "VMC blendshape names: perfect-sync (UpperCamel, "
                           "JawOpen: perfect-sync VRM avatars) or arkit (lowerCamel, jawOpen); "
                           "the VRM vowels A I U E O are sent either way")

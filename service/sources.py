@@ -120,7 +120,9 @@ class SourceURI:
 def parse_uri(uri: str) -> SourceURI:
     """Split ``kind:target?k=v&..`` (for ``synthetic:`` the target is itself ``k=v&..``)."""
     if not isinstance(uri, str) or ":" not in uri:
-        raise SourceError(f"{uri!r}: a source is KIND:TARGET, KIND one of {sorted(SOURCE_KINDS)}")
+        hint = f" (a video file: file:{uri})" if isinstance(uri, str) and uri else ""
+        raise SourceError(f"{uri!r}: a source is KIND:TARGET{hint}, KIND one of "
+                          f"{sorted(SOURCE_KINDS)}")
     kind, rest = uri.split(":", 1)
     if kind not in SOURCE_KINDS:
         raise SourceError(f"{uri!r}: unknown source kind {kind!r}; known: {sorted(SOURCE_KINDS)}")
@@ -294,11 +296,17 @@ class FileSource(_Finite):
         os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")  # our error, not FFmpeg's noise
         import cv2
 
-        if not self.path.is_file():
+        from articast.service.video import VIDEO_SNIFF_BYTES, check_video_head, open_capture
+
+        if not os.path.lexists(self.path):
             raise SourceError(f"{self.path}: no such file")
         self.close()
         self._fh = self._open_file(self.path)  # held open: OpenCV reads this very file
-        from articast.service.video import open_capture
+        try:  # a folder, FIFO or device failed above; text is no video (OpenCV "opens" it)
+            check_video_head(os.pread(self._fh.fileno(), VIDEO_SNIFF_BYTES, 0), self.path)
+        except InputError as exc:
+            self.close()
+            raise SourceError(str(exc)) from None
 
         cap = open_capture(f"/proc/self/fd/{self._fh.fileno()}" if self.roots
                            else str(self.path))
@@ -386,7 +394,8 @@ class ImagesSource(_Finite):
 
     def open(self) -> SourceInfo:
         if not self.dir.is_dir():
-            raise SourceError(f"{self.dir}: no such folder")
+            raise SourceError(f"{self.dir}: " + ("not a folder" if os.path.lexists(self.dir)
+                                                 else "no such folder"))
         self._files = sorted(f for f in self.dir.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
         if not self._files:
             raise SourceError(f"{self.dir}: no images ({', '.join(IMAGE_SUFFIXES)})")
@@ -435,9 +444,9 @@ class RecordSource(_Finite):
         from articast.core.safe_io import open_regular_text
         from articast.service.record import read_header
 
-        if not self.path.is_file():
+        if not os.path.lexists(self.path):
             raise SourceError(f"{self.path}: no such file")
-        self._open_file(self.path).close()  # under the roots, if confined
+        self._open_file(self.path).close()  # a regular file (else what it is), under the roots
         header, self._assets, self.param_names = read_header(self.path)
         try:
             self._fh = open_regular_text(self.path, max_bytes=None)
@@ -564,10 +573,16 @@ def check_uri(uri: str) -> None:
     """Fail fast on a bad URI or a missing file, without opening anything."""
     p = parse_uri(uri)
     src = make_source(uri)
-    if p.kind in ("file", "replay-record") and not Path(p.target).is_file():
-        raise SourceError(f"{p.target}: no such file")
+    if p.kind in ("file", "replay-record"):  # what the path is instead, in one line (its
+        # status only: the worker opens and reads it, and fails the session if it is no video)
+        from articast.service.video import file_problem
+
+        problem = file_problem(p.target)
+        if problem:
+            raise SourceError(f"{p.target}: {problem}")
     if p.kind == "images" and not Path(p.target).is_dir():
-        raise SourceError(f"{p.target}: no such folder")
+        raise SourceError(f"{p.target}: " + ("not a folder" if os.path.lexists(p.target)
+                                              else "no such folder"))
     del src
 
 

@@ -25,6 +25,85 @@ OPENCV_NOISE = (b"Unexpected element.",)
 articast's own error."""
 
 
+VIDEO_SNIFF_BYTES = 4096
+"""How much of a file is read to tell text from a video before OpenCV opens it."""
+TEXT_SUFFIXES = (".txt", ".text", ".md", ".nfo", ".asc", ".ans", ".art", ".diz", ".ice", ".vt",
+                 ".json", ".jsonl", ".csv", ".log")
+"""Names FFmpeg's ``tty`` demuxer (or nobody) takes for video: OpenCV "opened" a text file
+as 640x400 frames of its characters (a landmark progress bar over "84 frames" of notes)."""
+
+
+def file_problem(path: str | os.PathLike[str]) -> str:
+    """What ``path`` is instead of a regular file, from its status alone (nothing opened):
+    '' for a regular file, else "no such file", "is a folder, not a regular file", ..."""
+    import stat
+
+    try:
+        mode = os.stat(path).st_mode
+    except FileNotFoundError:
+        return "no such file" if not os.path.lexists(path) else "a link to no file"
+    except OSError as exc:
+        return f"cannot open it ({exc.strerror or exc})"
+    except ValueError:
+        return "not a valid file name"
+    if stat.S_ISREG(mode):
+        return ""
+    kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else
+            "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else
+            "a socket" if stat.S_ISSOCK(mode) else "not a regular file")
+    return f"is {kind}, not a regular file"
+
+
+def require_file(path: str | os.PathLike[str], what: str = "") -> Path:
+    """``path`` is a regular file, or one line saying what it is instead: no such file, a
+    folder, a FIFO, a device (never "no such file" for something that is there)."""
+    p = Path(path)
+    if not os.path.lexists(p):
+        raise InputError(f"{what + ' ' if what else ''}{p}: no such file")
+    require_regular(p, what)
+    return p
+
+
+def check_video_head(head: bytes, path: str | os.PathLike[str]) -> None:
+    """One clear error if the first bytes of ``path`` show it is no video: empty, text."""
+    name = Path(path)
+    if not head:
+        raise InputError(f"{name}: an empty file, not a video")
+    if head.startswith(b"YUV4MPEG2"):  # a raw video whose header is a line of text
+        return
+    if name.suffix.lower() in TEXT_SUFFIXES or _looks_like_text(head):
+        raise InputError(f"{name}: a text file, not a video (give a clip: mp4, mov, avi, mkv, "
+                         "webm, ... any format FFmpeg reads)")
+
+
+def _looks_like_text(head: bytes) -> bool:
+    """No NUL byte, and UTF-8 (the cut at the end aside) or nearly all printable ASCII: every
+    video container has binary fields (sizes, codes) in its first kilobytes."""
+    if b"\0" in head:
+        return False
+    try:
+        head.decode("utf-8")
+        return True
+    except UnicodeDecodeError as exc:
+        if exc.reason == "unexpected end of data" and exc.start >= len(head) - 3:
+            return True
+    printable = sum(32 <= b < 127 or b in b"\t\n\r\f" for b in head)
+    return printable >= 0.95 * len(head)
+
+
+def check_video_file(path: str | os.PathLike[str]) -> Path:
+    """The one check before a video file is handed to OpenCV (enroll, track, delegate,
+    replay, serve): it exists, is a regular file (a FIFO would block OpenCV for ever), and
+    its first bytes are not text. One :class:`InputError` line otherwise, before any work."""
+    from articast.core.safe_io import open_regular
+
+    p = require_file(path)
+    with open_regular(p, max_bytes=MAX_VIDEO_BYTES) as fh:
+        head = fh.read(VIDEO_SNIFF_BYTES)
+    check_video_head(head, p)
+    return p
+
+
 def open_capture(name: str, *api: int) -> Any:
     """``cv2.VideoCapture(name, *api)`` with OpenCV's own stderr lines (:data:`OPENCV_NOISE`)
     dropped: fd 2 goes to a temporary file while the container is parsed, and whatever else
@@ -127,10 +206,7 @@ def iter_video(path: str | os.PathLike[str], span: Span | None = None
     """
     import cv2
 
-    p = Path(path)
-    if not os.path.lexists(p):
-        raise InputError(f"{p}: no such video file")
-    require_regular(p, max_bytes=MAX_VIDEO_BYTES)  # a FIFO would block OpenCV for ever
+    p = check_video_file(path)
     cap = open_capture(str(p))
     if not cap.isOpened():
         raise InputError(f"{p}: cannot open as a video (unknown or corrupt container)")
@@ -178,7 +254,7 @@ def video_frame_count(path: str | os.PathLike[str]) -> int:
     """Frame count the container declares (0 if unknown)."""
     import cv2
 
-    require_regular(path, max_bytes=MAX_VIDEO_BYTES)
+    check_video_file(path)
     cap = open_capture(str(path))
     try:
         return max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT)), 0)

@@ -10,7 +10,10 @@ tuples:
 ``("ready", description, source, processor)``  once the source is open (hello can be sent)
 ``("frame", FrameRecord)``              one per tracked frame
 ``("preview", seq, jpeg_bytes)``        a few per second, when the session opted in
-``("alive",)``                          once a second while a recording's gap is waited out
+``("alive",)``                          every ``alive_s`` while a recording's gap is waited
+                                        out, or while work known to finish runs (the
+                                        kernels' compilation: :func:`busy`), a fraction of
+                                        the stall bound (:func:`alive_interval`)
 ``("done", outcome, detail)``           last message: ``ended``, ``failed`` (bad input, not
                                         restarted), ``crashed`` (restarted) or ``stopped``
 
@@ -20,12 +23,13 @@ delays subscribers and a crash of the server loses at most the frame in flight.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import multiprocessing
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -89,8 +93,43 @@ class _Event(Protocol):  # what a worker needs of threading.Event
     def wait(self, timeout: float | None = None) -> bool: ...
 
 
+def alive_interval(*bounds: float) -> float:
+    """How often a worker that waits (a recording's gap) says it is alive: a quarter of the
+    shortest stall bound (0: none), at most 1 s. A sign of life once per bound raced the
+    watchdog: a message handed over late restarted the session."""
+    return min([1.0, *(b / 4 for b in bounds if b > 0)])
+
+
+BUSY_MAX_S = 900.0
+"""How long :func:`busy` work may say it is alive: the kernels compile in 30-180 s on a
+loaded 2-core machine; a compilation still running after 15 minutes is taken for a hang and
+left to the start watchdog."""
+
+
+@contextlib.contextmanager
+def busy(text: str, progress: Callable[[str], None], emit: Emit,
+         alive_s: float) -> Iterator[None]:
+    """Work that is known to finish (compiling the tracker's kernels): say what it is once,
+    then ``("alive",)`` every ``alive_s`` while it runs (at most :data:`BUSY_MAX_S`). A first
+    run's compilation outlasted --worker-start-s under load, was declared stalled, killed as
+    a crash, and compiled again in the next worker (issue 39): compiling is starting."""
+    progress(text)
+    done = threading.Event()
+
+    def beat() -> None:
+        end = time.monotonic() + BUSY_MAX_S
+        while not done.wait(alive_s) and time.monotonic() < end:
+            emit(("alive",))
+
+    threading.Thread(target=beat, daemon=True, name="alive while busy").start()
+    try:
+        yield
+    finally:
+        done.set()
+
+
 def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir: str,
-               emit: Emit, stop: _Event, go: _Event) -> None:
+               emit: Emit, stop: _Event, go: _Event, alive_s: float = 1.0) -> None:
     """Run one session until its source ends, ``stop`` is set, or it fails. Never raises."""
     capture: Capture | None = None
     recorder: Recorder | None = None
@@ -106,9 +145,12 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
                 said.add(text)
                 emit(("progress", text))
 
+        def busy_with(text: str) -> contextlib.AbstractContextManager[None]:
+            return busy(text, progress, emit, alive_s)
+
         source = make_source(spec.source, spec.media_roots)
         if _tracks(spec, source):  # a first run compiles while its source opens (caches)
-            threading.Thread(target=_compile_kernels, args=(progress,), daemon=True,
+            threading.Thread(target=_compile_kernels, args=(busy_with,), daemon=True,
                              name="compile kernels").start()
         if hasattr(source, "progress"):
             source.progress = progress
@@ -133,7 +175,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         # what the source knows (e.g. the synthetic rig and start pose), then the session's own
         ctx = ProcessorContext(spec.name, capture.info, model, camera, appearance,
                                {**capture.assets.extra, **dict(spec.options)}, speaker,
-                               progress)
+                               progress, busy_with)
         used, processor = make_processor(spec.processor, ctx)
         from articast.core.model.face import PARAM_NAMES
 
@@ -157,7 +199,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
                 if capture.pacing and time.monotonic() >= next_alive:
                     # a recording's gap: the source is waiting for its media time, which the
                     # stall watchdog must not take for a hang (it restarted from frame 0)
-                    next_alive = time.monotonic() + 1.0
+                    next_alive = time.monotonic() + alive_s
                     emit(("alive",))
                 continue
             t0 = time.perf_counter()
@@ -198,14 +240,16 @@ def _tracks(spec: SessionSpec, source: Any) -> bool:
         source, RecordSource)
 
 
-def _compile_kernels(progress: Callable[[str], None]) -> None:
-    """Compile the tracker's kernels if numba's cache lacks them (a first run), saying so; in
-    a thread beside the source's opening, which on a first run builds its own caches."""
+def _compile_kernels(busy_with: Callable[[str], contextlib.AbstractContextManager[None]]
+                     ) -> None:
+    """Compile the tracker's kernels if numba's cache lacks them (a first run), saying so and
+    that it is alive; in a thread beside the source's opening, which on a first run builds
+    its own caches."""
     from articast.core.tracking import kernels
 
     if not kernels.compiled_on_disk():
-        progress(COMPILING)
-        kernels.warm_up()
+        with busy_with(COMPILING):
+            kernels.warm_up()
 
 
 def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,
@@ -253,10 +297,11 @@ class ThreadWorker:
     kind = "thread"
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
-                 emit: Emit) -> None:
+                 emit: Emit, alive_s: float = 1.0) -> None:
         self.stop_event, self.go = threading.Event(), threading.Event()
         self._thread = threading.Thread(
-            target=run_worker, args=(spec, capture, record_dir, emit, self.stop_event, self.go),
+            target=run_worker,
+            args=(spec, capture, record_dir, emit, self.stop_event, self.go, alive_s),
             name=f"session {spec.name}", daemon=True)
 
     def start(self) -> None:
@@ -293,7 +338,7 @@ class _Flag:
 
 
 def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
-                  conn: Any) -> None:
+                  conn: Any, alive_s: float = 1.0) -> None:
     """Worker process: control words (``go``, ``stop``) in, worker messages out, one pipe.
 
     A closed pipe (the server died) stops the worker, so no orphan keeps a camera open.
@@ -325,7 +370,7 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
 
     threading.Thread(target=control, daemon=True).start()
     try:
-        run_worker(spec, capture, record_dir, emit, stop, go)
+        run_worker(spec, capture, record_dir, emit, stop, go, alive_s)
     finally:
         conn.close()
 
@@ -377,12 +422,12 @@ class ProcessWorker:
     _ctx = _context()
 
     def __init__(self, spec: SessionSpec, capture: CaptureSettings, record_dir: str,
-                 emit: Emit) -> None:
+                 emit: Emit, alive_s: float = 1.0) -> None:
         self._conn, child = self._ctx.Pipe(duplex=True)
         self._emit = emit
         self.stop_event, self.go = _Flag(self._conn, "stop"), _Flag(self._conn, "go")
         self.process = self._ctx.Process(
-            target=_process_main, args=(spec, capture, record_dir, child),
+            target=_process_main, args=(spec, capture, record_dir, child, alive_s),
             name=f"articast session {spec.name}", daemon=True)
         self._child = child
         self._reader = threading.Thread(target=self._read, name=f"reader {spec.name}",

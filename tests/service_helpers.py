@@ -152,6 +152,19 @@ class SlowStart:
         return frame.truth
 
 
+class BusyStart:
+    """A test FrameProcessor whose construction is ``start_s`` seconds (session option) of
+    work known to finish, run inside ``context.busy`` as the kernels' first compilation is;
+    then passes truth through."""
+
+    def __init__(self, context: Any) -> None:
+        with context.busy("compiling test kernels (first run only)"):
+            time.sleep(float(context.options.get("start_s", 1.0)))
+
+    def process(self, frame: Any) -> TrackResult:
+        return frame.truth
+
+
 class Occludes:
     """A test FrameProcessor that passes truth through but reports frames 3-5 of every run
     as the tracker reports a hand over the mouth: ok false, reason ``occluded: ...``, the

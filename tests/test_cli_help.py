@@ -53,11 +53,46 @@ def _help(*command):
     return parser.format_help()
 
 
-def test_serving_commands_put_the_common_options_first_and_the_limits_last():
-    """demo/replay/replay-record --help ran through ~190 lines of server limits before what
-    matters: the common options come first, the limits in one group at the end."""
+def _help_all(command, capsys):
+    import pytest
+
+    from articast.service.cli import main
+
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help-all"])
+    assert done.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_serving_commands_help_shows_what_a_first_run_needs(capsys):
+    """Issue 39: demo --help was 186 lines and 51 options for a command that needs none.
+    --help lists the common options (demo in <= 40 lines) and says where the rest are;
+    --help-all lists every option, each still there and working."""
+    from articast.service.commands.serve import SHOWN
+
+    for command in ("demo", "serve", "replay", "replay-record"):
+        brief, full = _help(command), _help_all(command, capsys)
+        assert "--help-all" in brief and "--max-queue" not in brief, command
+        assert "\nserver limits:" not in brief and "--hub" not in brief, command
+        for dest in SHOWN[command]:
+            option = dest.replace("_", "-")
+            assert option in brief or dest in ("video", "recording"), (command, option)
+        everything = set(re.findall(r"--[a-z][a-z-]+", full))
+        listed = {o for a in dict(walk(build_parser()))[("articast", command)]._actions
+                  for o in a.option_strings if o.startswith("--")}
+        assert listed <= everything, (command, listed - everything)
+        assert len(brief.splitlines()) < len(full.splitlines()) / 2, command
+    assert len(_help("demo").splitlines()) <= 40, _help("demo")
+    # a hidden option still works: parsed as before
+    args = build_parser().parse_args(["demo", "--max-queue", "8", "--worker-start-s", "30"])
+    assert (args.max_queue, args.worker_start_s) == (8, 30.0)
+
+
+def test_serving_commands_put_the_common_options_first_and_the_limits_last(capsys):
+    """demo/replay/replay-record --help-all ran through ~190 lines of server limits before
+    what matters: the common options come first, the limits in one group at the end."""
     for command in ("demo", "replay", "replay-record", "serve"):
-        text = _help(command)
+        text = _help_all(command, capsys)
         usage = text.split("\n\n")[0]
         assert len(usage.splitlines()) <= 3 and "--max-queue" not in usage, (command, usage)
         head = "\n".join(text.splitlines()[:45])

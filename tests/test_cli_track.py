@@ -147,3 +147,20 @@ def test_start_and_end_are_checked_before_any_work(tmp_path, capsys):
                  str(tmp_path / "t.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "another aspect ratio" in err[0] and "resize" in err[0], err
+
+
+def test_a_clip_without_the_face_writes_no_track(speaker4_enrolled, tmp_path, capsys):
+    """track --help says -o is written only if tracking succeeds; a clip without the face
+    (no frame tracked) wrote it anyway, full of ok=false lines (issue 39). Now: one line,
+    exit 2, no file."""
+    from tests.service_helpers import write_video
+
+    clip = tmp_path / "empty-room.avi"
+    write_video(clip, frames=6, size=(160, 120))  # grey frames: nobody there
+    out = tmp_path / "t.jsonl"
+    code = main(["track", str(clip), "--speaker", str(speaker4_enrolled / "speaker"), "-o",
+                 str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert "none of its 6 frames could be tracked" in err and "not written" in err, err
+    assert not out.exists() and not list(tmp_path.glob(".t.jsonl*"))

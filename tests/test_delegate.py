@@ -139,10 +139,15 @@ def test_the_inner_mouth_darkens_in_the_texture_as_the_jaw_opens(enrolled):
     assert lum[0] < lum[1] - 10, lum
 
 
-def test_export_gltf_passes_the_khronos_validator(enrolled, tmp_path):
+def test_export_gltf_passes_the_khronos_validator(request, tmp_path):
+    # What the test needs and a fresh machine may lack skips with the reason, before the
+    # enrolment is paid for; a validator that is installed but fails to run still fails.
     if NODE is None:
         pytest.skip("node is not installed: the Khronos glTF validator runs on node")
-    d, _, _ = enrolled
+    if not (VALIDATOR / "gltf-validator" / "package.json").is_file():
+        pytest.skip(f"the Khronos glTF validator is not installed in {VALIDATOR} (.ci/run "
+                    f"installs it: npm install --prefix {VALIDATOR.parent} gltf-validator)")
+    d, _, _ = request.getfixturevalue("enrolled")
     out = tmp_path / "me.glb"
     assert main(["export-gltf", str(d / "speaker"), "-o", str(out)]) == 0
     run = subprocess.run([NODE, str(ROOT / "tools" / "gltf_validate.mjs"), str(out),

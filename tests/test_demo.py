@@ -67,7 +67,8 @@ def test_demo_prints_its_url_once_the_face_streams(tmp_path):
 
 
 def test_a_source_that_cannot_open_is_logged_on_the_console():
-    """At the default log level, with the reason; and the URL is still printed."""
+    """At the default log level, with the reason; and no URL over a page with no face
+    (issue 39: the URL was printed for a missing camera): it follows once a face streams."""
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
@@ -76,8 +77,6 @@ def test_a_source_that_cannot_open_is_logged_on_the_console():
          "--source", "cam=v4l2:/dev/video99", "--processor", "tests.service_helpers:ImageStats"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=root)
     try:
-        line = proc.stdout.readline()  # printed once the session has said why it cannot run
-        assert json.loads(line)["sessions"] == ["cam"]
         err = ""
         while "unavailable" not in err:
             err = proc.stderr.readline()
@@ -86,4 +85,5 @@ def test_a_source_that_cannot_open_is_logged_on_the_console():
         assert "Traceback" not in err
     finally:
         proc.terminate()
-        proc.wait(30)
+        out, _ = proc.communicate(timeout=30)
+    assert out == "", out  # the camera never came: no URL was printed

@@ -418,6 +418,13 @@ def test_export_fap_resamples_to_a_given_fps(tmp_path):
          '"translation": [0, 0, 400]}}'), "t.jsonl: line 3: .*alpha values must be finite"),
     ((4, '{"frame": 4, "t": 1, "alpha": {"tongue": 1}, "pose": {}}'),
      r"line 5: not a track record: parameters \['tongue'\] are not in the model"),
+    # issue 39: a string time stamp was read as a number and the file passed
+    ((0, '{"frame": 0, "t": "0", "alpha": {"jaw1": 0}, "pose": {"rotation": [3, 0, 0], '
+         '"translation": [0, 0, 400]}}'),
+     r"line 1: not a track record: t must be a number of seconds, not '0'"),
+    ((1, '{"frame": 1, "t": 10.03, "alpha": {"jaw1": "0.5"}, "pose": {"rotation": [3, 0, 0], '
+         '"translation": [0, 0, 400]}}'),
+     r"line 2: not a track record: alpha jaw1 must be a number, not '0.5'"),
 ])  # fmt: skip
 def test_export_fap_reports_malformed_lines(tmp_path, capsys, corrupt, message):
     assert main(_track(tmp_path, corrupt=corrupt)) == 2

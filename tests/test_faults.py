@@ -89,6 +89,36 @@ def test_a_worker_starting_slower_than_the_stall_bound_is_not_killed(tmp_path, c
     assert not any("stalled" in line for line in lines), lines
 
 
+def test_compiling_longer_than_the_start_bound_is_starting_not_a_stall(tmp_path, caplog):
+    """Issue 39: the first `articast demo` on a fresh install compiled the kernels for longer
+    than --worker-start-s (120 s at load 5-14), was declared stalled, reported crashed and
+    compiled all over again. Work known to finish (the compilation) keeps the worker alive
+    while it runs: three times the start bound, no stall, no restart, then frames."""
+    rec = tmp_path / "rec.jsonl"
+    write_recording(rec, frames=30, fps=30)
+    config = ServiceConfig(
+        server=ServerSettings(log_level="critical"),
+        policy=SessionPolicy(worker="process", worker_stall_s=0.5, worker_start_s=1.0,
+                             restart_initial_s=0.05, max_restarts=0),
+        sessions=(SessionSpec("compiles", f"replay-record:{rec}?loop=yes",
+                              processor="tests.service_helpers:BusyStart",
+                              options={"start_s": 3.0}),))
+
+    async def go(srv):
+        session = srv.service.manager.sessions["compiles"]
+        while session.metrics.frames == 0:
+            assert session.state in ("starting", "running"), (session.state, session.detail)
+            await asyncio.sleep(0.05)
+        assert session.metrics.restarts == 0
+
+    with caplog.at_level("WARNING", logger="articast.session"):
+        with ServerThread(config) as srv:
+            asyncio.run(asyncio.wait_for(go(srv), 6 * TIMEOUT))
+    lines = [r.getMessage() for r in caplog.records]
+    assert "session compiles: compiling test kernels (first run only)" in lines, lines
+    assert not any("stalled" in line or "crashed" in line for line in lines), lines
+
+
 def test_a_worker_that_never_finishes_starting_is_declared_stalled(tmp_path):
     """...within --worker-start-s, even while its looping source keeps reopening."""
     rec = tmp_path / "rec.jsonl"

@@ -567,3 +567,57 @@ def test_a_fifo_in_the_synthetic_speakers_cache_does_not_block(tmp_path):
         signal.alarm(0)
         signal.signal(signal.SIGALRM, old)
     assert 987 not in texture._PRESET_ATLASES
+
+
+def test_a_file_that_is_not_a_video_says_so_at_once(tmp_path, capsys):
+    """Issue 39, row 4: OpenCV (FFmpeg's tty demuxer) "opens" a text file as 640x400 frames of
+    its characters: ``enroll notes.txt`` ran a landmark progress bar over them, ``track``
+    advised resizing them. And serve/replay-record said "no such file" for what is there: a
+    FIFO, /dev/zero, a folder. One shared check now: one line saying what the file is, exit
+    2, before any work, from every command that takes a video or a recording."""
+    from articast.service.cli import main
+    from articast.service.video import check_video_file
+
+    notes = tmp_path / "notes.txt"
+    notes.write_text("shopping: eggs, milk\nread chapter 3 aloud for the enrolment\n" * 200)
+    prose = tmp_path / "talk.mp4"  # text, whatever its name says
+    prose.write_bytes("Über die Aussprache, à la française.\n".encode() * 300)
+    empty = tmp_path / "empty.mp4"
+    empty.write_bytes(b"")
+    fifo = tmp_path / "fifo.mp4"
+    os.mkfifo(fifo)
+    folder = tmp_path / "folder.mp4"
+    folder.mkdir()
+    video = tmp_path / "v.avi"
+    write_video(video, frames=5)
+    assert check_video_file(video) == video  # a video passes
+    text = "a text file, not a video"
+    runs = [
+        (["enroll", str(notes), "-o", str(tmp_path / "sp")], "notes.txt", text),
+        (["enroll", str(prose), "-o", str(tmp_path / "sp")], "talk.mp4", text),
+        (["enroll", str(empty), "-o", str(tmp_path / "sp")], "empty.mp4", "an empty file"),
+        # the video is checked before the speaker folder is looked at
+        (["track", str(notes), "--speaker", str(tmp_path / "nobody"), "-o",
+          str(tmp_path / "t.jsonl")], "notes.txt", text),
+        (["replay", str(notes), "--speaker", str(tmp_path / "nobody"), "--port", "0"],
+         "notes.txt", text),
+        (["serve", "--source", f"x=file:{notes}", "--port", "0"], "notes.txt", text),
+        (["serve", "--source", f"x={notes}", "--port", "0"], f"file:{notes}", "KIND:TARGET"),
+        (["serve", "--source", f"x=file:{fifo}", "--port", "0"], "fifo.mp4", "is a FIFO"),
+        (["serve", "--source", "x=file:/dev/zero", "--port", "0"], "/dev/zero", "is a device"),
+        (["serve", "--source", f"x=file:{folder}", "--port", "0"], "folder.mp4", "is a folder"),
+        (["replay-record", str(fifo), "--port", "0"], "fifo.mp4", "is a FIFO"),
+        (["replay-record", "/dev/zero", "--port", "0"], "/dev/zero", "is a device"),
+        (["replay-record", str(folder), "--port", "0"], "folder.mp4", "is a folder"),
+        (["replay-record", str(tmp_path / "gone.jsonl"), "--port", "0"], "gone.jsonl",
+         "no such file"),
+    ]
+    problems = []
+    for args, where, what in runs:
+        code = main(args)
+        out, err = capsys.readouterr()
+        lines = [x for x in err.splitlines() if x.strip()]
+        if (code != 2 or len(lines) != 1 or where not in lines[0] or what not in lines[0]
+                or out.strip()):
+            problems.append(f"{' '.join(args[:2])}: exit {code}: {out[-300:]} {err[-600:]}")
+    assert not problems, "\n".join(problems)

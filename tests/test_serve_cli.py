@@ -189,3 +189,27 @@ def test_sigterm_to_the_whole_group_is_a_stop_not_a_crash(tmp_path):
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
     assert "crashed" not in err and "code -15" not in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("disposition", ["default", "ignored"])
+def test_ctrl_c_ends_a_replay_with_one_line(tmp_path, disposition):
+    """Issue 39: replay and replay-record printed nothing on Ctrl-C. From a terminal (SIGINT
+    at its default) the server stops and says 'interrupted' (exit 130); where the shell had
+    SIGINT ignored (a background job), the server still stops on it and says 'stopped'."""
+    rec = tmp_path / "talk.jsonl"
+    write_recording(rec, frames=60, fps=30)
+    handler = signal.SIG_DFL if disposition == "default" else signal.SIG_IGN
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    p = subprocess.Popen([sys.executable, "-m", "articast.service.cli", "replay-record",
+                          str(rec), "--loop", "--port", "0", "--json"], cwd=ROOT, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         preexec_fn=lambda: signal.signal(signal.SIGINT, handler))
+    try:
+        assert p.stdout.readline(), p.stderr.read()  # serving: the face streams
+    finally:
+        p.send_signal(signal.SIGINT)
+        _, err = p.communicate(timeout=TIMEOUT * 3)
+    lines = [x for x in err.splitlines() if x.strip()]
+    assert "Traceback" not in err
+    word, code = ("interrupted", 130) if disposition == "default" else ("stopped", 0)
+    assert p.returncode == code and lines[-1] == f"articast replay-record: {word}", err

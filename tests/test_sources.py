@@ -270,3 +270,28 @@ def test_an_unplugged_camera_is_reopened_with_backoff():
     assert ("running", "source is back") in statuses
     assert cam.opens == 4 and cap.error is None
     assert [f.index for f in frames] == sorted(f.index for f in frames)  # one time line
+
+
+def test_a_session_added_over_http_is_told_what_its_file_is(tmp_path):
+    """check_uri (POST /api/sessions) said "no such file" for a FIFO, /dev/zero or a folder
+    that is there (issue 39); it says what the path is, from its status alone (the worker
+    opens and reads it: a text file fails that session once, as a corrupt one does)."""
+    import os
+
+    from articast.service.sources import check_uri
+
+    fifo = tmp_path / "fifo.mp4"
+    os.mkfifo(fifo)
+    (tmp_path / "folder.mp4").mkdir()
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a video\n")
+    for uri, says in ((f"file:{fifo}", "is a FIFO"), ("file:/dev/zero", "is a device"),
+                      (f"file:{tmp_path / 'folder.mp4'}", "is a folder"),
+                      (f"replay-record:{fifo}", "is a FIFO"),
+                      (f"file:{tmp_path / 'gone.mp4'}", "no such file"),
+                      (f"images:{notes}", "not a folder")):
+        with pytest.raises(SourceError, match=says):
+            check_uri(uri)
+    check_uri(f"file:{notes}")  # there and regular: the worker reads it
+    with pytest.raises(SourceError, match="a text file, not a video"):
+        probe(f"file:{notes}")

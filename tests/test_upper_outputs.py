@@ -114,27 +114,35 @@ def free_udp_port() -> int:
         return int(s.getsockname()[1])
 
 
-def test_vmcp_receives_blinks_and_eye_bones_from_our_bundles():
+@pytest.fixture(scope="module")
+def vmcp_osc():
+    """One vmcp OSC system for the module: osc4py3 registers its dispatcher globally, and a
+    second system in the same process is refused ("dispatcher name 'global' already used")."""
     vmcp_osc = pytest.importorskip("vmcp.osc")
     backend = pytest.importorskip("vmcp.osc.backend.osc4py3").as_comthreads
+    with vmcp_osc.OSC(backend) as osc:
+        yield osc
+
+
+def test_vmcp_receives_blinks_and_eye_bones_from_our_bundles(vmcp_osc):
     from vmcp.events import BlendShapeEvent, BoneTransformEvent
     from vmcp.facades import on_receive
 
     port = free_udp_port()
     got: list = []
-    with vmcp_osc.OSC(backend) as osc:
-        receiver = osc.create_receiver("127.0.0.1", port, "articast-test").open()
-        on_receive(receiver, BlendShapeEvent, got.append)
-        on_receive(receiver, BoneTransformEvent, got.append)
-        sent = face(cl=0.1, cr=0.8, yaw=15.0, pitch=5.0)
-        r = TrackResult(0, 0.0, np.zeros(MODEL.n_params), Pose(FRONTAL), upper=sent)
-        with VmcSender("127.0.0.1", port) as sender:
-            assert sender.send(r, MODEL)
-            end = time.monotonic() + TIMEOUT
-            while time.monotonic() < end and not any(
-                    getattr(e, "key", "") == "Blink_R" for e in got):
-                osc.run()
-                time.sleep(0.01)
+    osc = vmcp_osc
+    receiver = osc.create_receiver("127.0.0.1", port, "articast-test").open()
+    on_receive(receiver, BlendShapeEvent, got.append)
+    on_receive(receiver, BoneTransformEvent, got.append)
+    sent = face(cl=0.1, cr=0.8, yaw=15.0, pitch=5.0)
+    r = TrackResult(0, 0.0, np.zeros(MODEL.n_params), Pose(FRONTAL), upper=sent)
+    with VmcSender("127.0.0.1", port) as sender:
+        assert sender.send(r, MODEL)
+        end = time.monotonic() + TIMEOUT
+        while time.monotonic() < end and not any(
+                getattr(e, "key", "") == "Blink_R" for e in got):
+            osc.run()
+            time.sleep(0.01)
     blends = {e.key: e.value for e in got if isinstance(e, BlendShapeEvent)}
     bones = {str(e.joint.value): e for e in got if isinstance(e, BoneTransformEvent)}
     assert blends["Blink_L"] == pytest.approx(0.1, abs=1e-6)
@@ -229,3 +237,74 @@ def test_hostile_eye_blocks_in_a_recording_never_reach_an_output():
     assert fap_upper(back, fapu_from_model(MODEL)) == {} and arkit_upper(back) == {}
     d["eyes"] = "not a block"
     assert TrackResult.from_dict(d, MODEL.param_names).upper is None
+
+
+def test_a_served_session_sends_its_blinks_eyes_and_brows_over_vmc(speaker4_enrolled, tmp_path,
+                                                                   vmcp_osc):
+    """Issue 39: a served session's VMC carried the head bone and the mouth only (728 frames,
+    no blink, eye or brow message, though its recording had the eyes on 727): the session
+    rebuilt each frame for VMC without its eyes and brows. Now a real session (the enrolled
+    synthetic speaker, blinking, tracked live, as ``serve --speaker --vmc`` does) sends them,
+    received by ``vmcp``, each value the one the session recorded."""
+    import json
+
+    from vmcp.events import BlendShapeEvent, BoneTransformEvent
+    from vmcp.facades import on_receive
+
+    from articast.service.app import ServiceConfig
+    from articast.service.cli import main
+    from articast.service.settings import ServerSettings
+    from articast.service.worker import SessionSpec
+    from tests.service_helpers import TIMEOUT as SERVICE_TIMEOUT
+    from tests.service_helpers import ServerThread
+
+    clip = tmp_path / "clip"
+    assert main(["synth", "sequence", "-o", str(clip), "--seed", "4", "--sentence", "43",
+                 "--rig", "desk", "--frames", "60", "--fps", "15", "--upper"]) == 0
+    port = free_udp_port()
+    got: list = []
+    osc = vmcp_osc
+    receiver = osc.create_receiver("127.0.0.1", port, "articast-session").open()
+    on_receive(receiver, BlendShapeEvent, got.append)
+    on_receive(receiver, BoneTransformEvent, got.append)
+    config = ServiceConfig(
+        server=ServerSettings(log_level="critical", vmc=f"127.0.0.1:{port}",
+                              record=str(tmp_path / "rec")),
+        sessions=(SessionSpec("me", f"file:{clip / 'video.mp4'}?pace=fast",  # every frame
+                              speaker=str(speaker4_enrolled / "speaker")),))
+    with ServerThread(config) as srv:
+        session = srv.service.manager.sessions["me"]
+        end = time.monotonic() + 30 * SERVICE_TIMEOUT
+        while session.state not in ("ended", "failed"):
+            assert time.monotonic() < end, (session.state, session.detail)
+            osc.run()
+            time.sleep(0.01)
+        assert session.state == "ended", session.detail
+    end = time.monotonic() + TIMEOUT  # what is still on its way
+    while time.monotonic() < end and not any(
+            isinstance(e, BoneTransformEvent) and e.joint.value == "LeftEye" for e in got):
+        osc.run()
+        time.sleep(0.01)
+    for _ in range(20):
+        osc.run()
+        time.sleep(0.01)
+    lines = [json.loads(x) for x in next((tmp_path / "rec").glob("me-*.jsonl")).read_text()
+             .splitlines()[1:]]
+    eyes = [r["eyes"] for r in lines if r.get("eyes") and r["eyes"]["ok"]]
+    brows = [r["brows"] for r in lines if r.get("brows") and r["brows"]["ok"]]
+    assert len(eyes) >= 0.8 * len(lines) and len(brows) >= 0.8 * len(lines), len(lines)
+    blends: dict[str, list[float]] = {}
+    for e in got:
+        if isinstance(e, BlendShapeEvent):
+            blends.setdefault(e.key, []).append(e.value)
+    bones = {str(e.joint.value) for e in got if isinstance(e, BoneTransformEvent)}
+    assert {"Head", "LeftEye", "RightEye"} <= bones, bones
+    for name in ("Blink_L", "Blink_R", "EyeBlinkLeft", "EyeBlinkRight", "BrowInnerUp",
+                 "BrowOuterUpLeft", "BrowOuterUpRight", "JawOpen"):
+        assert blends.get(name), (name, sorted(blends))
+    # each blink sent is one the session tracked (OSC floats are 32-bit)
+    closures = np.array([e["closure_left"] for e in eyes])
+    assert all(np.min(np.abs(closures - v)) < 1e-5 for v in blends["Blink_L"])
+    assert blends["Blink_L"] == blends["EyeBlinkLeft"]
+    # the clip blinks: a closed eye reached the receiver
+    assert max(blends["Blink_L"]) > 0.5, max(blends["Blink_L"])

@@ -67,3 +67,29 @@ def test_non_finite_results_never_reach_the_wire():
     json.dumps(rec.quality, allow_nan=False)
     assert rec.alpha == (0.0, 1.0, 0.0) and rec.quality["ok"] is False
     assert rec.quality["residual"] == -1.0
+
+
+def test_a_gap_in_a_recording_is_said_alive_at_the_interval_asked(tmp_path):
+    """A recording's gap is waited out saying ``alive``; once a second was as often as the
+    stall bound of a session held to 1 s, and a sign of life handed over late restarted it
+    (tests/test_hardening.py). The worker says it at the interval the session asks: a
+    quarter of the shortest bound."""
+    from articast.service.worker import alive_interval
+
+    assert alive_interval(1.0, 120.0) == 0.25 and alive_interval(10.0, 120.0) == 1.0
+    assert alive_interval(0.0, 0.0) == 1.0  # no watchdog: the default
+    rec = tmp_path / "gap.jsonl"
+    write_recording(rec, frames=4, fps=20)
+    lines = rec.read_text().splitlines()
+    shifted = [json.dumps({**json.loads(x), "t": json.loads(x)["t"] + 2.5}) for x in lines[3:]]
+    rec.write_text("\n".join([*lines[:3], *shifted]) + "\n")  # 2.5 s of nothing after frame 1
+    msgs = []
+    stop, go = threading.Event(), threading.Event()
+    go.set()
+    run_worker(SessionSpec("s", f"replay-record:{rec}"), CaptureSettings(), "", msgs.append,
+               stop, go, alive_s=0.25)
+    kinds = [m[0] for m in msgs]
+    assert kinds.count("frame") == 4 and msgs[-1][:2] == ("done", "ended")
+    frames = [i for i, k in enumerate(kinds) if k == "frame"]
+    gap = kinds[frames[1]:frames[2]]
+    assert gap.count("alive") >= 6, gap  # ~10 in 2.5 s; once a second gave 3

@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -77,6 +78,7 @@ def read_track(path: Path, param_names: tuple[str, ...]) -> list:
             unknown = set(doc.get("alpha", {})) - set(param_names)
             if unknown:
                 raise ValueError(f"parameters {sorted(unknown)} are not in the model")
+            _require_numbers(doc)
             result = TrackResult.from_dict(doc, param_names)
             if not np.all(np.isfinite(result.alpha)):
                 raise ValueError("alpha values must be finite numbers")
@@ -91,6 +93,22 @@ def read_track(path: Path, param_names: tuple[str, ...]) -> list:
     if not results:
         raise InputError(f"{path}: no frames")
     return results
+
+
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool)
+
+
+def _require_numbers(doc: dict[str, Any]) -> None:
+    """``t`` and the alpha values are JSON numbers: float() read "t": "0" (a string) as 0 s
+    and the file passed (issue 39), so another tool's wrong types went unnoticed."""
+    if "t" in doc and not _number(doc["t"]):
+        raise ValueError(f"t must be a number of seconds, not {doc['t']!r:.40}")
+    alpha = doc.get("alpha", {})
+    if isinstance(alpha, dict):
+        for name, v in alpha.items():
+            if not _number(v):
+                raise ValueError(f"alpha {name} must be a number, not {v!r:.40}")
 
 
 def hold_last_good(

@@ -27,13 +27,64 @@ Clients connect to ws://HOST:PORT/ws and send
 The protocol is served at http://HOST:PORT/api/protocol and described in docs/SERVICE.md.
 Every option is also settable as an ARTICAST_<OPTION> environment variable.
 """
+BRIEF_EPILOG = EPILOG + """\
+--help-all shows every option: access, Redis, the server limits.
+"""
+
+SHOWN = {
+    "demo": ("seed", "fps", "host", "port", "json", "vmc", "record", "preview"),
+    "serve": ("source", "speaker", "model", "appearance", "camera", "processor", "host",
+              "port", "json", "vmc", "record", "preview", "wait_for_subscriber",
+              "token_file"),
+    "replay": ("video", "speaker", "model", "appearance", "camera", "name", "pace", "loop",
+               "plays", "start", "end", "host", "port", "json", "vmc", "record", "preview"),
+    "replay-record": ("recording", "name", "pace", "loop", "plays", "host", "port", "json",
+                      "vmc", "record"),
+}
+"""The options each serving command's --help shows (what a first run needs); --help-all
+shows every one (issue 39: demo --help was 186 lines and 51 options)."""
+
+
+def brief_help(p: argparse.ArgumentParser, shown: tuple[str, ...]) -> None:
+    """``--help`` lists the options in ``shown`` (and itself); ``--help-all`` every one. The
+    others keep their help text (and work as before): only the brief listing skips them."""
+    hidden = {id(a) for a in p._actions
+              if a.dest not in (*shown, "help") and a.option_strings}
+
+    class Brief(argparse.RawDescriptionHelpFormatter):
+        show_all = False
+
+        def add_argument(self, action: argparse.Action) -> None:
+            if self.show_all or id(action) not in hidden:
+                super().add_argument(action)
+
+    quiet = [g for g in p._action_groups if g.description and g._group_actions
+             and all(id(a) in hidden for a in g._group_actions)]
+    descriptions = {id(g): g.description for g in quiet}
+    for g in quiet:  # a group with nothing shown says nothing
+        g.description = None
+
+    class HelpAll(argparse.Action):
+        def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+            Brief.show_all = True
+            for g in quiet:
+                g.description = descriptions[id(g)]
+            parser.epilog = EPILOG
+            parser.print_help()
+            parser.exit()
+
+    p.add_argument("--help-all", action=HelpAll, nargs=0,
+                   help="show every option (access, Redis, server limits) and exit")
+    hidden.discard(id(p._actions[-1]))
+    p.formatter_class = Brief
+    p.epilog = BRIEF_EPILOG
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     s = sub.add_parser(
         "serve", help="track faces and stream them to WebSocket subscribers",
         usage="%(prog)s --source NAME=URI [--source ...] [--speaker DIR | --model M "
-              "--appearance A --camera C] [--port N] [options; server limits last]",
+              "--appearance A --camera C] [--port N] [options; --help-all: every one]",
         description="Run the streaming service with one session per --source.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     s.add_argument("--source", action="append", default=[], metavar="NAME=URI",
@@ -44,23 +95,25 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "replay-record:rec.jsonl (repeat for several faces; none: add them with "
                    "POST /api/sessions)")
     _common(s)
+    brief_help(s, SHOWN["serve"])
     s.set_defaults(func=_serve)
 
     d = sub.add_parser(
         "demo", help="serve the built-in synthetic speaker on loopback",
-        usage="%(prog)s [--port N] [--fps FPS] [options; server limits last]",
+        usage="%(prog)s [--port N] [--fps FPS] [options; --help-all: every one]",
         description="Serve the synthetic speaker (no camera, no files needed) and print the "
         "URL a client connects to.", epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     d.add_argument("--seed", type=int, default=1, help="sentence seed (default 1)")
     d.add_argument("--fps", type=float, default=60.0, help="frame rate (default 60)")
     _common(d)
+    brief_help(d, SHOWN["demo"])
     d.set_defaults(func=_demo)
 
     r = sub.add_parser(
         "replay", help="serve a recorded video through the tracker",
         usage="%(prog)s VIDEO (--speaker DIR | --model M --appearance A --camera C) "
-              "[--loop] [--start WHEN] [--end WHEN] [--port N] [options; server limits last]",
+              "[--loop] [--start WHEN] [--end WHEN] [--port N] [options; --help-all: every one]",
         description="Track a video file as if it were a camera and stream it (one session, "
         "named after the file). Give --speaker DIR (from 'articast enroll'), or the "
         "speaker's --model, --appearance and --camera.",
@@ -71,18 +124,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     add_span_arguments(r)
     _common(r)
+    brief_help(r, SHOWN["replay"])
     r.set_defaults(func=_replay)
 
     rr = sub.add_parser(
         "replay-record", help="serve a recording made by serve --record",
         usage="%(prog)s RECORDING [--loop | --plays N] [--pace fast] [--port N] "
-              "[options; server limits last]",
+              "[options; --help-all: every one]",
         description="Stream a recording (serve --record, or articast-record) "
         "again, with the same hello and frames at their recorded times: no tracking, no "
         "camera.", epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     rr.add_argument("recording", type=Path, help="recording (.jsonl)")
     _playback(rr)
     _common(rr, tracking=False)
+    brief_help(rr, SHOWN["replay-record"])
     rr.set_defaults(func=_replay_record)
 
     w = sub.add_parser(
@@ -363,6 +418,9 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
                       "TOKEN'; browsers add token=TOKEN to the avatar URL", flush=True)
 
     serve(config, listening)
+    # Ctrl-C in a terminal ends as KeyboardInterrupt ("interrupted", cli.main); a SIGINT the
+    # shell had us ignore (a background job) or a handled stop returns here: say so too
+    print(f"articast {args.command}: stopped", file=sys.stderr, flush=True)
     return 0
 
 

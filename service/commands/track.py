@@ -345,17 +345,18 @@ def _track(args: argparse.Namespace) -> int:
 
                 frames = averaged(frames, second_smoother.finish())
             _rewrite_smoothed(tmp, frames, model)
+        why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
+        if n_ok == 0:  # exit 0 would pass a useless track off as a result; and as --help
+            # says, -o is written only when tracking succeeds (issue 39: a clip without the
+            # face left a file of ok=false lines a script would take for a track)
+            hint = ("is the enrolled speaker in view?" if args.speaker else "check the camera, "
+                    "model and appearance files, and --init-pose")
+            raise InputError(f"{args.video}: none of its {n} frames could be tracked "
+                             f"({why.lstrip(', ')}; {hint}); {args.output} not written")
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(tmp, 0o666 & ~umask)  # mkstemp's 0600 is for the part file only
         os.replace(tmp, args.output)  # every frame read: the lines say what happened
-        why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
-        if n_ok == 0:  # exit 0 would pass a useless track off as a result
-            hint = ("is the enrolled speaker in view?" if args.speaker else "check the camera, "
-                    "model and appearance files, and --init-pose")
-            raise InputError(f"{args.video}: none of its {n} frames could be tracked "
-                             f"({why.lstrip(', ')}; {hint}); frames written with ok=false "
-                             f"to {args.output}")
     finally:
         prog.close()
         if video is not None:
