@@ -170,8 +170,8 @@ class Capture:
                 self._on_status("unavailable", f"{exc}; reopening")
                 continue
             self.source.close()
-            if self.source.live:
-                continue
+            if self.source.live and not getattr(self.source, "ends", False):
+                continue  # a camera that stopped: reopened; a WebRTC peer that left: the end
             play += 1
             if self.source.loops and play >= self.source.loops:
                 return

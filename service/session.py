@@ -15,6 +15,7 @@ import logging
 import re
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -359,6 +360,9 @@ class SessionManager:
         self.delegates = True
         """Offer each speaker's delegate (False: ``serve --no-delegate``)."""
         self.sessions: dict[str, Session] = {}
+        self.feeds: dict[str, Any] = {}
+        """Session name -> its :class:`articast.service.webrtc.Feed` (a participant's camera
+        received over WebRTC): each worker of that session gets a fresh inlet of it."""
         self._next_sid = 1
         self._thread_owner: Session | None = None
 
@@ -378,11 +382,15 @@ class SessionManager:
                 s.spec.processor == "auto" and parse_uri(s.spec.source).kind == "replay-record")
             kind = "thread" if light and self._thread_owner in (None, s) else "process"
         alive_s = alive_interval(self.policy.worker_stall_s, self.policy.worker_start_s)
+        spec = s.spec
+        feed = self.feeds.get(spec.name)
+        if feed is not None:  # frames received here reach the worker through a pipe
+            spec = replace(spec, inlet=feed.new_inlet())
         if kind == "thread":
             self._thread_owner = self._thread_owner or s
-            return ThreadWorker(s.spec, self.capture, self.record_dir, s.emitter(), alive_s)
+            return ThreadWorker(spec, self.capture, self.record_dir, s.emitter(), alive_s)
         if kind == "process":
-            return ProcessWorker(s.spec, self.capture, self.record_dir, s.emitter(), alive_s)
+            return ProcessWorker(spec, self.capture, self.record_dir, s.emitter(), alive_s)
         raise InputError(f"worker must be auto, thread or process, not {kind!r}")
 
     def release_thread(self, s: Session) -> None:
@@ -406,6 +414,12 @@ class SessionManager:
     async def remove(self, name: str) -> None:
         s = self.sessions.pop(name)
         await s.stop(self.policy.restart_max_s)
+        self._drop_feed(name)
+
+    def _drop_feed(self, name: str) -> None:
+        feed = self.feeds.pop(name, None)
+        if feed is not None:  # its peer connection too: the participant is told it ended
+            feed.close("the session was removed")
 
     async def close(self, timeout: float = 5.0) -> None:
         names = list(self.sessions)
@@ -415,3 +429,4 @@ class SessionManager:
         s = self.sessions.pop(name, None)
         if s is not None:
             await s.stop(timeout)
+        self._drop_feed(name)

@@ -8,6 +8,10 @@
 ``images:DIR?fps=30&pace=..&loop=..``                a folder of images in name order
 ``synthetic:seed=3&fps=60&pace=..&loop=..``          the built-in speaker, with ground truth
 ``replay-record:rec.jsonl?pace=..&loop=..``          a recording made by ``serve --record``
+``webrtc:NAME?seed=1``                               a participant's browser camera, received
+                                                     over WebRTC (:mod:`articast.service.ingest`);
+                                                     ``seed``: track it with that synthetic
+                                                     speaker's assets (no ``--speaker``)
 ===================================================  ==========================================
 
 ``loop=yes`` (or ``true``, ``on``, ``1``, ``forever``) plays a finite source forever,
@@ -548,6 +552,93 @@ def cache_dir() -> Path | None:
     return Path(base) / "articast"
 
 
+# ------------------------------------------------------------------------------- WebRTC
+INLET_WAIT_S = 5.0
+"""How long a WebRTC source waits for a participant's frame before it says it has none."""
+
+
+class WebRTCSource:
+    """A participant's camera, received over WebRTC by the server process
+    (:mod:`articast.service.webrtc`) and forwarded to this worker, thread or process, through
+    an inlet: the reading end of a pipe, given by the worker (``SessionSpec.inlet``). Its
+    messages are ``(t, width, height, i420_bytes)`` and, last, ``("end", reason)`` when the
+    participant left: then :meth:`read` returns None and the session ends (``ends``), where a
+    camera's None would be reopened."""
+
+    live = True
+    pace = "realtime"
+    loops = 1
+    ends = True
+
+    def __init__(self, p: SourceURI) -> None:
+        self.uri = p.text
+        self.name = p.target
+        self.seed = _num(p, "seed", int, None)
+        self.inlet: Any = None
+        self._first: tuple[float, np.ndarray] | None = None
+        self._assets = SourceAssets()
+        self.progress: Callable[[str], None] | None = None
+
+    def _recv(self, wait: float) -> Any:
+        """The next message of the inlet; None when none came within ``wait`` s."""
+        try:
+            if not self.inlet.poll(wait):
+                return None
+            return self.inlet.recv()
+        except (EOFError, OSError):  # the server dropped the feed (session removed)
+            return ("end", "the server closed this participant's feed")
+
+    @staticmethod
+    def _image(item: tuple[Any, ...]) -> tuple[float, np.ndarray]:
+        import cv2
+
+        t, width, height, data = item
+        yuv = np.frombuffer(data, np.uint8).reshape(height * 3 // 2, width)
+        return float(t), cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
+
+    def open(self) -> SourceInfo:
+        if self.inlet is None:
+            raise SourceError(f"{self.uri!r}: a webrtc source is fed by a participant's browser "
+                              "(POST /api/sessions/NAME/webrtc, the join page), not named")
+        item = self._recv(INLET_WAIT_S)
+        if item is None:
+            raise SourceUnavailable(f"no video from the participant for {INLET_WAIT_S:g} s")
+        if item[0] == "end":
+            raise SourceError(f"the participant left before any video: {item[1]}")
+        self._first = self._image(item)
+        height, width = self._first[1].shape[:2]
+        if self.seed is not None and not self._assets.model:
+            try:
+                from articast.core.synthetic import open_stream
+            except ImportError as exc:
+                raise SourceError(f"the synthetic speaker is not available: {exc}") from None
+            stream = open_stream(seed=self.seed, cache_dir=cache_dir(), progress=self.progress)
+            extra = {k: getattr(stream, k) for k in ("initial_pose", "rig")
+                     if hasattr(stream, k)}
+            self._assets = SourceAssets(stream.model, stream.camera,
+                                        getattr(stream, "appearance", None), extra)
+        return SourceInfo(self.uri, "webrtc", True, width, height, None,
+                          detail={"participant": self.name, "seed": self.seed})
+
+    def read(self) -> tuple[float, np.ndarray | None, TrackResult | None] | None:
+        if self._first is not None:
+            (t, image), self._first = self._first, None
+            return t, image, None
+        item = self._recv(INLET_WAIT_S)
+        if item is None:
+            raise SourceUnavailable(f"no video from the participant for {INLET_WAIT_S:g} s")
+        if item[0] == "end":
+            return None
+        t, image = self._image(item)
+        return t, image, None
+
+    def close(self) -> None:
+        self._first = None  # the inlet stays: the worker closes it when it ends
+
+    def assets(self) -> SourceAssets:
+        return self._assets
+
+
 _PLAYBACK = ("pace", "loop", "plays")
 SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
     "v4l2": (V4L2Source, ("width", "height", "fps", "fourcc")),
@@ -555,6 +646,7 @@ SOURCE_KINDS: dict[str, tuple[Callable[[SourceURI], Any], tuple[str, ...]]] = {
     "images": (ImagesSource, (*_PLAYBACK, "fps")),
     "synthetic": (SyntheticSource, (*_PLAYBACK, "seed", "fps")),
     "replay-record": (RecordSource, _PLAYBACK),
+    "webrtc": (WebRTCSource, ("seed",)),
 }
 """Registry: kind -> (factory, accepted options)."""
 

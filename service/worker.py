@@ -78,6 +78,10 @@ class SessionSpec:
     """For a session added over HTTP: every file it opens (source, each image of a folder,
     model, appearance, camera, speaker), at every open and restart, must resolve under these
     folders. Empty: the operator's own session, not confined."""
+    inlet: Any = field(default=None, compare=False, repr=False)
+    """For a ``webrtc:`` source: the reading end of the pipe its frames arrive on (one per
+    worker, :meth:`articast.service.session.SessionManager.make_worker`); closed by the
+    worker when it ends."""
 
     def to_dict(self) -> dict[str, Any]:
         return {"name": self.name, "source": self.source, "model": self.model,
@@ -149,6 +153,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             return busy(text, progress, emit, alive_s)
 
         source = make_source(spec.source, spec.media_roots)
+        if spec.inlet is not None and hasattr(source, "inlet"):
+            source.inlet = spec.inlet
         if _tracks(spec, source):  # a first run compiles while its source opens (caches)
             threading.Thread(target=_compile_kernels, args=(busy_with,), daemon=True,
                              name="compile kernels").start()
@@ -232,6 +238,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
             capture.stop()
         if recorder is not None:
             recorder.close()
+        if spec.inlet is not None:  # the feed's writer then knows this worker is gone
+            spec.inlet.close()
 
 
 def _tracks(spec: SessionSpec, source: Any) -> bool:
@@ -430,12 +438,15 @@ class ProcessWorker:
             target=_process_main, args=(spec, capture, record_dir, child, alive_s),
             name=f"articast session {spec.name}", daemon=True)
         self._child = child
+        self._inlet = spec.inlet
         self._reader = threading.Thread(target=self._read, name=f"reader {spec.name}",
                                         daemon=True)
 
     def start(self) -> None:
         self.process.start()
         self._child.close()  # the child holds the other end: EOF when it dies
+        if self._inlet is not None:  # likewise its frames' pipe: the feed sees it die
+            self._inlet.close()
         self._reader.start()
 
     def _read(self) -> None:

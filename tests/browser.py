@@ -23,11 +23,12 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-
 class Browser:
     """One headless Chromium with one page; ``evaluate`` JS, ``screenshot`` PNG bytes."""
 
-    def __init__(self, url: str, timeout: float = 30.0, console: bool = False) -> None:
+    def __init__(self, url: str, timeout: float = 30.0, console: bool = False,
+                 flags: tuple[str, ...] = ()) -> None:
         if CHROMIUM is None:
             raise RuntimeError("chromium is not installed")
         self.dir = tempfile.mkdtemp(prefix="articast-chromium-")
-        self.proc = subprocess.Popen([CHROMIUM, *FLAGS, f"--user-data-dir={self.dir}",
+        self.proc = subprocess.Popen([CHROMIUM, *FLAGS, *flags, f"--user-data-dir={self.dir}",
                                       "about:blank"], stdout=subprocess.DEVNULL,
                                      stderr=subprocess.DEVNULL)
         port_file = Path(self.dir) / "DevToolsActivePort"

@@ -1,0 +1,198 @@
+"""Browser ingest: a participant's camera received over WebRTC (aiortc) becomes a session.
+
+``POST /api/sessions/NAME/webrtc`` (:mod:`articast.service.app`) takes the join page's SDP
+offer (``clients/web/join.html``) and answers it; the video track's frames are pushed into
+the session's :class:`Feed`, a one-frame slot like a camera's, whose forwarder thread hands
+the newest frame to the session's current worker (thread or process) through a pipe; the
+worker reads it as a ``webrtc:NAME`` source (:class:`articast.service.sources.WebRTCSource`).
+A frame the worker was too busy to take is replaced by the next one (counted in
+:attr:`Feed.dropped`), as a camera's is. The participant leaving (the peer connection closed
+or failed, the track ended) ends that session and no other; the same name can join again.
+
+aiortc is an optional dependency (the ``webrtc`` extra): it is imported only when an offer
+arrives, and :func:`missing` says in one line why ingest is off without it. Nothing here is
+stored: frames live in memory until the next one replaces them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+log = logging.getLogger("articast.webrtc")
+
+MAX_SDP_CHARS = 60000
+"""An offer of one video and one audio track is 3-8 kB; far larger is not an offer."""
+
+
+def missing() -> str:
+    """Why WebRTC ingest cannot run here ("" when it can)."""
+    try:
+        import aiortc  # noqa: F401
+    except ImportError as exc:
+        return (f"WebRTC ingest needs aiortc, which is not installed ({exc}): "
+                "pip install 'articast[webrtc]'")
+    return ""
+
+
+class Feed:
+    """The newest frame of one participant, forwarded to the session's worker.
+
+    :meth:`push` (the event loop) replaces the slot; a forwarder thread sends the slot's frame
+    to the current inlet's writer, blocking only itself while the worker is busy;
+    :meth:`new_inlet` (a new worker) hands it a new pipe; :meth:`close` sends the end.
+    """
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self._cond = threading.Condition()
+        self._slot: tuple[float, int, int, bytes] | None = None
+        self._writer: Any = None
+        self._next_writer: Any = None
+        self.ended = ""
+        """Why the feed ended ("" while the participant is there)."""
+        self.received = 0
+        self.dropped = 0
+        self.on_close: Callable[[], None] | None = None
+        """Closes the peer connection (set by :func:`answer`)."""
+        self._thread = threading.Thread(target=self._forward, name=f"feed {name}",
+                                        daemon=True)
+        self._thread.start()
+
+    def push(self, t: float, width: int, height: int, i420: bytes) -> None:
+        with self._cond:
+            if self.ended:
+                return
+            self.received += 1
+            self.dropped += self._slot is not None
+            self._slot = (t, width, height, i420)
+            self._cond.notify_all()
+
+    def new_inlet(self) -> Any:
+        """The reading end of a new pipe for a new worker; the forwarder writes there next
+        (after the end, the pipe holds just the end)."""
+        reader, writer = multiprocessing.Pipe(duplex=False)
+        with self._cond:
+            if not self.ended:
+                if self._next_writer is not None:
+                    self._next_writer.close()
+                self._next_writer = writer
+                self._cond.notify_all()
+                return reader
+        writer.send(("end", self.ended))  # a few bytes: never blocks
+        writer.close()
+        return reader
+
+    def close(self, reason: str) -> None:
+        """The participant left (or the session was removed): the worker gets the end."""
+        with self._cond:
+            if self.ended:
+                return
+            self.ended = reason
+            self._cond.notify_all()
+        on_close, self.on_close = self.on_close, None
+        if on_close is not None:
+            on_close()
+
+    def _next(self) -> tuple[Any, Any] | None:
+        """(writer, item) to send next; None when the feed ended and was said."""
+        with self._cond:
+            while True:
+                if self._next_writer is not None:  # a new worker: the old one is gone
+                    if self._writer is not None:
+                        self._writer.close()
+                    self._writer, self._next_writer = self._next_writer, None
+                if self._writer is not None and (self._slot is not None or self.ended):
+                    item: Any = self._slot if self._slot is not None else ("end", self.ended)
+                    self._slot = None
+                    return self._writer, item
+                if self.ended:
+                    return None
+                self._cond.wait()
+
+    def _forward(self) -> None:
+        while (job := self._next()) is not None:
+            writer, item = job
+            try:
+                writer.send(item)  # blocks while the worker is busy: the slot fills meanwhile
+                if item[0] != "end":
+                    continue
+            except (OSError, ValueError):  # that worker is gone: wait for the next one
+                pass
+            with self._cond:
+                if self._writer is writer:
+                    self._writer = None
+            writer.close()
+
+
+async def answer(offer_sdp: str, feed: Feed) -> str:
+    """Answer a participant's offer: returns the answer's SDP. Raises ValueError (one line)
+    for an offer that cannot be answered. The video track's frames go to ``feed``; an audio
+    track is received and dropped (the room will relay it); the peer connection closing,
+    failing or the video ending closes ``feed``."""
+    from aiortc import RTCPeerConnection, RTCSessionDescription
+    from aiortc.mediastreams import MediaStreamError
+
+    pc = RTCPeerConnection()
+    tasks: list[asyncio.Task[None]] = []
+    loop = asyncio.get_running_loop()
+
+    def close_peer() -> None:  # from any thread
+        def close() -> None:
+            for task in tasks:
+                task.cancel()
+            asyncio.ensure_future(pc.close())
+
+        loop.call_soon_threadsafe(close)
+
+    async def pump_video(track: Any) -> None:
+        t0: float | None = None
+        try:
+            while True:
+                frame = await track.recv()
+                t_media = frame.time if frame.time is not None else time.monotonic()
+                t0 = t_media if t0 is None else t0
+                i420 = frame.to_ndarray(format="yuv420p")
+                feed.push(t_media - t0, frame.width, frame.height, i420.tobytes())
+        except MediaStreamError:
+            feed.close("the participant's video ended")
+
+    async def drain(track: Any) -> None:
+        try:
+            while True:
+                await track.recv()
+        except MediaStreamError:
+            pass
+
+    @pc.on("track")
+    def on_track(track: Any) -> None:
+        pump = pump_video if track.kind == "video" else drain
+        tasks.append(asyncio.ensure_future(pump(track)))
+
+    @pc.on("connectionstatechange")
+    async def on_state() -> None:
+        log.info("participant %s: %s", feed.name, pc.connectionState)
+        if pc.connectionState in ("failed", "closed"):
+            feed.close(f"the participant left (connection {pc.connectionState})")
+
+    try:
+        await pc.setRemoteDescription(RTCSessionDescription(sdp=offer_sdp, type="offer"))
+        if any(r.track is not None and r.track.kind == "video" for r in pc.getReceivers()):
+            await pc.setLocalDescription(await pc.createAnswer())
+            problem = ""
+        else:
+            problem = "the offer has no video track (the page sends the camera)"
+    except Exception as exc:  # noqa: BLE001 - aiortc's parse errors: one line to the client
+        first = str(exc).splitlines()[0] if str(exc).strip() else ""
+        problem = "not a usable SDP offer: " + (
+            first or f"aiortc could not read it ({type(exc).__name__})")
+    if problem:
+        await pc.close()
+        raise ValueError(problem)
+    feed.on_close = close_peer
+    return pc.localDescription.sdp
