@@ -126,11 +126,42 @@ def markdown(run: dict, rows: list[dict], pools: dict) -> str:
                f"{jv.count('not worse')}, better {jv.count('better')}")
     for name, p in pools.items():
         if p:
-            out.append(f"pooled {name}: mean gap to the reader {p['mean']:+.4f} "
+            what = "" if "best" in name else " to the reader"
+            out.append(f"pooled {name}: mean gap{what} {p['mean']:+.4f} "
                        f"({p['ci95'][0]:+.4f}..{p['ci95'][1]:+.4f}, people resampled), "
                        f"{p['clips']} clips of {p['people']} people: worse {p['worse']}, "
                        f"not worse {p['not worse']}, better {p['better']}")
     return "\n".join(out)
+
+
+def blink_rows(path: Path) -> tuple[list[str], dict]:
+    """A ``benchmarks/blinks.py --json`` run: a markdown row per clip (articast's events,
+    dlib's, precision and recall, each matched reference event's closure peak) and the
+    pooled precision and recall (events summed over the clips with a reference)."""
+    rows = json.loads(path.read_text())
+    out = ["| clip | half | articast events | dlib events | precision | recall | closure "
+           "peak at dlib's events |", "|---|---|---|---|---|---|---|"]
+    hit_ours = ours = hit_ref = ref = 0
+    for r in rows:
+        if "precision" not in r:
+            out.append(f"| {r['clip']} | {half(r['clip'])} | {r.get('articast_events')} | "
+                       f"– | – | – | {r.get('reference', '')} |")
+            continue
+        cl = np.array([np.nan if v is None else v for v in r.get("closure") or []])
+        peaks = [float(np.nanmax(cl[max(a - 2, 0):b + 2])) if len(cl) and
+                 np.isfinite(cl[max(a - 2, 0):b + 2]).any() else float("nan")
+                 for a, b in r["ref"]]
+        n_o, n_r = r["articast_events"], r["reference_events"]
+        ours += n_o
+        ref += n_r
+        hit_ours += round((r["precision"] or 0) * n_o)
+        hit_ref += round((r["recall"] or 0) * n_r)
+        out.append(f"| {r['clip']} | {half(r['clip'])} | {n_o} | {n_r} | {_f(r['precision'], 2)}"
+                   f" | {_f(r['recall'], 2)} | {' '.join(f'{p:.2f}' for p in peaks)} |")
+    pooled = {"precision": round(hit_ours / ours, 3) if ours else None,
+              "recall": round(hit_ref / ref, 3) if ref else None,
+              "articast_events": ours, "reference_events": ref}
+    return out, pooled
 
 
 def main() -> None:
@@ -138,6 +169,8 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--half", choices=["A", "B"], help="only the clips of this half")
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--blinks", type=Path, nargs="*", default=[],
+                    help="benchmarks/blinks.py --json runs to summarise too")
     args = ap.parse_args()
     out = []
     for path in args.runs:
@@ -148,10 +181,17 @@ def main() -> None:
         real = [r for r in rows if r["clip"] != "synthetic"]
         pools = {h: pooled([r for r in real if r["half"] == h]) for h in ("A", "B")}
         pools["all"] = pooled(real)
+        pools["all, to the best FaceMesh-family peer"] = pooled(real, "gap_family")
         if args.json:
             out.append({"run": str(path), "rows": rows, "pooled": pools})
         else:
             print(f"## {path}\n\n{markdown(run, rows, pools)}\n")
+    for path in args.blinks:
+        lines, total = blink_rows(path)
+        if args.json:
+            out.append({"blinks": str(path), "pooled": total})
+        else:
+            print(f"## {path}\n\n" + "\n".join(lines) + f"\n\npooled: {total}\n")
     if args.json:
         print(json.dumps(out, indent=1))
 

@@ -122,6 +122,10 @@ WORKERS = ("openseeface", "mediapipe", "dlib")
 BASELINE = "facemesh_v1"
 VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live tracking")
     "fused": None,  # the default LivePolicy
+    # the default before issue 38: the reader every third frame, its cadence cancelled, the
+    # filtered fit streamed, the eyes measured on every reading
+    "cadence_3": LivePolicy(fusion=FusionPolicy(read_every=3, cadence=0.1, reader_gap=None,
+                                                eyes_every=1)),
     "appearance": LivePolicy(fusion=None),  # the appearance fit alone, landmarks to check
     "landmarks": LivePolicy(fusion=FusionPolicy(appearance_weight=0.0)),  # through the model
     "no_kalman": LivePolicy(fusion=FusionPolicy(kalman=False)),
@@ -158,8 +162,8 @@ VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live 
                                               eyes_every=2)),
     "gap_0.65": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.65,
                                                eyes_every=2)),
-    "gap_0.5_it2": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.5,
-                                                  eyes_every=2, max_iterations=2)),
+    "gap_0.5_e3": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.5,
+                                                 eyes_every=3)),
     "gap_0.35": LivePolicy(fusion=FusionPolicy(read_every=1, cadence=None, reader_gap=0.35,
                                                eyes_every=2)),
 }

@@ -97,19 +97,20 @@ def matched(model: FaceModel, camera: Camera, alpha: np.ndarray, pose: Pose, tar
     if not np.isfinite(target):
         return a
     k = len(a)
-    eye = np.eye(k) * step
+    probes = np.concatenate([np.zeros((1, k)), np.eye(k) * step, -np.eye(k) * step])
+    r = model_ratios(model, camera, a[None], pose)
     for _ in range(iterations):
-        probes = np.concatenate([a[None], a + eye, a - eye])
-        r = model_ratios(model, camera, probes, pose)
-        if not np.all(np.isfinite(r)):
-            return np.asarray(alpha, np.float64).copy()
-        if abs(target - r[0]) <= tolerance:
+        if not np.isfinite(r[0]) or abs(target - r[0]) <= tolerance:
             break
-        grad = (r[1:k + 1] - r[k + 1:]) / (2 * step)
+        rs = model_ratios(model, camera, a + probes, pose)
+        if not np.all(np.isfinite(rs)):
+            return np.asarray(alpha, np.float64).copy()
+        grad = (rs[1:k + 1] - rs[k + 1:]) / (2 * step)
         g2 = float(grad @ grad)
         if g2 <= 1e-18:
             break
-        a = a + grad * (target - r[0]) / g2
+        a = a + grad * (target - rs[0]) / g2
+        r = model_ratios(model, camera, a[None], pose)
     change = a - alpha
     norm = float(np.linalg.norm(change))
     if norm > max_change:

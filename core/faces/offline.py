@@ -111,9 +111,11 @@ def smoothed(result: TrackResult, frame: Smoothed | None, model: FaceModel) -> T
                    extra={**result.extra, "alpha_live": result.alpha})
 
 
-SECOND_READER = LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1, cadence=None))
+SECOND_READER = LivePolicy(fusion=FusionPolicy(reader="v2", read_every=1, cadence=None,
+                                               reader_gap=None))
 """The second tracker's policy: the finding landmarks read on every frame (no cadence to
-cancel), the rest the live tracker's."""
+cancel), the rest the live tracker's; its raw fits are smoothed (the streamed opening's mix
+with the reader's gap, ``FusionPolicy.reader_gap``, would be lost there: not computed)."""
 
 
 def second_reader(speaker: Speaker) -> Speaker | None:

@@ -1177,11 +1177,16 @@ def closure(opening: float, open_mm: float, closed_mm: float) -> float:
     return _clip(float((open_mm - opening) / (open_mm - closed_mm)), 0.0, 1.0)
 
 
-CLOSED_FRACTION = 0.25
+CLOSED_FRACTION = 0.5
 """Without a blink in the enrolment clip, the closed eye's opening is taken as this fraction
-of the open eye's (FaceMesh v1's lids stay apart by ~20-35 % of the open eye on the synthetic
-speaker's closed eyes; on real faces its deepest reading of a blink is 0.46-0.65 of the open
-eye: docs/UPPER_FACE.md, so a speaker enrolled without a blink reads low closures)."""
+of the open eye's. FaceMesh v1 never reads a shut eye's lids together: on the real clips of
+issue 38 whose enrolment had blinks, the shut reference it gave was 0.38-0.65 of the open eye
+(median 0.55 on either half of the people); the former 0.25 (the synthetic speaker's
+20-35 %) left every blink of a speaker enrolled without one under a closure of 0.4 (lia_obama:
+0 of 10 found, peaks 0.24-0.39). Chosen on one half of the people (edtalk_mouth_source,
+lia_vox_driving3, liveportrait_d10: 0.5 found 3 of 6 blinks with no false one, 0.55 one false
+more), checked on the other (lia_obama 7 of 10 found, 0 before; facerealtime_driving's one
+blink, at ~100 px, still missed): docs/UPPER_FACE.md."""
 
 BLINK_OUTLIER_SD = 5.0
 """An enrolment frame whose lid opening (both eyes' mean) lies this many robust standard
