@@ -33,7 +33,22 @@ scored on the remaining 40 % (held out), where all methods run:
   worker: process start-up, model loading and the pipe are not in its time. A peer that is not
   set up is skipped with its reason.
 
+``--clips DIR`` takes any folder of videos as it is (every video file, named by its stem; a
+``clips.json`` where ``tools/fetch_real_clips.py`` wrote one); the default is the team's
+``../shared/clips`` beside the repository. ``--speakers DIR`` keeps each clip's enrolment and
+reuses it; ``--others DIR`` (a ``--series`` run's folder) reads the methods that ``--methods``
+leaves out from it instead of running them: articast's policies scored against the same peers.
+
 Scores per clip and method (held-out frames):
+
+- ``judge_r`` (issue 38): correlation with the **independent judge**, one vote per model family
+  outside FaceMesh's (articast reads with that family: FaceMesh v1, mediapipe, FaceLandmarker
+  v2) and outside the method's own: for articast and every FaceMesh-family method the same
+  series (the median of OpenSeeFace's and dlib's); ``articast_vs_reader``: articast's r gap to
+  its own reader (the FaceMesh v1 loop) and to the best FaceMesh-family peer on that judge,
+  with paired block-bootstrap intervals, its jitter gap to the reader's, and the lag of its
+  frame-to-frame changes behind the reader's (``benchmarks/corpus_summary.py`` tabulates them
+  over the corpus, by half of the people);
 
 - ``consensus_r`` (and ``consensus_n`` frames): correlation of the method's lip aperture (inner
   gap over outer width: MediaPipe 13-14 over 61-291, iBUG 62-66 over 48-54, OpenSeeFace 60-64

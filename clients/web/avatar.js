@@ -18,11 +18,8 @@ import { LinearFace } from "./face.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
 import { Head } from "./eyes.js";
+import { authHeaders, chooseSession, params, refusal, token } from "./connect.js";
 
-const params = new URLSearchParams(location.search);
-// the server's token, if it has one, comes in this page's URL (?token=...) and goes on
-const token = params.get("token");
-const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
 function withToken(url) {
   if (!token) return url;
   return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
@@ -126,28 +123,8 @@ function status(text, bad) { const s = $("status"); s.textContent = text; s.clas
 
 // ----------------------------------------------------------------------------- connection
 let delay = 250, final = "";
-const TOKEN_FIX = "this server needs a token: open this page with &token=TOKEN in its URL " +
-  "(the server's ARTICAST_TOKEN or --token-file)";
 function stop(text) { // a refusal or an end: said once, never retried
   final = text; state.final = text; status(text, true); overlay(text);
-}
-async function refusal() { // why the server would not let us in, if it says so (else "")
-  try {
-    const r = await fetch("/api/sessions", { headers: authHeaders });
-    if (r.status === 401) return token ? "the server refused this page's token: " + TOKEN_FIX : TOKEN_FIX;
-    if (r.status === 429) return "the server refused this page's token too often: " + TOKEN_FIX +
-      "; then wait a minute";
-    if (r.status === 403) return "the server refused this page: " + ((await r.json()).detail || "forbidden");
-  } catch (e) { /* unreachable: a network problem, retried */ }
-  return "";
-}
-async function chooseSession() {
-  if (params.get("session")) return params.get("session");
-  const r = await fetch("/api/sessions", { headers: authHeaders });
-  if ([401, 403, 429].includes(r.status)) throw new Error("refused");
-  const list = await r.json();
-  if (!list.length) throw new Error("the server has no session");
-  return list[0].name;
 }
 // the server's tracking preview (opt-in per session): newest JPEG only, at most 5 per second
 let previewUrl = null, previewTimer = null;

@@ -19,10 +19,8 @@
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
+import { authHeaders, chooseSession, params, refusal, token } from "./connect.js";
 
-const params = new URLSearchParams(location.search);
-const token = params.get("token");
-const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
 function withToken(url) {
   if (!token) return url;
   return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
@@ -180,26 +178,7 @@ function apply(f) {
 function status(text, bad) { const s = $("status"); s.textContent = text; s.className = bad ? "bad" : "good"; state.status = text; }
 function overlay(text) { const o = $("overlay"); if (o.textContent !== text) o.textContent = text; o.hidden = !text; }
 let delay = 250, final = "", streams = ["articulatory", "pose", "arkit"], session = null, vrmFor = null;
-const TOKEN_FIX = "this server needs a token: open this page with &token=TOKEN in its URL " +
-  "(the server's ARTICAST_TOKEN or --token-file)";
 function stop(text) { final = text; state.final = text; status(text, true); overlay(text); }
-async function refusal() {
-  try {
-    const r = await fetch("/api/sessions", { headers: authHeaders });
-    if (r.status === 401) return token ? "the server refused this page's token: " + TOKEN_FIX : TOKEN_FIX;
-    if (r.status === 429) return "the server refused this page's token too often: " + TOKEN_FIX + "; then wait a minute";
-    if (r.status === 403) return "the server refused this page: " + ((await r.json()).detail || "forbidden");
-  } catch (e) { /* a network problem: retried */ }
-  return "";
-}
-async function chooseSession() {
-  if (params.get("session")) return params.get("session");
-  const r = await fetch("/api/sessions", { headers: authHeaders });
-  if ([401, 403, 429].includes(r.status)) throw new Error("refused");
-  const list = await r.json();
-  if (!list.length) throw new Error("the server has no session");
-  return list[0].name;
-}
 function sameOrigin(url) { // a VRM named in the URL: this server's files only
   try { return new URL(url, location.href).origin === location.origin; } catch (e) { return false; }
 }

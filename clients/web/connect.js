@@ -1,0 +1,28 @@
+// What every page of the service needs to reach a session: the token from the page's URL,
+// the session to follow, and why the server refused (shared by avatar.js and vrm.js).
+export const params = new URLSearchParams(location.search);
+// the server's token, if it has one, comes in this page's URL (?token=...) and goes on
+export const token = params.get("token");
+export const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
+export const TOKEN_FIX = "this server needs a token: open this page with &token=TOKEN in its URL " +
+  "(the server's ARTICAST_TOKEN or --token-file)";
+
+export async function refusal() { // why the server would not let us in, if it says so (else "")
+  try {
+    const r = await fetch("/api/sessions", { headers: authHeaders });
+    if (r.status === 401) return token ? "the server refused this page's token: " + TOKEN_FIX : TOKEN_FIX;
+    if (r.status === 429) return "the server refused this page's token too often: " + TOKEN_FIX +
+      "; then wait a minute";
+    if (r.status === 403) return "the server refused this page: " + ((await r.json()).detail || "forbidden");
+  } catch (e) { /* unreachable: a network problem, retried */ }
+  return "";
+}
+
+export async function chooseSession() { // ?session=NAME, else the server's first session
+  if (params.get("session")) return params.get("session");
+  const r = await fetch("/api/sessions", { headers: authHeaders });
+  if ([401, 403, 429].includes(r.status)) throw new Error("refused");
+  const list = await r.json();
+  if (!list.length) throw new Error("the server has no session");
+  return list[0].name;
+}
