@@ -18,12 +18,8 @@ import { LinearFace } from "./face.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
 import { Head } from "./eyes.js";
-import { authHeaders, chooseSession, params, refusal, token } from "./connect.js";
+import { authHeaders, chooseSession, params, refusal, socketUrl, withToken } from "./connect.js";
 
-function withToken(url) {
-  if (!token) return url;
-  return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
-}
 const state = (window.articast = {
   frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
   error: "", final: "", mesh: "", lastSeq: -1, fps: 0, latencyMs: null, delegate: "",
@@ -248,10 +244,6 @@ async function connect() {
     const why = opened ? "" : await refusal(); // a refused handshake: the browser hides the 401
     if (why) stop(why); else retry("disconnected");
   };
-}
-function socketUrl() { // the one place the WebSocket URL is built
-  const proto = location.protocol === "https:" ? "wss" : "ws";
-  return withToken(params.get("ws") || `${proto}://${location.host}/ws`);
 }
 function retry(why) {
   status(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s`, true);

@@ -4,6 +4,14 @@ export const params = new URLSearchParams(location.search);
 // the server's token, if it has one, comes in this page's URL (?token=...) and goes on
 export const token = params.get("token");
 export const authHeaders = token ? { Authorization: `Bearer ${token}` } : {};
+export function withToken(url) { // the WebSocket's (a browser sends no header there)
+  if (!token) return url;
+  return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
+}
+export function socketUrl() { // the one place the WebSocket URL is built
+  const proto = location.protocol === "https:" ? "wss" : "ws";
+  return withToken(params.get("ws") || `${proto}://${location.host}/ws`);
+}
 export const TOKEN_FIX = "this server needs a token: open this page with &token=TOKEN in its URL " +
   "(the server's ARTICAST_TOKEN or --token-file)";
 

@@ -19,12 +19,8 @@
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
-import { authHeaders, chooseSession, params, refusal, token } from "./connect.js";
+import { authHeaders, chooseSession, params, refusal, socketUrl } from "./connect.js";
 
-function withToken(url) {
-  if (!token) return url;
-  return url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token);
-}
 const ARKIT = ["eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
   "eyeSquintLeft", "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight",
   "eyeLookOutRight", "eyeLookUpRight", "eyeSquintRight", "eyeWideRight", "jawForward", "jawLeft",
@@ -263,10 +259,6 @@ async function connect() {
     const why = opened ? "" : await refusal();
     if (why) stop(why); else retry("disconnected");
   };
-}
-function socketUrl() {
-  const proto = location.protocol === "https:" ? "wss" : "ws";
-  return withToken(params.get("ws") || `${proto}://${location.host}/ws`);
 }
 function retry(why) {
   status(`${why}: reconnecting in ${(delay / 1000).toFixed(1)} s`, true);
