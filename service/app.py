@@ -810,16 +810,22 @@ def create_app(config: ServiceConfig | None = None,
             raise HTTPException(409, f"session {name!r} has no face model (yet)")
         return Response(session.dense_json(), media_type="application/json")
 
-    @app.get("/api/sessions/{name}/delegate")
-    def delegate(name: str, request: Request) -> Response:
-        """The speaker's delegate (:mod:`articast.service.delegate`): a picture of their face,
-        so the token is needed like for subscribing; never cached, never logged."""
+    def delegate_session(name: str, request: Request) -> Any:
+        """The session whose speaker's face a request asks for (their delegate or VRM): the
+        token checked as for subscribing, 404 when there is none or the server serves none."""
         authorise(request)
         session = svc.manager.sessions.get(name)
         if session is None:
             raise HTTPException(404, f"no session {name!r} on this server")
         if not config.delegates:
             raise HTTPException(404, "this server serves no delegate (--no-delegate)")
+        return session
+
+    @app.get("/api/sessions/{name}/delegate")
+    def delegate(name: str, request: Request) -> Response:
+        """The speaker's delegate (:mod:`articast.service.delegate`): a picture of their face,
+        so the token is needed like for subscribing; never cached, never logged."""
+        session = delegate_session(name, request)
         if session.description is None:
             raise HTTPException(409, f"session {name!r} has no face model (yet)")
         try:
@@ -833,12 +839,7 @@ def create_app(config: ServiceConfig | None = None,
     def speaker_vrm(name: str, request: Request) -> Response:
         """The speaker's face as a VRM 1.0 avatar (service/vrm.py): token, no-store, as the
         delegate."""
-        authorise(request)
-        session = svc.manager.sessions.get(name)
-        if session is None:
-            raise HTTPException(404, f"no session {name!r} on this server")
-        if not config.delegates:
-            raise HTTPException(404, "this server serves no delegate (--no-delegate)")
+        session = delegate_session(name, request)
         desc = session.description
         path = session.delegate_file() if desc is not None else None
         if desc is None or path is None:

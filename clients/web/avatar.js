@@ -18,7 +18,7 @@ import { LinearFace } from "./face.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
 import { Head } from "./eyes.js";
-import { authHeaders, chooseSession, params, refusal, socketUrl, withToken } from "./connect.js";
+import { authHeaders, chooseSession, params, refusal, socketUrl, withToken, noteLatency } from "./connect.js";
 
 const state = (window.articast = {
   frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
@@ -196,11 +196,7 @@ function draw(now) {
   if (pose) $("pose").textContent = pose.translation.map((v) => v.toFixed(0)).join(", ") + " mm";
   render();
   state.rendered++;
-  // end to end: captured on the server -> drawn here (same host, or NTP-synced hosts)
-  const ms = Math.max(0, Date.now() - f.t_capture * 1000);
-  state.latencyMs = ms; state.latencies.push(ms);
-  if (state.latencies.length > 20000) state.latencies.splice(0, 10000);
-  $("latency").textContent = `${ms | 0} ms`;
+  $("latency").textContent = `${noteLatency(state, f) | 0} ms`;
   overlay("");
 }
 function overlay(text) { // what the view says while there is no face to show

@@ -34,3 +34,11 @@ export async function chooseSession() { // ?session=NAME, else the server's firs
   if (!list.length) throw new Error("the server has no session");
   return list[0].name;
 }
+
+export function noteLatency(state, frame) { // end to end: captured on the server -> drawn here
+  // (same host, or NTP-synced hosts); kept for the page's readout and the tests
+  const ms = Math.max(0, Date.now() - frame.t_capture * 1000);
+  state.latencyMs = ms; state.latencies.push(ms);
+  if (state.latencies.length > 20000) state.latencies.splice(0, 10000);
+  return ms;
+}

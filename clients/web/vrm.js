@@ -19,7 +19,7 @@
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
-import { authHeaders, chooseSession, params, refusal, socketUrl } from "./connect.js";
+import { authHeaders, chooseSession, params, refusal, socketUrl, noteLatency } from "./connect.js";
 
 const ARKIT = ["eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
   "eyeSquintLeft", "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight",
@@ -215,10 +215,7 @@ function draw(now) {
   apply(f);
   renderer.render(scene, camera);
   state.rendered++;
-  const ms = Math.max(0, Date.now() - f.t_capture * 1000);
-  state.latencyMs = ms; state.latencies.push(ms);
-  if (state.latencies.length > 20000) state.latencies.splice(0, 10000);
-  $("latency").textContent = `${ms | 0} ms`;
+  $("latency").textContent = `${noteLatency(state, f) | 0} ms`;
   overlay("");
 }
 async function connect() {
