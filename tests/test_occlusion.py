@@ -128,3 +128,44 @@ def test_a_second_opinion_can_overrule_the_appearance_occlusion_verdict(speaker,
         else:
             assert not occluded and asked
             assert any(np.allclose(r.alpha, x) for r in res for x in asked)
+
+
+def test_points_seen_edge_on_do_not_vote_for_an_occlusion(speaker, head_app):
+    """``occlusion_facing``: outliers only where the face is seen edge-on (a jaw line against
+    the background) flag nothing; the same outliers flag the frame when every point votes,
+    and outliers on points facing the camera still do."""
+    model = speaker.model()
+    seq = make_sequence(2, 30, 50.0, "desk")
+    policy = TrackingPolicy.for_rig("desk")
+    tracker = Tracker(model, head_app, seq.camera, policy, initial_pose=seq.pose(0))
+    assert tracker.policy.occlusion_facing is not None
+    truth = invert(model, seq.points)
+    tracker.reset(seq.pose(0), truth[0])
+    for i in range(20):  # (the per-point running levels)
+        tracker.track(speaker.render(seq.controls[i], seq.pose(i), seq.camera,
+                                     RenderOptions(seed=1000 + i)), float(seq.times[i]))
+    pose = seq.pose(20)
+    facing = tracker.facing(pose)
+    # geometry: the front of the face faces the camera, and nothing judged is turned away
+    mouth = np.argmin(np.abs(tracker.problem.s_mean[:, 0]))
+    assert facing[mouth] > 0.8
+    judged = np.flatnonzero(tracker._judged)
+    # a pair of judged points seen most edge-on, next to each other (within the span)
+    order = judged[np.argsort(facing[judged])]
+    edge = [int(order[0])] + [int(j) for j in order[1:]
+                              if tracker._span[order[0], j]][:1]
+    front = [int(j) for j in order[::-1][:2]]
+    assert facing[edge].max() < policy.occlusion_facing < facing[front].min(), (
+        facing[edge], facing[front])
+    level = tracker._qlevel.copy()
+
+    def verdict(points, facing_limit):
+        tracker.policy = replace(policy, occlusion_facing=facing_limit)
+        tracker._qlevel = level.copy()
+        q = np.full(len(facing), 8.0)
+        q[points] = 1e4
+        return tracker.occlusion(q, 1.0, pose=pose)
+
+    assert verdict(edge, None) is not None  # every point votes: flagged
+    assert verdict(edge, policy.occlusion_facing) is None
+    assert verdict(front, policy.occlusion_facing) is not None

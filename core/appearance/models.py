@@ -71,6 +71,18 @@ def vertex_normals(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
 
 
+def sample_normals(model: FaceModel, appearance: AppearanceModel) -> np.ndarray | None:
+    """Unit surface normals (S, 3), head frame, of the appearance's sample points on the
+    model's mean face (its vertex normals blended as the points are); None when the model
+    has no triangles."""
+    if len(model.triangles) == 0:
+        return None
+    vn = vertex_normals(model.mean, model.triangles)
+    s = appearance.samples
+    n = np.einsum("sj,sjd->sd", s.weight, vn[s.index])
+    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+
+
 def select_points(
     model: FaceModel, per_param: int = 5, candidates: np.ndarray | None = None
 ) -> np.ndarray:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
-from articast.core.appearance.models import AppearanceModel
+from articast.core.appearance.models import AppearanceModel, sample_normals
 from articast.core.model.camera import Camera, Pose, axis_angle
 from articast.core.model.face import FaceModel, range_motion
 from articast.core.outputs.lips import lips_dict
@@ -140,6 +140,14 @@ class TrackingPolicy:
         wrong with a single point at q = 200-260 were streamed ok.
     occlusion_rate : the per-point running levels follow frames that are ok at this rate
         (moving towards at most ``level_clip`` x themselves per frame).
+    occlusion_facing : only the points that face the camera this frame vote: the cosine of
+        the angle between the point's surface normal (the mean face's) and its direction to
+        the camera at least this (None: all vote). A point seen at a grazing angle (the jaw
+        line of a frontal face, the chin of a face bowed down) samples the background or
+        the neck beside the face, which the appearance never learned: two such points
+        flagged 14-21 talking frames "occluded" on latentsync_demo3 and wojtek (their
+        outliers faced the camera at 0.1-0.39) where a hand at cap12's chin covered points
+        facing it at 0.45-0.65 (docs/RESULTS.md).
     min_valid_fraction : below this fraction of sample points inside the image: not ok.
     min_contrast : luminance s.d. of the face region below which the frame is blank.
     """
@@ -173,6 +181,7 @@ class TrackingPolicy:
     occlusion_stay_q: float = 150.0
     occlusion_moving: float = 0.2
     occlusion_rate: float = 0.05
+    occlusion_facing: float | None = 0.42
 
     def __post_init__(self) -> None:
         if self.optimiser not in OPTIMISERS:
@@ -220,6 +229,7 @@ class Tracker:
         self._judged = motion >= pol.occlusion_moving * motion.max()
         pts = self.problem.s_mean
         self._span = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= pol.occlusion_span_mm
+        self._normals = sample_normals(model, appearance)
         self.reset()
 
     def reset(self, pose: Pose | None = None, alpha: np.ndarray | None = None) -> None:
@@ -431,7 +441,8 @@ class Tracker:
                        else f"diverged: residual {fit.robust_residual:.3g} is far above its "
                             f"running level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
-        occluded = self.occlusion(fit.point_q, fit.gain, staying=self._occluding)
+        occluded = self.occlusion(fit.point_q, fit.gain, staying=self._occluding,
+                                  pose=Pose.from_vector(fit.theta[self.k:]))
         if (occluded is not None and ev is not None and ev.confirm is not None
                 and ev.confirm(fit.alpha, Pose(fit.rotation, fit.translation))):
             occluded = None
@@ -474,7 +485,7 @@ class Tracker:
                                           pol.residual_floor)
 
     def occlusion(self, q: np.ndarray | None, gain: float = 1.0,
-                  staying: bool = False) -> str | None:
+                  staying: bool = False, pose: Pose | None = None) -> str | None:
         """The ``occluded`` reason for a fit whose per-point residuals ``q`` (S,) show that
         the part of the face the articulation moves no longer looks like the speaker, else
         None (see ``TrackingPolicy.occlusion_q``). Cheap: a few array operations over S.
@@ -484,12 +495,15 @@ class Tracker:
         when the image is brighter: at gain 1.2 a clean frame's worst lip points crossed
         the threshold.
         staying : inside an occlusion (the previous frames occluded, or lost since): one
-        point above ``occlusion_stay_q`` keeps the frame occluded."""
+        point above ``occlusion_stay_q`` keeps the frame occluded.
+        pose : the fit's head pose, for ``occlusion_facing`` (None: every point votes)."""
         pol = self.policy
         if (pol.occlusion_q is None or q is None or self._qlevel is None
                 or not self.problem.appearance.kind.startswith("la")):
             return None  # (tex: one z-scored value per point, another scale)
         judged = self._judged & (q > 0)  # q = 0: outside the image
+        if pol.occlusion_facing is not None and pose is not None and self._normals is not None:
+            judged = judged & (self.facing(pose) >= pol.occlusion_facing)
         q = q / max(1.0, gain) ** 2
         limit = np.maximum(pol.occlusion_stay_q if staying else pol.occlusion_q,
                            pol.occlusion_factor * np.maximum(self._qlevel, pol.occlusion_floor))
@@ -504,6 +518,16 @@ class Tracker:
         return (f"occluded: {n_out} of {int(judged.sum())} sample points on the lips, jaw and "
                 f"chin no longer look like the face (a hand or an object over them, or the fit "
                 f"is wrong there); tracked through; last good state held")
+
+    def facing(self, pose: Pose) -> np.ndarray:
+        """(S,) how squarely each sample point faces the camera at ``pose``: the cosine of
+        the angle between its surface normal (the mean face's) and its direction to the
+        camera's centre (1: head on; 0: at the silhouette; < 0: turned away)."""
+        assert self._normals is not None
+        rot = pose.matrix
+        p = self.problem.s_mean @ rot.T + pose.translation
+        n = self._normals @ rot.T
+        return -(n * p).sum(1) / np.maximum(np.linalg.norm(p, axis=1), 1e-9)
 
     def _update_point_levels(self, q: np.ndarray | None) -> None:
         if q is None:
