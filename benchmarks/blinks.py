@@ -85,6 +85,7 @@ from articast.core.evaluation.upper import (  # noqa: E402
     events,
     match_events,
 )
+from articast.core.errors import InputError  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -340,7 +341,10 @@ def main(argv: list[str] | None = None) -> None:
         if name not in clips:
             log(f"{name}: no such clip in {args.clips}")
             continue
-        row = run(name, clips[name], peers, args.grid, cost=not args.no_cost)
+        try:
+            row = run(name, clips[name], peers, args.grid, cost=not args.no_cost)
+        except InputError as e:  # (a clip the enrolment refuses: no face in enough frames)
+            row = {"clip": name, "error": str(e)}
         rows.append(row)
         short = {k: v for k, v in row.items() if k not in SERIES}
         log(json.dumps(short))

@@ -669,6 +669,41 @@ def test_a_blink_the_reader_reads_shallow_is_the_closed_eye_when_it_lies_far_out
     assert ref_w.closed_mm[0] == pytest.approx(U.CLOSED_FRACTION * ref_w.open_mm[0], abs=0.01)
 
 
+def test_blinks_the_reader_reads_shallow_give_the_shut_eye_from_their_dips():
+    """A small face's blinks (lia_obama: the reader's shut eyes at ~0.72 of the open eye)
+    among an open eye that roams: the median of the dips' deepest readings is the shut
+    eye, so each of its blinks reads nearly shut; dips too shallow to be told from the open
+    eye's flutter (0.82) leave the former reference; a long dip (a look down) is not a blink."""
+    img = cv2.cvtColor(np.full((400, 640, 3), 128, np.uint8), cv2.COLOR_BGR2GRAY)
+    rng = np.random.default_rng(5)
+    open_canon = U.lid_opening_mm(CANON.vertices_mm)[0]
+    at = [20, 60, 100, 140, 180]
+
+    def ref_for(depth, extra=None):
+        closing = np.abs(rng.normal(0.0, 0.06 * open_canon, 220))
+        for i in at:
+            closing[i:i + 2] = depth * open_canon
+        if extra is not None:
+            closing[extra] = 0.45 * open_canon
+        ms = [U.measure(img, reading(with_lids(c), 10.0), CANON) for c in closing]
+        return U.calibrate(ms), ms
+
+    ref, ms = ref_for(0.28)
+    assert ref is not None
+    shut = U.lid_opening_mm(with_lids(0.28 * open_canon))[0]
+    assert ref.closed_mm[0] == pytest.approx(shut, abs=0.1)
+    assert min(U.closure(ms[i].opening[0], ref.open_mm[0], ref.closed_mm[0]) for i in at) > 0.9
+    assert {a for a, _ in U.blink_dips(np.array([m.opening for m in ms]))} >= set(at)
+    shallow, _ = ref_for(0.18)
+    assert shallow is not None
+    assert shallow.closed_mm[0] < U.DIP_MAX_FRACTION * shallow.open_mm[0] - 0.1
+    # a look down of 0.6 s among the blinks is no dip
+    _, ms_down = ref_for(0.28, extra=slice(195, 210))
+    runs = U.blink_dips(np.array([m.opening for m in ms_down]))
+    assert {a for a, _ in runs} >= set(at)
+    assert not [(a, b) for a, b in runs if b > 195 and a < 210]
+
+
 def test_reference_round_trip_and_malformed():
     d = REF.to_dict()
     back = U.UpperReference.from_dict(d, "x")

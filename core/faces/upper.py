@@ -83,10 +83,12 @@ class UpperReference:
     """The speaker's own upper face at enrolment (speaker.json ``upper``).
 
     open_mm, closed_mm : (left, right) lid opening of the open eye (the clip's median: the
-        speaker's usual open eye) and of the closed eye (the clip's deepest blinks, its 1st
-        percentile; with blink frames fewer than 1 % of the clip's, the mean of those whose
-        opening lies :data:`BLINK_OUTLIER_SD` robust s.d. below the open eye's; when the clip
-        has none, a fixed fraction of the open eye and ``blinks`` is 0). With the 90th
+        speaker's usual open eye) and of the closed eye: with two blinks or more that the
+        reader reads deep enough (:func:`blink_dips`, :data:`DIP_MAX_FRACTION`), the median
+        of their deepest readings; else the clip's deepest blinks, its 1st percentile; with
+        blink frames fewer than 1 % of the clip's, the mean of those whose opening lies
+        :data:`BLINK_OUTLIER_SD` robust s.d. below the open eye's; when the clip has none, a
+        fixed fraction of the open eye and ``blinks`` is 0. With the 90th
         percentile as the open eye, a laughing speaker's squint (the cheeks push the lower
         lids up) read 0.52-0.58 on franck, a blink; with the median 0.4
         (docs/UPPER_FACE.md).
@@ -1196,6 +1198,48 @@ open eye's spread reaches that far (4 s.d. did, twice: cap12 and cap13's gaze di
 of the open eye, dlib's eyes open)."""
 
 
+DIP_MIN_FRACTION = 0.15
+"""A blink dip (:func:`blink_dips`) goes at least this fraction of the open eye below the
+opening round it."""
+
+DIP_MAX_FRACTION = 0.75
+"""The enrolment's blink dips give the shut eye (:func:`calibrate`) when the median of their
+deepest readings is at most this fraction of the open eye (a blink the reader reads at
+least a quarter shut). FaceMesh v1 reads a blink on a small face shallow: lia_obama's shut
+eyes (256 px broadcast crop, 14 blinks in its enrolment) read 0.51-0.83 of the open eye,
+median 0.72, and against the former references (the 1st percentile, or half the open eye)
+its held-out blinks peaked at a closure of 0.45-0.61, 6 of 10 found; with the dips' median,
+0.80-0.98, 10 of 10. Dips shallower than that (0.77-0.8: facerealtime_driving's ~100 px
+face, lia_vox_driving3, liveportrait_d10) are not told from the open eye's own flutter
+(taken for the shut eye, they read 1-5 false blinks each). Chosen on half B of the people
+(lia_obama, facerealtime_driving), checked on half A (lia_vox_driving3 and
+liveportrait_d10 keep their references): docs/UPPER_FACE.md."""
+
+DIP_MAX_SAMPLES = 8
+"""A blink dip lasts at most this many readings (~0.3 s at 25 fps): a longer one is a look
+down or a squint, not a blink."""
+
+
+def blink_dips(op: np.ndarray, window: int = 15, noise_sd: float = 3.0
+               ) -> list[tuple[int, int]]:
+    """(start, end) of each blink dip in the enrolment's lid openings ``op`` (F, 2) mm, in
+    frame order: a run of at most :data:`DIP_MAX_SAMPLES` readings whose mean opening lies
+    below the median of the ``window`` readings either side by more than ``noise_sd`` x
+    the robust s.d. of the openings about that median and more than
+    :data:`DIP_MIN_FRACTION` of the clip's median opening. A dip is judged against the
+    opening round it, not against the clip's: a speaker whose eyes roam (looks down,
+    squints while laughing) has a wide spread but short, sharp blinks."""
+    o = np.asarray(op, np.float64).mean(axis=1)
+    n = len(o)
+    if n < 10:
+        return []
+    local = np.array([np.median(o[max(0, i - window):i + window + 1]) for i in range(n)])
+    d = o - local
+    noise = 1.4826 * float(np.median(np.abs(d)))
+    below = d < -max(noise_sd * noise, DIP_MIN_FRACTION * float(np.median(o)))
+    return [(a, b) for a, b in _runs(below) if b - a <= DIP_MAX_SAMPLES]
+
+
 def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     """The speaker's references from the enrolment clip's readings (in frame order; None
     where no face was read); None when fewer than 10 frames had measurable eyes."""
@@ -1212,6 +1256,12 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     dips = ((op - open_mm) / np.maximum(sd, 1e-6)).mean(axis=1) < -BLINK_OUTLIER_SD
     shut = op[dips].mean(axis=0) if dips.any() else CLOSED_FRACTION * open_mm
     closed = np.where(blinked, np.minimum(low, 0.6 * open_mm), shut)
+    # the blinks as the reader reads them, where it reads them deep enough to be told
+    # (:func:`blink_dips`): the shut eye is the median of their deepest readings
+    runs = blink_dips(op)
+    if len(runs) >= 2:
+        deepest = np.median([op[a:b].min(axis=0) for a, b in runs], axis=0)
+        closed = np.where(deepest <= DIP_MAX_FRACTION * open_mm, deepest, closed)
     closed = np.minimum(closed, 0.8 * open_mm)
     brows = np.median(np.array([m.brows for m in ms]), axis=0)
     # closure per frame, then a line from the photometric measure to it
