@@ -19,10 +19,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import Any
+from typing import TYPE_CHECKING, Any, cast
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:
+    from av.video.stream import VideoStream
 
 MESH_OK = (60, 200, 60)
 MESH_LOST = (60, 60, 230)
@@ -264,7 +267,7 @@ class VideoOut:
                           else _encoder())
             options = {"movflags": "+faststart"} if codec != "libvpx-vp9" else {}
             self._out = av.open(str(path), "w", options=options)
-            self._stream = self._out.add_stream(codec, rate=rate)
+            self._stream = cast("VideoStream", self._out.add_stream(codec, rate=rate))
         except Exception as exc:  # (PyAV's errors: a folder missing, no encoder, a format)
             raise InputError(f"--overlay {path}: cannot write a video there "
                              f"({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
