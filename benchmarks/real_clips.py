@@ -300,10 +300,12 @@ def add_enrol_options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--flow", action=argparse.BooleanOptionalAction, default=None,
                     help="enrol with (--flow) or without (--no-flow) the landmarks' pixels "
                          "refined by optical flow (default: the rig's, core/faces/flow.py "
-                         "BY_RIG: on for head, off for desk; see docs/REAL_SPEAKERS.md)")
+                         "BY_RIG: on for head, off for desk; see "
+                         "docs/history/REAL_SPEAKERS_LOG.md)")
     ap.add_argument("--upper-lip-off-jaw", action="store_true",
                     help="enrol with the upper lip kept off jaw1's basis (EnrolOptions "
-                         "jaw_moves_upper_lip=False; off by default: see docs/REAL_SPEAKERS.md)")
+                         "jaw_moves_upper_lip=False; off by default: see "
+                         "docs/history/REAL_SPEAKERS_LOG.md)")
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -323,7 +325,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--enrol-with-held", type=int, metavar="N",
                     help="diagnosis: also enrol on every Nth held-out frame (so the figures "
                          "are no longer held out): how far an appearance that had seen the "
-                         "test part's conditions would agree (docs/REAL_SPEAKERS.md, franck)")
+                         "test part's conditions would agree "
+                         "(docs/history/REAL_SPEAKERS_LOG.md, franck)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     live = LivePolicy(**({"motion": None} if args.no_motion else {}),

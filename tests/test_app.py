@@ -369,7 +369,7 @@ def test_occluded_frames_reach_clients_flagged_with_the_last_good_state(server, 
     from pathlib import Path
 
     root = Path(__file__).resolve().parents[1]
-    for path in (root / "README.md", root / "docs" / "REAL_SPEAKERS.md",
+    for path in (root / "README.md", root / "docs" / "history" / "REAL_SPEAKERS_LOG.md",
                  root / "docs" / "SERVICE.md", root / "core" / "tracking" / "tracker.py"):
         assert "not streamed" not in path.read_text(), path
 

@@ -130,6 +130,10 @@ def test_with_a_token_the_avatar_passes_it_on_from_its_url(sessions):
                 b.wait_for("window.articast.final !== ''", 30)
                 final = b.evaluate("window.articast.final")
                 assert "token=TOKEN" in final and "ARTICAST_TOKEN" in final, final
+                # a wrong token is said to be wrong, not missing (issue 39)
+                wrong = "token=wrong" in query
+                assert ("needs a token" in final) is not wrong, final
+                assert ("refused this page's token" in final) is wrong, final
                 time.sleep(1.0)
                 assert "reconnecting" not in b.evaluate("window.articast.status")
                 assert b.evaluate("window.articast.frames") == 0

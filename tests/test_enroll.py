@@ -54,7 +54,7 @@ def test_enroll_writes_a_speaker_folder_with_the_seven_parameters(enrolled, caps
     # the scale assumption is stated, and the model is in mm: a plausible mouth
     assert "63 mm" in sp.report["scale"]
     # a desk camera enrols from the landmarks' own pixels (the optical flow did not help the
-    # real webcam clips: docs/REAL_SPEAKERS.md)
+    # real webcam clips: docs/history/REAL_SPEAKERS_LOG.md)
     assert sp.report["pixels"] == "landmarks"
     ap, wd = lip_measures(sp.model, np.zeros(7))
     assert 30 < wd < 70 and 0 <= ap < 15

@@ -112,6 +112,12 @@ def test_full_distribution_has_only_its_own_import_names(wheels):
     r = run([str(tmp / "venv-full" / "bin" / "articast"), "--help"], cwd=outside)
     assert r.returncode == 0, r.stderr
     assert "demo" in r.stdout and "serve" in r.stdout and "Traceback" not in r.stderr
+    # the client's commands, which the docs and the client's help name, come with it too
+    for name in ("articast-print", "articast-record"):
+        exe = tmp / "venv-full" / "bin" / name
+        assert exe.exists(), f"{name} is not installed by the articast distribution"
+        r = run([str(exe), "--help"], cwd=outside)
+        assert r.returncode == 0 and "token" in r.stdout and "Traceback" not in r.stderr, r
 
 
 def test_client_distribution_alone(wheels, tmp_path):

@@ -14,13 +14,17 @@ export function socketUrl() { // the one place the WebSocket URL is built
 }
 export const TOKEN_FIX = "this server needs a token: open this page with &token=TOKEN in its URL " +
   "(the server's ARTICAST_TOKEN or --token-file)";
+// a token was given and refused: it is wrong, not missing (issue 39)
+const WRONG_TOKEN = "the server refused this page's token: it is not the server's; open this " +
+  "page with the right one, &token=TOKEN in its URL (the server's ARTICAST_TOKEN or --token-file)";
 
 export async function refusal() { // why the server would not let us in, if it says so (else "")
   try {
     const r = await fetch("/api/sessions", { headers: authHeaders });
-    if (r.status === 401) return token ? "the server refused this page's token: " + TOKEN_FIX : TOKEN_FIX;
-    if (r.status === 429) return "the server refused this page's token too often: " + TOKEN_FIX +
-      "; then wait a minute";
+    if (r.status === 401) return token ? WRONG_TOKEN : TOKEN_FIX;
+    if (r.status === 429) return "the server refused this page's token too often: open this page " +
+      "with the right one, &token=TOKEN in its URL (the server's ARTICAST_TOKEN or --token-file); " +
+      "then wait a minute";
     if (r.status === 403) return "the server refused this page: " + ((await r.json()).detail || "forbidden");
   } catch (e) { /* unreachable: a network problem, retried */ }
   return "";

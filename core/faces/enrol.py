@@ -97,9 +97,10 @@ class EnrolOptions:
         does). False: the upper lip's rows kept off jaw1 (the upper lip hangs from the skull;
         what the corpus shows of it moving with the jaw is coarticulation and the landmark
         model's coupling of the lips), so that motion stays in the residual for lips1-lips3.
-        Measured on the rendered head rig (docs/REAL_SPEAKERS.md): it took speaker 2's tracked
-        lips3 from 0.83 to 0.91 (the tracker had read a jaw opening as lips3 < 0), but cost
-        lips4 on speakers 3-5 (0.91-0.93 -> 0.82-0.91) and was mixed on the desk: off.
+        Measured on the rendered head rig (docs/history/REAL_SPEAKERS_LOG.md): it took
+        speaker 2's tracked lips3 from 0.83 to 0.91 (the tracker had read a jaw opening as
+        lips3 < 0), but cost lips4 on speakers 3-5 (0.91-0.93 -> 0.82-0.91) and was mixed on
+        the desk: off.
     """
 
     ipd_mm: float = 63.0

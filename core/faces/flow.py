@@ -18,7 +18,8 @@ FB_MAX_PX = 1.0
 MAX_DEV = 0.05
 """Default ``max_dev`` of :func:`refine_pixels`."""
 BY_RIG = {"desk": False, "head": True}
-"""Whether an enrolment refines the pixels by default, per rig (measured, docs/REAL_SPEAKERS.md).
+"""Whether an enrolment refines the pixels by default, per rig (measured,
+docs/history/REAL_SPEAKERS_LOG.md).
 Head-mounted camera: on. The landmarker's pixels of the lower face seen from 22 cm under-read
 the lips' small motions: on the rendered speaker (benchmarks/no_truth_path.py --rigs head,
 speakers 0-2) the tracked lips2 went from 0.84 / 0.79 / 0.87 to 0.95 / 0.91 / 0.93 and lips3

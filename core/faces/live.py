@@ -129,7 +129,8 @@ class FusionPolicy:
     read_every : the reader runs on every n-th frame; the frames between are fitted on the
         appearance and the motion model alone (the reader is most of a frame's cost). 3,
         with ``adapt``, against every 2nd frame with fixed weights (benchmarks/peers.py, one
-        run each, docs/REAL_SPEAKERS.md): r against the consensus 0.957 / 0.566 / 0.981 /
+        run each, docs/history/REAL_SPEAKERS_LOG.md): r against the consensus
+        0.957 / 0.566 / 0.981 /
         0.862 vs 0.956 / 0.529 / 0.982 / 0.849 (franck, cap12, cap13, pexels_woman), still-mouth
         jitter 0.131 / 0.080 / 0.323 / 0.293 vs 0.139 / 0.067 / 0.271 / 0.346, at 1.08-1.31x
         the FaceMesh v1 loop's CPU instead of 1.22-1.30x. (Every frame read cost 1.8-2.0x and
@@ -172,7 +173,7 @@ class FusionPolicy:
         width, r 0.953 against the consensus; with the term 0.31 and 0.981). Fused, the
         appearance pins most of them: r +0.002 on franck, +0.06 on cap12 (both outside
         their bootstrap intervals), within noise on the others, the synthetic speaker's
-        truth r unchanged (docs/REAL_SPEAKERS.md, the ablation). 1 is the distribution
+        truth r unchanged (docs/history/REAL_SPEAKERS_LOG.md, the ablation). 1 is the distribution
         itself, not a tuned weight. It is not fed back into the motion model's covariance
         (it would count the same knowledge again every frame).
     cadence : the streamed articulation loses the periodic component that reading every
@@ -198,7 +199,7 @@ class FusionPolicy:
         per start, which on a 2 s clip is most of articast's excess over the FaceMesh v1 loop.
         On the rendered speaker (the knock test's clip), 25 starts 3 frames apart: the first
         frame's aperture 0.54 vs 0.65 mm from the tracked one (MAE), r with the truth 0.992 vs
-        0.990; recovery after eight knocks r 0.900 vs 0.899 (docs/REAL_SPEAKERS.md).
+        0.990; recovery after eight knocks r 0.900 vs 0.899 (docs/history/REAL_SPEAKERS_LOG.md).
     resume : after a ``diverged`` frame (the fit, not the face, was lost: the reader read the
         face this frame or within ``read_every``), the restart reads the landmarks in the
         crop grown from that last reading instead of running the detector (which still runs
@@ -233,8 +234,8 @@ class FusionPolicy:
         same reading twice, as the term's 0.3 weight already allows for. Five enrolments of
         each clip (``benchmarks/enrolment_spread.py``, with and without): r against the
         consensus higher on every clip in five of five but carphone (three of five), the
-        still-mouth jitter within the enrolments' spread (docs/REAL_SPEAKERS.md); it reads
-        more frames where the face moves fast (carphone's CPU: docs/REAL_SPEAKERS.md).
+        still-mouth jitter within the enrolments' spread (docs/history/REAL_SPEAKERS_LOG.md);
+        it reads more frames where the face moves fast (carphone's CPU: the same log).
     recover : a fit that diverges on a started track is started again from the frame's own
         reading (read then, in the crop grown from the last reading, on a frame between
         readings) and fitted again within the frame; only if that fit diverges too is the
@@ -245,7 +246,7 @@ class FusionPolicy:
         next frame is read (the motion model restarted at rest, as after a reading it
         mispredicted: single_face's last frame, between readings, diverged by the
         appearance again and needed a second start without it). peers.py with and without
-        (``--variant no_recover``): see docs/REAL_SPEAKERS.md.
+        (``--variant no_recover``): see docs/history/REAL_SPEAKERS_LOG.md.
     reader_gap : the streamed opening is this share of the reader's own lip gap and the rest
         the raw fused fit's (both the inner gap over the mouth width in the image; the
         streamed articulation moved by the smallest step that gives it,

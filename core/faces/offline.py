@@ -15,8 +15,9 @@ finding landmarks (FaceLandmarker v2) on every frame through the speaker's model
 their own observation model learned at enrolment, and :func:`averaged` takes the mean of the
 two smoothed articulations where both trackers have the frame. Two readers through the same
 speaker's model, each with its own errors about the lips (no landmark network reads every
-face best: docs/REAL_SPEAKERS.md), and the mean of two articulations of a linear model is
-one of the model's too; the first tracker's verdicts, head pose and upper face stand.
+face best: docs/history/REAL_SPEAKERS_LOG.md), and the mean of two articulations of a
+linear model is one of the model's too; the first tracker's verdicts, head pose and upper face
+stand.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ are there, and the same motion model uses them:
    increment's axis-angle, as the filter has it. A constant-velocity model forgets within a
    few frames, so a lag of :data:`LAG` frames gives what the whole clip would (a scratch
    version on the peers' clips: r within 0.0005 of the whole clip's from 3 frames on, 0.0001
-   from 6; docs/REAL_SPEAKERS.md, "Where the lag is").
+   from 6; docs/history/REAL_SPEAKERS_LOG.md, "Where the lag is").
 2. :func:`offline_articulation`: the reading cadence's sawtooth taken off
    (:class:`~articast.core.tracking.filters.CadenceCanceller`, as live), then the One Euro
    filter run forward and back, so that its smoothing of a still mouth adds no lag either

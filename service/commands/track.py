@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -91,7 +92,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     tk.add_argument("--overlay", type=Path, metavar="VIDEO.mp4",
                     help="also write the video with the fit drawn on every frame: the mesh "
                          "thin and translucent (green ok, red not), the lip contours on top "
-                         "(outer yellow, inner magenta; enrolled speakers). MPEG-4 (mp4v)")
+                         "(outer yellow, inner magenta), a desk speaker's tracked eyelids "
+                         "(cyan), irises (blue) and brows (orange). H.264 in MP4, which "
+                         "browsers play (VP9 for a .webm name)")
+    tk.add_argument("--overlay-zoom", choices=["auto", "on", "off"], default="auto",
+                    help="with --overlay: a magnified inset of the face in a corner: auto "
+                         "(default) when the face spans under 25 %% of the frame's height "
+                         "(a phone clip), on, or off")
     add_span_arguments(tk)
     tk.add_argument("--optimiser", default="gauss-newton", choices=["gauss-newton", "nelder-mead"],
                     help="gauss-newton (default, analytic Jacobians) or the paper's simplex")
@@ -288,7 +295,7 @@ def _track(args: argparse.Namespace) -> int:
         if not args.single_reader:
             second = _second_tracker(args, tracker)
             second_smoother = None if second is None else OfflineSmoother.for_live(second)
-    contours = _contours(args)
+    contours, upper = _contours(args)
     total = video_frame_count(args.video)
     if span:
         total = span.frames(total, _fps(args.video))
@@ -302,15 +309,17 @@ def _track(args: argparse.Namespace) -> int:
     # written beside the output and renamed at the end: a failed track leaves no file
     fd, tmp_name = tempfile.mkstemp(prefix=f".{args.output.name}.", suffix=".part", dir=folder)
     tmp = Path(tmp_name)
-    video = None
+    video = drawing = None
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as out:
             for i, t, img in iter_video(args.video, span):
                 if n == 0 and args.overlay:
-                    from articast.service.overlay import VideoOut
+                    from articast.service.overlay import Overlay, VideoOut
 
                     video = VideoOut(args.overlay, _fps(args.video),
                                      (img.shape[1], img.shape[0]))
+                    drawing = Overlay(video, model, camera, contours, upper,
+                                      args.overlay_zoom)
                 res = tracker.track(img, t)
                 out.write(dumps(res.to_dict(model.param_names)) + "\n")
                 out.flush()
@@ -321,10 +330,8 @@ def _track(args: argparse.Namespace) -> int:
                     again = second.track(img, t)
                     second_smoother.add(again)
                     spent += again.ms  # (the frame's cost is both readers')
-                if video is not None:
-                    from articast.service.overlay import draw_fit
-
-                    video.write(draw_fit(img, model, camera, res, contours))
+                if drawing is not None:
+                    drawing.write(img, res)
                 n += 1
                 n_ok += res.ok
                 ms.append(spent)
@@ -431,12 +438,16 @@ def _fps(video: Path) -> float:
         cap.release()
 
 
-def _contours(args: argparse.Namespace) -> list:
+def _contours(args: argparse.Namespace) -> tuple[list, Any]:
+    """The overlay's lip contours and eyes-and-brows layout (an enrolled speaker's)."""
     if not args.overlay:
-        return []
+        return [], None
     if args.overlay.is_dir():
         raise InputError(f"--overlay {args.overlay}: is a folder, expected a file name (.mp4)")
+    if not args.speaker:
+        return [], None
     from articast.core.faces.speaker import Speaker
-    from articast.service.overlay import lip_contours
+    from articast.service.overlay import lip_contours, upper_layout
 
-    return lip_contours(Speaker.load(args.speaker)) if args.speaker else []
+    speaker = Speaker.load(args.speaker)
+    return lip_contours(speaker), upper_layout(speaker)
