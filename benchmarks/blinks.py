@@ -49,6 +49,11 @@ scored on the held-out 40 %:
   (the speaker's references left out), the median over 3 interleaved pairs of runs, their
   range ``over_lips_spread_ms``.
 
+- ``precision_confirmed`` / ``recall_confirmed`` (and ``confirmed_events``): the same against
+  dlib's events as confirmed by looking at every one in the grids (``blink_review.json``:
+  dlib events that are not blinks, e.g. eyes looking down, are dropped; blinks it missed are
+  added; frames where nobody can tell are left out for both methods);
+
 ``--grid DIR`` writes, per clip, the frames around each event (both methods' events: a tile per
 frame from 2 before to 4 after the onset, the upper face, labelled with articast's closure and
 the reference's EAR ratio) to DIR/CLIP.jpg.
@@ -69,6 +74,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import peers as peers_mod  # noqa: E402
+from blink_review import confirmed  # noqa: E402
 from peers import (  # noqa: E402
     CLIP_CACHE,
     PEER_CACHE,
@@ -79,13 +85,13 @@ from peers import (  # noqa: E402
 )
 from real_clips import cost_over_lips, enrol_speaker  # noqa: E402
 
+from articast.core.errors import InputError  # noqa: E402
 from articast.core.evaluation.upper import (  # noqa: E402
     BLINK_CLOSURE,
     blink_events,
     events,
     match_events,
 )
-from articast.core.errors import InputError  # noqa: E402
 from articast.core.faces.finder import FaceFinder  # noqa: E402
 from articast.core.faces.live import LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
@@ -93,7 +99,8 @@ from articast.core.tracking import kernels  # noqa: E402
 
 EAR_FRACTION = 0.7
 TOLERANCE = 2
-SERIES = ("ours", "ref", "closure", "ear_ratio", "gaze_series")  # only in --json
+SERIES = ("ours", "ref", "closure", "ear_ratio", "gaze_series", "ours_confirmed",
+          "ref_confirmed")  # only in --json
 IBUG_EYES = ((36, 37, 38, 39, 40, 41), (42, 43, 44, 45, 46, 47))
 IBUG_BROWS = ((17, 18, 19, 20, 21), (22, 23, 24, 25, 26))  # (image left, image right)
 
@@ -291,6 +298,8 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None, cost: bool = 
     ratio = e / np.nanmedian(e)
     ref = blink_events(np.nan_to_num(ratio, nan=1.0) < EAR_FRACTION, fps)
     prec, rec, onsets = match(ours, ref)
+    ours_c, ref_c = confirmed(name, ours, ref)
+    prec_c, rec_c, _ = match(ours_c, ref_c)
     prec_1, rec_1, _ = match(ours, ref, one_to_one=True)
     both = np.isfinite(cl) & np.isfinite(e)
     br = np.array([np.nan if r.upper is None or not r.upper.brows_ok else
@@ -306,7 +315,9 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None, cost: bool = 
                 "onset_within_1": (float(np.mean(np.abs(onsets) <= 1)) if onsets else None),
                 "closure_vs_ear_r": float(np.corrcoef(cl[both], -e[both])[0, 1])
                 if both.sum() > 10 else None,
-                "ours": ours, "ref": ref})
+                "ours": ours, "ref": ref, "confirmed_events": len(ref_c),
+                "precision_confirmed": prec_c, "recall_confirmed": rec_c,
+                "ours_confirmed": ours_c, "ref_confirmed": ref_c})
     out["closure"] = [None if not np.isfinite(v) else round(float(v), 3) for v in cl]
     out["ear_ratio"] = [None if not np.isfinite(v) else round(float(v), 3) for v in ratio]
     if grid_dir is not None:

@@ -30,6 +30,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from blink_review import confirmed  # noqa: E402
 from people import half, person  # noqa: E402
 
 
@@ -134,34 +135,57 @@ def markdown(run: dict, rows: list[dict], pools: dict) -> str:
     return "\n".join(out)
 
 
+def _matched(a: list, b: list, tol: int = 2) -> int:
+    """How many events of ``a`` overlap one of ``b`` within ``tol`` frames (blinks.py's
+    ``match``: an event over several of the other's pieces is one)."""
+    return sum(any(s < e2 + tol and s2 < e + tol for s2, e2 in b) for s, e in a)
+
+
 def blink_rows(path: Path) -> tuple[list[str], dict]:
     """A ``benchmarks/blinks.py --json`` run: a markdown row per clip (articast's events,
-    dlib's, precision and recall, each matched reference event's closure peak) and the
-    pooled precision and recall (events summed over the clips with a reference)."""
+    dlib's, precision and recall against dlib's events as they are and as confirmed by
+    looking, ``blink_review.json``; each confirmed event's closure peak) and the pooled
+    precision and recall (events summed over the clips with a reference)."""
     rows = json.loads(path.read_text())
-    out = ["| clip | half | articast events | dlib events | precision | recall | closure "
-           "peak at dlib's events |", "|---|---|---|---|---|---|---|"]
-    hit_ours = ours = hit_ref = ref = 0
+    out = ["| clip | half | articast events | dlib events | precision | recall | confirmed "
+           "blinks | precision (confirmed) | recall (confirmed) | closure peak at the "
+           "confirmed blinks |", "|---|---|---|---|---|---|---|---|---|---|"]
+    tot = dict.fromkeys(("ours", "hit_ours", "ref", "hit_ref", "ours_c", "hit_ours_c",
+                         "ref_c", "hit_ref_c"), 0)
     for r in rows:
-        if "precision" not in r:
+        if "ref" not in r:
             out.append(f"| {r['clip']} | {half(r['clip'])} | {r.get('articast_events')} | "
-                       f"– | – | – | {r.get('reference', '')} |")
+                       f"– | – | – | – | – | – | {r.get('reference') or r.get('error', '')} |")
             continue
+        ours, ref = [tuple(e) for e in r["ours"]], [tuple(e) for e in r["ref"]]
+        ours_c, ref_c = confirmed(r["clip"], ours, ref)
         cl = np.array([np.nan if v is None else v for v in r.get("closure") or []])
         peaks = [float(np.nanmax(cl[max(a - 2, 0):b + 2])) if len(cl) and
                  np.isfinite(cl[max(a - 2, 0):b + 2]).any() else float("nan")
-                 for a, b in r["ref"]]
-        n_o, n_r = r["articast_events"], r["reference_events"]
-        ours += n_o
-        ref += n_r
-        hit_ours += round((r["precision"] or 0) * n_o)
-        hit_ref += round((r["recall"] or 0) * n_r)
-        out.append(f"| {r['clip']} | {half(r['clip'])} | {n_o} | {n_r} | {_f(r['precision'], 2)}"
-                   f" | {_f(r['recall'], 2)} | {' '.join(f'{p:.2f}' for p in peaks)} |")
-    pooled = {"precision": round(hit_ours / ours, 3) if ours else None,
-              "recall": round(hit_ref / ref, 3) if ref else None,
-              "articast_events": ours, "reference_events": ref}
-    return out, pooled
+                 for a, b in ref_c]
+        got = {"ours": len(ours), "hit_ours": _matched(ours, ref), "ref": len(ref),
+               "hit_ref": _matched(ref, ours), "ours_c": len(ours_c),
+               "hit_ours_c": _matched(ours_c, ref_c), "ref_c": len(ref_c),
+               "hit_ref_c": _matched(ref_c, ours_c)}
+        for k, v in got.items():
+            tot[k] += v
+
+        def ratio(a: str, b: str, g: dict = got) -> str:
+            return _f(g[a] / g[b], 2) if g[b] else "–"
+
+        out.append(f"| {r['clip']} | {half(r['clip'])} | {len(ours)} | {len(ref)} | "
+                   f"{ratio('hit_ours', 'ours')} | {ratio('hit_ref', 'ref')} | {len(ref_c)} | "
+                   f"{ratio('hit_ours_c', 'ours_c')} | {ratio('hit_ref_c', 'ref_c')} | "
+                   f"{' '.join(f'{p:.2f}' for p in peaks)} |")
+
+    def pooled(a: str, b: str) -> float | None:
+        return round(tot[a] / tot[b], 3) if tot[b] else None
+
+    return out, {"precision": pooled("hit_ours", "ours"), "recall": pooled("hit_ref", "ref"),
+                 "articast_events": tot["ours"], "reference_events": tot["ref"],
+                 "precision_confirmed": pooled("hit_ours_c", "ours_c"),
+                 "recall_confirmed": pooled("hit_ref_c", "ref_c"),
+                 "confirmed_events": tot["ref_c"]}
 
 
 def main() -> None:
