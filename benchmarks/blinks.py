@@ -83,7 +83,7 @@ from peers import (  # noqa: E402
     read_clip,
     worker_points,
 )
-from real_clips import cost_over_lips, enrol_speaker  # noqa: E402
+from real_clips import cost_over_lips, enrol_speaker, upper_again  # noqa: E402
 
 from articast.core.errors import InputError  # noqa: E402
 from articast.core.evaluation.upper import (  # noqa: E402
@@ -98,6 +98,7 @@ from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
 
 EAR_FRACTION = 0.7
+UPPER_AGAIN = False  # --upper-again
 TOLERANCE = 2
 SERIES = ("ours", "ref", "closure", "ear_ratio", "gaze_series", "ours_confirmed",
           "ref_confirmed")  # only in --json
@@ -254,6 +255,9 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None, cost: bool = 
     log(f"{name}: enrolling on {len(enrol)} frames (or loading it from --speakers)")
     speaker = peers_mod.enrolled(name, lambda: enrol_speaker(enrol, fps, max_frames=None,
                                                              times=times), "v1")
+    if UPPER_AGAIN:
+        log(f"{name}: the upper face's references again, from the enrolment frames")
+        speaker = upper_again(speaker, enrol)
     log(f"{name}: tracking {len(held)} held-out frames")
     res, cost_ = track(speaker, held, fps, cost)
     cl = np.array([np.nan if r.upper is None or not r.upper.eyes_ok
@@ -340,8 +344,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-cost", action="store_true",
                     help="skip the upper face's cost over the lips alone (3 interleaved "
                          "pairs of runs): the accuracy alone, ~4x faster")
+    ap.add_argument("--upper-again", action="store_true",
+                    help="with --speakers: compute each stored enrolment's upper-face "
+                         "references again with this code, from its enrolment frames (the "
+                         "eyes' calibration changed; the rest of the enrolment did not)")
     peers_mod.add_articast_options(ap)
     args = ap.parse_args(argv)
+    global UPPER_AGAIN
+    UPPER_AGAIN = args.upper_again
     peers_mod.use_articast_options(args)
     peers_mod.SPEAKERS = args.speakers
     cv2.setNumThreads(1)

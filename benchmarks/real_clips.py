@@ -44,7 +44,13 @@ from face_landmarks_clips import (  # noqa: E402
     window_frames,
 )
 
-from articast.core.faces.build import BuildOptions, analysed_frames, build_speaker  # noqa: E402
+from articast.core.faces.build import (  # noqa: E402
+    BuildOptions,
+    analysed_frames,
+    build_speaker,
+    upper_reference,
+    upper_report,
+)
 from articast.core.faces.enrol import DEPTHS, EnrolOptions  # noqa: E402
 from articast.core.faces.finder import FaceFinder, read_every_frame  # noqa: E402
 from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
@@ -94,6 +100,31 @@ def landmarks_every_frame(finder: FaceFinder, frames: list[np.ndarray]
             np.array(found), ms)
 
 
+def found_faces(finder: FaceFinder, frames: list[np.ndarray]) -> list:
+    """The finding landmarks on each frame as an enrolment reads them (tracked from the
+    previous frame's face, searched for where that fails); None where no face is found."""
+    faces, prev = [], None
+    for f in frames:
+        face = finder.track(f, prev) if prev is not None else None
+        prev = face = face or finder.find(f)
+        faces.append(face)
+    return faces
+
+
+def upper_again(speaker: Speaker, frames: list[np.ndarray]) -> Speaker:
+    """A stored enrolment (``--speakers``) with its upper-face references computed again by
+    the current code from its enrolment ``frames`` (as ``enrol_speaker`` gave them: the
+    reader's readings of the same frames, ``build.upper_reference``): an experiment on the
+    eyes' calibration need not build the whole speaker again. Desk speakers only."""
+    if speaker.rig != "desk":
+        return speaker
+    faces = found_faces(FaceFinder.load(threads=1), frames)
+    readings = read_every_frame(FaceFinder.load(threads=1, landmarks="v1"), frames, faces)
+    upper = upper_reference(frames, readings)
+    return replace(speaker, upper=upper,
+                   report={**speaker.report, "upper": upper_report(upper)})
+
+
 def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None = None,
                   rig: str = "desk", max_frames: int | None = 600,
                   finder: FaceFinder | None = None,
@@ -126,11 +157,7 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     if extra:
         enrol = enrol + list(extra)
         at = np.concatenate([at, at[-1] + (1 + np.arange(len(extra))) * 1000.0])
-    faces, prev = [], None
-    for f in enrol:
-        face = finder.track(f, prev) if prev is not None else None
-        prev = face = face or finder.find(f)
-        faces.append(face)
+    faces = found_faces(finder, enrol)
     found = np.array([f is not None for f in faces])
     marks = np.array([f.landmarks if f is not None else np.full((478, 3), np.nan)
                       for f in faces])
