@@ -146,6 +146,10 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
                        media_roots=tuple(os.path.realpath(r) for r in access.media_roots))
 
 
+class ConnectionDropped(Exception):
+    """The connection was aborted: its receive loop ends."""
+
+
 class Subscriber:
     """One subscription of one connection."""
 
@@ -189,7 +193,16 @@ class Connection:
             self.task.cancel()
 
     async def error(self, code: str, reason: str, session: str | None = None) -> None:
-        await self.send(error_text(code, reason, session))
+        """Answer a client message with an error. A client that does not read its answers
+        (the write buffer stays full for ``close_timeout_s``) while it keeps sending is
+        dropped: its receive loop would otherwise wait on it, holding the connection."""
+        try:
+            await asyncio.wait_for(self.send(error_text(code, reason, session)),
+                                   self.svc.config.hub.close_timeout_s)
+        except TimeoutError:
+            log.info("dropping a connection from %s that does not read its answers", self.key)
+            self.abort()
+            raise ConnectionDropped from None
 
     async def run(self) -> None:
         limit = self.svc.config.hub.max_message_bytes
@@ -239,14 +252,9 @@ class Connection:
         if self._refused > 10 * limit:
             log.info("closing a connection sending over %.0f messages/s", limit)
             try:
+                # the WebSocket protocol drops it shortly after (close_timeout_s), without
+                # parsing what it still sends: nothing more is read here
                 await self.ws.close(1008, f"over {limit:g} messages per second")
-                # read (and drop) what is still in flight until the client's close reply:
-                # closing a socket with unread data resets it and loses our close frame
-                deadline = time.monotonic() + 2.0
-                while time.monotonic() < deadline:
-                    msg = await asyncio.wait_for(self.ws.receive(), deadline - time.monotonic())
-                    if msg["type"] == "websocket.disconnect":
-                        break
             except Exception as exc:  # noqa: BLE001 - the peer may be gone already
                 log.debug("closing an over-rate connection: %r", exc)
             return True

@@ -55,6 +55,13 @@ class HubSettings:
                                               "client address, all its connections together "
                                               "(bursts of twice that); beyond: refused with "
                                               "rate_limited, and bystanders keep their frames")
+    receive_buffer_bytes: int = _opt(65536, "kernel receive buffer per connection (0: the "
+                                     "system's, megabytes): what a client sends faster than "
+                                     "it is read waits on the client's side")
+    close_timeout_s: float = _opt(2.0, "a WebSocket connection the server closed (or whose "
+                                  "handler ended) is dropped this long after, answered or "
+                                  "not; what its peer sends meanwhile is not parsed beyond "
+                                  "64 kB")
     max_header_bytes: int = _opt(16384, "largest HTTP request head (request line + headers)")
     header_timeout_s: float = _opt(10.0, "close a connection whose request head is not "
                                    "complete this long after it started (slowloris)")
