@@ -57,14 +57,19 @@ def is_wildcard(host: str) -> bool:
     return host.strip("[]") in ("0.0.0.0", "::", "")
 
 
+_HOST_RE = re.compile(r"(?:\[(?P<v6>[0-9a-f:.]+(?:%[0-9a-z._~-]+)?)\]|(?P<name>[0-9a-z._-]+))"
+                      r"(?::(?P<port>[0-9]{1,5}))?")
+
+
 def _host_name(value: str) -> str:
-    """``example.com:8765`` / ``[::1]:80`` -> ``example.com`` / ``::1`` (lower case)."""
-    value = value.strip().lower()
-    if value.startswith("["):
-        return value[1:].split("]", 1)[0]
-    if value.count(":") == 1:
-        return value.split(":", 1)[0]
-    return value
+    """``example.com:8765`` / ``[::1]:80`` -> ``example.com`` / ``::1`` (lower case); ""
+    for anything that is not a host name or address with an optional port (issue 39:
+    ``127.0.0.1:1@evil.example`` was read as 127.0.0.1; userinfo, paths, spaces, a second
+    port, an unbracketed IPv6 address are not a ``Host``)."""
+    m = _HOST_RE.fullmatch(value.strip().lower())
+    if m is None:
+        return ""
+    return m.group("v6") or m.group("name") or ""
 
 
 def load_token(env: dict[str, str] | os._Environ[str] | None = None,
@@ -187,6 +192,8 @@ class AccessPolicy:
         if host_header is None:
             return True  # HTTP/1.0 without Host: not a browser, nothing to rebind
         name = _host_name(host_header)
+        if not name:
+            return False  # not a host name at all
         if name in (h.lower() for h in self.allowed_hosts):
             return True
         if is_loopback(name):
@@ -195,7 +202,7 @@ class AccessPolicy:
             # listening on every address: the names are unknown here; a token is required
             # to bind like this, so a rebinding page still cannot read anything
             return bool(self.token)
-        return name == _host_name(self.bind_host)
+        return name == self.bind_host.strip().strip("[]").lower()
 
     def origin_ok(self, origin: str | None, host_header: str | None) -> bool:
         if origin is None:

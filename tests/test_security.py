@@ -400,6 +400,17 @@ def test_port_in_use_is_one_line():
     ("192.168.1.5", "t", "other.example", False),
     ("0.0.0.0", "t", "anything.example", True),   # a token guards every route then
     ("0.0.0.0", "", "anything.example", False),   # --insecure-no-token: loopback names only
+    # issue 39: userinfo and garbage are no Host, whatever they start with
+    ("127.0.0.1", "", "127.0.0.1:1@evil.example", False),
+    ("127.0.0.1", "", "127.0.0.1@evil.example", False),
+    ("127.0.0.1", "", "localhost:80:81", False),
+    ("127.0.0.1", "", "127.0.0.1/evil", False),
+    ("127.0.0.1", "", "127.0.0.1 evil.example", False),
+    ("127.0.0.1", "", "", False),
+    ("0.0.0.0", "t", "a@anything.example", False),
+    ("127.0.0.1", "", "[::1]", True),
+    ("127.0.0.1", "", "LOCALHOST", True),
+    ("2001:db8::5", "t", "[2001:db8::5]:8765", True),
 ])
 def test_host_rules(bind, token, host, ok):
     assert AccessPolicy(token=token, bind_host=bind).host_ok(host) is ok

@@ -151,3 +151,15 @@ def test_a_subscribe_flood_is_dropped_unread_and_nobody_else_notices(media):
         while len(srv.service.connections) > 0:
             assert time.monotonic() < deadline, len(srv.service.connections)
             time.sleep(0.1)
+
+
+# ----------------------------------------------------------------------------- row 5: Host
+@pytest.mark.parametrize("host,status", [("127.0.0.1:1@evil.example", 403),
+                                         ("127.0.0.1@evil.example:80", 403),
+                                         ("127.0.0.1:8765", 200)])
+def test_a_host_with_userinfo_is_refused(media, host, status):
+    """Row 5: ``Host: 127.0.0.1:1@evil.example`` passed the DNS-rebinding guard as
+    127.0.0.1."""
+    with ServerThread(_config(media)) as srv:
+        r = httpx.get(srv.http + "/healthz", headers={"Host": host}, timeout=TIMEOUT)
+        assert r.status_code == status, r.text
