@@ -290,14 +290,23 @@ class Connection:
             await self.error("too_many_subscriptions", "subscription limit per connection "
                              f"({svc.config.hub.max_subscriptions_per_connection}) reached", name)
             return
-        if name not in self.subs and svc.subscriptions_of(self.key) >= \
-                limits.max_subscriptions_per_client:
+        held = svc.subscriptions_of(self.key)
+        if name not in self.subs and held >= limits.max_subscriptions_per_client:
             await self.error("too_many_subscriptions", "subscription limit per client address "
                              f"({limits.max_subscriptions_per_client}) reached", name)
             return
-        if svc.subscriber_total() >= svc.config.hub.max_subscribers:
+        total = svc.subscriber_total()
+        if total >= limits.max_subscribers:
             await self.error("too_many_subscriptions", "the server is at its subscriber limit "
-                             f"({svc.config.hub.max_subscribers})", name)
+                             f"({limits.max_subscribers})", name)
+            return
+        reserve = svc.reserve()
+        if total >= limits.max_subscribers - reserve and held >= limits.reserved_per_client:
+            # the last places are kept for addresses that hold few (issue 39: 16 addresses
+            # filled the server and a newcomer was refused)
+            await self.error("too_many_subscriptions", "the server is nearly full: its last "
+                             f"{reserve} subscriptions are kept for addresses holding fewer "
+                             f"than {limits.reserved_per_client}", name)
             return
         depth = min(req.queue, limits.max_queue_limit) if req.queue else limits.max_queue
         sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
@@ -446,6 +455,12 @@ class Service:
     def subscriptions_of(self, key: str) -> int:
         """Subscriptions of one client address, over all its connections."""
         return sum(len(c.subs) for c in self.connections if c.key == key)
+
+    def reserve(self) -> int:
+        """Subscriptions kept for addresses holding fewer than ``reserved_per_client``: at
+        most half the server's limit."""
+        h = self.config.hub
+        return max(0, min(h.reserved_subscribers, h.max_subscribers // 2))
 
     def subscribe_bucket(self, key: str) -> MessageBucket:
         """The subscribe-rate budget of one client address (bounded: the least recently

@@ -51,6 +51,12 @@ class HubSettings:
     max_subscriptions_per_client: int = _opt(256, "subscriptions of one client address, all "
                                              "its connections together (an IPv6 client: per "
                                              "/64): one address cannot fill --max-subscribers")
+    reserved_subscribers: int = _opt(200, "the last of --max-subscribers kept for client "
+                                     "addresses holding fewer than --reserved-per-client "
+                                     "(at most half the limit): a newcomer still gets in when "
+                                     "a few addresses have filled the server")
+    reserved_per_client: int = _opt(4, "an address holding fewer subscriptions than this may "
+                                    "use the reserved ones")
     max_subscribes_per_client_s: float = _opt(20.0, "subscribe requests per second of one "
                                               "client address, all its connections together "
                                               "(bursts of twice that); beyond: refused with "

@@ -163,3 +163,47 @@ def test_a_host_with_userinfo_is_refused(media, host, status):
     with ServerThread(_config(media)) as srv:
         r = httpx.get(srv.http + "/healthz", headers={"Host": host}, timeout=TIMEOUT)
         assert r.status_code == status, r.text
+
+
+# ----------------------------------------------------------------------------- row 2: fair share
+def test_a_newcomer_gets_in_when_other_addresses_filled_the_server(media):
+    """Row 2: 16 addresses (131 connections each) filled the global cap of 2,000 under every
+    per-address limit, and a newcomer from another address was refused. Scaled down: a cap
+    of 40, 10 kept for addresses holding fewer than 2; 4 addresses try 12 each."""
+    cfg = _config(media, token="", max_subscribers=40, reserved_subscribers=10,
+                  reserved_per_client=2, max_subscriptions_per_client=40)
+    with ServerThread(cfg) as srv:
+        url = f"ws://127.0.0.1:{srv.port}/ws"
+
+        async def subscribe(address):
+            ws = await websockets.connect(url, max_size=2**24, local_addr=(address, 0))
+            await ws.send(json.dumps({"type": "subscribe", "session": "rec",
+                                      "geometry": False, "rate": 1}))
+            while True:
+                m = json.loads(await asyncio.wait_for(ws.recv(), 3 * TIMEOUT))
+                if m["type"] in ("hello", "error"):
+                    return ws, m.get("code") or "hello"
+
+        async def go():
+            conns, answers = [], []
+            for a in range(4):
+                for _ in range(12):
+                    ws, answer = await subscribe(f"127.0.1.{1 + a}")
+                    conns.append(ws)
+                    answers.append(answer)
+            newcomers = []
+            for _ in range(3):
+                ws, answer = await subscribe("127.0.0.4")
+                conns.append(ws)
+                newcomers.append(answer)
+            for ws in conns:
+                await ws.close()
+            return answers, newcomers
+
+        answers, newcomers = asyncio.run(asyncio.wait_for(go(), 20 * TIMEOUT))
+    # 12 + 12 + 6 up to the 40 less the 10 kept; the fourth address, holding none, gets
+    # the reserve's 2
+    assert answers.count("hello") == 32, answers
+    assert answers.count("too_many_subscriptions") == 16, answers
+    # the newcomer gets its 2 (then it holds as many as the reserve allows)
+    assert newcomers == ["hello", "hello", "too_many_subscriptions"], newcomers
