@@ -48,7 +48,7 @@ from articast.service.middleware import (
     TokenGate,
     deny,
 )
-from articast.service.security import AccessPolicy, Forbidden, client_key
+from articast.service.security import AccessPolicy, FailedAttempts, Forbidden, client_key
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
 from articast.service.wire import (
@@ -608,7 +608,9 @@ def create_app(config: ServiceConfig | None = None,
 
     app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes,
                        timeout_s=config.hub.header_timeout_s)
-    app.add_middleware(TokenGate, access=config.access)
+    app.add_middleware(TokenGate, access=config.access,
+                       attempts=FailedAttempts(free=config.hub.max_token_failures,
+                                               max_s=config.hub.token_delay_max_s))
     app.add_middleware(Guard, access=config.access)
 
     @app.exception_handler(BodyTooLarge)

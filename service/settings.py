@@ -68,6 +68,10 @@ class HubSettings:
                                   "handler ended) is dropped this long after, answered or "
                                   "not; what its peer sends meanwhile is not parsed beyond "
                                   "64 kB")
+    max_token_failures: int = _opt(5, "wrong tokens of one address answered at once; each "
+                                   "further one waits its turn, 1 s doubling to "
+                                   "--token-delay-max-s (the right token never waits)")
+    token_delay_max_s: float = _opt(60.0, "longest wait before a wrong token is answered")
     max_header_bytes: int = _opt(16384, "largest HTTP request head (request line + headers)")
     header_timeout_s: float = _opt(10.0, "close a connection whose request head is not "
                                    "complete this long after it started (slowloris)")

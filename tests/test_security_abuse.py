@@ -207,3 +207,42 @@ def test_a_newcomer_gets_in_when_other_addresses_filled_the_server(media):
     assert answers.count("too_many_subscriptions") == 16, answers
     # the newcomer gets its 2 (then it holds as many as the reserve allows)
     assert newcomers == ["hello", "hello", "too_many_subscriptions"], newcomers
+
+
+# ----------------------------------------------------------------------------- row 3: NAT
+def test_the_right_token_passes_while_the_same_address_guesses(media):
+    """Row 3: the lock-out was per address, so the right token got 429 from an address
+    where someone guessed (clients behind one NAT locked out). Now the right token always
+    passes, and guessing stays slow: past 5 free failures each wrong answer waits its turn
+    and 1 s, doubling (defaults), so 8 parallel guessers get at most 5 + 2 answers in 5 s
+    (1 s, then 2 s; a slow machine answers fewer, never more)."""
+    with ServerThread(_config(media)) as srv:
+        async def go():
+            answered: list[int] = []
+            right: list[int] = []
+            transport = httpx.AsyncHTTPTransport(local_address="127.0.0.5")
+
+            async with httpx.AsyncClient(timeout=None, transport=transport) as c:
+                async def guess(i):
+                    k = 0
+                    while True:
+                        k += 1
+                        r = await c.get(srv.http + "/api/sessions", headers={
+                            "Authorization": f"Bearer guess-{i}-{k}-xxxxxxxxxxxxx"})
+                        answered.append(r.status_code)
+
+                guessers = [asyncio.create_task(guess(i)) for i in range(8)]
+                t_end = time.monotonic() + 5.0
+                while time.monotonic() < t_end:
+                    r = await c.get(srv.http + "/api/sessions", headers=srv.headers,
+                                    timeout=3 * TIMEOUT)
+                    right.append(r.status_code)
+                    await asyncio.sleep(0.2)
+                for g in guessers:
+                    g.cancel()
+                await asyncio.gather(*guessers, return_exceptions=True)
+                return answered, right
+
+        answered, right = asyncio.run(asyncio.wait_for(go(), 20 * TIMEOUT))
+    assert right and set(right) == {200}, right
+    assert answered.count(401) == 5 and len(answered) <= 7, answered
