@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import os
 import time
@@ -63,6 +64,8 @@ from articast.service.wire import (
 from articast.service.worker import SessionSpec
 
 log = logging.getLogger("articast.app")
+HELLO_OPTIONS = '"streams":[],"encoding":"json","rate":null,'
+"""The per-subscription fields of a hello encoded for no subscription (see hello_text)."""
 
 
 @dataclass(frozen=True)
@@ -418,7 +421,7 @@ class Service:
             self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc),
                                          names=config.server.vmc_names)
         self.connections: set[Connection] = set()
-        self._buckets: dict[str, MessageBucket] = {}
+        self._buckets: dict[tuple[str, str], MessageBucket] = {}
         self._hellos: dict[tuple[Any, ...], tuple[Any, Any, str]] = {}
         self._watchdog: asyncio.Task[None] | None = None
 
@@ -463,34 +466,48 @@ class Service:
         return max(0, min(h.reserved_subscribers, h.max_subscribers // 2))
 
     def subscribe_bucket(self, key: str) -> MessageBucket:
-        """The subscribe-rate budget of one client address (bounded: the least recently
-        used addresses are forgotten first)."""
-        bucket = self._buckets.pop(key, None)
+        """The subscribe-rate budget of one client address."""
+        return self._bucket("subscribe", key, self.config.hub.max_subscribes_per_client_s)
+
+    def handshake_bucket(self, key: str) -> MessageBucket:
+        """The WebSocket-connection-rate budget of one client address."""
+        return self._bucket("handshake", key, self.config.hub.max_handshakes_per_client_s)
+
+    def _bucket(self, kind: str, key: str, rate: float) -> MessageBucket:
+        """A rate budget of one client address, bursts of twice the rate (bounded: the
+        least recently used addresses are forgotten first)."""
+        bucket = self._buckets.pop((kind, key), None)
         if bucket is None:
-            rate = self.config.hub.max_subscribes_per_client_s
             bucket = MessageBucket(rate, 2 * rate)
             if len(self._buckets) >= 65536:
                 self._buckets.pop(next(iter(self._buckets)))
-        self._buckets[key] = bucket
+        self._buckets[(kind, key)] = bucket
         return bucket
 
     def hello_text(self, req: P.Subscribe, session: Any, streams: list[Any]) -> str:
-        """The hello of a subscription, encoded once per (session run, options): a client
-        that resubscribes in a loop costs a dictionary lookup, not a 15 kB encode."""
-        key = (req.session, session.sid, session.state, tuple(streams), req.encoding, req.rate,
-               req.geometry)
+        """The hello of a subscription. The costly part (the model geometry, ~250 kB of JSON
+        for 500 points: ~5 ms) is encoded once per session run, state and ``geometry``
+        flag; the subscription's own ``streams``, ``encoding`` and ``rate`` are written into
+        it (issue 39: a client resubscribing with a new rate each time missed the cache and
+        cost an encode per subscribe, 40 in a burst stalling every bystander)."""
+        key = (req.session, session.sid, session.state, req.geometry)
         hit = self._hellos.get(key)
-        if hit is not None and hit[0] is session.description and hit[1] is session.source_info:
-            return hit[2]
-        scan_url = (f"/api/sessions/{req.session}/scan"
-                    if self.config.server.scan and (session.description or {}).get("geometry")
-                    else None)
-        text = hello(req.session, session.sid, session.description, session.source_info, req,
-                     session.state, streams, scan_url)
-        if len(self._hellos) >= 256:
-            self._hellos.pop(next(iter(self._hellos)))
-        self._hellos[key] = (session.description, session.source_info, text)
-        return text
+        if hit is None or hit[0] is not session.description or hit[1] is not session.source_info:
+            scan_url = (f"/api/sessions/{req.session}/scan"
+                        if self.config.server.scan and (session.description or {}).get("geometry")
+                        else None)
+            plain = P.Subscribe(session=req.session, geometry=req.geometry)
+            text = hello(req.session, session.sid, session.description, session.source_info,
+                         plain, session.state, [], scan_url)
+            if HELLO_OPTIONS not in text:
+                raise AssertionError("the hello's fields moved: update HELLO_OPTIONS")
+            if len(self._hellos) >= 256:
+                self._hellos.pop(next(iter(self._hellos)))
+            hit = self._hellos[key] = (session.description, session.source_info, text)
+        rate = "null" if req.rate is None else json.dumps(float(req.rate))
+        options = (f'"streams":{json.dumps([str(x) for x in streams], separators=(",", ":"))},'
+                   f'"encoding":{json.dumps(str(req.encoding))},"rate":{rate},')
+        return hit[2].replace(HELLO_OPTIONS, options, 1)
 
     def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""
@@ -648,6 +665,15 @@ def create_app(config: ServiceConfig | None = None,
 
     @app.websocket("/ws")
     async def ws(websocket: WebSocket) -> None:
+        key = client_key((websocket.scope.get("client") or ("?",))[0])
+        if not svc.handshake_bucket(key).take(time.monotonic()):
+            # each connection costs a handshake and, once subscribed, a hello (issue 39:
+            # one address reconnecting in a loop slowed every bystander)
+            rate = config.hub.max_handshakes_per_client_s
+            await deny(websocket.scope, websocket.receive, websocket.send, 429,
+                       f"over {rate:g} WebSocket connections per second from this address",
+                       [(b"connection", b"close"), (b"retry-after", b"1")])
+            return
         if not access.token_ok(websocket.headers.get("authorization"),
                                websocket.scope.get("query_string", b"")):
             await deny(websocket.scope, websocket.receive, websocket.send, 401,

@@ -51,6 +51,9 @@ class HubSettings:
     max_subscriptions_per_client: int = _opt(256, "subscriptions of one client address, all "
                                              "its connections together (an IPv6 client: per "
                                              "/64): one address cannot fill --max-subscribers")
+    max_handshakes_per_client_s: float = _opt(20.0, "WebSocket connections per second one "
+                                              "client address may open (bursts of twice "
+                                              "that); beyond: 429 before the handshake")
     reserved_subscribers: int = _opt(200, "the last of --max-subscribers kept for client "
                                      "addresses holding fewer than --reserved-per-client "
                                      "(at most half the limit): a newcomer still gets in when "

@@ -246,3 +246,52 @@ def test_the_right_token_passes_while_the_same_address_guesses(media):
         answered, right = asyncio.run(asyncio.wait_for(go(), 20 * TIMEOUT))
     assert right and set(right) == {200}, right
     assert answered.count(401) == 5 and len(answered) <= 7, answered
+
+
+# ----------------------------------------------------------------------------- row 4: hellos
+def test_hello_amplification_from_one_address_is_bounded(media):
+    """Row 4: one address reconnecting and resubscribing in a loop (each subscribe with a new
+    rate, each answered by a hello with the model geometry) slowed a bystander to 4 fps.
+    Now an address opens at most --max-handshakes-per-client-s connections per second
+    (bursts of twice that; beyond: 429 before the handshake), a hello costs one encode per
+    session run whatever the subscription's options, and the bystander keeps its frames."""
+    cfg = _config(media, max_handshakes_per_client_s=5.0)
+    with ServerThread(cfg) as srv:
+        async def go():
+            frames: list[float] = []
+            by = asyncio.create_task(_bystander(srv.url, frames))
+            await _frames_keep_coming(frames)
+            answers: list[int] = []
+            hellos = []
+            t0 = time.monotonic()
+            for i in range(60):
+                try:
+                    async with websockets.connect(srv.url, max_size=2**24,
+                                                  local_addr=("127.0.1.1", 0)) as ws:
+                        answers.append(101)
+                        await ws.send(json.dumps({"type": "subscribe", "session": "rec",
+                                                  "rate": 1 + i / 7}))
+                        while (m := json.loads(await asyncio.wait_for(ws.recv(), TIMEOUT))
+                               )["type"] != "hello":
+                            pass
+                        hellos.append(m)
+                except websockets.InvalidStatus as e:
+                    answers.append(e.response.status_code)
+            elapsed = time.monotonic() - t0
+            await _frames_keep_coming(frames)
+            # another address is not refused meanwhile
+            async with websockets.connect(srv.url, local_addr=("127.0.0.4", 0)):
+                pass
+            by.cancel()
+            await asyncio.gather(by, return_exceptions=True)
+            return answers, hellos, elapsed
+
+        answers, hellos, elapsed = asyncio.run(asyncio.wait_for(go(), 20 * TIMEOUT))
+    assert set(answers) == {101, 429}, answers
+    # a burst of 10, then 5 a second: a slow machine admits fewer, never more
+    assert answers.count(101) <= 10 + 5 * elapsed + 1, (answers, elapsed)
+    # every hello carries its own subscription's options (one encode, options written in)
+    rates = [1 + i / 7 for i, a in enumerate(answers) if a == 101]
+    assert [h["rate"] for h in hellos] == rates
+    assert all(h["streams"] == ["articulatory", "pose"] and h["encoding"] == "json"
+               and h["geometry"] for h in hellos)
