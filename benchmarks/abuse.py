@@ -71,7 +71,7 @@ async def _flooder(port: int, addr: str, stop_at: float, stats: dict[str, int]) 
             while time.time() < stop_at:
                 w.write(chunk)
                 await asyncio.wait_for(w.drain(), max(0.01, stop_at - time.time()))
-        except (TimeoutError, asyncio.TimeoutError):
+        except TimeoutError:
             pass
         except (OSError, asyncio.IncompleteReadError):
             stats["dropped"] += 1

@@ -8,7 +8,6 @@ newcomer admitted, the right token accepted), with generous time-outs.
 
 import asyncio
 import json
-import subprocess
 import sys
 import textwrap
 import time
