@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import os
 import time
@@ -48,7 +49,7 @@ from articast.service.middleware import (
     TokenGate,
     deny,
 )
-from articast.service.security import AccessPolicy, Forbidden, client_key
+from articast.service.security import AccessPolicy, FailedAttempts, Forbidden, client_key
 from articast.service.session import SessionManager
 from articast.service.settings import CaptureSettings, HubSettings, ServerSettings, SessionPolicy
 from articast.service.wire import (
@@ -63,6 +64,8 @@ from articast.service.wire import (
 from articast.service.worker import SessionSpec
 
 log = logging.getLogger("articast.app")
+HELLO_OPTIONS = '"streams":[],"encoding":"json","rate":null,'
+"""The per-subscription fields of a hello encoded for no subscription (see hello_text)."""
 
 
 @dataclass(frozen=True)
@@ -146,6 +149,10 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
                        media_roots=tuple(os.path.realpath(r) for r in access.media_roots))
 
 
+class ConnectionDropped(Exception):
+    """The connection was aborted: its receive loop ends."""
+
+
 class Subscriber:
     """One subscription of one connection."""
 
@@ -189,7 +196,16 @@ class Connection:
             self.task.cancel()
 
     async def error(self, code: str, reason: str, session: str | None = None) -> None:
-        await self.send(error_text(code, reason, session))
+        """Answer a client message with an error. A client that does not read its answers
+        (the write buffer stays full for ``close_timeout_s``) while it keeps sending is
+        dropped: its receive loop would otherwise wait on it, holding the connection."""
+        try:
+            await asyncio.wait_for(self.send(error_text(code, reason, session)),
+                                   self.svc.config.hub.close_timeout_s)
+        except TimeoutError:
+            log.info("dropping a connection from %s that does not read its answers", self.key)
+            self.abort()
+            raise ConnectionDropped from None
 
     async def run(self) -> None:
         limit = self.svc.config.hub.max_message_bytes
@@ -239,14 +255,9 @@ class Connection:
         if self._refused > 10 * limit:
             log.info("closing a connection sending over %.0f messages/s", limit)
             try:
+                # the WebSocket protocol drops it shortly after (close_timeout_s), without
+                # parsing what it still sends: nothing more is read here
                 await self.ws.close(1008, f"over {limit:g} messages per second")
-                # read (and drop) what is still in flight until the client's close reply:
-                # closing a socket with unread data resets it and loses our close frame
-                deadline = time.monotonic() + 2.0
-                while time.monotonic() < deadline:
-                    msg = await asyncio.wait_for(self.ws.receive(), deadline - time.monotonic())
-                    if msg["type"] == "websocket.disconnect":
-                        break
             except Exception as exc:  # noqa: BLE001 - the peer may be gone already
                 log.debug("closing an over-rate connection: %r", exc)
             return True
@@ -282,14 +293,23 @@ class Connection:
             await self.error("too_many_subscriptions", "subscription limit per connection "
                              f"({svc.config.hub.max_subscriptions_per_connection}) reached", name)
             return
-        if name not in self.subs and svc.subscriptions_of(self.key) >= \
-                limits.max_subscriptions_per_client:
+        held = svc.subscriptions_of(self.key)
+        if name not in self.subs and held >= limits.max_subscriptions_per_client:
             await self.error("too_many_subscriptions", "subscription limit per client address "
                              f"({limits.max_subscriptions_per_client}) reached", name)
             return
-        if svc.subscriber_total() >= svc.config.hub.max_subscribers:
+        total = svc.subscriber_total()
+        if total >= limits.max_subscribers:
             await self.error("too_many_subscriptions", "the server is at its subscriber limit "
-                             f"({svc.config.hub.max_subscribers})", name)
+                             f"({limits.max_subscribers})", name)
+            return
+        reserve = svc.reserve()
+        if total >= limits.max_subscribers - reserve and held >= limits.reserved_per_client:
+            # the last places are kept for addresses that hold few (issue 39: 16 addresses
+            # filled the server and a newcomer was refused)
+            await self.error("too_many_subscriptions", "the server is nearly full: its last "
+                             f"{reserve} subscriptions are kept for addresses holding fewer "
+                             f"than {limits.reserved_per_client}", name)
             return
         depth = min(req.queue, limits.max_queue_limit) if req.queue else limits.max_queue
         sub = svc.hub.subscribe(name, max_queue=depth, max_rate=req.rate)
@@ -401,7 +421,7 @@ class Service:
             self.manager.vmc = VmcSender(*parse_host_port(config.server.vmc),
                                          names=config.server.vmc_names)
         self.connections: set[Connection] = set()
-        self._buckets: dict[str, MessageBucket] = {}
+        self._buckets: dict[tuple[str, str], MessageBucket] = {}
         self._hellos: dict[tuple[Any, ...], tuple[Any, Any, str]] = {}
         self._watchdog: asyncio.Task[None] | None = None
 
@@ -439,35 +459,55 @@ class Service:
         """Subscriptions of one client address, over all its connections."""
         return sum(len(c.subs) for c in self.connections if c.key == key)
 
+    def reserve(self) -> int:
+        """Subscriptions kept for addresses holding fewer than ``reserved_per_client``: at
+        most half the server's limit."""
+        h = self.config.hub
+        return max(0, min(h.reserved_subscribers, h.max_subscribers // 2))
+
     def subscribe_bucket(self, key: str) -> MessageBucket:
-        """The subscribe-rate budget of one client address (bounded: the least recently
-        used addresses are forgotten first)."""
-        bucket = self._buckets.pop(key, None)
+        """The subscribe-rate budget of one client address."""
+        return self._bucket("subscribe", key, self.config.hub.max_subscribes_per_client_s)
+
+    def handshake_bucket(self, key: str) -> MessageBucket:
+        """The WebSocket-connection-rate budget of one client address."""
+        return self._bucket("handshake", key, self.config.hub.max_handshakes_per_client_s)
+
+    def _bucket(self, kind: str, key: str, rate: float) -> MessageBucket:
+        """A rate budget of one client address, bursts of twice the rate (bounded: the
+        least recently used addresses are forgotten first)."""
+        bucket = self._buckets.pop((kind, key), None)
         if bucket is None:
-            rate = self.config.hub.max_subscribes_per_client_s
             bucket = MessageBucket(rate, 2 * rate)
             if len(self._buckets) >= 65536:
                 self._buckets.pop(next(iter(self._buckets)))
-        self._buckets[key] = bucket
+        self._buckets[(kind, key)] = bucket
         return bucket
 
     def hello_text(self, req: P.Subscribe, session: Any, streams: list[Any]) -> str:
-        """The hello of a subscription, encoded once per (session run, options): a client
-        that resubscribes in a loop costs a dictionary lookup, not a 15 kB encode."""
-        key = (req.session, session.sid, session.state, tuple(streams), req.encoding, req.rate,
-               req.geometry)
+        """The hello of a subscription. The costly part (the model geometry, ~250 kB of JSON
+        for 500 points: ~5 ms) is encoded once per session run, state and ``geometry``
+        flag; the subscription's own ``streams``, ``encoding`` and ``rate`` are written into
+        it (issue 39: a client resubscribing with a new rate each time missed the cache and
+        cost an encode per subscribe, 40 in a burst stalling every bystander)."""
+        key = (req.session, session.sid, session.state, req.geometry)
         hit = self._hellos.get(key)
-        if hit is not None and hit[0] is session.description and hit[1] is session.source_info:
-            return hit[2]
-        scan_url = (f"/api/sessions/{req.session}/scan"
-                    if self.config.server.scan and (session.description or {}).get("geometry")
-                    else None)
-        text = hello(req.session, session.sid, session.description, session.source_info, req,
-                     session.state, streams, scan_url)
-        if len(self._hellos) >= 256:
-            self._hellos.pop(next(iter(self._hellos)))
-        self._hellos[key] = (session.description, session.source_info, text)
-        return text
+        if hit is None or hit[0] is not session.description or hit[1] is not session.source_info:
+            scan_url = (f"/api/sessions/{req.session}/scan"
+                        if self.config.server.scan and (session.description or {}).get("geometry")
+                        else None)
+            plain = P.Subscribe(session=req.session, geometry=req.geometry)
+            text = hello(req.session, session.sid, session.description, session.source_info,
+                         plain, session.state, [], scan_url)
+            if HELLO_OPTIONS not in text:
+                raise AssertionError("the hello's fields moved: update HELLO_OPTIONS")
+            if len(self._hellos) >= 256:
+                self._hellos.pop(next(iter(self._hellos)))
+            hit = self._hellos[key] = (session.description, session.source_info, text)
+        rate = "null" if req.rate is None else json.dumps(float(req.rate))
+        options = (f'"streams":{json.dumps([str(x) for x in streams], separators=(",", ":"))},'
+                   f'"encoding":{json.dumps(str(req.encoding))},"rate":{rate},')
+        return hit[2].replace(HELLO_OPTIONS, options, 1)
 
     def count_drops(self, s: Subscriber) -> None:
         """Add an ending subscription's drops to its session's total (once)."""
@@ -585,7 +625,9 @@ def create_app(config: ServiceConfig | None = None,
 
     app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes,
                        timeout_s=config.hub.header_timeout_s)
-    app.add_middleware(TokenGate, access=config.access)
+    app.add_middleware(TokenGate, access=config.access,
+                       attempts=FailedAttempts(free=config.hub.max_token_failures,
+                                               max_s=config.hub.token_delay_max_s))
     app.add_middleware(Guard, access=config.access)
 
     @app.exception_handler(BodyTooLarge)
@@ -623,6 +665,15 @@ def create_app(config: ServiceConfig | None = None,
 
     @app.websocket("/ws")
     async def ws(websocket: WebSocket) -> None:
+        key = client_key((websocket.scope.get("client") or ("?",))[0])
+        if not svc.handshake_bucket(key).take(time.monotonic()):
+            # each connection costs a handshake and, once subscribed, a hello (issue 39:
+            # one address reconnecting in a loop slowed every bystander)
+            rate = config.hub.max_handshakes_per_client_s
+            await deny(websocket.scope, websocket.receive, websocket.send, 429,
+                       f"over {rate:g} WebSocket connections per second from this address",
+                       [(b"connection", b"close"), (b"retry-after", b"1")])
+            return
         if not access.token_ok(websocket.headers.get("authorization"),
                                websocket.scope.get("query_string", b"")):
             await deny(websocket.scope, websocket.receive, websocket.send, 401,

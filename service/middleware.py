@@ -158,9 +158,10 @@ class TokenGate:
     * no token configured: everything passes but the session API (POST/DELETE under
       ``/api/``), which answers 403 with the way to enable it;
     * a token configured: every route but ``OPEN_PATHS`` needs it (401);
-    * an address that sent ``FailedAttempts.free`` wrong tokens is answered 429 for a growing
-      time, without its token being compared (guessing slowed to a handful per minute);
-      every other address is unaffected.
+    * the right token always passes; past ``FailedAttempts.free`` wrong tokens from an
+      address, each further wrong one is answered 429 after a growing delay, one at a time
+      (guessing slowed to one answer a minute); the right token from the same address (a
+      NAT) and every other address are unaffected.
 
     Refusals close the connection (an unread body is never read) and are logged at info:
     the first of a series per address, and when a lock-out starts.
@@ -191,29 +192,32 @@ class TokenGate:
             await self.app(scope, receive, send)
             return
         key = client_key((scope.get("client") or ("?",))[0])
-        t = time.monotonic()
-        wait = self.attempts.blocked(key, t)
-        if wait > 0:
-            await deny(scope, receive, send, 429, "too many wrong tokens from this address: "
-                       f"retry in {math.ceil(wait)} s",
-                       CLOSE + [(b"retry-after", str(math.ceil(wait)).encode())])
-            return
         if self.access.token_ok(authorization, scope.get("query_string", b"")):
-            self.attempts.succeeded(key)
+            # the right token is never held, whatever else this address sends
             await self.app(scope, receive, send)
             return
-        # a wrong guess counts, on open routes too (/healthz says less without the token:
-        # an oracle otherwise); no token at all is no guess
-        lock = self.attempts.failed(key, t) if offered else 0.0
+        wait = 0.0
+        if offered:
+            # a wrong guess counts, on open routes too (/healthz says less without the
+            # token: an oracle otherwise); no token at all is no guess. Past the free
+            # ones, its answer waits its turn and its delay: guessing gets one answer per
+            # delay per address, and nobody else waits for it
+            async with self.attempts.turn(key):
+                wait = self.attempts.failed(key, time.monotonic())
+                if wait:
+                    await asyncio.sleep(wait)
+        what = "WebSocket connection" if kind == "websocket" else f"{scope.get('method')} {path}"
+        if wait:
+            if wait == self.attempts.initial_s:  # the first held: said once
+                log.info("refused a %s from %s: wrong tokens again; answering each after "
+                         "%.0f s", what, key, wait)
+            await deny(scope, receive, send, 429, "too many wrong tokens from this address: "
+                       f"each is answered after {wait:g} s", CLOSE)
+            return
         if open_path:
             await self.app(scope, receive, send)
             return
-        what = "WebSocket connection" if kind == "websocket" else f"{scope.get('method')} {path}"
-        if lock:
-            log.info("refused a %s from %s: wrong token again; refusing the address for "
-                     "%.0f s", what, key, lock)
-        else:
-            log.info("refused a %s from %s: %s token (401)", what, key,
-                     "wrong" if offered else "no")
+        log.info("refused a %s from %s: %s token (401)", what, key,
+                 "wrong" if offered else "no")
         await deny(scope, receive, send, 401, "this server needs a token: Authorization: "
                    "Bearer TOKEN (or ?token=TOKEN)", CLOSE)

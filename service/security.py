@@ -19,11 +19,13 @@ The token is never logged and never part of an error message or an API answer.
 
 from __future__ import annotations
 
+import contextlib
 import hmac
 import ipaddress
 import logging
 import os
 import re
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,14 +59,19 @@ def is_wildcard(host: str) -> bool:
     return host.strip("[]") in ("0.0.0.0", "::", "")
 
 
+_HOST_RE = re.compile(r"(?:\[(?P<v6>[0-9a-f:.]+(?:%[0-9a-z._~-]+)?)\]|(?P<name>[0-9a-z._-]+))"
+                      r"(?::(?P<port>[0-9]{1,5}))?")
+
+
 def _host_name(value: str) -> str:
-    """``example.com:8765`` / ``[::1]:80`` -> ``example.com`` / ``::1`` (lower case)."""
-    value = value.strip().lower()
-    if value.startswith("["):
-        return value[1:].split("]", 1)[0]
-    if value.count(":") == 1:
-        return value.split(":", 1)[0]
-    return value
+    """``example.com:8765`` / ``[::1]:80`` -> ``example.com`` / ``::1`` (lower case); ""
+    for anything that is not a host name or address with an optional port (issue 39:
+    ``127.0.0.1:1@evil.example`` was read as 127.0.0.1; userinfo, paths, spaces, a second
+    port, an unbracketed IPv6 address are not a ``Host``)."""
+    m = _HOST_RE.fullmatch(value.strip().lower())
+    if m is None:
+        return ""
+    return m.group("v6") or m.group("name") or ""
 
 
 def load_token(env: dict[str, str] | os._Environ[str] | None = None,
@@ -116,35 +123,53 @@ def client_key(host: str | None) -> str:
 
 
 class FailedAttempts:
-    """Back-off per client address after wrong tokens: ``free`` failures pass, then every
-    further one locks the address out for ``initial_s`` doubling to ``max_s`` (requests get
-    429 without their token being looked at). A success forgets the address. Bounded:
-    at most ``max_addresses`` are remembered (the oldest forgotten first)."""
+    """Wrong tokens per client address, and how long the answer to the next one waits.
+
+    The first ``free`` failures are answered at once; every further one waits its turn (one
+    answer at a time per address) and then ``initial_s``, doubling to ``max_s``. The right
+    token is never held: it is compared (in constant time) before any of this, so clients
+    behind one NAT keep working while another guesses from the same address (issue 39: the
+    lock-out refused the right token too), and the guessing still gets one answer per
+    ``max_s`` at most. A success does not forget the address (a guesser behind the NAT of
+    a working client would get its free failures back); ``forget_s`` without a failure does.
+    Bounded: at most ``max_addresses`` are remembered (the oldest forgotten first)."""
 
     def __init__(self, free: int = 5, initial_s: float = 1.0, max_s: float = 60.0,
-                 max_addresses: int = 65536) -> None:
-        self.free, self.initial_s, self.max_s = free, initial_s, max_s
+                 forget_s: float = 600.0, max_addresses: int = 65536) -> None:
+        self.free, self.max_s, self.forget_s = free, max_s, forget_s
+        self.initial_s = min(initial_s, max_s)
         self.max_addresses = max_addresses
-        self._failures: dict[str, tuple[int, float]] = {}  # key -> (count, locked until)
-
-    def blocked(self, key: str, t: float) -> float:
-        """Seconds ``key`` is still locked out for (0: it may try)."""
-        entry = self._failures.get(key)
-        return max(0.0, entry[1] - t) if entry else 0.0
+        self._failures: dict[str, tuple[int, float]] = {}  # key -> (count, last failure)
+        self._turns: dict[str, tuple[Any, int]] = {}  # key -> (asyncio.Lock, users)
 
     def failed(self, key: str, t: float) -> float:
-        """Count a wrong token; the lock-out it starts (0: none yet)."""
-        count = self._failures.pop(key, (0, 0.0))[0] + 1
-        lock = 0.0
-        if count > self.free:
-            lock = min(self.max_s, self.initial_s * 2.0 ** min(30, count - self.free - 1))
+        """Count a wrong token; how long its answer waits (0: answered at once)."""
+        count, last = self._failures.pop(key, (0, t))
+        count = 1 if t - last > self.forget_s else count + 1
         if len(self._failures) >= self.max_addresses:
             self._failures.pop(next(iter(self._failures)))
-        self._failures[key] = (count, t + lock)
-        return lock
+        self._failures[key] = (count, t)
+        if count <= self.free:
+            return 0.0
+        return min(self.max_s, self.initial_s * 2.0 ** min(30, count - self.free - 1))
 
-    def succeeded(self, key: str) -> None:
-        self._failures.pop(key, None)
+    @contextlib.asynccontextmanager
+    async def turn(self, key: str) -> AsyncIterator[None]:
+        """One failure of ``key`` at a time (concurrent guesses queue, each waiting its own
+        delay: the answers' rate stays bounded however many connections guess)."""
+        import asyncio
+
+        lock, users = self._turns.get(key) or (asyncio.Lock(), 0)
+        self._turns[key] = (lock, users + 1)
+        try:
+            async with lock:
+                yield
+        finally:
+            lock, users = self._turns[key]
+            if users <= 1:
+                del self._turns[key]
+            else:
+                self._turns[key] = (lock, users - 1)
 
 
 @dataclass(frozen=True)
@@ -187,6 +212,8 @@ class AccessPolicy:
         if host_header is None:
             return True  # HTTP/1.0 without Host: not a browser, nothing to rebind
         name = _host_name(host_header)
+        if not name:
+            return False  # not a host name at all
         if name in (h.lower() for h in self.allowed_hosts):
             return True
         if is_loopback(name):
@@ -195,7 +222,7 @@ class AccessPolicy:
             # listening on every address: the names are unknown here; a token is required
             # to bind like this, so a rebinding page still cannot read anything
             return bool(self.token)
-        return name == _host_name(self.bind_host)
+        return name == self.bind_host.strip().strip("[]").lower()
 
     def origin_ok(self, origin: str | None, host_header: str | None) -> bool:
         if origin is None:

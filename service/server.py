@@ -7,6 +7,7 @@ to stop, joined with a timeout, processes terminated if they do not).
 
 from __future__ import annotations
 
+import asyncio
 import contextlib
 import logging
 import math
@@ -65,19 +66,28 @@ def _refuse(transport: Any, status: bytes, text: str) -> None:
 
 
 def http_protocol(clients: ClientConnections, max_header_bytes: int,
-                  header_timeout_s: float) -> type[HttpToolsProtocol]:
-    """uvicorn's httptools protocol with three limits uvicorn lacks.
+                  header_timeout_s: float, receive_buffer_bytes: int = 0
+                  ) -> type[HttpToolsProtocol]:
+    """uvicorn's httptools protocol with the limits uvicorn lacks.
 
     * connections per client address (``clients``): over it, 503 and close;
     * the request head (request line + headers) is at most ``max_header_bytes``: 431;
     * the head must be complete ``header_timeout_s`` after its first byte (or after the
       connection opened): else the connection is closed. Slowloris (many connections that
-      send a header line now and then) otherwise holds file descriptors for ever.
+      send a header line now and then) otherwise holds file descriptors for ever;
+    * the kernel's receive buffer of every connection (HTTP and, after the upgrade,
+      WebSocket) is ``receive_buffer_bytes`` (0: the system's, which grows to megabytes):
+      what a client sends faster than the server reads waits in the client's own buffers,
+      not the server's (issue 39: 32 flooding connections held ~56 MB here).
     """
 
     class ArticastHttpProtocol(HttpToolsProtocol):
         def connection_made(self, transport: Any) -> None:
             super().connection_made(transport)
+            sock = transport.get_extra_info("socket")
+            if receive_buffer_bytes and sock is not None:
+                with contextlib.suppress(OSError):
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
             self._head_bytes = 0
             self._in_head = True
             self._head_timer: Any = None
@@ -131,7 +141,9 @@ def http_protocol(clients: ClientConnections, max_header_bytes: int,
     return ArticastHttpProtocol
 
 
-def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | None = None
+def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | None = None,
+                       close_timeout_s: float = 2.0, drain_bytes: int = 65536,
+                       max_queue: int = 16, feed_bytes: int = 4096
                        ) -> type[WebSocketsSansIOProtocol]:
     """uvicorn's sans-I/O WebSocket protocol with bounded buffers and an abort handle.
 
@@ -141,23 +153,56 @@ def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | No
     then loses frames in its hub queue) instead of receiving stale frames seconds late.
     ``scope["extensions"]["articast.abort"]`` lets the stall watchdog drop a client that stopped
     reading without waiting for a closing handshake it can never complete. An upgrade request
-    the WebSocket parser refuses (a header line over 8 kB, too many headers) is answered with
-    400 and closed (uvicorn leaves it unanswered).
+    the WebSocket parser refuses (too many headers) is answered with 400 and closed (uvicorn
+    leaves it unanswered).
+
+    Once the app has closed a connection (or returned), the connection is dropped
+    promptly (issue 39: a subscribe flood closed with 1008 went on being read and parsed,
+    megabytes per connection, and stalled every other client): what the peer sends after our
+    close frame is parsed only up to ``drain_bytes`` (enough to see an honest client's close
+    reply), then no longer read at all, and the transport is aborted ``close_timeout_s``
+    after the close whether or not the peer answered (uvicorn waits 10 s, reading and
+    parsing all along, then only closes: a peer that does not read keeps it for ever).
+
+    The bytes read are parsed ``feed_bytes`` at a time, and only while fewer than
+    ``max_queue`` messages wait for the app: uvicorn parses all it reads at once (a 128 kB
+    read of tiny frames is ~2,000 messages queued, and parsed, before the app has looked at
+    the first and decided to close the connection); the rest waits, unparsed, reading paused.
     """
 
     class ArticastWebSocketProtocol(WebSocketsSansIOProtocol):
+        _after_close: int | None = None
+        _drop_timer: Any = None
+        _backlog = b""
+        _offset = 0
+
         def connection_lost(self, exc: Exception | None) -> None:
             if clients is not None:
                 clients.release(self.transport)
+            if self._drop_timer is not None:
+                self._drop_timer.cancel()
             super().connection_lost(exc)
 
         def data_received(self, data: bytes) -> None:
+            if self._after_close is not None:
+                self._after_close += len(data)
+                if self._after_close > drain_bytes:
+                    # a peer still sending after our close: not read, not parsed; the
+                    # drop timer aborts the connection
+                    self.read_paused = False  # uvicorn's receive() must not resume it
+                    self.transport.pause_reading()
+                    return
+            if self.handshake_complete and not self.close_sent:
+                self._backlog = self._backlog[self._offset:] + data
+                self._offset = 0
+                self._feed()
+                return
             super().data_received(data)
             if (not self.handshake_initiated and self.conn.handshake_exc is not None
                     and not self.transport.is_closing()):
                 self.handshake_complete = self.close_sent = True
                 _refuse(self.transport, b"400 Bad Request", "malformed WebSocket upgrade "
-                        "request (a header line over 8 kB or too many headers)")
+                        "request (too many headers, or a header line over the limit)")
 
         def connection_made(self, transport: Any) -> None:
             super().connection_made(transport)
@@ -167,13 +212,75 @@ def websocket_protocol(socket_buffer_bytes: int, clients: ClientConnections | No
                 with contextlib.suppress(OSError):
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, socket_buffer_bytes)
 
+        def _feed(self) -> None:
+            """Parse backlog while the app keeps up; reading stays paused while some is left."""
+            view = memoryview(self._backlog)
+            while (self._offset < len(view) and self.queue.qsize() < max_queue
+                   and not self.close_sent):
+                chunk = bytes(view[self._offset:self._offset + feed_bytes])
+                self._offset += len(chunk)
+                WebSocketsSansIOProtocol.data_received(self, chunk)
+            view.release()
+            if self.close_sent or self._offset >= len(self._backlog):
+                self._backlog, self._offset = b"", 0
+            elif not self.read_paused:
+                self.read_paused = True
+                self.transport.pause_reading()
+
+        async def receive(self) -> Any:
+            message = await self.queue.get()
+            if self._backlog:
+                self._feed()
+            if self.read_paused and self.queue.empty() and not self._backlog:
+                self.read_paused = False
+                self.transport.resume_reading()
+            return message
+
+        def _drop_soon(self) -> None:
+            """Abort the transport ``close_timeout_s`` from now (once)."""
+            if self._after_close is None:
+                self._after_close = 0
+            self._backlog, self._offset = b"", 0
+            if self.disconnected or self._drop_timer is not None:
+                return
+            if self.close_timer is not None:
+                # uvicorn's timer closes (not aborts) after 10 s; ours stands in for it (so
+                # that uvicorn still waits for the peer's close reply, then closes at once)
+                self.close_timer.cancel()
+                self.close_timer = self._drop_timer = self.loop.call_later(
+                    close_timeout_s, self._drop)
+            else:
+                self._drop_timer = self.loop.call_later(close_timeout_s, self._drop)
+
+        def _drop(self) -> None:
+            self._drop_timer = None
+            if not self.disconnected:
+                self.transport.abort()
+
         async def send(self, message: Any) -> None:
+            if (message["type"] == "websocket.close" and self.handshake_complete
+                    and not self.close_sent and not self.writable.is_set()):
+                # a peer that does not read cannot get a close frame: dropped, not waited
+                # for (uvicorn waits for the write buffer to drain: for ever)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self.writable.wait(), close_timeout_s)
+                if not self.writable.is_set():
+                    self.transport.abort()
+                    return
             await super().send(message)
             if (message["type"] == "websocket.http.response.body"
                     and not message.get("more_body", False)):
                 # the refusal (401/403) is a complete answer: uvicorn would otherwise log
                 # "ASGI callable returned without completing handshake" and try a 500
                 self.handshake_complete = True
+            elif message["type"] == "websocket.close" and self.close_sent:
+                self._drop_soon()
+
+        async def run_asgi(self) -> None:
+            await super().run_asgi()
+            # the app is done: uvicorn closed the transport, which still waits for its
+            # write buffer to drain (a peer that does not read: for ever)
+            self._drop_soon()
 
         def handle_connect(self, event: Any) -> None:
             super().handle_connect(event)
@@ -189,10 +296,17 @@ def uvicorn_config(config: ServiceConfig,
     s, h = config.server, config.hub
     install_log_redaction(config.access.token)
     clients = ClientConnections(h.max_connections_per_client)
+    # the WebSocket upgrade's parser (websockets) allows 8 kB per header line, less than the
+    # head limit every other request has (issue 39: a 15 kB line was refused under the 16 kB
+    # limit): one limit for both, the request head's
+    import websockets.http11
+
+    websockets.http11.MAX_LINE_LENGTH = max(8192, h.max_header_bytes)
     return uvicorn.Config(
         create_app(config, on_live), host=s.host, port=s.port, log_level=s.log_level,
-        http=http_protocol(clients, h.max_header_bytes, h.header_timeout_s),
-        ws=websocket_protocol(h.socket_buffer_bytes, clients),
+        http=http_protocol(clients, h.max_header_bytes, h.header_timeout_s,
+                           h.receive_buffer_bytes),
+        ws=websocket_protocol(h.socket_buffer_bytes, clients, h.close_timeout_s),
         ws_max_size=config.hub.ws_max_size,
         # no permessage-deflate: it compresses every message once per connection, which
         # would undo encode-once fan-out (frames are small; loopback and LANs do not need it)

@@ -51,10 +51,30 @@ class HubSettings:
     max_subscriptions_per_client: int = _opt(256, "subscriptions of one client address, all "
                                              "its connections together (an IPv6 client: per "
                                              "/64): one address cannot fill --max-subscribers")
+    max_handshakes_per_client_s: float = _opt(20.0, "WebSocket connections per second one "
+                                              "client address may open (bursts of twice "
+                                              "that); beyond: 429 before the handshake")
+    reserved_subscribers: int = _opt(200, "the last of --max-subscribers kept for client "
+                                     "addresses holding fewer than --reserved-per-client "
+                                     "(at most half the limit): a newcomer still gets in when "
+                                     "a few addresses have filled the server")
+    reserved_per_client: int = _opt(4, "an address holding fewer subscriptions than this may "
+                                    "use the reserved ones")
     max_subscribes_per_client_s: float = _opt(20.0, "subscribe requests per second of one "
                                               "client address, all its connections together "
                                               "(bursts of twice that); beyond: refused with "
                                               "rate_limited, and bystanders keep their frames")
+    receive_buffer_bytes: int = _opt(65536, "kernel receive buffer per connection (0: the "
+                                     "system's, megabytes): what a client sends faster than "
+                                     "it is read waits on the client's side")
+    close_timeout_s: float = _opt(2.0, "a WebSocket connection the server closed (or whose "
+                                  "handler ended) is dropped this long after, answered or "
+                                  "not; what its peer sends meanwhile is not parsed beyond "
+                                  "64 kB")
+    max_token_failures: int = _opt(5, "wrong tokens of one address answered at once; each "
+                                   "further one waits its turn, 1 s doubling to "
+                                   "--token-delay-max-s (the right token never waits)")
+    token_delay_max_s: float = _opt(60.0, "longest wait before a wrong token is answered")
     max_header_bytes: int = _opt(16384, "largest HTTP request head (request line + headers)")
     header_timeout_s: float = _opt(10.0, "close a connection whose request head is not "
                                    "complete this long after it started (slowloris)")

@@ -151,15 +151,16 @@ def test_recentre_is_authorised_like_the_other_posts(media):
 
 # ------------------------------------------------------------------------- l: guessing
 def test_token_guessing_is_slowed_per_address_and_bystanders_get_in(media):
-    with ServerThread(_config(media)) as srv:
+    with ServerThread(_config(media, token_delay_max_s=0.1)) as srv:
         guesser = _from("127.0.0.1")
         codes = [guesser.get(srv.http + "/api/sessions",
                              headers={"Authorization": f"Bearer guess-{i:04d}-xxxxxxxxxx"}
-                             ).status_code for i in range(40)]
-        assert codes.count(401) <= 6 and codes.count(429) >= 34, codes
-        # locked out: even the right token waits (a guess that hits is not told apart)
+                             ).status_code for i in range(20)]
+        assert codes == [401] * 5 + [429] * 15, codes
+        # held, not locked out: the right token from the same address passes (issue 39:
+        # clients behind one NAT were refused while another guessed)
         assert guesser.get(srv.http + "/api/sessions",
-                           headers=srv.headers).status_code == 429
+                           headers=srv.headers).status_code == 200
         # /healthz is no oracle around it, nor is /ws
         r = guesser.get(srv.http + "/healthz", headers={"Authorization": "Bearer guess"})
         assert r.status_code == 429
@@ -175,15 +176,15 @@ def test_token_guessing_is_slowed_per_address_and_bystanders_get_in(media):
         other = _from("127.0.0.2")
         assert other.get(srv.http + "/api/sessions", headers=srv.headers).status_code == 200
         assert other.get(srv.http + "/api/sessions").status_code == 401
+        assert other.get(srv.http + "/api/sessions", headers={
+            "Authorization": "Bearer guess"}).status_code == 401
 
 
 def test_failed_attempts_back_off_and_forget():
-    a = FailedAttempts(free=2, initial_s=1.0, max_s=8.0, max_addresses=3)
+    a = FailedAttempts(free=2, initial_s=1.0, max_s=8.0, forget_s=100.0, max_addresses=3)
     assert a.failed("x", 0.0) == 0 and a.failed("x", 0.0) == 0
-    assert a.failed("x", 0.0) == 1.0 and a.blocked("x", 0.5) == 0.5
-    assert [a.failed("x", 10.0) for _ in range(5)] == [2.0, 4.0, 8.0, 8.0, 8.0]
-    a.succeeded("x")
-    assert a.blocked("x", 10.0) == 0
+    assert [a.failed("x", 10.0) for _ in range(6)] == [1.0, 2.0, 4.0, 8.0, 8.0, 8.0]
+    assert a.failed("x", 200.0) == 0  # 100 s without a failure: forgotten
     for k in "abcd":
         a.failed(k, 0.0)
     assert len(a._failures) == 3  # bounded
