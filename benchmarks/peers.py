@@ -188,6 +188,7 @@ OTHERS: Path | None = None  # --others: the methods not run, read from a --serie
 ENROL_BLEND = 0.0  # --enrol-blend: v1's share of the landmarks the speaker's model is built from
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
+OFFLINE_GAP: float | None = None  # --offline-gap: the readers' share of the offline opening
 MAX_LAG = 5
 MIN_FRAMES = 10  # fewer frames in common: no correlation reported
 #: per scheme: inner upper and lower midpoints, outer corners, outer upper and lower midpoints
@@ -633,8 +634,10 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
             SECOND_READER,
             OfflineSmoother,
             averaged,
+            reader_ratios,
             second_reader,
             smoothed,
+            with_reader_gap,
         )
 
         c0 = time.process_time()
@@ -643,15 +646,20 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
             sm.add(r)
         frames = sm.finish()
         offline_cpu_ms = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+        ratios = [reader_ratios(results)]
         sp2 = None if SINGLE_READER else second_reader(speaker)
         if sp2 is not None:
             c0 = time.process_time()
             second = ArticastLoop(sp2, held, fps, SECOND_READER)
             sm2 = OfflineSmoother.for_live(second.live)
-            for i in range(len(held)):
-                sm2.add(second(i))
+            again = [second(i) for i in range(len(held))]
+            for r in again:
+                sm2.add(r)
             frames = averaged(frames, sm2.finish())
+            ratios.append(reader_ratios(again))
             second_cpu_ms = (time.process_time() - c0) * 1e3 / max(len(held), 1)
+        if OFFLINE_GAP is not None:
+            frames = with_reader_gap(frames, ratios, m, cam, OFFLINE_GAP)
         results = [smoothed(r, f, m) for r, f in zip(results, frames, strict=True)]
     ok = np.array([r.ok for r in results])
     alpha = np.array([r.alpha for r in results])
@@ -873,11 +881,15 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
     ap.add_argument("--single-reader", action="store_true",
                     help="with --offline: FaceMesh v1's tracker alone, as 'articast track "
                          "--single-reader' writes it")
+    ap.add_argument("--offline-gap", type=float, default=None, metavar="SHARE",
+                    help="with --offline: the readers' lip gap's share of the opening "
+                         "(core/faces/offline.py READER_GAP; default: track's own; 0: the "
+                         "smoothed fit alone, as before issue 38)")
 
 
 def use_articast_options(args: argparse.Namespace) -> None:
     """:func:`add_articast_options`' choices, for :func:`run_articast`."""
-    global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND
+    global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND, OFFLINE_GAP
     try:
         ARTICAST_POLICY = policy_with(VARIANTS[args.variant], args.policy_set)
     except ValueError as e:
@@ -885,6 +897,9 @@ def use_articast_options(args: argparse.Namespace) -> None:
     if not 0.0 <= args.enrol_blend <= 1.0:
         raise SystemExit(f"--enrol-blend must be within 0..1, got {args.enrol_blend:g}")
     OFFLINE, SINGLE_READER, ENROL_BLEND = args.offline, args.single_reader, args.enrol_blend
+    from articast.core.faces.offline import READER_GAP
+
+    OFFLINE_GAP = READER_GAP if args.offline_gap is None else args.offline_gap
 
 
 def _value(text: str) -> Any:

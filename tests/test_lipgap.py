@@ -91,3 +91,27 @@ def test_matching_leaves_the_articulation_when_the_reading_says_nothing(model):
     # a reading asking for far more than the articulation holds is followed max_change far
     far = matched(model, cam, a0, pose, 5.0, max_change=2.0)
     assert np.linalg.norm(far - a0) == pytest.approx(2.0)
+
+
+def test_offline_the_opening_is_half_the_readers_gap_half_the_smoothed_fits(model):
+    """``with_reader_gap``: each frame's projected ratio moves to the mean of the share of
+    both readers' (smoothed over the frame's neighbours) and the rest its own; a frame no
+    reader read, or no share, keeps the smoothed articulation."""
+    from articast.core.faces.offline import Smoothed, with_reader_gap
+
+    cam = Camera.default(640, 480)
+    pose = Pose(rotation=[0.05, 0.1, 0.0], translation=[0.0, 0.0, 450.0])
+    j = model.param_names.index("jaw1")
+    frames = [Smoothed(np.eye(model.n_params)[j] * v, pose) for v in (0.5, 0.6, 0.7, 0.8)]
+    own = model_ratios(model, cam, np.array([f.alpha for f in frames]), pose)
+    v1 = own + 0.04  # a reader that reads the mouth more open
+    v2 = np.array([own[0] + 0.02, own[1] + 0.02, np.nan, own[3] + 0.02])
+    out = with_reader_gap(frames + [frames[0]], [np.append(v1, np.nan), np.append(v2, np.nan)],
+                          model, cam, 0.5)
+    got = model_ratios(model, cam, np.array([f.alpha for f in out[:4]]), pose)
+    read = np.array([own[0] + 0.03, own[1] + 0.03, own[2] + 0.04, own[3] + 0.03])
+    smooth = np.array([(2 * read[0] + read[1]) / 3, (read[0] + 2 * read[1] + read[2]) / 4,
+                       (read[1] + 2 * read[2] + read[3]) / 4, (read[2] + 2 * read[3]) / 3])
+    np.testing.assert_allclose(got, 0.5 * smooth + 0.5 * own, atol=2e-4)
+    assert out[4] is frames[0]  # not read: as smoothed
+    assert with_reader_gap(frames, [v1], model, cam, 0.0) is frames

@@ -469,6 +469,8 @@ class LiveTracker:
         extra = result.extra
         if self.fusion is not None:  # what an offline smoother needs (core/tracking/smoother.py)
             extra = {**extra, "motion": self.kalman.step, "phase": self._phase}
+            if self._fresh is not None:  # (and the offline mix with the readers' lip gaps)
+                extra["reader_ratio"] = reader_ratio(np.asarray(self._fresh.landmarks)[:, :2])
         result = replace(result, upper=upper, frame=self._frame, ms=ms, extra=extra)
         gap = self.fusion is not None and self.fusion.reader_gap is not None
         if result.ok and (self._filter is not None or self._cadence is not None or gap):
@@ -501,7 +503,7 @@ class LiveTracker:
         fu = self.fusion
         if fu is None or fu.reader_gap is None or self._fresh is None:
             return alpha
-        read = reader_ratio(np.asarray(self._fresh.landmarks)[:, :2])
+        read = result.extra.get("reader_ratio", float("nan"))
         if not np.isfinite(read):
             return alpha
         m, cam = self.speaker.model, self.speaker.camera

@@ -138,3 +138,59 @@ def averaged(first: list[Smoothed | None], second: list[Smoothed | None]
         raise ValueError(f"{len(first)} frames against {len(second)}")
     return [a if a is None or b is None else Smoothed(0.5 * (a.alpha + b.alpha), a.pose)
             for a, b in zip(first, second, strict=True)]
+
+
+READER_GAP = 0.5
+"""Offline, the opening is this share of the readers' own lip gap and the rest the smoothed
+fit's, as live (``FusionPolicy.reader_gap``): the readers' gap, the mean of both trackers'
+readers (FaceMesh v1 and FaceLandmarker v2) on the frame, smoothed over the frame and its two
+neighbours (offline has the frame after; no lag)."""
+
+
+def reader_ratio_of(result: TrackResult) -> float:
+    """The result's reader lip-gap ratio (``extra["reader_ratio"]``, set by
+    :class:`~articast.core.faces.live.LiveTracker`), NaN where the frame was not read or
+    not ok."""
+    return float(result.extra.get("reader_ratio", np.nan)) if result.ok else float("nan")
+
+
+def reader_ratios(results: list[TrackResult]) -> np.ndarray:
+    """(F,) :func:`reader_ratio_of` each result."""
+    return np.array([reader_ratio_of(r) for r in results], np.float64)
+
+
+def with_reader_gap(frames: list[Smoothed | None], ratios: list[np.ndarray], model: FaceModel,
+                    camera: Any, share: float = READER_GAP) -> list[Smoothed | None]:
+    """The smoothed frames with the opening moved to ``share`` x the readers' lip gap +
+    (1 - share) x the frame's own projected gap (:func:`~articast.core.faces.lipgap.matched`:
+    the smallest step of the articulation that gives it, the width kept). ``ratios``: each
+    reader's (F,) series (:func:`reader_ratios`); their mean where finite, then a centred
+    [1, 2, 1] / 4 filter over the frames that have one. A frame without a reading keeps
+    its smoothed articulation."""
+    from articast.core.faces.lipgap import matched, model_ratios
+
+    if share <= 0.0 or not ratios:
+        return frames
+    stack = np.vstack([np.asarray(r, np.float64) for r in ratios])
+    seen = np.isfinite(stack)
+    n = seen.sum(axis=0)
+    read = np.where(n > 0, np.where(seen, stack, 0.0).sum(axis=0) / np.maximum(n, 1), np.nan)
+    ok = np.isfinite(read)
+    smooth = read.copy()
+    for i in np.flatnonzero(ok):
+        w = [(1.0, read[j]) for j in (i - 1, i + 1) if 0 <= j < len(read) and ok[j]]
+        smooth[i] = (2.0 * read[i] + sum(v for _, v in w)) / (2.0 + len(w))
+    out: list[Smoothed | None] = []
+    for f, r in zip(frames, smooth, strict=True):
+        if f is None or not np.isfinite(r):
+            out.append(f)
+            continue
+        target = float(r)
+        if share < 1.0:
+            own = float(model_ratios(model, camera, f.alpha[None], f.pose)[0])
+            if not np.isfinite(own):
+                out.append(f)
+                continue
+            target = share * float(r) + (1.0 - share) * own
+        out.append(Smoothed(matched(model, camera, f.alpha, f.pose, target), f.pose))
+    return out

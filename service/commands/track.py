@@ -289,7 +289,7 @@ def _track(args: argparse.Namespace) -> int:
     tracker, model, camera = _make_tracker(args, _frame_size(args.video))
     smoother = second = second_smoother = None
     if getattr(tracker, "fusion", None) is not None and not args.causal:  # fused LiveTracker
-        from articast.core.faces.offline import OfflineSmoother
+        from articast.core.faces.offline import OfflineSmoother, reader_ratio_of
 
         smoother = OfflineSmoother.for_live(tracker)
         if not args.single_reader:
@@ -310,6 +310,8 @@ def _track(args: argparse.Namespace) -> int:
     fd, tmp_name = tempfile.mkstemp(prefix=f".{args.output.name}.", suffix=".part", dir=folder)
     tmp = Path(tmp_name)
     video = drawing = None
+    # each tracker's reader's lip gap per frame, for the offline opening
+    ratios: tuple[list[float], list[float]] = ([], [])
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as out:
             for i, t, img in iter_video(args.video, span):
@@ -325,10 +327,12 @@ def _track(args: argparse.Namespace) -> int:
                 out.flush()
                 if smoother is not None:
                     smoother.add(res)
+                    ratios[0].append(reader_ratio_of(res))
                 spent = res.ms
                 if second is not None and second_smoother is not None:
                     again = second.track(img, t)
                     second_smoother.add(again)
+                    ratios[1].append(reader_ratio_of(again))
                     spent += again.ms  # (the frame's cost is both readers')
                 if drawing is not None:
                     drawing.write(img, res)
@@ -346,11 +350,14 @@ def _track(args: argparse.Namespace) -> int:
                         "v1's alone; " if second_smoother is not None else " (")
                 print(f"articast track: smoothing {n} frames with the frames after each"
                       f"{both}--causal: as streamed live)", file=sys.stderr, flush=True)
+            from articast.core.faces.offline import averaged, with_reader_gap
+
             frames = smoother.finish()
             if second_smoother is not None:
-                from articast.core.faces.offline import averaged
-
                 frames = averaged(frames, second_smoother.finish())
+            # the opening half the readers' own lip gap, as live (core/faces/offline.py)
+            frames = with_reader_gap(frames, [np.array(r) for r in ratios if r],
+                                     model, camera)
             _rewrite_smoothed(tmp, frames, model)
         why = "".join(f", {k} {v}" for k, v in sorted(reasons.items()))
         if n_ok == 0:  # exit 0 would pass a useless track off as a result; and as --help
