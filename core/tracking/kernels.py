@@ -714,7 +714,7 @@ def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
 
 
 # ---------------------------------------------------------------------------- iris chords
-# core/faces/upper.py's iris fit (_chords, _runs_round, _former_accepts) in one compiled
+# core/faces/iris.py's iris fit (_chords, _runs_round, _former_accepts) in one compiled
 # call each: the same float32 arithmetic as numpy's (its Python float operands cast to
 # float32 first, NEP 50) and numpy's pairwise sums, so the same numbers to the bit; the
 # numpy functions are the reference (a test checks them against each other).
@@ -804,7 +804,7 @@ def _pairwise_sum(a, lo, n):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def iris_runs(cov, j, rows_ok, grown):  # pragma: no cover - compiled
-    """upper._runs_round: each row's run of iris (cov (h, w) float32) round its column j,
+    """iris._runs_round: each row's run of iris (cov (h, w) float32) round its column j,
     ended where the fraction falls to 0.12: widths (float32), centres (float64) and bounded."""
     h, w = cov.shape
     brk = np.float32(0.12)
@@ -847,7 +847,7 @@ def iris_runs(cov, j, rows_ok, grown):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def _white_of(vals, n, white):  # pragma: no cover - compiled
-    """upper._white of the first n of vals."""
+    """iris._white of the first n of vals."""
     if n < 4:
         return white
     v = np.sort(vals[:n])
@@ -856,7 +856,7 @@ def _white_of(vals, n, white):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True)
 def iris_chords(p, contour, grown, thr, iris, white, cx0, row_white):  # pragma: no cover
-    """upper._chords after its opening ``p`` (h, w) float32: (widths, centres, bounded)."""
+    """iris._chords after its opening ``p`` (h, w) float32: (widths, centres, bounded)."""
     h, w = p.shape
     thr32 = np.float32(thr)
     iris32 = np.float32(iris)
@@ -914,7 +914,7 @@ def iris_chords(p, contour, grown, thr, iris, white, cx0, row_white):  # pragma:
 
 @njit(cache=True, nogil=True)
 def iris_former_rows(patch, grown, iris, white, cx0):  # pragma: no cover - compiled
-    """upper._former_accepts's chords (one eye-wide white): (widths, bounded)."""
+    """iris._former_accepts's chords (one eye-wide white): (widths, bounded)."""
     h, w = patch.shape
     white32 = np.float32(white)
     span32 = np.float32(white - iris)

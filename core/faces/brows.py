@@ -1,0 +1,108 @@
+"""The brows' dark band above each eye, found in the frame's pixels (issue 28's brows): how
+high the brow sits above the eye corners' line, inner and outer halves, mm of the aligned
+head frame (:func:`brow_band_mm`). The upper face (:mod:`articast.core.faces.upper`) reads
+it against the speaker's neutral brows."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from articast.core.faces.eye_landmarks import EYE_CORNERS
+from articast.core.faces.lids import _inside
+
+if TYPE_CHECKING:
+    from articast.core.faces.upper import Aligned
+
+BROW_ABOVE_READER_MM = 6.0
+"""At enrolment a brow half is looked for from just above the open eye's upper lid to this
+many mm above the reader's own brow points for that half (the speaker's geometry, not a fixed
+height: a person's brow is ~10-25 mm above the eyes' corners). The reader's points are within
+a few mm of the brow (the synthetic one's band lies 4 mm below them, franck's within 2 mm);
+further up, a fringe or the synthetic head's hair (26 mm above its eyes, its brows' points
+15 mm) would win the search: 8 mm found the hair. Where no band is found inside the window,
+the reader's brow points are used."""
+BROW_WINDOW_MM = 8.0
+"""Live, a brow is looked for this many mm either side of the speaker's neutral brow."""
+
+
+def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side: str,
+                 window: tuple[tuple[float, float] | None, ...]
+                 ) -> tuple[float | None, float | None] | None:
+    """The brow's height above the eye's corners' line (mm; inner half, outer half), from
+    the pixels: the landmark network's brow points follow its face prior more than the
+    brow (docs/UPPER_FACE.md).
+
+    A strip along the eye's axis, 1.2 eye widths wide and up from the corners' line, is
+    resampled (rotation removed; 1 px per px, heights in mm by the alignment's scale) and
+    smoothed vertically; in each column the brow is the darkest point within ``window``
+    (inner (lo, hi), outer (lo, hi) mm, None: that half is not looked for; at enrolment from
+    just above the open eye's lid to ``BROW_ABOVE_READER_MM`` above the reader's brow points,
+    live the neutral brow +- ``BROW_WINDOW_MM``), sub-pixel by a parabola
+    through its neighbours; each half's height is the median of its columns (the nasal half
+    is ``inner``). None outside the image; a half is None when it has no dark band (a
+    minimum on the window's edge in most of its columns: e.g. a brow gone under a fringe, or
+    raised off the synthetic face's mesh)."""
+    lm = np.asarray(landmarks, np.float64)
+    inner, outer = lm[EYE_CORNERS[side][0], :2], lm[EYE_CORNERS[side][1], :2]
+    axis = outer - inner
+    length = float(np.linalg.norm(axis))
+    if not np.isfinite(length) or length < 6.0:
+        return None
+    u = axis / length
+    if u[0] < 0:
+        u = -u  # left to right in the image
+    v = np.array([u[1], -u[0]])  # up in the image
+    scale = aligned.scale
+    wins = [w for w in window if w is not None]
+    if not wins:
+        return None
+    lo = min(w[0] for w in wins)
+    hi = max(w[1] for w in wins)
+    r0, r1 = int(math.floor(max(lo, 0.0) * scale)) - 2, int(math.ceil(hi * scale)) + 2
+    wide = int(round(1.2 * length))
+    centre = (inner + outer) / 2.0
+    corners = np.array([centre + s_ * u * wide / 2.0 + t * v
+                        for s_ in (-1, 1) for t in (max(r0, 0), r1)])
+    boxed = _inside(grey, corners)
+    if boxed is None:
+        return None
+    crop, x0, y0 = boxed
+    # strip pixel (j, i) <- image centre - u wide/2 + j u + (r1 - i) v: row 0 is the top
+    top = centre - [x0, y0] - u * wide / 2.0 + r1 * v
+    m = np.array([[u[0], -v[0], top[0]], [u[1], -v[1], top[1]]])
+    rows = r1 - max(r0, 0) + 1
+    strip = cv2.GaussianBlur(
+        cv2.warpAffine(crop, m, (wide + 1, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                       borderMode=cv2.BORDER_REPLICATE).astype(np.float32),
+        (1, 0), sigmaX=0.1, sigmaY=max(0.5, 1.5 * scale))  # ~ a brow's half thickness
+    heights = (r1 - np.arange(rows)) / scale  # mm above the corners' line, per row
+    cols = np.arange(wide + 1) - wide / 2.0
+    nasal = (cols * float(np.dot(inner - centre, u))) > 0
+    out: list[float | None] = []
+    for half, win in zip((nasal, ~nasal), window, strict=True):
+        if win is None:
+            out.append(None)
+            continue
+        sel = (heights >= win[0]) & (heights <= win[1])
+        if sel.sum() < 3 or half.sum() < 3:
+            out.append(None)
+            continue
+        rs, cs = np.flatnonzero(sel), np.flatnonzero(half)  # (both contiguous)
+        sub = strip[rs[0]:rs[-1] + 1, cs[0]:cs[-1] + 1]
+        k = np.argmin(sub, axis=0)
+        inside = (k > 0) & (k < sub.shape[0] - 1)
+        if inside.mean() < 0.5:
+            out.append(None)  # no dark band inside the window
+            continue
+        kk, cc = k[inside], np.flatnonzero(inside)
+        y_m, y_0, y_p = sub[kk - 1, cc], sub[kk, cc], sub[kk + 1, cc]
+        den = y_m - 2.0 * y_0 + y_p
+        frac = np.where(den > 1e-6, 0.5 * (y_m - y_p) / np.maximum(den, 1e-6), 0.0)
+        hs = heights[np.flatnonzero(sel)[0]] - (kk + np.clip(frac, -0.5, 0.5)) / scale
+        hs = np.sort(hs)  # (the median: np.median's own overhead is most of this step's)
+        out.append(float(hs[(hs.size - 1) // 2] + hs[hs.size // 2]) / 2.0)
+    return out[0], out[1]
