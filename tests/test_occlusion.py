@@ -144,17 +144,24 @@ def test_points_seen_edge_on_do_not_vote_for_an_occlusion(speaker, head_app):
     for i in range(20):  # (the per-point running levels)
         tracker.track(speaker.render(seq.controls[i], seq.pose(i), seq.camera,
                                      RenderOptions(seed=1000 + i)), float(seq.times[i]))
-    pose = seq.pose(20)
-    facing = tracker.facing(pose)
-    # geometry: the front of the face faces the camera, and nothing judged is turned away
+    frontal = seq.pose(20)
     mouth = np.argmin(np.abs(tracker.problem.s_mean[:, 0]))
-    assert facing[mouth] > 0.8
+    assert tracker.facing(frontal)[mouth] > 0.8  # the front of the face faces the camera
+    # the head turned 35 deg further: one side's jaw line is seen edge-on
+    from articast.core.model.camera import Pose, axis_angle
+
+    c, s_ = np.cos(0.6), np.sin(0.6)
+    yaw = np.array([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
+    pose = Pose(axis_angle(yaw @ frontal.matrix), frontal.translation)
+    facing = tracker.facing(pose)
+    assert facing[mouth] < tracker.facing(frontal)[mouth]
     judged = np.flatnonzero(tracker._judged)
     # a pair of judged points seen most edge-on, next to each other (within the span)
     order = judged[np.argsort(facing[judged])]
     edge = [int(order[0])] + [int(j) for j in order[1:]
                               if tracker._span[order[0], j]][:1]
-    front = [int(j) for j in order[::-1][:2]]
+    top = order[::-1]
+    front = [int(top[0])] + [int(j) for j in top[1:] if tracker._span[top[0], j]][:1]
     assert facing[edge].max() < policy.occlusion_facing < facing[front].min(), (
         facing[edge], facing[front])
     level = tracker._qlevel.copy()
