@@ -201,8 +201,11 @@ def _enroll(args: argparse.Namespace) -> int:
         warnings.append("the eyes were not visible in enough frames: eyes and brows will be "
                         "reported absent ('not_calibrated')")
     elif up is not None and up.get("blinks", 0) == 0:
-        warnings.append("the clip holds no blink: the closed eye is assumed at "
-                        "25 % of the open eye's lid opening (blink naturally while reading)")
+        from articast.core.faces.upper import CLOSED_FRACTION
+
+        warnings.append(f"the clip holds no blink: the closed eye is assumed at "
+                        f"{100 * CLOSED_FRACTION:.0f} % of the open eye's lid opening (blink "
+                        f"naturally while reading)")
     report = {**speaker.report, "seconds": round(seconds, 2), "frames_read": n_read,
               "frames_analysed": int(found.size),
               "camera": "given" if args.camera else f"default ({DEFAULT_FOV_DEG:g} deg)",
