@@ -2,11 +2,13 @@
 // the streamed articulatory parameters (x = mean + sum_k alpha_k basis_k) and textured with
 // their own texture, itself linear in the parameters (T = T0 + sum_k alpha_k T_k: the inner
 // mouth and teeth appear as the jaw opens), lit softly over the lighting the texture already
-// carries. Its eyes are the speaker's own, painted in the texture: the lids close on a blink
-// and the eyes move with the gaze by moving the mesh's own lid and eye vertices (the
-// `upper` targets the server sends: the VRM export's eyeBlink, eyeLook*, eyeWide, eyeSquint
-// and brow shapes), weighted as the stream's ARKit eye and brow shapes are
-// (core/outputs/upper.py: arkitUpper below). Nothing is drawn over them.
+// carries. Its eyes are the speaker's own, painted in the texture: the fragment shader shuts
+// them on a blink (the lid's own skin, from the texture around the eye, comes down over the
+// opening) and slides the painted eye within its opening with the gaze (eyeLids below); the
+// mesh's wide, squint and brow shapes move its vertices (the `upper` targets the server
+// sends: the VRM export's), weighted as the stream's ARKit eye and brow shapes are
+// (core/outputs/upper.py: arkitUpper below). A mesh other than MediaPipe's 468 points keeps
+// the vertex lids (eyeBlink, eyeLook*). Nothing is drawn over the eyes.
 // Fetched once per hello from hello.delegate_url with the page's token
 // (GET /api/sessions/NAME/delegate, service/delegate.py documents the JSON).
 import * as THREE from "three";
