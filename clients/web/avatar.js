@@ -18,7 +18,7 @@ import { LinearFace } from "./face.js";
 import { loadScan } from "./scan.js";
 import { loadDelegate } from "./delegate.js";
 import { Head } from "./eyes.js";
-import { authHeaders, chooseSession, params, refusal, socketUrl, withToken, noteLatency } from "./connect.js";
+import { authHeaders, chooseSession, params, refusal, socketUrl, withToken, noteLatency, noteDraw } from "./connect.js";
 
 const state = (window.articast = {
   frames: 0, rendered: 0, connects: 0, connected: false, hello: null, alpha: null, status: "",
@@ -96,6 +96,18 @@ function render() {
   show(shown);
   renderer.render(scene, camera);
 }
+
+// where vertices of the drawn delegate are on the page (CSS px from the canvas's top left), as
+// last drawn: for the tests and the pictures (tests/test_delegate_eyes.py finds the eyes so)
+state.screenPoints = (ids) => {
+  if (!delegate || state.drawn !== "delegate") return null;
+  const el = renderer.domElement, r = el.getBoundingClientRect(), p = delegate.position.array;
+  delegate.object.updateWorldMatrix(true, false);
+  return ids.map((i) => {
+    const v = new THREE.Vector3(p[3 * i], p[3 * i + 1], p[3 * i + 2]).applyMatrix4(delegate.object.matrixWorld).project(camera);
+    return [r.left + (v.x + 1) / 2 * r.width, r.top + (1 - v.y) / 2 * r.height];
+  });
+};
 
 // ----------------------------------------------------------------------------- panel
 const bars = [];
@@ -183,6 +195,7 @@ function draw(now) {
   const f = latest;
   if (!f || !state.hello) return;
   latest = null;
+  const t0 = performance.now();
   const names = state.hello.param_names, a = f.values.articulatory || {};
   state.alpha = names.map((n) => a[n] || 0);
   state.eyes = f.eyes || null; state.brows = f.brows || null;
@@ -195,6 +208,7 @@ function draw(now) {
   $("quality").className = f.quality.ok ? "good" : "bad";
   if (pose) $("pose").textContent = pose.translation.map((v) => v.toFixed(0)).join(", ") + " mm";
   render();
+  noteDraw(state, t0);
   state.rendered++;
   $("latency").textContent = `${noteLatency(state, f) | 0} ms`;
   overlay("");

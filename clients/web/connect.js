@@ -46,3 +46,10 @@ export function noteLatency(state, frame) { // end to end: captured on the serve
   if (state.latencies.length > 20000) state.latencies.splice(0, 10000);
   return ms;
 }
+
+export function noteDraw(state, t0) { // the page's own time (ms, CPU) to apply and draw a frame
+  // (benchmarks/page_latency.py compares the pages by it, beside the latency)
+  const ms = performance.now() - t0;
+  (state.drawMs = state.drawMs || []).push(ms);
+  if (state.drawMs.length > 20000) state.drawMs.splice(0, 10000);
+}

@@ -19,7 +19,7 @@
 import * as THREE from "three";
 import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
 import { VRMLoaderPlugin, VRMUtils } from "@pixiv/three-vrm";
-import { authHeaders, chooseSession, params, refusal, socketUrl, noteLatency } from "./connect.js";
+import { authHeaders, chooseSession, params, refusal, socketUrl, noteLatency, noteDraw } from "./connect.js";
 
 const ARKIT = ["eyeBlinkLeft", "eyeLookDownLeft", "eyeLookInLeft", "eyeLookOutLeft", "eyeLookUpLeft",
   "eyeSquintLeft", "eyeWideLeft", "eyeBlinkRight", "eyeLookDownRight", "eyeLookInRight",
@@ -210,10 +210,12 @@ function draw(now) {
   const f = latest;
   if (!f || !state.hello || !vrm) { if (vrm) renderer.render(scene, camera); return; }
   latest = null;
+  const t0 = performance.now();
   $("quality").textContent = f.quality.ok ? "ok" : `not ok: ${f.quality.reason}`;
   $("quality").className = f.quality.ok ? "good" : "bad";
   apply(f);
   renderer.render(scene, camera);
+  noteDraw(state, t0);
   state.rendered++;
   $("latency").textContent = `${noteLatency(state, f) | 0} ms`;
   overlay("");
