@@ -578,6 +578,9 @@ class WebRTCSource:
         self._first: tuple[float, np.ndarray] | None = None
         self._assets = SourceAssets()
         self.progress: Callable[[str], None] | None = None
+        self.captured: float | None = None
+        """``time.monotonic()`` when the server received the frame :meth:`read` returned
+        last (the capture loop stamps the frame with it, not with when it read it)."""
 
     def _recv(self, wait: float) -> Any:
         """The next message of the inlet; None when none came within ``wait`` s."""
@@ -588,11 +591,11 @@ class WebRTCSource:
         except (EOFError, OSError):  # the server dropped the feed (session removed)
             return ("end", "the server closed this participant's feed")
 
-    @staticmethod
-    def _image(item: tuple[Any, ...]) -> tuple[float, np.ndarray]:
+    def _image(self, item: tuple[Any, ...]) -> tuple[float, np.ndarray]:
         import cv2
 
-        t, width, height, data = item
+        t, width, height, data = item[:4]
+        self.captured = float(item[4]) if len(item) > 4 else None
         yuv = np.frombuffer(data, np.uint8).reshape(height * 3 // 2, width)
         return float(t), cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
 

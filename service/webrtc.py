@@ -51,7 +51,7 @@ class Feed:
     def __init__(self, name: str) -> None:
         self.name = name
         self._cond = threading.Condition()
-        self._slot: tuple[float, int, int, bytes] | None = None
+        self._slot: tuple[float, int, int, bytes, float] | None = None
         self._writer: Any = None
         self._next_writer: Any = None
         self.ended = ""
@@ -64,13 +64,18 @@ class Feed:
                                         daemon=True)
         self._thread.start()
 
-    def push(self, t: float, width: int, height: int, i420: bytes) -> None:
+    def push(self, t: float, width: int, height: int, i420: bytes,
+             arrived: float | None = None) -> None:
+        """A frame of media time ``t``; ``arrived``: ``time.monotonic()`` when the server
+        received it (the frame's capture time on the server's clock: the tracker reads it
+        later, after the pipe and the previous frame's tracking)."""
         with self._cond:
             if self.ended:
                 return
             self.received += 1
             self.dropped += self._slot is not None
-            self._slot = (t, width, height, i420)
+            self._slot = (t, width, height, i420,
+                          time.monotonic() if arrived is None else arrived)
             self._cond.notify_all()
 
     def new_inlet(self) -> Any:
@@ -130,11 +135,25 @@ class Feed:
             writer.close()
 
 
-async def answer(offer_sdp: str, feed: Feed) -> str:
+class PeerHooks:
+    """What a room adds to a participant's peer connection (:mod:`articast.service.room`):
+    :meth:`prepare` sees the connection once the offer is read, before the answer (it may
+    turn the offer's receive-only audio transceivers into the server's senders);
+    :meth:`audio` gets the participant's microphone track (without hooks it is drained)."""
+
+    def prepare(self, pc: Any) -> None:  # pragma: no cover - the default does nothing
+        pass
+
+    def audio(self, track: Any) -> bool:  # pragma: no cover
+        """True when the track was taken (and will be read); False: drain it."""
+        return False
+
+
+async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> str:
     """Answer a participant's offer: returns the answer's SDP. Raises ValueError (one line)
     for an offer that cannot be answered. The video track's frames go to ``feed``; an audio
-    track is received and dropped (the room will relay it); the peer connection closing,
-    failing or the video ending closes ``feed``."""
+    track goes to ``hooks`` (a room relays it) or is received and dropped; the peer
+    connection closing, failing or the video ending closes ``feed``."""
     from aiortc import RTCPeerConnection, RTCSessionDescription
     from aiortc.mediastreams import MediaStreamError
 
@@ -155,10 +174,11 @@ async def answer(offer_sdp: str, feed: Feed) -> str:
         try:
             while True:
                 frame = await track.recv()
+                arrived = time.monotonic()
                 t_media = frame.time if frame.time is not None else time.monotonic()
                 t0 = t_media if t0 is None else t0
                 i420 = frame.to_ndarray(format="yuv420p")
-                feed.push(t_media - t0, frame.width, frame.height, i420.tobytes())
+                feed.push(t_media - t0, frame.width, frame.height, i420.tobytes(), arrived)
         except MediaStreamError:
             feed.close("the participant's video ended")
 
@@ -171,6 +191,8 @@ async def answer(offer_sdp: str, feed: Feed) -> str:
 
     @pc.on("track")
     def on_track(track: Any) -> None:
+        if track.kind == "audio" and hooks is not None and hooks.audio(track):
+            return
         pump = pump_video if track.kind == "video" else drain
         tasks.append(asyncio.ensure_future(pump(track)))
 
@@ -183,6 +205,8 @@ async def answer(offer_sdp: str, feed: Feed) -> str:
     try:
         await pc.setRemoteDescription(RTCSessionDescription(sdp=offer_sdp, type="offer"))
         if any(r.track is not None and r.track.kind == "video" for r in pc.getReceivers()):
+            if hooks is not None:
+                hooks.prepare(pc)
             await pc.setLocalDescription(await pc.createAnswer())
             problem = ""
         else:
