@@ -53,12 +53,13 @@ from fastapi import APIRouter, HTTPException, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response
 
 from articast.service.security import FailedAttempts, client_key
+from articast.service.webrtc import PeerHooks
 
 log = logging.getLogger("articast.room")
 
 ROOM_HEADER = "x-room-token"
 PARTICIPANT_HEADER = "x-participant-token"
-STREAMS = ["articulatory", "pose"]
+STREAMS: list[Any] = ["articulatory", "pose"]
 
 
 def participant_token(room_token: str, name: str) -> str:
@@ -168,8 +169,8 @@ class Member:
     speaker: str = ""
 
 
-class Hooks:
-    """The room's hooks on one member's peer connection (:class:`webrtc.PeerHooks`)."""
+class Hooks(PeerHooks):
+    """The room's hooks on one member's peer connection."""
 
     def __init__(self, room: Room, member: Member) -> None:
         self.room, self.member = room, member
@@ -524,7 +525,8 @@ async def _pump(svc: Any, ws: WebSocket, name: str, room: Room) -> None:
             except TimeoutError:
                 continue
             if isinstance(ev, FrameEvent) and said is not None:
-                await ws.send_text(ev.for_subscriber(view, sub.dropped))
+                out = ev.for_subscriber(view, sub.dropped)
+                await (ws.send_text(out) if isinstance(out, str) else ws.send_bytes(out))
             elif isinstance(ev, StatusEvent):
                 await ws.send_text(status_text(ev, sub.dropped))
             elif isinstance(ev, ReadyEvent):

@@ -174,8 +174,8 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
             with participant(srv, "bob", bob) as b:
                 # each page: both delegates, the other's frames flowing (the tracker may
                 # compile its kernels on a first run: minutes)
-                a.wait_for(ENOUGH.format(json.dumps("bob"), 150), timeout=420)
-                b.wait_for(ENOUGH.format(json.dumps("ann"), 150), timeout=240)
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 45), timeout=420)
+                b.wait_for(ENOUGH.format(json.dumps("ann"), 45), timeout=240)
                 assert members(a) == members(b) == {"ann", "bob"}
                 for page, other, mine in ((a, "bob", "ann"), (b, "ann", "bob")):
                     got = received(page, other)
@@ -202,7 +202,7 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
             before = len(received(a, "bob")) if "bob" in members(a) else 0
             assert before == 0
             with participant(srv, "bob", bob) as b2:
-                a.wait_for(ENOUGH.format(json.dumps("bob"), 20), timeout=240)
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 10), timeout=240)
                 assert members(b2) == {"ann", "bob"}
         deadline = time.monotonic() + 6 * TIMEOUT
         while room_of(srv).members:
