@@ -576,6 +576,8 @@ class WebRTCSource:
         self.seed = _num(p, "seed", int, None)
         self.inlet: Any = None
         self._first: tuple[float, np.ndarray] | None = None
+        self._size: tuple[int, int] | None = None
+        """(width, height) of the first frame: the session's image size."""
         self._assets = SourceAssets()
         self.progress: Callable[[str], None] | None = None
         self.captured: float | None = None
@@ -597,7 +599,14 @@ class WebRTCSource:
         t, width, height, data = item[:4]
         self.captured = float(item[4]) if len(item) > 4 else None
         yuv = np.frombuffer(data, np.uint8).reshape(height * 3 // 2, width)
-        return float(t), cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
+        image = cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
+        if self._size is None:
+            self._size = (width, height)
+        elif (width, height) != self._size:
+            # a browser short of CPU or bandwidth sends smaller frames for a while: the
+            # camera (intrinsics) is the first frame's size, so the image is scaled back
+            image = cv2.resize(image, self._size, interpolation=cv2.INTER_LINEAR)
+        return float(t), image
 
     def open(self) -> SourceInfo:
         if self.inlet is None:
