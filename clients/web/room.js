@@ -288,7 +288,13 @@ async function join(name) {
   }
   $("self").srcObject = stream;
   pc = new RTCPeerConnection({ iceServers: [] });
-  for (const track of stream.getTracks()) pc.addTransceiver(track, { direction: "sendonly", streams: [stream] });
+  // the tracker needs the resolution its camera was calibrated for: short of CPU or bandwidth,
+  // the browser is to lower the frame rate, not the resolution (the server scales back a
+  // smaller frame, but a blurred face tracks worse)
+  for (const track of stream.getTracks()) {
+    if (track.kind === "video") track.contentHint = "detail";
+    pc.addTransceiver(track, { direction: "sendonly", streams: [stream] });
+  }
   for (let i = 0; i < slots; i++) pc.addTransceiver("audio", { direction: "recvonly" });
   pc.ontrack = (e) => { // a slot: the server points it at another member's microphone
     if (e.track.kind !== "audio") return;
@@ -308,6 +314,12 @@ async function join(name) {
   if (!r.ok) { status(await refusal(r, "take your offer"), true); leave(true); return; }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
+  for (const sender of pc.getSenders()) {
+    if (!sender.track || sender.track.kind !== "video") continue;
+    const p = sender.getParameters();
+    p.degradationPreference = "maintain-resolution";
+    sender.setParameters(p).catch(() => { /* older browser: contentHint says the same */ });
+  }
   $("join").disabled = true; $("leave").disabled = false; state.joined = true;
   status(`joined as ${name}; the tracker is starting…`);
   follow();
