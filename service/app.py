@@ -88,6 +88,9 @@ class ServiceConfig:
     client's word would run the client's choice of code, so only these are accepted."""
     delegates: bool = True
     """Serve each speaker's delegate to token holders (False: ``serve --no-delegate``)."""
+    room: Any = None
+    """A :class:`articast.service.room.RoomConfig`: the meeting room's routes under ``/room``
+    (``articast room``), which check the room's own tokens."""
 
 
 class SessionCreate(BaseModel):
@@ -622,6 +625,10 @@ def create_app(config: ServiceConfig | None = None,
     from articast.service.avatar import mount_avatar
 
     mount_avatar(app)
+    if config.room is not None:
+        from articast.service.room import mount_room
+
+        mount_room(app, svc, config.room)
 
     app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes,
                        timeout_s=config.hub.header_timeout_s)

@@ -162,7 +162,11 @@ class Capture:
                             self.pacing = False
                     last_t = t
                     first_t = t if first_t is None else first_t
-                    self._put(Frame(index, t + t_offset, time.monotonic(), image, truth))
+                    # a source that knows when its frame arrived (WebRTC: received by the
+                    # server before the pipe to this worker) says so; else: now
+                    stamp = getattr(self.source, "captured", None)
+                    self._put(Frame(index, t + t_offset,
+                                    time.monotonic() if stamp is None else stamp, image, truth))
                     index += 1
             except SourceUnavailable as exc:
                 self.source.close()

@@ -23,6 +23,7 @@ COMMAND_MODULES = (
     "articast.service.commands.transfer",
     "articast.service.commands.synth",
     "articast.service.commands.serve",
+    "articast.service.commands.room",
 )
 
 

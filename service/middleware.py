@@ -23,8 +23,9 @@ from fastapi.responses import JSONResponse
 from articast.service.security import AccessPolicy, FailedAttempts, client_key
 
 log = logging.getLogger("articast.access")
-OPEN_PATHS = ("/healthz", "/api/protocol", "/avatar")
-"""Routes that answer without the token (``/healthz`` says more with it)."""
+OPEN_PATHS = ("/healthz", "/api/protocol", "/avatar", "/room")
+"""Routes that answer without the token (``/healthz`` says more with it); ``/room``'s check
+the room's own tokens (service/room.py)."""
 CLOSE = [(b"connection", b"close")]
 
 

@@ -121,7 +121,10 @@ class Session:
             self._ready = False
             started = time.monotonic()
             try:
-                worker.start()
+                # off the loop: a process worker's start waits for the fork server's fork
+                # (seconds on a loaded machine, the first time while it imports), and the
+                # loop meanwhile answers WebRTC's ICE checks and its sockets
+                await asyncio.to_thread(worker.start)
                 if not self.spec.wait_for_subscriber or self._m.hub.subscriber_count(
                         self.spec.name):
                     worker.go.set()

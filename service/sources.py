@@ -576,8 +576,13 @@ class WebRTCSource:
         self.seed = _num(p, "seed", int, None)
         self.inlet: Any = None
         self._first: tuple[float, np.ndarray] | None = None
+        self._size: tuple[int, int] | None = None
+        """(width, height) of the first frame: the session's image size."""
         self._assets = SourceAssets()
         self.progress: Callable[[str], None] | None = None
+        self.captured: float | None = None
+        """``time.monotonic()`` when the server received the frame :meth:`read` returned
+        last (the capture loop stamps the frame with it, not with when it read it)."""
 
     def _recv(self, wait: float) -> Any:
         """The next message of the inlet; None when none came within ``wait`` s."""
@@ -588,13 +593,20 @@ class WebRTCSource:
         except (EOFError, OSError):  # the server dropped the feed (session removed)
             return ("end", "the server closed this participant's feed")
 
-    @staticmethod
-    def _image(item: tuple[Any, ...]) -> tuple[float, np.ndarray]:
+    def _image(self, item: tuple[Any, ...]) -> tuple[float, np.ndarray]:
         import cv2
 
-        t, width, height, data = item
+        t, width, height, data = item[:4]
+        self.captured = float(item[4]) if len(item) > 4 else None
         yuv = np.frombuffer(data, np.uint8).reshape(height * 3 // 2, width)
-        return float(t), cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
+        image = cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
+        if self._size is None:
+            self._size = (width, height)
+        elif (width, height) != self._size:
+            # a browser short of CPU or bandwidth sends smaller frames for a while: the
+            # camera (intrinsics) is the first frame's size, so the image is scaled back
+            image = cv2.resize(image, self._size, interpolation=cv2.INTER_LINEAR)
+        return float(t), image
 
     def open(self) -> SourceInfo:
         if self.inlet is None:

@@ -51,7 +51,10 @@ class Feed:
     def __init__(self, name: str) -> None:
         self.name = name
         self._cond = threading.Condition()
-        self._slot: tuple[float, int, int, bytes] | None = None
+        self._slot: tuple[float, Any, float] | None = None
+        """(media time, the decoded frame, arrival): converted to I420 bytes by the
+        forwarder thread, only when sent (most frames are replaced before a busy worker
+        takes them) and never on the event loop."""
         self._writer: Any = None
         self._next_writer: Any = None
         self.ended = ""
@@ -64,13 +67,17 @@ class Feed:
                                         daemon=True)
         self._thread.start()
 
-    def push(self, t: float, width: int, height: int, i420: bytes) -> None:
+    def push(self, t: float, frame: Any, arrived: float | None = None) -> None:
+        """A frame of media time ``t``: an ``av.VideoFrame``, or ``(width, height,
+        i420_bytes)``; ``arrived``: ``time.monotonic()`` when the server received it (the
+        frame's capture time on the server's clock: the tracker reads it later, after the
+        pipe and the previous frame's tracking). Cheap: called on the event loop."""
         with self._cond:
             if self.ended:
                 return
             self.received += 1
             self.dropped += self._slot is not None
-            self._slot = (t, width, height, i420)
+            self._slot = (t, frame, time.monotonic() if arrived is None else arrived)
             self._cond.notify_all()
 
     def new_inlet(self) -> Any:
@@ -115,9 +122,22 @@ class Feed:
                     return None
                 self._cond.wait()
 
+    @staticmethod
+    def _message(slot: tuple[float, Any, float]) -> tuple[float, int, int, bytes, float]:
+        """The worker's message for a slot: ``(t, width, height, i420_bytes, arrived)``."""
+        t, frame, arrived = slot
+        if isinstance(frame, tuple):
+            width, height, i420 = frame
+        else:  # av.VideoFrame: the conversion copies the planes (with the GIL released)
+            width, height = frame.width, frame.height
+            i420 = frame.to_ndarray(format="yuv420p").tobytes()
+        return (t, width, height, i420, arrived)
+
     def _forward(self) -> None:
         while (job := self._next()) is not None:
             writer, item = job
+            if item[0] != "end":
+                item = self._message(item)
             try:
                 writer.send(item)  # blocks while the worker is busy: the slot fills meanwhile
                 if item[0] != "end":
@@ -130,11 +150,25 @@ class Feed:
             writer.close()
 
 
-async def answer(offer_sdp: str, feed: Feed) -> str:
+class PeerHooks:
+    """What a room adds to a participant's peer connection (:mod:`articast.service.room`):
+    :meth:`prepare` sees the connection once the offer is read, before the answer (it may
+    turn the offer's receive-only audio transceivers into the server's senders);
+    :meth:`audio` gets the participant's microphone track (without hooks it is drained)."""
+
+    def prepare(self, pc: Any) -> None:  # pragma: no cover - the default does nothing
+        pass
+
+    def audio(self, track: Any) -> bool:  # pragma: no cover
+        """True when the track was taken (and will be read); False: drain it."""
+        return False
+
+
+async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> str:
     """Answer a participant's offer: returns the answer's SDP. Raises ValueError (one line)
     for an offer that cannot be answered. The video track's frames go to ``feed``; an audio
-    track is received and dropped (the room will relay it); the peer connection closing,
-    failing or the video ending closes ``feed``."""
+    track goes to ``hooks`` (a room relays it) or is received and dropped; the peer
+    connection closing, failing or the video ending closes ``feed``."""
     from aiortc import RTCPeerConnection, RTCSessionDescription
     from aiortc.mediastreams import MediaStreamError
 
@@ -155,10 +189,11 @@ async def answer(offer_sdp: str, feed: Feed) -> str:
         try:
             while True:
                 frame = await track.recv()
+                arrived = time.monotonic()
                 t_media = frame.time if frame.time is not None else time.monotonic()
                 t0 = t_media if t0 is None else t0
-                i420 = frame.to_ndarray(format="yuv420p")
-                feed.push(t_media - t0, frame.width, frame.height, i420.tobytes())
+                # the frame as decoded: the feed's thread converts it if a worker takes it
+                feed.push(t_media - t0, frame, arrived)
         except MediaStreamError:
             feed.close("the participant's video ended")
 
@@ -171,6 +206,8 @@ async def answer(offer_sdp: str, feed: Feed) -> str:
 
     @pc.on("track")
     def on_track(track: Any) -> None:
+        if track.kind == "audio" and hooks is not None and hooks.audio(track):
+            return
         pump = pump_video if track.kind == "video" else drain
         tasks.append(asyncio.ensure_future(pump(track)))
 
@@ -183,6 +220,8 @@ async def answer(offer_sdp: str, feed: Feed) -> str:
     try:
         await pc.setRemoteDescription(RTCSessionDescription(sdp=offer_sdp, type="offer"))
         if any(r.track is not None and r.track.kind == "video" for r in pc.getReceivers()):
+            if hooks is not None:
+                hooks.prepare(pc)
             await pc.setLocalDescription(await pc.createAnswer())
             problem = ""
         else:

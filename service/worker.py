@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import math
 import multiprocessing
+import os
 import threading
 import time
 import traceback
@@ -103,6 +104,13 @@ def alive_interval(*bounds: float) -> float:
     watchdog: a message handed over late restarted the session."""
     return min([1.0, *(b / 4 for b in bounds if b > 0)])
 
+
+WORKER_NICE = 5
+"""A process worker's niceness above the server's: a tracker takes every CPU cycle it gets
+(it tracks the newest frame, dropping the rest), while the server's event loop must answer
+in time (WebRTC's ICE consent checks: half a second each; its UDP sockets' queues). At equal
+priority two trackers on a loaded 2-core machine starved the loop until the participants'
+connections expired (issue 41)."""
 
 BUSY_MAX_S = 900.0
 """How long :func:`busy` work may say it is alive: the kernels compile in 30-180 s on a
@@ -354,6 +362,8 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the server stops us through the pipe
+    with contextlib.suppress(OSError):  # tracking yields the CPU to the server's event loop
+        os.nice(WORKER_NICE)
     stop, go = threading.Event(), threading.Event()
     # SIGTERM (systemd stops the whole group, terminate() after a join timeout) is a stop,
     # not a crash: finish the frame, say "stopped", exit

@@ -1,0 +1,149 @@
+"""``articast room`` and ``articast room-token``: the virtual meeting room (issue 41).
+
+``articast room`` serves one room on loopback and prints its URL; each participant opens it,
+gives a name, and joins with their camera and microphone (service/room.py, docs/ROOM.md).
+``articast room-token NAME`` prints the participant token (and URL) of NAME for the room
+token in ARTICAST_ROOM_TOKEN or --room-token-file: how the host admits a participant whose
+name is enrolled (their delegate shows their face: the room token alone cannot take it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "room", help="a virtual meeting room: participants join from a browser and see each "
+        "other as their delegates (one command, loopback)",
+        description="Serve one meeting room and print its URL. Each participant opens the URL, "
+        "gives a name and joins with their camera and microphone (WebRTC); every page shows "
+        "every participant's delegate in one 3D scene, the one speaking highlighted, and plays "
+        "the others' voices with their animation on the audio's clock. Nothing is recorded.")
+    p.add_argument("name", nargs="?", default="room", help="the room's name (default room)")
+    _token_arguments(p)
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1: this machine only; a "
+                   "camera page needs https:// beyond it: put a TLS proxy in front)")
+    p.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free)")
+    p.add_argument("--speakers", type=Path, metavar="DIR",
+                   help="enrolled speaker folders, one per participant name (DIR/NAME from "
+                   "'articast enroll'): those participants are tracked as themselves and shown "
+                   "as their own textured delegate; their names need a token from the host")
+    p.add_argument("--max-participants", type=int, default=8,
+                   help="participants at once (default 8; each page receives that many "
+                   "minus one audio tracks)")
+    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    p.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
+    p.set_defaults(func=_room)
+
+    t = sub.add_parser(
+        "room-token", help="print a participant's token for a room (for enrolled names)",
+        description="Print the participant token of NAME for the room token in "
+        "ARTICAST_ROOM_TOKEN or --room-token-file, and the URL that joins with it.")
+    t.add_argument("participant", help="the participant's name")
+    _token_arguments(t)
+    t.add_argument("--url", default="http://127.0.0.1:8765",
+                   help="the room server's address (default http://127.0.0.1:8765)")
+    t.set_defaults(func=_room_token)
+
+
+def _token_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--room-token-file", type=Path, metavar="FILE",
+                   help="the room token (else env ARTICAST_ROOM_TOKEN; 'articast room' makes "
+                   "one for this run when neither is given)")
+
+
+def room_token(args: argparse.Namespace, required: bool) -> str:
+    from articast.core.errors import InputError
+
+    token = ""
+    if args.room_token_file:
+        try:
+            token = args.room_token_file.read_text(encoding="utf-8").strip()
+        except OSError as exc:
+            raise InputError(f"--room-token-file {args.room_token_file}: "
+                             f"{exc.strerror or exc}") from None
+        if not token:
+            raise InputError(f"--room-token-file {args.room_token_file}: empty")
+    token = token or os.environ.get("ARTICAST_ROOM_TOKEN", "").strip()
+    if not token and required:
+        raise InputError("no room token: set ARTICAST_ROOM_TOKEN or --room-token-file FILE "
+                         "(the one 'articast room' was started with)")
+    if token and len(token) < 16:
+        raise InputError("the room token is too short (16 characters or more: anyone who "
+                         "guesses it joins)")
+    return token
+
+
+def _room(args: argparse.Namespace) -> int:
+    import secrets
+
+    from articast.core.errors import InputError
+    from articast.service import webrtc
+    from articast.service.session import NAME_RE
+
+    reason = webrtc.missing()
+    if reason:
+        raise InputError(reason)
+    if not NAME_RE.match(args.name):
+        raise InputError(f"room name {args.name!r}: 1-64 of letters, digits, _ . -")
+    if not 2 <= args.max_participants <= 32:
+        raise InputError("--max-participants: 2 to 32")
+    if args.speakers is not None and not args.speakers.is_dir():
+        raise InputError(f"--speakers {args.speakers}: not a folder")
+    token = room_token(args, required=False)
+    made = not token
+    token = token or secrets.token_urlsafe(24)
+
+    from articast.service.app import ServiceConfig
+    from articast.service.room import RoomConfig
+    from articast.service.security import AccessPolicy
+    from articast.service.server import serve
+    from articast.service.settings import ServerSettings
+
+    # the server's own token (session API, /ws) is the operator's: participants never get it
+    operator = os.environ.get("ARTICAST_TOKEN", "") or secrets.token_urlsafe(24)
+    config = ServiceConfig(
+        server=ServerSettings(host=args.host, port=args.port, log_level=args.log_level),
+        access=AccessPolicy(token=operator, bind_host=args.host),
+        room=RoomConfig(name=args.name, token=token,
+                        speakers=str(args.speakers.resolve()) if args.speakers else "",
+                        max_participants=args.max_participants))
+
+    import logging
+
+    logging.basicConfig(level=args.log_level.upper(), format="articast %(levelname)s: %(message)s")
+
+    def listening(url: str, failed: dict[str, str]) -> None:
+        http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]
+        page = f"{http}/room?room={token}"
+        if args.json:
+            print(json.dumps({"url": page, "room": args.name}), flush=True)
+            return
+        print(f"articast room {args.name}: open {page}\n  give a name and join; each "
+              "participant opens the same URL. Ctrl-C ends the room.", flush=True)
+        if made:
+            print("  (a room token made for this run; to keep one, set ARTICAST_ROOM_TOKEN or "
+                  "--room-token-file)", flush=True)
+
+    serve(config, listening)
+    print(f"articast room {args.name}: ended", file=sys.stderr, flush=True)
+    return 0
+
+
+def _room_token(args: argparse.Namespace) -> int:
+    from articast.core.errors import InputError
+    from articast.service.room import participant_token
+    from articast.service.session import NAME_RE
+
+    if not NAME_RE.match(args.participant):
+        raise InputError(f"participant name {args.participant!r}: 1-64 of letters, digits, "
+                         "_ . -")
+    ptoken = participant_token(room_token(args, required=True), args.participant)
+    print(f"{ptoken}\n{args.url.rstrip('/')}/room?key={ptoken}")
+    return 0

