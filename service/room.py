@@ -210,26 +210,33 @@ class Room:
             self._watcher = asyncio.ensure_future(self.watch())
 
     # ------------------------------------------------------------------ access
-    def check(self, request_key: str, offered: str, expected: str) -> None:
-        t = time.monotonic()
-        wait = self.attempts.blocked(request_key, t)
-        if wait > 0:
-            raise HTTPException(429, f"too many wrong tokens from this address: retry in "
-                                f"{wait:.0f} s")
-        if not offered or not hmac.compare_digest(offered.encode("utf-8", "replace"),
-                                                  expected.encode()):
-            self.attempts.failed(request_key, t)
-            raise HTTPException(401, "wrong or missing token")
-        self.attempts.succeeded(request_key)
+    async def check(self, request_key: str, offered: str, expected: str) -> None:
+        """HTTPException 401 unless ``offered`` is ``expected``. The right token is never
+        held (compared first, in constant time); a wrong one counts against the address and,
+        past the free ones, its answer waits its turn and its delay, then 429, as the
+        server's own token (service/security.py ``FailedAttempts``)."""
+        if offered and hmac.compare_digest(offered.encode("utf-8", "replace"),
+                                           expected.encode()):
+            return
+        wait = 0.0
+        if offered:  # (no token at all is no guess)
+            async with self.attempts.turn(request_key):
+                wait = self.attempts.failed(request_key, time.monotonic())
+                if wait:
+                    await asyncio.sleep(wait)
+        if wait:
+            raise HTTPException(429, "too many wrong tokens from this address: each is "
+                                f"answered after {wait:g} s")
+        raise HTTPException(401, "wrong or missing token")
 
-    def name_of(self, ptoken: str, key: str) -> str:
+    async def name_of(self, ptoken: str, key: str) -> str:
         """The participant a participant token names (HTTPException 401/429 otherwise)."""
         from articast.service.session import NAME_RE
 
         name = ptoken.rpartition(".")[0]
         if not NAME_RE.match(name):
-            self.check(key, "", "x")  # counts as a wrong token
-        self.check(key, ptoken, participant_token(self.config.token, name))
+            await self.check(key, ptoken or "", "\0")  # a wrong token (none: no guess)
+        await self.check(key, ptoken, participant_token(self.config.token, name))
         return name
 
     # ------------------------------------------------------------------ members
@@ -363,7 +370,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
     async def join(request: Request) -> dict[str, Any]:
         """``{"name"}`` with the room token: that participant's token."""
         room.start()
-        room.check(_key(request), request.headers.get(ROOM_HEADER, ""), config.token)
+        await room.check(_key(request), request.headers.get(ROOM_HEADER, ""), config.token)
         body = await _json(request, {"name"})
         name = body.get("name")
         if not isinstance(name, str) or not NAME_RE.match(name):
@@ -380,14 +387,14 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
     @router.get("/room/api/me")
     async def me(request: Request) -> dict[str, Any]:
         """Who a participant token is (a page opened with ``?key=`` asks first)."""
-        name = room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        name = await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
         return {"name": name, "room": config.name, "slots": config.max_participants - 1}
 
     @router.post("/room/api/offer")
     async def offer(request: Request) -> dict[str, Any]:
         """The page's offer as the participant its token names: the answer."""
         room.start()
-        name = room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        name = await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
         reason = webrtc.missing()
         if reason:
             raise HTTPException(501, reason)
@@ -437,14 +444,14 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         return {"type": "answer", "sdp": answer, "name": name, "slots": member.mids}
 
     @router.get("/room/api/delegate/{name}")
-    def delegate(name: str, request: Request) -> Response:
+    async def delegate(name: str, request: Request) -> Response:
         """A member's delegate, for the room's participants only; never cached."""
-        room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
         session = svc.manager.sessions.get(name)
         if name not in room.members or session is None or session.description is None:
             raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
         try:
-            body = session.delegate_json()
+            body = await asyncio.to_thread(session.delegate_json)
         except Exception as exc:  # noqa: BLE001 - InputError: no delegate; said in one line
             raise HTTPException(404, " ".join(str(exc).split())) from None
         return Response(body, media_type="application/json",
@@ -454,7 +461,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
     async def room_socket(ws: WebSocket) -> None:
         key = ws.query_params.get("key", "")
         try:
-            name = room.name_of(key, _key(ws))
+            name = await room.name_of(key, _key(ws))
         except HTTPException as exc:
             from articast.service.middleware import deny
 

@@ -277,13 +277,15 @@ def test_joining_needs_the_room_token_and_a_token_publishes_only_as_its_particip
         assert "ann" not in sessions
         # nobody publishes into a session that has its participant: bob cannot again
         assert offer(c, bob, sdp).status_code == 409
-        # the room's tokens open nothing of the operator's: no session API, no /ws
+        # the room's tokens open nothing of the operator's: no session API, no /ws (each a
+        # wrong token to the server: past its free ones, 429 after a wait, still refused)
+        refused = (401, 429)
         for token in (ROOM, bob):
             h = {"Authorization": f"Bearer {token}"}
-            assert c.get("/api/sessions", headers=h).status_code == 401
-            assert c.delete("/api/sessions/bob", headers=h).status_code == 401
+            assert c.get("/api/sessions", headers=h).status_code in refused
+            assert c.delete("/api/sessions/bob", headers=h).status_code in refused
             assert c.post("/api/sessions/ann/webrtc", headers=h,
-                          json={"type": "offer", "sdp": sdp}).status_code == 401
+                          json={"type": "offer", "sdp": sdp}).status_code in refused
         assert sessions["bob"].state not in ("stopped",)
         # the room socket takes participant tokens only
         from websockets.exceptions import InvalidStatus
@@ -300,10 +302,13 @@ def test_joining_needs_the_room_token_and_a_token_publishes_only_as_its_particip
 
 def test_wrong_tokens_from_one_address_are_slowed_down():
     with ServerThread(config()) as srv, http(srv) as c:
-        codes = [join(c, "ann", room="wrong-room-token-000").status_code for _ in range(8)]
-        assert codes[:5] == [401] * 5 and codes[-1] == 429, codes
-        r = join(c, "ann")  # the right token waits out the lock too
-        assert r.status_code == 429 and "retry in" in r.json()["detail"]
+        codes = [join(c, "ann", room="wrong-room-token-000") for _ in range(7)]
+        assert [r.status_code for r in codes[:5]] == [401] * 5
+        # past the free ones each wrong token is answered late (1 s, then 2 s), with 429
+        assert [r.status_code for r in codes[5:]] == [429, 429]
+        assert "answered after 2 s" in codes[-1].json()["detail"]
+        r = join(c, "ann")  # the right token is never held (clients behind one NAT)
+        assert r.status_code == 200 and r.json()["name"] == "ann"
 
 
 def test_an_enrolled_name_needs_the_hosts_token(tmp_path):
