@@ -39,6 +39,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from articast.client import protocol as P
 from articast.core.errors import ArticastError, InputError
 from articast.service.hub import HubClosed, InMemoryHub
+from articast.service.jsonsafe import dumps
 from articast.service.metrics import render
 from articast.service.middleware import (
     BodyLimit,
@@ -507,9 +508,9 @@ class Service:
             if len(self._hellos) >= 256:
                 self._hellos.pop(next(iter(self._hellos)))
             hit = self._hellos[key] = (session.description, session.source_info, text)
-        rate = "null" if req.rate is None else json.dumps(float(req.rate))
-        options = (f'"streams":{json.dumps([str(x) for x in streams], separators=(",", ":"))},'
-                   f'"encoding":{json.dumps(str(req.encoding))},"rate":{rate},')
+        rate = "null" if req.rate is None else dumps(float(req.rate))
+        options = (f'"streams":{dumps([str(x) for x in streams], separators=(",", ":"))},'
+                   f'"encoding":{dumps(str(req.encoding))},"rate":{rate},')
         return hit[2].replace(HELLO_OPTIONS, options, 1)
 
     def count_drops(self, s: Subscriber) -> None:
@@ -810,7 +811,6 @@ def create_app(config: ServiceConfig | None = None,
 
     async def _offer(request: Request, limit: int) -> dict[str, Any]:
         """The join page's offer, checked; HTTPException(400) in one line otherwise."""
-        import json
 
         try:
             body = json.loads(await request.body())

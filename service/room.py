@@ -52,6 +52,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response
 
+from articast.service.jsonsafe import dumps
 from articast.service.security import FailedAttempts, client_key
 from articast.service.webrtc import PeerHooks
 
@@ -302,7 +303,7 @@ class Room:
     def members_message(self, member: Member) -> str:
         slot_of = {s.member: mid for s, mid in zip(member.slots, member.mids, strict=True)
                    if s.member}
-        return json.dumps({"type": "members", "room": self.config.name, "you": member.name,
+        return dumps({"type": "members", "room": self.config.name, "you": member.name,
                            "t_server": time.time(), "members": [
                                {"name": m.name, "self": m is member, "slot": slot_of.get(m.name),
                                 "delegate": bool(m.speaker), "joined": m.joined,
@@ -470,7 +471,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         await ws.accept()
         member = room.members.get(name)
         if member is None:
-            await ws.send_text(json.dumps({"type": "error", "code": "not_joined",
+            await ws.send_text(dumps({"type": "error", "code": "not_joined",
                                            "reason": f"{name!r} has not joined: send your "
                                            "offer first"}))
             await ws.close(1008, "not joined")
@@ -496,7 +497,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
                     break
                 text = msg.get("text") or ""
                 if text == "ping":
-                    await ws.send_text(json.dumps({"type": "pong", "t_server": time.time()}))
+                    await ws.send_text(dumps({"type": "pong", "t_server": time.time()}))
         except Exception as exc:  # noqa: BLE001 - one broken socket, never the room
             log.debug("room socket of %s ended: %r", name, exc)
         finally:

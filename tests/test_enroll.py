@@ -136,12 +136,20 @@ def test_offline_track_averages_the_two_readers_trackers(enrolled):
     """``articast track --speaker`` (offline, by default) also tracks the clip with the
     finding landmarks read on every frame through the speaker's model
     (core/faces/offline.py, ``second_reader``), smooths it alike, and writes the mean of the
-    two articulations: each line is the midpoint of ``--single-reader``'s and the second
-    tracker's, with ``--single-reader``'s verdicts and head pose, and its lips still follow
-    the truth."""
+    two articulations, its opening then moved half way to the two readers' own lip gap
+    (``with_reader_gap``); ``--single-reader`` writes the first tracker's alone, with its
+    reader's gap. The verdicts and head pose are the first tracker's either way, and the
+    lips still follow the truth."""
     from articast.core.faces.finder import FaceFinder
     from articast.core.faces.live import LiveTracker
-    from articast.core.faces.offline import SECOND_READER, OfflineSmoother, second_reader
+    from articast.core.faces.offline import (
+        SECOND_READER,
+        OfflineSmoother,
+        averaged,
+        reader_ratios,
+        second_reader,
+        with_reader_gap,
+    )
     from articast.core.faces.scheme import mediapipe_scheme
 
     got = {}
@@ -154,23 +162,31 @@ def test_offline_track_averages_the_two_readers_trackers(enrolled):
     sp, frames, ap_true = _test_clip(enrolled)
     second = second_reader(sp)
     assert second is not None
-    live = LiveTracker(second, FaceFinder.load(), mediapipe_scheme(sp.rig), SECOND_READER)
-    smoother = OfflineSmoother.for_live(live)
-    for i, f in enumerate(frames):
-        smoother.add(live.track(f, got["single"][i]["t"]))
-    other = smoother.finish()
+    runs = {}
+    for key, speaker, policy in (("first", sp, None), ("second", second, SECOND_READER)):
+        live = LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(sp.rig), policy)
+        smoother = OfflineSmoother.for_live(live)
+        results = [live.track(f, got["single"][i]["t"]) for i, f in enumerate(frames)]
+        for r in results:
+            smoother.add(r)
+        runs[key] = (smoother.finish(), reader_ratios(results))
+    (first, r1), (other, r2) = runs["first"], runs["second"]
+    m, cam = sp.model, sp.camera
+    want = {"single": with_reader_gap(first, [r1], m, cam),
+            "both": with_reader_gap(averaged(first, other), [r1, r2], m, cam)}
     names = sp.model.param_names
     both, single = got["both"], got["single"]
     assert [r["quality"]["ok"] for r in both] == [r["quality"]["ok"] for r in single]
     assert all(r["pose"] == q["pose"] for r, q in zip(both, single, strict=True))
     mixed = 0
-    for r, q, o in zip(both, single, other, strict=True):
+    for mode in ("single", "both"):
+        for line, w in zip(got[mode], want[mode], strict=True):
+            if w is not None and line["quality"]["ok"]:
+                a = np.array([line["alpha"][n] for n in names])
+                assert np.allclose(a, w.alpha, atol=1e-6)
+    for r, q in zip(both, single, strict=True):
         a, b = (np.array([x["alpha"][n] for n in names]) for x in (r, q))
-        if o is None or not q["quality"]["ok"]:
-            assert np.allclose(a, b)
-        else:
-            assert np.allclose(a, 0.5 * (b + o.alpha), atol=1e-6)
-            mixed += not np.allclose(a, b, atol=1e-3)
+        mixed += not np.allclose(a, b, atol=1e-3)
     assert mixed >= 0.9 * len(both)
     ok = np.array([r["quality"]["ok"] for r in both])
     ap = np.array([r["lips"]["aperture_mm"] for r in both])

@@ -10,7 +10,6 @@ name is enrolled (their delegate shows their face: the room token alone cannot t
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from pathlib import Path
@@ -117,13 +116,15 @@ def _room(args: argparse.Namespace) -> int:
 
     import logging
 
+    from articast.service.jsonsafe import dumps
+
     logging.basicConfig(level=args.log_level.upper(), format="articast %(levelname)s: %(message)s")
 
     def listening(url: str, failed: dict[str, str]) -> None:
         http = url.replace("ws://", "http://", 1).rsplit("/ws", 1)[0]
         page = f"{http}/room?room={token}"
         if args.json:
-            print(json.dumps({"url": page, "room": args.name}), flush=True)
+            print(dumps({"url": page, "room": args.name}), flush=True)
             return
         print(f"articast room {args.name}: open {page}\n  give a name and join; each "
               "participant opens the same URL. Ctrl-C ends the room.", flush=True)
