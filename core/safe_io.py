@@ -13,6 +13,7 @@ the shape its ``.npy`` header declares, must fit ``max_bytes`` (a 4 MB archive m
 
 from __future__ import annotations
 
+import errno
 import io
 import json
 import os
@@ -48,7 +49,7 @@ def open_regular(path: str | os.PathLike[str], what: str = "",
     try:
         fd = os.open(path, flags)
     except OSError as exc:
-        raise InputError(f"{_where(what, path)}: cannot open it ({exc.strerror or exc})"
+        raise InputError(f"{_where(what, path)}: {open_failure(exc, follow_symlinks)}"
                          ) from None
     except ValueError:  # a NUL byte in the name
         raise InputError(f"{_where(what, repr(str(path)))}: not a valid file name") from None
@@ -69,6 +70,15 @@ def open_regular(path: str | os.PathLike[str], what: str = "",
     except BaseException:
         os.close(fd)
         raise
+
+
+def open_failure(exc: OSError, follow_symlinks: bool = True) -> str:
+    """Why a name could not be opened, in words: a link loop said "cannot open it (Too many
+    levels of symbolic links)" (issue 39)."""
+    if exc.errno == errno.ELOOP:
+        return ("a symbolic link loop (its links lead back to themselves)" if follow_symlinks
+                else "is a symbolic link, refused here")
+    return f"cannot open it ({exc.strerror or exc})"
 
 
 def inside(real: str, roots: tuple[str, ...]) -> bool:

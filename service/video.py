@@ -43,7 +43,9 @@ def file_problem(path: str | os.PathLike[str]) -> str:
     except FileNotFoundError:
         return "no such file" if not os.path.lexists(path) else "a link to no file"
     except OSError as exc:
-        return f"cannot open it ({exc.strerror or exc})"
+        from articast.core.safe_io import open_failure
+
+        return open_failure(exc)
     except ValueError:
         return "not a valid file name"
     if stat.S_ISREG(mode):

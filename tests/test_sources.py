@@ -295,3 +295,26 @@ def test_a_session_added_over_http_is_told_what_its_file_is(tmp_path):
     check_uri(f"file:{notes}")  # there and regular: the worker reads it
     with pytest.raises(SourceError, match="a text file, not a video"):
         probe(f"file:{notes}")
+
+
+def test_a_symlink_loop_is_named_a_loop(tmp_path, capsys):
+    """Issue 39: a link that leads back to itself said "cannot open it (Too many levels of
+    symbolic links)" from serve and replay-record; one line now names it a link loop, from
+    the URI check (POST /api/sessions) and from the commands, exit 2, no traceback."""
+    import os
+
+    from articast.service.cli import main
+    from articast.service.sources import check_uri
+
+    loop = tmp_path / "loop.mp4"
+    os.symlink(loop.name, loop)  # loop.mp4 -> loop.mp4
+    for uri in (f"file:{loop}", f"replay-record:{loop}"):
+        with pytest.raises(SourceError, match="loop.mp4: a symbolic link loop"):
+            check_uri(uri)
+    for args in (["serve", "--source", f"x=file:{loop}", "--port", "0"],
+                 ["replay-record", str(loop), "--port", "0"]):
+        assert main(args) == 2
+        out, err = capsys.readouterr()
+        lines = [x for x in err.splitlines() if x.strip()]
+        assert len(lines) == 1 and "loop.mp4: a symbolic link loop" in lines[0], err
+        assert "Traceback" not in err and not out.strip()
