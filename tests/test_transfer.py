@@ -264,3 +264,46 @@ def test_bind_dense_command_writes_a_binding_and_states_the_mode_tolerance(tmp_p
     (tmp_path / "bad.obj").write_text("v 0 0 0\nf 1 2 3\n")
     assert main(args[:1] + [str(tmp_path / "bad.obj")] + args[2:]) == 2
     assert "bad.obj: line 2: face refers to a vertex" in capsys.readouterr().err
+
+
+def test_bind_dense_refuses_degenerate_scans_in_one_line_before_the_work(tmp_path, capsys):
+    """Issue 39: an OBJ of 3 M copies of one triangle, or 1 M vertices and no facet, bound
+    (exit 0 after 20-28 s, 90-101 mm error). A scan is a surface: facets, over vertices the
+    file defines, few of them copies or without area, and a size stated in the message.
+    Small files: the checks are by proportion, and the size limit is tested with a small
+    limit (the same code path as the 2 M default)."""
+    from articast.core.dense.mesh import MAX_SCAN_VERTICES, check_scan_faces
+
+    model = surface_model()
+    model.save(tmp_path / "m.npz")
+    scan, scan_tri = grid(paraboloid, 12, 46.0)
+    good = _obj(scan, scan_tri)
+    vertices = good.split("f ")[0]
+    n_tri = len(scan_tri)
+    cases = {
+        "cloud.obj": (vertices, "no faces (f lines)"),
+        "copies.obj": (vertices + "f 1 2 13\n" * (3 * n_tri), "are duplicates"),
+        "flat.obj": (vertices + "f 1 1 2\n" * n_tri + good[len(vertices):],
+                     "degenerate"),
+    }
+    for name, (text, says) in cases.items():
+        (tmp_path / name).write_text(text)
+        code = main(["bind-dense", str(tmp_path / name), "--model", str(tmp_path / "m.npz"),
+                     "--no-register", "-o", str(tmp_path / "b.npz")])
+        out, err = capsys.readouterr()
+        lines = [x for x in err.splitlines() if x.strip()]
+        assert code == 2 and len(lines) == 1 and name in lines[0] and says in lines[0], err
+        assert not (tmp_path / "b.npz").exists()
+    # a few bad facets among good ones are a real scan's; the good scan binds
+    (tmp_path / "ok.obj").write_text(good + "f 1 2 13\n")
+    assert main(["bind-dense", str(tmp_path / "ok.obj"), "--model", str(tmp_path / "m.npz"),
+                 "--no-register", "-o", str(tmp_path / "b.npz")]) == 0
+    # faces over vertices not defined (an array from elsewhere than parse_obj)
+    with pytest.raises(InputError, match="refer to vertices the file does not define"):
+        check_scan_faces(scan, np.array([[0, 1, len(scan)]]), "s.obj")
+    # the size limits, stated, and hit while reading (not after)
+    assert MAX_SCAN_VERTICES >= 1_000_000
+    with pytest.raises(InputError, match=r"s.obj: line 6: more than 5 vertices, the limit"):
+        parse_obj("v 0 0 0\n" * 10, "s.obj", max_vertices=5)
+    with pytest.raises(InputError, match=r"s.obj: line 5: more than 1 triangles, the limit"):
+        parse_obj("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 3\n", "s.obj", max_faces=1)

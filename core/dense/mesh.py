@@ -224,6 +224,7 @@ def load_obj(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     text = read_regular_bytes(path).decode("utf-8", errors="replace")
     verts, tris = parse_obj(text, source=str(path))
     check_scan(verts, tris, source=str(path))
+    check_scan_faces(verts, tris, source=str(path))
     return verts, tris
 
 
@@ -247,12 +248,52 @@ def check_scan(verts: np.ndarray, tris: np.ndarray, source: str = "<obj>") -> No
                          "or on one line)")
 
 
-def parse_obj(text: str, source: str = "<obj>") -> tuple[np.ndarray, np.ndarray]:
+MAX_SCAN_VERTICES = 2_000_000
+"""Vertices of a scan bind-dense takes: a fine face scan has ~0.1-1 M (binding 1 M took
+20-28 s); beyond, it is a point cloud to decimate first."""
+MAX_SCAN_FACES = 4_000_000
+"""Triangles of a scan (after splitting polygons into fans): twice the vertex limit."""
+MAX_BAD_FACE_FRACTION = 0.1
+"""Duplicate or degenerate (zero-area) triangles a real scan may carry: a few from its
+mesher; a file of mostly such facets (3 M copies of one triangle bound with a 90-101 mm
+error, exit 0) is not a face's surface."""
+
+
+def check_scan_faces(verts: np.ndarray, tris: np.ndarray, source: str = "<obj>",
+                     max_bad_fraction: float = MAX_BAD_FACE_FRACTION) -> None:
+    """A scan is a surface: it has facets, each naming three vertices it defines, and few of
+    them are copies of another or of zero area. One :class:`InputError` line otherwise,
+    before any binding (1 M vertices without a facet bound, exit 0, with a 90-101 mm error)."""
+    if len(tris) == 0:
+        raise InputError(f"{source}: no faces (f lines): a scan is a surface, not a point "
+                         f"cloud ({len(verts)} vertices and no facet)")
+    if tris.min() < 0 or tris.max() >= len(verts):
+        raise InputError(f"{source}: faces refer to vertices the file does not define "
+                         f"(indices {int(tris.min()) + 1}..{int(tris.max()) + 1} of "
+                         f"{len(verts)})")
+    corners = np.sort(tris, axis=1)
+    repeated = (corners[:, 0] == corners[:, 1]) | (corners[:, 1] == corners[:, 2])
+    a, b, c = verts[tris[:, 0]], verts[tris[:, 1]], verts[tris[:, 2]]
+    area2 = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    scale = float(np.ptp(verts, axis=0).max()) or 1.0
+    flat = repeated | (area2 <= 1e-12 * scale * scale)
+    copies = len(corners) - len(np.unique(corners, axis=0))
+    bad = int(flat.sum()) + copies
+    if bad > max_bad_fraction * len(tris):
+        raise InputError(f"{source}: {bad} of {len(tris)} faces are duplicates ({copies}) or "
+                         f"degenerate ({int(flat.sum())}: a repeated vertex or no area), over "
+                         f"the {max_bad_fraction:.0%} a scan may have: not a surface to bind")
+
+
+def parse_obj(text: str, source: str = "<obj>", max_vertices: int = MAX_SCAN_VERTICES,
+              max_faces: int = MAX_SCAN_FACES) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (M, 3) and triangles (Q, 3) of a Wavefront OBJ text (e.g. a face scan).
 
     Reads ``v x y z`` and ``f`` lines (``i``, ``i/t``, ``i//n``, ``i/t/n``, 1-based or
     negative indices); polygons are split into triangle fans; other statements are ignored.
-    Raises :class:`InputError` ``"<source>: line <n>: <reason>"``.
+    Raises :class:`InputError` ``"<source>: line <n>: <reason>"``, also as soon as the file
+    holds more than ``max_vertices`` vertices or ``max_faces`` triangles (no work on a scan
+    that is refused anyway).
     """
     verts: list[list[float]] = []
     faces: list[list[int]] = []
@@ -265,6 +306,9 @@ def parse_obj(text: str, source: str = "<obj>") -> tuple[np.ndarray, np.ndarray]
                 if len(parts) < 4:
                     raise ValueError("a vertex needs 3 coordinates")
                 verts.append([float(p) for p in parts[1:4]])
+                if len(verts) > max_vertices:
+                    raise InputError(f"{source}: line {n}: more than {max_vertices} vertices, "
+                                     "the limit for a face scan (decimate it first)")
                 continue
             idx = [int(p.split("/")[0]) for p in parts[1:]]
         except ValueError as exc:
@@ -275,6 +319,9 @@ def parse_obj(text: str, source: str = "<obj>") -> tuple[np.ndarray, np.ndarray]
         if any(not 0 <= i < len(verts) for i in idx):
             raise InputError(f"{source}: line {n}: face refers to a vertex not defined before")
         faces.extend([idx[0], idx[j], idx[j + 1]] for j in range(1, len(idx) - 1))
+        if len(faces) > max_faces:
+            raise InputError(f"{source}: line {n}: more than {max_faces} triangles, the limit "
+                             "for a face scan (decimate it first)")
     vertices = np.array(verts, dtype=np.float64).reshape(-1, 3)
     if len(vertices) == 0:
         raise InputError(f"{source}: no vertices")
