@@ -425,6 +425,15 @@ def test_export_fap_resamples_to_a_given_fps(tmp_path):
     ((1, '{"frame": 1, "t": 10.03, "alpha": {"jaw1": "0.5"}, "pose": {"rotation": [3, 0, 0], '
          '"translation": [0, 0, 400]}}'),
      r"line 2: not a track record: alpha jaw1 must be a number, not '0.5'"),
+    ((1, '{"frame": 1, "t": 10.03, "alpha": {"jaw1": 0}, "pose": {"rotation": ["3", 0, 0], '
+         '"translation": [0, 0, 400]}}'),
+     r"line 2: not a track record: pose rotation must be 3 numbers, not \['3', 0, 0\]"),
+    ((3, '{"frame": 3, "t": 10.1, "alpha": {"jaw1": 0}, "pose": {"rotation": [3, 0, 0], '
+         '"translation": [0, 0, 400]}, "quality": {"ok": "false"}}'),
+     r"line 4: not a track record: quality ok must be true or false, not 'false'"),
+    ((2, '{"frame": 2, "t": 10.07, "alpha": {"jaw1": 0}, "pose": {"rotation": [3, 0, 0], '
+         '"translation": [0, 0, 400]}, "quality": {"residual": "0.1"}}'),
+     r"line 3: not a track record: quality residual must be a number, not '0.1'"),
 ])  # fmt: skip
 def test_export_fap_reports_malformed_lines(tmp_path, capsys, corrupt, message):
     assert main(_track(tmp_path, corrupt=corrupt)) == 2

@@ -109,6 +109,22 @@ def _require_numbers(doc: dict[str, Any]) -> None:
         for name, v in alpha.items():
             if not _number(v):
                 raise ValueError(f"alpha {name} must be a number, not {v!r:.40}")
+    # the pose's numbers were read through float() too ("rotation": ["0", ...] passed), and
+    # "ok": "false" was bool("false"), a good frame
+    pose = doc.get("pose")
+    if isinstance(pose, dict):
+        for key in ("rotation", "translation"):
+            v = pose.get(key)
+            if isinstance(v, list) and not all(_number(x) for x in v):
+                raise ValueError(f"pose {key} must be 3 numbers, not {str(v)[:40]}")
+    quality = doc.get("quality", {})
+    if not isinstance(quality, dict):
+        raise ValueError(f"quality must be an object, not {quality!r:.40}")
+    if "ok" in quality and not isinstance(quality["ok"], bool):
+        raise ValueError(f"quality ok must be true or false, not {quality['ok']!r:.40}")
+    for key in ("residual", "ms", "evals", "iterations"):
+        if quality.get(key) is not None and not _number(quality[key]):
+            raise ValueError(f"quality {key} must be a number, not {quality[key]!r:.40}")
 
 
 def hold_last_good(
