@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 
 from articast.service.settings import CaptureSettings
-from articast.service.sources import Frame, Source, SourceAssets, SourceInfo, SourceUnavailable
+from articast.service.source_types import Frame, Source, SourceAssets, SourceInfo, SourceUnavailable
 
 StatusCallback = Callable[[str, str], None]
 

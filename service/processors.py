@@ -26,7 +26,7 @@ import numpy as np
 
 from articast.core.errors import ArticastError, InputError
 from articast.core.tracking.result import TrackResult
-from articast.service.sources import Frame, SourceAssets, SourceInfo
+from articast.service.source_types import Frame, SourceAssets, SourceInfo
 
 
 class FrameProcessor(Protocol):

@@ -22,7 +22,7 @@ from articast.core.errors import ArticastError
 from articast.core.model.face import PARAM_NAMES
 from articast.core.tracking.result import TrackResult
 from articast.service.jsonsafe import dumps
-from articast.service.sources import SourceAssets, SourceError
+from articast.service.source_types import SourceAssets, SourceError
 from articast.service.wire import FrameRecord, model_from_description
 
 RECORD_FORMAT = "articast-record"
