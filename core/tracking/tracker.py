@@ -444,10 +444,10 @@ class Tracker:
                        else f"diverged: residual {fit.robust_residual:.3g} is far above its "
                             f"running level {self._rlevel or 0:.3g} (occlusion or lost face)")
                 return self._lost(t, t0, why, evals, fit)
-        occluded = self.occlusion(fit.point_q, fit.gain, staying=self._occluding,
-                                  pose=Pose.from_vector(fit.theta[self.k:]))
+        fit_pose = Pose(fit.rotation, fit.translation)
+        occluded = self.occlusion(fit.point_q, fit.gain, staying=self._occluding, pose=fit_pose)
         if (occluded is not None and ev is not None and ev.confirm is not None
-                and ev.confirm(fit.alpha, Pose(fit.rotation, fit.translation))):
+                and ev.confirm(fit.alpha, fit_pose)):
             occluded = None
         self._suspect = self._suspect + 1 if occluded else 0
         if occluded and not self._occluding and self._suspect < self.policy.occlusion_frames:
