@@ -22,3 +22,14 @@ def speaker4_enrolled(tmp_path_factory):
     assert main(["enroll", str(d / "clip" / "video.mp4"), "-o", str(d / "speaker"),
                  "--quiet", "--json"]) == 0
     return d
+
+
+@pytest.fixture(scope="module")
+def media(tmp_path_factory):
+    """A folder (per test module) holding a 2 s recording, talk.jsonl, for the service tests
+    that serve one (``replay-record:``)."""
+    from tests.service_helpers import write_recording
+
+    root = tmp_path_factory.mktemp("media")
+    write_recording(root / "talk.jsonl", frames=60, fps=30)
+    return root

@@ -27,13 +27,6 @@ ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "hardening-token-0123456789"
 
 
-@pytest.fixture(scope="module")
-def media(tmp_path_factory):
-    root = tmp_path_factory.mktemp("media")
-    write_recording(root / "talk.jsonl", frames=60, fps=30)
-    return root
-
-
 def _config(media, token=TOKEN, **hub):
     return ServiceConfig(
         server=ServerSettings(log_level="critical"),

@@ -21,7 +21,7 @@ from articast.service.app import ServiceConfig
 from articast.service.security import AccessPolicy
 from articast.service.settings import HubSettings, ServerSettings, SessionPolicy
 from articast.service.worker import SessionSpec
-from tests.service_helpers import TIMEOUT, ServerThread, write_recording
+from tests.service_helpers import TIMEOUT, ServerThread
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "s3cret-token-for-tests"
@@ -29,13 +29,6 @@ TOKEN = "s3cret-token-for-tests"
 
 def run(coro):
     return asyncio.run(asyncio.wait_for(coro, 6 * TIMEOUT))
-
-
-@pytest.fixture(scope="module")
-def media(tmp_path_factory):
-    root = tmp_path_factory.mktemp("media")
-    write_recording(root / "talk.jsonl", frames=60, fps=30)
-    return root
 
 
 @pytest.fixture(scope="module")

@@ -21,18 +21,11 @@ from articast.service.app import ServiceConfig
 from articast.service.security import AccessPolicy
 from articast.service.settings import HubSettings, ServerSettings
 from articast.service.worker import SessionSpec
-from tests.service_helpers import TIMEOUT, ServerThread, write_recording
+from tests.service_helpers import TIMEOUT, ServerThread
 
 ROOT = Path(__file__).resolve().parents[1]
 TOKEN = "abuse-test-token-0123456789"
 SUB = json.dumps({"type": "subscribe", "session": "rec", "geometry": False})
-
-
-@pytest.fixture(scope="module")
-def media(tmp_path_factory):
-    root = tmp_path_factory.mktemp("media")
-    write_recording(root / "talk.jsonl", frames=60, fps=30)
-    return root
 
 
 def _config(media, token=TOKEN, **hub):
