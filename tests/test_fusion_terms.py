@@ -494,3 +494,23 @@ def test_a_measurement_of_the_articulation_is_the_product_of_the_two_gaussians()
     assert np.allclose(both.information[:k, :k], info[:k, :k] + m_info)
     # between the two means, nearer the surer
     assert np.linalg.norm(both.alpha - meas) < np.linalg.norm(pred.alpha - meas)
+
+
+@pytest.mark.skipif(not __import__("articast.core.tracking.kernels",
+                                   fromlist=["AVAILABLE"]).AVAILABLE,
+                    reason="numba is not installed: the numpy path is the only one")
+def test_the_compiled_reading_features_are_the_numpy_ones():
+    """The live tracker's compiled features (normal equations) give the numpy reference's
+    (QR) on the regression case's readings, at the true and at a wrong pose."""
+    from articast.core.tracking import kernels
+    from articast.core.tracking.points import ReadingRegression
+
+    pm, reg, test, reads = _regression_case()
+    assert reg is not None and kernels.AVAILABLE
+    for (_, p), uv in list(zip(test, reads, strict=True))[:10]:
+        for pose in (p, Pose(p.rotation + 0.02, p.translation + 5.0)):
+            want = ReadingRegression.features_numpy(pm.mean, CAM, uv, pose.matrix,
+                                                    pose.translation)
+            got = reg.features(pm.mean, CAM, uv, pose.matrix, pose.translation)
+            assert np.abs(want).max() > 1e-3  # (offsets there to compare)
+            np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())

@@ -115,3 +115,37 @@ def test_offline_the_opening_is_half_the_readers_gap_half_the_smoothed_fits(mode
     np.testing.assert_allclose(got, 0.5 * smooth + 0.5 * own, atol=2e-4)
     assert out[4] is frames[0]  # not read: as smoothed
     assert with_reader_gap(frames, [v1], model, cam, 0.0) is frames
+
+
+@pytest.mark.skipif(not __import__("articast.core.tracking.kernels",
+                                   fromlist=["AVAILABLE"]).AVAILABLE,
+                    reason="numba is not installed: the live tracker uses the numpy path")
+@pytest.mark.parametrize("share", [0.5, 1.0])
+def test_the_compiled_lip_gap_is_the_numpy_one(model, share):
+    """The live tracker's one compiled call (kernels.lip_gap) gives what model_ratios and one
+    iteration of matched give, over random states, targets and poses, including a target out
+    of reach (the step's length limit) and a reading of NaN (alpha unchanged)."""
+    from articast.core.faces import lipgap
+    from articast.core.tracking import kernels
+
+    cam = Camera.default(640, 480)
+    mean, basis = lipgap.lip_points(model)
+    intr = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
+    rng = np.random.default_rng(1)
+    moved = 0
+    for i in range(40):
+        pose = Pose(rotation=np.array([np.pi, 0, 0]) + rng.normal(0, 0.15, 3),
+                    translation=np.array([0, 0, 450.0]) + rng.normal(0, 20, 3))
+        alpha, fitted = rng.normal(0, 1, model.n_params), rng.normal(0, 1, model.n_params)
+        read = [float("nan"), 2.0][i] if i < 2 else float(rng.uniform(-0.05, 0.4))
+        target = read
+        if share < 1.0:
+            f = float(model_ratios(model, cam, fitted[None], pose)[0])
+            target = share * read + (1 - share) * f
+        want = matched(model, cam, alpha, pose, target, iterations=1)
+        got = kernels.lip_gap(mean, basis, pose.matrix, np.array(pose.translation), intr,
+                              alpha, fitted, read, share, lipgap.PROBE_STEP,
+                              lipgap.MAX_CHANGE, lipgap.TOLERANCE)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+        moved += not np.allclose(got, alpha)
+    assert moved >= 30  # (the comparison is not of alphas left where they were)

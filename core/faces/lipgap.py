@@ -23,6 +23,7 @@ Pure functions over numpy arrays; :class:`~articast.core.faces.live.LiveTracker`
 
 from __future__ import annotations
 
+import math
 import weakref
 
 import numpy as np
@@ -37,6 +38,14 @@ MODEL_POINTS = ("2.2", "2.3", "8.4", "8.3")
 """The model's MPEG-4 points the scheme builds from those four landmarks, in the same order."""
 WIDTH_POINTS = ("2.5", "2.4")
 """The inner lip corners: the streamed mouth width (``lips.width_mm``) is theirs."""
+
+
+PROBE_STEP = 1e-3
+"""The central differences' step of :func:`matched` (s.d.)."""
+MAX_CHANGE = 3.0
+"""The longest step :func:`matched` takes (s.d.)."""
+TOLERANCE = 1e-4
+""":func:`matched` stops where the ratio is this close to its target."""
 
 
 def gap_ratio(points: np.ndarray) -> np.ndarray:
@@ -60,18 +69,18 @@ def reader_ratio(landmarks: np.ndarray) -> float:
     return float(gap_ratio(marks[list(READER_POINTS), :2]))
 
 
-_POINTS: weakref.WeakKeyDictionary[FaceModel, tuple[np.ndarray, np.ndarray]] = (
+_POINTS_OF: weakref.WeakKeyDictionary[FaceModel, tuple[np.ndarray, np.ndarray]] = (
     weakref.WeakKeyDictionary())
 
 
-def _points(model: FaceModel) -> tuple[np.ndarray, np.ndarray]:
+def lip_points(model: FaceModel) -> tuple[np.ndarray, np.ndarray]:
     """The four points and the two inner corners: their mean (6, 3) and basis (K, 18), taken
     once per model."""
-    got = _POINTS.get(model)
+    got = _POINTS_OF.get(model)
     if got is None:
         idx = [model.point(label) for label in (*MODEL_POINTS, *WIDTH_POINTS)]
         got = (model.mean[idx], model.basis[:, idx, :].reshape(model.n_params, -1))
-        _POINTS[model] = got
+        _POINTS_OF[model] = got
     return got
 
 
@@ -79,11 +88,22 @@ def model_measures(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: P
                    ) -> tuple[np.ndarray, np.ndarray]:
     """(N,) the model's ratio at each of ``alphas`` (N, K), projected at ``pose``, and (N,)
     its mouth width in mm (the inner corners' distance: the streamed ``lips.width_mm``)."""
-    mean, basis = _points(model)
+    mean, basis = lip_points(model)
     a = np.atleast_2d(np.asarray(alphas, np.float64))
     pts = (a @ basis).reshape(len(a), 6, 3) + mean
-    uv = camera.project_head(pts[:, :4].reshape(-1, 3), pose).reshape(len(a), 4, 2)
-    return gap_ratio(uv), np.linalg.norm(pts[:, 5] - pts[:, 4], axis=-1)
+    if camera.dist.any():
+        uv = camera.project_head(pts[:, :4].reshape(-1, 3), pose).reshape(len(a), 4, 2)
+    else:  # (the pinhole inline: this runs on every frame, twice, Camera.project's checks
+        # and Jacobian plumbing cost more than the sums; behind the camera gives NaN alike)
+        cam_pts = pts[:, :4] @ pose.matrix.T + pose.translation
+        z = cam_pts[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            iz = np.where(z > 1e-6, 1.0 / z, np.nan)
+        uv = np.empty((len(a), 4, 2))
+        uv[..., 0] = camera.fx * cam_pts[..., 0] * iz + camera.cx
+        uv[..., 1] = camera.fy * cam_pts[..., 1] * iz + camera.cy
+    d = pts[:, 5] - pts[:, 4]
+    return gap_ratio(uv), np.sqrt((d * d).sum(-1))
 
 
 def model_ratios(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: Pose
@@ -92,9 +112,23 @@ def model_ratios(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: Pos
     return model_measures(model, camera, alphas, pose)[0]
 
 
+def _solve2(gram: np.ndarray, r0: float, r1: float) -> np.ndarray | None:
+    """The solution of the symmetric positive semi-definite 2 x 2 system ``gram`` x = (r0,
+    r1), or None where its condition number is 1e8 or more (closed forms: numpy's ``cond``
+    and ``solve`` cost more on a 2 x 2 than the step they serve)."""
+    a, b, d = float(gram[0, 0]), float(gram[0, 1]), float(gram[1, 1])
+    half = 0.5 * (a + d)
+    disc = math.sqrt(max(0.25 * (a - d) ** 2 + b * b, 0.0))
+    low, high = half - disc, half + disc
+    if not (low > 0.0 and high < 1e8 * low):
+        return None
+    det = a * d - b * b
+    return np.array([(d * r0 - b * r1) / det, (a * r1 - b * r0) / det])
+
+
 def matched(model: FaceModel, camera: Camera, alpha: np.ndarray, pose: Pose, target: float,
-            iterations: int = 2, step: float = 1e-3, max_change: float = 3.0,
-            tolerance: float = 1e-4) -> np.ndarray:
+            iterations: int = 2, step: float = PROBE_STEP, max_change: float = MAX_CHANGE,
+            tolerance: float = TOLERANCE) -> np.ndarray:
     """``alpha`` moved by the smallest step (Euclidean, in the model's s.d. units) after which
     the model's projected ratio is ``target`` and its mouth width what it was (the reading
     tells the opening, not the width: a step along the ratio's gradient alone moved the
@@ -126,8 +160,9 @@ def matched(model: FaceModel, camera: Camera, alpha: np.ndarray, pose: Pose, tar
             break
         jac = np.stack([grad, (ws[1:k + 1] - ws[k + 1:]) / (2 * step)])
         gram = jac @ jac.T
-        if np.linalg.cond(gram) < 1e8:  # both: the smallest step that keeps the width
-            a = a + jac.T @ np.linalg.solve(gram, [target - rs[0], width - ws[0]])
+        both = _solve2(gram, target - float(rs[0]), float(width - ws[0]))
+        if both is not None:  # both: the smallest step that keeps the width
+            a = a + jac.T @ both
         else:  # (the width moves with the opening alone: the ratio's step)
             a = a + grad * (target - rs[0]) / g2
     change = a - alpha

@@ -40,6 +40,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from articast.core.faces import lipgap
 from articast.core.faces.enrol import LandmarkScheme
 from articast.core.faces.finder import FaceFinder, reader_seed
 from articast.core.faces.fit import state_from_landmarks
@@ -49,6 +50,7 @@ from articast.core.faces.speaker import Speaker
 from articast.core.faces.upper import UpperTracker
 from articast.core.model.camera import Pose, axis_angle
 from articast.core.outputs.lips import lip_measures, lips_dict
+from articast.core.tracking import kernels
 from articast.core.tracking.filters import CadenceCanceller, OneEuroFilter, OneEuroPolicy
 from articast.core.tracking.fitting import StatePrior
 from articast.core.tracking.kalman import ConstantVelocity
@@ -508,6 +510,14 @@ class LiveTracker:
             return alpha
         m, cam = self.speaker.model, self.speaker.camera
         w = fu.reader_gap
+        if kernels.AVAILABLE and not cam.dist.any():  # the same below, in one compiled call
+            mean, basis = lipgap.lip_points(m)
+            pose = result.pose
+            return kernels.lip_gap(mean, basis, pose.matrix, np.array(pose.translation),
+                                   np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
+                                   np.array(alpha, np.float64), np.array(result.alpha, np.float64),
+                                   float(read), float(w), lipgap.PROBE_STEP,
+                                   lipgap.MAX_CHANGE, lipgap.TOLERANCE)
         target = read
         if w < 1.0:  # the fit's own opening, raw (before the output filter: no lag)
             fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])

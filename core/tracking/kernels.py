@@ -608,6 +608,141 @@ def lm_solve(h, g, lam):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.points.ReadingRegression.features` for a camera without
+    distortion (intr: fx, fy, cx, cy): the reading ``uv`` (M, 2) px as head-frame x, y
+    offsets (mm) from ``mean`` (M, 3) posed by (rot, t), less their least-squares fit by the
+    six patterns of a small head move (the numpy reference projects them out with a QR; here
+    the 6 x 6 normal equations: the same projection where the patterns are independent, as
+    ~hundreds of points make them; a test checks both agree)."""
+    m = mean.shape[0]
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    f = np.empty(2 * m)
+    moves = np.empty((2 * m, 6))
+    for i in range(m):
+        px = rot[0, 0] * mean[i, 0] + rot[0, 1] * mean[i, 1] + rot[0, 2] * mean[i, 2]
+        py = rot[1, 0] * mean[i, 0] + rot[1, 1] * mean[i, 1] + rot[1, 2] * mean[i, 2]
+        pz = rot[2, 0] * mean[i, 0] + rot[2, 1] * mean[i, 1] + rot[2, 2] * mean[i, 2]
+        x, y, z = px + t[0], py + t[1], pz + t[2]
+        iz = 1.0 / z if z > 1e-6 else np.nan
+        d0 = (uv[i, 0] - (fx * x * iz + cx)) * z / fx
+        d1 = (uv[i, 1] - (fy * y * iz + cy)) * z / fy
+        f[2 * i] = d0 * rot[0, 0] + d1 * rot[1, 0]
+        f[2 * i + 1] = d0 * rot[0, 1] + d1 * rot[1, 1]
+        # d(cam)/d(turn, translation): -[p]x then the identity; through the projection and
+        # back to mm at the point's depth: the image-plane offset's x row (1, 0, -x/z),
+        # y row (0, 1, -y/z)
+        dcam = np.zeros((3, 6))
+        dcam[0, 1], dcam[0, 2] = pz, -py
+        dcam[1, 0], dcam[1, 2] = -pz, px
+        dcam[2, 0], dcam[2, 1] = py, -px
+        dcam[0, 3] = dcam[1, 4] = dcam[2, 5] = 1.0
+        for q in range(6):
+            e0 = dcam[0, q] - x * iz * dcam[2, q]
+            e1 = dcam[1, q] - y * iz * dcam[2, q]
+            moves[2 * i, q] = e0 * rot[0, 0] + e1 * rot[1, 0]
+            moves[2 * i + 1, q] = e0 * rot[0, 1] + e1 * rot[1, 1]
+    gram = moves.T @ moves
+    coef = np.linalg.solve(gram, moves.T @ f)
+    return f - moves @ coef
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lip_measures(mean, basis, a, rot, t, intr, out, row):  # pragma: no cover - compiled
+    """The lips' ratio and width at articulation ``a`` into out[row] (see lip_gap)."""
+    k = a.shape[0]
+    pts = np.empty((6, 3))
+    for j in range(6):
+        for c in range(3):
+            acc = mean[j, c]
+            for q in range(k):
+                acc += a[q] * basis[q, 3 * j + c]
+            pts[j, c] = acc
+    uv = np.empty((4, 2))
+    for j in range(4):
+        x = rot[0, 0] * pts[j, 0] + rot[0, 1] * pts[j, 1] + rot[0, 2] * pts[j, 2] + t[0]
+        y = rot[1, 0] * pts[j, 0] + rot[1, 1] * pts[j, 1] + rot[1, 2] * pts[j, 2] + t[1]
+        z = rot[2, 0] * pts[j, 0] + rot[2, 1] * pts[j, 1] + rot[2, 2] * pts[j, 2] + t[2]
+        iz = 1.0 / z if z > 1e-6 else np.nan
+        uv[j, 0] = intr[0] * x * iz + intr[2]
+        uv[j, 1] = intr[1] * y * iz + intr[3]
+    ax, ay = uv[3, 0] - uv[2, 0], uv[3, 1] - uv[2, 1]
+    w2 = ax * ax + ay * ay
+    dn = (uv[1, 0] - uv[0, 0]) * (-ay) + (uv[1, 1] - uv[0, 1]) * ax
+    out[row, 0] = dn / w2 if w2 > 0.0 else np.nan
+    dx, dy, dz = pts[5, 0] - pts[4, 0], pts[5, 1] - pts[4, 1], pts[5, 2] - pts[4, 2]
+    out[row, 1] = np.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True, nogil=True)
+def lip_gap(mean, basis, rot, t, intr, alpha, fitted, read, share, step, max_change,
+            tolerance):  # pragma: no cover - compiled
+    """:meth:`articast.core.faces.live.LiveTracker._lip_gap` in one call, for a camera
+    without distortion (intr: fx, fy, cx, cy): the target ratio ``share`` x ``read`` + the
+    rest x the ratio at ``fitted`` (the reading alone where that is not finite), then one
+    iteration of :func:`articast.core.faces.lipgap.matched` from ``alpha`` (the numpy
+    reference; a test checks they agree). ``mean`` (6, 3) and ``basis`` (K, 18): the
+    points of :func:`articast.core.faces.lipgap._points`."""
+    k = alpha.shape[0]
+    out = np.empty((2 * k + 1, 2))
+    target = read
+    if share < 1.0:
+        _lip_measures(mean, basis, fitted, rot, t, intr, out, 0)
+        if np.isfinite(out[0, 0]):
+            target = share * read + (1.0 - share) * out[0, 0]
+    a = alpha.copy()
+    if not np.isfinite(target):
+        return a
+    _lip_measures(mean, basis, a, rot, t, intr, out, 0)
+    probe = a.copy()
+    for q in range(k):
+        probe[q] = a[q] + step
+        _lip_measures(mean, basis, probe, rot, t, intr, out, 1 + q)
+        probe[q] = a[q] - step
+        _lip_measures(mean, basis, probe, rot, t, intr, out, 1 + k + q)
+        probe[q] = a[q]
+    for i in range(2 * k + 1):
+        if not np.isfinite(out[i, 0]):
+            return alpha.copy()
+    if abs(target - out[0, 0]) <= tolerance:
+        return a
+    grad = np.empty(k)
+    gw = np.empty(k)
+    g2 = 0.0
+    for q in range(k):
+        grad[q] = (out[1 + q, 0] - out[1 + k + q, 0]) / (2 * step)
+        gw[q] = (out[1 + q, 1] - out[1 + k + q, 1]) / (2 * step)
+        g2 += grad[q] * grad[q]
+    if g2 <= 1e-18:
+        return a
+    ga, gb, gd = 0.0, 0.0, 0.0
+    for q in range(k):
+        ga += grad[q] * grad[q]
+        gb += grad[q] * gw[q]
+        gd += gw[q] * gw[q]
+    r0, r1 = target - out[0, 0], 0.0  # (the width kept where it stands)
+    half = 0.5 * (ga + gd)
+    disc = np.sqrt(max(0.25 * (ga - gd) ** 2 + gb * gb, 0.0))
+    low, high = half - disc, half + disc
+    if low > 0.0 and high < 1e8 * low:
+        det = ga * gd - gb * gb
+        x0, x1 = (gd * r0 - gb * r1) / det, (ga * r1 - gb * r0) / det
+        for q in range(k):
+            a[q] += grad[q] * x0 + gw[q] * x1
+    else:
+        for q in range(k):
+            a[q] += grad[q] * r0 / g2
+    norm = 0.0
+    for q in range(k):
+        norm += (a[q] - alpha[q]) ** 2
+    norm = np.sqrt(norm)
+    if norm > max_change:
+        for q in range(k):
+            a[q] = alpha[q] + (a[q] - alpha[q]) * (max_change / norm)
+    return a
+
+
+@njit(cache=True, nogil=True)
 def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover - compiled
     """:func:`articast.core.tracking.points.offset_fraction` of readings ``seen`` (M, 2) px from
     the points mean + basis_mk @ alpha (M, 3) posed by (rot, t) and projected by a camera
@@ -981,6 +1116,10 @@ def warm_up() -> None:
     lm_solve(h, g, 1e-3)
     point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8), np.eye(3),
                  np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
+    reading_features(np.random.default_rng(0).normal(0, 50, (8, 3)), np.eye(3),
+                     np.array([0.0, 0.0, 500.0]), intr, np.zeros((8, 2)))
+    lip_gap(np.zeros((6, 3), f8), np.zeros((1, 18), f8), np.eye(3), np.array([0.0, 0.0, 100.0]),
+            intr, np.zeros(1, f8), np.zeros(1, f8), 0.1, 0.5, 1e-3, 3.0, 1e-4)
     eye = np.zeros((8, 12), np.float32)
     mask = np.ones((8, 12), np.uint8)
     iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
@@ -997,7 +1136,8 @@ def compiled_on_disk() -> bool:
         return True
     try:
         kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                    lm_system, lm_solve, point_offset, cv_predict,
+                                    lm_system, lm_solve, point_offset, lip_gap, reading_features,
+                                    cv_predict,
                                     cv_update, iris_chords, iris_former_rows)
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)

@@ -86,6 +86,18 @@ class ReadingRegression:
         every part a small move of the head would make: the live pose is a prediction, and a
         pose off by a millimetre shifts every offset alike, a pattern the enrolment never
         showed the regression (which would read it as articulation)."""
+        if kernels.AVAILABLE and not camera.dist.any():  # the same in one compiled call
+            return kernels.reading_features(
+                np.array(mean, np.float64), np.array(rotation, np.float64),
+                np.array(translation, np.float64),
+                np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+                np.array(uv, np.float64))  # (copies: a read-only array is another type)
+        return ReadingRegression.features_numpy(mean, camera, uv, rotation, translation)
+
+    @staticmethod
+    def features_numpy(mean: np.ndarray, camera: Camera, uv: np.ndarray, rotation: np.ndarray,
+                       translation: np.ndarray) -> np.ndarray:
+        """:meth:`features` in numpy (the reference of the compiled call)."""
         cam = mean @ rotation.T + translation
         pred, jac = camera.project_jacobian(cam, True)
         assert jac is not None
