@@ -142,6 +142,75 @@ def _targets(doc, binary):
                   for n, t in zip(names, prim["targets"], strict=True)}
 
 
+def _fill(poly, size=400, box=None):
+    """A boolean raster of the polygons ``poly`` (list of (N, 2) arrays) over ``box``."""
+    lo, hi = box
+    img = np.zeros((size, size), np.uint8)
+    for p in poly:
+        px = np.round((np.asarray(p) - lo) / (hi - lo) * (size - 1)).astype(np.int32)
+        cv2.fillPoly(img, [px], 1)
+    return img > 0
+
+
+def test_the_vrm_lids_cover_the_painted_eyes_on_a_blink(enrolled):
+    """The VRM's eyes are painted in its texture: eyeBlink alone squashed them into a slit.
+    The lid sheets (core/delegate/vrm.py lid_sheets, the face mesh's second primitive) have
+    no area at rest, cover each eye's opening at a blink (front view), carry the lid's skin
+    (texture points outside the painted eye) and follow every other target with the face."""
+    from articast.core.delegate.vrm import _EYES
+
+    d, _, _ = enrolled
+    doc, binary, _ = _vrm(d / "me.vrm")
+    mesh = doc["meshes"][0]
+    assert len(mesh["primitives"]) == 2
+    face, sheet = mesh["primitives"]
+    assert len(sheet["targets"]) == len(face["targets"])
+    names = mesh["extras"]["targetNames"]
+    fv = accessor(doc, binary, face["attributes"]["POSITION"]).astype(np.float64)
+    fuv = accessor(doc, binary, face["attributes"]["TEXCOORD_0"]).astype(np.float64)
+    sv = accessor(doc, binary, sheet["attributes"]["POSITION"]).astype(np.float64)
+    suv = accessor(doc, binary, sheet["attributes"]["TEXCOORD_0"]).astype(np.float64)
+    tri = accessor(doc, binary, sheet["indices"]).reshape(-1, 3).astype(int)
+    moves = {n: accessor(doc, binary, t["POSITION"]).astype(np.float64)
+             for n, t in zip(names, sheet["targets"], strict=True)}
+    fmoves = {n: accessor(doc, binary, t["POSITION"]).astype(np.float64)
+              for n, t in zip(names, face["targets"], strict=True)}
+
+    def area(v):
+        p = v[tri]
+        e1, e2 = p[:, 1, :2] - p[:, 0, :2], p[:, 2, :2] - p[:, 0, :2]
+        return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+    assert area(sv).sum() < 1e-10  # m^2: nothing drawn at rest
+    shut = sv + moves["eyeBlinkLeft"] + moves["eyeBlinkRight"]
+    for side, (upper, lower) in _EYES.items():
+        opening = np.vstack([fv[[lower[0], *upper, lower[-1]], :2], fv[lower[::-1], :2]])
+        box = (opening.min(0) - 0.002, opening.max(0) + 0.002)
+        eye = _fill([opening], box=box)
+        near = np.linalg.norm(shut[tri].mean(1)[:, :2] - opening.mean(0), axis=1) < 0.03
+        covered = _fill([shut[t, :2] for t in tri[near]], box=box)
+        assert (covered & eye).sum() >= 0.9 * eye.sum(), side
+        # half shut: about half the opening, from the top
+        half = sv + 0.5 * moves[f"eyeBlink{side}"]
+        part = (_fill([half[t, :2] for t in tri[near]], box=box) & eye).sum() / eye.sum()
+        assert 0.25 < part < 0.8, (side, part)
+        # the sheet's texture points are the lid's skin, not the painted eye: its top row's
+        # lie outside the eye opening in the texture
+        uv_eye = np.vstack([fuv[[lower[0], *upper, lower[-1]]], fuv[lower[::-1]]])
+        ubox = (uv_eye.min(0) - 0.02, uv_eye.max(0) + 0.02)
+        inside = _fill([uv_eye], box=ubox)
+        sel = np.flatnonzero(near.any() and np.isin(np.arange(len(sv)), tri[near].ravel()))
+        top = [i for i in sel if np.linalg.norm(moves[f"eyeBlink{side}"][i]) < 1e-9]
+        assert len(top) >= 5
+        px = np.round((suv[top] - ubox[0]) / (ubox[1] - ubox[0]) * 399).astype(int)
+        # (the corners, where the lids meet, are on the opening's rim: 2 per row)
+        assert inside[px[:, 1].clip(0, 399), px[:, 0].clip(0, 399)].sum() <= 4
+    # under a mouth target the sheets move as the lids they sit on
+    for n in ("jawOpen", "eyeWideLeft", "eyeLookUpRight"):
+        assert np.abs(moves[n]).max() <= np.abs(fmoves[n]).max() + 1e-9
+    assert np.abs(moves["eyeWideLeft"]).max() > 1e-4  # (the sheet rides the raised lid)
+
+
 def test_vrm_morph_targets_reproduce_the_model_at_tracked_states(enrolled):
     d, speaker, states = enrolled
     doc, binary, _ = _vrm(d / "me.vrm")
