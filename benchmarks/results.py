@@ -271,7 +271,8 @@ def provenance(meta: dict, name: str, run: Path) -> str:
     date = (f"{meta['date_start']} to {meta['date_end']}" if meta.get("date_start")
             else f"{meta.get('date_end', 'not recorded')}"
             + (f" ({meta['date_note']})" if meta.get("date_note") else ""))
-    return (f"*{'ran `' + _shown(cmd, run) + '`' if cmd else 'command not recorded'}"
+    verb = "not run" if meta.get("skipped") else "ran"
+    return (f"*{verb + ' `' + _shown(cmd, run) + '`' if cmd else 'command not recorded'}"
             f", {date}, commit {meta.get('commit') or 'not recorded'}, load (1, 5, 15 min) "
             f"{_load(meta.get('load_start'))} at start, {_load(meta.get('load_end'))} at end; "
             f"this table: `python benchmarks/results.py --run-dir RUN --from-stored --only "

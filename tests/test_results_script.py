@@ -128,6 +128,7 @@ def test_a_section_without_its_inputs_is_skipped_with_the_reason_in_its_block(tm
     assert run(tmp_path, "--only", "live", "--clips", str(tmp_path / "empty")) == 0
     text = (tmp_path / "RESULTS.md").read_text()
     assert f"**skipped**: no clips in {tmp_path / 'empty'}" in text
+    assert "*not run `benchmarks/peers.py --json --clips" in text
     assert text.startswith(PROSE_BEFORE) and text.endswith(PROSE_AFTER)
     assert not (tmp_path / "RUN/live.json").exists()
     meta = json.loads((tmp_path / "RUN/live.meta.json").read_text())
