@@ -476,7 +476,7 @@ def block(section: Section, run: Path, plots: Path | None, page: Path) -> str:
         if not made:
             log(f"{section.name}: no plot (matplotlib is not installed: pip install "
                 f"'articast[report]')")
-        if png.is_file():
+        else:
             rel = os.path.relpath(png, page.parent)
             what = ("lip aperture r per clip: articast, its reader, the best peer"
                     if section.kind == "peers" else "blink events per clip")
@@ -611,9 +611,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         for name in names:
             execute(BY_NAME[name], run, args.clips, args.fetched_clips)
     plots = None if args.no_plots else args.plots
-    contents = {}
+    contents, unreadable = {}, 0
     for name in names:
-        contents[name] = block(BY_NAME[name], run, plots, args.results)
+        try:
+            contents[name] = block(BY_NAME[name], run, plots, args.results)
+        except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
+            unreadable += 1  # (json.JSONDecodeError is a ValueError)
+            log(f"{name}: {stored(run, name)} cannot be tabulated ({type(e).__name__}: "
+                f"{e}): its block is left as it was")
+            continue
         if stored(run, name) is None:
             log(f"{name}: no stored run in {run}")
     new, absent = rewrite(text, contents)
@@ -624,7 +630,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         log(f"{args.results}: rewrote {len(contents) - len(absent)} block(s)")
     else:
         log(f"{args.results}: unchanged")
-    return 0
+    return 1 if unreadable else 0
 
 
 if __name__ == "__main__":

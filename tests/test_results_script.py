@@ -179,3 +179,24 @@ def test_plots_are_drawn_from_the_numbers(stored):
     assert run(stored, "--from-stored", "--only", "live") == 0
     assert (stored / "plots/live.png").stat().st_size > 1000
     assert "![lip aperture r per clip" in (stored / "RESULTS.md").read_text()
+
+
+def test_a_stored_run_that_cannot_be_read_leaves_its_block_and_says_so(stored, capsys):
+    (stored / "RUN/live.json").write_text('{"clips": [{"no": "methods"}]}')
+    assert run(stored, "--from-stored", "--only", "live", "offline", "--no-plots") == 1
+    text = (stored / "RESULTS.md").read_text()
+    assert "<!-- results:live begin -->\nold table\n<!-- results:live end -->" in text
+    assert "*no stored run yet" in text  # offline: written all the same
+    err = capsys.readouterr().err
+    assert "live: " in err and "cannot be tabulated (KeyError" in err
+    assert "Traceback" not in err
+
+
+def test_json_lines_and_text_outputs_are_shown_as_printed(tmp_path):
+    out = tmp_path / "latency.json"
+    out.write_text('{"subscribers": 1, "p50_ms": 0.66}\n{"subscribers": 100, "p50_ms": 2.5}\n')
+    data = results.read_output(out, "json")
+    assert data == [{"subscribers": 1, "p50_ms": 0.66}, {"subscribers": 100, "p50_ms": 2.5}]
+    table = results.json_table(data)
+    assert "| key | 1 | 100 |" in table and "| p50_ms | 0.66 | 2.5 |" in table
+    assert results.text_table("la_lin 3.2 ms\n\n") == "```text\nla_lin 3.2 ms\n```"
