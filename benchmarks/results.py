@@ -37,7 +37,7 @@ default against the stored peers), ``offline`` / ``offline_nogap``, ``blinks`` /
 benchmarks of "Figures moved from the README": ``demo_start``, ``upper_synthetic``,
 ``no_truth_path``, ``corpus_acceptance``, ``tracking_speed``, ``latency``, ``fanout``,
 ``soak``, ``transfer_speed``, ``delegate_clips``, ``scan_binding``, ``scan_avatar_latency``
-(their JSON, or their text where they print no JSON, shown as printed).
+(their JSON shown as printed: a key and value a row).
 """
 
 from __future__ import annotations
@@ -143,16 +143,16 @@ SECTIONS: tuple[Section, ...] = (
     Section("demo_start", "demo_start.py", ("--runs", "5", "--json", "--fresh-cache"), "json"),
     Section("upper_synthetic", "upper_synthetic.py", ("--seconds", "60", "--json"), "json"),
     Section("no_truth_path", "no_truth_path.py", ("--json", "--rigs", "desk"), "json"),
-    Section("corpus_acceptance", "corpus_acceptance.py", (), "text"),
-    Section("tracking_speed", "tracking_speed.py", (), "text"),
+    Section("corpus_acceptance", "corpus_acceptance.py", (), "json"),
+    Section("tracking_speed", "tracking_speed.py", (), "json"),
     Section("latency", "latency.py", ("--json", "--subscribers", "1", "100"), "json"),
     Section("fanout", "fanout.py", ("--json", "--subscribers", "500", "--seconds", "20"),
             "json"),
     Section("soak", "soak.py", ("--json", "--seconds", "60"), "json"),
-    Section("transfer_speed", "transfer_speed.py", (), "text"),
+    Section("transfer_speed", "transfer_speed.py", (), "json"),
     # no --pictures: face images are never written into the repository
     Section("delegate_clips", "delegate_clips.py", ("--json",), "json", ("fetched",)),
-    Section("scan_binding", "scan_binding.py", (), "text", ("scan",)),
+    Section("scan_binding", "scan_binding.py", (), "json", ("scan",)),
     Section("scan_avatar_latency", "scan_avatar_latency.py", (), "json", ("scan",)),
 )
 BY_NAME = {s.name: s for s in SECTIONS}
