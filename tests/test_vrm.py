@@ -155,8 +155,9 @@ def _fill(poly, size=400, box=None):
 def test_the_vrm_lids_cover_the_painted_eyes_on_a_blink(enrolled):
     """The VRM's eyes are painted in its texture: eyeBlink alone squashed them into a slit.
     The lid sheets (core/delegate/vrm.py lid_sheets, the face mesh's second primitive) have
-    no area at rest, cover each eye's opening at a blink (front view), carry the lid's skin
-    (texture points outside the painted eye) and follow every other target with the face."""
+    no area at rest, cover each eye's opening and past its corners at a blink (front view),
+    about half of it half shut, in the lid's skin colour (not the sclera's), and follow
+    the face's other targets."""
     from articast.core.delegate.vrm import _EYES
 
     d, _, _ = enrolled
@@ -167,9 +168,8 @@ def test_the_vrm_lids_cover_the_painted_eyes_on_a_blink(enrolled):
     assert len(sheet["targets"]) == len(face["targets"])
     names = mesh["extras"]["targetNames"]
     fv = accessor(doc, binary, face["attributes"]["POSITION"]).astype(np.float64)
-    fuv = accessor(doc, binary, face["attributes"]["TEXCOORD_0"]).astype(np.float64)
     sv = accessor(doc, binary, sheet["attributes"]["POSITION"]).astype(np.float64)
-    suv = accessor(doc, binary, sheet["attributes"]["TEXCOORD_0"]).astype(np.float64)
+    colour = accessor(doc, binary, sheet["attributes"]["COLOR_0"]).astype(np.float64)
     tri = accessor(doc, binary, sheet["indices"]).reshape(-1, 3).astype(int)
     moves = {n: accessor(doc, binary, t["POSITION"]).astype(np.float64)
              for n, t in zip(names, sheet["targets"], strict=True)}
@@ -182,31 +182,26 @@ def test_the_vrm_lids_cover_the_painted_eyes_on_a_blink(enrolled):
         return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
 
     assert area(sv).sum() < 1e-10  # m^2: nothing drawn at rest
-    shut = sv + moves["eyeBlinkLeft"] + moves["eyeBlinkRight"]
     for side, (upper, lower) in _EYES.items():
         opening = np.vstack([fv[[lower[0], *upper, lower[-1]], :2], fv[lower[::-1], :2]])
-        box = (opening.min(0) - 0.002, opening.max(0) + 0.002)
+        width = float(np.ptp(opening[:, 0]))
+        box = (opening.min(0) - 0.5 * width, opening.max(0) + 0.5 * width)
         eye = _fill([opening], box=box)
-        near = np.linalg.norm(shut[tri].mean(1)[:, :2] - opening.mean(0), axis=1) < 0.03
+        near = np.linalg.norm(sv[tri].mean(1)[:, :2] - opening.mean(0), axis=1) < width
+        assert near.sum() >= 10
+        shut = sv + moves[f"eyeBlink{side}"]
         covered = _fill([shut[t, :2] for t in tri[near]], box=box)
-        assert (covered & eye).sum() >= 0.9 * eye.sum(), side
-        # half shut: about half the opening, from the top
+        assert (covered & eye).sum() >= 0.97 * eye.sum(), side
+        xs = np.flatnonzero(covered.any(0))  # past both corners
+        ex = np.flatnonzero(eye.any(0))
+        assert xs.min() < ex.min() and xs.max() > ex.max()
         half = sv + 0.5 * moves[f"eyeBlink{side}"]
         part = (_fill([half[t, :2] for t in tri[near]], box=box) & eye).sum() / eye.sum()
-        assert 0.25 < part < 0.8, (side, part)
-        # the sheet's texture points are the lid's skin, not the painted eye: its top row's
-        # lie outside the eye opening in the texture
-        uv_eye = np.vstack([fuv[[lower[0], *upper, lower[-1]]], fuv[lower[::-1]]])
-        ubox = (uv_eye.min(0) - 0.02, uv_eye.max(0) + 0.02)
-        inside = _fill([uv_eye], box=ubox)
-        sel = np.flatnonzero(near.any() and np.isin(np.arange(len(sv)), tri[near].ravel()))
-        top = [i for i in sel if np.linalg.norm(moves[f"eyeBlink{side}"][i]) < 1e-9]
-        assert len(top) >= 5
-        px = np.round((suv[top] - ubox[0]) / (ubox[1] - ubox[0]) * 399).astype(int)
-        # (the corners, where the lids meet, are on the opening's rim: 2 per row)
-        assert inside[px[:, 1].clip(0, 399), px[:, 0].clip(0, 399)].sum() <= 4
-    # under a mouth target the sheets move as the lids they sit on
-    for n in ("jawOpen", "eyeWideLeft", "eyeLookUpRight"):
+        assert 0.3 < part < 0.85, (side, part)
+    # the lid's skin: opaque, darker towards the margin, not the white of the eye
+    assert np.all(colour[:, 3] == 1.0) and colour[:, :3].max() < 0.9
+    # the sheets ride the face: never further than the face moves, except at a blink
+    for n in ("jawOpen", "eyeWideLeft", "eyeLookUpRight", "browInnerUp"):
         assert np.abs(moves[n]).max() <= np.abs(fmoves[n]).max() + 1e-9
     assert np.abs(moves["eyeWideLeft"]).max() > 1e-4  # (the sheet rides the raised lid)
 

@@ -264,6 +264,11 @@ LID_RISE = 0.8
 """At a blink the sheet's top row rises this fraction of the eye's opening above the lid's
 margin (the texture's eye reaches above the mesh's margin: on the synthetic speaker the
 top half of the painted eye stayed in sight above a sheet that started at the margin)."""
+LID_BELOW = 0.25
+"""At a blink the sheet's bottom row goes this fraction of the opening past the lower lid."""
+LID_SPREAD = 0.25
+"""At a blink the sheet spreads along the eye's axis, its corners this fraction of the
+half width past the eye's."""
 LID_FORWARD_MM = 1.6
 """How far in front of the face (along its normals) the lid sheets sit: over the eye at a
 blink, in front of the face's own lid skin, which eyeBlink brings down over the opening and
@@ -309,8 +314,18 @@ def lid_sheets(mesh: DelegateMesh, targets: list[tuple[str, np.ndarray]]
         if name in blink_of:  # the top row rises as the bottom comes down: the sheet
             # opens over the eye and the painted eye's top above the mesh's lid margin
             # (which the face's own lid skin brings down at a blink)
-            sel = top & (side_arr == blink_of[name])
+            side = blink_of[name]
+            sel = top & (side_arr == side)
             m[sel, :2] = -LID_RISE * m[sel, :2]  # (forward as the margin: over the skin)
+            low = ~top & (side_arr == side)
+            m[low, :2] *= 1.0 + LID_BELOW  # (past the lower lid: the paint reaches below it)
+            # both rows spread along the eye's axis past its corners (the paint reaches
+            # beyond the mesh's corners too)
+            rows = np.flatnonzero(side_arr == side)
+            ends = v[[_EYES[side][1][0], _EYES[side][1][-1]]]
+            centre, axis = ends.mean(0), (ends[1] - ends[0]) / 2.0
+            along = ((v[src[rows]] - centre) @ axis) / float(axis @ axis)
+            m[rows] += LID_SPREAD * along[:, None] * axis[None]
         if name in squint_of:  # the bottom row rides the raised lower lid: shut and
             # squinting, the lower lid rises over the opening's rest and the sheet must
             # still reach it (open, the sheet turns its back and is not drawn)
