@@ -65,7 +65,7 @@ def read_glb(path):
 def accessor(doc, binary, i):
     acc = doc["accessors"][i]
     view = doc["bufferViews"][acc["bufferView"]]
-    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3}[acc["type"]]
+    width = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}[acc["type"]]
     dtype = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}[acc["componentType"]]
     arr = np.frombuffer(binary, dtype, acc["count"] * width, view["byteOffset"])
     return arr.reshape(acc["count"], width)

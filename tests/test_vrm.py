@@ -142,6 +142,70 @@ def _targets(doc, binary):
                   for n, t in zip(names, prim["targets"], strict=True)}
 
 
+def _fill(poly, size=400, box=None):
+    """A boolean raster of the polygons ``poly`` (list of (N, 2) arrays) over ``box``."""
+    lo, hi = box
+    img = np.zeros((size, size), np.uint8)
+    for p in poly:
+        px = np.round((np.asarray(p) - lo) / (hi - lo) * (size - 1)).astype(np.int32)
+        cv2.fillPoly(img, [px], 1)
+    return img > 0
+
+
+def test_the_vrm_lids_cover_the_painted_eyes_on_a_blink(enrolled):
+    """The VRM's eyes are painted in its texture: eyeBlink alone squashed them into a slit.
+    The lid sheets (core/delegate/vrm.py lid_sheets, the face mesh's second primitive) have
+    no area at rest, cover each eye's opening and past its corners at a blink (front view),
+    about half of it half shut, in the lid's skin colour (not the sclera's), and follow
+    the face's other targets."""
+    from articast.core.delegate.vrm import _EYES
+
+    d, _, _ = enrolled
+    doc, binary, _ = _vrm(d / "me.vrm")
+    mesh = doc["meshes"][0]
+    assert len(mesh["primitives"]) == 2
+    face, sheet = mesh["primitives"]
+    assert len(sheet["targets"]) == len(face["targets"])
+    names = mesh["extras"]["targetNames"]
+    fv = accessor(doc, binary, face["attributes"]["POSITION"]).astype(np.float64)
+    sv = accessor(doc, binary, sheet["attributes"]["POSITION"]).astype(np.float64)
+    colour = accessor(doc, binary, sheet["attributes"]["COLOR_0"]).astype(np.float64)
+    tri = accessor(doc, binary, sheet["indices"]).reshape(-1, 3).astype(int)
+    moves = {n: accessor(doc, binary, t["POSITION"]).astype(np.float64)
+             for n, t in zip(names, sheet["targets"], strict=True)}
+    fmoves = {n: accessor(doc, binary, t["POSITION"]).astype(np.float64)
+              for n, t in zip(names, face["targets"], strict=True)}
+
+    def area(v):
+        p = v[tri]
+        e1, e2 = p[:, 1, :2] - p[:, 0, :2], p[:, 2, :2] - p[:, 0, :2]
+        return 0.5 * np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+
+    assert area(sv).sum() < 1e-10  # m^2: nothing drawn at rest
+    for side, (upper, lower) in _EYES.items():
+        opening = np.vstack([fv[[lower[0], *upper, lower[-1]], :2], fv[lower[::-1], :2]])
+        width = float(np.ptp(opening[:, 0]))
+        box = (opening.min(0) - 0.5 * width, opening.max(0) + 0.5 * width)
+        eye = _fill([opening], box=box)
+        near = np.linalg.norm(sv[tri].mean(1)[:, :2] - opening.mean(0), axis=1) < width
+        assert near.sum() >= 10
+        shut = sv + moves[f"eyeBlink{side}"]
+        covered = _fill([shut[t, :2] for t in tri[near]], box=box)
+        assert (covered & eye).sum() >= 0.97 * eye.sum(), side
+        xs = np.flatnonzero(covered.any(0))  # past both corners
+        ex = np.flatnonzero(eye.any(0))
+        assert xs.min() < ex.min() and xs.max() > ex.max()
+        half = sv + 0.5 * moves[f"eyeBlink{side}"]
+        part = (_fill([half[t, :2] for t in tri[near]], box=box) & eye).sum() / eye.sum()
+        assert 0.3 < part < 0.85, (side, part)
+    # the lid's skin: opaque, darker towards the margin, not the white of the eye
+    assert np.all(colour[:, 3] == 1.0) and colour[:, :3].max() < 0.9
+    # the sheets ride the face: never further than the face moves, except at a blink
+    for n in ("jawOpen", "eyeWideLeft", "eyeLookUpRight", "browInnerUp"):
+        assert np.abs(moves[n]).max() <= np.abs(fmoves[n]).max() + 1e-9
+    assert np.abs(moves["eyeWideLeft"]).max() > 1e-4  # (the sheet rides the raised lid)
+
+
 def test_vrm_morph_targets_reproduce_the_model_at_tracked_states(enrolled):
     d, speaker, states = enrolled
     doc, binary, _ = _vrm(d / "me.vrm")

@@ -34,6 +34,21 @@ own fitted mesh:
   enrolment's mean eyes painted on the surface), browInnerUp / browOuterUp (BROW_FULL_MM up)
   and browDown (BROW_DOWN_FULL_MM down). MediaPipe's mesh topology names the lids and brows.
 
+**Lids** (a second primitive of the face mesh, :func:`lid_sheets`): the face's eyes are
+painted in its texture, and eyeBlink moving the upper lid's vertices onto the lower lid only
+squashes the painted eye into a slit (issue 40: 61-63 % of each eye still showed at closure
+1 on the avatar page before its shader drew the lids). Each eye has a sheet of the lid's
+own skin: two rows along the upper lid's margin (corners included), both at the margin at
+rest (no area: nothing drawn), :data:`LID_FORWARD_MM` in front of the face. eyeBlink raises
+the top row (:data:`LID_RISE`) and carries the bottom row down with the margin onto the lower
+lid:
+the sheet covers the opening in the lid's skin colour (:func:`lid_colours`, a flat colour
+from the texture between the eye and the brow), darker at the margin. eyeSquint raises its
+bottom row with the lower lid (shut and squinting, the lower lid rises above the opening's
+rest). Under every other target both rows follow their margin vertex (eyeWide raises the
+margin: the sheet stays a line on it). A VRM app drives the sheet with the face, by the
+same weights (the sheet primitive has the same targets).
+
 **Expressions** (``VRMC_vrm.expressions``): the presets ``aa ih ou ee oh blink blinkLeft
 blinkRight lookUp lookDown lookLeft lookRight neutral`` bound to those targets (``neutral``
 binds nothing: the mean face is the neutral one; happy/angry/sad/relaxed/surprised are left
@@ -53,7 +68,7 @@ from typing import Any
 import numpy as np
 
 from articast.core.delegate.geometry import DelegateMesh
-from articast.core.delegate.gltf import mesh_document, pack_glb
+from articast.core.delegate.gltf import _ARRAY, _ELEMENTS, _normals, mesh_document, pack_glb
 from articast.core.errors import InputError
 from articast.core.model.face import FaceModel
 from articast.core.outputs.arkit import ARKIT_BLENDSHAPES, ArkitMapper, full_scale, measure_gradient
@@ -243,6 +258,121 @@ def upper_face_targets(mesh: DelegateMesh) -> dict[str, np.ndarray]:
     return out
 
 
+LID_SHADE = 0.7
+"""The sheet's bottom row (the lid's margin, where the lashes are) is the skin this dark."""
+LID_RISE = 0.8
+"""At a blink the sheet's top row rises this fraction of the eye's opening above the lid's
+margin (the texture's eye reaches above the mesh's margin: on the synthetic speaker the
+top half of the painted eye stayed in sight above a sheet that started at the margin)."""
+LID_BELOW = 0.25
+"""At a blink the sheet's bottom row goes this fraction of the opening past the lower lid."""
+LID_SPREAD = 0.25
+"""At a blink the sheet spreads along the eye's axis, its corners this fraction of the
+half width past the eye's."""
+LID_FORWARD_MM = 1.6
+"""How far in front of the face (along its normals) the lid sheets sit: over the eye at a
+blink, in front of the face's own lid skin, which eyeBlink brings down over the opening and
+forward (up to ~1.2 mm on the synthetic speaker's mesh) carrying the paint of the eye's top
+(the texture's eye reaches above the mesh's lid margin): at 0.4 mm it hid the sheet."""
+
+
+def lid_sheets(mesh: DelegateMesh, targets: list[tuple[str, np.ndarray]]
+               ) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Both eyes' lid sheets (module docstring): vertices (N, 3) mm at rest, triangles
+    (T, 3) (counter-clockwise from the front, as the face's)
+    and, per target of ``targets`` (name, (V, 3) mm displacement of the face's vertices, in
+    the face primitive's order), the sheets' (N, 3) displacement."""
+    v = mesh.vertices
+    normals = _normals(v, np.asarray(mesh.triangles))
+    verts: list[np.ndarray] = []
+    tris: list[tuple[int, int, int]] = []
+    sources: list[np.ndarray] = []
+    tops: list[np.ndarray] = []
+    sides: list[str] = []
+    for side, (upper, lower) in _EYES.items():
+        row = np.array([lower[0], *upper, lower[-1]])  # the margin, corner to corner
+        base = sum(len(x) for x in verts)
+        n = len(row)
+        at = v[row] + LID_FORWARD_MM * normals[row]
+        verts += [at, at]  # top row, then bottom row
+        for i in range(n - 1):
+            a, b, c, d = base + i, base + i + 1, base + n + i, base + n + i + 1
+            tris += [(a, c, b), (b, c, d)]
+        sources += [row, row]
+        tops += [np.ones(n, bool), np.zeros(n, bool)]
+        sides += [side] * (2 * n)
+    vs, src, top = np.vstack(verts), np.concatenate(sources), np.concatenate(tops)
+    tri = np.array(tris, np.int32)
+    # (the winding: counter-clockwise from the front, as the face's, each triangle checked on
+    # the sheets' shut shape against the face's normals)
+    moves = []
+    blink_of = {f"eyeBlink{s_}": s_ for s_ in _EYES}
+    squint_of = {f"eyeSquint{s_}": s_ for s_ in _EYES}
+    side_arr = np.array(sides)
+    for name, disp in targets:
+        m = disp[src].copy()
+        if name in blink_of:  # the top row rises as the bottom comes down: the sheet
+            # opens over the eye and the painted eye's top above the mesh's lid margin
+            # (which the face's own lid skin brings down at a blink)
+            side = blink_of[name]
+            sel = top & (side_arr == side)
+            m[sel, :2] = -LID_RISE * m[sel, :2]  # (forward as the margin: over the skin)
+            low = ~top & (side_arr == side)
+            m[low, :2] *= 1.0 + LID_BELOW  # (past the lower lid: the paint reaches below it)
+            # both rows spread along the eye's axis past its corners (the paint reaches
+            # beyond the mesh's corners too)
+            rows = np.flatnonzero(side_arr == side)
+            ends = v[[_EYES[side][1][0], _EYES[side][1][-1]]]
+            centre, axis = ends.mean(0), (ends[1] - ends[0]) / 2.0
+            along = ((v[src[rows]] - centre) @ axis) / float(axis @ axis)
+            m[rows] += LID_SPREAD * along[:, None] * axis[None]
+        if name in squint_of:  # the bottom row rides the raised lower lid: shut and
+            # squinting, the lower lid rises over the opening's rest and the sheet must
+            # still reach it (open, the sheet turns its back and is not drawn)
+            side = squint_of[name]
+            below = np.array(_EYES[side][1])
+            order = below[np.argsort(v[below, 0])]
+            rows = np.flatnonzero(~top & (side_arr == side))
+            for j in range(3):
+                m[rows, j] += np.interp(v[src[rows], 0], v[order, 0], disp[order, j])
+        moves.append(m)
+    shut = vs.copy()
+    for (name, _), m in zip(targets, moves, strict=True):
+        if name in blink_of:
+            shut += m
+    p = shut[tri]
+    fn = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    face_n = normals[src[tri[:, 0]]]
+    back = np.sum(fn * face_n, axis=1) < 0  # (the eyes' lid lists run opposite ways)
+    tri[back] = tri[back][:, [0, 2, 1]]
+    return vs, tri, moves
+
+
+def lid_colours(mesh: DelegateMesh, texture: np.ndarray, n_rows: tuple[int, ...]
+                ) -> np.ndarray:
+    """(N, 4) linear RGBA vertex colours of the sheets (:func:`lid_sheets`' vertices, eye by
+    eye, top row then bottom row of ``n_rows`` vertices each): each eye's lid skin, the
+    median of ``texture`` (S, S, 3 uint8 BGR, sRGB) between its upper lid and its brow
+    (40-60 % of the way: the texture's eye reaches above the mesh's lid margin, the brow
+    below its points), the bottom row :data:`LID_SHADE` of it. A flat colour, not the
+    texture: the lid's own pixels in the texture are mostly the painted eye's top."""
+    size = texture.shape[0]
+    out = []
+    for (side, (upper, _)), n in zip(_EYES.items(), n_rows, strict=True):
+        lid = mesh.uv[upper].mean(0)
+        brow = mesh.uv[_BROWS[side]].mean(0)
+        pts = [lid + f * (brow - lid) + d for f in (0.4, 0.5, 0.6)
+               for d in ((mesh.uv[upper] - lid) * 0.6)]
+        px = np.clip(np.round(np.array(pts) * (size - 1)).astype(int), 0, size - 1)
+        bgr = np.median(texture[px[:, 1], px[:, 0]].astype(np.float64), axis=0) / 255.0
+        srgb = bgr[::-1]
+        lin = np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+        top = np.append(lin, 1.0)
+        bottom = np.append(lin * LID_SHADE, 1.0)
+        out += [np.tile(top, (n, 1)), np.tile(bottom, (n, 1))]
+    return np.vstack(out)
+
+
 def head_pivot(mesh: DelegateMesh) -> np.ndarray:
     """(3,) mm, head frame: where the head turns about (the head bone), an average adult's:
     the face's middle in x, a third of the way from chin to brow in y (about the mouth),
@@ -283,6 +413,26 @@ def to_vrm(model: FaceModel, mesh: DelegateMesh, texture: np.ndarray | None = No
     targets = vrm_targets(model, mesh, arkit)
     doc, b = mesh_document(mesh, tuple(model.param_names), texture, targets, name, unlit=True)
     doc["asset"]["generator"] = "articast export-vrm"
+    if texture is not None:  # (without a texture the eyes are not painted: nothing to cover)
+        named = list(zip(model.param_names, mesh.modes, strict=True)) + list(targets.items())
+        sv, stri, smoves = lid_sheets(mesh, named)
+        rows = tuple(len(up) + 2 for up, _ in _EYES.values())
+        colours = lid_colours(mesh, texture, rows)
+        sheet = {"attributes": {
+            "POSITION": b.accessor((sv * 1e-3).astype(np.float32), "VEC3", _ARRAY, True),
+            "NORMAL": b.accessor(_normals(sv + np.sum([m for m, (n, _) in zip(
+                smoves, named, strict=True) if n.startswith("eyeBlink")], axis=0),
+                stri).astype(np.float32), "VEC3", _ARRAY, False),
+            "COLOR_0": b.accessor(colours.astype(np.float32), "VEC4", _ARRAY, False)},
+            "indices": b.accessor(stri.astype(np.uint16).reshape(-1), "SCALAR", _ELEMENTS,
+                                  False),
+            "material": len(doc["materials"]), "mode": 4,
+            "targets": [{"POSITION": b.accessor((m * 1e-3).astype(np.float32), "VEC3", _ARRAY,
+                                                True)} for m in smoves]}
+        doc["meshes"][0]["primitives"].append(sheet)
+        doc["materials"].append({"name": f"{name} lids", "pbrMetallicRoughness": {
+            "metallicFactor": 0.0, "roughnessFactor": 0.85},
+            "extensions": {"KHR_materials_unlit": {}}})
     index = {n: i for i, n in enumerate(doc["meshes"][0]["extras"]["targetNames"])}
     # nodes: the bones in order, then the face (a child of the head)
     bones = {bone: i for i, (bone, _, _) in enumerate(_SKELETON)}
