@@ -396,17 +396,8 @@ def plot_peers(data: dict, path: Path, title: str) -> bool:
                              "(FaceMesh v1 loop)"), ("best_peer_r", "x", "best single peer")):
         ax.scatter([r[key] if r[key] is not None else float("nan") for r in rows], list(y),
                    marker=mark, label=label)
-    ax.set_yticks(list(y), [r["clip"] for r in rows], fontsize=7)
-    ax.invert_yaxis()
-    ax.set_xlabel("lip aperture r against the judge (held-out frames)")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, loc="lower left")
-    ax.grid(axis="x", alpha=0.3)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100, metadata={"Software": None})
-    plt.close(fig)
-    return True
+    return _finish(plt, fig, ax, [r["clip"] for r in rows], path, title,
+                   "lip aperture r against the judge (held-out frames)", "lower left")
 
 
 def plot_blinks(rows: list[dict], path: Path, title: str) -> bool:
@@ -427,11 +418,18 @@ def plot_blinks(rows: list[dict], path: Path, title: str) -> bool:
     for k, (count, label) in enumerate(bars):
         ax.barh([i + (k - 1) * 0.27 for i in y], [count(r) for r in rows], height=0.27,
                 label=label)
-    ax.set_yticks(y, [r["clip"] for r in rows], fontsize=7)
+    return _finish(plt, fig, ax, [r["clip"] for r in rows], path, title,
+                   "blink events on the held-out frames", "lower right")
+
+
+def _finish(plt: Any, fig: Any, ax: Any, clips: list[str], path: Path, title: str,
+            xlabel: str, legend: str) -> bool:
+    """A per-clip plot's axes, labels and file (the same for every plot here)."""
+    ax.set_yticks(list(range(len(clips))), clips, fontsize=7)
     ax.invert_yaxis()
-    ax.set_xlabel("blink events on the held-out frames")
+    ax.set_xlabel(xlabel)
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc=legend)
     ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
