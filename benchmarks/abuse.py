@@ -254,6 +254,7 @@ def fps_stats(times: list[float], t0: float, t1: float) -> dict[str, float]:
 def lat_stats(lat: list[float]) -> dict[str, float]:
     ok = sorted(x for x in lat if x != float("inf"))
     return {"p50_ms": round(1000 * ok[len(ok) // 2], 1) if ok else None,
+            "p95_ms": round(1000 * ok[min(len(ok) - 1, int(0.95 * len(ok)))], 1) if ok else None,
             "max_ms": round(1000 * ok[-1], 1) if ok else None,
             "timeouts": sum(x == float("inf") for x in lat), "n": len(lat)}
 

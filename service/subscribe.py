@@ -62,7 +62,7 @@ class Connection:
         self._bucket = MessageBucket(rate, 2 * rate)
         self.key = client_key((ws.scope.get("client") or ("?",))[0])
         self._refused = 0
-        self._last_refusal_error = 0.0
+        self._last_refusal = self._last_refusal_error = 0.0
 
     async def send(self, data: str | bytes) -> None:
         msg = {"type": "websocket.send", "text": data} if isinstance(data, str) else \
@@ -98,6 +98,12 @@ class Connection:
         limit = self.svc.config.hub.max_message_bytes
         try:
             while True:
+                # one message per turn of the event loop: a read that waits in the socket's
+                # queue is taken without a pause (asyncio.Queue.get does not yield when it
+                # has one), so a flooding connection would otherwise handle its whole
+                # backlog at once; 32 of them starting together held the loop ~300 ms and
+                # /healthz waited behind them (issue 39)
+                await asyncio.sleep(0)
                 msg = await self.ws.receive()
                 if msg["type"] == "websocket.disconnect":
                     return
@@ -134,9 +140,16 @@ class Connection:
     async def _over_rate(self) -> bool:
         """A message over the rate limit: dropped, said once a second; True = close now.
 
-        A client far over the limit (ten seconds' worth refused in a row) is closed with
-        1008: parsing even a refused message costs the server, and bystanders come first.
+        A client far over the limit (ten seconds' worth refused, with no quiet second
+        between two refusals) is closed with 1008: parsing even a refused message costs the
+        server, and bystanders come first. A message let through by the bucket meanwhile does
+        not clear the count: a flood is let through at the limit's rate, and with one message
+        per turn of the loop it would otherwise never be closed.
         """
+        t = time.monotonic()
+        if t - self._last_refusal > 1.0:
+            self._refused = 0
+        self._last_refusal = t
         self._refused += 1
         limit = self.svc.config.hub.max_messages_per_s
         if self._refused > 10 * limit:
@@ -148,7 +161,6 @@ class Connection:
             except Exception as exc:  # noqa: BLE001 - the peer may be gone already
                 log.debug("closing an over-rate connection: %r", exc)
             return True
-        t = time.monotonic()
         if t - self._last_refusal_error >= 1.0:
             self._last_refusal_error = t
             await self.error("rate_limited", f"over {limit:g} messages per second: "
@@ -156,7 +168,6 @@ class Connection:
         return False
 
     async def subscribe(self, req: P.Subscribe) -> None:
-        self._refused = 0
         svc, name = self.svc, req.session
         limits = svc.config.hub
         if not svc.budgets.subscribe(self.key).take(time.monotonic()):
