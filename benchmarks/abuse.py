@@ -254,6 +254,7 @@ def fps_stats(times: list[float], t0: float, t1: float) -> dict[str, float]:
 def lat_stats(lat: list[float]) -> dict[str, float]:
     ok = sorted(x for x in lat if x != float("inf"))
     return {"p50_ms": round(1000 * ok[len(ok) // 2], 1) if ok else None,
+            "p95_ms": round(1000 * ok[min(len(ok) - 1, int(0.95 * len(ok)))], 1) if ok else None,
             "max_ms": round(1000 * ok[-1], 1) if ok else None,
             "timeouts": sum(x == float("inf") for x in lat), "n": len(lat)}
 
@@ -267,12 +268,12 @@ async def observe(srv: Server, port: int, attack: Any, seconds: float,
     by = asyncio.create_task(bystander(srv.url + f"?token={TOKEN}", counts))
     await asyncio.sleep(2.0)
     stop = asyncio.Event()
-    t0 = time.monotonic()
+    t0, cpu0 = time.monotonic(), srv.cpu_s()
     h = asyncio.create_task(health(srv.http, lat0, stop))
     await asyncio.sleep(baseline_s)
     stop.set()
     await h
-    t1 = time.monotonic()
+    t1, cpu1 = time.monotonic(), srv.cpu_s()
     attack.start()
     stop = asyncio.Event()
     h = asyncio.create_task(health(srv.http, lat1, stop))
@@ -281,7 +282,7 @@ async def observe(srv: Server, port: int, attack: Any, seconds: float,
         await asyncio.sleep(0.5)
         rss.append(srv.rss_mb())
         rq.append(recv_queue_bytes(port))
-    t2 = time.monotonic()
+    t2, cpu2 = time.monotonic(), srv.cpu_s()
     stop.set()
     await h
     by.cancel()
@@ -289,6 +290,8 @@ async def observe(srv: Server, port: int, attack: Any, seconds: float,
     return {"bystander_fps_baseline": fps_stats(counts, t0, t1),
             "bystander_fps_attack": fps_stats(counts, t1, t2),
             "healthz_baseline": lat_stats(lat0), "healthz_attack": lat_stats(lat1),
+            "server_cpu_baseline": round((cpu1 - cpu0) / (t1 - t0), 2),  # cores used
+            "server_cpu_attack": round((cpu2 - cpu1) / (t2 - t1), 2),
             "server_rss_mb_max": round(max(rss), 1),
             "recv_queue_mb_max": round(max(rq) / 1e6, 2)}
 

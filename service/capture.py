@@ -9,6 +9,11 @@
   from when it was put), and a consumer already waiting for it is always handed it first. A
   capture thread that was descheduled puts its late frames back to back, and replaced the one
   an idle consumer had not been scheduled to take yet: a recording lost frames under load.
+* Playback (files, recordings, the synthetic speaker) is not read before the consumer first
+  asks for a frame: the frames a first run would render or decode, and drop, while its tracker
+  compiles cost the compilation the CPU (issue 39: the demo's synthetic speaker, ~85 ms a
+  frame, kept a core busy for the minute or two of a fresh install's compile). Cameras are
+  read from the start (their driver's queue must not fill).
 * :class:`~articast.service.sources.SourceUnavailable` (missing, busy, unplugged camera) is reported
   through ``on_status("unavailable", reason)`` and retried with exponential backoff.
 * :class:`~articast.service.sources.SourceError` ends the capture with :attr:`Capture.error` set.
@@ -52,6 +57,8 @@ class Capture:
         """Consumers inside :meth:`get` for a frame: idle, perhaps not yet scheduled."""
         self._slot_since = 0.0
         """When the frame in the slot was put (monotonic)."""
+        self._wanted = threading.Event()
+        """Set by the consumer's first :meth:`get`: playback is read from then on."""
 
     # ------------------------------------------------------------------ consumer side
     def start(self) -> Capture:
@@ -66,6 +73,7 @@ class Capture:
 
     def get(self, timeout: float) -> Frame | None:
         """The newest frame, or None after ``timeout`` s (check :attr:`done`)."""
+        self._wanted.set()
         with self._cond:
             if self._slot is None and not self.finished:
                 self._waiting += 1
@@ -147,6 +155,11 @@ class Capture:
             t0_wall, t0_media, first_t, last_t = time.monotonic(), None, None, 0.0
             try:
                 while not self._stop.is_set():
+                    if not self.source.live and not self._wanted.is_set():
+                        while not self._wanted.wait(0.1):  # nobody to give it to yet
+                            if self._stop.is_set():
+                                return
+                        t0_wall = time.monotonic()  # paced from the first frame wanted
                     item = self.source.read()
                     if item is None:
                         break

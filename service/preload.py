@@ -7,3 +7,5 @@ from articast.core.tracking import kernels
 
 if kernels.compiled_on_disk():
     kernels.warm_up()
+elif kernels.compiled_on_disk(kernels.TRACKER):  # a first demo compiled only the tracker's
+    kernels.warm_up(kernels.TRACKER)

@@ -57,20 +57,21 @@ COMPILING = ("compiling the tracking kernels (first run only: 1-2 minutes on a b
 2-core machine; "a few seconds" was read as a hang (issue 39)."""
 
 
-def _warm_up(context: ProcessorContext) -> None:
-    """Compile (first run) or load the cost kernels before frames flow, saying so when it
+def _warm_up(context: ProcessorContext, only: tuple[str, ...] | None = None) -> None:
+    """Compile (first run) or load the cost kernels before frames flow (``only``: those the
+    processor calls, :func:`articast.core.tracking.kernels.warm_up`), saying so when it
     compiles: a worker that is starting is not stalled."""
     from articast.core.tracking import kernels
 
-    if kernels.compiled_on_disk():
-        kernels.warm_up()  # loaded from numba's cache
+    if kernels.compiled_on_disk(only):
+        kernels.warm_up(only)  # loaded from numba's cache
     elif context.busy is not None:
         with context.busy(COMPILING):
-            kernels.warm_up()
+            kernels.warm_up(only)
     else:
         if context.progress is not None:
             context.progress(COMPILING)
-        kernels.warm_up()
+        kernels.warm_up(only)
 
 
 class TruthProcessor:
@@ -138,7 +139,9 @@ class TrackerProcessor:
             pose = Pose(translation=np.array([0.0, 0.0, float(opts.get("distance_mm", 300.0))]))
         self.tracker = Tracker(context.model, context.appearance, context.camera, policy,
                                initial_pose=pose, clock=time.perf_counter)
-        _warm_up(context)
+        from articast.core.tracking.kernels import TRACKER
+
+        _warm_up(context, TRACKER)  # the appearance tracker's kernels only: half the compile
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:

@@ -1,6 +1,6 @@
 """Browser ingest: a participant's camera received over WebRTC (aiortc) becomes a session.
 
-``POST /api/sessions/NAME/webrtc`` (:mod:`articast.service.app`) takes the join page's SDP
+``POST /api/sessions/NAME/webrtc`` (:mod:`.http_sessions`) takes the join page's SDP
 offer (``clients/web/join.html``) and answers it; the video track's frames are pushed into
 the session's :class:`Feed`, a one-frame slot like a camera's, whose forwarder thread hands
 the newest frame to the session's current worker (thread or process) through a pipe; the

@@ -164,8 +164,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         if spec.inlet is not None and hasattr(source, "inlet"):
             source.inlet = spec.inlet
         if _tracks(spec, source):  # a first run compiles while its source opens (caches)
-            threading.Thread(target=_compile_kernels, args=(busy_with,), daemon=True,
-                             name="compile kernels").start()
+            threading.Thread(target=_compile_kernels, args=(busy_with, _kernels_for(spec)),
+                             daemon=True, name="compile kernels").start()
         if hasattr(source, "progress"):
             source.progress = progress
         capture = Capture(source, capture_settings,
@@ -256,16 +256,26 @@ def _tracks(spec: SessionSpec, source: Any) -> bool:
         source, RecordSource)
 
 
-def _compile_kernels(busy_with: Callable[[str], contextlib.AbstractContextManager[None]]
-                     ) -> None:
-    """Compile the tracker's kernels if numba's cache lacks them (a first run), saying so and
-    that it is alive; in a thread beside the source's opening, which on a first run builds
-    its own caches."""
+def _kernels_for(spec: SessionSpec) -> tuple[str, ...] | None:
+    """The compiled kernels a tracking session will call: the live tracker's (a speaker), all;
+    else the appearance tracker's (``articast demo``; a participant without a speaker)."""
+    if spec.speaker or spec.processor == "live":
+        return None
+    from articast.core.tracking.kernels import TRACKER
+
+    return TRACKER
+
+
+def _compile_kernels(busy_with: Callable[[str], contextlib.AbstractContextManager[None]],
+                     only: tuple[str, ...] | None = None) -> None:
+    """Compile the tracker's kernels (``only``: those) if numba's cache lacks them (a first
+    run), saying so and that it is alive; in a thread beside the source's opening, which on
+    a first run builds its own caches."""
     from articast.core.tracking import kernels
 
-    if not kernels.compiled_on_disk():
+    if not kernels.compiled_on_disk(only):
         with busy_with(COMPILING):
-            kernels.warm_up()
+            kernels.warm_up(only)
 
 
 def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,

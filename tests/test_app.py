@@ -434,6 +434,25 @@ def test_corrupt_file_session_fails_once_with_a_clear_error(server, tmp_path):
     c.delete("/api/sessions/corrupt")
 
 
+def test_playback_is_not_read_before_its_first_frame_is_wanted(tmp_path):
+    """Issue 39's first demo: the synthetic speaker rendered (~85 ms a frame) and dropped
+    frames for the minute or two its tracker compiled, a core taken from the compilation.
+    A playback source now waits for the consumer: its first frame is the clip's first, none
+    dropped, however long the consumer took to ask (a camera is read from the start)."""
+    video = tmp_path / "v.avi"
+    write_video(video, frames=30, fps=25)
+    cap = Capture(make_source(f"file:{video}")).start()  # pace=realtime
+    try:
+        assert cap.opened.wait(TIMEOUT) and cap.error is None
+        time.sleep(0.5)  # a dozen frame periods: a capture reading ahead drops ~12 frames
+        first = cap.get(TIMEOUT)
+        assert first is not None and first.index == 0 and cap.dropped == 0, (
+            first and first.index, cap.dropped)
+        assert cap.get(TIMEOUT) is not None  # and it plays on
+    finally:
+        cap.stop()
+
+
 def test_fast_file_replay_gives_the_offline_parameters(server, tmp_path):
     """A served file replay (pace=fast, worker process) equals processing the file offline."""
     video = tmp_path / "v.avi"

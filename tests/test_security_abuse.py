@@ -287,3 +287,61 @@ def test_hello_amplification_from_one_address_is_bounded(media):
     assert [h["rate"] for h in hellos] == rates
     assert all(h["streams"] == ["articulatory", "pose"] and h["encoding"] == "json"
                and h["geometry"] for h in hellos)
+
+
+# ----------------------------------------------------------------------------- row 1: fairness
+class _BackloggedSocket:
+    """What a flooding client looks like to the app: a WebSocket whose messages have all
+    arrived already, so that receiving one returns at once, without a pause (uvicorn's
+    protocol hands queued messages over this way: ``asyncio.Queue.get`` does not yield
+    when it holds one). Each receive notes the event loop's turn it happened in."""
+
+    def __init__(self, messages, turns):
+        self.scope = {"client": ("127.0.0.9", 1), "extensions": {}}
+        self.messages, self.turns, self.received = list(messages), turns, []
+        self.closed_with = None
+
+    async def receive(self):
+        if not self.messages or self.closed_with is not None:
+            return {"type": "websocket.disconnect", "code": 1000}
+        self.received.append(self.turns[0])
+        return {"type": "websocket.receive", "text": self.messages.pop(0)}
+
+    async def send(self, message):
+        pass
+
+    async def close(self, code=1000, reason=None):
+        self.closed_with = (code, reason)
+
+
+def test_a_flooding_connection_takes_one_message_per_turn_of_the_event_loop():
+    """Row 1's /healthz row: 32 connections flooding subscribe messages held the event loop
+    up to 242-800 ms (/healthz max; bystanders 5 fps at worst), each handling its whole
+    backlog, hundreds of messages, in one go. Each connection now takes one message per turn
+    of the loop: what else is ready (an HTTP request, a bystander's frame) runs between."""
+    from articast.service.state import Service
+    from articast.service.subscribe import Connection
+
+    svc = Service(ServiceConfig(hub=HubSettings(max_messages_per_s=5.0)))
+    sub = json.dumps({"type": "subscribe", "session": "nowhere", "geometry": False})
+
+    async def go():
+        turns = [0]
+
+        async def ticker():
+            while True:
+                turns[0] += 1
+                await asyncio.sleep(0)
+
+        tick = asyncio.create_task(ticker())
+        ws = _BackloggedSocket([sub] * 200, turns)
+        await Connection(ws, svc).run()
+        tick.cancel()
+        return ws
+
+    ws = asyncio.run(go())
+    # far over 5 messages/s: closed once 50 were refused (10 s worth), the rest never read
+    assert ws.closed_with is not None and ws.closed_with[0] == 1008, ws.closed_with
+    assert 50 < len(ws.received) < 200, len(ws.received)
+    # and never two messages in the same turn of the loop
+    assert len(set(ws.received)) == len(ws.received), ws.received

@@ -99,12 +99,14 @@ def test_loop_means_what_it_says(tmp_path):
 def test_realtime_pace_follows_media_time_and_keeps_the_newest(tmp_path):
     write_video(tmp_path / "v.avi", frames=10, fps=20)  # 0.45 s of media
     cap = Capture(make_source(f"file:{tmp_path / 'v.avi'}")).start()
+    first = cap.get(TIMEOUT)  # playback starts when its first frame is wanted
     t0 = time.monotonic()
-    time.sleep(0.7)  # a tracker that never came: frames are replaced, not queued
+    time.sleep(0.7)  # a tracker that never came back: frames are replaced, not queued
     last = cap.get(TIMEOUT)
     assert time.monotonic() - t0 >= 0.4
+    assert first is not None and first.index == 0
     assert last is not None and last.index == 9
-    assert cap.dropped == 9
+    assert cap.dropped == 8
 
 
 def test_corrupt_file_gives_one_clear_error(tmp_path):

@@ -286,3 +286,42 @@ def test_filter_scale_is_the_same_size_on_the_face_at_any_distance():
     assert near == pytest.approx(2 * far) and far > SIGMA_MIN_PX
     assert at(5000.0) == SIGMA_MIN_PX
     assert at(200.0) * 200.0 / camera.fx == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize("kind", ["la_lin", "la_quad"])
+def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypatch):
+    """A session without a speaker (``articast demo``) compiles only kernels.TRACKER on its
+    first run (issue 39: all of them took 65 s of CPU, the landmark, iris and Kalman kernels
+    half of it, which this tracker never calls). Every kernel a tracked frame calls is in it,
+    with the argument types its warm-up compiled: nothing is compiled while tracking."""
+    from numba import typeof
+
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = blob_trained(seed=7, kind=kind)
+    seen: dict[str, set] = {}
+
+    def spied(name, kernel):
+        def spy(*args):
+            seen.setdefault(name, set()).add(tuple(typeof(a) for a in args))
+            return kernel(*args)
+        return spy
+
+    every = ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system", "lm_solve",
+             "point_offset", "cv_predict", "cv_update", "iris_chords", "iris_former_rows")
+    kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: fit_terms
+    # calls la_residuals as a global, which a spy in its place would not type
+    for name in every:
+        monkeypatch.setattr(kernels, name, spied(name, getattr(kernels, name)))
+    kernels.warm_up(kernels.TRACKER)
+    warmed, seen = seen, {}
+    assert set(warmed) == set(kernels.TRACKER) < set(every)
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    t, alpha = trajectory(8)
+    assert all(tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]).ok
+               for i in range(8))
+    assert "fit_terms" in seen  # the compiled path ran
+    for name, types in seen.items():
+        assert name in kernels.TRACKER and types <= warmed[name], (name, types)

@@ -1078,67 +1078,91 @@ def iris_former_rows(patch, grown, iris, white, cx0):  # pragma: no cover - comp
     return widths, bounded
 
 
-def warm_up() -> None:
+TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve")
+"""The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
+speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
+CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
+
+
+def warm_up(only: tuple[str, ...] | None = None) -> None:
     """Compile (or load from the on-disk cache) the kernels for the tracker's argument
-    types, so that a session's first frame does not pay a few seconds of compilation."""
+    types, so that a session's first frame does not pay a few seconds of compilation.
+    ``only``: those kernels (e.g. :data:`TRACKER`), else every one."""
     if not AVAILABLE:
         return
+
+    def want(*names: str) -> bool:
+        return only is None or any(n in only for n in names)
+
     f8 = np.float64
     src = np.zeros((20, 20, 3), np.uint8)
     dist = np.zeros(5)
     dist.setflags(write=False)  # as Camera.dist: a writable one compiled a type never used
-    la_residuals(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
-                 np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
-                 np.zeros((1, 3, 1), f8), np.array([100.0, 100.0, 10.0, 10.0]), dist,
-                 np.zeros(8, f8), np.zeros((1, 8), f8), np.zeros((0, 0), f8), 1.0,
-                 np.ones((1, 8), f8), True, True, src, np.zeros((20, 20), np.uint8),
-                 np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8),
-                 np.full(5, 0.2))
-    cauchy(np.zeros(8, f8), np.zeros((8, 2), f8), 8, 2.0)
-    for jacobian in (True, False):
-        point_residuals(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8),
-                        np.eye(3), np.array([0.0, 0.0, 100.0]),
-                        np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
-                        jacobian)
-    cauchy(np.zeros(8, f8), np.zeros((0, 0), f8), 8, 2.0)
     intr = np.array([100.0, 100.0, 10.0, 10.0])
-    fit_terms(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8), np.eye(3),
-              np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), intr,
-              dist, np.zeros(8, f8), np.zeros((1, 8), f8), np.zeros((0, 0), f8), 1.0,
-              np.ones((1, 8), f8), True, src, np.zeros((20, 20), np.uint8),
-              np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8), np.full(5, 0.2),
-              np.zeros((3, 8), f8), np.eye(3), 0.05, 1.0, 2.0,
-              np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), intr, np.ones(1), np.zeros((1, 2)),
-              3.0, np.ones(1), 1.0, 0.25, np.zeros(1), np.eye(3), np.zeros(3), np.eye(7),
-              np.eye(3), np.zeros(3), 1.0, 1.0)
-    h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
-                     np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
-    lm_solve(h, g, 1e-3)
-    point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8), np.eye(3),
-                 np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
-    reading_features(np.random.default_rng(0).normal(0, 50, (8, 3)), np.eye(3),
-                     np.array([0.0, 0.0, 500.0]), intr, np.zeros((8, 2)))
-    lip_gap(np.zeros((6, 3), f8), np.zeros((1, 18), f8), np.eye(3), np.array([0.0, 0.0, 100.0]),
-            intr, np.zeros(1, f8), np.zeros(1, f8), 0.1, 0.5, 1e-3, 3.0, 1e-4)
-    eye = np.zeros((8, 12), np.float32)
-    mask = np.ones((8, 12), np.uint8)
-    iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
-    iris_former_rows(eye, mask, 0.0, 30.0, 5.0)
-    cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
-    for information in (np.eye(2), np.zeros((0, 0))):
-        cv_update(cov, info, np.zeros(2), np.zeros(2), information)
+    if want("la_residuals"):
+        la_residuals(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
+                     np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
+                     np.zeros((1, 3, 1), f8), np.array([100.0, 100.0, 10.0, 10.0]), dist,
+                     np.zeros(8, f8), np.zeros((1, 8), f8), np.zeros((0, 0), f8), 1.0,
+                     np.ones((1, 8), f8), True, True, src, np.zeros((20, 20), np.uint8),
+                     np.zeros((20, 20, 3), np.float32), np.zeros((20, 20), np.uint8),
+                     np.full(5, 0.2))
+    if want("cauchy"):
+        cauchy(np.zeros(8, f8), np.zeros((8, 2), f8), 8, 2.0)
+        cauchy(np.zeros(8, f8), np.zeros((0, 0), f8), 8, 2.0)
+    if want("point_residuals"):
+        for jacobian in (True, False):
+            point_residuals(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8),
+                            np.eye(3), np.array([0.0, 0.0, 100.0]),
+                            np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
+                            jacobian)
+    if want("fit_terms"):
+        fit_terms(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
+                  np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
+                  np.zeros((1, 3, 1), f8), intr, dist, np.zeros(8, f8), np.zeros((1, 8), f8),
+                  np.zeros((0, 0), f8), 1.0, np.ones((1, 8), f8), True, src,
+                  np.zeros((20, 20), np.uint8), np.zeros((20, 20, 3), np.float32),
+                  np.zeros((20, 20), np.uint8), np.full(5, 0.2), np.zeros((3, 8), f8),
+                  np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
+                  intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
+                  np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0)
+    if want("lm_system", "lm_solve"):
+        h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
+                         np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
+        lm_solve(h, g, 1e-3)
+    if want("point_offset"):
+        point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8),
+                     np.eye(3), np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
+    if want("reading_features"):
+        reading_features(np.random.default_rng(0).normal(0, 50, (8, 3)), np.eye(3),
+                         np.array([0.0, 0.0, 500.0]), intr, np.zeros((8, 2)))
+    if want("lip_gap"):
+        lip_gap(np.zeros((6, 3), f8), np.zeros((1, 18), f8), np.eye(3),
+                np.array([0.0, 0.0, 100.0]), intr, np.zeros(1, f8), np.zeros(1, f8), 0.1, 0.5,
+                1e-3, 3.0, 1e-4)
+    if want("iris_chords", "iris_former_rows"):
+        eye = np.zeros((8, 12), np.float32)
+        mask = np.ones((8, 12), np.uint8)
+        iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
+        iris_former_rows(eye, mask, 0.0, 30.0, 5.0)
+    if want("cv_predict", "cv_update"):
+        cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
+        for information in (np.eye(2), np.zeros((0, 0))):
+            cv_update(cov, info, np.zeros(2), np.zeros(2), information)
 
 
-def compiled_on_disk() -> bool:
+def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
     """Whether numba's on-disk cache already holds the kernels (False: :func:`warm_up` will
-    compile them, a few seconds). Reads numba's cache index; True when it cannot tell."""
+    compile them, a few seconds); ``only``: those. Reads numba's cache index; True when it
+    cannot tell."""
     if not AVAILABLE:
         return True
     try:
-        kernels: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                    lm_system, lm_solve, point_offset, lip_gap, reading_features,
-                                    cv_predict,
-                                    cv_update, iris_chords, iris_former_rows)
+        every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
+                                  lm_system, lm_solve, point_offset, lip_gap,
+                                  reading_features, cv_predict, cv_update, iris_chords,
+                                  iris_former_rows)
+        kernels = [f for f in every if only is None or f.__name__ in only]
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
     except AttributeError:  # another numba's internals
