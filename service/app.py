@@ -428,6 +428,16 @@ class Service:
         self._buckets: dict[tuple[str, str], MessageBucket] = {}
         self._hellos: dict[tuple[Any, ...], tuple[Any, Any, str]] = {}
         self._watchdog: asyncio.Task[None] | None = None
+        self.media: Any = None
+        """The media process (:class:`articast.service.media.MediaProcess`): participants'
+        WebRTC connections, started on the first offer."""
+
+    def media_process(self) -> Any:
+        if self.media is None:
+            from articast.service.media import MediaProcess
+
+            self.media = MediaProcess()
+        return self.media
 
     def lookup(self, name: str) -> Any:
         """The session a subscriber means: local, or (on Redis) any worker's."""
@@ -583,6 +593,8 @@ class Service:
         if self._announce_task:
             self._announce_task.cancel()
         await self.manager.close(self.config.server.shutdown_timeout_s)
+        if self.media is not None:
+            await asyncio.to_thread(self.media.close)
         for r in self._remote:
             if asyncio.iscoroutinefunction(r.close):
                 await r.close()
@@ -786,11 +798,9 @@ def create_app(config: ServiceConfig | None = None,
                 raise HTTPException(400, f"speaker: {problem}")
             access.check_session_files("webrtc", "", {"speaker": speaker})
             speaker = access.resolve(speaker)
-        feed = webrtc.Feed(name)
         try:
-            sdp = await webrtc.answer(offer["sdp"], feed)
+            sdp, _, feed = await svc.media_process().answer(offer["sdp"], name)
         except ValueError as exc:
-            feed.close("the offer was refused")
             raise HTTPException(400, str(exc)) from None
         if old is not None:
             await svc.manager.remove(name)
