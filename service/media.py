@@ -322,10 +322,73 @@ class _Media:
 
 
 # ----------------------------------------------------------------------------- a room's audio
+class PacketTap:
+    """A member's microphone as the Opus packets their browser sent, for the other members'
+    slots: forwarded as received, never decoded and encoded again.
+
+    aiortc has no public way to read a remote track's encoded frames, so the receiver's queue
+    to its decoder thread (``_RTCRtpReceiver__decoder_queue``, aiortc 1.16) is wrapped: each
+    reassembled frame still goes to the decoder (the member's level is measured on it) and, as
+    ``(payload, RTP timestamp)``, to every subscriber's queue. aiortc's sender sends an
+    ``av.Packet`` it is given as it is (``RTCRtpSender._next_encoded_frame``: ``pack``)."""
+
+    QUEUE = 25
+    """Packets a slow subscriber may hold (0.5 s of 20 ms frames); older ones are dropped."""
+
+    def __init__(self, receiver: Any) -> None:
+        attr = "_RTCRtpReceiver__decoder_queue"
+        inner = getattr(receiver, attr)
+        tap = self
+        self.subscribers: set[asyncio.Queue[Any]] = set()
+
+        class Tee:
+            def put(self, item: Any) -> None:  # on the media loop (the receiver's RTP task)
+                inner.put(item)
+                tap._fan(None if item is None else (item[1].data, item[1].timestamp))
+
+            def __getattr__(self, name: str) -> Any:
+                return getattr(inner, name)
+
+        setattr(receiver, attr, Tee())
+
+    def _fan(self, item: Any) -> None:
+        for q in list(self.subscribers):
+            if q.full():
+                q.get_nowait()
+            q.put_nowait(item)
+
+    def subscribe(self) -> _TapReader:
+        q: asyncio.Queue[Any] = asyncio.Queue(self.QUEUE)
+        self.subscribers.add(q)
+        return _TapReader(self, q)
+
+    def end(self) -> None:
+        self._fan(None)
+
+
+class _TapReader:
+    def __init__(self, tap: PacketTap, q: asyncio.Queue[Any]) -> None:
+        self._tap, self._q = tap, q
+
+    async def recv(self) -> tuple[bytes, int]:
+        from aiortc.mediastreams import MediaStreamError
+
+        item = await self._q.get()
+        if item is None:
+            raise MediaStreamError
+        return item
+
+    def stop(self) -> None:
+        self._tap.subscribers.discard(self._q)
+
+
 class SlotTrack:
-    """What the server sends on one audio slot of one page: the microphone of the member the
-    slot is pointed at (a MediaRelay proxy), re-timed so the slot's time line never jumps
-    when it changes hands; while it points at nobody it waits (nothing is sent)."""
+    """What the server sends on one audio slot of one page: the Opus packets of the member
+    the slot is pointed at (a :class:`PacketTap` reader), re-timed so the slot's time line
+    never jumps when it changes hands; while it points at nobody it waits (nothing is sent)."""
+
+    FRAME = 960
+    """20 ms at Opus's 48 kHz RTP clock: a packet's duration when its timestamps jump."""
 
     def __init__(self) -> None:
         from aiortc.mediastreams import MediaStreamTrack
@@ -336,26 +399,28 @@ class SlotTrack:
             kind = "audio"
 
             async def recv(self) -> Any:
-                return await slot.next_frame()
+                return await slot.next_packet()
 
         self.track = _Track()
         self.source: Any = None
         self.member = ""
         self._changed = asyncio.Event()
         self._pts = 0
+        self._last: int | None = None
 
     def point(self, member: str, source: Any) -> None:
-        """Send ``member``'s microphone (``source``, a relay proxy) from now on; None: nobody."""
+        """Send ``member``'s microphone (``source``, a tap reader) from now on; None: nobody."""
         old, self.source, self.member = self.source, source, member
         if old is not None:
             old.stop()
+        self._last = None
         self._changed.set()
 
-    async def next_frame(self) -> Any:
+    async def next_packet(self) -> Any:
         from fractions import Fraction
 
         from aiortc.mediastreams import MediaStreamError
-        from av import AudioFrame
+        from av import Packet
 
         while True:
             source = self.source
@@ -364,42 +429,39 @@ class SlotTrack:
                 await self._changed.wait()
                 continue
             try:
-                frame = await source.recv()
+                data, timestamp = await source.recv()
             except MediaStreamError:
                 if self.source is source:
                     self.source, self.member = None, ""
                 continue
             if self.source is not source:
                 continue
-            # a copy (a relayed frame is shared by every slot) on this slot's own time line
-            out = AudioFrame.from_ndarray(frame.to_ndarray(), format=frame.format.name,
-                                          layout=frame.layout.name)
-            out.sample_rate = frame.sample_rate
-            out.pts = self._pts
-            out.time_base = Fraction(1, frame.sample_rate)
-            self._pts += frame.samples
-            return out
+            step = (timestamp - self._last) % 2**32 if self._last is not None else self.FRAME
+            self._last = timestamp
+            self._pts += step if 0 < step <= 6 * self.FRAME else self.FRAME
+            packet = Packet(data)
+            packet.pts = self._pts
+            packet.time_base = Fraction(1, 48000)
+            return packet
 
 
 class _Member:
     def __init__(self, name: str) -> None:
         self.name = name
-        self.audio: Any = None
+        self.audio: PacketTap | None = None
         self.slots: list[SlotTrack] = []
         self.mids: list[str] = []
 
 
 class MediaRoom:
-    """One room's audio in the media process: each member's microphone is drained (its level
-    measured) and relayed, through aiortc's MediaRelay, to a slot of every other member."""
+    """One room's audio in the media process: each member's microphone is decoded once (its
+    level measured) and its packets forwarded, as they came, to a slot of every other
+    member (:class:`PacketTap`)."""
 
     def __init__(self, name: str, publish: Any) -> None:
-        from aiortc.contrib.media import MediaRelay
-
         self.name = name
         self._publish = publish
         self.members: dict[str, _Member] = {}
-        self.relay = MediaRelay()
         self.levels: dict[str, float] = {}
         self._drains: dict[str, asyncio.Task[None]] = {}
 
@@ -422,8 +484,10 @@ class MediaRoom:
                 room.members[name] = member
                 room.route()
 
-            def audio(self, track: Any) -> bool:
-                room.microphone(member, track)
+            def audio(self, track: Any, receiver: Any = None) -> bool:
+                if receiver is None:
+                    return False
+                room.microphone(member, track, receiver)
                 return True
 
             def leave(self) -> None:
@@ -431,24 +495,27 @@ class MediaRoom:
 
         return Hooks()
 
-    def microphone(self, member: _Member, track: Any) -> None:
-        """A member's microphone arrived: drained (and measured) always, relayed to others."""
-        member.audio = track
-        proxy = self.relay.subscribe(track)
-        self._drains[member.name] = asyncio.ensure_future(self._drain(member, proxy))
+    def microphone(self, member: _Member, track: Any, receiver: Any) -> None:
+        """A member's microphone arrived: decoded (its level measured) always, its packets
+        forwarded to the others."""
+        member.audio = PacketTap(receiver)
+        self._drains[member.name] = asyncio.ensure_future(self._drain(member, track))
         self.route()
 
-    async def _drain(self, member: _Member, proxy: Any) -> None:
+    async def _drain(self, member: _Member, track: Any) -> None:
         import numpy as np
         from aiortc.mediastreams import MediaStreamError
 
         try:
             while True:
-                frame = await proxy.recv()
+                frame = await track.recv()
                 pcm = frame.to_ndarray().astype(np.float32) / 32768.0
                 self.levels[member.name] = float(np.sqrt(np.mean(pcm * pcm)))
         except MediaStreamError:
             pass
+        finally:
+            if member.audio is not None:
+                member.audio.end()
 
     def route(self) -> None:
         """Point every member's free slots at the other members' microphones."""
@@ -460,7 +527,7 @@ class MediaRoom:
                 free = next((s for s in m.slots if s.source is None), None)
                 if free is None:
                     break
-                free.point(other.name, self.relay.subscribe(other.audio))
+                free.point(other.name, other.audio.subscribe())
                 carried.add(other.name)
         self.publish()
 

@@ -177,8 +177,9 @@ class PeerHooks:
     def prepare(self, pc: Any) -> None:  # pragma: no cover - the default does nothing
         pass
 
-    def audio(self, track: Any) -> bool:  # pragma: no cover
-        """True when the track was taken (and will be read); False: drain it."""
+    def audio(self, track: Any, receiver: Any = None) -> bool:  # pragma: no cover
+        """True when the track (of ``receiver``) was taken (and will be read); False: drain
+        it."""
         return False
 
 
@@ -224,8 +225,10 @@ async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> 
 
     @pc.on("track")
     def on_track(track: Any) -> None:
-        if track.kind == "audio" and hooks is not None and hooks.audio(track):
-            return
+        if track.kind == "audio" and hooks is not None:
+            receiver = next((r for r in pc.getReceivers() if r.track is track), None)
+            if hooks.audio(track, receiver):
+                return
         pump = pump_video if track.kind == "video" else drain
         tasks.append(asyncio.ensure_future(pump(track)))
 

@@ -156,7 +156,7 @@ async function audioDelay(m) { // ms from the server's receipt of a voice to its
     }
     if (r.type === "candidate-pair" && r.nominated && r.currentRoundTripTime != null) rtt = 1000 * r.currentRoundTripTime;
   });
-  const RELAY_MS = 20; // the server decodes and re-encodes 20 ms Opus frames
+  const RELAY_MS = 0; // the server forwards the Opus packets as they come (service/media.py)
   let d = null, how = "";
   if (playout !== null && state.offsetMs !== null) {
     // what plays now left the server at `playout` (its NTP clock, from its sender reports)
