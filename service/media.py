@@ -52,8 +52,8 @@ class RemoteFeed:
     :class:`articast.service.webrtc.Feed` (``new_inlet``, ``close``, ``ended`` and the
     counts), the frames themselves going from the media process to the worker."""
 
-    def __init__(self, media: MediaProcess, pid: int, name: str) -> None:
-        self._media, self.pid, self.name = media, pid, name
+    def __init__(self, media: MediaProcess, pid: int, name: str, gen: int) -> None:
+        self._media, self.pid, self.name, self.gen = media, pid, name, gen
         self.ended = ""
         self.received = self.dropped = self.resized = 0
         self.size: tuple[int, int] = (0, 0)
@@ -80,7 +80,10 @@ class MediaProcess:
         self._conn: Any = None
         self._proc: Any = None
         self._next = 1
-        self._answers: dict[int, tuple[asyncio.AbstractEventLoop, asyncio.Future[Any]]] = {}
+        self._gen = 0
+        """Which media process (a new one starts if the last one died)."""
+        self._answers: dict[int, tuple[asyncio.AbstractEventLoop, asyncio.Future[Any],
+                                       int]] = {}
         self.feeds: dict[int, RemoteFeed] = {}
         self.rooms: dict[str, dict[str, dict[str, Any]]] = {}
         """Room -> member -> ``{"slots": {other member: mid}, "level": rms}`` (the media
@@ -97,7 +100,8 @@ class MediaProcess:
         proc.start()
         child.close()
         self._conn, self._proc = conn, proc
-        threading.Thread(target=self._read, args=(conn,), name="media reader",
+        self._gen += 1
+        threading.Thread(target=self._read, args=(conn, self._gen), name="media reader",
                          daemon=True).start()
         log.info("media process %d started", proc.pid)
 
@@ -120,11 +124,11 @@ class MediaProcess:
         with self._lock:
             if self._proc is None or not self._proc.is_alive():
                 self._start()
-            pid, self._next = self._next, self._next + 1
+            pid, self._next, gen = self._next, self._next + 1, self._gen
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[Any] = loop.create_future()
-        self._answers[pid] = (loop, fut)
-        feed = self.feeds[pid] = RemoteFeed(self, pid, name)
+        self._answers[pid] = (loop, fut, gen)
+        feed = self.feeds[pid] = RemoteFeed(self, pid, name, gen)
         problem = "" if self.send(("offer", pid, name, sdp, room)) else \
             "the server's media process is not running"
         answer, mids = "", []
@@ -140,7 +144,7 @@ class MediaProcess:
             raise ValueError(problem)
         return answer, mids, feed
 
-    def _read(self, conn: Any) -> None:
+    def _read(self, conn: Any, gen: int) -> None:
         while True:
             try:
                 msg = conn.recv()
@@ -150,7 +154,7 @@ class MediaProcess:
             if kind == "answer":
                 entry = self._answers.pop(msg[1], None)
                 if entry is not None:
-                    loop, fut = entry
+                    loop, fut, _ = entry
                     loop.call_soon_threadsafe(_settle, fut, msg[2:])
             elif kind == "ended":
                 feed = self.feeds.pop(msg[1], None)
@@ -165,11 +169,14 @@ class MediaProcess:
             elif kind == "room":
                 self.rooms[msg[1]] = msg[2]
         log.warning("the media process ended: its participants leave")
-        for feed in list(self.feeds.values()):
-            feed.ended = feed.ended or "the server's media process ended"
-        self.feeds.clear()
-        for loop, fut in list(self._answers.values()):
-            loop.call_soon_threadsafe(_settle, fut, ("", "the server's media process ended", []))
+        for pid, feed in list(self.feeds.items()):
+            if feed.gen == gen:
+                feed.ended = feed.ended or "the server's media process ended"
+                self.feeds.pop(pid, None)
+        for loop, fut, g in list(self._answers.values()):
+            if g == gen:
+                loop.call_soon_threadsafe(_settle, fut,
+                                          ("", "the server's media process ended", []))
 
     def close(self, timeout: float = 3.0) -> None:
         self.send(("quit",))

@@ -166,6 +166,7 @@ def hook(b, name):
     return json.loads(b.evaluate(
         f"(() => {{ const m = window.articastRoom.members[{json.dumps(name)}];"
         " return JSON.stringify(m ? {audioDelayMs: m.audioDelayMs, method: m.delayMethod,"
+        " jitterMs: m.jitterMs, jitterTarget: m.jitterTarget,"
         " drawn: m.drawn, applied: m.applied.length, received: m.received.length} : null); })()"))
 
 
@@ -201,6 +202,7 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
                     (r_wrong, _), _ = best_correlation(got, clips[mine]["offline"])
                     assert r_wrong < r, (other, r, r_wrong)
                     h = hook(page, other)
+                    print(f"{other}'s voice on {mine}'s page: {h}")
                     assert h["drawn"] == "generic" and h["applied"] > 0, h
                     # the other's voice plays on this page: its delay was measured
                     assert h["audioDelayMs"] is not None and 0 < h["audioDelayMs"] < 3000, h
@@ -358,3 +360,30 @@ def test_a_malformed_offer_is_one_line_and_the_name_stays_free(body, says):
         assert says in detail and "\n" not in detail, detail
         assert not room_of(srv).members and not srv.service.manager.sessions
         assert join(c, "ann").status_code == 200  # the name is free: joining again works
+
+
+def test_a_killed_media_process_ends_its_participants_and_joining_again_works():
+    """The participants' connections live in the media process (service/media.py): when it
+    dies, its participants leave (their sessions end, the room forgets them) and the server
+    stays up; the next offer starts a new media process."""
+    sdp = offer_sdp()
+    with ServerThread(config()) as srv, http(srv) as c:
+        bob = join(c, "bob").json()["token"]
+        r = offer(c, bob, sdp)
+        assert r.status_code == 200, r.text
+        media = srv.service.media
+        first = media._proc
+        assert first.is_alive() and "bob" in room_of(srv).members
+        first.kill()
+        deadline = time.monotonic() + 6 * TIMEOUT
+        while "bob" in room_of(srv).members:
+            assert time.monotonic() < deadline, "bob stayed in the room"
+            time.sleep(0.1)
+        sessions = srv.service.manager.sessions
+        while sessions["bob"].state not in ("ended", "failed", "stopped"):
+            assert time.monotonic() < deadline, sessions["bob"].state
+            time.sleep(0.1)
+        r = offer(c, bob, sdp)  # bob joins again: a new media process answers
+        assert r.status_code == 200, r.text
+        assert media._proc is not first and media._proc.is_alive()
+        assert room_of(srv).members["bob"].feed.ended == ""
