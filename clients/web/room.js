@@ -151,7 +151,12 @@ async function audioDelay(m) { // ms from the server's receipt of a voice to its
   const stats = await t.receiver.getStats();
   stats.forEach((r) => {
     if (r.type === "inbound-rtp" && r.kind === "audio") {
-      if (r.jitterBufferEmittedCount > 0) jb = 1000 * r.jitterBufferDelay / r.jitterBufferEmittedCount;
+      if (r.jitterBufferEmittedCount > 0) { // over the last second (the totals average since joining)
+        const prev = m.jbTotals, n = r.jitterBufferEmittedCount - (prev ? prev[1] : 0);
+        jb = 1000 * (r.jitterBufferDelay - (prev && n > 0 ? prev[0] : 0)) /
+          (prev && n > 0 ? n : r.jitterBufferEmittedCount);
+        m.jbTotals = [r.jitterBufferDelay, r.jitterBufferEmittedCount];
+      }
       if (r.estimatedPlayoutTimestamp) { playout = r.estimatedPlayoutTimestamp; at = r.timestamp; }
     }
     if (r.type === "candidate-pair" && r.nominated && r.currentRoundTripTime != null) rtt = 1000 * r.currentRoundTripTime;
