@@ -21,7 +21,8 @@ server -> media   ``("offer", id, name, sdp, room)``  answer a participant's off
                   ``("quit",)``
 media -> server   ``("answer", id, sdp, problem, mids)``
                   ``("ended", id, reason)``           the participant left (or their video)
-                  ``("stats", {id: (received, replaced, width, height, resized)})``  each second
+                  ``("stats", {id: (received, replaced, width, height, resized,
+                                    {kind: (RTP packets, lost)})})``  each second
                   ``("room", room, {name: {"slots": {member: mid}, "level": rms}})``
 
 Frames never pass through the server: the media process writes each participant's newest
@@ -57,6 +58,7 @@ class RemoteFeed:
         self.ended = ""
         self.received = self.dropped = self.resized = 0
         self.size: tuple[int, int] = (0, 0)
+        self.rtp: dict[str, tuple[int, int]] = {}
 
     def new_inlet(self) -> Any:
         reader, writer = multiprocessing.Pipe(duplex=False)
@@ -161,11 +163,11 @@ class MediaProcess:
                 if feed is not None and not feed.ended:
                     feed.ended = msg[2]
             elif kind == "stats":
-                for pid, (received, dropped, width, height, resized) in msg[1].items():
+                for pid, (received, dropped, width, height, resized, rtp) in msg[1].items():
                     feed = self.feeds.get(pid)
                     if feed is not None:
                         feed.received, feed.dropped = received, dropped
-                        feed.size, feed.resized = (width, height), resized
+                        feed.size, feed.resized, feed.rtp = (width, height), resized, rtp
             elif kind == "room":
                 self.rooms[msg[1]] = msg[2]
         log.warning("the media process ended: its participants leave")
@@ -320,10 +322,18 @@ class _Media:
         self.send(("answer", pid, answer, "", hooks.mids if hooks is not None else []))
 
     async def _report(self) -> None:
+        from articast.service.webrtc import count_rtp
+
+        tick = 0
         while True:
             await asyncio.sleep(1.0)
+            tick += 1
+            if tick % 5 == 0:
+                for p in list(self.peers.values()):
+                    await count_rtp(p.feed)
             self.send(("stats", {pid: (p.feed.received, p.feed.dropped, *p.feed.size,
-                                       p.feed.resized) for pid, p in self.peers.items()}))
+                                       p.feed.resized, p.feed.rtp)
+                                 for pid, p in self.peers.items()}))
             for room in self.rooms.values():
                 room.publish()
 

@@ -177,6 +177,10 @@ class Room:
         if feed is not None:
             text += f" (replaced {feed.dropped}, {feed.size[0]}x{feed.size[1]}, " \
                     f"resized {feed.resized})"
+            rtp = getattr(feed, "rtp", {})
+            if rtp:
+                text += ", RTP " + ", ".join(f"{kind} {got} lost {lost}"
+                                             for kind, (got, lost) in sorted(rtp.items()))
         if m is not None:
             text += f", tracked {m.frames} at {m.fps.rate():.1f} fps, no face {m.frames_failed}"
             if m.failed_reasons:

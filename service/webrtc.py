@@ -67,6 +67,10 @@ class Feed:
         self.resized = 0
         self.on_close: Callable[[], None] | None = None
         """Closes the peer connection (set by :func:`answer`)."""
+        self.peer: Any = None
+        """The peer connection (set by :func:`answer`; its stats are logged)."""
+        self.rtp: dict[str, tuple[int, int]] = {}
+        """kind -> (RTP packets received, lost) as the receivers last counted."""
         self.on_end: Callable[[str], None] | None = None
         """Told why, once, when the feed ends (the media process tells the server)."""
         self._thread = threading.Thread(target=self._forward, name=f"feed {name}",
@@ -260,4 +264,23 @@ async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> 
         await pc.close()
         raise ValueError(problem)
     feed.on_close = close_peer
+    feed.peer = pc
     return pc.localDescription.sdp
+
+
+async def count_rtp(feed: Feed) -> None:
+    """Update ``feed.rtp`` from its peer connection's receivers (packets received, lost)."""
+    pc = feed.peer
+    if pc is None:
+        return
+    counts: dict[str, tuple[int, int]] = {}
+    for receiver in pc.getReceivers():
+        try:
+            report = await receiver.getStats()
+        except Exception:  # noqa: BLE001 - a closing connection: no figures this time
+            continue
+        for stats in report.values():
+            if getattr(stats, "type", "") == "inbound-rtp":
+                got, lost = counts.get(stats.kind, (0, 0))
+                counts[stats.kind] = (got + stats.packetsReceived, lost + stats.packetsLost)
+    feed.rtp = counts

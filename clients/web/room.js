@@ -158,6 +158,10 @@ async function audioDelay(m) { // ms from the server's receipt of a voice to its
         m.jbTotals = [r.jitterBufferDelay, r.jitterBufferEmittedCount];
       }
       if (r.estimatedPlayoutTimestamp) { playout = r.estimatedPlayoutTimestamp; at = r.timestamp; }
+      // how the voice arrives (for the benchmark and the test's log): RTP arrival jitter, lost
+      // packets, and the share of played samples the jitter buffer had to make up
+      m.hook.arrival = { jitterMs: 1000 * (r.jitter || 0), lost: r.packetsLost || 0,
+        concealed: r.totalSamplesReceived ? r.concealedSamples / r.totalSamplesReceived : null };
     }
     if (r.type === "candidate-pair" && r.nominated && r.currentRoundTripTime != null) rtt = 1000 * r.currentRoundTripTime;
   });
