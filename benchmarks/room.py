@@ -13,6 +13,8 @@ the synthetic speaker (tests/test_room.py makes them); the server runs in this p
 - ``av_offset_ms``: applied minus due (due = ``t_capture`` + the measured audio delay D):
   how much later than its voice a frame was shown (0 when on time; positive: lips lag the
   voice). Median and p5-p95.
+- ``voice``: per remote pair at the end, the voice's measured delay D, the jitter-buffer
+  target the page asked for, and the share of played samples the jitter buffer concealed.
 - ``cpu_x_v1``: one participant's CPU per tracked frame (their worker process, plus a 1/N
   share of this process (the room's sockets) and of the media process (WebRTC, decoding,
   the audio relay)) over the
@@ -98,7 +100,7 @@ def main(argv: list[str] | None = None) -> None:
             media = proc_cpu_s(media_pid) - media0
             cpu = {n: proc_cpu_s(p) - cpu0[n] for n, p in pids.items()}
             frames = {n: sessions[n].metrics.frames - frames0[n] for n in names}
-            lat, off = [], []
+            lat, off, voice = [], [], []
             start_ms = (time.time() - wall) * 1000
             for n, b in zip(names, browsers, strict=True):
                 for o in names:
@@ -107,6 +109,10 @@ def main(argv: list[str] | None = None) -> None:
                     rows = json.loads(b.evaluate(
                         f"JSON.stringify(window.articastRoom.members[{json.dumps(o)}].applied)"))
                     offset = b.evaluate("window.articastRoom.offsetMs")
+                    voice.append(json.loads(b.evaluate(
+                        f"(() => {{ const m = window.articastRoom.members[{json.dumps(o)}];"
+                        " return JSON.stringify({delay: m.audioDelayMs, target: m.jitterTarget,"
+                        " arrival: m.arrival}); })()")))
                     for _t, _a, t_capture, applied, due in rows:
                         if applied < start_ms:
                             continue
@@ -135,6 +141,12 @@ def main(argv: list[str] | None = None) -> None:
         "av_offset_ms": {"median": round(float(np.median(off)), 1),
                          "p5": round(float(np.percentile(off, 5)), 1),
                          "p95": round(float(np.percentile(off, 95)), 1)},
+        "voice": {
+            "delay_ms": [None if v["delay"] is None else round(v["delay"]) for v in voice],
+            "jitter_target_ms": [None if v["target"] is None else round(v["target"])
+                                 for v in voice],
+            "concealed": [None if not v["arrival"] or v["arrival"]["concealed"] is None
+                          else round(v["arrival"]["concealed"], 3) for v in voice]},
         "tracked_fps": {n: round(frames[n] / wall, 1) for n in names},
         "cpu_ms_per_frame": {n: round(v, 1) for n, v in per.items()},
         "v1_loop_cpu_ms_per_frame": round(v1, 1),
