@@ -79,6 +79,11 @@ class MediaProcess:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        """Held while writing to the media process."""
+        self._starting = threading.Lock()
+        """Held while (re)starting it: a thread's work, never the event loop's (the first
+        start waits for the workers' fork server to import what workers need: 5 s under
+        load, which held the server's loop and every room socket)."""
         self._conn: Any = None
         self._proc: Any = None
         self._next = 1
@@ -101,11 +106,21 @@ class MediaProcess:
                            name="articast media", daemon=True)
         proc.start()
         child.close()
-        self._conn, self._proc = conn, proc
-        self._gen += 1
+        with self._lock:
+            self._conn, self._proc = conn, proc
+            self._gen += 1
         threading.Thread(target=self._read, args=(conn, self._gen), name="media reader",
                          daemon=True).start()
         log.info("media process %d started", proc.pid)
+
+    def _ensure(self) -> tuple[int, int]:
+        """Start the media process unless it runs; a new peer id and the process's gen."""
+        with self._starting:
+            if self._proc is None or not self._proc.is_alive():
+                self._start()
+        with self._lock:
+            pid, self._next = self._next, self._next + 1
+            return pid, self._gen
 
     def send(self, msg: tuple[Any, ...], handle: int | None = None) -> bool:
         with self._lock:
@@ -123,10 +138,7 @@ class MediaProcess:
                                                                          RemoteFeed]:
         """The answer to ``name``'s offer, the audio slots' mids and their feed; ValueError
         (one line) when the offer cannot be answered."""
-        with self._lock:
-            if self._proc is None or not self._proc.is_alive():
-                self._start()
-            pid, self._next, gen = self._next, self._next + 1, self._gen
+        pid, gen = await asyncio.to_thread(self._ensure)
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[Any] = loop.create_future()
         self._answers[pid] = (loop, fut, gen)
