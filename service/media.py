@@ -366,7 +366,10 @@ class PacketTap:
 
     def __init__(self, receiver: Any) -> None:
         attr = "_RTCRtpReceiver__decoder_queue"
-        inner = getattr(receiver, attr)
+        inner = getattr(receiver, attr, None)
+        if inner is None or not hasattr(inner, "put"):
+            raise RuntimeError("this aiortc's receivers have no decoder queue to tap: "
+                               "the room cannot forward microphones")
         tap = self
         self.subscribers: set[asyncio.Queue[Any]] = set()
 
@@ -516,7 +519,11 @@ class MediaRoom:
             def audio(self, track: Any, receiver: Any = None) -> bool:
                 if receiver is None:
                     return False
-                room.microphone(member, track, receiver)
+                try:
+                    room.microphone(member, track, receiver)
+                except RuntimeError as exc:  # drained, not relayed: the room goes on, mute
+                    log.warning("room %s: %s's microphone: %s", room.name, name, exc)
+                    return False
                 return True
 
             def leave(self) -> None:
@@ -527,7 +534,7 @@ class MediaRoom:
     def microphone(self, member: _Member, track: Any, receiver: Any) -> None:
         """A member's microphone arrived: decoded (its level measured) always, its packets
         forwarded to the others."""
-        member.audio = PacketTap(receiver)
+        member.audio = PacketTap(receiver)  # RuntimeError: nothing changed yet
         self._drains[member.name] = asyncio.ensure_future(self._drain(member, track))
         self.route()
 
