@@ -366,7 +366,7 @@ class PacketTap:
 
     def __init__(self, receiver: Any) -> None:
         attr = "_RTCRtpReceiver__decoder_queue"
-        inner = getattr(receiver, attr, None)
+        inner: Any = getattr(receiver, attr, None)
         if inner is None or not hasattr(inner, "put"):
             raise RuntimeError("this aiortc's receivers have no decoder queue to tap: "
                                "the room cannot forward microphones")
