@@ -21,11 +21,12 @@ taken with the room token alone (its token comes from the host), since its deleg
 real face. Wrong tokens from one address are slowed down as the server's own are
 (:class:`articast.service.security.FailedAttempts`).
 
-Audio. Each page offers its microphone and ``slots`` receive-only audio transceivers; the
-server answers those as its own senders and, as members come and go, points each slot at
-another member's microphone through aiortc's :class:`MediaRelay` (no renegotiation: a
-``replaceTrack`` on the server's side). ``members`` tells each page which slot (``mid``)
-carries whom. Frames carry ``t_capture``, when the server received the video frame: the
+Media. The participants' WebRTC connections run in the server's media process
+(:mod:`articast.service.media`), not on this loop. Each page offers its microphone and
+``slots`` receive-only audio transceivers; the media process answers those as its own senders
+and, as members come and go, points each slot at another member's microphone, forwarding its
+Opus packets as they came (no renegotiation, no re-encoding); it reports which slot carries
+whom, and ``members`` tells each page (``mid``). Frames carry ``t_capture``, when the server received the video frame: the
 audio captured with it reached the server at the same time, so a page plays a member's
 animation at ``t_capture`` + that member's audio delay (clients/web/room.js, docs/ROOM.md).
 
@@ -109,7 +110,8 @@ class Member:
 
 
 class Room:
-    """One room's members and their audio routing; lives on the server's event loop."""
+    """One room's members; lives on the server's event loop (their media: the media
+    process)."""
 
     def __init__(self, config: RoomConfig, svc: Any) -> None:
         self.config, self.svc = config, svc
