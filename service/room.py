@@ -26,9 +26,10 @@ Media. The participants' WebRTC connections run in the server's media process
 ``slots`` receive-only audio transceivers; the media process answers those as its own senders
 and, as members come and go, points each slot at another member's microphone, forwarding its
 Opus packets as they came (no renegotiation, no re-encoding); it reports which slot carries
-whom, and ``members`` tells each page (``mid``). Frames carry ``t_capture``, when the server received the video frame: the
-audio captured with it reached the server at the same time, so a page plays a member's
-animation at ``t_capture`` + that member's audio delay (clients/web/room.js, docs/ROOM.md).
+whom, and ``members`` tells each page (``mid``). Frames carry ``t_capture``, when the server
+received the video frame: the audio captured with it reached the server at the same time, so
+a page plays a member's animation at ``t_capture`` + that member's audio delay
+(clients/web/room.js, docs/ROOM.md).
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
