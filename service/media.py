@@ -235,6 +235,7 @@ class _Media:
         self.lock = threading.Lock()
         self.peers: dict[int, _Peer] = {}
         self.rooms: dict[str, Any] = {}
+        self.closed_early: dict[int, str] = {}
         self.loop: asyncio.AbstractEventLoop | None = None
         self.done: asyncio.Event | None = None
 
@@ -286,6 +287,8 @@ class _Media:
             peer = self.peers.get(msg[1])
             if peer is not None:
                 peer.feed.close(msg[2])
+            else:  # still being answered (the server gave up waiting): closed once answered
+                self.closed_early[msg[1]] = msg[2]
         elif kind == "quit":
             assert self.done is not None
             self.done.set()
@@ -306,12 +309,14 @@ class _Media:
             feed.close("the offer was refused")
             if hooks is not None:
                 hooks.leave()
+            self.closed_early.pop(pid, None)
             self.send(("answer", pid, "", str(exc), []))
             return
         except Exception as exc:  # noqa: BLE001 - one line to the server, the process lives
             feed.close("the offer was refused")
             if hooks is not None:
                 hooks.leave()
+            self.closed_early.pop(pid, None)
             self.send(("answer", pid, "", f"the offer could not be answered: {exc!r}"[:300],
                        []))
             return
@@ -328,7 +333,10 @@ class _Media:
             self.loop.call_soon_threadsafe(gone)
 
         feed.on_end = ended
-        if feed.ended:  # it ended while answering
+        early = self.closed_early.pop(pid, None)
+        if early is not None:
+            feed.close(early)  # (calls ended)
+        if feed.ended and feed.on_end is not None:  # it ended while answering
             feed.on_end = None
             ended(feed.ended)
         self.send(("answer", pid, answer, "", hooks.mids if hooks is not None else []))
