@@ -13,8 +13,11 @@ the synthetic speaker (tests/test_room.py makes them); the server runs in this p
 - ``av_offset_ms``: applied minus due (due = ``t_capture`` + the measured audio delay D):
   how much later than its voice a frame was shown (0 when on time; positive: lips lag the
   voice). Median and p5-p95.
-- ``cpu_x_v1``: one participant's CPU per tracked frame (their worker process, plus this
-  process's share: WebRTC decode, audio relay, the room's sockets, divided by N) over the
+- ``voice``: per remote pair at the end, the voice's measured delay D, the jitter-buffer
+  target the page asked for, and the share of played samples the jitter buffer concealed.
+- ``cpu_x_v1``: one participant's CPU per tracked frame (their worker process, plus a 1/N
+  share of this process (the room's sockets) and of the media process (WebRTC, decoding,
+  the audio relay)) over the
   CPU per frame of the FaceMesh v1 loop (benchmarks/peers.py's ``facemesh_v1_finder``, one
   thread) on the same clip's frames.
 """
@@ -67,11 +70,12 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
 
     from tests.service_helpers import ServerThread
-    from tests.test_room import config, make_clip, participant
+    from tests.test_room import SLOW, config, make_clip, participant
 
     tmp = Path(tempfile.mkdtemp(prefix="articast-room-bench-"))
     names = [f"p{i}" for i in range(args.participants)]
-    clips = {n: make_clip(tmp / n, 1, 150 * i) for i, n in enumerate(names)}
+    clips = {n: make_clip(tmp / n, 1, 450 * i, n=90 * SLOW, slow=SLOW)
+             for i, n in enumerate(names)}
     browsers = []
     with ServerThread(config()) as srv:
         try:
@@ -84,16 +88,19 @@ def main(argv: list[str] | None = None) -> None:
                 b.wait_for(every, timeout=900)
             sessions = srv.service.manager.sessions
             pids = {n: sessions[n]._worker.process.pid for n in names}
+            media_pid = srv.service.media._proc.pid
             cpu0 = {n: proc_cpu_s(p) for n, p in pids.items()}
+            media0 = proc_cpu_s(media_pid)
             frames0 = {n: sessions[n].metrics.frames for n in names}
             own0, t0 = time.process_time(), time.monotonic()
             load0 = os.getloadavg()[0]
             time.sleep(args.seconds)
             wall = time.monotonic() - t0
             own = time.process_time() - own0
+            media = proc_cpu_s(media_pid) - media0
             cpu = {n: proc_cpu_s(p) - cpu0[n] for n, p in pids.items()}
             frames = {n: sessions[n].metrics.frames - frames0[n] for n in names}
-            lat, off = [], []
+            lat, off, voice = [], [], []
             start_ms = (time.time() - wall) * 1000
             for n, b in zip(names, browsers, strict=True):
                 for o in names:
@@ -102,6 +109,10 @@ def main(argv: list[str] | None = None) -> None:
                     rows = json.loads(b.evaluate(
                         f"JSON.stringify(window.articastRoom.members[{json.dumps(o)}].applied)"))
                     offset = b.evaluate("window.articastRoom.offsetMs")
+                    voice.append(json.loads(b.evaluate(
+                        f"(() => {{ const m = window.articastRoom.members[{json.dumps(o)}];"
+                        " return JSON.stringify({delay: m.audioDelayMs, target: m.jitterTarget,"
+                        " arrival: m.arrival}); })()")))
                     for _t, _a, t_capture, applied, due in rows:
                         if applied < start_ms:
                             continue
@@ -120,7 +131,8 @@ def main(argv: list[str] | None = None) -> None:
             break
         imgs.append(img)
     v1 = v1_loop_cpu_ms(imgs)
-    per = {n: 1000 * (cpu[n] + own / len(names)) / max(frames[n], 1) for n in names}
+    shared = own + media  # this process and the media process, for every participant
+    per = {n: 1000 * (cpu[n] + shared / len(names)) / max(frames[n], 1) for n in names}
     out = {
         "participants": args.participants, "seconds": round(wall, 1),
         "load_1min_at_start": round(load0, 1), "cores": os.cpu_count(),
@@ -129,10 +141,18 @@ def main(argv: list[str] | None = None) -> None:
         "av_offset_ms": {"median": round(float(np.median(off)), 1),
                          "p5": round(float(np.percentile(off, 5)), 1),
                          "p95": round(float(np.percentile(off, 95)), 1)},
+        "voice": {
+            "delay_ms": [None if v["delay"] is None else round(v["delay"]) for v in voice],
+            "jitter_target_ms": [None if v["target"] is None else round(v["target"])
+                                 for v in voice],
+            "concealed": [None if not v["arrival"] or v["arrival"]["concealed"] is None
+                          else round(v["arrival"]["concealed"], 3) for v in voice]},
         "tracked_fps": {n: round(frames[n] / wall, 1) for n in names},
         "cpu_ms_per_frame": {n: round(v, 1) for n, v in per.items()},
         "v1_loop_cpu_ms_per_frame": round(v1, 1),
         "cpu_x_v1": {n: round(v / v1, 2) for n, v in per.items()},
+        "cpu_s": {"workers": {n: round(v, 1) for n, v in cpu.items()},
+                  "server": round(own, 1), "media_process": round(media, 1)},
     }
     print(json.dumps(out, indent=None if args.json else 2))
 

@@ -121,11 +121,9 @@ def session_routes(svc: Service) -> APIRouter:
                 raise HTTPException(400, f"speaker: {problem}")
             access.check_session_files("webrtc", "", {"speaker": speaker})
             speaker = access.resolve(speaker)
-        feed = webrtc.Feed(name)
         try:
-            sdp = await webrtc.answer(offer["sdp"], feed)
+            sdp, _, feed = await svc.media_process().answer(offer["sdp"], name)
         except ValueError as exc:
-            feed.close("the offer was refused")
             raise HTTPException(400, str(exc)) from None
         if old is not None:
             await svc.manager.remove(name)

@@ -62,6 +62,8 @@ class SessionMetrics:
     def __init__(self) -> None:
         self.frames = 0
         self.frames_failed = 0
+        self.failed_reasons: dict[str, int] = {}
+        """Why frames were not ok (their quality's reason) -> how many."""
         self.source_dropped = 0
         self.subscriber_dropped = 0
         self.restarts = 0

@@ -21,13 +21,15 @@ taken with the room token alone (its token comes from the host), since its deleg
 real face. Wrong tokens from one address are slowed down as the server's own are
 (:class:`articast.service.security.FailedAttempts`).
 
-Audio. Each page offers its microphone and ``slots`` receive-only audio transceivers; the
-server answers those as its own senders and, as members come and go, points each slot at
-another member's microphone through aiortc's :class:`MediaRelay` (no renegotiation: a
-``replaceTrack`` on the server's side). ``members`` tells each page which slot (``mid``)
-carries whom. Frames carry ``t_capture``, when the server received the video frame: the
-audio captured with it reached the server at the same time, so a page plays a member's
-animation at ``t_capture`` + that member's audio delay (clients/web/room.js, docs/ROOM.md).
+Media. The participants' WebRTC connections run in the server's media process
+(:mod:`articast.service.media`), not on this loop. Each page offers its microphone and
+``slots`` receive-only audio transceivers; the media process answers those as its own senders
+and, as members come and go, points each slot at another member's microphone, forwarding its
+Opus packets as they came (no renegotiation, no re-encoding); it reports which slot carries
+whom, and ``members`` tells each page (``mid``). Frames carry ``t_capture``, when the server
+received the video frame: the audio captured with it reached the server at the same time, so
+a page plays a member's animation at ``t_capture`` + that member's audio delay
+(clients/web/room.js, docs/ROOM.md).
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
@@ -54,7 +56,6 @@ from fastapi.responses import RedirectResponse, Response
 
 from articast.service.jsonsafe import dumps
 from articast.service.security import FailedAttempts, client_key
-from articast.service.webrtc import PeerHooks
 
 log = logging.getLogger("articast.room")
 
@@ -98,111 +99,25 @@ class RoomConfig:
             else ""
 
 
-class SlotTrack:
-    """What the server sends on one audio slot of one page: the microphone of the member the
-    slot is pointed at (a MediaRelay proxy), re-timed so the slot's time line never jumps
-    when it changes hands; while it points at nobody it waits (nothing is sent)."""
-
-    def __init__(self) -> None:
-        from aiortc.mediastreams import MediaStreamTrack
-
-        slot = self
-
-        class _Track(MediaStreamTrack):
-            kind = "audio"
-
-            async def recv(self) -> Any:
-                return await slot.next_frame()
-
-        self.track = _Track()
-        self.source: Any = None
-        self.member = ""
-        self._changed = asyncio.Event()
-        self._pts = 0
-
-    def point(self, member: str, source: Any) -> None:
-        """Send ``member``'s microphone (``source``, a relay proxy) from now on; None: nobody."""
-        old, self.source, self.member = self.source, source, member
-        if old is not None:
-            old.stop()
-        self._changed.set()
-
-    async def next_frame(self) -> Any:
-        from fractions import Fraction
-
-        from aiortc.mediastreams import MediaStreamError
-        from av import AudioFrame
-
-        while True:
-            source = self.source
-            if source is None:
-                self._changed.clear()
-                await self._changed.wait()
-                continue
-            try:
-                frame = await source.recv()
-            except MediaStreamError:
-                if self.source is source:
-                    self.source, self.member = None, ""
-                continue
-            if self.source is not source:
-                continue
-            # a copy (a relayed frame is shared by every slot) on this slot's own time line
-            out = AudioFrame.from_ndarray(frame.to_ndarray(), format=frame.format.name,
-                                          layout=frame.layout.name)
-            out.sample_rate = frame.sample_rate
-            out.pts = self._pts
-            out.time_base = Fraction(1, frame.sample_rate)
-            self._pts += frame.samples
-            return out
-
-
 @dataclass(eq=False)
 class Member:
     name: str
     joined: float
     feed: Any = None
-    audio: Any = None
-    """The member's microphone (aiortc track), relayed to the others."""
-    slots: list[SlotTrack] = field(default_factory=list)
+    """Their :class:`articast.service.media.RemoteFeed` (once their offer is answered)."""
     sockets: set[Any] = field(default_factory=set)
     mids: list[str] = field(default_factory=list)
     speaker: str = ""
 
 
-class Hooks(PeerHooks):
-    """The room's hooks on one member's peer connection."""
-
-    def __init__(self, room: Room, member: Member) -> None:
-        self.room, self.member = room, member
-
-    def prepare(self, pc: Any) -> None:
-        for t in pc.getTransceivers():
-            if t.kind == "audio" and t._offerDirection == "sendonly":  # the page receives
-                slot = SlotTrack()
-                t.direction = "sendonly"
-                t.sender.replaceTrack(slot.track)
-                self.member.slots.append(slot)
-                self.member.mids.append(t.mid)
-
-    def audio(self, track: Any) -> bool:
-        self.room.microphone(self.member, track)
-        return True
-
-
 class Room:
-    """One room's members and their audio routing; lives on the server's event loop."""
+    """One room's members; lives on the server's event loop (their media: the media
+    process)."""
 
     def __init__(self, config: RoomConfig, svc: Any) -> None:
-        from aiortc.contrib.media import MediaRelay
-
         self.config, self.svc = config, svc
         self.members: dict[str, Member] = {}
-        self.relay = MediaRelay()
-        self._drains: dict[str, asyncio.Task[None]] = {}
         self.attempts = FailedAttempts()
-        self.levels: dict[str, float] = {}
-        """Each member's microphone level (RMS, 0-1, of its last audio frame)."""
         self._watcher: asyncio.Task[None] | None = None
 
     def start(self) -> None:
@@ -246,68 +161,55 @@ class Room:
         self.members[name] = member
         return member
 
-    def microphone(self, member: Member, track: Any) -> None:
-        """A member's microphone arrived: drained (and measured) always, relayed to others."""
-        member.audio = track
-        proxy = self.relay.subscribe(track)
-        self._drains[member.name] = asyncio.ensure_future(self._drain(member, proxy))
-        self.route()
+    @property
+    def audio(self) -> dict[str, dict[str, Any]]:
+        """Member -> ``{"slots": {other: mid}, "level": rms}``: the media process's routing
+        of the room's audio (:class:`articast.service.media.MediaRoom`), as it said last."""
+        media = self.svc.media
+        return media.rooms.get(self.config.name, {}) if media is not None else {}
 
-    async def _drain(self, member: Member, proxy: Any) -> None:
-        import numpy as np
-        from aiortc.mediastreams import MediaStreamError
-
-        try:
-            while True:
-                frame = await proxy.recv()
-                pcm = frame.to_ndarray().astype(np.float32) / 32768.0
-                self.levels[member.name] = float(np.sqrt(np.mean(pcm * pcm)))
-        except MediaStreamError:
-            pass
-
-    def route(self) -> None:
-        """Point every member's free slots at the other members' microphones."""
-        for m in self.members.values():
-            carried = {s.member for s in m.slots if s.source is not None}
-            for other in self.members.values():
-                if other is m or other.audio is None or other.name in carried:
-                    continue
-                free = next((s for s in m.slots if s.source is None), None)
-                if free is None:
-                    break
-                free.point(other.name, self.relay.subscribe(other.audio))
-                carried.add(other.name)
+    def stats(self, name: str) -> str:
+        """One line on a member's media and tracking (the server's log, every 5 s): frames
+        received, replaced before the tracker took them, tracked, tracked without a face
+        (and why), and the video's size."""
+        member = self.members.get(name)
+        feed = member.feed if member is not None else None
+        session = self.svc.manager.sessions.get(name)
+        m = session.metrics if session is not None else None
+        text = f"{name}: received {feed.received if feed else 0}"
+        if feed is not None:
+            text += f" (replaced {feed.dropped}, {feed.size[0]}x{feed.size[1]}, " \
+                    f"resized {feed.resized})"
+            rtp = getattr(feed, "rtp", {})
+            if rtp:
+                text += ", RTP " + ", ".join(f"{kind} {got} lost {lost}"
+                                             for kind, (got, lost) in sorted(rtp.items()))
+        if m is not None:
+            text += f", tracked {m.frames} at {m.fps.rate():.1f} fps, no face {m.frames_failed}"
+            if m.failed_reasons:
+                text += " " + json.dumps(m.failed_reasons)
+        return text
 
     def remove(self, name: str, reason: str) -> None:
-        member = self.members.pop(name, None)
-        if member is None:
+        if name not in self.members:
             return
-        log.warning("room %s: %s left (%s)", self.config.name, name, reason)
-        for m in self.members.values():
-            for s in m.slots:
-                if s.member == name:
-                    s.point("", None)
-        for s in member.slots:
-            s.point("", None)
-        drain = self._drains.pop(name, None)
-        if drain is not None:
-            drain.cancel()
-        self.levels.pop(name, None)
-        if member.feed is not None:
+        log.warning("room %s: %s left (%s): %s", self.config.name, name, reason,
+                    self.stats(name))
+        member = self.members.pop(name)
+        if member.feed is not None:  # the media process frees their audio slots
             member.feed.close(f"the participant left the room ({reason})")
         for ws in list(member.sockets):
             asyncio.ensure_future(_close(ws, 1000, "you left the room"))
-        self.route()
         self.announce()
 
     def members_message(self, member: Member) -> str:
-        slot_of = {s.member: mid for s, mid in zip(member.slots, member.mids, strict=True)
-                   if s.member}
+        audio = self.audio
+        slot_of = audio.get(member.name, {}).get("slots", {})
         return dumps({"type": "members", "room": self.config.name, "you": member.name,
                            "t_server": time.time(), "members": [
                                {"name": m.name, "self": m is member, "slot": slot_of.get(m.name),
                                 "delegate": bool(m.speaker), "joined": m.joined,
-                                "level": round(self.levels.get(m.name, 0.0), 4)}
+                                "level": audio.get(m.name, {}).get("level", 0.0)}
                                for m in sorted(self.members.values(), key=lambda m: m.joined)]})
 
     def announce(self) -> None:
@@ -322,8 +224,11 @@ class Room:
         from articast.service.session import TERMINAL
 
         tick = 0
+        lag = 0.0
         while True:
+            t0 = time.monotonic()
             await asyncio.sleep(0.25)
+            lag = max(lag, time.monotonic() - t0 - 0.25)
             for name, m in list(self.members.items()):
                 session = self.svc.manager.sessions.get(name)
                 if m.feed is not None and (m.feed.ended or session is None
@@ -334,6 +239,10 @@ class Room:
             tick += 1
             if tick % 4 == 0:
                 self.announce()
+            if tick % 20 == 0 and self.members:
+                log.info("room %s: event loop late by up to %.0f ms; %s", self.config.name,
+                         1000 * lag, "; ".join(self.stats(n) for n in self.members))
+                lag = 0.0
 
 
 async def _send(ws: WebSocket, text: str) -> None:
@@ -417,11 +326,9 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         if old is not None and old.state not in TERMINAL:
             raise HTTPException(409, f"session {name!r} is running on this server")
         member = room.add(name)
-        feed = webrtc.Feed(name)
         try:
-            answer = await webrtc.answer(sdp, feed, Hooks(room, member))
+            answer, mids, feed = await svc.media_process().answer(sdp, name, config.name)
         except ValueError as exc:
-            feed.close("the offer was refused")
             room.remove(name, "the offer was refused")
             raise HTTPException(400, str(exc)) from None
         try:
@@ -440,9 +347,8 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(409 if isinstance(exc, KeyError) else 400,
                                 f"cannot start {name!r}: {' '.join(str(exc).split())}") from None
         member.feed = feed  # from now on the watcher ends the membership with the session
-        room.route()
         room.announce()
-        return {"type": "answer", "sdp": answer, "name": name, "slots": member.mids}
+        return {"type": "answer", "sdp": answer, "name": name, "slots": mids}
 
     @router.get("/room/api/delegate/{name}")
     async def delegate(name: str, request: Request) -> Response:

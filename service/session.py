@@ -320,6 +320,9 @@ class Session:
         m.track_latency.observe(rec.t_tracked - rec.t_capture)
         m.frames += 1
         m.frames_failed += not rec.quality["ok"]
+        if not rec.quality["ok"]:
+            why = str(rec.quality.get("reason") or "?")[:60]
+            m.failed_reasons[why] = m.failed_reasons.get(why, 0) + 1
         m.source_dropped = rec.source_dropped
         m.fps.tick()
         m.residual.observe(rec.quality["residual"])

@@ -78,6 +78,16 @@ class Service:
         self.budgets = AddressBudgets(config.hub)
         self._hellos: dict[tuple[Any, ...], tuple[Any, Any, str]] = {}
         self._watchdog: asyncio.Task[None] | None = None
+        self.media: Any = None
+        """The media process (:class:`articast.service.media.MediaProcess`): participants'
+        WebRTC connections, started on the first offer."""
+
+    def media_process(self) -> Any:
+        if self.media is None:
+            from articast.service.media import MediaProcess
+
+            self.media = MediaProcess()
+        return self.media
 
     def lookup(self, name: str) -> Any:
         """The session a subscriber means: local, or (on Redis) any worker's."""
@@ -208,6 +218,8 @@ class Service:
         if self._announce_task:
             self._announce_task.cancel()
         await self.manager.close(self.config.server.shutdown_timeout_s)
+        if self.media is not None:
+            await asyncio.to_thread(self.media.close)
         for r in self._remote:
             if asyncio.iscoroutinefunction(r.close):
                 await r.close()

@@ -61,8 +61,18 @@ class Feed:
         """Why the feed ended ("" while the participant is there)."""
         self.received = 0
         self.dropped = 0
+        self.size: tuple[int, int] = (0, 0)
+        """The last frame's (width, height): the browser lowers it when short of CPU or
+        bandwidth (:attr:`resized` counts the changes)."""
+        self.resized = 0
         self.on_close: Callable[[], None] | None = None
         """Closes the peer connection (set by :func:`answer`)."""
+        self.peer: Any = None
+        """The peer connection (set by :func:`answer`; its stats are logged)."""
+        self.rtp: dict[str, tuple[int, int]] = {}
+        """kind -> (RTP packets received, lost) as the receivers last counted."""
+        self.on_end: Callable[[str], None] | None = None
+        """Told why, once, when the feed ends (the media process tells the server)."""
         self._thread = threading.Thread(target=self._forward, name=f"feed {name}",
                                         daemon=True)
         self._thread.start()
@@ -77,6 +87,10 @@ class Feed:
                 return
             self.received += 1
             self.dropped += self._slot is not None
+            size = (frame[0], frame[1]) if isinstance(frame, tuple) else (frame.width,
+                                                                          frame.height)
+            self.resized += self.size != (0, 0) and size != self.size
+            self.size = size
             self._slot = (t, frame, time.monotonic() if arrived is None else arrived)
             self._cond.notify_all()
 
@@ -84,16 +98,21 @@ class Feed:
         """The reading end of a new pipe for a new worker; the forwarder writes there next
         (after the end, the pipe holds just the end)."""
         reader, writer = multiprocessing.Pipe(duplex=False)
+        self.attach(writer)
+        return reader
+
+    def attach(self, writer: Any) -> None:
+        """The writing end of a new worker's pipe (made here, or by the server and handed to
+        the media process): the forwarder writes there next."""
         with self._cond:
             if not self.ended:
                 if self._next_writer is not None:
                     self._next_writer.close()
                 self._next_writer = writer
                 self._cond.notify_all()
-                return reader
+                return
         writer.send(("end", self.ended))  # a few bytes: never blocks
         writer.close()
-        return reader
 
     def close(self, reason: str) -> None:
         """The participant left (or the session was removed): the worker gets the end."""
@@ -105,6 +124,9 @@ class Feed:
         on_close, self.on_close = self.on_close, None
         if on_close is not None:
             on_close()
+        on_end, self.on_end = self.on_end, None
+        if on_end is not None:
+            on_end(reason)
 
     def _next(self) -> tuple[Any, Any] | None:
         """(writer, item) to send next; None when the feed ended and was said."""
@@ -159,8 +181,9 @@ class PeerHooks:
     def prepare(self, pc: Any) -> None:  # pragma: no cover - the default does nothing
         pass
 
-    def audio(self, track: Any) -> bool:  # pragma: no cover
-        """True when the track was taken (and will be read); False: drain it."""
+    def audio(self, track: Any, receiver: Any = None) -> bool:  # pragma: no cover
+        """True when the track (of ``receiver``) was taken (and will be read); False: drain
+        it."""
         return False
 
 
@@ -206,10 +229,17 @@ async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> 
 
     @pc.on("track")
     def on_track(track: Any) -> None:
-        if track.kind == "audio" and hooks is not None and hooks.audio(track):
-            return
+        if track.kind == "audio" and hooks is not None:
+            receiver = next((r for r in pc.getReceivers() if r.track is track), None)
+            if hooks.audio(track, receiver):
+                return
         pump = pump_video if track.kind == "video" else drain
         tasks.append(asyncio.ensure_future(pump(track)))
+
+    @pc.on("iceconnectionstatechange")
+    async def on_ice() -> None:  # "failed" after a connection: consent checks went unanswered
+        log.info("participant %s: ICE %s (received %d frames)", feed.name,
+                 pc.iceConnectionState, feed.received)
 
     @pc.on("connectionstatechange")
     async def on_state() -> None:
@@ -234,4 +264,23 @@ async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> 
         await pc.close()
         raise ValueError(problem)
     feed.on_close = close_peer
+    feed.peer = pc
     return pc.localDescription.sdp
+
+
+async def count_rtp(feed: Feed) -> None:
+    """Update ``feed.rtp`` from its peer connection's receivers (packets received, lost)."""
+    pc = feed.peer
+    if pc is None:
+        return
+    counts: dict[str, tuple[int, int]] = {}
+    for receiver in pc.getReceivers():
+        try:
+            report = await receiver.getStats()
+        except Exception:  # noqa: BLE001 - a closing connection: no figures this time
+            continue
+        for stats in report.values():
+            if getattr(stats, "type", "") == "inbound-rtp":
+                got, lost = counts.get(stats.kind, (0, 0))
+                counts[stats.kind] = (got + stats.packetsReceived, lost + stats.packetsLost)
+    feed.rtp = counts

@@ -96,7 +96,13 @@ async function join(name) {
   } catch (e) { status(cameraProblem(e), true); return; }
   $("self").srcObject = stream;
   pc = new RTCPeerConnection({ iceServers: [] }); // loopback and LAN: no STUN/TURN needed
-  for (const track of stream.getTracks()) pc.addTrack(track, stream);
+  // the tracker needs the resolution its camera was calibrated for: short of CPU or bandwidth,
+  // the browser is to lower the frame rate, not the resolution (Chromium's fake camera went
+  // to 480x360 and 320x240 without this: benchmarks/fake_camera.py)
+  for (const track of stream.getTracks()) {
+    if (track.kind === "video") track.contentHint = "detail";
+    pc.addTrack(track, stream);
+  }
   pc.onconnectionstatechange = () => {
     state.connection = pc.connectionState;
     $("connection").textContent = pc.connectionState;
@@ -118,6 +124,12 @@ async function join(name) {
   if (!r.ok) { status(await refusal(r), true); leave(true); return; }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
+  for (const sender of pc.getSenders()) {
+    if (!sender.track || sender.track.kind !== "video") continue;
+    const p = sender.getParameters();
+    p.degradationPreference = "maintain-resolution";
+    sender.setParameters(p).catch(() => { /* older browser: contentHint says the same */ });
+  }
   $("session").textContent = name;
   $("join").disabled = true; $("leave").disabled = false;
   status(`sending your camera as ${name}; the tracker is starting…`);

@@ -151,12 +151,21 @@ async function audioDelay(m) { // ms from the server's receipt of a voice to its
   const stats = await t.receiver.getStats();
   stats.forEach((r) => {
     if (r.type === "inbound-rtp" && r.kind === "audio") {
-      if (r.jitterBufferEmittedCount > 0) jb = 1000 * r.jitterBufferDelay / r.jitterBufferEmittedCount;
+      if (r.jitterBufferEmittedCount > 0) { // over the last second (the totals average since joining)
+        const prev = m.jbTotals, n = r.jitterBufferEmittedCount - (prev ? prev[1] : 0);
+        jb = 1000 * (r.jitterBufferDelay - (prev && n > 0 ? prev[0] : 0)) /
+          (prev && n > 0 ? n : r.jitterBufferEmittedCount);
+        m.jbTotals = [r.jitterBufferDelay, r.jitterBufferEmittedCount];
+      }
       if (r.estimatedPlayoutTimestamp) { playout = r.estimatedPlayoutTimestamp; at = r.timestamp; }
+      // how the voice arrives (for the benchmark and the test's log): RTP arrival jitter, lost
+      // packets, and the share of played samples the jitter buffer had to make up
+      m.hook.arrival = { jitterMs: 1000 * (r.jitter || 0), lost: r.packetsLost || 0,
+        concealed: r.totalSamplesReceived ? r.concealedSamples / r.totalSamplesReceived : null };
     }
     if (r.type === "candidate-pair" && r.nominated && r.currentRoundTripTime != null) rtt = 1000 * r.currentRoundTripTime;
   });
-  const RELAY_MS = 20; // the server decodes and re-encodes 20 ms Opus frames
+  const RELAY_MS = 0; // the server forwards the Opus packets as they come (service/media.py)
   let d = null, how = "";
   if (playout !== null && state.offsetMs !== null) {
     // what plays now left the server at `playout` (its NTP clock, from its sender reports)

@@ -1,0 +1,599 @@
+"""The media process: every participant's WebRTC connection runs in a process of its own.
+
+aiortc does its work on an asyncio loop: ICE (and its consent checks, which a browser expects
+answered within a second or so), DTLS, SRTP, the jitter buffers, and feeding the decoders.
+On the server's own loop, which also serves the room's sockets, the session API and the
+trackers' frames, under load that loop answered late: UDP queues filled (~370 kB), datagrams
+were dropped, consent checks went unanswered and aioice closed the connection after ~50 s
+(docs/ROOM.md). Here the connections, their decoding and the room's audio relay run on the
+loop of one child process (forked from the workers' fork server, as a session's worker is),
+so none of the server's work delays them, and none of theirs the server.
+
+The server keeps a :class:`MediaProcess` (started on the first offer) and talks to it over one
+duplex pipe:
+
+server -> media   ``("offer", id, name, sdp, room)``  answer a participant's offer (``room``:
+                                                      the room whose audio slots it takes,
+                                                      "" for the join page)
+                  ``("inlet", id)`` + a file handle   the writing end of a new worker's frame
+                                                      pipe: the participant's frames go there
+                  ``("close", id, reason)``           the participant leaves (closes the peer)
+                  ``("quit",)``
+media -> server   ``("answer", id, sdp, problem, mids)``
+                  ``("ended", id, reason)``           the participant left (or their video)
+                  ``("stats", {id: (received, replaced, width, height, resized,
+                                    {kind: (RTP packets, lost)})})``  each second
+                  ``("room", room, {name: {"slots": {member: mid}, "level": rms}})``
+
+Frames never pass through the server: the media process writes each participant's newest
+frame straight into the pipe its session's worker reads (:class:`articast.service.webrtc.Feed`
+there, a :class:`RemoteFeed` here with the same interface). The pipe's writing end is handed
+over with ``SCM_RIGHTS`` (:func:`multiprocessing.reduction.send_handle`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import threading
+from multiprocessing import reduction
+from multiprocessing.connection import Connection
+from typing import Any
+
+log = logging.getLogger("articast.media")
+
+ANSWER_TIMEOUT_S = 60.0
+"""How long an offer waits for the media process's answer (it starts on the first offer)."""
+
+
+# ----------------------------------------------------------------------------- the server's side
+class RemoteFeed:
+    """A participant's frames as the server sees them: the interface of
+    :class:`articast.service.webrtc.Feed` (``new_inlet``, ``close``, ``ended`` and the
+    counts), the frames themselves going from the media process to the worker."""
+
+    def __init__(self, media: MediaProcess, pid: int, name: str, gen: int) -> None:
+        self._media, self.pid, self.name, self.gen = media, pid, name, gen
+        self.ended = ""
+        self.received = self.dropped = self.resized = 0
+        self.size: tuple[int, int] = (0, 0)
+        self.rtp: dict[str, tuple[int, int]] = {}
+
+    def new_inlet(self) -> Any:
+        reader, writer = multiprocessing.Pipe(duplex=False)
+        if self.ended or not self._media.send(("inlet", self.pid), handle=writer.fileno()):
+            writer.send(("end", self.ended or "the media process is gone"))
+        writer.close()  # the media process holds its own copy: EOF when it lets go
+        return reader
+
+    def close(self, reason: str) -> None:
+        if self.ended:
+            return
+        self.ended = reason
+        self._media.send(("close", self.pid, reason))
+
+
+class MediaProcess:
+    """The server's handle on the media process (see the module's docstring)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        """Held while writing to the media process."""
+        self._starting = threading.Lock()
+        """Held while (re)starting it: a thread's work, never the event loop's (the first
+        start waits for the workers' fork server to import what workers need: 5 s under
+        load, which held the server's loop and every room socket)."""
+        self._conn: Any = None
+        self._proc: Any = None
+        self._next = 1
+        self._gen = 0
+        """Which media process (a new one starts if the last one died)."""
+        self._answers: dict[int, tuple[asyncio.AbstractEventLoop, asyncio.Future[Any],
+                                       int]] = {}
+        self.feeds: dict[int, RemoteFeed] = {}
+        self.rooms: dict[str, dict[str, dict[str, Any]]] = {}
+        """Room -> member -> ``{"slots": {other member: mid}, "level": rms}`` (the media
+        process routes the audio; this is what it said last)."""
+
+    def _start(self) -> None:
+        from articast.service.worker import ProcessWorker
+
+        ctx = ProcessWorker._ctx
+        conn, child = ctx.Pipe(duplex=True)
+        level = logging.getLogger("articast").getEffectiveLevel()
+        proc = ctx.Process(target=_process_main, args=(child, level),
+                           name="articast media", daemon=True)
+        proc.start()
+        child.close()
+        with self._lock:
+            self._conn, self._proc = conn, proc
+            self._gen += 1
+        threading.Thread(target=self._read, args=(conn, self._gen), name="media reader",
+                         daemon=True).start()
+        log.info("media process %d started", proc.pid)
+
+    def _ensure(self) -> tuple[int, int]:
+        """Start the media process unless it runs; a new peer id and the process's gen."""
+        with self._starting:
+            if self._proc is None or not self._proc.is_alive():
+                self._start()
+        with self._lock:
+            pid, self._next = self._next, self._next + 1
+            return pid, self._gen
+
+    def send(self, msg: tuple[Any, ...], handle: int | None = None) -> bool:
+        with self._lock:
+            if self._conn is None:
+                return False
+            try:
+                self._conn.send(msg)
+                if handle is not None:
+                    reduction.send_handle(self._conn, handle, self._proc.pid)
+            except (OSError, ValueError):
+                return False
+            return True
+
+    async def answer(self, sdp: str, name: str, room: str = "") -> tuple[str, list[str],
+                                                                         RemoteFeed]:
+        """The answer to ``name``'s offer, the audio slots' mids and their feed; ValueError
+        (one line) when the offer cannot be answered."""
+        pid, gen = await asyncio.to_thread(self._ensure)
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[Any] = loop.create_future()
+        self._answers[pid] = (loop, fut, gen)
+        feed = self.feeds[pid] = RemoteFeed(self, pid, name, gen)
+        problem = "" if self.send(("offer", pid, name, sdp, room)) else \
+            "the server's media process is not running"
+        answer, mids = "", []
+        if not problem:
+            try:
+                answer, problem, mids = await asyncio.wait_for(fut, ANSWER_TIMEOUT_S)
+            except TimeoutError:
+                problem = f"the server's media process did not answer in {ANSWER_TIMEOUT_S:g} s"
+        self._answers.pop(pid, None)
+        if problem:
+            feed.close(problem)
+            self.feeds.pop(pid, None)
+            raise ValueError(problem)
+        return answer, mids, feed
+
+    def _read(self, conn: Any, gen: int) -> None:
+        while True:
+            try:
+                msg = conn.recv()
+            except (EOFError, OSError):
+                break
+            kind = msg[0]
+            if kind == "answer":
+                entry = self._answers.pop(msg[1], None)
+                if entry is not None:
+                    loop, fut, _ = entry
+                    loop.call_soon_threadsafe(_settle, fut, msg[2:])
+            elif kind == "ended":
+                feed = self.feeds.pop(msg[1], None)
+                if feed is not None and not feed.ended:
+                    feed.ended = msg[2]
+            elif kind == "stats":
+                for pid, (received, dropped, width, height, resized, rtp) in msg[1].items():
+                    feed = self.feeds.get(pid)
+                    if feed is not None:
+                        feed.received, feed.dropped = received, dropped
+                        feed.size, feed.resized, feed.rtp = (width, height), resized, rtp
+            elif kind == "room":
+                self.rooms[msg[1]] = msg[2]
+        log.warning("the media process ended: its participants leave")
+        for pid, feed in list(self.feeds.items()):
+            if feed.gen == gen:
+                feed.ended = feed.ended or "the server's media process ended"
+                self.feeds.pop(pid, None)
+        for loop, fut, g in list(self._answers.values()):
+            if g == gen:
+                loop.call_soon_threadsafe(_settle, fut,
+                                          ("", "the server's media process ended", []))
+
+    def close(self, timeout: float = 3.0) -> None:
+        self.send(("quit",))
+        proc = self._proc
+        if proc is not None:
+            proc.join(timeout)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(1.0)
+        with self._lock:
+            if self._conn is not None:
+                self._conn.close()
+                self._conn = None
+
+
+def _settle(fut: asyncio.Future[Any], value: Any) -> None:
+    if not fut.done():
+        fut.set_result(value)
+
+
+# ----------------------------------------------------------------------------- the process
+def _process_main(conn: Any, level: int) -> None:
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s (media): %(message)s")
+    logging.getLogger("aioice").setLevel(max(level, logging.WARNING))
+    logging.getLogger("aiortc").setLevel(max(level, logging.WARNING))
+    try:
+        asyncio.run(_Media(conn).main())
+    except KeyboardInterrupt:  # the server's Ctrl-C reaches its children too
+        pass
+
+
+class _Peer:
+    def __init__(self, name: str, feed: Any, room: str) -> None:
+        self.name, self.feed, self.room = name, feed, room
+
+
+class _Media:
+    """The media process's loop: peers by id, rooms by name."""
+
+    def __init__(self, conn: Any) -> None:
+        self.conn = conn
+        self.lock = threading.Lock()
+        self.peers: dict[int, _Peer] = {}
+        self.rooms: dict[str, Any] = {}
+        self.closed_early: dict[int, str] = {}
+        self.loop: asyncio.AbstractEventLoop | None = None
+        self.done: asyncio.Event | None = None
+
+    def send(self, msg: tuple[Any, ...]) -> None:
+        with self.lock:
+            try:
+                self.conn.send(msg)
+            except (OSError, ValueError):
+                pass
+
+    async def main(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.done = asyncio.Event()
+        threading.Thread(target=self._read, name="commands", daemon=True).start()
+        reporter = asyncio.ensure_future(self._report())
+        await self.done.wait()
+        reporter.cancel()
+        for peer in list(self.peers.values()):
+            peer.feed.close("the server is stopping")
+        await asyncio.sleep(0.2)  # the peers' close tasks
+
+    def _read(self) -> None:
+        assert self.loop is not None
+        while True:
+            try:
+                msg = self.conn.recv()
+                if msg[0] == "inlet":
+                    msg = (*msg, reduction.recv_handle(self.conn))
+            except (EOFError, OSError):  # the server is gone
+                msg = ("quit",)
+            self.loop.call_soon_threadsafe(self._handle, msg)
+            if msg[0] == "quit":
+                return
+
+    def _handle(self, msg: tuple[Any, ...]) -> None:
+        kind = msg[0]
+        if kind == "offer":
+            asyncio.ensure_future(self._offer(*msg[1:]))
+        elif kind == "inlet":
+            pid, fd = msg[1], msg[2]
+            writer = Connection(fd, readable=False)
+            peer = self.peers.get(pid)
+            if peer is not None:
+                peer.feed.attach(writer)
+            else:
+                writer.send(("end", "the participant left"))
+                writer.close()
+        elif kind == "close":
+            peer = self.peers.get(msg[1])
+            if peer is not None:
+                peer.feed.close(msg[2])
+            else:  # still being answered (the server gave up waiting): closed once answered
+                self.closed_early[msg[1]] = msg[2]
+        elif kind == "quit":
+            assert self.done is not None
+            self.done.set()
+
+    def room(self, name: str) -> MediaRoom:
+        if name not in self.rooms:
+            self.rooms[name] = MediaRoom(name, lambda state: self.send(("room", name, state)))
+        return self.rooms[name]
+
+    async def _offer(self, pid: int, name: str, sdp: str, room: str) -> None:
+        from articast.service import webrtc
+
+        feed = webrtc.Feed(name)
+        hooks = self.room(room).hooks(name) if room else None
+        try:
+            answer = await webrtc.answer(sdp, feed, hooks)
+        except ValueError as exc:
+            feed.close("the offer was refused")
+            if hooks is not None:
+                hooks.leave()
+            self.closed_early.pop(pid, None)
+            self.send(("answer", pid, "", str(exc), []))
+            return
+        except Exception as exc:  # noqa: BLE001 - one line to the server, the process lives
+            feed.close("the offer was refused")
+            if hooks is not None:
+                hooks.leave()
+            self.closed_early.pop(pid, None)
+            self.send(("answer", pid, "", f"the offer could not be answered: {exc!r}"[:300],
+                       []))
+            return
+        self.peers[pid] = _Peer(name, feed, room)
+
+        def ended(reason: str) -> None:  # any thread
+            def gone() -> None:
+                self.peers.pop(pid, None)
+                if hooks is not None:
+                    hooks.leave()
+                self.send(("ended", pid, reason))
+
+            assert self.loop is not None
+            self.loop.call_soon_threadsafe(gone)
+
+        feed.on_end = ended
+        early = self.closed_early.pop(pid, None)
+        if early is not None:
+            feed.close(early)  # (calls ended)
+        if feed.ended and feed.on_end is not None:  # it ended while answering
+            feed.on_end = None
+            ended(feed.ended)
+        self.send(("answer", pid, answer, "", hooks.mids if hooks is not None else []))
+
+    async def _report(self) -> None:
+        from articast.service.webrtc import count_rtp
+
+        tick = 0
+        while True:
+            await asyncio.sleep(1.0)
+            tick += 1
+            if tick % 5 == 0:
+                for p in list(self.peers.values()):
+                    await count_rtp(p.feed)
+            self.send(("stats", {pid: (p.feed.received, p.feed.dropped, *p.feed.size,
+                                       p.feed.resized, p.feed.rtp)
+                                 for pid, p in self.peers.items()}))
+            for room in self.rooms.values():
+                room.publish()
+
+
+# ----------------------------------------------------------------------------- a room's audio
+class PacketTap:
+    """A member's microphone as the Opus packets their browser sent, for the other members'
+    slots: forwarded as received, never decoded and encoded again.
+
+    aiortc has no public way to read a remote track's encoded frames, so the receiver's queue
+    to its decoder thread (``_RTCRtpReceiver__decoder_queue``, aiortc 1.16) is wrapped: each
+    reassembled frame still goes to the decoder (the member's level is measured on it) and, as
+    ``(payload, RTP timestamp)``, to every subscriber's queue. aiortc's sender sends an
+    ``av.Packet`` it is given as it is (``RTCRtpSender._next_encoded_frame``: ``pack``)."""
+
+    QUEUE = 25
+    """Packets a slow subscriber may hold (0.5 s of 20 ms frames); older ones are dropped."""
+
+    def __init__(self, receiver: Any) -> None:
+        attr = "_RTCRtpReceiver__decoder_queue"
+        inner: Any = getattr(receiver, attr, None)
+        if inner is None or not hasattr(inner, "put"):
+            raise RuntimeError("this aiortc's receivers have no decoder queue to tap: "
+                               "the room cannot forward microphones")
+        tap = self
+        self.subscribers: set[asyncio.Queue[Any]] = set()
+
+        class Tee:
+            def put(self, item: Any) -> None:  # on the media loop (the receiver's RTP task)
+                inner.put(item)
+                tap._fan(None if item is None else (item[1].data, item[1].timestamp))
+
+            def __getattr__(self, name: str) -> Any:
+                return getattr(inner, name)
+
+        setattr(receiver, attr, Tee())
+
+    def _fan(self, item: Any) -> None:
+        for q in list(self.subscribers):
+            if q.full():
+                q.get_nowait()
+            q.put_nowait(item)
+
+    def subscribe(self) -> _TapReader:
+        q: asyncio.Queue[Any] = asyncio.Queue(self.QUEUE)
+        self.subscribers.add(q)
+        return _TapReader(self, q)
+
+    def end(self) -> None:
+        self._fan(None)
+
+
+class _TapReader:
+    def __init__(self, tap: PacketTap, q: asyncio.Queue[Any]) -> None:
+        self._tap, self._q = tap, q
+
+    async def recv(self) -> tuple[bytes, int]:
+        from aiortc.mediastreams import MediaStreamError
+
+        item = await self._q.get()
+        if item is None:
+            raise MediaStreamError
+        return item
+
+    def stop(self) -> None:
+        self._tap.subscribers.discard(self._q)
+
+
+class SlotTrack:
+    """What the server sends on one audio slot of one page: the Opus packets of the member
+    the slot is pointed at (a :class:`PacketTap` reader), re-timed so the slot's time line
+    never jumps when it changes hands; while it points at nobody it waits (nothing is sent)."""
+
+    FRAME = 960
+    """20 ms at Opus's 48 kHz RTP clock: a packet's duration when its timestamps jump."""
+
+    def __init__(self) -> None:
+        from aiortc.mediastreams import MediaStreamTrack
+
+        slot = self
+
+        class _Track(MediaStreamTrack):
+            kind = "audio"
+
+            async def recv(self) -> Any:
+                return await slot.next_packet()
+
+        self.track = _Track()
+        self.source: Any = None
+        self.member = ""
+        self._changed = asyncio.Event()
+        self._pts = 0
+        self._last: int | None = None
+
+    def point(self, member: str, source: Any) -> None:
+        """Send ``member``'s microphone (``source``, a tap reader) from now on; None: nobody."""
+        old, self.source, self.member = self.source, source, member
+        if old is not None:
+            old.stop()
+        self._last = None
+        self._changed.set()
+
+    async def next_packet(self) -> Any:
+        from fractions import Fraction
+
+        from aiortc.mediastreams import MediaStreamError
+        from av import Packet
+
+        while True:
+            source = self.source
+            if source is None:
+                self._changed.clear()
+                await self._changed.wait()
+                continue
+            try:
+                data, timestamp = await source.recv()
+            except MediaStreamError:
+                if self.source is source:
+                    self.source, self.member = None, ""
+                continue
+            if self.source is not source:
+                continue
+            step = (timestamp - self._last) % 2**32 if self._last is not None else self.FRAME
+            self._last = timestamp
+            self._pts += step if 0 < step <= 6 * self.FRAME else self.FRAME
+            packet = Packet(data)
+            packet.pts = self._pts
+            packet.time_base = Fraction(1, 48000)
+            return packet
+
+
+class _Member:
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.audio: PacketTap | None = None
+        self.slots: list[SlotTrack] = []
+        self.mids: list[str] = []
+
+
+class MediaRoom:
+    """One room's audio in the media process: each member's microphone is decoded once (its
+    level measured) and its packets forwarded, as they came, to a slot of every other
+    member (:class:`PacketTap`)."""
+
+    def __init__(self, name: str, publish: Any) -> None:
+        self.name = name
+        self._publish = publish
+        self.members: dict[str, _Member] = {}
+        self.levels: dict[str, float] = {}
+        self._drains: dict[str, asyncio.Task[None]] = {}
+
+    def hooks(self, name: str) -> Any:
+        from articast.service.webrtc import PeerHooks
+
+        room, member = self, _Member(name)
+
+        class Hooks(PeerHooks):
+            mids = member.mids
+
+            def prepare(self, pc: Any) -> None:
+                for t in pc.getTransceivers():
+                    if t.kind == "audio" and t._offerDirection == "sendonly":  # page receives
+                        slot = SlotTrack()
+                        t.direction = "sendonly"
+                        t.sender.replaceTrack(slot.track)
+                        member.slots.append(slot)
+                        member.mids.append(t.mid)
+                room.members[name] = member
+                room.route()
+
+            def audio(self, track: Any, receiver: Any = None) -> bool:
+                if receiver is None:
+                    return False
+                try:
+                    room.microphone(member, track, receiver)
+                except RuntimeError as exc:  # drained, not relayed: the room goes on, mute
+                    log.warning("room %s: %s's microphone: %s", room.name, name, exc)
+                    return False
+                return True
+
+            def leave(self) -> None:
+                room.remove(member)
+
+        return Hooks()
+
+    def microphone(self, member: _Member, track: Any, receiver: Any) -> None:
+        """A member's microphone arrived: decoded (its level measured) always, its packets
+        forwarded to the others."""
+        member.audio = PacketTap(receiver)  # RuntimeError: nothing changed yet
+        self._drains[member.name] = asyncio.ensure_future(self._drain(member, track))
+        self.route()
+
+    async def _drain(self, member: _Member, track: Any) -> None:
+        import numpy as np
+        from aiortc.mediastreams import MediaStreamError
+
+        try:
+            while True:
+                frame = await track.recv()
+                pcm = frame.to_ndarray().astype(np.float32) / 32768.0
+                self.levels[member.name] = float(np.sqrt(np.mean(pcm * pcm)))
+        except MediaStreamError:
+            pass
+        finally:
+            if member.audio is not None:
+                member.audio.end()
+
+    def route(self) -> None:
+        """Point every member's free slots at the other members' microphones."""
+        for m in self.members.values():
+            carried = {s.member for s in m.slots if s.source is not None}
+            for other in self.members.values():
+                if other is m or other.audio is None or other.name in carried:
+                    continue
+                free = next((s for s in m.slots if s.source is None), None)
+                if free is None:
+                    break
+                free.point(other.name, other.audio.subscribe())
+                carried.add(other.name)
+        self.publish()
+
+    def remove(self, member: _Member) -> None:
+        drain = self._drains.get(member.name)
+        if drain is not None and member.audio is not None and self.members.get(
+                member.name) in (None, member):
+            self._drains.pop(member.name).cancel()
+        if self.members.get(member.name) is not member:
+            return
+        del self.members[member.name]
+        for m in self.members.values():
+            for s in m.slots:
+                if s.member == member.name:
+                    s.point("", None)
+        for s in member.slots:
+            s.point("", None)
+        self.levels.pop(member.name, None)
+        self.route()
+
+    def publish(self) -> None:
+        self._publish({m.name: {"slots": {s.member: mid for s, mid in
+                                          zip(m.slots, m.mids, strict=True) if s.member},
+                                "level": round(self.levels.get(m.name, 0.0), 4)}
+                       for m in self.members.values()})
