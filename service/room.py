@@ -187,7 +187,7 @@ class Room:
         if m is not None:
             text += f", tracked {m.frames} at {m.fps.rate():.1f} fps, no face {m.frames_failed}"
             if m.failed_reasons:
-                text += " " + json.dumps(m.failed_reasons)
+                text += " " + dumps(m.failed_reasons)
         return text
 
     def remove(self, name: str, reason: str) -> None:
