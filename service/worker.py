@@ -384,7 +384,9 @@ def _process_main(spec: SessionSpec, capture: CaptureSettings, record_dir: str,
         while True:
             try:
                 word = conn.recv()
-            except (EOFError, OSError):
+            except (EOFError, OSError, TypeError, ValueError):
+                # (closed, or closed by the finally below while we waited: its handle is
+                # gone, which multiprocessing reports as a TypeError)
                 stop.set()
                 return
             (go if word == "go" else stop).set()

@@ -37,6 +37,45 @@ def test_assets_are_cached_and_reloaded_identically(tmp_path):
     np.testing.assert_allclose(app3.weights, app.weights)
 
 
+def test_a_stream_started_later_gives_the_same_frames_unrendered_before(tmp_path):
+    """``frames(start)`` yields what skipping the first ``start`` frames of a fresh stream
+    yields, across a chunk's end (at 0.4 fps a 10 s chunk is 4 frames), without rendering
+    the ones before."""
+    from articast.core.synthetic import stream as stream_module
+
+    def first(start, n):
+        s = open_stream(2, 0.4, cache_dir=tmp_path)
+        out = []
+        for t, image, truth in s.frames(start):
+            out.append((t, image, truth.alpha))
+            if len(out) == n:
+                return out
+        return out
+
+    skipped = first(0, 7)[5:]
+    rendered = []
+    real = stream_module.default_speaker
+
+    class Counting:
+        def __init__(self, seed):
+            self.speaker = real(seed)
+
+        def render(self, *a, **k):
+            rendered.append(1)
+            return self.speaker.render(*a, **k)
+
+    stream_module.default_speaker = Counting
+    try:
+        started = first(5, 2)
+    finally:
+        stream_module.default_speaker = real
+    assert len(rendered) == 2  # (the five before were not drawn)
+    for (t0, im0, a0), (t1, im1, a1) in zip(skipped, started, strict=True):
+        assert t0 == t1
+        np.testing.assert_array_equal(im0, im1)
+        np.testing.assert_array_equal(a0, a1)
+
+
 def test_key_follows_inputs_and_code():
     keys = {asset_key(1, "head", "la_quad"), asset_key(2, "head", "la_quad"),
             asset_key(1, "desk", "la_quad"), asset_key(1, "head", "la_lin")}

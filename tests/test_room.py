@@ -71,9 +71,7 @@ def make_clip(folder, seed, start, n=90, slow=1):
 
     stream = open_stream(seed=seed, fps=float(FPS * slow), cache_dir=cache_dir())
     frames, apertures = [], []
-    for i, (_, image, truth) in enumerate(stream.frames()):
-        if i < start:
-            continue
+    for _, image, truth in stream.frames(start):
         frames.append(image)
         apertures.append(lips_dict(stream.model, truth.alpha)["aperture_mm"])
         if len(frames) == n:
@@ -92,28 +90,36 @@ def make_clip(folder, seed, start, n=90, slow=1):
 
 
 def track_causal(clip):
-    """The clip tracked by `articast track --causal` with the speaker's assets: per-frame
-    lip apertures (nan where not ok)."""
+    """Start `articast track --causal` on the clip with the speaker's assets; the returned
+    function waits for it and gives the per-frame lip apertures (nan where not ok)."""
     out = clip["folder"] / "track.jsonl"
     f = clip["folder"]
-    subprocess.run([sys.executable, "-m", "articast.service.cli", "track", str(clip["y4m"]),
-                    "--model", str(f / "model.npz"), "--appearance", str(f / "appearance.npz"),
-                    "--camera", str(f / "camera.json"), "--init-pose", clip["init"],
-                    "--rig", clip["rig"], "--causal", "--quiet", "-o", str(out)],
-                   check=True, capture_output=True, timeout=600)
-    rows = [json.loads(line) for line in out.read_text().splitlines()]
-    return np.asarray([r["lips"]["aperture_mm"] if r["quality"]["ok"] and r.get("lips")
-                       else np.nan for r in rows])
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "track", str(clip["y4m"]),
+         "--model", str(f / "model.npz"), "--appearance", str(f / "appearance.npz"),
+         "--camera", str(f / "camera.json"), "--init-pose", clip["init"],
+         "--rig", clip["rig"], "--causal", "--quiet", "-o", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+    def result():
+        _, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err.decode(errors="replace")
+        rows = [json.loads(line) for line in out.read_text().splitlines()]
+        return np.asarray([r["lips"]["aperture_mm"] if r["quality"]["ok"] and r.get("lips")
+                           else np.nan for r in rows])
+    return result
 
 
 @pytest.fixture(scope="module")
 def clips(tmp_path_factory):
     base = tmp_path_factory.mktemp("room")
     out = {}
+    waiting = {}
     for name, start in (("ann", 0), ("bob", 450)):
-        clip = make_clip(base / name, SEED, start, n=90 * SLOW, slow=SLOW)
-        clip["offline"] = track_causal(clip)
-        out[name] = clip
+        out[name] = make_clip(base / name, SEED, start, n=90 * SLOW, slow=SLOW)
+        waiting[name] = track_causal(out[name])  # (the two run side by side)
+    for name, result in waiting.items():
+        out[name]["offline"] = result()
     return out
 
 

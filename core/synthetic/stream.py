@@ -48,15 +48,24 @@ class SyntheticStream:
     frame_count: int | None = None
     _chunk: int = field(default=0, repr=False)
 
-    def frames(self) -> Iterator[tuple[float, np.ndarray, TrackResult]]:
-        """Yield ``(t, image_bgr, truth)`` forever (truth alpha = direct inversion)."""
+    def frames(self, start: int = 0) -> Iterator[tuple[float, np.ndarray, TrackResult]]:
+        """Yield ``(t, image_bgr, truth)`` forever (truth alpha = direct inversion), from
+        frame ``start`` on (the frames before it are not rendered: the same frames as
+        skipping them, without their cost)."""
         speaker = default_speaker(self.seed)
         n = max(int(round(CHUNK_S * self.fps)), 2)
         index = 0
         while True:
             seq = make_sequence(self.seed * 1000 + 7 + self._chunk, n, self.fps, self.rig)
+            if index + seq.n_frames <= start:  # (a whole chunk before the start)
+                index += seq.n_frames
+                self._chunk += 1
+                continue
             alpha = invert(self.model, seq.points)
             for i in range(seq.n_frames):
+                if index < start:
+                    index += 1
+                    continue
                 t = index / self.fps
                 img = speaker.render(seq.controls[i], seq.pose(i), seq.camera,
                                      RenderOptions(seed=(index * 7919) % 1_000_003))
