@@ -940,14 +940,16 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
         return spy
 
     for name in ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system",
-                 "lm_solve", "point_offset", "cv_predict", "cv_update"):
+                 "lm_solve", "point_offset", "cv_predict", "cv_update", "lip_gap",
+                 "reading_features"):
         monkeypatch.setattr(kernels, name, spied(name, getattr(kernels, name)))
     kernels.warm_up()
     warmed, seen = seen, {}
     ok = [live.track(img, i / 25).ok for i, (_, _, img) in
           enumerate(iter_video(enrolled / "test" / "video.mp4")) if i < 12]
     assert all(ok) and live.finder_calls >= 4  # fitted with readings and between them
-    assert {"fit_terms", "lm_solve", "cv_predict", "cv_update", "point_offset"} <= set(seen)
+    assert {"fit_terms", "lm_solve", "cv_predict", "cv_update", "point_offset", "lip_gap",
+            "reading_features"} <= set(seen)
     for name, types in seen.items():
         assert types <= warmed.get(name, set()), (name, types - warmed.get(name, set()))
 
