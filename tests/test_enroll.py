@@ -921,32 +921,25 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
     fused live frame calls with the same argument types: nothing is compiled while tracking
     (a new type -- a read-only or Fortran-ordered array -- would cost a first frame seconds).
     The types are recorded at the calls (the process may have compiled others before)."""
-    from numba import typeof
-
     from articast.core.tracking import kernels
     from articast.service.video import iter_video
+    from tests.kernel_spies import KernelSpies
 
     if not kernels.AVAILABLE:
         pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
     sp = Speaker.load(enrolled / "speaker")
     live = _fused(sp)
     assert live.fusion is not None
-    seen: dict[str, set] = {}
-
-    def spied(name, kernel):
-        def spy(*args):
-            seen.setdefault(name, set()).add(tuple(typeof(a) for a in args))
-            return kernel(*args)
-        return spy
-
+    spies = KernelSpies()
     for name in ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system",
                  "lm_solve", "point_offset", "cv_predict", "cv_update", "lip_gap",
                  "reading_features"):
-        monkeypatch.setattr(kernels, name, spied(name, getattr(kernels, name)))
+        monkeypatch.setattr(kernels, name, spies.wrap(name, getattr(kernels, name)))
     kernels.warm_up()
-    warmed, seen = seen, {}
+    warmed = spies.take()
     ok = [live.track(img, i / 25).ok for i, (_, _, img) in
           enumerate(iter_video(enrolled / "test" / "video.mp4")) if i < 12]
+    seen = spies.take()
     assert all(ok) and live.finder_calls >= 4  # fitted with readings and between them
     assert {"fit_terms", "lm_solve", "cv_predict", "cv_update", "point_offset", "lip_gap",
             "reading_features"} <= set(seen)

@@ -294,34 +294,28 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     first run (issue 39: all of them took 65 s of CPU, the landmark, iris and Kalman kernels
     half of it, which this tracker never calls). Every kernel a tracked frame calls is in it,
     with the argument types its warm-up compiled: nothing is compiled while tracking."""
-    from numba import typeof
-
     from articast.core.tracking import kernels
+    from tests.kernel_spies import KernelSpies
 
     if not kernels.AVAILABLE:
         pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
     model, camera, pose, app = blob_trained(seed=7, kind=kind)
-    seen: dict[str, set] = {}
-
-    def spied(name, kernel):
-        def spy(*args):
-            seen.setdefault(name, set()).add(tuple(typeof(a) for a in args))
-            return kernel(*args)
-        return spy
+    spies = KernelSpies()
 
     every = ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system", "lm_solve",
              "point_offset", "cv_predict", "cv_update", "iris_chords", "iris_former_rows")
     kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: fit_terms
     # calls la_residuals as a global, which a spy in its place would not type
     for name in every:
-        monkeypatch.setattr(kernels, name, spied(name, getattr(kernels, name)))
+        monkeypatch.setattr(kernels, name, spies.wrap(name, getattr(kernels, name)))
     kernels.warm_up(kernels.TRACKER)
-    warmed, seen = seen, {}
+    warmed = spies.take()
     assert set(warmed) == set(kernels.TRACKER) < set(every)
     tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
     t, alpha = trajectory(8)
     assert all(tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]).ok
                for i in range(8))
+    seen = spies.take()
     assert "fit_terms" in seen  # the compiled path ran
     for name, types in seen.items():
         assert name in kernels.TRACKER and types <= warmed[name], (name, types)
