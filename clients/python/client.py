@@ -201,6 +201,15 @@ class SyncSubscription:
     def _run(self) -> None:
         with contextlib.suppress(asyncio.CancelledError):
             self._loop.run_until_complete(self._task)
+        # what the connection left running (its keepalive, its reader) is cancelled and
+        # awaited before the loop closes, as asyncio.run does: else each is destroyed
+        # pending, and Python says so on stderr when a script stops after --frames N
+        rest = asyncio.all_tasks(self._loop)
+        for task in rest:
+            task.cancel()
+        if rest:
+            self._loop.run_until_complete(asyncio.gather(*rest, return_exceptions=True))
+        self._loop.run_until_complete(self._loop.shutdown_asyncgens())
         self._loop.close()
 
     @property
