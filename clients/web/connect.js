@@ -53,3 +53,13 @@ export function noteDraw(state, t0) { // the page's own time (ms, CPU) to apply 
   (state.drawMs = state.drawMs || []).push(ms);
   if (state.drawMs.length > 20000) state.drawMs.splice(0, 10000);
 }
+
+export function keepResolution(pc) { // a camera sent over WebRTC keeps its resolution under load
+  // (Chromium lowers it by default: the tracker reads lips better from more pixels)
+  for (const sender of pc.getSenders()) {
+    if (!sender.track || sender.track.kind !== "video") continue;
+    const p = sender.getParameters();
+    p.degradationPreference = "maintain-resolution";
+    sender.setParameters(p).catch(() => { /* older browser: contentHint says the same */ });
+  }
+}

@@ -3,6 +3,8 @@
 // routes), and that session's tracked frames followed over the WebSocket. Every refusal is
 // said on the page in one line: a denied or missing camera, an insecure page, a refused
 // token, offer or name, a connection that failed.
+import { keepResolution } from "./connect.js";
+
 const params = new URLSearchParams(location.search);
 const token = params.get("token");
 const $ = (id) => document.getElementById(id);
@@ -124,12 +126,7 @@ async function join(name) {
   if (!r.ok) { status(await refusal(r), true); leave(true); return; }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
-  for (const sender of pc.getSenders()) {
-    if (!sender.track || sender.track.kind !== "video") continue;
-    const p = sender.getParameters();
-    p.degradationPreference = "maintain-resolution";
-    sender.setParameters(p).catch(() => { /* older browser: contentHint says the same */ });
-  }
+  keepResolution(pc);
   $("session").textContent = name;
   $("join").disabled = true; $("leave").disabled = false;
   status(`sending your camera as ${name}; the tracker is starting…`);

@@ -17,6 +17,7 @@ import * as THREE from "three";
 import { LinearFace } from "./face.js";
 import { Head } from "./eyes.js";
 import { loadDelegate } from "./delegate.js";
+import { keepResolution } from "./connect.js";
 
 const params = new URLSearchParams(location.search);
 const $ = (id) => document.getElementById(id);
@@ -323,12 +324,7 @@ async function join(name) {
   if (!r.ok) { status(await refusal(r, "take your offer"), true); leave(true); return; }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
-  for (const sender of pc.getSenders()) {
-    if (!sender.track || sender.track.kind !== "video") continue;
-    const p = sender.getParameters();
-    p.degradationPreference = "maintain-resolution";
-    sender.setParameters(p).catch(() => { /* older browser: contentHint says the same */ });
-  }
+  keepResolution(pc);
   $("join").disabled = true; $("leave").disabled = false; state.joined = true;
   status(`joined as ${name}; the tracker is starting…`);
   follow();
