@@ -16,7 +16,7 @@ machine draws later, it must not draw *ever* later):
 
 The latency itself (median 43 ms, p95 69 ms at 60 Hz here) is a figure, not a test:
 ``python benchmarks/scan_avatar_latency.py`` measures it (the dense face's row).
-``ARTICAST_AVATAR_SECONDS`` sets the run's length (default 20 s: a queue shows within
+``ARTICAST_AVATAR_SECONDS`` sets the run's length (default 12 s: a queue shows within
 seconds as a trend).
 """
 
@@ -37,7 +37,7 @@ pytestmark = pytest.mark.skipif(CHROMIUM is None, reason="chromium is not instal
                                 "(.ci/run installs Debian's chromium)")
 
 FPS = 60.0
-SECONDS = float(os.environ.get("ARTICAST_AVATAR_SECONDS", "20"))
+SECONDS = float(os.environ.get("ARTICAST_AVATAR_SECONDS", "12"))
 MAX_GROWTH_MS_PER_S = 50.0
 
 

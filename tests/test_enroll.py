@@ -375,9 +375,14 @@ def test_a_face_that_leaves_is_reported_within_a_few_frames_and_picked_up_again(
     assert back.size and back[0] <= 10 and ok[50 + back[0]:].mean() > 0.9
 
 
-def _head_clip_enrolled_and_tracked(tmp_path, seed: int):
-    """A rendered head-rig clip (seed, sentence 50) enrolled with ``--rig head``, then another
-    sentence (51) tracked: (speaker, track lines, ok mask, truth lines)."""
+@pytest.fixture(scope="module")
+def head_rig(tmp_path_factory):
+    """A rendered head-rig clip (seed 8, sentence 50) enrolled with ``--rig head`` (its default,
+    pixels refined by the flow), then another sentence (51) tracked: (speaker, track lines, ok
+    mask, truth lines, the truth's model), shared by the two head-rig tests (one enrolment:
+    ~30 s of CI)."""
+    tmp_path = tmp_path_factory.mktemp("head_rig")
+    seed = 8
     assert main(["synth", "sequence", "-o", str(tmp_path / "clip"), "--seed", str(seed),
                  "--sentence", "50", "--rig", "head", "--frames", "200", "--fps", "10"]) == 0
     assert main(["enroll", str(tmp_path / "clip" / "video.mp4"), "-o", str(tmp_path / "sp"),
@@ -390,32 +395,32 @@ def _head_clip_enrolled_and_tracked(tmp_path, seed: int):
                  str(tmp_path / "sp"), "-o", str(out), "--quiet"]) == 0
     lines = _track_lines(out)
     ok = np.array([r["quality"]["ok"] for r in lines])
-    return sp, lines, ok, _track_lines(tmp_path / "test" / "truth.jsonl")
+    return (sp, lines, ok, _track_lines(tmp_path / "test" / "truth.jsonl"),
+            FaceModel.load(tmp_path / "test" / "model.npz"))
 
 
-def test_a_head_mounted_camera_enrols_and_tracks_the_lower_face(tmp_path):
+def test_a_head_mounted_camera_enrols_and_tracks_the_lower_face(head_rig):
     """The head rig sees the face from the nose down (no eyes): scale from the assumed mouth
     width, one head pose for the clip; the lips are still followed."""
-    sp, lines, ok, truth = _head_clip_enrolled_and_tracked(tmp_path, 5)
+    sp, lines, ok, truth, true_model = head_rig
     assert sp.rig == "head" and "mouth width 50 mm" in sp.report["scale"]
     assert ok.mean() >= 0.95
     # no eyes in view: absent with their reason, never open eyes at 0
     assert sp.upper is None
     assert all(not r["eyes"]["ok"] and r["eyes"]["reason"].startswith("not_seen")
                and r["eyes"]["closure_left"] is None and not r["brows"]["ok"] for r in lines)
-    true_model = FaceModel.load(tmp_path / "test" / "model.npz")
     at = np.array([[r["alpha"][n] for n in true_model.param_names] for r in truth])
     ap_true, _ = lip_measures(true_model, at)
     ap = np.array([r["lips"]["aperture_mm"] for r in lines])
     assert np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.85
 
 
-def test_a_head_mounted_camera_enrols_from_pixels_refined_by_the_flow(tmp_path):
+def test_a_head_mounted_camera_enrols_from_pixels_refined_by_the_flow(head_rig):
     """Seen from 22 cm below the mouth, the landmarker's pixels under-read the lips' own small
     motions; a head-mounted enrolment refines them by optical flow by default, and the tracked
     lips2 and lips3 follow the truth (this clip: 0.96 and 0.96 with the flow, 0.82 and 0.95
     with the landmarks' pixels, ``--no-flow``)."""
-    sp, lines, ok, truth = _head_clip_enrolled_and_tracked(tmp_path, 8)
+    sp, lines, ok, truth, _ = head_rig
     assert sp.report["pixels"] == "landmarks refined by optical flow"
     assert ok.mean() >= 0.95
     names = ("jaw1", "lips1", "lips2", "lips3")
