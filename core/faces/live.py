@@ -267,7 +267,8 @@ class FusionPolicy:
     eyes_every : the upper face measures the eyes on the reader's landmarks of every
         n-th reading, and of any reading whose eye pixels changed more than the speaker's
         open eye does (:meth:`~articast.core.faces.upper.UpperTracker.wants_reading`);
-        between, from their pixels as between readings. The eyes' measures (the iris fit
+        between, from that reading's lids alone and their pixels (the ``lids`` of
+        :meth:`~articast.core.faces.upper.UpperTracker.step`). The eyes' measures (the iris fit
         above all) cost ~0.3x a FaceMesh v1 call: measured on every frame the whole live
         face cost 2.4x the FaceMesh v1 loop, every 3rd 2.0-2.2x (the issue's budget: 2.0).
     """
@@ -529,12 +530,14 @@ class LiveTracker:
         """The eyes and brows of this frame (:class:`~articast.core.faces.upper.UpperFace`)."""
         fresh = self._fresh
         fu = self.fusion
+        lids = None
         if (fresh is not None and fu is not None and fu.eyes_every > 1 and self._started
                 and self._frame - self._eyes_frame < fu.eyes_every
                 and not self._eyes_changed(image)):
-            # the eyes measured on every eyes_every-th reading, and on any frame whose eye
-            # pixels changed more than the speaker's open eye does: their pixels between
-            fresh = None
+            # the eyes measured in full on every eyes_every-th reading, and on any frame whose
+            # eye pixels changed more than the speaker's open eye does; between, this
+            # reading's lids alone and their pixels (UpperTracker.step's lids)
+            lids, fresh = np.asarray(fresh.landmarks), None
         marks = None if fresh is None else np.asarray(fresh.landmarks)
         if fresh is not None:
             self._eyes_frame = self._frame
@@ -544,7 +547,7 @@ class LiveTracker:
         if result.ok:  # (where the next frame's eyes are looked for, :meth:`_eyes_changed`)
             self._last_anchor = anchor
         return self.upper.step(image, marks, anchor,
-                               result.ok or result.reason.startswith("occluded"))
+                               result.ok or result.reason.startswith("occluded"), lids)
 
     def _eyes_changed(self, image: np.ndarray) -> bool:
         """Whether the upper face asks for this frame between readings to be read (the head's

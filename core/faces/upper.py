@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -226,9 +226,11 @@ class UpperFace:
     sees the lower face only), ``no_face``, ``turned`` (the head turned too far for both
     eyes), ``left_image``, ``not_calibrated`` (a speaker enrolled before this version).
 
-    closure_* : 0 open .. 1 closed; source ``reader`` (the landmarks this frame) or ``photo``
-    (the photometric measure between readings). gaze_* : degrees, yaw to the speaker's left +,
-    pitch up +. raise_* : mm above the neutral brow; lowering_mm : inner brows below it.
+    closure_* : 0 open .. 1 closed; source ``reader`` (the landmarks this frame, measured in
+    full), ``lids`` (this frame's landmarks' lids and the photometric measure; the rest held)
+    or ``photo`` (the photometric measure between readings). gaze_* : degrees, yaw to the
+    speaker's left +, pitch up +. raise_* : mm above the neutral brow; lowering_mm : inner
+    brows below it.
     wide_* : how far the eye is open beyond the speaker's usual open eye (the unclipped
     closure's negative part, in units of the open-to-closed travel; 0 .. 1). lower_lid_* :
     the lower lid's rise above its neutral (the reader's lower lid, a fraction of the open
@@ -787,20 +789,27 @@ class UpperTracker:
             self.reference.eye_levels(i)
 
     def step(self, image: np.ndarray, landmarks: np.ndarray | None, anchor: np.ndarray | None,
-             ok: bool) -> UpperFace:
+             ok: bool, lids: np.ndarray | None = None) -> UpperFace:
         """One frame (:meth:`_step`), its time added to ``spent_s`` when there is a clock."""
         if self.clock is None:
-            return self._step(image, landmarks, anchor, ok)
+            return self._step(image, landmarks, anchor, ok, lids)
         t0 = self.clock()
-        out = self._step(image, landmarks, anchor, ok)
+        out = self._step(image, landmarks, anchor, ok, lids)
         self.spent_s += self.clock() - t0
         return out
 
     def _step(self, image: np.ndarray, landmarks: np.ndarray | None, anchor: np.ndarray | None,
-              ok: bool) -> UpperFace:
-        """One frame. landmarks : this frame's reading (None between readings); anchor : (2,)
-        px, where a point fixed to the head (tracked) is in this frame, to move the eye
-        corners between readings (None: they stay); ok : whether the face is tracked."""
+              ok: bool, lids: np.ndarray | None = None) -> UpperFace:
+        """One frame. landmarks : this frame's reading, measured in full (None between
+        readings); anchor : (2,) px, where a point fixed to the head (tracked) is in this
+        frame, to move the eye corners between readings (None: they stay); ok : whether the
+        face is tracked; lids : between readings, this frame's reading where there is one
+        (the live reader reads every frame for the lips): only its lids' opening is taken
+        (no iris fit, no brow band: cheap), and the closure is that of a reading, the mean of
+        the reader's and the photometric one (source ``lids``; the gaze and brows held from
+        the last reading). Without it an eye the photometric measure cannot follow held the
+        last reading's closure up to three frames: half of the shut frames of the issue-38
+        clips' blinks read under 0.8 (docs/UPPER_FACE.md)."""
         if self.rig == "head":
             return UpperFace.absent("not_seen: a head-mounted camera sees the lower face only")
         ref = self.reference
@@ -840,6 +849,9 @@ class UpperTracker:
         photo = tuple(self._photo(grey, i, self._corners[i, 0] + shift,
                                   self._corners[i, 1] + shift)
                       if used else None for i, used in enumerate(self._followed()))
+        if lids is not None and (al := align(lids, self.canon)) is not None:
+            return self._from(replace(self._last, opening=lid_opening_mm(al.points),
+                                      yaw_deg=al.yaw_deg), "lids", photo)  # type: ignore[arg-type]
         return self._from(self._last, "photo", photo)  # type: ignore[arg-type]
 
     def _shift(self, anchor: np.ndarray | None) -> np.ndarray:
@@ -919,17 +931,19 @@ class UpperTracker:
             # estimates of the closure with their own errors (the reader's saturates near
             # closed; the average keeps a laugh's squint, which the reader reads 0.5-0.7, under
             # 0.5 on franck and pexels_woman: docs/UPPER_FACE.md)
-            reading = photo is None and not self.photometric
+            reading = (photo is None or source == "lids") and not self.photometric
             if usable:
                 raw = ref.photo[2 * i] + ref.photo[2 * i + 1] * float(x)  # type: ignore[arg-type]
                 if reading:
                     # the mean is the photometric closure moved by half the two measures'
                     # disagreement (closures, 0..1); that move, a running mean over the
-                    # readings (:data:`OFFSET_WEIGHT`), is carried to the frames between
-                    d = 0.5 * (c - _clip(raw, 0.0, 1.0))
-                    off = self._offset[i]
-                    self._offset[i] = d if off is None else (
-                        OFFSET_WEIGHT * d + (1.0 - OFFSET_WEIGHT) * off)
+                    # full readings (:data:`OFFSET_WEIGHT`), is carried to the frames between
+                    # that have no reading at all
+                    if source == "reader":
+                        d = 0.5 * (c - _clip(raw, 0.0, 1.0))
+                        off = self._offset[i]
+                        self._offset[i] = d if off is None else (
+                            OFFSET_WEIGHT * d + (1.0 - OFFSET_WEIGHT) * off)
                     raw = 0.5 * (raw - w)
                 elif (off := self._offset[i]) is not None and not self.photometric:
                     # between readings the photometric measure gives the change, the readings
@@ -941,6 +955,8 @@ class UpperTracker:
                     wide.append(_clip(-raw, 0.0, 1.0))
                     continue
                 c, w = _clip(raw, 0.0, 1.0), -raw
+            elif source == "lids":
+                pass  # the reader's lids this frame, as read
             elif photo is None:
                 self._offset[i] = None  # a reading without the photometric measure
             elif self._closure is not None:
