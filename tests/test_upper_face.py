@@ -520,6 +520,51 @@ def test_between_readings_the_calibrated_photometric_measure_sees_a_blink():
     assert held.closure_left == pytest.approx(0.0, abs=0.02)
 
 
+def test_between_full_readings_the_readers_lids_of_the_frame_give_its_closure():
+    """The live reader reads every frame for the lips; the eyes are measured in full on every
+    third. Between, an eye the photometric measure cannot follow (a weak calibration) read
+    the last full reading's closure, held: a blink shut on the frames between read open.
+    Given the frame's reading as ``lids``, its lids give the closure that frame (cheap: no
+    iris fit), the rest (gaze, brows) held; with a usable photometric measure the two are
+    averaged as on a full reading."""
+    lm = reading(CANON.vertices_mm)
+    shut_lm = reading(with_lids(OPEN - 1.0))  # the reader's lids: closure 1
+    img = eye_image(lm, (0.0, 0.0))
+    weak = U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
+                            photo=(1.0, -0.1, 1.0, -0.1), photo_r=(-0.2, -0.2),
+                            photo_kind=("gap", "gap"))
+    tracker = U.UpperTracker(weak)
+    first = tracker.step(img, lm, np.zeros(2), True)
+    assert first.source == "reader" and first.closure_left == pytest.approx(0.0, abs=0.02)
+    held = tracker.step(img, None, np.zeros(2), True)  # no reading at all: held
+    assert held.source == "photo" and held.closure_left == pytest.approx(0.0, abs=0.02)
+    shut = tracker.step(img, None, np.zeros(2), True, lids=shut_lm)
+    assert shut.source == "lids"
+    assert shut.closure_left > 0.95 and shut.closure_right > 0.95
+    assert shut.gaze_yaw_deg == first.gaze_yaw_deg  # the gaze held from the full reading
+    assert shut.raise_inner_left_mm == first.raise_inner_left_mm  # the brows too
+    again = tracker.step(img, None, np.zeros(2), True, lids=lm)
+    assert again.closure_left == pytest.approx(0.0, abs=0.02)
+
+
+def test_the_lids_alone_are_read_as_the_full_alignment_reads_them():
+    """:func:`lids_only` (compiled where numba is) gives the opening and yaw of
+    :func:`align` + :func:`lid_opening_mm`, at any pose and with noise on the points."""
+    rng = np.random.default_rng(3)
+    for k in range(6):
+        lm = reading(with_lids(0.7 * k), yaw_deg=10.0 * k - 25.0, roll_deg=4.0 * k) \
+            + rng.normal(0.0, 1.5, (468, 3))
+        al = U.align(lm, CANON)
+        assert al is not None
+        fast, ref = U.lids_only(lm, CANON), U.lids_only_numpy(lm, CANON)
+        assert fast is not None and ref is not None
+        np.testing.assert_allclose(fast[0], U.lid_opening_mm(al.points), atol=1e-9)
+        np.testing.assert_allclose(ref[0], U.lid_opening_mm(al.points), atol=1e-9)
+        assert fast[1] == pytest.approx(al.yaw_deg, abs=1e-9)
+    assert U.lids_only(np.full((468, 3), np.nan), CANON) is None
+    assert U.lids_only(np.zeros((468, 3)), CANON) is None
+
+
 def test_between_readings_a_lasting_disagreement_with_the_reader_is_carried():
     """A photometric measure blind to a shut lid (pexels_woman's lid as bright as her white)
     reads the eye open while the reader's lids read it shut: on a reading's frame the closure
