@@ -55,6 +55,7 @@ from fastapi import APIRouter, HTTPException, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response
 
 from articast.service.jsonsafe import dumps
+from articast.service.room_enrol import Enrolments, EnrolRefused, receive
 from articast.service.security import FailedAttempts, client_key
 
 log = logging.getLogger("articast.room")
@@ -85,6 +86,10 @@ class RoomConfig:
     max_participants: int = 8
     seed: int = 1
     """The synthetic speaker whose assets track a participant without a speaker folder."""
+    max_enrolments: int = 1
+    """Enrolments from the page at once (each takes a core for ~40 s; 429 past that)."""
+    enrol_lease_s: float = 20.0
+    """An enrolment whose page has not asked how it goes for this long is cancelled."""
 
     def __repr__(self) -> str:  # never show the token
         return (f"RoomConfig(name={self.name!r}, token={'set' if self.token else 'none'}, "
@@ -119,6 +124,12 @@ class Room:
         self.members: dict[str, Member] = {}
         self.attempts = FailedAttempts()
         self._watcher: asyncio.Task[None] | None = None
+        self.enrolments: Enrolments | None = None
+        """The page's enrolments into the speakers folder (none without one)."""
+        if config.speakers:
+            self.enrolments = Enrolments(Path(config.speakers), config.max_enrolments,
+                                         config.enrol_lease_s)
+            self.enrolments.clean()
 
     def start(self) -> None:
         """The watcher (:meth:`watch`), once, on the server's loop."""
@@ -196,6 +207,8 @@ class Room:
         log.warning("room %s: %s left (%s): %s", self.config.name, name, reason,
                     self.stats(name))
         member = self.members.pop(name)
+        if self.enrolments is not None:  # leaving mid-enrolment: it stops, its files go
+            self.enrolments.cancel(name, f"the participant left the room ({reason})")
         if member.feed is not None:  # the media process frees their audio slots
             member.feed.close(f"the participant left the room ({reason})")
         for ws in list(member.sockets):
@@ -236,6 +249,8 @@ class Room:
                     self.remove(name, m.feed.ended or "the session ended")
                 elif m.feed is None and not m.sockets and time.time() - m.joined > 60:
                     self.remove(name, "joined but never sent video")
+            if self.enrolments is not None:
+                self.enrolments.expire(time.monotonic())
             tick += 1
             if tick % 4 == 0:
                 self.announce()
@@ -363,6 +378,55 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(404, " ".join(str(exc).split())) from None
         return Response(body, media_type="application/json",
                         headers={"Cache-Control": "no-store"})
+
+    async def enrolling(request: Request, name: str) -> Enrolments:
+        """The room's enrolments, for the participant whose token names ``name`` only."""
+        room.start()
+        own = await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        if own != name:
+            raise HTTPException(403, f"your participant token is {own!r}'s: it enrols and "
+                                "deletes only its own name")
+        if room.enrolments is None:
+            raise HTTPException(404, "this room keeps no enrolments (start it with "
+                                "--speakers DIR)")
+        return room.enrolments
+
+    @router.post("/room/api/enrol/{name}", status_code=202)
+    async def enrol(name: str, request: Request) -> dict[str, Any]:
+        """The page's enrolment clip (the body): the enrolment starts; the page asks how it
+        goes (GET)."""
+        enrolments = await enrolling(request, name)
+        try:
+            job = enrolments.begin(name)
+            content_type = await receive(job, request, enrolments)
+        except EnrolRefused as exc:
+            raise HTTPException(exc.status, exc.detail) from None
+        await asyncio.to_thread(enrolments.start, job, content_type)
+        return enrolments.status(name)
+
+    @router.get("/room/api/enrol/{name}")
+    async def enrol_status(name: str, request: Request) -> Response:
+        enrolments = await enrolling(request, name)
+        return Response(dumps(enrolments.status(name)), media_type="application/json",
+                        headers={"Cache-Control": "no-store"})
+
+    @router.post("/room/api/enrol/{name}/cancel")
+    async def enrol_cancel(name: str, request: Request) -> dict[str, Any]:
+        enrolments = await enrolling(request, name)
+        enrolments.cancel(name, "the page cancelled it")
+        return enrolments.status(name)
+
+    @router.delete("/room/api/enrol/{name}")
+    async def enrol_delete(name: str, request: Request) -> dict[str, Any]:
+        """The participant's speaker folder deleted (and an enrolment under way stopped);
+        if they are in the room as their delegate, they leave it (their face is no longer
+        theirs to show: joining again shows the generic head)."""
+        enrolments = await enrolling(request, name)
+        deleted = enrolments.delete(name)
+        member = room.members.get(name)
+        if member is not None and member.speaker:
+            room.remove(name, "their enrolment was deleted")
+        return {"name": name, "deleted": deleted, "enrolled": enrolments.enrolled(name)}
 
     @router.websocket("/room/ws")
     async def room_socket(ws: WebSocket) -> None:

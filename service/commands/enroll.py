@@ -231,8 +231,11 @@ def enrol_speaker(video: Path, output: Path, opts: EnrolSettings, quiet: bool = 
                          "analysed frames: is one face in view and lit?")
     scheme = mediapipe_scheme(opts.rig, opts.ipd_mm)
 
-    def say(m: str) -> None:
-        tell("model", 0, 0)
+    said = [0]
+
+    def say(m: str) -> None:  # (build_speaker says ~5 things: training, refining, reader, eyes)
+        said[0] += 1
+        tell("model", min(said[0], 5), 6)
         if not quiet:
             print(f"enroll: {m}", file=sys.stderr)
     tell("model", 0, 0)

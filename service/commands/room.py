@@ -31,8 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free)")
     p.add_argument("--speakers", type=Path, metavar="DIR",
                    help="enrolled speaker folders, one per participant name (DIR/NAME from "
-                   "'articast enroll'): those participants are tracked as themselves and shown "
-                   "as their own textured delegate; their names need a token from the host")
+                   "'articast enroll' or the page's guided enrolment): those participants "
+                   "are tracked as themselves and shown as their own textured delegate; their "
+                   "names need their participant token (default: a private folder under "
+                   "$XDG_DATA_HOME or ~/.local/share/articast/rooms/NAME/speakers)")
     p.add_argument("--max-participants", type=int, default=8,
                    help="participants at once (default 8; each page receives that many "
                    "minus one audio tracks)")
@@ -95,6 +97,15 @@ def _room(args: argparse.Namespace) -> int:
         raise InputError("--max-participants: 2 to 32")
     if args.speakers is not None and not args.speakers.is_dir():
         raise InputError(f"--speakers {args.speakers}: not a folder")
+    from articast.service.room_enrol import default_speakers_dir, private_dir
+
+    if args.speakers is None:  # the page's enrolments: private to this user
+        try:
+            args.speakers = private_dir(default_speakers_dir(args.name))
+        except OSError as exc:
+            raise InputError(f"cannot make the room's speakers folder "
+                             f"{default_speakers_dir(args.name)}: {exc.strerror or exc} "
+                             "(give one with --speakers DIR)") from None
     token = room_token(args, required=False)
     made = not token
     token = token or secrets.token_urlsafe(24)
