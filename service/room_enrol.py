@@ -293,9 +293,9 @@ async def receive(job: Job, request: Any, enrolments: Enrolments) -> str:
                     raise EnrolRefused(413, f"the clip is over {U.MAX_UPLOAD_BYTES // 2**20} "
                                        "MB (record 20-60 s)")
                 fh.write(chunk)
-        if size < 8:
+        if size < 1024:
             raise EnrolRefused(400, "the clip is empty" if not size else
-                               U.container_problem(content_type, head))
+                               f"the clip is {size} bytes: no camera recording is that small")
     except ClientDisconnect:
         enrolments.cancel(job.name, "the upload was cut off (the page closed?)")
         raise EnrolRefused(400, "the upload was cut off") from None
