@@ -9,6 +9,8 @@ routes live under ``/room`` and check the room's own credentials, never the serv
 ``POST /room/api/join``        ``{"name"}`` with ``X-Room-Token: ROOM``: a participant token
 ``POST /room/api/offer``       the page's SDP offer with ``X-Participant-Token``: the answer
 ``GET  /room/api/delegate/N``  member N's delegate (their enrolled face), for members only
+``POST|GET|DELETE /room/api/enrol/N``  N's enrolment from the page's clip, how it goes, and
+                               its deletion, with N's token only (service/room_enrol.py)
 ``WS   /room/ws?key=PTOKEN``   the room: ``members`` updates, then every member's session in
                                the protocol's own ``hello``/``frame``/``status`` messages
 
@@ -33,7 +35,8 @@ a page plays a member's animation at ``t_capture`` + that member's audio delay
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
-told; the same name can join again. Nothing is stored: frames and audio live in memory.
+told; the same name can join again. Frames and audio live in memory; what is stored is a
+participant's enrolment, if they make one (docs/ROOM.md, "What is stored").
 """
 
 from __future__ import annotations
@@ -302,8 +305,9 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(400, "name: 1-64 of letters, digits, _ . - (it is shown "
                                 "under your delegate)")
         if config.speaker_of(name):
-            raise HTTPException(403, f"{name!r} is enrolled in this room: their participant "
-                                "token comes from the room's host (articast room-token NAME)")
+            raise HTTPException(403, f"{name!r} is enrolled in this room: join with your own "
+                                "link (kept by the page you enrolled on), or ask the room's "
+                                "host for it (articast room-token NAME)")
         if name in room.members:
             raise HTTPException(409, f"{name!r} is in the room already: choose another name")
         return {"name": name, "token": participant_token(config.token, name),
