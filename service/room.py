@@ -68,9 +68,12 @@ PARTICIPANT_HEADER = "x-participant-token"
 STREAMS: list[Any] = ["articulatory", "pose"]
 
 
-def participant_token(room_token: str, name: str) -> str:
-    """The token that publishes and reads as ``name`` in the room of ``room_token``."""
-    mac = hmac.new(room_token.encode(), b"articast room participant\0" + name.encode(),
+def participant_token(room_token: str, name: str, secret: str = "") -> str:
+    """The token that publishes and reads as ``name`` in the room of ``room_token``; a name
+    enrolled from the page has a ``secret`` of its own (its speaker folder's ``room-key``),
+    so that a token taken for the name before it was enrolled no longer admits."""
+    mac = hmac.new(room_token.encode(), b"articast room participant\0" + name.encode()
+                   + (b"\0" + secret.encode() if secret else b""),
                    hashlib.sha256).hexdigest()[:40]
     return f"{name}.{mac}"
 
@@ -166,7 +169,13 @@ class Room:
         name = ptoken.rpartition(".")[0]
         if not NAME_RE.match(name):
             await self.check(key, ptoken or "", "\0")  # a wrong token (none: no guess)
-        await self.check(key, ptoken, participant_token(self.config.token, name))
+        pending = self.enrolments.pending_secret(name) if self.enrolments is not None else ""
+        if pending and hmac.compare_digest(
+                ptoken.encode("utf-8", "replace"),
+                participant_token(self.config.token, name, pending).encode()):
+            return name  # the token the enrolment under way gave its page
+        secret = self.enrolments.secret(name) if self.enrolments is not None else ""
+        await self.check(key, ptoken, participant_token(self.config.token, name, secret))
         return name
 
     # ------------------------------------------------------------------ members
@@ -406,7 +415,9 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         except EnrolRefused as exc:
             raise HTTPException(exc.status, exc.detail) from None
         await asyncio.to_thread(enrolments.start, job, content_type)
-        return enrolments.status(name)
+        # the name's token once enrolled (bound to the folder's new secret): to this page only
+        return {**enrolments.status(name),
+                "token": participant_token(config.token, name, job.secret)}
 
     @router.get("/room/api/enrol/{name}")
     async def enrol_status(name: str, request: Request) -> Response:

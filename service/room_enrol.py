@@ -43,6 +43,11 @@ UPLOAD_ROUTE = "/room/api/enrol/"
 UPLOAD_TIMEOUT_S = 120.0
 """An upload not complete 2 minutes after it began is refused (8 MB at 0.5 Mbit/s)."""
 
+KEY_FILE = "room-key"
+"""In a folder the page enrolled: the secret its participant's token is bound to (a token
+taken for the name before the enrolment no longer admits; ``articast room-token NAME
+--speakers DIR`` reads it)."""
+
 WORK = ".enrolling"
 """The temporary folders' parent, inside the speakers folder (the same file system: the
 finished folder is moved into place by a rename). A name starting with "." is never a
@@ -98,6 +103,8 @@ class Job:
     asked: float = field(default_factory=time.monotonic)
     """When the page last asked (the lease)."""
     proc: Any = None
+    secret: str = field(default_factory=lambda: secrets.token_urlsafe(18))
+    """The folder's ``room-key`` once enrolled: the name's token is bound to it."""
 
     @property
     def active(self) -> bool:
@@ -127,6 +134,22 @@ class Enrolments:
 
     def enrolled(self, name: str) -> bool:
         return (self.folder(name) / "speaker.json").is_file()
+
+    def secret(self, name: str) -> str:
+        """The secret ``name``'s token is bound to ("" unless the page enrolled them)."""
+        if not may_enrol(name):
+            return ""
+        try:
+            with open(self.folder(name) / KEY_FILE, encoding="ascii") as fh:
+                return fh.read(100).strip()
+        except (OSError, ValueError):
+            return ""
+
+    def pending_secret(self, name: str) -> str:
+        """The secret of ``name``'s enrolment under way (its page holds the token bound to
+        it from the upload on; "" when there is none)."""
+        job = self.jobs.get(name)
+        return job.secret if job is not None and job.state in ("running", "done") else ""
 
     def clean(self) -> None:
         """Temporary folders a previous run left (killed mid-enrolment) are removed."""
@@ -215,6 +238,9 @@ class Enrolments:
         then removed): a speaker folder is complete or absent."""
         new, final = job.work / "speaker", self.folder(job.name)
         os.chmod(new, 0o700)
+        fd = os.open(new / KEY_FILE, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="ascii") as fh:
+            fh.write(job.secret + "\n")
         if final.exists():
             os.rename(final, job.work / "replaced")
         os.rename(new, final)

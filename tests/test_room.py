@@ -37,8 +37,9 @@ time puts them, drifting 6-10 frames in 20 s (benchmarks/fake_camera.py). Errors
 (s.d.) alone cap r for a perfect tracker at ~0.6 at full speed, ~0.92 at a third of it (where
 runs gave 0.884-0.966) and ~0.97 at a fifth."""
 ENROLLED_FILES = ("model.npz", "appearance.npz", "camera.json", "speaker.json",
-                  "points_v1.npz", "points_v2.npz", "delegate.npz")
-"""A speaker folder the room's enrolment writes (no contact sheet, no clip)."""
+                  "points_v1.npz", "points_v2.npz", "delegate.npz", "room-key")
+"""A speaker folder the room's enrolment writes (no contact sheet, no clip; room-key: the
+secret its participant's token is bound to)."""
 ENROLLED_SEED = 4
 """The synthetic speaker bob shows when he comes back and enrols through the page (a desk
 webcam's view; test_enroll.py enrols the same speaker from a file)."""
@@ -129,8 +130,10 @@ def clips(tmp_path_factory):
         out[name] = make_clip(base / name, SEED, start, n=90 * SLOW, slow=SLOW)
         waiting[name] = track_causal(out[name])  # (the two run side by side)
     # bob's webcam when he comes back to enrol: another synthetic speaker, seen from a desk
+    t0 = time.monotonic()
     out["bob-desk"] = make_clip(base / "bob-desk", ENROLLED_SEED, 900, n=90 * SLOW, slow=SLOW,
                                 rig="desk")
+    print(f"bob's desk clip rendered in {time.monotonic() - t0:.1f} s")
     for name, result in waiting.items():
         out[name]["offline"] = result()
     return out
@@ -262,17 +265,34 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
                 offline = track_causal(desk, speaker=folder)
                 # his page joins with his own token (an enrolled name's) and he is tracked
                 # as himself; ann's page shows his textured delegate, moving with his clip
+                b2.wait_for("window.articastRoom.joined", timeout=120)
+                t_joined = time.monotonic()
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 1), timeout=300)
+                t_first = time.monotonic()
                 a.wait_for(ENOUGH.format(json.dumps("bob"), 45), timeout=300)
                 a.wait_for("window.articastRoom.members.bob.drawn === 'delegate'", timeout=60)
+                print(f"enrolled bob: joined {t_joined - t_enrolled:.1f} s after his enrolment, "
+                      f"first frame on ann's page {t_first - t_joined:.1f} s later, 45 frames "
+                      f"{time.monotonic() - t_first:.1f} s later")
                 assert members(b2) == {"ann", "bob"}
                 assert os.path.samefile(sessions["bob"].spec.speaker, folder)
                 from urllib.parse import parse_qs
 
-                # his page's address is his own link now (an enrolled name needs its token)
+                # his page's address is his own link now, a token bound to his folder's
+                # secret: the token anyone could take for "bob" before no longer admits
+                secret = (folder / "room-key").read_text().strip()
+                assert os.stat(folder / "room-key").st_mode & 0o777 == 0o600
                 query = parse_qs(b2.evaluate("location.search").lstrip("?"))
-                assert query == {"key": [participant_token(ROOM, "bob")]}, query
+                assert query == {"key": [participant_token(ROOM, "bob", secret)]}, query
+                with http(srv) as c:
+                    h = {"X-Participant-Token": participant_token(ROOM, "bob")}
+                    assert c.get("/room/api/me", headers=h).status_code == 401
+                    assert c.delete("/room/api/enrol/bob", headers=h).status_code == 401
                 got = received(a, "bob")
+                t_wait = time.monotonic()
                 reference = offline()
+                print(f"the offline track of his clip ended {time.monotonic() - t_wait:.1f} s "
+                      "after the 45th frame")
                 (r, shift), n = best_correlation(got, reference)
                 print(f"enrolled bob on ann's page: r {r:.3f} over {n} frames "
                       f"(of {len(got)}); {time.monotonic() - t0:.1f} s since his page opened")

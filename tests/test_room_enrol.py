@@ -6,6 +6,8 @@ real browser's recording, is in tests/test_room.py's two-browser test."""
 
 import os
 import socket
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -132,6 +134,23 @@ def test_a_participant_token_enrols_and_deletes_only_its_own_name(tmp_path, webm
         r = c.delete("/room/api/enrol/.enrolling", headers=h)
         assert r.status_code == 200 and r.json()["deleted"] is False
         assert c.post("/room/api/enrol/.enrolling", headers=h, content=clip).status_code == 400
+    # a name the page enrolled has a token bound to its folder's secret (room-key): the
+    # token anyone could take for the name before no longer admits; the host's command
+    # mints the bound one from the folder
+    (tmp_path / "cleo").mkdir()
+    (tmp_path / "cleo" / "speaker.json").write_text("{}")
+    (tmp_path / "cleo" / "room-key").write_text("s3cret\n")
+    out = subprocess.run([sys.executable, "-m", "articast.service.cli", "room-token", "cleo",
+                          "--speakers", str(tmp_path)], capture_output=True, text=True,
+                         env={"ARTICAST_ROOM_TOKEN": ROOM, "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    bound = out.stdout.split()[0]
+    assert bound == participant_token(ROOM, "cleo", "s3cret") != participant_token(ROOM, "cleo")
+    with ServerThread(config(speakers=str(tmp_path))) as srv, http(srv) as c:
+        assert c.get("/room/api/me", headers={"X-Participant-Token": bound}).status_code == 200
+        assert c.get("/room/api/me", headers=headers("cleo")).status_code == 401
+        assert c.delete("/room/api/enrol/cleo", headers=headers("cleo")).status_code == 401
+        assert (tmp_path / "cleo").is_dir()
     # without a speakers folder there is nothing to enrol into
     with ServerThread(config()) as srv, http(srv) as c:
         r = c.post("/room/api/enrol/bob", headers=headers("bob"), content=clip)
@@ -232,11 +251,19 @@ def test_an_enrolment_whose_page_stopped_asking_or_cancelled_is_killed_and_remov
     with ServerThread(config(speakers=str(tmp_path))) as srv, http(srv) as c:
         jobs = room_of(srv).enrolments.jobs
         # the page cancels (its cancel button, or closing: pagehide)
-        assert enrol(c, "ann", clip).status_code == 202
+        r = enrol(c, "ann", clip)
+        assert r.status_code == 202
         proc = jobs["ann"].proc
         assert proc is not None and proc.is_alive() and jobs["ann"].state == "running"
+        # the upload's answer is ann's token once enrolled; while it runs both admit
+        bound = {"X-Participant-Token": r.json()["token"]}
+        assert bound["X-Participant-Token"] != headers("ann")["X-Participant-Token"]
+        assert c.get("/room/api/enrol/ann", headers=bound).status_code == 200
         r = c.post("/room/api/enrol/ann/cancel", headers=headers("ann"))
         assert r.json()["job"]["state"] == "cancelled", r.text
+        # cancelled: the bound token is void, the name's own still admits
+        assert c.get("/room/api/enrol/ann", headers=bound).status_code == 401
+        assert c.get("/room/api/enrol/ann", headers=headers("ann")).status_code == 200
         wait(lambda: not proc.is_alive(), what="the enrolment process was not killed")
         assert proc.exitcode == -9
         wait(lambda: work_files(tmp_path) == [], what=str(work_files(tmp_path)))

@@ -38,7 +38,8 @@ function recorderType() {
 const sleep = (ms) => new Promise((r) => setTimeout(r, ms));
 
 // One guided enrolment. `ui`: {step(text), read(text|null), bar(fraction), count(text)};
-// `hook`: an object the test reads (state, stage, progress, detail, bytes, type);
+// `hook`: an object the test reads (state, stage, progress, detail, bytes, type, token: the
+// participant's token once enrolled);
 // `signal`: an AbortSignal (the cancel button, the page closing). Resolves to the server's
 // last status ({state: "done"|"failed"|"cancelled", detail, warnings}).
 export async function enrol({ name, token, stream, ui, hook, signal, countdown = 3 }) {
@@ -87,6 +88,11 @@ export async function enrol({ name, token, stream, ui, hook, signal, countdown =
       detail: signal.aborted ? "cancelled" : "the room's server cannot be reached: " + e.message });
   }
   if (!r.ok) return set({ state: "failed", detail: await detailOf(r) });
+  // the name's token once enrolled (bound to the new folder's secret; the old one stops
+  // admitting when the folder is in place): the page asks with it from now on
+  const bound = (await r.json()).token;
+  set({ token: bound });
+  headers["X-Participant-Token"] = bound;
   // -------------------------------------------------------------- the server's work
   const started = performance.now();
   while (true) {

@@ -426,7 +426,7 @@ async function enrolMe(name, thenJoin) {
     ui.step(done.state === "cancelled" ? "Enrolment cancelled" : "Enrolment failed");
     status(done.detail || done.state, done.state === "failed"); return;
   }
-  keepToken();
+  ptoken = done.token; keepToken();
   $("forget").hidden = false;
   ui.step("Enrolled: your delegate shows your own face"); ui.bar(1);
   ui.count((done.warnings || []).length ? "note: " + done.warnings.join("; ") : "");
@@ -441,7 +441,12 @@ async function forget() {
   if (!r.ok) { status(await refusal(r, "delete your enrolment"), true); return; }
   const j = await r.json();
   state.enrol = { state: "deleted" }; $("forget").hidden = true; $("guide").hidden = true;
-  status(j.deleted ? `your speaker folder is deleted${state.joined ? "" : "; join again for the generic head"}` : "you had no enrolment here");
+  // the token was bound to the folder: the name is an ordinary one again (the room token's)
+  if (j.deleted) {
+    personal = false; ptoken = "";
+    if (params.get("room")) history.replaceState(null, "", "?room=" + encodeURIComponent(params.get("room")));
+  }
+  status(j.deleted ? `your speaker folder is deleted; to join again, open the room's URL${params.get("room") ? " (this page's)" : ""}` : "you had no enrolment here");
 }
 addEventListener("pagehide", () => { // closed mid-enrolment: the server stops it (it would after 20 s)
   if (!enrolling) return;

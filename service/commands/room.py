@@ -48,6 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ARTICAST_ROOM_TOKEN or --room-token-file, and the URL that joins with it.")
     t.add_argument("participant", help="the participant's name")
     _token_arguments(t)
+    t.add_argument("--speakers", type=Path, metavar="DIR",
+                   help="the room's speakers folder, as given to 'articast room' (default: "
+                   "its private one): a participant who enrolled on the page has a token "
+                   "bound to their folder")
+    t.add_argument("--room", default="room",
+                   help="the room's name (default room; where its private speakers folder is)")
     t.add_argument("--url", default="http://127.0.0.1:8765",
                    help="the room server's address (default http://127.0.0.1:8765)")
     t.set_defaults(func=_room_token)
@@ -156,6 +162,11 @@ def _room_token(args: argparse.Namespace) -> int:
     if not NAME_RE.match(args.participant):
         raise InputError(f"participant name {args.participant!r}: 1-64 of letters, digits, "
                          "_ . -")
-    ptoken = participant_token(room_token(args, required=True), args.participant)
+    from articast.service.room_enrol import Enrolments, default_speakers_dir
+
+    token = room_token(args, required=True)
+    speakers = args.speakers or default_speakers_dir(args.room)
+    secret = Enrolments(speakers).secret(args.participant)
+    ptoken = participant_token(token, args.participant, secret)
     print(f"{ptoken}\n{args.url.rstrip('/')}/room?key={ptoken}")
     return 0
