@@ -411,6 +411,7 @@ async function enrolMe(name, thenJoin) {
   }
   enrolling = new AbortController();
   $("guide").hidden = false; $("enrol").disabled = true; $("stop").disabled = false;
+  $("join").disabled = true; // (one camera, one thing at a time: joining comes after)
   status(`enrolling ${name}: follow the steps below`);
   const ui = {
     step: (t) => { $("step").textContent = t; },
@@ -421,6 +422,7 @@ async function enrolMe(name, thenJoin) {
   const done = await enrol({ name, token: ptoken, stream: cam, ui, hook: state.enrol, signal: enrolling.signal,
     countdown: Number(params.get("countdown") ?? 3) });
   enrolling = null; $("enrol").disabled = false; $("stop").disabled = true;
+  $("join").disabled = state.joined;
   if (own && !state.joined) { for (const t of cam.getTracks()) t.stop(); $("self").srcObject = null; }
   if (done.state !== "done") {
     ui.step(done.state === "cancelled" ? "Enrolment cancelled" : "Enrolment failed");
