@@ -71,8 +71,14 @@ def create_app(config: ServiceConfig | None = None,
 
         mount_room(app, svc, config.room)
 
+    uploads: tuple[tuple[str, str, int, float], ...] = ()
+    if config.room is not None:  # the room's enrolment clips (service/room_enrol.py)
+        from articast.core.enrol_upload import MAX_UPLOAD_BYTES
+        from articast.service.room_enrol import UPLOAD_ROUTE, UPLOAD_TIMEOUT_S
+
+        uploads = (("POST", UPLOAD_ROUTE, MAX_UPLOAD_BYTES, UPLOAD_TIMEOUT_S),)
     app.add_middleware(BodyLimit, limit=config.hub.max_message_bytes,
-                       timeout_s=config.hub.header_timeout_s)
+                       timeout_s=config.hub.header_timeout_s, uploads=uploads)
     app.add_middleware(TokenGate, access=config.access,
                        attempts=FailedAttempts(free=config.hub.max_token_failures,
                                                max_s=config.hub.token_delay_max_s))

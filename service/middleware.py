@@ -57,18 +57,29 @@ class BodyTimeout(Exception):
 
 class BodyLimit:
     """ASGI middleware: HTTP bodies over ``limit`` bytes get 413, declared or chunked; a
-    body still incomplete ``timeout_s`` after the app first asked for it gets 408."""
+    body still incomplete ``timeout_s`` after the app first asked for it gets 408.
+    ``uploads``: ``(method, path prefix, limit, timeout_s)`` of the routes that take larger
+    bodies (the room's enrolment clips), with their own bounds."""
 
-    def __init__(self, app: Any, limit: int, timeout_s: float = 10.0) -> None:
+    def __init__(self, app: Any, limit: int, timeout_s: float = 10.0,
+                 uploads: tuple[tuple[str, str, int, float], ...] = ()) -> None:
         self.app, self.limit, self.timeout_s = app, limit, timeout_s
+        self.uploads = uploads
+
+    def bounds(self, scope: Any) -> tuple[int, float]:
+        for method, prefix, limit, timeout_s in self.uploads:
+            if scope.get("method") == method and scope.get("path", "").startswith(prefix):
+                return limit, timeout_s
+        return self.limit, self.timeout_s
 
     async def __call__(self, scope: Any, receive: Any, send: Any) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
+        limit, timeout_s = self.bounds(scope)
         length = dict(scope["headers"]).get(b"content-length")
-        if length is not None and (not length.isdigit() or int(length) > self.limit):
-            await JSONResponse({"detail": f"request body over {self.limit} bytes or "
+        if length is not None and (not length.isdigit() or int(length) > limit):
+            await JSONResponse({"detail": f"request body over {limit} bytes or "
                                 "malformed length"}, 413)(scope, receive, send)
             return
         seen = 0
@@ -97,15 +108,15 @@ class BodyLimit:
             if complete:  # after the body: a disconnect, whenever it comes
                 return await receive()
             t = time.monotonic()
-            deadline = deadline or t + self.timeout_s
+            deadline = deadline or t + timeout_s
             try:
                 msg = await asyncio.wait_for(receive(), max(0.0, deadline - t))
             except TimeoutError:
-                reason = f"request body not complete within {self.timeout_s:g} s"
+                reason = f"request body not complete within {timeout_s:g} s"
                 await answer(408, reason, BodyTimeout(reason))
             seen += len(msg.get("body", b""))
-            if seen > self.limit:
-                reason = f"request body over {self.limit} bytes"
+            if seen > limit:
+                reason = f"request body over {limit} bytes"
                 await answer(413, reason, BodyTooLarge(reason))
             complete = msg["type"] != "http.request" or not msg.get("more_body", False)
             return msg

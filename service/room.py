@@ -9,6 +9,8 @@ routes live under ``/room`` and check the room's own credentials, never the serv
 ``POST /room/api/join``        ``{"name"}`` with ``X-Room-Token: ROOM``: a participant token
 ``POST /room/api/offer``       the page's SDP offer with ``X-Participant-Token``: the answer
 ``GET  /room/api/delegate/N``  member N's delegate (their enrolled face), for members only
+``POST|GET|DELETE /room/api/enrol/N``  N's enrolment from the page's clip, how it goes, and
+                               its deletion, with N's token only (service/room_enrol.py)
 ``WS   /room/ws?key=PTOKEN``   the room: ``members`` updates, then every member's session in
                                the protocol's own ``hello``/``frame``/``status`` messages
 
@@ -33,7 +35,8 @@ a page plays a member's animation at ``t_capture`` + that member's audio delay
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
-told; the same name can join again. Nothing is stored: frames and audio live in memory.
+told; the same name can join again. Frames and audio live in memory; what is stored is a
+participant's enrolment, if they make one (docs/ROOM.md, "What is stored").
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ from fastapi import APIRouter, HTTPException, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response
 
 from articast.service.jsonsafe import dumps
+from articast.service.room_enrol import Enrolments, EnrolRefused, receive
 from articast.service.security import FailedAttempts, client_key
 
 log = logging.getLogger("articast.room")
@@ -64,9 +68,12 @@ PARTICIPANT_HEADER = "x-participant-token"
 STREAMS: list[Any] = ["articulatory", "pose"]
 
 
-def participant_token(room_token: str, name: str) -> str:
-    """The token that publishes and reads as ``name`` in the room of ``room_token``."""
-    mac = hmac.new(room_token.encode(), b"articast room participant\0" + name.encode(),
+def participant_token(room_token: str, name: str, secret: str = "") -> str:
+    """The token that publishes and reads as ``name`` in the room of ``room_token``; a name
+    enrolled from the page has a ``secret`` of its own (its speaker folder's ``room-key``),
+    so that a token taken for the name before it was enrolled no longer admits."""
+    mac = hmac.new(room_token.encode(), b"articast room participant\0" + name.encode()
+                   + (b"\0" + secret.encode() if secret else b""),
                    hashlib.sha256).hexdigest()[:40]
     return f"{name}.{mac}"
 
@@ -85,6 +92,10 @@ class RoomConfig:
     max_participants: int = 8
     seed: int = 1
     """The synthetic speaker whose assets track a participant without a speaker folder."""
+    max_enrolments: int = 1
+    """Enrolments from the page at once (each takes a core for ~40 s; 429 past that)."""
+    enrol_lease_s: float = 20.0
+    """An enrolment whose page has not asked how it goes for this long is cancelled."""
 
     def __repr__(self) -> str:  # never show the token
         return (f"RoomConfig(name={self.name!r}, token={'set' if self.token else 'none'}, "
@@ -119,6 +130,12 @@ class Room:
         self.members: dict[str, Member] = {}
         self.attempts = FailedAttempts()
         self._watcher: asyncio.Task[None] | None = None
+        self.enrolments: Enrolments | None = None
+        """The page's enrolments into the speakers folder (none without one)."""
+        if config.speakers:
+            self.enrolments = Enrolments(Path(config.speakers), config.max_enrolments,
+                                         config.enrol_lease_s)
+            self.enrolments.clean()
 
     def start(self) -> None:
         """The watcher (:meth:`watch`), once, on the server's loop."""
@@ -152,7 +169,13 @@ class Room:
         name = ptoken.rpartition(".")[0]
         if not NAME_RE.match(name):
             await self.check(key, ptoken or "", "\0")  # a wrong token (none: no guess)
-        await self.check(key, ptoken, participant_token(self.config.token, name))
+        pending = self.enrolments.pending_secret(name) if self.enrolments is not None else ""
+        if pending and hmac.compare_digest(
+                ptoken.encode("utf-8", "replace"),
+                participant_token(self.config.token, name, pending).encode()):
+            return name  # the token the enrolment under way gave its page
+        secret = self.enrolments.secret(name) if self.enrolments is not None else ""
+        await self.check(key, ptoken, participant_token(self.config.token, name, secret))
         return name
 
     # ------------------------------------------------------------------ members
@@ -196,6 +219,8 @@ class Room:
         log.warning("room %s: %s left (%s): %s", self.config.name, name, reason,
                     self.stats(name))
         member = self.members.pop(name)
+        if self.enrolments is not None:  # leaving mid-enrolment: it stops, its files go
+            self.enrolments.cancel(name, f"the participant left the room ({reason})")
         if member.feed is not None:  # the media process frees their audio slots
             member.feed.close(f"the participant left the room ({reason})")
         for ws in list(member.sockets):
@@ -236,6 +261,8 @@ class Room:
                     self.remove(name, m.feed.ended or "the session ended")
                 elif m.feed is None and not m.sockets and time.time() - m.joined > 60:
                     self.remove(name, "joined but never sent video")
+            if self.enrolments is not None:
+                self.enrolments.expire(time.monotonic())
             tick += 1
             if tick % 4 == 0:
                 self.announce()
@@ -287,8 +314,9 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(400, "name: 1-64 of letters, digits, _ . - (it is shown "
                                 "under your delegate)")
         if config.speaker_of(name):
-            raise HTTPException(403, f"{name!r} is enrolled in this room: their participant "
-                                "token comes from the room's host (articast room-token NAME)")
+            raise HTTPException(403, f"{name!r} is enrolled in this room: join with your own "
+                                "link (kept by the page you enrolled on), or ask the room's "
+                                "host for it (articast room-token NAME)")
         if name in room.members:
             raise HTTPException(409, f"{name!r} is in the room already: choose another name")
         return {"name": name, "token": participant_token(config.token, name),
@@ -363,6 +391,57 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(404, " ".join(str(exc).split())) from None
         return Response(body, media_type="application/json",
                         headers={"Cache-Control": "no-store"})
+
+    async def enrolling(request: Request, name: str) -> Enrolments:
+        """The room's enrolments, for the participant whose token names ``name`` only."""
+        room.start()
+        own = await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        if own != name:
+            raise HTTPException(403, f"your participant token is {own!r}'s: it enrols and "
+                                "deletes only its own name")
+        if room.enrolments is None:
+            raise HTTPException(404, "this room keeps no enrolments (start it with "
+                                "--speakers DIR)")
+        return room.enrolments
+
+    @router.post("/room/api/enrol/{name}", status_code=202)
+    async def enrol(name: str, request: Request) -> dict[str, Any]:
+        """The page's enrolment clip (the body): the enrolment starts; the page asks how it
+        goes (GET)."""
+        enrolments = await enrolling(request, name)
+        try:
+            job = enrolments.begin(name)
+            content_type = await receive(job, request, enrolments)
+        except EnrolRefused as exc:
+            raise HTTPException(exc.status, exc.detail) from None
+        await asyncio.to_thread(enrolments.start, job, content_type)
+        # the name's token once enrolled (bound to the folder's new secret): to this page only
+        return {**enrolments.status(name),
+                "token": participant_token(config.token, name, job.secret)}
+
+    @router.get("/room/api/enrol/{name}")
+    async def enrol_status(name: str, request: Request) -> Response:
+        enrolments = await enrolling(request, name)
+        return Response(dumps(enrolments.status(name)), media_type="application/json",
+                        headers={"Cache-Control": "no-store"})
+
+    @router.post("/room/api/enrol/{name}/cancel")
+    async def enrol_cancel(name: str, request: Request) -> dict[str, Any]:
+        enrolments = await enrolling(request, name)
+        enrolments.cancel(name, "the page cancelled it")
+        return enrolments.status(name)
+
+    @router.delete("/room/api/enrol/{name}")
+    async def enrol_delete(name: str, request: Request) -> dict[str, Any]:
+        """The participant's speaker folder deleted (and an enrolment under way stopped);
+        if they are in the room as their delegate, they leave it (their face is no longer
+        theirs to show: joining again shows the generic head)."""
+        enrolments = await enrolling(request, name)
+        deleted = enrolments.delete(name)
+        member = room.members.get(name)
+        if member is not None and member.speaker:
+            room.remove(name, "their enrolment was deleted")
+        return {"name": name, "deleted": deleted, "enrolled": enrolments.enrolled(name)}
 
     @router.websocket("/room/ws")
     async def room_socket(ws: WebSocket) -> None:

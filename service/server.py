@@ -89,6 +89,7 @@ def http_protocol(clients: ClientConnections, max_header_bytes: int,
                 with contextlib.suppress(OSError):
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer_bytes)
             self._head_bytes = 0
+            self._head_tail = b""
             self._in_head = True
             self._head_timer: Any = None
             if not clients.admit(transport):
@@ -117,7 +118,13 @@ def http_protocol(clients: ClientConnections, max_header_bytes: int,
 
         def data_received(self, data: bytes) -> None:
             if self._in_head:
-                self._head_bytes += len(data)
+                # only the head counts: a body's first bytes often come in the same read
+                # (a large upload's: the room's enrolment clips)
+                seen = getattr(self, "_head_tail", b"") + data
+                end = seen.find(b"\r\n\r\n")
+                self._head_tail = seen[-3:]
+                self._head_bytes += len(data) if end < 0 else \
+                    max(0, end + 4 - (len(seen) - len(data)))
                 if self._head_bytes > max_header_bytes:
                     self._in_head = False
                     _refuse(self.transport, b"431 Request Header Fields Too Large",
@@ -128,7 +135,7 @@ def http_protocol(clients: ClientConnections, max_header_bytes: int,
         def on_message_begin(self) -> None:
             super().on_message_begin()
             if not self._in_head:  # a next request on a kept-alive connection
-                self._in_head, self._head_bytes = True, 0
+                self._in_head, self._head_bytes, self._head_tail = True, 0, b""
                 self._arm_head_timer()
 
         def on_headers_complete(self) -> None:

@@ -6,6 +6,7 @@ real WebRTC client (aiortc)."""
 
 import asyncio
 import json
+import os
 import subprocess
 import sys
 import time
@@ -35,6 +36,13 @@ does not keep time: under load its frames are 1-2 frames (p95 3-4) from where th
 time puts them, drifting 6-10 frames in 20 s (benchmarks/fake_camera.py). Errors of 2 frames
 (s.d.) alone cap r for a perfect tracker at ~0.6 at full speed, ~0.92 at a third of it (where
 runs gave 0.884-0.966) and ~0.97 at a fifth."""
+ENROLLED_FILES = ("model.npz", "appearance.npz", "camera.json", "speaker.json",
+                  "points_v1.npz", "points_v2.npz", "delegate.npz", "room-key")
+"""A speaker folder the room's enrolment writes (no contact sheet, no clip; room-key: the
+secret its participant's token is bound to)."""
+ENROLLED_SEED = 4
+"""The synthetic speaker bob shows when he comes back and enrols through the page (a desk
+webcam's view; test_enroll.py enrols the same speaker from a file)."""
 FAKE = ("--use-fake-device-for-media-stream", "--use-fake-ui-for-media-stream",
         "--autoplay-policy=no-user-gesture-required")
 
@@ -61,15 +69,16 @@ def write_wav(path, envelope, fps, rate=48000):
     return path
 
 
-def make_clip(folder, seed, start, n=90, slow=1):
+def make_clip(folder, seed, start, n=90, slow=1, rig="head"):
     """n frames of synthetic speaker ``seed`` (from frame ``start``: two participants say
     different things) as .y4m and a .wav, the speech ``slow`` times slower than life; the
-    speaker's assets as files for `articast track`."""
+    speaker's assets as files for `articast track`. ``rig`` desk: a webcam's view, to enrol
+    from (the room tracks the others with the synthetic speaker's head-rig assets)."""
     from articast.core.outputs.lips import lips_dict
     from articast.core.synthetic import open_stream
     from articast.service.sources import cache_dir
 
-    stream = open_stream(seed=seed, fps=float(FPS * slow), cache_dir=cache_dir())
+    stream = open_stream(seed=seed, fps=float(FPS * slow), rig=rig, cache_dir=cache_dir())
     frames, apertures = [], []
     for _, image, truth in stream.frames(start):
         frames.append(image)
@@ -89,16 +98,18 @@ def make_clip(folder, seed, start, n=90, slow=1):
             "rig": getattr(stream, "rig", "head")}
 
 
-def track_causal(clip):
-    """Start `articast track --causal` on the clip with the speaker's assets; the returned
-    function waits for it and gives the per-frame lip apertures (nan where not ok)."""
-    out = clip["folder"] / "track.jsonl"
+def track_causal(clip, speaker=None):
+    """Start `articast track --causal` on the clip with the speaker's assets (or an enrolled
+    speaker folder); the returned function waits for it and gives the per-frame lip
+    apertures (nan where not ok)."""
+    out = clip["folder"] / ("track-enrolled.jsonl" if speaker else "track.jsonl")
     f = clip["folder"]
+    assets = ["--speaker", str(speaker)] if speaker else [
+        "--model", str(f / "model.npz"), "--appearance", str(f / "appearance.npz"),
+        "--camera", str(f / "camera.json"), "--init-pose", clip["init"], "--rig", clip["rig"]]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "articast.service.cli", "track", str(clip["y4m"]),
-         "--model", str(f / "model.npz"), "--appearance", str(f / "appearance.npz"),
-         "--camera", str(f / "camera.json"), "--init-pose", clip["init"],
-         "--rig", clip["rig"], "--causal", "--quiet", "-o", str(out)],
+        [sys.executable, "-m", "articast.service.cli", "track", str(clip["y4m"]), *assets,
+         "--causal", "--quiet", "-o", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
     def result():
@@ -118,19 +129,24 @@ def clips(tmp_path_factory):
     for name, start in (("ann", 0), ("bob", 450)):
         out[name] = make_clip(base / name, SEED, start, n=90 * SLOW, slow=SLOW)
         waiting[name] = track_causal(out[name])  # (the two run side by side)
+    # bob's webcam when he comes back to enrol: another synthetic speaker, seen from a desk
+    t0 = time.monotonic()
+    out["bob-desk"] = make_clip(base / "bob-desk", ENROLLED_SEED, 900, n=90 * SLOW, slow=SLOW,
+                                rig="desk")
+    print(f"bob's desk clip rendered in {time.monotonic() - t0:.1f} s")
     for name, result in waiting.items():
         out[name]["offline"] = result()
     return out
 
 
-def room_url(srv, name):
-    return f"{srv.http}/room?room={ROOM}&name={name}&fps=15"
+def room_url(srv, name, enrol=False):
+    return f"{srv.http}/room?room={ROOM}&name={name}&fps=15" + ("&enrol=1" if enrol else "")
 
 
-def participant(srv, name, clip):
+def participant(srv, name, clip, enrol=False):
     flags = (*FAKE, f"--use-file-for-fake-video-capture={clip['y4m']}",
              f"--use-file-for-fake-audio-capture={clip['wav']}", "--window-size=800,600")
-    return Browser(room_url(srv, name), flags=flags, console=True)
+    return Browser(room_url(srv, name, enrol), flags=flags, console=True)
 
 
 def best_correlation(received, offline, fps=FPS):
@@ -181,10 +197,14 @@ ENOUGH = ("(() => {{ const m = window.articastRoom.members[{0}];"
 
 @pytest.mark.timeout(1500)  # never killed mid-way (its browsers would outlive it)
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed")
-def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(clips):
+def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(clips, tmp_path):
+    """... and bob, back with his webcam, enrols through the guided page (recorded by his
+    browser, enrolled by the server) and ann sees his own delegate move with his clip."""
     ann, bob = clips["ann"], clips["bob"]
     assert np.nanstd(ann["offline"]) > 0.5 and np.nanstd(bob["offline"]) > 0.5
-    with ServerThread(config()) as srv:
+    speakers = tmp_path / "speakers"
+    speakers.mkdir()
+    with ServerThread(config(speakers=str(speakers))) as srv:
         with participant(srv, "ann", ann) as a:
             with participant(srv, "bob", bob) as b:
                 # each page: both delegates, the other's frames flowing (the tracker may
@@ -218,12 +238,73 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
                 assert time.monotonic() < deadline, sessions["bob"].state
                 time.sleep(0.1)
             assert sessions["ann"].state == "running"
-            # bob joins again (a new page): ann sees him move again
+            # bob comes back with his webcam (a desk's view of another face) and enrols
+            # through the guided page first: his browser records 24 s, the server enrols
+            # him; then he joins, tracked with his own speaker folder
             before = len(received(a, "bob")) if "bob" in members(a) else 0
             assert before == 0
-            with participant(srv, "bob", bob) as b2:
-                a.wait_for(ENOUGH.format(json.dumps("bob"), 10), timeout=120)
+            desk = clips["bob-desk"]
+            t0 = time.monotonic()
+            with participant(srv, "bob", desk, enrol=True) as b2:
+                b2.wait_for("window.articastRoom.enrol.state === 'running'", timeout=120)
+                t_recorded = time.monotonic()
+                b2.wait_for("!['starting', 'countdown', 'recording', 'uploading', 'running']"
+                            ".includes(window.articastRoom.enrol.state)", timeout=600)
+                t_enrolled = time.monotonic()
+                enrolment = json.loads(b2.evaluate("JSON.stringify(window.articastRoom.enrol)"))
+                print(f"bob's enrolment: recorded and sent in {t_recorded - t0:.1f} s, "
+                      f"enrolled in {t_enrolled - t_recorded:.1f} s: {enrolment}")
+                assert enrolment["state"] == "done", enrolment
+                assert enrolment["type"].startswith("video/webm") and \
+                    enrolment["bytes"] > 1_000_000, enrolment
+                folder = speakers / "bob"
+                assert sorted(os.listdir(folder)) == sorted(ENROLLED_FILES), os.listdir(folder)
+                assert not (speakers / ".enrolling").exists() or \
+                    not os.listdir(speakers / ".enrolling")  # the clip is not kept
+                assert os.stat(folder).st_mode & 0o777 == 0o700
+                offline = track_causal(desk, speaker=folder)
+                # his page joins with his own token (an enrolled name's) and he is tracked
+                # as himself; ann's page shows his textured delegate, moving with his clip
+                b2.wait_for("window.articastRoom.joined", timeout=120)
+                t_joined = time.monotonic()
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 1), timeout=300)
+                t_first = time.monotonic()
+                a.wait_for(ENOUGH.format(json.dumps("bob"), 45), timeout=300)
+                a.wait_for("window.articastRoom.members.bob.drawn === 'delegate'", timeout=60)
+                print(f"enrolled bob: joined {t_joined - t_enrolled:.1f} s after his enrolment, "
+                      f"first frame on ann's page {t_first - t_joined:.1f} s later, 45 frames "
+                      f"{time.monotonic() - t_first:.1f} s later")
                 assert members(b2) == {"ann", "bob"}
+                assert os.path.samefile(sessions["bob"].spec.speaker, folder)
+                from urllib.parse import parse_qs
+
+                # his page's address is his own link now, a token bound to his folder's
+                # secret: the token anyone could take for "bob" before no longer admits
+                secret = (folder / "room-key").read_text().strip()
+                assert os.stat(folder / "room-key").st_mode & 0o777 == 0o600
+                query = parse_qs(b2.evaluate("location.search").lstrip("?"))
+                assert query == {"key": [participant_token(ROOM, "bob", secret)]}, query
+                with http(srv) as c:
+                    h = {"X-Participant-Token": participant_token(ROOM, "bob")}
+                    assert c.get("/room/api/me", headers=h).status_code == 401
+                    assert c.delete("/room/api/enrol/bob", headers=h).status_code == 401
+                got = received(a, "bob")
+                t_wait = time.monotonic()
+                reference = offline()
+                print(f"the offline track of his clip ended {time.monotonic() - t_wait:.1f} s "
+                      "after the 45th frame")
+                (r, shift), n = best_correlation(got, reference)
+                print(f"enrolled bob on ann's page: r {r:.3f} over {n} frames "
+                      f"(of {len(got)}); {time.monotonic() - t0:.1f} s since his page opened")
+                assert r >= 0.9, (r, shift, n)
+                (r_wrong, _), _ = best_correlation(got, bob["offline"])
+                assert r_wrong < r, (r, r_wrong)
+                # he deletes his enrolment on the page: the folder goes, he leaves ann's
+                # scene (his face is no longer shown)
+                b2.evaluate("document.getElementById('forget').click()")
+                a.wait_for("!('bob' in window.articastRoom.members)", timeout=6 * TIMEOUT)
+                assert not folder.exists()
+                assert not b2.console_errors(), b2.console_errors()
         deadline = time.monotonic() + 6 * TIMEOUT
         while room_of(srv).members:
             assert time.monotonic() < deadline, list(room_of(srv).members)

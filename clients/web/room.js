@@ -18,12 +18,13 @@ import { LinearFace } from "./face.js";
 import { Head } from "./eyes.js";
 import { loadDelegate } from "./delegate.js";
 import { keepResolution } from "./connect.js";
+import { enrol } from "./enrol.js";
 
 const params = new URLSearchParams(location.search);
 const $ = (id) => document.getElementById(id);
 const state = (window.articastRoom = {
   status: "", final: "", you: "", connection: "", joined: false, speaking: "", members: {},
-  offsetMs: null, left: [],
+  offsetMs: null, left: [], enrol: { state: "" }, link: "",
 });
 const SKIN = [0.86, 0.66, 0.56], SPACING = 210, NTP_UNIX_MS = 2208988800000;
 const MAX_FPS = Number(params.get("fps")) || 30;
@@ -371,15 +372,101 @@ function leave(keepStatus) {
   if (pc) { pc.close(); pc = null; }
   if (stream) { for (const t of stream.getTracks()) t.stop(); stream = null; }
   for (const [n, m] of members) { dispose(m); members.delete(n); }
-  if (!params.get("key")) ptoken = "";
+  if (!params.get("key") && !personal) ptoken = "";
   $("join").disabled = false; $("leave").disabled = true;
   if (keepStatus !== true) status("left");
 }
 
+// ----------------------------------------------------------------------------- enrolment
+// (clients/web/enrol.js): the participant's token first (the room token's /join), their own
+// camera recorded here, the clip uploaded, the server's work followed; then the page keeps
+// their token (an enrolled name is joined with it only: ?key=, shown as their own link) and
+// joins again, so that the room tracks them with their speaker folder.
+let personal = false, enrolling = null;
+async function token(name) {
+  if (ptoken) return (await (await fetch("/room/api/me", { headers: auth() })).json()).name;
+  const r = await post("/room/api/join", { "X-Room-Token": params.get("room") || "" }, { name });
+  if (!r.ok) { status(await refusal(r, "enrol you"), true); return ""; }
+  ptoken = (await r.json()).token; return name;
+}
+function keepToken() { // an enrolled name joins with its own token: this page's URL carries it
+  personal = true;
+  const link = new URL("/room", location.href); link.searchParams.set("key", ptoken);
+  state.link = link.href;
+  history.replaceState(null, "", "?key=" + encodeURIComponent(ptoken));
+}
+async function enrolMe(name, thenJoin) {
+  if (enrolling) return;
+  if (!window.isSecureContext || !navigator.mediaDevices) {
+    status("the camera needs a secure page: open this page over https:// (or on localhost)", true); return;
+  }
+  try { name = await token(name); } catch (e) { status("the room's server cannot be reached: " + e.message, true); return; }
+  if (!name) return;
+  const wasJoined = state.joined;
+  let cam = stream, own = false;
+  if (!cam) {
+    try { cam = await navigator.mediaDevices.getUserMedia({ video: { width: { ideal: 640 }, height: { ideal: 480 }, frameRate: { ideal: 30 } } }); own = true; }
+    catch (e) { status(cameraProblem(e), true); return; }
+    $("self").srcObject = cam;
+  }
+  enrolling = new AbortController();
+  $("guide").hidden = false; $("enrol").disabled = true; $("stop").disabled = false;
+  $("join").disabled = true; // (one camera, one thing at a time: joining comes after)
+  status(`enrolling ${name}: follow the steps below`);
+  const ui = {
+    step: (t) => { $("step").textContent = t; },
+    read: (t) => { $("read").hidden = !t; if (t) $("read").textContent = t; },
+    bar: (f) => { $("bar").value = f; }, count: (t) => { $("count").textContent = t; },
+  };
+  state.enrol = { state: "starting" };
+  const done = await enrol({ name, token: ptoken, stream: cam, ui, hook: state.enrol, signal: enrolling.signal,
+    countdown: Number(params.get("countdown") ?? 3) });
+  enrolling = null; $("enrol").disabled = false; $("stop").disabled = true;
+  $("join").disabled = state.joined;
+  if (own && !state.joined) { for (const t of cam.getTracks()) t.stop(); $("self").srcObject = null; }
+  if (done.state !== "done") {
+    ui.step(done.state === "cancelled" ? "Enrolment cancelled" : "Enrolment failed");
+    status(done.detail || done.state, done.state === "failed"); return;
+  }
+  ptoken = done.token; keepToken();
+  $("forget").hidden = false;
+  ui.step("Enrolled: your delegate shows your own face"); ui.bar(1);
+  ui.count((done.warnings || []).length ? "note: " + done.warnings.join("; ") : "");
+  status(`enrolled ${name}; keep this page's address (your own link): ${state.link}`);
+  if (wasJoined) { leave(true); await join(name); } // tracked again, with the speaker folder
+  else if (thenJoin) await join(name);
+}
+async function forget() {
+  const name = state.you || $("name").value;
+  if (!ptoken || !name) return;
+  const r = await fetch(`/room/api/enrol/${encodeURIComponent(name)}`, { method: "DELETE", headers: auth() });
+  if (!r.ok) { status(await refusal(r, "delete your enrolment"), true); return; }
+  const j = await r.json();
+  state.enrol = { state: "deleted" }; $("forget").hidden = true; $("guide").hidden = true;
+  // the token was bound to the folder: the name is an ordinary one again (the room token's)
+  if (j.deleted) {
+    personal = false; ptoken = "";
+    if (params.get("room")) history.replaceState(null, "", "?room=" + encodeURIComponent(params.get("room")));
+  }
+  status(j.deleted ? `your speaker folder is deleted; to join again, open the room's URL${params.get("room") ? " (this page's)" : ""}` : "you had no enrolment here");
+}
+addEventListener("pagehide", () => { // closed mid-enrolment: the server stops it (it would after 20 s)
+  if (!enrolling) return;
+  enrolling.abort();
+  const name = state.you || $("name").value;
+  fetch(`/room/api/enrol/${encodeURIComponent(name)}/cancel`, { method: "POST", headers: auth(), keepalive: true }).catch(() => {});
+});
+
 $("form").addEventListener("submit", (ev) => { ev.preventDefault(); join($("name").value); });
 $("leave").addEventListener("click", () => leave());
+$("enrol").addEventListener("click", () => enrolMe(state.joined ? state.you : $("name").value, false));
+$("stop").addEventListener("click", () => { if (enrolling) enrolling.abort(); });
+$("forget").addEventListener("click", () => forget());
 window.articastLeave = () => leave(); window.articastJoin = (n) => join(n || $("name").value);
+window.articastEnrol = (n, thenJoin) => enrolMe(n || $("name").value, thenJoin);
 if (!renderer) status("WebGL is not available in this browser", true);
 requestAnimationFrame(draw);
-if (params.get("name")) { $("name").value = params.get("name"); join(params.get("name")); }
+if (params.get("key")) { personal = true; $("forget").hidden = false; }
+if (params.get("name") && params.get("enrol") === "1") { $("name").value = params.get("name"); enrolMe(params.get("name"), true); }
+else if (params.get("name")) { $("name").value = params.get("name"); join(params.get("name")); }
 else if (params.get("key")) join("");

@@ -5,7 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -84,13 +87,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
-               read: bool = True):
+               read: bool = True, total: int | None = None, progress=None):
     """Frames (strided to at most ``max_frames``, plus a run of consecutive frames from the
     middle of a long clip: the motion model learns from frame-to-frame motion,
     :func:`~articast.core.tracking.kalman.process_noise`), their landmarks (F, 478, 3), found
     (F,), the clip's duration (s), frame size, the number of frames read (of ``span``, a
     :class:`~articast.service.video.Span`, when given), the live reader's landmarks of the
-    same frames (F, 468, 3; None unless ``read``) and when each frame was taken (F,) s."""
+    same frames (F, 468, 3; None unless ``read``) and when each frame was taken (F,) s.
+
+    ``total``: the clip's frame count when the caller counted it (a browser's WebM declares
+    none: every frame would be analysed); ``progress(stage, done, of)``: told as the frames
+    are read (the room's enrolment shows it)."""
     import cv2
 
     from articast.core.faces.build import analysed_frames
@@ -98,7 +105,7 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
     from articast.service.progress import Progress
     from articast.service.video import iter_video, open_capture, video_frame_count
 
-    total = video_frame_count(video)
+    total = video_frame_count(video) if total is None else total
     if span:
         cap = open_capture(str(video))
         fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
@@ -125,6 +132,8 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
         marks.append(face.landmarks if face is not None else np.full((478, 3), np.nan))
         found.append(face is not None)
         prog.update()
+        if progress is not None:
+            progress("landmarks", len(images), len(keep) if keep else 0)
     prog.close()
     if total and n_read < total * 0.9 and not span:
         print(f"articast enroll: warning: {video} ended early: read {n_read} of the {total} "
@@ -135,34 +144,75 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
     if read:
         reader = FaceFinder.load(landmarks="v1")
         prog = Progress(len(images), "reader landmarks", quiet=quiet)
-        readings = read_every_frame(reader, images, faces, progress=prog.update)
+
+        def step() -> None:
+            prog.update()
+            if progress is not None:
+                progress("reader landmarks", prog.done, len(images))
+        readings = read_every_frame(reader, images, faces, progress=step)
         prog.close()
     return (images, np.array(marks), np.array(found, bool), length + fps_dt, size, n_read,
             readings, np.array(times))
 
 
-def _enroll(args: argparse.Namespace) -> int:
+@dataclass(frozen=True)
+class EnrolSettings:
+    """What ``articast enroll``'s options say (its defaults), for :func:`enrol_speaker`."""
+    rig: str = "desk"
+    ipd_mm: float = 63.0
+    mouth_width_mm: float = 50.0
+    depth: str = "rigid"
+    flow: bool | None = None
+    kind: str = "la_quad"
+    max_frames: int = 600
+    name: str = ""
+    delegate: bool = True
+    contact_sheet: bool = True
+    camera: Path | None = None
+    span: Any = None
+    """A :class:`articast.service.video.Span` of the clip, or None: all of it."""
+    total: int | None = None
+    """The clip's frame count when counted by the caller (None: the container's)."""
+    label: str = ""
+    """How errors name the clip (default its path)."""
+
+
+@dataclass
+class Enrolment:
+    """What :func:`enrol_speaker` wrote: the speaker, its report (``speaker.json``'s), the
+    warnings, and the contact sheet's tile count (0: none)."""
+    speaker: Any
+    report: dict[str, Any]
+    warnings: list[str]
+    sheet: int
+
+
+def enrol_speaker(video: Path, output: Path, opts: EnrolSettings, quiet: bool = True,
+                  progress: Callable[[str, int, int], None] | None = None) -> Enrolment:
+    """The enrolment of ``articast enroll``: the speaker folder ``output`` from ``video``
+    (InputError in one line when the clip cannot be enrolled). ``progress(stage, done, of)``
+    is told of each stage (``landmarks``, ``reader landmarks``, ``model``, ``delegate``,
+    ``contact sheet``; ``of`` 0 when a stage has no count)."""
     from articast.core.faces.build import BuildOptions, build_speaker
     from articast.core.faces.enrol import EnrolOptions
     from articast.core.faces.scheme import mediapipe_scheme
     from articast.core.model.camera import Camera
 
-    for name in ("ipd_mm", "mouth_width_mm"):
-        v = getattr(args, name)
+    tell = progress or (lambda stage, done, of: None)
+    for what, v in (("ipd-mm", opts.ipd_mm), ("mouth-width-mm", opts.mouth_width_mm)):
         if not (np.isfinite(v) and 10.0 <= v <= 150.0):
-            raise InputError(f"--{name.replace('_', '-')} must be between 10 and 150 mm")
-    if args.max_frames < 20:
+            raise InputError(f"--{what} must be between 10 and 150 mm")
+    if opts.max_frames < 20:
         raise InputError("--max-frames must be at least 20")
-    if args.output.exists() and not args.output.is_dir():
-        raise InputError(f"{args.output}: exists and is not a folder")
-    camera = Camera.load(args.camera) if args.camera else None
-    from articast.service.video import Span
-
-    span = Span(args.start, args.end)
+    if output.exists() and not output.is_dir():
+        raise InputError(f"{output}: exists and is not a folder")
+    label = opts.label or str(video)
+    camera = Camera.load(opts.camera) if opts.camera else None
     # fused live tracking reads FaceMesh v1 every frame on a desk camera (not on a
     # head-mounted one: core/faces/live.py LivePolicy.fusion)
     images, marks, found, seconds, size, n_read, readings, times = find_faces(
-        args.video, args.max_frames, args.quiet, span, read=args.rig == "desk")
+        video, opts.max_frames, quiet, opts.span, read=opts.rig == "desk", total=opts.total,
+        progress=progress)
     if camera is None:
         camera = Camera.default(size[0], size[1], DEFAULT_FOV_DEG)
     else:  # the same camera at another resolution is scaled; another aspect ratio: one line
@@ -170,22 +220,30 @@ def _enroll(args: argparse.Namespace) -> int:
 
         note = scaling_note(camera, *size)
         camera = fit_camera(camera, size[0], size[1], what="the video's frames")
-        if note and not args.quiet:
+        if note and not quiet:
             print(f"articast enroll: {note}", file=sys.stderr)
     warnings = []
     if seconds < MIN_SECONDS:
         warnings.append(f"the clip is {seconds:.1f} s long: 20-60 s of reading aloud cover "
                         "the articulation far better")
     if found.mean() < 0.5:
-        raise InputError(f"{args.video}: a face was found in {found.sum()} of {found.size} "
+        raise InputError(f"{label}: a face was found in {found.sum()} of {found.size} "
                          "analysed frames: is one face in view and lit?")
-    scheme = mediapipe_scheme(args.rig, args.ipd_mm)
-    say = (lambda m: None) if args.quiet else (lambda m: print(f"enroll: {m}", file=sys.stderr))
+    scheme = mediapipe_scheme(opts.rig, opts.ipd_mm)
+
+    said = [0]
+
+    def say(m: str) -> None:  # (build_speaker says ~5 things: training, refining, reader, eyes)
+        said[0] += 1
+        tell("model", min(said[0], 5), 6)
+        if not quiet:
+            print(f"enroll: {m}", file=sys.stderr)
+    tell("model", 0, 0)
     speaker = build_speaker(
-        images, marks, found, scheme, camera, args.rig,
-        EnrolOptions(ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm,
-                     fixed_pose=(args.rig == "head"), depth=args.depth),
-        BuildOptions(kind=args.kind, flow=args.flow), args.name or args.video.stem, say,
+        images, marks, found, scheme, camera, opts.rig,
+        EnrolOptions(ipd_mm=opts.ipd_mm, mouth_width_mm=opts.mouth_width_mm,
+                     fixed_pose=(opts.rig == "head"), depth=opts.depth),
+        BuildOptions(kind=opts.kind, flow=opts.flow), opts.name or video.stem, say,
         readings=readings, times=times)
     cov = speaker.report["coverage"]
     ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
@@ -208,15 +266,33 @@ def _enroll(args: argparse.Namespace) -> int:
                         f"naturally while reading)")
     report = {**speaker.report, "seconds": round(seconds, 2), "frames_read": n_read,
               "frames_analysed": int(found.size),
-              "camera": "given" if args.camera else f"default ({DEFAULT_FOV_DEG:g} deg)",
+              "camera": "given" if opts.camera else f"default ({DEFAULT_FOV_DEG:g} deg)",
               "warnings": warnings}
     from dataclasses import replace
 
     speaker = replace(speaker, report=report)
-    speaker.save(args.output)
-    if args.delegate:
-        report["delegate"] = _write_delegate(args.output, speaker, images, found, times, say)
-    sheet = write_contact_sheet(args.output / CONTACT_SHEET, speaker, images, found)
+    speaker.save(output)
+    if opts.delegate:
+        tell("delegate", 0, 0)
+        report["delegate"] = _write_delegate(
+            output, speaker, images, found, times,
+            (lambda m: None) if quiet else (lambda m: print(f"enroll: {m}", file=sys.stderr)))
+    sheet = 0
+    if opts.contact_sheet:
+        tell("contact sheet", 0, 0)
+        sheet = write_contact_sheet(output / CONTACT_SHEET, speaker, images, found)
+    return Enrolment(speaker, report, warnings, sheet)
+
+
+def _enroll(args: argparse.Namespace) -> int:
+    from articast.service.video import Span
+
+    done = enrol_speaker(args.video, args.output, EnrolSettings(
+        rig=args.rig, ipd_mm=args.ipd_mm, mouth_width_mm=args.mouth_width_mm,
+        depth=args.depth, flow=args.flow, kind=args.kind, max_frames=args.max_frames,
+        name=args.name, delegate=args.delegate, camera=args.camera,
+        span=Span(args.start, args.end)), quiet=args.quiet)
+    speaker, report, sheet = done.speaker, done.report, done.sheet
     if args.json:
         print(dumps({"speaker": str(args.output), "residual": speaker.residual.to_dict(),
                      **report}, indent=1))
@@ -225,7 +301,7 @@ def _enroll(args: argparse.Namespace) -> int:
         if sheet:
             print(f"contact sheet: {args.output / CONTACT_SHEET} (the fitted model on "
                   f"{sheet} enrolment frames: lips outer yellow, inner magenta)")
-    for w in warnings:
+    for w in done.warnings:
         print(f"articast enroll: warning: {w}", file=sys.stderr)
     return 0
 

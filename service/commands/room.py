@@ -31,8 +31,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--port", type=int, default=8765, help="port (default 8765; 0: any free)")
     p.add_argument("--speakers", type=Path, metavar="DIR",
                    help="enrolled speaker folders, one per participant name (DIR/NAME from "
-                   "'articast enroll'): those participants are tracked as themselves and shown "
-                   "as their own textured delegate; their names need a token from the host")
+                   "'articast enroll' or the page's guided enrolment): those participants "
+                   "are tracked as themselves and shown as their own textured delegate; their "
+                   "names need their participant token (default: a private folder under "
+                   "$XDG_DATA_HOME or ~/.local/share/articast/rooms/NAME/speakers)")
     p.add_argument("--max-participants", type=int, default=8,
                    help="participants at once (default 8; each page receives that many "
                    "minus one audio tracks)")
@@ -46,6 +48,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "ARTICAST_ROOM_TOKEN or --room-token-file, and the URL that joins with it.")
     t.add_argument("participant", help="the participant's name")
     _token_arguments(t)
+    t.add_argument("--speakers", type=Path, metavar="DIR",
+                   help="the room's speakers folder, as given to 'articast room' (default: "
+                   "its private one): a participant who enrolled on the page has a token "
+                   "bound to their folder")
+    t.add_argument("--room", default="room",
+                   help="the room's name (default room; where its private speakers folder is)")
     t.add_argument("--url", default="http://127.0.0.1:8765",
                    help="the room server's address (default http://127.0.0.1:8765)")
     t.set_defaults(func=_room_token)
@@ -95,6 +103,15 @@ def _room(args: argparse.Namespace) -> int:
         raise InputError("--max-participants: 2 to 32")
     if args.speakers is not None and not args.speakers.is_dir():
         raise InputError(f"--speakers {args.speakers}: not a folder")
+    from articast.service.room_enrol import default_speakers_dir, private_dir
+
+    if args.speakers is None:  # the page's enrolments: private to this user
+        try:
+            args.speakers = private_dir(default_speakers_dir(args.name))
+        except OSError as exc:
+            raise InputError(f"cannot make the room's speakers folder "
+                             f"{default_speakers_dir(args.name)}: {exc.strerror or exc} "
+                             "(give one with --speakers DIR)") from None
     token = room_token(args, required=False)
     made = not token
     token = token or secrets.token_urlsafe(24)
@@ -145,6 +162,11 @@ def _room_token(args: argparse.Namespace) -> int:
     if not NAME_RE.match(args.participant):
         raise InputError(f"participant name {args.participant!r}: 1-64 of letters, digits, "
                          "_ . -")
-    ptoken = participant_token(room_token(args, required=True), args.participant)
+    from articast.service.room_enrol import Enrolments, default_speakers_dir
+
+    token = room_token(args, required=True)
+    speakers = args.speakers or default_speakers_dir(args.room)
+    secret = Enrolments(speakers).secret(args.participant)
+    ptoken = participant_token(token, args.participant, secret)
     print(f"{ptoken}\n{args.url.rstrip('/')}/room?key={ptoken}")
     return 0
