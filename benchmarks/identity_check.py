@@ -171,6 +171,55 @@ def summary(rows: dict[str, dict[str, float]], shipped: float) -> dict[str, Any]
     }
 
 
+def _pct(x: float | None) -> str:
+    return "–" if x is None else f"{100 * x:.0f} %"
+
+
+def _at(c: dict) -> str:
+    return (f"{c['threshold']:.2f}: {c['false_warnings']} of {c['own_pairs']} own warned, "
+            f"{_pct(c['caught'])} of {c['other_pairs']} others")
+
+
+def markdown(out: dict[str, Any]) -> str:
+    """The JSON's tables (docs/RESULTS.md's block; ``benchmarks/results.py`` reads it)."""
+    nets = {n: r["summary"] for n, r in out["networks"].items() if r["summary"]}
+    made = len(out.get("signatures_made_from_the_clip") or [])
+    lines = [f"{len(out['clips'])} clips of {out['people']} people, the first {out['frames']} "
+             f"frames from 60 % of each (no enrolment saw them) against every clip's "
+             f"folder; {made} folders predate the stored signature: theirs made from their "
+             f"clip's first 60 %. Distances in the folder's frame-to-frame spreads; the shipped "
+             f"threshold {out['warn_distance']:g}.", "",
+             "| network | own person (pairs: min / median / max) | other people (pairs: min / "
+             "p10 / median) | at most one own warned | no own warned | shipped |",
+             "|---|---|---|---|---|---|"]
+    for n, s in nets.items():
+        o, t = s["own"], s["other"]
+        lines.append(f"| {n} | {o['n']}: {o['min']:.2f} / {o['median']:.2f} / {o['max']:.2f} | "
+                     f"{t['n']}: {t['min']:.2f} / {t['p10']:.2f} / {t['median']:.2f} | "
+                     f"{_at(s['at_most_one_false_warning'])} | {_at(s['no_false_warning'])} | "
+                     f"{_at(s['shipped'])} |")
+    lines += ["", f"Halves (`people.py`): the threshold chosen on one half ({MARGIN:g} x its "
+                  "largest own distance), checked on the other.", "",
+              "| network | chosen on | its own max | on the other half |", "|---|---|---|---|"]
+    for n, s in nets.items():
+        for k, v in s["halves"].items():
+            lines.append(f"| {n} | {k.rsplit('_', 1)[1]} | {v['own_max']:.2f} | "
+                         f"{_at(v['check_on_other_half'])} |")
+    lines += ["", "| folder | " + " | ".join(f"{n} own | {n} others: min / median | {n} warned "
+                                             f"at {out['warn_distance']:g}" for n in nets)
+              + " |", "|---|" + "---|---|---|" * len(nets)]
+    folders = sorted({f for s in nets.values() for f in s["folders"]})
+    for f in folders:
+        cells = []
+        for s in nets.values():
+            r = s["folders"].get(f)
+            cells += (["–"] * 3 if r is None else
+                      [", ".join(f"{v:.2f}" for v in r["own"]),
+                       f"{r['other_min']:.2f} / {r['other_median']:.2f}", _pct(r["caught"])])
+        lines.append(f"| {f} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def tracker_measures(speakers: Path, names: list[str], paths: dict[str, Path],
                      frames: int) -> dict[str, dict[str, dict]]:
     """The first attempt's measures (the tracker's own) on the clips' first frames."""
@@ -273,26 +322,7 @@ def main(argv: list[str] | None = None) -> None:
                                 "summary": summary(rows, WARN_DISTANCE)}
     if args.tracker_measures:
         out["tracker_measures"] = tracker_measures(args.speakers, names, paths, args.frames)
-    if args.json:
-        print(json.dumps(out, indent=1))
-        return
-    for net, r in out["networks"].items():
-        s = r["summary"]
-        if not s:
-            continue
-        print(f"\n## {net}: {len(names)} clips of {out['people']} people, {args.frames} "
-              f"held-out frames (load {out['load'][0]} -> {out['load'][1]})")
-        print(f"own person: {s['own']}\nother people: {s['other']}")
-        for k in ("at_most_one_false_warning", "no_false_warning", "shipped"):
-            print(f"{k}: {s[k]}")
-        for k, v in s["halves"].items():
-            print(f"{k}: {v}")
-        print("| folder | own | other min | other median | caught at "
-              f"{WARN_DISTANCE:g} |\n|---|---|---|---|---|")
-        for sp, f in s["folders"].items():
-            print(f"| {sp} | {', '.join(f'{v:.2f}' for v in f['own'])} | "
-                  f"{f['other_min']:.2f} | {f['other_median']:.2f} | {f['caught']:.0%} |")
-
+    print(json.dumps(out, indent=1) if args.json else markdown(out))
 
 if __name__ == "__main__":
     main()
