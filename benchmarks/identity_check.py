@@ -188,7 +188,7 @@ def markdown(out: dict[str, Any]) -> str:
              f"frames from 60 % of each (no enrolment saw them) against every clip's "
              f"folder; {made} folders predate the stored signature: theirs made from their "
              f"clip's first 60 %. Distances in the folder's frame-to-frame spreads; the shipped "
-             f"threshold {out['warn_distance']:g}.", "",
+             f"threshold {out['warn_distance']:.1f}.", "",
              "| network | own person (pairs: min / median / max) | other people (pairs: min / "
              "p10 / median) | at most one own warned | no own warned | shipped |",
              "|---|---|---|---|---|---|"]
@@ -206,7 +206,7 @@ def markdown(out: dict[str, Any]) -> str:
             lines.append(f"| {n} | {k.rsplit('_', 1)[1]} | {v['own_max']:.2f} | "
                          f"{_at(v['check_on_other_half'])} |")
     lines += ["", "| folder | " + " | ".join(f"{n} own | {n} others: min / median | {n} warned "
-                                             f"at {out['warn_distance']:g}" for n in nets)
+                                             f"at {out['warn_distance']:.1f}" for n in nets)
               + " |", "|---|" + "---|---|---|" * len(nets)]
     folders = sorted({f for s in nets.values() for f in s["folders"]})
     for f in folders:
