@@ -33,7 +33,8 @@ Sections, in the order they run (the first writes the peers' series the others s
 ``before`` / ``before_fetched`` (every method, the default before issue 38, ``--variant
 cadence_3``, on the shared and on the fetched clips), ``live`` / ``live_fetched`` (articast's
 default against the stored peers), ``offline`` / ``offline_nogap``, ``blinks`` /
-``blinks_fetched``, ``cost`` (articast and the FaceMesh v1 loop interleaved), then the older
+``blinks_fetched``, ``cost`` (articast and the FaceMesh v1 loop interleaved), ``identity``
+(another person's speaker folder: ``identity_check.py``), then the older
 benchmarks of "Figures moved from the README": ``demo_start``, ``upper_synthetic``,
 ``no_truth_path``, ``corpus_acceptance``, ``tracking_speed``, ``latency``, ``fanout``,
 ``soak``, ``transfer_speed``, ``delegate_clips``, ``scan_binding``, ``scan_avatar_latency``
@@ -139,6 +140,10 @@ SECTIONS: tuple[Section, ...] = (
             _peers("{clips}", "--only", *COST_CLIPS, "--methods", "articast", "facemesh_v1",
                    "--others", "{run}/series", "--speakers", "{run}/speakers"), "cost",
             ("clips", "series")),
+    # issue 39, row 5: another person's speaker folder (the folders peers.py enrolled)
+    Section("identity", "identity_check.py", ("--json", "--speakers", "{run}/speakers2",
+                                              "--clips", "{clips}", "{fetched}"), "identity",
+            ("clips", "speakers2")),
     # the older benchmarks ("Figures moved from the README"), with the commands stated there
     Section("demo_start", "demo_start.py", ("--runs", "5", "--json", "--fresh-cache"), "json"),
     Section("upper_synthetic", "upper_synthetic.py", ("--seconds", "60", "--json"), "json"),
@@ -461,6 +466,10 @@ def block(section: Section, run: Path, plots: Path | None, page: Path) -> str:
         table = blinks_table(path)
     elif section.kind == "cost":
         table = cost_table(data)
+    elif section.kind == "identity":
+        import identity_check
+
+        table = identity_check.markdown(data)
     elif section.kind == "text":
         table = text_table(data)
     else:
@@ -498,6 +507,9 @@ def missing(section: Section, run: Path, clips: Path, fetched: Path) -> str | No
         if need.startswith("series") and not (run / need).is_dir():
             src = "before" if need == "series" else "before_fetched"
             return f"no peers' series in RUN/{need} (run --only {src} first)"
+        if need.startswith("speakers") and not (run / need).is_dir():
+            return (f"no speaker folders in RUN/{need} (one per clip, named as the clip, "
+                    f"as peers.py --speakers keeps them)")
         if need == "scan" and not (Path.home() / ".cache/articast/scans").is_dir():
             return "no scan in ~/.cache/articast/scans (python tools/fetch_scan.py)"
     return None

@@ -26,6 +26,7 @@ import numpy as np
 
 from articast.core.errors import ArticastError, InputError
 from articast.core.tracking.result import TrackResult
+from articast.service.identity import IdentityWarning
 from articast.service.source_types import Frame, SourceAssets, SourceInfo
 
 
@@ -167,11 +168,16 @@ class LiveProcessor:
         self.tracker = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
                                    tracking=policy, clock=time.perf_counter)
         _warm_up(context)
+        # the session's console and its clients hear it (worker.py's "progress"), once
+        say = context.progress or (lambda text: None)
+        self.identity = IdentityWarning(sp, say)
 
     def process(self, frame: Frame) -> TrackResult:
         if frame.image is None:
             raise InputError("this source has no images to track")
-        return self.tracker.track(frame.image, frame.t)
+        result = self.tracker.track(frame.image, frame.t)
+        self.identity.see(self.tracker)
+        return result
 
 
 def fit_camera(camera: Any, width: int, height: int, what: str = "the frames") -> Any:

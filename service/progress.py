@@ -37,6 +37,14 @@ class Progress:
             self._last_decile = int(frac * 10)
             self.stream.write(text.rstrip() + "\n")
 
+    def say(self, text: str) -> None:
+        """A line of its own (a warning: said even when quiet), the bar redrawn below it on
+        the next update."""
+        if self.tty and not self.quiet:
+            self.stream.write("\r" + " " * 80 + "\r")
+        self.stream.write(text + "\n")
+        self.stream.flush()
+
     def close(self) -> None:
         if self.tty and not self.quiet:
             self.stream.write("\n")

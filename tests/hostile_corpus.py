@@ -417,6 +417,13 @@ def build(out: Path, valid: Path) -> list[dict]:
             ("motion q of 1e308", {"motion": {"q": [1e308] * 13, "v0": [1.0] * 13}}),
             ("upper of the wrong type (a number)", {"upper": 5}),
             ("upper of the wrong type (a list)", {"upper": [1, 2]}),
+            ("identity of the wrong type (a number)", {"identity": 5}),
+            ("identity signature NaN", {"identity": [{"network": "v1", "frames": 40,
+                                                      "median": [float("nan")] * 240,
+                                                      "spread": [0.01] * 240}]}),
+            ("identity spread 0", {"identity": [{"network": "v1", "frames": 40,
+                                                 "median": [0.1] * 240,
+                                                 "spread": [0.0] * 240}]}),
             ("version of the wrong type (a string)", {"version": "1"}),
             ("a JSON list, not an object", None)):
         path = _folder_with(out, f"speaker-v{len(cases)}", valid / "speaker", "speaker.json")

@@ -1169,3 +1169,71 @@ def test_the_streamed_opening_is_the_readers_gap_mixed_with_the_fits(enrolled, s
     ap = np.array(ap)
     ok = np.isfinite(ap)
     assert ok.mean() > 0.95 and np.corrcoef(ap[ok], ap_true[:40][ok])[0, 1] > 0.9
+
+
+def _stretched(src, dst, sx: float) -> None:
+    """The clip with the face ``sx`` times wider (the frame resized, its centre kept): a face
+    of other proportions, the same size of frame."""
+    from articast.service.video import iter_video
+
+    frames = []
+    for _, _, img in iter_video(src):
+        h, w = img.shape[:2]
+        big = cv2.resize(img, (int(w * sx), h))
+        x0 = (big.shape[1] - w) // 2
+        frames.append(np.ascontiguousarray(big[:, x0:x0 + w]))
+    _write_video(dst, frames)
+
+
+def test_a_face_that_is_not_the_speaker_folders_is_warned_about_once(enrolled, tmp_path,
+                                                                      capsys):
+    """Issue 39, row 5: the enrolment keeps the face's shape as each landmark network read it;
+    ``track`` compares the first readings with it and warns in one line when the face is of
+    other proportions (here the speaker's own clip, the face made 30 % wider), never on the
+    speaker's own face, and never refuses. A folder enrolled before says once that it is not
+    checked."""
+    sp = Speaker.load(enrolled / "speaker")
+    assert set(sp.identity) == {"v1", "v2"} and sp.report["identity"]["v1"] >= 100
+    own = enrolled / "test" / "video.mp4"
+    capsys.readouterr()
+    assert main(["track", str(own), "--speaker", str(enrolled / "speaker"), "-o",
+                 str(tmp_path / "own.jsonl"), "--quiet", "--causal"]) == 0
+    assert "does not look like" not in capsys.readouterr().err
+    _stretched(own, tmp_path / "wide.mp4", 1.3)
+    assert main(["track", str(tmp_path / "wide.mp4"), "--speaker", str(enrolled / "speaker"),
+                 "-o", str(tmp_path / "wide.jsonl"), "--quiet", "--causal"]) == 0
+    err = capsys.readouterr().err
+    warned = [x for x in err.splitlines() if "does not look like the person" in x]
+    assert len(warned) == 1 and "wrong --speaker?" in warned[0], err
+    assert len(_track_lines(tmp_path / "wide.jsonl")) == 75  # tracked all the same
+    old = tmp_path / "old"
+    shutil.copytree(enrolled / "speaker", old)
+    meta = json.loads((old / "speaker.json").read_text())
+    del meta["identity"]
+    (old / "speaker.json").write_text(json.dumps(meta))
+    assert Speaker.load(old).identity == {}
+    assert main(["track", str(tmp_path / "wide.mp4"), "--speaker", str(old), "-o",
+                 str(tmp_path / "old.jsonl"), "--quiet", "--causal"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("enrolled before the identity check") == 1
+    assert "does not look like" not in err
+
+
+def test_a_serve_session_with_another_faces_folder_says_so_once(enrolled, tmp_path):
+    """The same check in a serve or room session (service/processors.py's LiveProcessor):
+    said through the session's progress line (its console and its clients), once; the frames
+    are tracked all the same."""
+    from articast.service.processors import LiveProcessor, ProcessorContext
+    from articast.service.source_types import Frame, SourceInfo
+    from articast.service.video import iter_video
+
+    _stretched(enrolled / "test" / "video.mp4", tmp_path / "wide.mp4", 1.3)
+    sp = Speaker.load(enrolled / "speaker")
+    said: list[str] = []
+    ctx = ProcessorContext("s", SourceInfo("file:wide.mp4", "file", False, 640, 480), sp.model,
+                           sp.camera, sp.appearance, {}, sp, said.append)
+    proc = LiveProcessor(ctx)
+    said.clear()  # (what the warm-up said)
+    for i, t, img in iter_video(tmp_path / "wide.mp4"):
+        proc.process(Frame(i, t, 0.0, img))
+    assert [x for x in said if "does not look like" in x] == said and len(said) == 1, said

@@ -35,6 +35,7 @@ from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geomet
 from articast.core.faces.finder import FINDER_NETWORK
 from articast.core.faces.fit import fit_pose
 from articast.core.faces.flow import default_for, refine_pixels
+from articast.core.faces.identity import FaceSignature, signature
 from articast.core.faces.speaker import ResidualStats, Speaker
 from articast.core.faces.upper import (
     PHOTO_MIN_R,
@@ -162,6 +163,10 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     say = progress or (lambda _msg: None)
     enrol = enrol or EnrolOptions(fixed_pose=(rig == "head"))
     flow = default_for(rig) if opts.flow is None else opts.flow
+    # the face's shape as each network reads it, for a session to tell whether the face it
+    # tracks is this one (core/faces/identity.py): on the networks' own points, as live;
+    # a head-mounted camera sees no eyes, brows or forehead to tell a face by
+    identity = _signatures(landmarks, found, readings, reader) if rig == "desk" else {}
     if flow:
         say("refining the landmarks' pixels by optical flow")
         landmarks = refine_pixels(images, landmarks, found, scheme.points)
@@ -255,8 +260,28 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
         say("calibrating the eyes and brows (open eye, closed eye, neutral brows, gaze)")
         upper = upper_reference(images, np.asarray(readings))
         report["upper"] = upper_report(upper)
+    report["identity"] = {net: sig.frames for net, sig in sorted(identity.items())}
     return Speaker(model, app, camera, stats, rig, scheme.name, name, report, points, motion,
-                   upper, finder_points)
+                   upper, finder_points, identity)
+
+
+def _signatures(landmarks: np.ndarray, found: np.ndarray, readings: np.ndarray | None,
+                reader: str) -> dict[str, FaceSignature]:
+    """The enrolment's identity signatures: the finding landmarks' (frames where a face was
+    found) and the live reader's (frames it read), where each has enough frames and
+    depth."""
+    out: dict[str, FaceSignature] = {}
+    lm = np.asarray(landmarks)
+    sets = [(FINDER_NETWORK, lm[np.asarray(found, bool)])]
+    if readings is not None:
+        sets.append((reader, np.asarray(readings)))
+    for net, marks in sets:
+        if marks.ndim != 3 or marks.shape[1] < 468 or marks.shape[2] != 3:
+            continue
+        sig = signature(marks, net)
+        if sig is not None:
+            out[net] = sig
+    return out
 
 
 def upper_reference(images: Sequence[np.ndarray], readings: np.ndarray) -> UpperReference | None:

@@ -431,6 +431,12 @@ class LiveTracker:
         self._since_check = 0
         return True
 
+    @property
+    def reading(self) -> np.ndarray | None:
+        """The landmarks (L, 3) a network read in the last frame tracked (the reader's 468
+        or the finder's 478 points, image px), or None where none was read."""
+        return None if self._fresh is None else np.asarray(self._fresh.landmarks)
+
     def depth_drift(self, result: TrackResult, face: Any) -> float | None:
         """Relative difference between the tracked head's depth and the depth read off the
         landmarks; None if the landmarks give none."""

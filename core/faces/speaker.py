@@ -20,7 +20,9 @@ speaker.json's optional ``motion`` holds the motion model's process noise learne
 clip (``q`` per unknown; without it the defaults); its optional ``upper`` the speaker's own
 open-eye, closed-eye, neutral-brow and gaze references
 (:class:`~articast.core.faces.upper.UpperReference`; without it the eyes and brows are
-reported absent, ``not_calibrated``).
+reported absent, ``not_calibrated``). Its optional ``identity`` holds the face's shape as
+each landmark network read it on the enrolment clip (:mod:`articast.core.faces.identity`):
+a session warns when the face it tracks does not look like it (without it: not checked).
 
 The residual statistics are what ``ok`` is judged against on live frames: a frame whose
 robust residual is far above what the enrolment clip itself produced is not the speaker
@@ -40,6 +42,7 @@ import numpy as np
 
 from articast.core.appearance.models import AppearanceModel
 from articast.core.errors import InputError, ModelFileError
+from articast.core.faces.identity import FaceSignature
 from articast.core.faces.upper import UpperReference
 from articast.core.model.camera import Camera
 from articast.core.model.face import FaceModel
@@ -99,6 +102,9 @@ class Speaker:
     motion_noise: MotionNoise | None = None
     upper: UpperReference | None = None
     finder_points: PointModel | None = None
+    identity: dict[str, FaceSignature] = field(default_factory=dict)
+    """network -> the face's signature as that landmark network read it (empty: a folder
+    enrolled before the identity check)"""
 
     def save(self, folder: str | os.PathLike[str]) -> None:
         """Write the folder (created if needed); speaker.json last, so a folder with it is
@@ -122,6 +128,8 @@ class Speaker:
                               "v0": [float(x) for x in self.motion_noise.initial_velocity_sd]}
         if self.upper is not None:
             meta["upper"] = self.upper.to_dict()
+        if self.identity:
+            meta["identity"] = [sig.to_dict() for _, sig in sorted(self.identity.items())]
         tmp = d / "speaker.json.tmp"
         tmp.write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
         os.replace(tmp, d / "speaker.json")
@@ -173,7 +181,18 @@ class Speaker:
                    meta.get("report") if isinstance(meta.get("report"), dict) else {},
                    points, _motion_noise(meta.get("motion"), model.n_params, where),
                    None if meta.get("upper") is None
-                   else UpperReference.from_dict(meta["upper"], where), finder_points)
+                   else UpperReference.from_dict(meta["upper"], where), finder_points,
+                   _identity(meta.get("identity"), where))
+
+
+def _identity(d: Any, where: str) -> dict[str, FaceSignature]:
+    """speaker.json's ``identity`` list, checked (empty when absent)."""
+    if d is None:
+        return {}
+    if not isinstance(d, list) or len(d) > 8:
+        raise ModelFileError(f"{where}: identity must be a list of at most 8 signatures")
+    sigs = [FaceSignature.from_dict(x, where) for x in d]
+    return {s.network: s for s in sigs}
 
 
 def _motion_noise(d: Any, k: int, where: str) -> MotionNoise | None:

@@ -300,6 +300,12 @@ def _track(args: argparse.Namespace) -> int:
     if span:
         total = span.frames(total, _fps(args.video))
     prog = Progress(total, "tracking", quiet=args.quiet)
+    identity = None
+    if args.speaker:  # one line, said above the progress bar, never a refusal
+        from articast.service.identity import IdentityWarning
+
+        identity = IdentityWarning(tracker.speaker, lambda text: prog.say(
+            f"articast track: {text}"), f"--speaker {args.speaker}")
     n_ok = n = 0
     ms = []
     reasons: dict[str, int] = {}
@@ -323,6 +329,8 @@ def _track(args: argparse.Namespace) -> int:
                     drawing = Overlay(video, model, camera, contours, upper,
                                       args.overlay_zoom)
                 res = tracker.track(img, t)
+                if identity is not None:
+                    identity.see(tracker)
                 out.write(dumps(res.to_dict(model.param_names)) + "\n")
                 out.flush()
                 if smoother is not None:
