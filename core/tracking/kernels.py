@@ -38,7 +38,7 @@ try:  # pragma: no cover - exercised by whichever path the environment has
 except ImportError:  # pragma: no cover
     AVAILABLE = False
 
-    def njit(*args, **kwargs):  # type: ignore[no-redef]
+    def njit(*args, **kwargs):
         def wrap(f):
             return f
         return wrap
