@@ -27,8 +27,9 @@ tracker keeps tracking through it, see ``TrackingPolicy.occlusion_factor``), ``l
 (the face left the frame), ``not_started``. In fused tracking (``FusionPolicy``) the
 landmarks judge: a frame read by the reader is ``diverged`` when its points are far from the
 fitted face (``FusionPolicy.agreement``), whatever the appearance residual; an appearance
-``occluded`` on lips opened or stretched beyond the enrolment's range is dropped when the
-landmarks confirm the fit.
+``occluded`` on lips opened or stretched beyond the enrolment's range, or on a head turned
+beyond the rotations its appearance was trained on, is dropped when the landmarks confirm the
+fit (:meth:`LiveTracker._unfamiliar`).
 """
 
 from __future__ import annotations
