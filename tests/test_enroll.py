@@ -1012,6 +1012,44 @@ def test_an_opening_beyond_the_enrolment_is_unfamiliar_to_the_appearance(enrolle
     assert _fused(narrow)._unfamiliar(inside)
 
 
+def test_a_head_turned_beyond_the_enrolment_is_unfamiliar_a_hand_within_it_stays_occluded(
+        enrolled):
+    """Issue 38: the enrolment keeps the head rotations its appearance was trained on
+    (``coverage["rotation_deg"]``, around ``rotation_ref``). A head turned beyond them is as
+    unfamiliar to the appearance as an opening beyond the enrolment's (wojtek bowed 8-13 deg
+    further than his: 11 frames "occluded" with nothing in front of the mouth), and the
+    landmarks may confirm a fit it calls occluded there. Within them a hand over the chin
+    stays ``occluded`` on frames the reader reads, though it reads a face under the hand."""
+    from articast.core.model.camera import Pose, axis_angle, rotation_matrix
+
+    sp, frames, _ = _test_clip(enrolled)
+    cov = sp.report["coverage"]
+    turns = np.asarray(cov["rotation_deg"])
+    assert turns.shape == (3, 2) and np.all(turns[:, 0] <= turns[:, 1])
+    live = _fused(sp)
+    neutral = np.zeros(sp.model.n_params)
+    ref = rotation_matrix(np.asarray(cov["rotation_ref"]))
+    at_ref = Pose(axis_angle(ref), np.array([0.0, 0.0, 500.0]))
+    assert not live._unfamiliar(neutral) and not live._unfamiliar(neutral, at_ref)
+    a = np.radians(turns[0, 1] + 5.0)  # bowed 5 deg further than any training frame
+    bow = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(a), -np.sin(a)], [0.0, np.sin(a), np.cos(a)]])
+    assert live._unfamiliar(neutral, Pose(axis_angle(bow @ ref), at_ref.translation))
+
+    def hand(speaker):
+        live = _fused(speaker)
+        i = _on_to_a_reading(live, frames)
+        marks = np.asarray(live._fresh.landmarks)
+        return [live.track(_hand_over_the_chin(frames[i + k], marks), (i + k) / 25).reason
+                .split(":")[0] for k in (1, 2, 3, 4)]
+
+    assert hand(sp)[1:] == ["occluded"] * 3
+    # the same frames, the head beyond every rotation the appearance was trained on: the
+    # landmarks, which read the face where the fit is, overrule the appearance
+    beyond = replace(sp, report={**sp.report, "coverage": {
+        **cov, "rotation_deg": (turns + 360.0).tolist()}})
+    assert "occluded" not in hand(beyond)
+
+
 def test_an_appearance_unlike_the_enrolment_weighs_less_in_the_fit(enrolled):
     """``FusionPolicy.adapt``: the appearance term's weight follows its residual level
     relative to the enrolment's, so a face the appearance no longer predicts (here: the same

@@ -28,7 +28,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from articast.core.appearance.models import AppearanceModel, TrainingFrame, train_appearance
+from articast.core.appearance.models import (
+    AppearanceModel,
+    TrainingFrame,
+    mean_rotation,
+    train_appearance,
+)
 from articast.core.errors import InputError
 from articast.core.faces.canonical import canonical_face
 from articast.core.faces.enrol import EnrolOptions, LandmarkScheme, enrol_geometry
@@ -45,7 +50,7 @@ from articast.core.faces.upper import (
     change_limits,
 )
 from articast.core.faces.upper import measure as measure_upper
-from articast.core.model.camera import Camera
+from articast.core.model.camera import Camera, axis_angle, rotation_matrix
 from articast.core.model.face import FaceModel
 from articast.core.outputs.lips import lip_measures
 from articast.core.tracking.kalman import MotionNoise, process_noise
@@ -209,7 +214,8 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
                          "is the same face in the whole clip?")
     ap, wd = lip_measures(model, geo.alpha)
     coverage = {"aperture_mm": [float(np.percentile(ap, 2)), float(np.percentile(ap, 98))],
-                "width_mm": [float(np.percentile(wd, 2)), float(np.percentile(wd, 98))]}
+                "width_mm": [float(np.percentile(wd, 2)), float(np.percentile(wd, 98))],
+                **turn_coverage(app, train)}
     held_resid = np.array(resid)
     stats = ResidualStats(float(np.median(held_resid)), float(np.percentile(held_resid, 95)),
                           float(np.percentile(held_resid, 99)), len(held_resid))
@@ -263,6 +269,23 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     report["identity"] = {net: sig.frames for net, sig in sorted(identity.items())}
     return Speaker(model, app, camera, stats, rig, scheme.name, name, report, points, motion,
                    upper, finder_points, identity)
+
+
+def turn_coverage(app: AppearanceModel, train: Sequence[TrainingFrame]) -> dict:
+    """The head rotations the appearance was trained on: ``rotation_ref`` (axis-angle, rad),
+    the reference they are taken from (the appearance's own, else the frames' mean), and
+    ``rotation_deg`` (3, 2), the 2nd-98th percentiles of each component of the training
+    frames' rotation away from it (camera axes: x pitch, y yaw, z roll), as the lips'
+    aperture and width ranges. Beyond them the appearance extrapolates: a head bowed further
+    than the enrolment ever was mispredicts the lips and chin with nothing in front of them
+    (:meth:`~articast.core.faces.live.LiveTracker._unfamiliar`)."""
+    ref = (np.asarray(app.rotation_ref, np.float64) if app.rotation_ref is not None
+           else mean_rotation([f.pose.matrix for f in train]))
+    ref_m = rotation_matrix(ref)
+    turns = np.degrees(np.stack([axis_angle(f.pose.matrix @ ref_m.T) for f in train]))
+    return {"rotation_ref": [float(x) for x in ref],
+            "rotation_deg": [[float(np.percentile(turns[:, i], 2)),
+                              float(np.percentile(turns[:, i], 98))] for i in range(3)]}
 
 
 def _signatures(landmarks: np.ndarray, found: np.ndarray, readings: np.ndarray | None,

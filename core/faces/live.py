@@ -27,8 +27,9 @@ tracker keeps tracking through it, see ``TrackingPolicy.occlusion_factor``), ``l
 (the face left the frame), ``not_started``. In fused tracking (``FusionPolicy``) the
 landmarks judge: a frame read by the reader is ``diverged`` when its points are far from the
 fitted face (``FusionPolicy.agreement``), whatever the appearance residual; an appearance
-``occluded`` on lips opened or stretched beyond the enrolment's range is dropped when the
-landmarks confirm the fit.
+``occluded`` on lips opened or stretched beyond the enrolment's range, or on a head turned
+beyond the rotations its appearance was trained on, is dropped when the landmarks confirm the
+fit (:meth:`LiveTracker._unfamiliar`).
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ from articast.core.faces.lipgap import matched, model_ratios, reader_ratio
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.faces.upper import UpperTracker
-from articast.core.model.camera import Pose, axis_angle
+from articast.core.model.camera import Pose, axis_angle, rotation_matrix
 from articast.core.outputs.lips import lip_measures, lips_dict
 from articast.core.tracking import kernels
 from articast.core.tracking.filters import CadenceCanceller, OneEuroFilter, OneEuroPolicy
@@ -321,6 +322,17 @@ def live_policy(rig: str, **changes: Any) -> TrackingPolicy:
     return pol
 
 
+def turn_range(report: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """The enrolment's reference head rotation (3, 3) and the range (3, 2) deg of its
+    appearance's training frames' rotations away from it, from a speaker's ``report``
+    (:func:`~articast.core.faces.build.turn_coverage`; None: enrolled before they were kept)."""
+    cov = report.get("coverage") or {}
+    if "rotation_ref" not in cov or "rotation_deg" not in cov:
+        return None
+    return (rotation_matrix(np.asarray(cov["rotation_ref"], np.float64)),
+            np.asarray(cov["rotation_deg"], np.float64))
+
+
 class LiveTracker:
     """Tracks an enrolled speaker frame by frame, judging ``ok`` honestly."""
 
@@ -367,6 +379,7 @@ class LiveTracker:
         self._since_read = 0
         self.regated = 0  # readings far from the prediction (the motion model restarted)
         self.rereads = 0  # readings that asked for the next frame to be read too
+        self._turns = turn_range(speaker.report)  # (_unfamiliar)
         self.lag_reads = 0  # frames read to tell a fit's lag from an occluder (_fit_lags)
         self.recover_reads = 0  # frames read to start a diverged fit again (_recover)
         self.recovered = 0  # diverged fits started again within their frame and then ok
@@ -747,7 +760,7 @@ class LiveTracker:
             read_points = seen
 
             def confirm(alpha: np.ndarray, pose: Pose) -> bool:
-                return self._unfamiliar(alpha) and self._offset(
+                return self._unfamiliar(alpha, pose) and self._offset(
                     alpha, pose.matrix, pose.translation, read_points) <= (
                     fu.agreement * self.point_model.offset_p99)
         elif (fu.lag_check and fu.reread is not None
@@ -851,16 +864,28 @@ class LiveTracker:
         self.rereads += 1
         return True
 
-    def _unfamiliar(self, alpha: np.ndarray) -> bool:
+    def _unfamiliar(self, alpha: np.ndarray, pose: Pose | None = None) -> bool:
         """Whether the lips at ``alpha`` open or stretch beyond what the enrolment showed
-        (its 2nd-98th percentiles of aperture and width): the appearance was not trained
-        there, and mispredicts without anything in front of the mouth."""
+        (its 2nd-98th percentiles of aperture and width), or the head at ``pose`` is turned
+        beyond the rotations its appearance was trained on (each component's 2nd-98th
+        percentile, :func:`~articast.core.faces.build.turn_coverage`; a speaker enrolled
+        before has none): the appearance was not trained there, and mispredicts without
+        anything in front of the mouth. Issue 38: every frame flagged ``occluded`` on
+        metricaltracker_wojtek_video (11, the head bowed 8-13 deg further than its enrolment's
+        training frames, turned 14-26 deg where they reached 15) and liveportrait_d10 (2,
+        tilted up to 3.6 deg in roll where they reached 1.8) was beyond them; none of cap12's
+        96 frames with his hands at his chin was."""
         cov = self.speaker.report.get("coverage") or {}
         ap, wd = (float(x[0]) for x in lip_measures(self.speaker.model,
                                                     np.asarray(alpha)[None]))
         for value, key in ((ap, "aperture_mm"), (wd, "width_mm")):
             lo_hi = cov.get(key)
             if lo_hi and not lo_hi[0] <= value <= lo_hi[1]:
+                return True
+        turn = self._turns
+        if pose is not None and turn is not None:
+            away = np.degrees(axis_angle(pose.matrix @ turn[0].T))
+            if np.any((away < turn[1][:, 0]) | (away > turn[1][:, 1])):
                 return True
         return False
 
