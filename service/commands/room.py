@@ -138,6 +138,11 @@ def _room(args: argparse.Namespace) -> int:
                              f"{default_speakers_dir(args.name)}: {exc.strerror or exc} "
                              "(give one with --speakers DIR)") from None
     token = room_token(args, required=False)
+    # the workers' fork server (which the media process and every tracker fork from) imports
+    # what they need beside the server's own imports: the first offer does not wait for it
+    from articast.service.worker import start_worker_server
+
+    start_worker_server()
     made = not token
     token = token or secrets.token_urlsafe(24)
 
