@@ -214,3 +214,60 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
         for p in servers:
             stop(p)
         redis.stop()
+
+
+def test_the_membership_hash_gives_a_name_and_a_seat_once_and_forgets_a_silent_server():
+    """service/room_presence.py against the real Redis: two servers' claims, the room's
+    limit across them, a refresh, and an entry lapsing when its server goes quiet."""
+    from articast.service.room_presence import Presence, Refused
+
+    redis = Redis()
+    redis.start()
+
+    async def go():
+        import redis.asyncio as aioredis
+
+        client = aioredis.from_url(redis.url)
+        a, b = (Presence(client, "test:room:t:members", s, 0.6) for s in ("A", "B"))
+        assert await a.claim("ann", 1.0, False, 2) == 0
+        with pytest.raises(Refused) as e:
+            await b.claim("ann", 2.0, False, 2)
+        assert e.value.status == 409
+        assert await b.claim("bob", 2.0, True, 2) == 1
+        with pytest.raises(Refused) as e:
+            await b.claim("cy", 3.0, False, 2)
+        assert e.value.status == 429 and "full (2" in e.value.detail
+        live = await a.live()
+        assert {n: (x["server"], x["slot"]) for n, x in live.items()} == {
+            "ann": ("A", 0), "bob": ("B", 1)}
+        for _ in range(3):  # A keeps ann; B goes quiet
+            await asyncio.sleep(0.3)
+            assert await a.refresh({"ann": {"joined": 1.0, "slot": 0}}) == []
+        assert set(await a.live()) == {"ann"}
+        assert await b.claim("cy", 3.0, False, 2) == 1  # bob's seat is free again
+        await b.leave("ann")  # only its own server takes a member out
+        await a.leave("ann")
+        assert set(await b.live()) == {"cy"}
+        # a name taken by another server while its holder was away: the holder is told
+        assert await b.refresh({"cy": {"joined": 3.0, "slot": 1}}) == []
+        assert await a.refresh({"cy": {"joined": 9.0, "slot": 0}}) == ["cy"]
+        await client.aclose()
+
+    try:
+        asyncio.run(asyncio.wait_for(go(), 3 * TIMEOUT))
+    finally:
+        redis.stop()
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--max-fps", "0"], "--max-fps: 1 to 60"),
+    (["--member-ttl", "0.5"], "--member-ttl: 1 to 3600"),
+    (["--hub", "http://x"], "expected redis://"),
+])
+def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch):
+    from articast.service.cli import main
+
+    monkeypatch.setenv("ARTICAST_ROOM_TOKEN", ROOM)
+    assert main(["room", "--port", "0", "--speakers", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "\n" not in err, err
