@@ -191,7 +191,9 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 await until(on_b, lambda m: names(m) is not None and "ann" not in names(m),
                             TTL + 3.0)
                 gone = time.monotonic() - t_kill
-                assert gone > 0.5 * TTL - 0.7, gone  # her entry lapsed, nobody said goodbye
+                # (a killed server says no goodbye: her entry lapsed. No lower bound: on a
+                # loaded machine A's last rewrite may have come late, her entry lapsing soon)
+                assert servers[0].wait(TIMEOUT) == -signal.SIGKILL
                 # bob stays, and ann can join again on B
                 await ann_again(on_b)
             for p in (ann, bob):
