@@ -273,3 +273,28 @@ def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch
     assert main(["room", "--port", "0", "--speakers", str(tmp_path), *args]) == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err, err
+
+
+def test_without_its_redis_an_offer_is_a_503_in_one_line_and_starts_nothing():
+    """A room server whose Redis cannot be reached (never started here) answers an offer
+    with one line and starts no session and no media process."""
+    from articast.service.app import ServiceConfig
+    from articast.service.room import RoomConfig
+    from articast.service.security import AccessPolicy
+    from tests.service_helpers import ServerThread
+    from tests.test_redis_scaleout import free_port
+    from tests.test_room import offer_sdp
+
+    config = ServiceConfig(access=AccessPolicy(token="operator-token-for-the-tests-0123"),
+                           hub_url=f"redis://127.0.0.1:{free_port()}/0",
+                           room=RoomConfig(name="t", token=ROOM))
+    sdp = offer_sdp()
+    with ServerThread(config) as srv, httpx.Client(base_url=srv.http, timeout=TIMEOUT) as c:
+        r = c.post("/room/api/join", json={"name": "ann"}, headers={"X-Room-Token": ROOM})
+        assert r.status_code == 200, r.text
+        r = c.post("/room/api/offer", json={"type": "offer", "sdp": sdp},
+                   headers={"X-Participant-Token": r.json()["token"]})
+        assert r.status_code == 503, r.text
+        assert "Redis cannot be reached" in r.json()["detail"] and "\n" not in r.text
+        assert not srv.service.manager.sessions and srv.service.media is None
+        assert not srv.service.room.members
