@@ -113,11 +113,16 @@ class MediaProcess:
                          daemon=True).start()
         log.info("media process %d started", proc.pid)
 
-    def _ensure(self) -> tuple[int, int]:
-        """Start the media process unless it runs; a new peer id and the process's gen."""
+    def start(self) -> None:
+        """Start the media process now unless it runs (a thread's work: it waits for the
+        workers' fork server)."""
         with self._starting:
             if self._proc is None or not self._proc.is_alive():
                 self._start()
+
+    def _ensure(self) -> tuple[int, int]:
+        """Start the media process unless it runs; a new peer id and the process's gen."""
+        self.start()
         with self._lock:
             pid, self._next = self._next, self._next + 1
             return pid, self._gen

@@ -33,6 +33,13 @@ received the video frame: the audio captured with it reached the server at the s
 a page plays a member's animation at ``t_capture`` + that member's audio delay
 (clients/web/room.js, docs/ROOM.md).
 
+More than one server (``articast room --hub redis://…``): every server of the room holds the
+connections and trackers of the participants who joined on it; the membership is a Redis hash
+per room (:mod:`articast.service.room_presence`: a name and a seat are taken atomically
+across servers, each entry lapses ``member_ttl_s`` after its server last refreshed it), and
+every member's frames go through the Redis hub, so a page on any server follows every
+member. A member's voice and enrolled delegate stay on their own server (not relayed yet).
+
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
 told; the same name can join again. Frames and audio live in memory; what is stored is a
@@ -96,6 +103,19 @@ class RoomConfig:
     """Enrolments from the page at once (each takes a core for ~40 s; 429 past that)."""
     enrol_lease_s: float = 20.0
     """An enrolment whose page has not asked how it goes for this long is cancelled."""
+    processor: str = "auto"
+    """What tracks a member's video (``auto``: the tracker; ``pkg.mod:fn`` for tests)."""
+    max_fps: float = 15.0
+    """The most frames a second a page sends (its video sender's ``maxFramerate``): the
+    tracker takes 6-9 a second per participant on this 2-core machine and 25 is the aim on
+    a free one, while the browser would send 30 that the media process decodes (docs/ROOM.md,
+    "Tracking is slow here")."""
+    member_ttl_s: float = 10.0
+    """With a Redis hub: a member's entry in the room's membership hash lapses this long
+    after the server holding their connection last rewrote it (every third of it)."""
+    warm_media: bool = False
+    """Start the media process (and the workers' fork server) when the server starts rather
+    than on the first offer (``articast room``: the first participant does not wait ~5 s)."""
 
     def __repr__(self) -> str:  # never show the token
         return (f"RoomConfig(name={self.name!r}, token={'set' if self.token else 'none'}, "
@@ -119,6 +139,8 @@ class Member:
     sockets: set[Any] = field(default_factory=set)
     mids: list[str] = field(default_factory=list)
     speaker: str = ""
+    slot: int | None = None
+    """Their seat in the room's Redis membership (None without Redis)."""
 
 
 class Room:
@@ -130,6 +152,15 @@ class Room:
         self.members: dict[str, Member] = {}
         self.attempts = FailedAttempts()
         self._watcher: asyncio.Task[None] | None = None
+        self.remote: dict[str, dict[str, Any]] = {}
+        """With a Redis hub: the members other servers hold (their entries in the room's
+        membership hash, :mod:`articast.service.room_presence`), as read last."""
+        self.presence: Any = None
+        """:class:`articast.service.room_presence.Presence` with a Redis hub, else None."""
+        self._polled = 0.0
+        self._sync: asyncio.Future[None] | None = None
+        self._refreshed = 0.0
+        self._redis_failing = False
         self.enrolments: Enrolments | None = None
         """The page's enrolments into the speakers folder (none without one)."""
         if config.speakers:
@@ -138,9 +169,87 @@ class Room:
             self.enrolments.clean()
 
     def start(self) -> None:
-        """The watcher (:meth:`watch`), once, on the server's loop."""
+        """The watcher (:meth:`watch`), once, on the server's loop; with a Redis hub (the
+        service has started it by now) the room's membership goes through it."""
+        if self.presence is None and getattr(self.svc.hub, "redis", None) is not None:
+            from articast.service.remote import RUN
+            from articast.service.room_presence import Presence
+
+            self.presence = Presence(
+                self.svc.hub.redis, f"{self.svc.config.hub_prefix}room:{self.config.name}:"
+                "members", RUN, self.config.member_ttl_s)
         if self._watcher is None or self._watcher.done():
             self._watcher = asyncio.ensure_future(self.watch())
+
+    def in_room(self, name: str) -> bool:
+        """Is ``name`` a member, here or (Redis) on another of the room's servers?"""
+        return name in self.members or name in self.remote
+
+    def everyone(self) -> list[str]:
+        """Every member's name: this server's and (Redis) the others'."""
+        return list(self.members) + [n for n in self.remote if n not in self.members]
+
+    async def claim(self, member: Member) -> None:
+        """With a Redis hub: take the member's name and a seat in the room's membership
+        (HTTPException 409 when another server has the name, 429 when the room is full
+        across servers, 503 when Redis cannot be reached)."""
+        if self.presence is None:
+            return
+        from articast.service.room_presence import Refused
+
+        try:
+            member.slot = await asyncio.wait_for(self.presence.claim(
+                member.name, member.joined, bool(member.speaker),
+                self.config.max_participants), 5.0)
+        except Refused as exc:
+            raise HTTPException(exc.status, exc.detail) from None
+        except Exception as exc:  # noqa: BLE001 - Redis away: one line, nothing started
+            log.warning("room %s: Redis refused %s's membership: %r", self.config.name,
+                        member.name, exc)
+            raise HTTPException(503, "the room's Redis cannot be reached: try again in a "
+                                "moment") from None
+
+    async def sync(self) -> None:
+        """With a Redis hub: rewrite this server's members' entries (every third of their
+        TTL) and read everyone's (each call: the watcher's every half second). A member
+        another server holds now leaves here; after a TTL without reading Redis, the other
+        servers' members are no longer shown."""
+        if self.presence is None:
+            return
+        t = time.monotonic()
+        try:
+            if self.members and t - self._refreshed >= self.config.member_ttl_s / 3:
+                mine = {n: {"joined": m.joined, "slot": m.slot, "delegate": bool(m.speaker)}
+                        for n, m in self.members.items()}
+                self._refreshed = t
+                for name in await self.presence.refresh(mine):
+                    self.remove(name, "another of the room's servers holds the name now",
+                                leave_redis=False)
+            entries = await self.presence.live()
+        except Exception as exc:  # noqa: BLE001 - Redis away: say so once, go on
+            if not self._redis_failing:
+                log.warning("room %s: Redis cannot be reached (%r): the other servers' "
+                            "members go after %g s", self.config.name, exc,
+                            self.config.member_ttl_s)
+            self._redis_failing = True
+            if t - self._polled > self.config.member_ttl_s and self.remote:
+                self.remote = {}
+                self.announce()
+            return
+        if self._redis_failing:
+            log.warning("room %s: Redis is back", self.config.name)
+        self._redis_failing = False
+        self._polled = t
+        remote = {n: e for n, e in entries.items()
+                  if n not in self.members and e.get("server") != self.presence.server}
+        if remote.keys() != self.remote.keys():
+            for gone in set(self.remote) - set(remote):
+                log.warning("room %s: %s (on another server) left", self.config.name, gone)
+            for new in set(remote) - set(self.remote):
+                log.warning("room %s: %s joined on another server", self.config.name, new)
+            self.remote = remote
+            self.announce()
+        self.remote = remote
 
     # ------------------------------------------------------------------ access
     async def check(self, request_key: str, offered: str, expected: str) -> None:
@@ -213,12 +322,14 @@ class Room:
                 text += " " + dumps(m.failed_reasons)
         return text
 
-    def remove(self, name: str, reason: str) -> None:
+    def remove(self, name: str, reason: str, leave_redis: bool = True) -> None:
         if name not in self.members:
             return
         log.warning("room %s: %s left (%s): %s", self.config.name, name, reason,
                     self.stats(name))
         member = self.members.pop(name)
+        if self.presence is not None and leave_redis:
+            asyncio.ensure_future(self._leave_redis(name))
         if self.enrolments is not None:  # leaving mid-enrolment: it stops, its files go
             self.enrolments.cancel(name, f"the participant left the room ({reason})")
         if member.feed is not None:  # the media process frees their audio slots
@@ -227,15 +338,33 @@ class Room:
             asyncio.ensure_future(_close(ws, 1000, "you left the room"))
         self.announce()
 
+    async def _leave_redis(self, name: str) -> None:
+        with contextlib.suppress(Exception):  # Redis away: the entry lapses after its TTL
+            await asyncio.wait_for(self.presence.leave(name), 5.0)
+
+    async def close(self) -> None:
+        """The server stops: its members' entries leave the room's Redis at once."""
+        if self.presence is not None:
+            for name in list(self.members):
+                await self._leave_redis(name)
+
     def members_message(self, member: Member) -> str:
+        """Every member for ``member``'s page: ``slot`` is the audio slot (mid) that carries
+        their voice there (None: not carried, as for members on another server)."""
         audio = self.audio
         slot_of = audio.get(member.name, {}).get("slots", {})
+        rows = [{"name": m.name, "self": m is member, "slot": slot_of.get(m.name),
+                 "delegate": bool(m.speaker), "joined": m.joined,
+                 "level": audio.get(m.name, {}).get("level", 0.0)}
+                for m in self.members.values()]
+        # members on another server: tracked and served there; their frames come through
+        # Redis, their voice and their delegate's texture do not (yet)
+        rows += [{"name": n, "self": False, "slot": None, "delegate": False,
+                  "joined": e.get("joined", 0.0), "level": 0.0, "remote": True}
+                 for n, e in self.remote.items() if n not in self.members]
+        rows.sort(key=lambda r: (float(r["joined"] or 0.0), r["name"]))
         return dumps({"type": "members", "room": self.config.name, "you": member.name,
-                           "t_server": time.time(), "members": [
-                               {"name": m.name, "self": m is member, "slot": slot_of.get(m.name),
-                                "delegate": bool(m.speaker), "joined": m.joined,
-                                "level": audio.get(m.name, {}).get("level", 0.0)}
-                               for m in sorted(self.members.values(), key=lambda m: m.joined)]})
+                      "t_server": time.time(), "members": rows})
 
     def announce(self) -> None:
         for m in self.members.values():
@@ -264,6 +393,9 @@ class Room:
             if self.enrolments is not None:
                 self.enrolments.expire(time.monotonic())
             tick += 1
+            if self.presence is not None and tick % 2 == 0 and (
+                    self._sync is None or self._sync.done()):
+                self._sync = asyncio.ensure_future(self.sync())  # never holds this loop
             if tick % 4 == 0:
                 self.announce()
             if tick % 20 == 0 and self.members:
@@ -295,7 +427,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
     if not config.token:
         raise ValueError("a room needs a token")
     room = Room(config, svc)
-    app.state.room = room
+    app.state.room = svc.room = room
     router = APIRouter()
 
     @router.get("/room", include_in_schema=False)
@@ -317,16 +449,18 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(403, f"{name!r} is enrolled in this room: join with your own "
                                 "link (kept by the page you enrolled on), or ask the room's "
                                 "host for it (articast room-token NAME)")
-        if name in room.members:
+        if room.in_room(name):
             raise HTTPException(409, f"{name!r} is in the room already: choose another name")
         return {"name": name, "token": participant_token(config.token, name),
-                "room": config.name, "slots": config.max_participants - 1}
+                "room": config.name, "slots": config.max_participants - 1,
+                "max_fps": config.max_fps}
 
     @router.get("/room/api/me")
     async def me(request: Request) -> dict[str, Any]:
         """Who a participant token is (a page opened with ``?key=`` asks first)."""
         name = await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
-        return {"name": name, "room": config.name, "slots": config.max_participants - 1}
+        return {"name": name, "room": config.name, "slots": config.max_participants - 1,
+                "max_fps": config.max_fps}
 
     @router.post("/room/api/offer")
     async def offer(request: Request) -> dict[str, Any]:
@@ -344,7 +478,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
                 len(sdp) > webrtc.MAX_SDP_CHARS:
             raise HTTPException(400, "sdp must be the offer's SDP text (starting v=0, at most "
                                 f"{webrtc.MAX_SDP_CHARS} characters)")
-        if name in room.members:
+        if room.in_room(name):
             raise HTTPException(409, f"{name!r} is in the room already (another page of "
                                 "yours?): leave there first")
         if len(room.members) >= config.max_participants:
@@ -354,6 +488,11 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         if old is not None and old.state not in TERMINAL:
             raise HTTPException(409, f"session {name!r} is running on this server")
         member = room.add(name)
+        try:
+            await room.claim(member)  # with Redis: the name and a seat, across servers
+        except HTTPException:
+            room.members.pop(name, None)
+            raise
         try:
             answer, mids, feed = await svc.media_process().answer(sdp, name, config.name)
         except ValueError as exc:
@@ -365,6 +504,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             speaker = member.speaker
             spec = SessionSpec(name, f"webrtc:{name}" + (
                 "" if speaker else f"?seed={config.seed}"), speaker=speaker,
+                processor=config.processor,
                 media_roots=(os.path.realpath(config.speakers),) if speaker else ())
             svc.manager.feeds[name] = feed
             await svc.manager.add(spec)
@@ -467,10 +607,11 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
 
         async def follow() -> None:  # one pump per member, started and ended with them
             while True:
-                for n in list(room.members):
+                everyone = room.everyone()
+                for n in everyone:
                     if n not in pumps or pumps[n].done():
                         pumps[n] = asyncio.create_task(_pump(svc, ws, n, room))
-                for n in [n for n in pumps if n not in room.members]:
+                for n in [n for n in pumps if n not in everyone]:
                     pumps.pop(n).cancel()
                 await asyncio.sleep(0.1)
 
@@ -498,7 +639,10 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
 
 
 async def _pump(svc: Any, ws: WebSocket, name: str, room: Room) -> None:
-    """One member's session to one page, as the protocol's hello, frame and status."""
+    """One member's session to one page, as the protocol's hello, frame and status. A member
+    on another of the room's servers (Redis) is tracked there: their session is the one its
+    worker announced (:class:`articast.service.remote.RemoteSession`), their frames come
+    through the Redis hub as every session's do there."""
     from articast.client import protocol as P
     from articast.service.wire import FrameEvent, ReadyEvent, StatusEvent, status_text
 
@@ -507,8 +651,8 @@ async def _pump(svc: Any, ws: WebSocket, name: str, room: Room) -> None:
     sub = svc.hub.subscribe(name, max_queue=8)
     said: Any = None
     try:
-        while name in room.members:
-            session = svc.manager.sessions.get(name)
+        while room.in_room(name):
+            session = svc.manager.sessions.get(name) or svc.lookup(name)
             if session is not None and session.description is not None and \
                     said is not session.description:
                 await ws.send_text(svc.hello_text(req, session, STREAMS))

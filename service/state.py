@@ -81,6 +81,8 @@ class Service:
         self.media: Any = None
         """The media process (:class:`articast.service.media.MediaProcess`): participants'
         WebRTC connections, started on the first offer."""
+        self.room: Any = None
+        """The meeting room (:class:`articast.service.room.Room`) when the app has one."""
 
     def media_process(self) -> Any:
         if self.media is None:
@@ -160,6 +162,10 @@ class Service:
             await self._start_redis()
         for spec in self.config.sessions:
             await self.manager.add(spec)
+        if self.room is not None:
+            self.room.start()  # its watcher; with Redis, the room's membership from now on
+            if self.room.config.warm_media:  # in a thread: the fork server imports ~5 s
+                asyncio.get_running_loop().run_in_executor(None, self.media_process().start)
         self._watchdog = asyncio.create_task(self._watch(), name="stall watchdog")
         if self.on_live is not None:
             self._announce_task = asyncio.create_task(self._announce(), name="announce")
@@ -217,6 +223,8 @@ class Service:
             self._watchdog.cancel()
         if self._announce_task:
             self._announce_task.cancel()
+        if self.room is not None:
+            await self.room.close()
         await self.manager.close(self.config.server.shutdown_timeout_s)
         if self.media is not None:
             await asyncio.to_thread(self.media.close)

@@ -243,6 +243,14 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
         print(f"ann's page had bob's 45 frames {time.monotonic() - t_enrolled:.1f} s after "
               "his enrolment")
         assert members(a) == members(b) == {"ann", "bob"}
+        # each page sends no more frames than the room's cap (max_fps, 15): the media
+        # process decodes every frame it receives
+        for page, name in ((a, "ann"), (b, "bob")):
+            assert page.evaluate("window.articastRoom.maxFramerate") == 15
+            m = room_of(srv).members[name]
+            rate = m.feed.received / (time.time() - m.joined)
+            print(f"{name}'s video: {m.feed.received} frames received, {rate:.1f} a second")
+            assert rate <= 15 * 1.15, rate
         assert os.path.samefile(sessions["bob"].spec.speaker, folder)
         # his page's address is his own link now, a token bound to his folder's secret: the
         # token anyone could take for "bob" before no longer admits

@@ -54,12 +54,20 @@ export function noteDraw(state, t0) { // the page's own time (ms, CPU) to apply 
   if (state.drawMs.length > 20000) state.drawMs.splice(0, 10000);
 }
 
-export function keepResolution(pc) { // a camera sent over WebRTC keeps its resolution under load
-  // (Chromium lowers it by default: the tracker reads lips better from more pixels)
+export function keepResolution(pc, maxFps = 0) { // a camera sent over WebRTC keeps its resolution under load
+  // (Chromium lowers it by default: the tracker reads lips better from more pixels); with
+  // maxFps, no more frames a second than that: the server decodes every frame it receives and
+  // its tracker takes fewer (the room: the server's max_fps). One setParameters call: a
+  // second one before the first settles is refused. Resolves to the sender's frame-rate cap.
+  const done = [];
   for (const sender of pc.getSenders()) {
     if (!sender.track || sender.track.kind !== "video") continue;
     const p = sender.getParameters();
     p.degradationPreference = "maintain-resolution";
-    sender.setParameters(p).catch(() => { /* older browser: contentHint says the same */ });
+    if (maxFps > 0 && p.encodings && p.encodings.length) p.encodings[0].maxFramerate = maxFps;
+    done.push(sender.setParameters(p).then(() => {
+      const e = sender.getParameters().encodings; return e && e.length ? e[0].maxFramerate || 0 : 0;
+    }).catch(() => 0 /* older browser: contentHint says the same; no cap */));
   }
+  return Promise.all(done).then((caps) => caps[0] || 0);
 }

@@ -24,7 +24,7 @@ const params = new URLSearchParams(location.search);
 const $ = (id) => document.getElementById(id);
 const state = (window.articastRoom = {
   status: "", final: "", you: "", connection: "", joined: false, speaking: "", members: {},
-  offsetMs: null, left: [], enrol: { state: "" }, link: "",
+  offsetMs: null, left: [], enrol: { state: "" }, link: "", maxFramerate: 0,
 });
 const SKIN = [0.86, 0.66, 0.56], SPACING = 210, NTP_UNIX_MS = 2208988800000;
 const MAX_FPS = Number(params.get("fps")) || 30;
@@ -276,16 +276,16 @@ async function join(name) {
   if (!window.isSecureContext || !navigator.mediaDevices) {
     status("the camera needs a secure page: open this page over https:// (or on localhost)", true); return;
   }
-  let slots = 7, r;
+  let slots = 7, maxFps = 0, r;
   try {
     if (!ptoken) {
       r = await post("/room/api/join", { "X-Room-Token": params.get("room") || "" }, { name });
       if (!r.ok) { status(await refusal(r, "join"), true); return; }
-      const j = await r.json(); ptoken = j.token; slots = j.slots; $("roomname").textContent = j.room;
+      const j = await r.json(); ptoken = j.token; slots = j.slots; maxFps = j.max_fps || 0; $("roomname").textContent = j.room;
     } else {
       r = await fetch("/room/api/me", { headers: auth() });
       if (!r.ok) { status(await refusal(r, "join"), true); return; }
-      const j = await r.json(); slots = j.slots; name = j.name; $("roomname").textContent = j.room;
+      const j = await r.json(); slots = j.slots; maxFps = j.max_fps || 0; name = j.name; $("roomname").textContent = j.room;
     }
   } catch (e) { status("the room's server cannot be reached: " + e.message, true); return; }
   state.you = name;
@@ -304,7 +304,9 @@ async function join(name) {
   // smaller frame, but a blurred face tracks worse)
   for (const track of stream.getTracks()) {
     if (track.kind === "video") track.contentHint = "detail";
-    pc.addTransceiver(track, { direction: "sendonly", streams: [stream] });
+    // no more frames than the server's tracker takes (max_fps): each one sent is decoded
+    pc.addTransceiver(track, { direction: "sendonly", streams: [stream],
+      ...(track.kind === "video" && maxFps > 0 ? { sendEncodings: [{ maxFramerate: maxFps }] } : {}) });
   }
   for (let i = 0; i < slots; i++) pc.addTransceiver("audio", { direction: "recvonly" });
   pc.ontrack = (e) => { // a slot: the server points it at another member's microphone
@@ -325,7 +327,7 @@ async function join(name) {
   if (!r.ok) { status(await refusal(r, "take your offer"), true); leave(true); return; }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
-  keepResolution(pc);
+  keepResolution(pc, maxFps).then((cap) => { state.maxFramerate = cap; });
   $("join").disabled = true; $("leave").disabled = false; state.joined = true;
   status(`joined as ${name}; the tracker is starting…`);
   follow();

@@ -38,6 +38,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-participants", type=int, default=8,
                    help="participants at once (default 8; each page receives that many "
                    "minus one audio tracks)")
+    p.add_argument("--max-fps", type=float, default=15.0,
+                   help="the most video frames a second each page sends (default 15: the "
+                   "tracker takes 6-9 a second per participant on 2 busy cores; the media "
+                   "process decodes every frame sent)")
+    from articast.service.commands.serve import _hub_argument
+
+    redis = p.add_argument_group(
+        "more than one server", "With --hub redis://HOST:PORT/DB, several 'articast room' "
+        "servers with the same room name and token serve one room: each holds the "
+        "connections and trackers of the participants who joined on it, the membership and "
+        "the tracked frames go through Redis (docs/ROOM.md).")
+    _hub_argument(redis)
+    redis.add_argument("--member-ttl", type=float, default=10.0, metavar="SECONDS",
+                       help="with --hub: a member whose server stops refreshing their entry "
+                       "(it died) leaves the room this long after (default 10)")
+    p.add_argument("--processor", default="auto",
+                   help="what tracks the participants' video: auto (the tracker, default), "
+                   "or pkg.mod:callable (tests)")
     p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
     p.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
     p.set_defaults(func=_room)
@@ -101,6 +119,13 @@ def _room(args: argparse.Namespace) -> int:
         raise InputError(f"room name {args.name!r}: 1-64 of letters, digits, _ . -")
     if not 2 <= args.max_participants <= 32:
         raise InputError("--max-participants: 2 to 32")
+    if not 1 <= args.max_fps <= 60:
+        raise InputError("--max-fps: 1 to 60 frames a second")
+    if not 1 <= args.member_ttl <= 3600:
+        raise InputError("--member-ttl: 1 to 3600 s")
+    from articast.service.commands.serve import hub_prefix, hub_url
+
+    hub = hub_url(args)
     if args.speakers is not None and not args.speakers.is_dir():
         raise InputError(f"--speakers {args.speakers}: not a folder")
     from articast.service.room_enrol import default_speakers_dir, private_dir
@@ -113,6 +138,11 @@ def _room(args: argparse.Namespace) -> int:
                              f"{default_speakers_dir(args.name)}: {exc.strerror or exc} "
                              "(give one with --speakers DIR)") from None
     token = room_token(args, required=False)
+    # the workers' fork server (which the media process and every tracker fork from) imports
+    # what they need beside the server's own imports: the first offer does not wait for it
+    from articast.service.worker import start_worker_server
+
+    start_worker_server()
     made = not token
     token = token or secrets.token_urlsafe(24)
 
@@ -127,9 +157,12 @@ def _room(args: argparse.Namespace) -> int:
     config = ServiceConfig(
         server=ServerSettings(host=args.host, port=args.port, log_level=args.log_level),
         access=AccessPolicy(token=operator, bind_host=args.host),
+        hub_url=hub, hub_prefix=hub_prefix(args),
         room=RoomConfig(name=args.name, token=token,
                         speakers=str(args.speakers.resolve()) if args.speakers else "",
-                        max_participants=args.max_participants))
+                        max_participants=args.max_participants, processor=args.processor,
+                        max_fps=args.max_fps, member_ttl_s=args.member_ttl,
+                        warm_media=True))
 
     import logging
 

@@ -1,0 +1,300 @@
+"""The meeting room past one machine (issue 41, item 5): two ``articast room`` servers on one
+real ``redis-server`` serve one room. A participant who joins on server A over a real WebRTC
+connection (aiortc as the page) is listed on B, and B's room socket receives their tracked
+frames through Redis; their token publishes and reads as them only, on either server; when A
+is killed (with its media process and workers), they leave B's list after the membership's
+TTL.
+
+The members are tracked by a test processor that reads the image (``ImageStats``: the
+channels' means) instead of the tracker, whose first start on a new checkout compiles kernels
+for over a minute: what is tested is the room's path through Redis, not the tracker (the
+two-browser test, tests/test_room.py, tracks for real)."""
+
+import asyncio
+import contextlib
+import fractions
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import httpx
+import numpy as np
+import pytest
+import websockets
+
+from tests.service_helpers import TIMEOUT
+from tests.test_redis_scaleout import ROOT, Redis, pytestmark  # noqa: F401 - the skip
+
+pytest.importorskip("aiortc", reason="the room needs aiortc (the test extra installs it)")
+
+ROOM = "room-token-for-the-redis-test-0123"
+TTL = 2.0
+
+
+def room_server(redis_url, speakers):
+    """``articast room`` on Redis in a process group of its own (a kill takes its media
+    process and workers with it, as a machine going down would)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    env["ARTICAST_ROOM_TOKEN"] = ROOM
+    return subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "room", "t", "--hub", redis_url,
+         "--port", "0", "--json", "--member-ttl", str(TTL), "--speakers", str(speakers),
+         "--processor", "tests.service_helpers:ImageStats", "--log-level", "warning"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+
+
+def base_url(p):
+    line = p.stdout.readline()
+    if not line:
+        raise AssertionError(p.stderr.read())
+    return json.loads(line)["url"].split("/room?")[0]
+
+
+def stop(p):
+    if p.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(p.pid, signal.SIGTERM)
+        try:
+            p.wait(TIMEOUT)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+class Page:
+    """A participant's page, as far as the server can tell: aiortc sends a camera whose
+    picture brightens and darkens (so the test processor's values move) and a microphone,
+    with one receive-only audio slot."""
+
+    def __init__(self, http, name):
+        self.http, self.name = http, name
+        self.pc = None
+        self.token = ""
+
+    async def join(self):
+        import av
+        from aiortc import RTCPeerConnection, RTCSessionDescription
+        from aiortc.mediastreams import AudioStreamTrack, VideoStreamTrack
+
+        class Camera(VideoStreamTrack):
+            """10 frames a second (a real camera's 30 would cost the machine three times
+            the encoding here and decoding there for nothing this test looks at)."""
+            n = 0
+
+            async def recv(self):
+                await asyncio.sleep(0.1)
+                Camera.n += 1
+                img = np.full((240, 320, 3), 60 + 60 * (1 + np.sin(Camera.n / 3)), np.uint8)
+                frame = av.VideoFrame.from_ndarray(img, format="bgr24")
+                frame.pts, frame.time_base = Camera.n * 9000, fractions.Fraction(1, 90000)
+                return frame
+
+        async with httpx.AsyncClient(base_url=self.http, timeout=3 * TIMEOUT) as c:
+            r = await c.post("/room/api/join", json={"name": self.name},
+                             headers={"X-Room-Token": ROOM})
+            assert r.status_code == 200, r.text
+            self.token = r.json()["token"]
+            assert r.json()["max_fps"] == 15.0
+            self.pc = pc = RTCPeerConnection()
+            pc.addTrack(Camera())
+            pc.addTrack(AudioStreamTrack())
+            pc.addTransceiver("audio", direction="recvonly")
+            await pc.setLocalDescription(await pc.createOffer())
+            r = await c.post("/room/api/offer", json={"type": "offer",
+                                                      "sdp": pc.localDescription.sdp},
+                             headers={"X-Participant-Token": self.token})
+            assert r.status_code == 200, r.text
+            await pc.setRemoteDescription(RTCSessionDescription(r.json()["sdp"], "answer"))
+
+    def socket(self, http=None):
+        ws = (http or self.http).replace("http://", "ws://")
+        # every message is read as it comes (a short test: no bound), so that closing is
+        # not held behind unread frames
+        return websockets.connect(f"{ws}/room/ws?key={self.token}", max_size=2**24,
+                                  max_queue=None, close_timeout=1)
+
+
+async def until(ws, test, timeout):
+    """The first message from ``ws`` for which ``test`` holds (AssertionError at timeout)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        assert left > 0, "timed out"
+        m = json.loads(await asyncio.wait_for(ws.recv(), left))
+        if test(m):
+            return m
+
+
+def names(m):
+    return {x["name"]: x for x in m["members"]} if m["type"] == "members" else None
+
+
+def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_it_dies(
+        tmp_path):
+    t0 = time.monotonic()
+    at = {}
+    redis = Redis()
+    redis.start()
+    servers = [room_server(redis.url, tmp_path), room_server(redis.url, tmp_path)]
+    try:
+        a, b = (base_url(p) for p in servers)
+        ann, bob = Page(a, "ann"), Page(b, "bob")
+
+        async def go():
+            at["servers up"] = time.monotonic() - t0
+            await asyncio.gather(ann.join(), bob.join())
+            at["joined"] = time.monotonic() - t0
+            async with bob.socket() as on_b, ann.socket() as on_a:
+                # each server lists the other's member (from Redis), its own as itself
+                m = await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
+                assert names(m)["ann"]["remote"] and names(m)["ann"]["slot"] is None
+                assert names(m)["bob"]["self"] and "remote" not in names(m)["bob"]
+                await until(on_a, lambda m: "bob" in (names(m) or {}), 3 * TIMEOUT)
+                # ann's frames, tracked on A, reach bob's page on B through Redis
+                hello = await until(on_b, lambda m: m["type"] == "hello"
+                                    and m["session"] == "ann", 3 * TIMEOUT)
+                assert hello["param_names"]
+                at["ann's hello on B"] = time.monotonic() - t0
+                frames = []
+                while len(frames) < 8:
+                    frames.append(await until(on_b, lambda m: m["type"] == "frame"
+                                              and m["session"] == "ann", 3 * TIMEOUT))
+                first = [next(iter(f["values"]["articulatory"].values())) for f in frames]
+                assert np.ptp(first) > 1.0, first  # her camera's picture, live
+                # her token is hers on either server: on B it is no member's socket, and
+                # neither it nor the room token takes her name there while she is on A
+                async with ann.socket(b) as wrong:
+                    m = json.loads(await asyncio.wait_for(wrong.recv(), TIMEOUT))
+                    assert m["type"] == "error" and m["code"] == "not_joined"
+                async with httpx.AsyncClient(base_url=b, timeout=TIMEOUT) as c:
+                    r = await c.post("/room/api/join", json={"name": "ann"},
+                                     headers={"X-Room-Token": ROOM})
+                    assert r.status_code == 409, r.text
+                    r = await c.post("/room/api/offer", json={"type": "offer",
+                                                              "sdp": "v=0\r\n"},
+                                     headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 409 and "\n" not in r.json()["detail"], r.text
+                    forged = "ann." + bob.token.rpartition(".")[2]
+                    r = await c.post("/room/api/offer", json={"type": "offer",
+                                                              "sdp": "v=0\r\n"},
+                                     headers={"X-Participant-Token": forged})
+                    assert r.status_code == 401
+                # server A dies (its media process and workers with it): ann leaves B's
+                # room once her entry's TTL has run out
+                at["A killed"] = time.monotonic() - t0
+                os.killpg(servers[0].pid, signal.SIGKILL)
+                t_kill = time.monotonic()
+                await until(on_b, lambda m: names(m) is not None and "ann" not in names(m),
+                            TTL + 3.0)
+                gone = time.monotonic() - t_kill
+                # (a killed server says no goodbye: her entry lapsed. No lower bound: on a
+                # loaded machine A's last rewrite may have come late, her entry lapsing soon)
+                assert servers[0].wait(TIMEOUT) == -signal.SIGKILL
+                # bob stays, and ann can join again on B
+                await ann_again(on_b)
+            for p in (ann, bob):
+                await p.pc.close()
+            return gone
+
+        async def ann_again(on_b):
+            again = Page(b, "ann")
+            await again.join()
+            await until(on_b, lambda m: names(m) is not None and "ann" in names(m)
+                        and names(m)["ann"].get("remote") is None, 3 * TIMEOUT)
+            await again.pc.close()
+
+        gone = asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+        print(f"ann left B's list {gone:.2f} s after A was killed (TTL {TTL:g} s); "
+              + ", ".join(f"{k} at {v:.1f} s" for k, v in at.items())
+              + f"; the test took {time.monotonic() - t0:.1f} s")
+        assert servers[1].poll() is None, servers[1].stderr.read()
+    finally:
+        for p in servers:
+            stop(p)
+        redis.stop()
+
+
+def test_the_membership_hash_gives_a_name_and_a_seat_once_and_forgets_a_silent_server():
+    """service/room_presence.py against the real Redis: two servers' claims, the room's
+    limit across them, a refresh, and an entry lapsing when its server goes quiet."""
+    from articast.service.room_presence import Presence, Refused
+
+    redis = Redis()
+    redis.start()
+
+    async def go():
+        import redis.asyncio as aioredis
+
+        client = aioredis.from_url(redis.url)
+        a, b = (Presence(client, "test:room:t:members", s, 0.6) for s in ("A", "B"))
+        assert await a.claim("ann", 1.0, False, 2) == 0
+        with pytest.raises(Refused) as e:
+            await b.claim("ann", 2.0, False, 2)
+        assert e.value.status == 409
+        assert await b.claim("bob", 2.0, True, 2) == 1
+        with pytest.raises(Refused) as e:
+            await b.claim("cy", 3.0, False, 2)
+        assert e.value.status == 429 and "full (2" in e.value.detail
+        live = await a.live()
+        assert {n: (x["server"], x["slot"]) for n, x in live.items()} == {
+            "ann": ("A", 0), "bob": ("B", 1)}
+        for _ in range(3):  # A keeps ann; B goes quiet
+            await asyncio.sleep(0.3)
+            assert await a.refresh({"ann": {"joined": 1.0, "slot": 0}}) == []
+        assert set(await a.live()) == {"ann"}
+        assert await b.claim("cy", 3.0, False, 2) == 1  # bob's seat is free again
+        await b.leave("ann")  # only its own server takes a member out
+        await a.leave("ann")
+        assert set(await b.live()) == {"cy"}
+        # a name taken by another server while its holder was away: the holder is told
+        assert await b.refresh({"cy": {"joined": 3.0, "slot": 1}}) == []
+        assert await a.refresh({"cy": {"joined": 9.0, "slot": 0}}) == ["cy"]
+        await client.aclose()
+
+    try:
+        asyncio.run(asyncio.wait_for(go(), 3 * TIMEOUT))
+    finally:
+        redis.stop()
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--max-fps", "0"], "--max-fps: 1 to 60"),
+    (["--member-ttl", "0.5"], "--member-ttl: 1 to 3600"),
+    (["--hub", "http://x"], "expected redis://"),
+])
+def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch):
+    from articast.service.cli import main
+
+    monkeypatch.setenv("ARTICAST_ROOM_TOKEN", ROOM)
+    assert main(["room", "--port", "0", "--speakers", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "\n" not in err, err
+
+
+def test_without_its_redis_an_offer_is_a_503_in_one_line_and_starts_nothing():
+    """A room server whose Redis cannot be reached (never started here) answers an offer
+    with one line and starts no session and no media process."""
+    from articast.service.app import ServiceConfig
+    from articast.service.room import RoomConfig
+    from articast.service.security import AccessPolicy
+    from tests.service_helpers import ServerThread
+    from tests.test_redis_scaleout import free_port
+    from tests.test_room import offer_sdp
+
+    config = ServiceConfig(access=AccessPolicy(token="operator-token-for-the-tests-0123"),
+                           hub_url=f"redis://127.0.0.1:{free_port()}/0",
+                           room=RoomConfig(name="t", token=ROOM))
+    sdp = offer_sdp()
+    with ServerThread(config) as srv, httpx.Client(base_url=srv.http, timeout=TIMEOUT) as c:
+        r = c.post("/room/api/join", json={"name": "ann"}, headers={"X-Room-Token": ROOM})
+        assert r.status_code == 200, r.text
+        r = c.post("/room/api/offer", json={"type": "offer", "sdp": sdp},
+                   headers={"X-Participant-Token": r.json()["token"]})
+        assert r.status_code == 503, r.text
+        assert "Redis cannot be reached" in r.json()["detail"] and "\n" not in r.text
+        assert not srv.service.manager.sessions and srv.service.media is None
+        assert not srv.service.room.members
