@@ -43,6 +43,13 @@ def verdict(g: dict | None) -> str:
     return "better" if lo > 0 else ("worse" if hi < 0 else "not worse")
 
 
+def _by(rd: dict, key: str) -> dict | None:
+    """A gap of ``articast_vs_reader``, marked ``truth`` where the truth judged it (the
+    rendered speaker, peers.py ``against_reader``)."""
+    g = rd.get(key)
+    return None if not g else {**g, "truth": rd.get("judge") == "truth"}
+
+
 def clip_row(c: dict) -> dict:
     m = c["methods"]
     a = m.get("articast", {})
@@ -53,7 +60,7 @@ def clip_row(c: dict) -> dict:
             "person": person(c["clip"]), "frames": c["held_out_frames"],
             "ok": a.get("ok"), "occluded": len(a.get("occluded_frames") or []),
             "articast": a.get("judge_r"), "reader": m.get("facemesh_v1", {}).get("judge_r"),
-            "gap_reader": rd.get("r_vs_reader"), "gap_family": rd.get("r_vs_best_facemesh"),
+            "gap_reader": _by(rd, "r_vs_reader"), "gap_family": _by(rd, "r_vs_best_facemesh"),
             "jitter": a.get("jitter_pct_width"),
             "reader_jitter": m.get("facemesh_v1", {}).get("jitter_pct_width"),
             "jitter_gap": rd.get("jitter_vs_reader"),
@@ -95,7 +102,8 @@ def _f(x, nd=3) -> str:
 def _g(g: dict | None) -> str:
     if not g:
         return "–"
-    return f"{g['gap']:+.3f} ({g['ci95'][0]:+.3f}..{g['ci95'][1]:+.3f}) {verdict(g)}"
+    by = " by the truth" if g.get("truth") else ""
+    return f"{g['gap']:+.3f} ({g['ci95'][0]:+.3f}..{g['ci95'][1]:+.3f}) {verdict(g)}{by}"
 
 
 def _jv(g: dict | None) -> str:

@@ -283,6 +283,17 @@ def test_against_reader_scores_articast_and_its_reader_on_the_same_judge():
     late = {**aps, "articast": np.roll(aps["facemesh_v1"], 2)}  # the reader two frames late
     assert peers.against_reader(late, peers.score(late, windows), windows, 25.0)[
         "lag_velocity_vs_reader"] == 2
+    assert got["judge"] == "other families"
+    # where the truth is known it judges: the peers all err alike here (they share a bias
+    # that articast does not), so the other families' judge calls articast worse than its
+    # reader, the truth better
+    bias = np.sin(np.arange(n) / 7.0)
+    biased = {k: (v if k == "articast" else v + bias) for k, v in aps.items()}
+    biased["facemesh_v1"] = truth + bias + 0.3 * rng.normal(size=n)
+    s = peers.score(biased, windows)
+    assert peers.against_reader(biased, s, windows, 25.0)["r_vs_reader"]["ci95"][1] < 0
+    by_truth = peers.against_reader(biased, s, windows, 25.0, truth=truth)
+    assert by_truth["judge"] == "truth" and by_truth["r_vs_reader"]["ci95"][0] > 0
 
 
 def test_a_clips_folder_is_read_as_it_is(tmp_path):
