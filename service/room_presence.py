@@ -26,6 +26,8 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
+from articast.service.jsonsafe import dumps
+
 log = logging.getLogger("articast.room")
 
 _NOW = """
@@ -124,8 +126,8 @@ class Presence:
     async def claim(self, name: str, joined: float, delegate: bool, max_members: int) -> int:
         """Take ``name`` and a seat for this server: the seat (``slot``); :class:`Refused`
         when the name is in the room (on any server) or the room is full."""
-        entry = json.dumps({"name": name, "joined": joined, "server": self.server,
-                            "delegate": delegate})
+        entry = dumps({"name": name, "joined": joined, "server": self.server,
+                       "delegate": delegate})
         out = await self._scripts["claim"](keys=[self.key],
                                            args=[name, entry, self.ttl_ms, max_members])
         kind, value = (x.decode() if isinstance(x, bytes) else str(x) for x in out)
@@ -141,7 +143,7 @@ class Presence:
         server holds now (this server lost them while Redis or it was away)."""
         args: list[Any] = [self.server, self.ttl_ms]
         for name, entry in members.items():
-            args += [name, json.dumps({**entry, "name": name, "server": self.server})]
+            args += [name, dumps({**entry, "name": name, "server": self.server})]
         lost = await self._scripts["refresh"](keys=[self.key], args=args)
         return [x.decode() if isinstance(x, bytes) else str(x) for x in lost]
 
