@@ -691,6 +691,8 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
                      "occluded_frames": [i for i, r in enumerate(results)
                                          if not r.ok and r.reason.startswith("occluded")],
                      "restarts": live.restarts,
+                     "gated": getattr(live, "regated", None),
+                     "gated_realigned": getattr(live, "realigned", None),
                      "finder_calls_per_frame": _round(live.finder_calls / max(len(held), 1), 3),
                      "offline_smoothing_cpu_ms": _round(offline_cpu_ms, 3),
                      "offline_second_reader_cpu_ms": _round(second_cpu_ms, 2),

@@ -650,6 +650,37 @@ def test_fused_tracking_reads_every_frame_and_recovers_a_lost_state(enrolled):
     assert np.corrcoef(ap[knock + 2:], ap_true[knock + 2:])[0, 1] > 0.9
 
 
+def test_a_gated_reading_restarts_the_motion_model_at_the_head_pose_it_shows(enrolled):
+    """``FusionPolicy.realign``: a motion model knocked off the face just before a reading (as
+    a hand-held camera's jump leaves its prediction) is gated; realigned, it restarts at the
+    head's pose the reading shows and the regression is read there, so the frame's lips are
+    the undisturbed run's whatever the knock; restarted at the predicted pose (the default),
+    the same frame's lips depend on how far off the prediction was."""
+    from articast.core.faces.live import FusionPolicy
+
+    sp, frames, _ = _test_clip(enrolled)
+    knock = 20
+
+    def aperture(realign, shift):
+        live = _fused(sp, FusionPolicy(realign=realign))
+        for i, img in enumerate(frames[:knock + 1]):
+            if i == knock and shift is not None:
+                live.kalman.t = live.kalman.t + np.array(shift)
+            r = live.track(img, i / 25)
+        assert r.ok
+        return r.lips["aperture_mm"], live
+
+    undisturbed, live = aperture(False, None)
+    assert live.regated == 0
+    aside = [30.0, 20.0, 0.0]  # mm
+    for shift in (aside, [40.0, 0.0, 0.0]):
+        ap, live = aperture(True, shift)
+        assert live.regated == live.realigned == 1
+        assert abs(ap - undisturbed) < 0.5, (shift, ap, undisturbed)
+    off = [aperture(False, shift)[0] for shift in (aside, [40.0, 0.0, 0.0])]
+    assert abs(off[1] - off[0]) > 1.5, off  # (at the predicted pose: 15.4 and 18.4 mm)
+
+
 def _counting_finders():
     """The finding landmarks and the reader (sharing one detector session), each counting
     its detector's runs and its own ``find`` / ``track`` calls."""
