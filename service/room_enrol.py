@@ -103,6 +103,9 @@ class Job:
     asked: float = field(default_factory=time.monotonic)
     """When the page last asked (the lease)."""
     proc: Any = None
+    exitcode: int | None = None
+    """The process's exit code, read by the job's reader thread alone (a forkserver process's
+    status is a pipe read once: two threads polling it race, and the loser reads 255)."""
     secret: str = field(default_factory=lambda: secrets.token_urlsafe(18))
     """The folder's ``room-key`` once enrolled: the name's token is bound to it."""
 
@@ -213,7 +216,10 @@ class Enrolments:
                 result = msg
         conn.close()
         if job.proc is not None:
-            job.proc.join(5.0)
+            from multiprocessing.connection import wait as wait_ready
+
+            if wait_ready([job.proc.sentinel], 5.0):
+                job.exitcode = job.proc.exitcode
         with self._lock:
             if job.state != "running":  # cancelled: what the killed process left, removed
                 shutil.rmtree(job.work, ignore_errors=True)
@@ -255,8 +261,10 @@ class Enrolments:
             if not job.active:
                 return False
             job.state, job.detail = "cancelled", reason
-            if job.proc is not None and job.proc.is_alive():
-                job.proc.kill()  # (its reader thread waits for it and removes what is left)
+            if job.proc is not None and job.exitcode is None:
+                # (not ``is_alive()``: only the reader thread reads the status; it waits for
+                # the process and removes what is left)
+                job.proc.kill()
             shutil.rmtree(job.work, ignore_errors=True)
         log.warning("room: enrolment of %s cancelled (%s)", name, reason)
         return True
