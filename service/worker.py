@@ -461,6 +461,9 @@ class ProcessWorker:
             name=f"articast session {spec.name}", daemon=True)
         self._child = child
         self._inlet = spec.inlet
+        self._status = threading.Lock()
+        """Held while the process's status is read: a forkserver process's exit code is a pipe
+        read once, and two threads reading it raced (the loser took 255 for the code)."""
         self._reader = threading.Thread(target=self._read, name=f"reader {spec.name}",
                                         daemon=True)
 
@@ -480,27 +483,37 @@ class ProcessWorker:
                 break
             done = done or msg[0] == "done"
             self._emit(msg)
-        self.process.join(1.0)
+        self._wait(1.0)
         if not done:
             self._emit(("done", "crashed", f"worker process exited with code "
-                        f"{self.process.exitcode}"))
+                        f"{self._exitcode()}"))
+
+    def _wait(self, timeout: float) -> None:
+        """Wait for the process to end (its sentinel; the status is not read here)."""
+        from multiprocessing.connection import wait
+
+        wait([self.process.sentinel], timeout)
+
+    def _exitcode(self) -> int | None:
+        with self._status:
+            return self.process.exitcode
 
     def stop(self) -> None:
         self.stop_event.set()
 
     def kill(self) -> None:
         """SIGKILL: the one signal a stopped (SIGSTOP) or hung process cannot ignore."""
-        if self.process.is_alive():
+        if self._exitcode() is None:
             self.process.kill()
 
     def join(self, timeout: float) -> bool:
-        self.process.join(timeout)
-        if self.process.is_alive():
+        self._wait(timeout)
+        if self._exitcode() is None:
             self.process.terminate()
-            self.process.join(1.0)
-        if self.process.is_alive():  # stuck in native code: SIGTERM waits for it
+            self._wait(1.0)
+        if self._exitcode() is None:  # stuck in native code: SIGTERM waits for it
             self.process.kill()
-            self.process.join(1.0)
+            self._wait(1.0)
         self._reader.join(1.0)
         self._conn.close()
-        return not self.process.is_alive()
+        return self._exitcode() is not None
