@@ -492,28 +492,33 @@ class ProcessWorker:
         """Wait for the process to end (its sentinel; the status is not read here)."""
         from multiprocessing.connection import wait
 
-        wait([self.process.sentinel], timeout)
+        if self.process.pid is not None:  # (started)
+            wait([self.process.sentinel], timeout)
 
     def _exitcode(self) -> int | None:
         with self._status:
             return self.process.exitcode
+
+    def _running(self) -> bool:
+        return self.process.pid is not None and self._exitcode() is None
 
     def stop(self) -> None:
         self.stop_event.set()
 
     def kill(self) -> None:
         """SIGKILL: the one signal a stopped (SIGSTOP) or hung process cannot ignore."""
-        if self._exitcode() is None:
+        if self._running():
             self.process.kill()
 
     def join(self, timeout: float) -> bool:
         self._wait(timeout)
-        if self._exitcode() is None:
+        if self._running():
             self.process.terminate()
             self._wait(1.0)
-        if self._exitcode() is None:  # stuck in native code: SIGTERM waits for it
+        if self._running():  # stuck in native code: SIGTERM waits for it
             self.process.kill()
             self._wait(1.0)
-        self._reader.join(1.0)
+        if self._reader.is_alive():
+            self._reader.join(1.0)
         self._conn.close()
-        return self._exitcode() is not None
+        return not self._running()

@@ -408,8 +408,8 @@ def test_a_worker_process_that_dies_is_restarted(server, recording):
 
     async def go():
         async with await subscribe(server.url, session="dies") as ws:
-            while True:
-                m = await recv(ws)
+            while True:  # (a worker's start may take longer than TIMEOUT on a loaded machine)
+                m = await recv(ws, 6 * TIMEOUT)
                 if m["type"] == "status" and m["state"] == "restarting":
                     return m["detail"]
     detail = run(go())
