@@ -322,7 +322,11 @@ class Room:
                 text += " " + dumps(m.failed_reasons)
         return text
 
-    def remove(self, name: str, reason: str, leave_redis: bool = True) -> None:
+    def remove(self, name: str, reason: str, leave_redis: bool = True,
+               dropped: bool = False) -> None:
+        """``name`` leaves the room; ``dropped``: not by anyone's choice (their video or
+        connection ended, their session failed): their page's sockets are closed with
+        :data:`DROPPED`, and the page joins again by itself."""
         if name not in self.members:
             return
         log.warning("room %s: %s left (%s): %s", self.config.name, name, reason,
@@ -334,8 +338,10 @@ class Room:
             self.enrolments.cancel(name, f"the participant left the room ({reason})")
         if member.feed is not None:  # the media process frees their audio slots
             member.feed.close(f"the participant left the room ({reason})")
+        code, text = (DROPPED, _reason(f"your connection dropped ({reason})")) if dropped \
+            else (1000, "you left the room")
         for ws in list(member.sockets):
-            asyncio.ensure_future(_close(ws, 1000, "you left the room"))
+            asyncio.ensure_future(_close(ws, code, text))
         self.announce()
 
     async def _leave_redis(self, name: str) -> None:
@@ -387,7 +393,7 @@ class Room:
                 session = self.svc.manager.sessions.get(name)
                 if m.feed is not None and (m.feed.ended or session is None
                                            or session.state in TERMINAL):
-                    self.remove(name, m.feed.ended or "the session ended")
+                    self.remove(name, m.feed.ended or "the session ended", dropped=True)
                 elif m.feed is None and not m.sockets and time.time() - m.joined > 60:
                     self.remove(name, "joined but never sent video")
             if self.enrolments is not None:
@@ -407,6 +413,18 @@ class Room:
 async def _send(ws: WebSocket, text: str) -> None:
     with contextlib.suppress(Exception):
         await ws.send_text(text)
+
+
+DROPPED = 4001
+"""The room socket's close code when a member's media dropped (video ended, connection failed
+or expired, session failed, the media process restarted) rather than the member leaving: the
+page joins again by itself (clients/web/room.js, a few times, further apart each time)."""
+
+
+def _reason(text: str) -> str:
+    """A WebSocket close reason: at most 123 bytes of UTF-8."""
+    data = text.encode()
+    return text if len(data) <= 123 else data[:120].decode(errors="ignore") + "..."
 
 
 async def _close(ws: WebSocket, code: int, reason: str) -> None:
@@ -485,7 +503,9 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
             raise HTTPException(429, f"the room is full ({config.max_participants} "
                                 "participants)")
         old = svc.manager.sessions.get(name)
-        if old is not None and old.state not in TERMINAL:
+        old_feed = svc.manager.feeds.get(name)
+        if old is not None and old.state not in TERMINAL and not (
+                old_feed is not None and old_feed.ended):  # (a dropped one is ending: replaced)
             raise HTTPException(409, f"session {name!r} is running on this server")
         member = room.add(name)
         try:

@@ -24,8 +24,14 @@ const params = new URLSearchParams(location.search);
 const $ = (id) => document.getElementById(id);
 const state = (window.articastRoom = {
   status: "", final: "", you: "", connection: "", joined: false, speaking: "", members: {},
-  offsetMs: null, left: [], enrol: { state: "" }, link: "", maxFramerate: 0,
+  offsetMs: null, left: [], enrol: { state: "" }, link: "", maxFramerate: 0, rejoined: [],
 });
+// A dropped connection (the server closes the room socket with DROPPED: the video or the
+// connection ended, the session failed; not a leave, a delete or a refusal) is joined again by
+// itself, REJOIN_MS later, twice that the next time, at most MAX_REJOINS times in a row; a
+// membership that lasted STEADY_MS starts the count again.
+const DROPPED = 4001, REJOIN_MS = 2000, MAX_REJOINS = 4, STEADY_MS = 60000;
+let rejoins = 0, rejoinTimer = null, joinedAt = 0;
 const SKIN = [0.86, 0.66, 0.56], SPACING = 210, NTP_UNIX_MS = 2208988800000;
 const MAX_FPS = Number(params.get("fps")) || 30;
 
@@ -271,23 +277,25 @@ function gathered(pc) {
 const post = (url, headers, body) => fetch(url, { method: "POST", body: JSON.stringify(body),
   headers: { "Content-Type": "application/json", ...headers } });
 
+// joined: true; false when refused or impossible; "retry" when the server could not be
+// reached or was busy with this name (a transient failure: a rejoin tries again)
 async function join(name) {
   state.final = "";
   if (!window.isSecureContext || !navigator.mediaDevices) {
-    status("the camera needs a secure page: open this page over https:// (or on localhost)", true); return;
+    status("the camera needs a secure page: open this page over https:// (or on localhost)", true); return false;
   }
   let slots = 7, maxFps = 0, r;
   try {
     if (!ptoken) {
       r = await post("/room/api/join", { "X-Room-Token": params.get("room") || "" }, { name });
-      if (!r.ok) { status(await refusal(r, "join"), true); return; }
+      if (!r.ok) { status(await refusal(r, "join"), true); return false; }
       const j = await r.json(); ptoken = j.token; slots = j.slots; maxFps = j.max_fps || 0; $("roomname").textContent = j.room;
     } else {
       r = await fetch("/room/api/me", { headers: auth() });
-      if (!r.ok) { status(await refusal(r, "join"), true); return; }
+      if (!r.ok) { status(await refusal(r, "join"), true); return false; }
       const j = await r.json(); slots = j.slots; maxFps = j.max_fps || 0; name = j.name; $("roomname").textContent = j.room;
     }
-  } catch (e) { status("the room's server cannot be reached: " + e.message, true); return; }
+  } catch (e) { status("the room's server cannot be reached: " + e.message, true); return "retry"; }
   state.you = name;
   status("asking for the camera and microphone…");
   const video = { width: { ideal: 640 }, height: { ideal: 480 }, frameRate: { ideal: 30 } };
@@ -295,7 +303,7 @@ async function join(name) {
     stream = await navigator.mediaDevices.getUserMedia({ video, audio: params.get("audio") !== "0" });
   } catch (e) {
     try { stream = await navigator.mediaDevices.getUserMedia({ video }); status("no microphone: joining without sound"); }
-    catch (e2) { status(cameraProblem(e), true); return; }
+    catch (e2) { status(cameraProblem(e), true); return false; }
   }
   $("self").srcObject = stream;
   pc = new RTCPeerConnection({ iceServers: [] });
@@ -323,15 +331,19 @@ async function join(name) {
   await gathered(pc);
   try {
     r = await post("/room/api/offer", auth(), { type: "offer", sdp: pc.localDescription.sdp });
-  } catch (e) { status("the room's server cannot be reached: " + e.message, true); leave(true); return; }
-  if (!r.ok) { status(await refusal(r, "take your offer"), true); leave(true); return; }
+  } catch (e) { status("the room's server cannot be reached: " + e.message, true); leave(true); return "retry"; }
+  if (!r.ok) {
+    const transient = r.status === 409 || r.status >= 500; // (the last session still ending)
+    status(await refusal(r, "take your offer"), true); leave(true); return transient ? "retry" : false;
+  }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
   keepResolution(pc, maxFps).then((cap) => { state.maxFramerate = cap; });
-  $("join").disabled = true; $("leave").disabled = false; state.joined = true;
+  $("join").disabled = true; $("leave").disabled = false; state.joined = true; joinedAt = performance.now();
   status(`joined as ${name}; the tracker is starting…`);
   follow();
   timer = setInterval(() => { for (const m of members.values()) if (!m.self) audioDelay(m).catch(() => {}); }, 1000);
+  return true;
 }
 
 function follow() {
@@ -361,14 +373,29 @@ function follow() {
     } else if (msg.type === "error") status("the room said: " + msg.reason, true);
   };
   ws.onclose = (ev) => {
-    if (state.joined) status(`the room closed the connection${ev.reason ? ": " + ev.reason : ""}`, true);
+    const was = state.joined, why = `the room closed the connection${ev.reason ? ": " + ev.reason : ""}`;
+    if (was) status(why, true);
     leave(true);
+    if (was && ev.code === DROPPED) rejoinLater(ev.reason || "your connection dropped", state.you);
   };
+}
+function rejoinLater(why, name) {
+  if (performance.now() - joinedAt > STEADY_MS) rejoins = 0;
+  if (rejoins >= MAX_REJOINS) { status(`${why}; it failed ${rejoins} times in a row: join again when your network is steady`, true); return; }
+  const delay = REJOIN_MS * 2 ** rejoins++;
+  status(`${why}: joining again in ${(delay / 1000).toFixed(0)} s…`);
+  state.rejoined.push({ reason: why, delayMs: delay });
+  $("join").disabled = true; $("leave").disabled = false; // (leave: stay out)
+  rejoinTimer = setTimeout(async () => {
+    rejoinTimer = null;
+    if ((await join(name)) === "retry") rejoinLater(state.final || why, name);
+  }, delay);
 }
 function render() { if (renderer) renderer.render(scene, camera); }
 
 function leave(keepStatus) {
   state.joined = false;
+  if (rejoinTimer && keepStatus !== true) { clearTimeout(rejoinTimer); rejoinTimer = null; } // the button: stay out
   if (timer) { clearInterval(timer); timer = null; }
   if (ws) { const w = ws; ws = null; w.onclose = null; w.close(); }
   if (pc) { pc.close(); pc = null; }
