@@ -77,9 +77,9 @@ async def subscribe(url, **msg):
     return ws
 
 
-async def until(ws, kind, skip=("status",)):
+async def until(ws, kind, skip=("status",), timeout=TIMEOUT):
     while True:
-        m = await recv(ws)
+        m = await recv(ws, timeout)
         t = m["type"] if isinstance(m, dict) else "binary"
         if t == kind:
             return m
@@ -159,7 +159,8 @@ def test_a_stalled_subscriber_does_not_slow_the_others(server):
         await stalled.send(json.dumps({"type": "subscribe", "session": "big",
                                        "streams": ["mesh"]}))
         fast = await subscribe(server.url, session="big", streams=["articulatory"])
-        await until(fast, "hello")  # ~2 MB of geometry: frames queued meanwhile may drop
+        # ~2 MB of geometry: frames queued meanwhile may drop (at load 13 it took > 10 s)
+        await until(fast, "hello", timeout=6 * TIMEOUT)
         for _ in range(10):
             await until(fast, "frame")
         frames = [await until(fast, "frame")]
