@@ -90,10 +90,9 @@ def lip_points(model: FaceModel) -> tuple[np.ndarray, np.ndarray]:
 
 
 def model_measures(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: Pose
-                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(N,) the model's ratio at each of ``alphas`` (N, K), projected at ``pose``, (N,)
-    its mouth width in mm (the inner corners' distance: the streamed ``lips.width_mm``) and
-    (N,) its opening in mm (the inner midpoints' distance: the streamed ``lips.aperture_mm``)."""
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) the model's ratio at each of ``alphas`` (N, K), projected at ``pose``, and (N,)
+    its mouth width in mm (the inner corners' distance: the streamed ``lips.width_mm``)."""
     mean, basis = lip_points(model)
     a = np.atleast_2d(np.asarray(alphas, np.float64))
     pts = (a @ basis).reshape(len(a), 6, 3) + mean
@@ -109,8 +108,7 @@ def model_measures(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: P
         uv[..., 0] = camera.fx * cam_pts[..., 0] * iz + camera.cx
         uv[..., 1] = camera.fy * cam_pts[..., 1] * iz + camera.cy
     d = pts[:, 5] - pts[:, 4]
-    o = pts[:, 1] - pts[:, 0]
-    return gap_ratio(uv), np.sqrt((d * d).sum(-1)), np.sqrt((o * o).sum(-1))
+    return gap_ratio(uv), np.sqrt((d * d).sum(-1))
 
 
 def model_ratios(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: Pose
@@ -135,73 +133,43 @@ def _solve2(gram: np.ndarray, r0: float, r1: float) -> np.ndarray | None:
 
 def matched(model: FaceModel, camera: Camera, alpha: np.ndarray, pose: Pose, target: float,
             iterations: int = 2, step: float = PROBE_STEP, max_change: float = MAX_CHANGE,
-            tolerance: float = TOLERANCE, opening: str = "ratio") -> np.ndarray:
-    """``alpha`` moved by the smallest step (Euclidean, in the model's s.d. units) that keeps
-    its mouth width what it was (the reading tells the opening, not the width: a step along
-    the ratio's gradient alone moved the rendered speaker's width error from 4.56 to 4.95 mm)
-    and gives it, with ``opening``:
-
-    - ``"ratio"`` (offline, ``core/faces/offline.py``): the projected ratio ``target``;
-    - ``"ratio_step"`` (live): the 3-D opening (``lips.aperture_mm``) that the smallest step
-      to the ratio ``target`` alone gives. Where the reading's ratio moves, that step splits
-      the change between the opening and the width as the model's metric does; this keeps
-      its opening and drops its width. The ratio reached with the width held (``"ratio"``)
-      takes the whole change into the opening, ~1.25x the opening per unit of ratio on the
-      landmark-enrolled speakers, and so ~1.25x the reading's noise: on the no-truth path
-      (benchmarks/no_truth_path.py, desk seeds 0 / 1 / 2) it read the aperture at r 0.954 /
-      0.912 / 0.954 where the ratio's step read 0.964 / 0.937 / 0.959 (width error 4.39 /
-      5.99 / 3.69 mm against 4.95 / 7.05 / 4.71); this reads the ratio's step's apertures
-      (r 0.964 / 0.937 / 0.959) with the held width's errors (4.39 / 5.99 / 3.69 mm),
-      docs/TRACKING.md.
-
-    (Gauss-Newton on the linearised constraints, the gradients by central differences: the
-    measures are smooth functions of 7 numbers; each iteration is one batched projection,
-    whose first row is the measures where it stands.) The step is at most ``max_change`` s.d.
-    long (a reading that asks for more than the speaker's articulation holds is followed that
-    far). The search stops where the ratio is within ``tolerance`` of the target (nearly
-    linear in the articulation: the live tracker's one iteration leaves ~1e-5 of a
-    frame-to-frame change; with ``"ratio_step"`` the opening aimed at is fixed by the first
-    iteration, later ones refine the 3-D pair). ``alpha`` unchanged when ``target`` is not
-    finite or the ratio does not move with the articulation."""
-    if opening not in ("ratio", "ratio_step"):
-        raise ValueError(f"opening: {opening!r}")
+            tolerance: float = TOLERANCE) -> np.ndarray:
+    """``alpha`` moved by the smallest step (Euclidean, in the model's s.d. units) after which
+    the model's projected ratio is ``target`` and its mouth width what it was (the reading
+    tells the opening, not the width: a step along the ratio's gradient alone moved the
+    rendered speaker's width error from 4.56 to 4.95 mm) (Gauss-Newton on the linearised
+    constraints,
+    the gradient by central differences: the ratio is a smooth function of 7 numbers; each
+    iteration is one batched projection, whose first row is the ratio where it stands). The
+    step is at most ``max_change`` s.d. long (a reading that asks for more than the speaker's
+    articulation holds is followed that far). An iteration stops the search where the ratio
+    is within ``tolerance`` of the target (nearly linear in the articulation: the live
+    tracker's one iteration leaves ~1e-5 of a frame-to-frame change). ``alpha`` unchanged
+    when ``target`` is not finite or the ratio does not move with the articulation."""
     a = np.asarray(alpha, np.float64).copy()
     if not np.isfinite(target):
         return a
     k = len(a)
     probes = np.concatenate([np.zeros((1, k)), np.eye(k) * step, -np.eye(k) * step])
-    width = aim = None
+    width = None
     for _ in range(iterations):
-        rs, ws, aps = model_measures(model, camera, a + probes, pose)
+        rs, ws = model_measures(model, camera, a + probes, pose)
         if not np.all(np.isfinite(rs)):
             return np.asarray(alpha, np.float64).copy()
         width = ws[0] if width is None else width
-        gw = (ws[1:k + 1] - ws[k + 1:]) / (2 * step)
-        ga = (aps[1:k + 1] - aps[k + 1:]) / (2 * step)
-        if aim is None:  # (every iteration of "ratio", the first of "ratio_step")
-            if abs(target - rs[0]) <= tolerance:
-                break
-            grad = (rs[1:k + 1] - rs[k + 1:]) / (2 * step)
-            g2 = float(grad @ grad)
-            if g2 <= 1e-18:
-                break
-            if opening == "ratio":
-                jac = np.stack([grad, gw])
-                both = _solve2(jac @ jac.T, target - float(rs[0]), float(width - ws[0]))
-                if both is not None:  # both: the smallest step that keeps the width
-                    a = a + jac.T @ both
-                else:  # (the width moves with the opening alone: the ratio's step)
-                    a = a + grad * (target - rs[0]) / g2
-                continue
-            aim = float(aps[0]) + float(ga @ grad) * (target - float(rs[0])) / g2
-        jac = np.stack([ga, gw])
-        both = _solve2(jac @ jac.T, aim - float(aps[0]), float(width - ws[0]))
-        if both is not None:  # the opening aimed at, the width kept
+        if abs(target - rs[0]) <= tolerance:
+            break
+        grad = (rs[1:k + 1] - rs[k + 1:]) / (2 * step)
+        g2 = float(grad @ grad)
+        if g2 <= 1e-18:
+            break
+        jac = np.stack([grad, (ws[1:k + 1] - ws[k + 1:]) / (2 * step)])
+        gram = jac @ jac.T
+        both = _solve2(gram, target - float(rs[0]), float(width - ws[0]))
+        if both is not None:  # both: the smallest step that keeps the width
             a = a + jac.T @ both
-        else:  # (the width moves with the opening alone: the opening's step)
-            a2 = float(ga @ ga)
-            if a2 > 1e-18:
-                a = a + ga * (aim - aps[0]) / a2
+        else:  # (the width moves with the opening alone: the ratio's step)
+            a = a + grad * (target - rs[0]) / g2
     change = a - alpha
     norm = float(np.linalg.norm(change))
     if norm > max_change:

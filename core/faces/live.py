@@ -559,7 +559,7 @@ class LiveTracker:
             fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
             if np.isfinite(fitted):
                 target = w * read + (1.0 - w) * fitted
-        return matched(m, cam, alpha, result.pose, target, iterations=1, opening="ratio_step")
+        return matched(m, cam, alpha, result.pose, target, iterations=1)
 
     def _upper_face(self, image: np.ndarray, result: TrackResult) -> Any:
         """The eyes and brows of this frame (:class:`~articast.core.faces.upper.UpperFace`)."""

@@ -649,8 +649,7 @@ def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
 
 @njit(cache=True, nogil=True, inline="always")
 def _lip_measures(mean, basis, a, rot, t, intr, out, row):  # pragma: no cover - compiled
-    """The lips' ratio, width and opening at articulation ``a`` into out[row] (see
-    lip_gap)."""
+    """The lips' ratio and width at articulation ``a`` into out[row] (see lip_gap)."""
     k = a.shape[0]
     pts = np.empty((6, 3))
     for j in range(6):
@@ -673,8 +672,6 @@ def _lip_measures(mean, basis, a, rot, t, intr, out, row):  # pragma: no cover -
     out[row, 0] = dn / w2 if w2 > 0.0 else np.nan
     dx, dy, dz = pts[5, 0] - pts[4, 0], pts[5, 1] - pts[4, 1], pts[5, 2] - pts[4, 2]
     out[row, 1] = np.sqrt(dx * dx + dy * dy + dz * dz)
-    dx, dy, dz = pts[1, 0] - pts[0, 0], pts[1, 1] - pts[0, 1], pts[1, 2] - pts[0, 2]
-    out[row, 2] = np.sqrt(dx * dx + dy * dy + dz * dz)
 
 
 @njit(cache=True, nogil=True)
@@ -683,11 +680,11 @@ def lip_gap(mean, basis, rot, t, intr, alpha, fitted, read, share, step, max_cha
     """:meth:`articast.core.faces.live.LiveTracker._lip_gap` in one call, for a camera
     without distortion (intr: fx, fy, cx, cy): the target ratio ``share`` x ``read`` + the
     rest x the ratio at ``fitted`` (the reading alone where that is not finite), then one
-    iteration of :func:`articast.core.faces.lipgap.matched` from ``alpha``, ``opening``
-    "ratio_step" (the numpy reference; a test checks they agree). ``mean`` (6, 3) and
-    ``basis`` (K, 18): the points of :func:`articast.core.faces.lipgap.lip_points`."""
+    iteration of :func:`articast.core.faces.lipgap.matched` from ``alpha`` (the numpy
+    reference; a test checks they agree). ``mean`` (6, 3) and ``basis`` (K, 18): the
+    points of :func:`articast.core.faces.lipgap._points`."""
     k = alpha.shape[0]
-    out = np.empty((2 * k + 1, 3))
+    out = np.empty((2 * k + 1, 2))
     target = read
     if share < 1.0:
         _lip_measures(mean, basis, fitted, rot, t, intr, out, 0)
@@ -711,34 +708,30 @@ def lip_gap(mean, basis, rot, t, intr, alpha, fitted, read, share, step, max_cha
         return a
     grad = np.empty(k)
     gw = np.empty(k)
-    ga = np.empty(k)
     g2 = 0.0
     for q in range(k):
         grad[q] = (out[1 + q, 0] - out[1 + k + q, 0]) / (2 * step)
         gw[q] = (out[1 + q, 1] - out[1 + k + q, 1]) / (2 * step)
-        ga[q] = (out[1 + q, 2] - out[1 + k + q, 2]) / (2 * step)
         g2 += grad[q] * grad[q]
     if g2 <= 1e-18:
         return a
-    aa, ab, ad, ag = 0.0, 0.0, 0.0, 0.0
+    ga, gb, gd = 0.0, 0.0, 0.0
     for q in range(k):
-        aa += ga[q] * ga[q]
-        ab += ga[q] * gw[q]
-        ad += gw[q] * gw[q]
-        ag += ga[q] * grad[q]
-    # the opening the ratio's own smallest step gives; the width kept where it stands
-    r0, r1 = ag * (target - out[0, 0]) / g2, 0.0
-    half = 0.5 * (aa + ad)
-    disc = np.sqrt(max(0.25 * (aa - ad) ** 2 + ab * ab, 0.0))
+        ga += grad[q] * grad[q]
+        gb += grad[q] * gw[q]
+        gd += gw[q] * gw[q]
+    r0, r1 = target - out[0, 0], 0.0  # (the width kept where it stands)
+    half = 0.5 * (ga + gd)
+    disc = np.sqrt(max(0.25 * (ga - gd) ** 2 + gb * gb, 0.0))
     low, high = half - disc, half + disc
     if low > 0.0 and high < 1e8 * low:
-        det = aa * ad - ab * ab
-        x0, x1 = (ad * r0 - ab * r1) / det, (aa * r1 - ab * r0) / det
+        det = ga * gd - gb * gb
+        x0, x1 = (gd * r0 - gb * r1) / det, (ga * r1 - gb * r0) / det
         for q in range(k):
-            a[q] += ga[q] * x0 + gw[q] * x1
-    elif aa > 1e-18:
+            a[q] += grad[q] * x0 + gw[q] * x1
+    else:
         for q in range(k):
-            a[q] += ga[q] * r0 / aa
+            a[q] += grad[q] * r0 / g2
     norm = 0.0
     for q in range(k):
         norm += (a[q] - alpha[q]) ** 2
