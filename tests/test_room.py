@@ -153,23 +153,32 @@ def participant(srv, name, clip, enrol=False):
     return Browser(room_url(srv, name, enrol), flags=flags, console=True)
 
 
-def best_correlation(received, offline, fps=FPS):
+RATES = 1.0 + 0.01 * np.arange(-5, 6)
+"""The fake camera's clock against the media time: Chromium's file-backed fake camera steps
+through the clip one frame per capture tick, and a starved capture thread ticks late (at load
+5-7 ann's clip read r 0.885 at the nominal rate where bob's, on the same pages, read 0.975):
+the clip's frame is taken as ``t * fps * rate`` with the best rate within 5 %."""
+
+
+def best_correlation(received, offline, fps=FPS, rates=RATES):
     """The correlation of the apertures a page received for a member (media time t, aperture)
-    with the clip's offline track, at the best circular shift: the camera loops the clip and
-    started before the connection, so which clip frame came first is not known."""
+    with the clip's offline track, at the best circular shift (the camera loops the clip and
+    started before the connection, so which clip frame came first is not known) and the best
+    of :data:`RATES`; ``((r, shift, rate), n)``."""
     rows = [(t, a) for t, a, *_ in received if a is not None]
     t = np.asarray([r[0] for r in rows])
     a = np.asarray([r[1] for r in rows])
     n = len(offline)
-    best = (-1.0, 0)
-    for shift in range(n):
-        idx = (np.round(t * fps).astype(int) + shift) % n
-        ref = offline[idx]
-        ok = ~np.isnan(ref)
-        if ok.sum() < 20 or np.std(a[ok]) == 0 or np.std(ref[ok]) == 0:
-            continue
-        r = float(np.corrcoef(a[ok], ref[ok])[0, 1])
-        best = max(best, (r, shift))
+    best = (-1.0, 0, 1.0)
+    for rate in rates:
+        frame = np.round(t * fps * rate).astype(int)
+        for shift in range(n):
+            ref = offline[(frame + shift) % n]
+            ok = ~np.isnan(ref)
+            if ok.sum() < 20 or np.std(a[ok]) == 0 or np.std(ref[ok]) == 0:
+                continue
+            r = float(np.corrcoef(a[ok], ref[ok])[0, 1])
+            best = max(best, (r, shift, float(rate)))
     return best, len(rows)
 
 
@@ -319,12 +328,14 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
               "he came back")
         for other, mine in (("bob", "ann"), ("ann", "bob")):
             theirs, own = (desk, ann) if other == "bob" else (ann, desk)
-            (r, shift), n = best_correlation(got[other], theirs["offline"])
+            (r, shift, rate), n = best_correlation(got[other], theirs["offline"])
+            nominal = best_correlation(got[other], theirs["offline"], rates=(1.0,))[0][0]
             print(f"{other} on {mine}'s page: r {r:.3f} over {n} frames with an aperture "
-                  f"(of {len(got[other])})")
-            assert r >= 0.9, (other, r, shift, n)
+                  f"(of {len(got[other])}), the camera's clock at {rate:.2f} (at 1.00: r "
+                  f"{nominal:.3f})")
+            assert r >= 0.9, (other, r, shift, rate, n)
             # the other's clip, not any moving mouth: this page's own clip fits worse
-            (r_wrong, _), _ = best_correlation(got[other], own["offline"])
+            (r_wrong, _, _), _ = best_correlation(got[other], own["offline"])
             assert r_wrong < r, (other, r, r_wrong)
         a.close()
         deadline = time.monotonic() + 6 * TIMEOUT
