@@ -179,7 +179,8 @@ def test_sessions_over_http_open_only_media_roots_and_allowed_devices(guarded, m
     # inside the root: relative to it, or absolute
     r = c.post("/api/sessions", json={"name": "inside", "source": "replay-record:talk.jsonl"})
     assert r.status_code == 201, r.text
-    assert c.delete("/api/sessions/inside").status_code == 200
+    # (its worker may still be starting: stopping it waits for that; > 10 s at load 5-7)
+    assert c.delete("/api/sessions/inside", timeout=6 * TIMEOUT).status_code == 200
 
 
 def test_sessions_are_capped(guarded):
