@@ -115,10 +115,11 @@ class RoomConfig:
     member_ttl_s: float = 10.0
     """With a Redis hub: a member's entry in the room's membership hash lapses this long
     after the server holding their connection last rewrote it (every third of it)."""
-    max_shared_delegate: int = 4 << 20
+    max_shared_delegate: int = 4_000_000
     """With a Redis hub: the largest delegate (its JSON, bytes) shared with the room's other
-    servers; a larger one is refused in one line (their pages show the generic head). One
-    enrolled on the page is ~0.5 MB (its 256-pixel texture and modes as PNG)."""
+    servers (``--max-shared-delegate`` MB); a larger one is refused in one line of the log
+    (their pages show the generic head). One enrolled on the page is ~0.5 MB (its 256-pixel
+    texture and its modes as PNG)."""
     warm_media: bool = False
     """Start the media process (and the workers' fork server) when the server starts rather
     than on the first offer (``articast room``: the first participant does not wait ~5 s)."""
@@ -308,9 +309,9 @@ class Room:
                 m.unshared = " ".join(str(exc).split()) or type(exc).__name__
             else:
                 if len(body) > self.config.max_shared_delegate:
-                    m.unshared = (f"the delegate is {len(body) / 1e6:.1f} MB, over the "
-                                  f"{self.config.max_shared_delegate / 1e6:.1f} MB shared "
-                                  "through Redis")
+                    m.unshared = (f"the delegate is {len(body) / 1e6:.2f} MB, over the "
+                                  f"{self.config.max_shared_delegate / 1e6:g} MB shared "
+                                  "through Redis (--max-shared-delegate)")
             if m.unshared:
                 log.warning("room %s: %s's delegate is not shared with the room's other "
                             "servers (their pages show the generic head): %s",

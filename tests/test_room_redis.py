@@ -36,7 +36,7 @@ ROOM = "room-token-for-the-redis-test-0123"
 TTL = 2.0
 
 
-def room_server(redis_url, speakers):
+def room_server(redis_url, speakers, *more):
     """``articast room`` on Redis in a process group of its own (a kill takes its media
     process and workers with it, as a machine going down would)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
@@ -44,7 +44,8 @@ def room_server(redis_url, speakers):
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room", "t", "--hub", redis_url,
          "--port", "0", "--json", "--member-ttl", str(TTL), "--speakers", str(speakers),
-         "--processor", "tests.service_helpers:ImageStats", "--log-level", "warning"],
+         "--processor", "tests.service_helpers:ImageStats", "--log-level", "warning",
+         *more],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
 
@@ -144,18 +145,20 @@ async def delegate_keys(client, name):
 
 def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_it_dies(
         tmp_path):
-    """ann is enrolled (a speaker folder with a delegate, in the folder both servers share) and
-    joins on A; bob is not, and joins on B."""
+    """ann and bob are enrolled (speaker folders with a delegate, in the folder both servers
+    share); ann joins on A, bob on B, whose bound on a shared delegate is below his."""
     t0 = time.monotonic()
     at, took = {}, {}
     redis = Redis()
     redis.start()
     write_speaker(tmp_path / "ann")
+    write_speaker(tmp_path / "bob", seed=1)
     ann_token = participant_token(ROOM, "ann")  # as the host mints it (articast room-token)
-    servers = [room_server(redis.url, tmp_path), room_server(redis.url, tmp_path)]
+    servers = [room_server(redis.url, tmp_path),
+               room_server(redis.url, tmp_path, "--max-shared-delegate", "0.1")]
     try:
         a, b = (base_url(p) for p in servers)
-        ann, bob = Page(a, "ann", ann_token), Page(b, "bob")
+        ann, bob = Page(a, "ann", ann_token), Page(b, "bob", participant_token(ROOM, "bob"))
 
         async def go():
             import redis.asyncio as aioredis
@@ -170,8 +173,7 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 assert names(m)["ann"]["remote"] and names(m)["ann"]["slot"] is None
                 assert names(m)["ann"]["delegate"] is True  # her face: the page loads it
                 assert names(m)["bob"]["self"] and "remote" not in names(m)["bob"]
-                m = await until(on_a, lambda m: "bob" in (names(m) or {}), 3 * TIMEOUT)
-                assert names(m)["bob"]["delegate"] is False
+                await until(on_a, lambda m: "bob" in (names(m) or {}), 3 * TIMEOUT)
                 # ann's frames, tracked on A, reach bob's page on B through Redis
                 hello = await until(on_b, lambda m: m["type"] == "hello"
                                     and m["session"] == "ann", 3 * TIMEOUT)
@@ -214,7 +216,18 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                     keys = await delegate_keys(client, "ann")
                     assert len(keys) == 1 and 0 < await client.pttl(keys[0]) <= 1000 * TTL
                     assert await client.get(keys[0]) == on_a_delegate.content
-                    assert await delegate_keys(client, "bob") == []  # (no delegate: none)
+                    # bob's delegate (~0.27 MB) is over B's bound (0.1 MB): B keeps it to
+                    # itself, A's list says so (the page shows the generic head) and A has
+                    # none to serve
+                    await until(on_a, lambda m: names(m) is not None and "bob" in names(m)
+                                and names(m)["bob"]["delegate"] is False, 3 * TIMEOUT)
+                    assert await delegate_keys(client, "bob") == []
+                    r = await c.get(f"{a}/room/api/delegate/bob",
+                                    headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 404, r.text
+                    r = await c.get(f"{b}/room/api/delegate/bob",  # (his own server's)
+                                    headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 200, r.text
                 # her token is hers on either server: on B it is no member's socket, and
                 # neither it nor the room token takes her name there while she is on A
                 async with ann.socket(b) as wrong:
@@ -233,8 +246,9 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                                                               "sdp": "v=0\r\n"},
                                      headers={"X-Participant-Token": forged})
                     assert r.status_code == 401
-                    r = await c.post(f"{a}/room/api/join", json={"name": "bob"},
-                                     headers={"X-Room-Token": ROOM})
+                    r = await c.post(f"{a}/room/api/offer", json={"type": "offer",
+                                                                   "sdp": "v=0\r\n"},
+                                     headers={"X-Participant-Token": bob.token})
                     assert r.status_code == 409, r.text  # bob, on B, is in the room on A
                 # ann leaves (her page closes its socket on A): her delegate leaves Redis
                 # with her entry, and B no longer has it
@@ -296,6 +310,10 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
               + ", ".join(f"{k} at {v:.1f} s" for k, v in at.items())
               + f"; the test took {time.monotonic() - t0:.1f} s")
         assert servers[1].poll() is None, servers[1].stderr.read()
+        stop(servers[1])
+        refused = [line for line in servers[1].stderr.read().splitlines()
+                   if "bob's delegate is not shared" in line]
+        assert len(refused) == 1 and "MB, over the 0.1 MB shared" in refused[0], refused
     finally:
         for p in servers:
             stop(p)
@@ -348,6 +366,7 @@ def test_the_membership_hash_gives_a_name_and_a_seat_once_and_forgets_a_silent_s
 @pytest.mark.parametrize("args, says", [
     (["--max-fps", "0"], "--max-fps: 1 to 60"),
     (["--member-ttl", "0.5"], "--member-ttl: 1 to 3600"),
+    (["--max-shared-delegate", "0"], "--max-shared-delegate: 0.01 to 64 MB"),
     (["--hub", "http://x"], "expected redis://"),
 ])
 def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch):
