@@ -38,7 +38,9 @@ connections and trackers of the participants who joined on it; the membership is
 per room (:mod:`articast.service.room_presence`: a name and a seat are taken atomically
 across servers, each entry lapses ``member_ttl_s`` after its server last refreshed it), and
 every member's frames go through the Redis hub, so a page on any server follows every
-member. A member's voice and enrolled delegate stay on their own server (not relayed yet).
+member. A member's enrolled delegate is shared through Redis too (written once per session
+run by the server holding them, read by the others' delegate route); their voice stays on their
+own server (not relayed yet).
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
@@ -113,6 +115,11 @@ class RoomConfig:
     member_ttl_s: float = 10.0
     """With a Redis hub: a member's entry in the room's membership hash lapses this long
     after the server holding their connection last rewrote it (every third of it)."""
+    max_shared_delegate: int = 4_000_000
+    """With a Redis hub: the largest delegate (its JSON, bytes) shared with the room's other
+    servers (``--max-shared-delegate`` MB); a larger one is refused in one line of the log
+    (their pages show the generic head). One enrolled on the page is ~0.5 MB (its 256-pixel
+    texture and its modes as PNG)."""
     warm_media: bool = False
     """Start the media process (and the workers' fork server) when the server starts rather
     than on the first offer (``articast room``: the first participant does not wait ~5 s)."""
@@ -141,6 +148,11 @@ class Member:
     speaker: str = ""
     slot: int | None = None
     """Their seat in the room's Redis membership (None without Redis)."""
+    shared: Any = None
+    """With Redis: the session description (one per session run) whose delegate this server
+    put in Redis for the room's other servers (None: not there)."""
+    unshared: str = ""
+    """Why their delegate is not shared with the other servers ("": it is, or will be)."""
 
 
 class Room:
@@ -161,6 +173,7 @@ class Room:
         self._sync: asyncio.Future[None] | None = None
         self._refreshed = 0.0
         self._redis_failing = False
+        self._sharing: asyncio.Future[None] | None = None
         self.enrolments: Enrolments | None = None
         """The page's enrolments into the speakers folder (none without one)."""
         if config.speakers:
@@ -219,12 +232,17 @@ class Room:
         t = time.monotonic()
         try:
             if self.members and t - self._refreshed >= self.config.member_ttl_s / 3:
-                mine = {n: {"joined": m.joined, "slot": m.slot, "delegate": bool(m.speaker)}
+                for n, m in self.members.items():
+                    if m.shared is not None and not self.config.speaker_of(n):
+                        m.unshared = "their enrolment was deleted"  # (its folder is gone)
+                mine = {n: {"joined": m.joined, "slot": m.slot,
+                            "delegate": bool(m.speaker) and not m.unshared}
                         for n, m in self.members.items()}
                 self._refreshed = t
                 for name in await self.presence.refresh(mine):
                     self.remove(name, "another of the room's servers holds the name now",
                                 leave_redis=False)
+                await self._keep_delegates()
             entries = await self.presence.live()
         except Exception as exc:  # noqa: BLE001 - Redis away: say so once, go on
             if not self._redis_failing:
@@ -250,6 +268,92 @@ class Room:
             self.remote = remote
             self.announce()
         self.remote = remote
+
+    # ------------------------------------------------------------------ delegates in Redis
+    async def _keep_delegates(self) -> None:
+        """With a Redis hub (from :meth:`sync`, every third of the TTL): the shared delegates'
+        TTLs renewed with the membership's; one no longer to be shared is deleted, one whose
+        key lapsed (Redis was away) is written again."""
+        gone = [n for n, m in self.members.items() if m.shared is not None and m.unshared]
+        for name in gone:
+            self.members[name].shared = None
+            await self.presence.drop_delegate(name)
+        kept = [n for n, m in self.members.items() if m.shared is not None]
+        for name in await self.presence.keep_delegates(kept):
+            if name in self.members:
+                self.members[name].shared = None
+
+    def _to_share(self) -> list[tuple[Member, Any]]:
+        """The members whose delegate this server should put in Redis now, with their
+        session: enrolled, their session running (a new run: a new description), not yet
+        shared for it, not refused."""
+        out = []
+        for name, m in self.members.items():
+            session = self.svc.manager.sessions.get(name)
+            if m.speaker and not m.unshared and m.feed is not None and session is not None \
+                    and session.description is not None and m.shared is not session.description:
+                out.append((m, session))
+        return out
+
+    async def share(self) -> None:
+        """With a Redis hub: put each member's delegate where the room's other servers read
+        it (:meth:`Presence.share_delegate`), once per session run (the session's own cached
+        JSON, made in a thread). A delegate over ``max_shared_delegate`` bytes, or none to
+        make, is refused in one line of the log: the other servers' pages show the generic
+        head (their list says ``delegate: false``). Redis away: tried again later."""
+        for m, session in self._to_share():
+            description = session.description
+            try:
+                body = await asyncio.to_thread(session.delegate_json)
+            except Exception as exc:  # noqa: BLE001 - InputError: no delegate; one line
+                m.unshared = " ".join(str(exc).split()) or type(exc).__name__
+            else:
+                if len(body) > self.config.max_shared_delegate:
+                    m.unshared = (f"the delegate is {len(body) / 1e6:.2f} MB, over the "
+                                  f"{self.config.max_shared_delegate / 1e6:g} MB shared "
+                                  "through Redis (--max-shared-delegate)")
+            if m.unshared:
+                log.warning("room %s: %s's delegate is not shared with the room's other "
+                            "servers (their pages show the generic head): %s",
+                            self.config.name, m.name, m.unshared)
+                continue
+            t = time.monotonic()
+            try:
+                ok = await asyncio.wait_for(self.presence.share_delegate(m.name, body), 5.0)
+            except Exception as exc:  # noqa: BLE001 - Redis away: the next watch step retries
+                log.warning("room %s: %s's delegate could not be put in Redis (%r)",
+                            self.config.name, m.name, exc)
+                return
+            if ok and self.members.get(m.name) is m:
+                m.shared = description
+                log.info("room %s: %s's delegate (%.2f MB) is in Redis for the room's other "
+                         "servers (%.0f ms)", self.config.name, m.name, len(body) / 1e6,
+                         1000 * (time.monotonic() - t))
+
+    async def remote_delegate(self, name: str) -> bytes:
+        """The delegate of ``name``, a member another of the room's servers holds, from
+        Redis (HTTPException 404 when there is none; 503 when Redis cannot be reached). Their
+        server writes it when their session has started: a page asking before that (it asks
+        on the member's hello) is answered when it is there, within ``DELEGATE_WAIT_S``."""
+        deadline = time.monotonic() + DELEGATE_WAIT_S
+        while True:
+            entry = self.remote.get(name)
+            if entry is None or name in self.members or not entry.get("delegate") \
+                    or self.presence is None:
+                raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
+            try:
+                body = await asyncio.wait_for(
+                    self.presence.delegate(name, str(entry.get("server", ""))), 5.0)
+            except Exception as exc:  # noqa: BLE001 - Redis away: one line, generic head
+                log.warning("room %s: %s's delegate could not be read from Redis (%r)",
+                            self.config.name, name, exc)
+                raise HTTPException(503, "the room's Redis cannot be reached: try again in "
+                                    "a moment") from None
+            if body is not None:
+                return body
+            if time.monotonic() >= deadline:
+                raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
+            await asyncio.sleep(0.25)
 
     # ------------------------------------------------------------------ access
     async def check(self, request_key: str, offered: str, expected: str) -> None:
@@ -332,8 +436,8 @@ class Room:
         log.warning("room %s: %s left (%s): %s", self.config.name, name, reason,
                     self.stats(name))
         member = self.members.pop(name)
-        if self.presence is not None and leave_redis:
-            asyncio.ensure_future(self._leave_redis(name))
+        if self.presence is not None:  # their entry and this server's copy of their delegate
+            asyncio.ensure_future(self._leave_redis(name, leave_redis))
         if self.enrolments is not None:  # leaving mid-enrolment: it stops, its files go
             self.enrolments.cancel(name, f"the participant left the room ({reason})")
         if member.feed is not None:  # the media process frees their audio slots
@@ -344,9 +448,12 @@ class Room:
             asyncio.ensure_future(_close(ws, code, text))
         self.announce()
 
-    async def _leave_redis(self, name: str) -> None:
-        with contextlib.suppress(Exception):  # Redis away: the entry lapses after its TTL
-            await asyncio.wait_for(self.presence.leave(name), 5.0)
+    async def _leave_redis(self, name: str, entry: bool = True) -> None:
+        """``name``'s entry (``entry``: unless another server holds it now) and this
+        server's copy of their delegate leave Redis."""
+        with contextlib.suppress(Exception):  # Redis away: both lapse after their TTL
+            await asyncio.wait_for(self.presence.leave(name) if entry
+                                   else self.presence.drop_delegate(name), 5.0)
 
     async def close(self) -> None:
         """The server stops: its members' entries leave the room's Redis at once."""
@@ -363,9 +470,9 @@ class Room:
                  "delegate": bool(m.speaker), "joined": m.joined,
                  "level": audio.get(m.name, {}).get("level", 0.0)}
                 for m in self.members.values()]
-        # members on another server: tracked and served there; their frames come through
-        # Redis, their voice and their delegate's texture do not (yet)
-        rows += [{"name": n, "self": False, "slot": None, "delegate": False,
+        # members on another server: tracked there; their frames and their delegate come
+        # through Redis, their voice does not (yet)
+        rows += [{"name": n, "self": False, "slot": None, "delegate": bool(e.get("delegate")),
                   "joined": e.get("joined", 0.0), "level": 0.0, "remote": True}
                  for n, e in self.remote.items() if n not in self.members]
         rows.sort(key=lambda r: (float(r["joined"] or 0.0), r["name"]))
@@ -402,6 +509,10 @@ class Room:
             if self.presence is not None and tick % 2 == 0 and (
                     self._sync is None or self._sync.done()):
                 self._sync = asyncio.ensure_future(self.sync())  # never holds this loop
+            if self.presence is not None and (self._sharing is None or self._sharing.done()) \
+                    and self._to_share():
+                self._sharing = asyncio.ensure_future(self.share())  # (apart from sync: a
+                # delegate's JSON takes 0.1-0.3 s to make, the membership must not wait)
             if tick % 4 == 0:
                 self.announce()
             if tick % 20 == 0 and self.members:
@@ -414,6 +525,10 @@ async def _send(ws: WebSocket, text: str) -> None:
     with contextlib.suppress(Exception):
         await ws.send_text(text)
 
+
+DELEGATE_WAIT_S = 5.0
+"""How long a server waits for the delegate of a member another server holds to reach Redis
+(a page asks for it on the member's hello, which may come before)."""
 
 DROPPED = 4001
 """The room socket's close code when a member's media dropped (video ended, connection failed
@@ -540,8 +655,12 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
 
     @router.get("/room/api/delegate/{name}")
     async def delegate(name: str, request: Request) -> Response:
-        """A member's delegate, for the room's participants only; never cached."""
+        """A member's delegate, for the room's participants only; never cached. A member on
+        another of the room's servers (Redis): the copy their server put in Redis."""
         await room.name_of(request.headers.get(PARTICIPANT_HEADER, ""), _key(request))
+        if name not in room.members and name in room.remote:
+            return Response(await room.remote_delegate(name), media_type="application/json",
+                            headers={"Cache-Control": "no-store"})
         session = svc.manager.sessions.get(name)
         if name not in room.members or session is None or session.description is None:
             raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")

@@ -8,7 +8,8 @@ One hash per room, ``PREFIX room:ROOM:members``: a field per member, its value a
   atomically with the name: the room's limit holds across servers);
 * ``joined`` when they joined (wall clock of the server that took them: the pages' order);
 * ``server`` which server holds their connection (:data:`articast.service.remote.RUN`);
-* ``delegate`` whether they are shown as an enrolled delegate;
+* ``delegate`` whether they are shown as an enrolled delegate (their server rewrites it
+  false when it cannot share that delegate: then the other servers show the generic head);
 * ``expires`` when the entry lapses, in **Redis's own clock** (``TIME``, milliseconds): the
   server holding the member rewrites it every ``ttl / 3``; if that server dies, the entry
   lapses ``ttl`` after its last rewrite whatever the servers' clocks say. Redis 7.0 has no
@@ -17,6 +18,15 @@ One hash per room, ``PREFIX room:ROOM:members``: a field per member, its value a
 
 Every change is one Lua script (atomic in Redis): two servers cannot both take a name or the
 last seat. The local room (``articast room`` without ``--hub``) does not use this module.
+
+A member's **delegate** (their enrolled face: the JSON ``/room/api/delegate/NAME`` serves,
+~0.5 MB with its 256-pixel texture) is a string key of its own, ``PREFIX
+room:ROOM:delegate:NAME:SERVER``, bound to the server holding the member (another server
+reads the key the member's entry names, so a key left by a former holder is never served).
+It is written once per session run, only while that server holds the member's entry (one
+script: a member who left meanwhile leaves no key), with the membership's TTL, renewed with
+it; it goes with the member's entry when they leave (the same script), and lapses a TTL after
+its server stopped renewing it.
 """
 
 from __future__ import annotations
@@ -75,7 +85,8 @@ for i = 3, #ARGV, 2 do
   if e and e.server ~= server then
     table.insert(lost, name)
   else
-    if not e then e = cjson.decode(ARGV[i + 1]) end
+    local new = cjson.decode(ARGV[i + 1])
+    if e then e.delegate = new.delegate else e = new end
     e.expires = now + ttl
     redis.call('HSET', KEYS[1], name, cjson.encode(e))
   end
@@ -85,10 +96,21 @@ return lost
 """
 
 LEAVE = _PRUNE + """
--- ARGV: name, server: the entry goes if this server holds it
+-- KEYS: the hash, the member's delegate key on this server. ARGV: name, server: the entry
+-- goes if this server holds it; this server's copy of their delegate goes in any case
+redis.call('DEL', KEYS[2])
 local e = live[ARGV[1]]
 if e and e.server == ARGV[2] then redis.call('HDEL', KEYS[1], ARGV[1]); return 1 end
 return 0
+"""
+
+SHARE = _PRUNE + """
+-- KEYS: the hash, the member's delegate key on this server. ARGV: name, server, the
+-- delegate's JSON, ttl ms: written only while this server holds the member's entry
+local e = live[ARGV[1]]
+if not e or e.server ~= ARGV[2] then return 0 end
+redis.call('SET', KEYS[2], ARGV[3], 'PX', tonumber(ARGV[4]))
+return 1
 """
 
 LIVE = _PRUNE + """
@@ -117,7 +139,14 @@ class Presence:
 
     def __post_init__(self) -> None:
         self._scripts = {name: self.redis.register_script(text) for name, text in (
-            ("claim", CLAIM), ("refresh", REFRESH), ("leave", LEAVE), ("live", LIVE))}
+            ("claim", CLAIM), ("refresh", REFRESH), ("leave", LEAVE), ("live", LIVE),
+            ("share", SHARE))}
+        self.delegates = self.key.removesuffix("members") + "delegate:"
+        """The prefix of the members' delegate keys (``PREFIX room:ROOM:delegate:``)."""
+
+    def delegate_key(self, name: str, server: str = "") -> str:
+        """The key of ``name``'s delegate as ``server`` (default: this one) shares it."""
+        return f"{self.delegates}{name}:{server or self.server}"
 
     @property
     def ttl_ms(self) -> int:
@@ -148,7 +177,36 @@ class Presence:
         return [x.decode() if isinstance(x, bytes) else str(x) for x in lost]
 
     async def leave(self, name: str) -> None:
-        await self._scripts["leave"](keys=[self.key], args=[name, self.server])
+        """``name``'s entry goes if this server holds it, and this server's copy of their
+        delegate in any case."""
+        await self._scripts["leave"](keys=[self.key, self.delegate_key(name)],
+                                     args=[name, self.server])
+
+    async def share_delegate(self, name: str, body: bytes) -> bool:
+        """Put ``name``'s delegate (its JSON) where the room's other servers read it, for a
+        TTL; False when this server no longer holds ``name`` (nothing written)."""
+        return bool(await self._scripts["share"](
+            keys=[self.key, self.delegate_key(name)],
+            args=[name, self.server, body, self.ttl_ms]))
+
+    async def keep_delegates(self, names: list[str]) -> list[str]:
+        """Renew the TTL of these members' delegates (this server's copies): the names whose
+        key is gone (lapsed while Redis or this server was away: to be written again)."""
+        if not names:
+            return []
+        pipe = self.redis.pipeline(transaction=False)
+        for name in names:
+            pipe.pexpire(self.delegate_key(name), self.ttl_ms)
+        return [n for n, kept in zip(names, await pipe.execute(), strict=True) if not kept]
+
+    async def drop_delegate(self, name: str) -> None:
+        """This server's copy of ``name``'s delegate goes (their entry is left as it is)."""
+        await self.redis.delete(self.delegate_key(name))
+
+    async def delegate(self, name: str, server: str) -> bytes | None:
+        """``name``'s delegate as ``server`` (the one holding them) shared it, or None."""
+        body = await self.redis.get(self.delegate_key(name, server))
+        return None if body is None else bytes(body)
 
     async def live(self) -> dict[str, dict[str, Any]]:
         """Every member whose entry has not lapsed, on any server: ``{name: entry}``."""

@@ -52,6 +52,40 @@ def write_recording(path: Path, frames: int = 30, fps: float = 30.0,
     return results
 
 
+def write_speaker(folder: Path, texture: int = 256, seed: int = 0) -> Path:
+    """A small complete speaker folder (as ``articast enroll`` writes one: model, appearance,
+    camera, speaker.json) with a delegate whose texture is ``texture`` pixels of noise (its
+    JSON ~0.3 MB at 256, near an enrolled one's ~0.5 MB); tracked by a test processor, not
+    the tracker. Returns the folder."""
+    from articast.core.appearance.models import AppearanceModel, SamplePoints
+    from articast.core.delegate.build import Delegate
+    from articast.core.delegate.geometry import DelegateMesh
+    from articast.core.faces.speaker import SPEAKER_KIND, SPEAKER_VERSION
+
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    model = small_model(seed=seed)
+    k, s = model.n_params, 5
+    model.save(folder / "model.npz")
+    AppearanceModel("la_lin", SamplePoints(rng.integers(0, model.n_points, (s, 3)),
+                                           np.full((s, 3), 1 / 3)), (0,),
+                    rng.normal(size=(1, k + 1, s * 8)), np.ones((1, s * 8)), 2.5,
+                    np.array([0.9])).save(folder / "appearance.npz")
+    Camera.default(64, 48).save(folder / "camera.json")
+    (folder / "speaker.json").write_text(json.dumps({
+        "kind": SPEAKER_KIND, "version": SPEAKER_VERSION, "rig": "desk", "name": folder.name,
+        "residual": {"median": 1.0, "p95": 2.0, "p99": 3.0, "frames": 10}}))
+    v = np.array([[0.0, 0, 0], [10, 0, 0], [0, 10, 0], [10, 10, 1]])
+    Delegate(DelegateMesh(v, rng.normal(0, 1, (k, 4, 3)),
+                          np.array([[0, 0], [1, 0], [0, 1], [1, 1.0]]),
+                          np.array([[0, 1, 2], [1, 3, 2]], np.int32), np.arange(4)),
+             rng.integers(0, 256, (texture, texture, 3), dtype=np.uint8),
+             np.zeros((k, texture, texture, 3), np.float32),
+             np.ones((texture, texture), np.float32), model.param_names
+             ).save(folder / "delegate.npz")
+    return folder
+
+
 def write_video(path: Path, frames: int = 20, fps: float = 25.0, size=(64, 48)) -> list[float]:
     """An MJPG AVI whose frame i is a flat grey of level 10*i (+ a gradient). Returns levels."""
     import cv2

@@ -3,7 +3,8 @@ real ``redis-server`` serve one room. A participant who joins on server A over a
 connection (aiortc as the page) is listed on B, and B's room socket receives their tracked
 frames through Redis; their token publishes and reads as them only, on either server; when A
 is killed (with its media process and workers), they leave B's list after the membership's
-TTL.
+TTL. An enrolled member's delegate (their face) is served by the other server from Redis to the
+room's participants only, and leaves Redis with them.
 
 The members are tracked by a test processor that reads the image (``ImageStats``: the
 channels' means) instead of the tracker, whose first start on a new checkout compiles kernels
@@ -25,7 +26,8 @@ import numpy as np
 import pytest
 import websockets
 
-from tests.service_helpers import TIMEOUT
+from articast.service.room import participant_token
+from tests.service_helpers import TIMEOUT, write_speaker
 from tests.test_redis_scaleout import ROOT, Redis, pytestmark  # noqa: F401 - the skip
 
 pytest.importorskip("aiortc", reason="the room needs aiortc (the test extra installs it)")
@@ -34,7 +36,7 @@ ROOM = "room-token-for-the-redis-test-0123"
 TTL = 2.0
 
 
-def room_server(redis_url, speakers):
+def room_server(redis_url, speakers, *more):
     """``articast room`` on Redis in a process group of its own (a kill takes its media
     process and workers with it, as a machine going down would)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
@@ -42,7 +44,8 @@ def room_server(redis_url, speakers):
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room", "t", "--hub", redis_url,
          "--port", "0", "--json", "--member-ttl", str(TTL), "--speakers", str(speakers),
-         "--processor", "tests.service_helpers:ImageStats", "--log-level", "warning"],
+         "--processor", "tests.service_helpers:ImageStats", "--log-level", "warning",
+         *more],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
 
@@ -70,10 +73,11 @@ class Page:
     picture brightens and darkens (so the test processor's values move) and a microphone,
     with one receive-only audio slot."""
 
-    def __init__(self, http, name):
+    def __init__(self, http, name, token=""):
         self.http, self.name = http, name
         self.pc = None
-        self.token = ""
+        self.token = token
+        """An enrolled name's token comes from the host (the room token cannot take it)."""
 
     async def join(self):
         import av
@@ -94,11 +98,12 @@ class Page:
                 return frame
 
         async with httpx.AsyncClient(base_url=self.http, timeout=3 * TIMEOUT) as c:
-            r = await c.post("/room/api/join", json={"name": self.name},
-                             headers={"X-Room-Token": ROOM})
-            assert r.status_code == 200, r.text
-            self.token = r.json()["token"]
-            assert r.json()["max_fps"] == 15.0
+            if not self.token:
+                r = await c.post("/room/api/join", json={"name": self.name},
+                                 headers={"X-Room-Token": ROOM})
+                assert r.status_code == 200, r.text
+                self.token = r.json()["token"]
+                assert r.json()["max_fps"] == 15.0
             self.pc = pc = RTCPeerConnection()
             pc.addTrack(Camera())
             pc.addTrack(AudioStreamTrack())
@@ -133,18 +138,32 @@ def names(m):
     return {x["name"]: x for x in m["members"]} if m["type"] == "members" else None
 
 
+async def delegate_keys(client, name):
+    """The keys of ``name``'s delegate in the room's Redis (one per server sharing it)."""
+    return [k async for k in client.scan_iter(f"articast:room:t:delegate:{name}:*")]
+
+
 def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_it_dies(
         tmp_path):
+    """ann and bob are enrolled (speaker folders with a delegate, in the folder both servers
+    share); ann joins on A, bob on B, whose bound on a shared delegate is below his."""
     t0 = time.monotonic()
-    at = {}
+    at, took = {}, {}
     redis = Redis()
     redis.start()
-    servers = [room_server(redis.url, tmp_path), room_server(redis.url, tmp_path)]
+    write_speaker(tmp_path / "ann")
+    write_speaker(tmp_path / "bob", seed=1)
+    ann_token = participant_token(ROOM, "ann")  # as the host mints it (articast room-token)
+    servers = [room_server(redis.url, tmp_path),
+               room_server(redis.url, tmp_path, "--max-shared-delegate", "0.1")]
     try:
         a, b = (base_url(p) for p in servers)
-        ann, bob = Page(a, "ann"), Page(b, "bob")
+        ann, bob = Page(a, "ann", ann_token), Page(b, "bob", participant_token(ROOM, "bob"))
 
         async def go():
+            import redis.asyncio as aioredis
+
+            client = aioredis.from_url(redis.url)
             at["servers up"] = time.monotonic() - t0
             await asyncio.gather(ann.join(), bob.join())
             at["joined"] = time.monotonic() - t0
@@ -152,6 +171,7 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 # each server lists the other's member (from Redis), its own as itself
                 m = await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
                 assert names(m)["ann"]["remote"] and names(m)["ann"]["slot"] is None
+                assert names(m)["ann"]["delegate"] is True  # her face: the page loads it
                 assert names(m)["bob"]["self"] and "remote" not in names(m)["bob"]
                 await until(on_a, lambda m: "bob" in (names(m) or {}), 3 * TIMEOUT)
                 # ann's frames, tracked on A, reach bob's page on B through Redis
@@ -165,6 +185,49 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                                               and m["session"] == "ann", 3 * TIMEOUT))
                 first = [next(iter(f["values"]["articulatory"].values())) for f in frames]
                 assert np.ptp(first) > 1.0, first  # her camera's picture, live
+                assert hello["delegate_url"]  # (B's page asks B for it on this hello)
+                # her delegate, shared by A through Redis: B serves it to a participant (bob)
+                # as A serves it to her, byte for byte, never cached; nobody else gets it
+                async with httpx.AsyncClient(timeout=TIMEOUT) as c:
+                    t = time.monotonic()
+                    on_b_delegate = await c.get(f"{b}/room/api/delegate/ann",
+                                                headers={"X-Participant-Token": bob.token})
+                    took["from B"] = time.monotonic() - t
+                    assert on_b_delegate.status_code == 200, on_b_delegate.text
+                    t = time.monotonic()
+                    on_a_delegate = await c.get(f"{a}/room/api/delegate/ann",
+                                                headers={"X-Participant-Token": ann.token})
+                    took["from A"] = time.monotonic() - t
+                    assert on_a_delegate.status_code == 200, on_a_delegate.text
+                    assert on_b_delegate.content == on_a_delegate.content
+                    assert json.loads(on_b_delegate.content)["texture"].startswith(
+                        "data:image/png;base64,")
+                    size = len(on_b_delegate.content)
+                    for r in (on_b_delegate, on_a_delegate):
+                        assert r.headers["cache-control"] == "no-store"
+                        assert r.headers["content-type"] == "application/json"
+                    forged = "bob." + ann.token.rpartition(".")[2]
+                    for headers in ({}, {"X-Participant-Token": forged},
+                                    {"X-Room-Token": ROOM}):
+                        r = await c.get(f"{b}/room/api/delegate/ann", headers=headers)
+                        assert r.status_code == 401, r.text
+                        assert "texture" not in r.text
+                    # one copy in Redis, A's, for a TTL renewed with her membership
+                    keys = await delegate_keys(client, "ann")
+                    assert len(keys) == 1 and 0 < await client.pttl(keys[0]) <= 1000 * TTL
+                    assert await client.get(keys[0]) == on_a_delegate.content
+                    # bob's delegate (~0.27 MB) is over B's bound (0.1 MB): B keeps it to
+                    # itself, A's list says so (the page shows the generic head) and A has
+                    # none to serve
+                    await until(on_a, lambda m: names(m) is not None and "bob" in names(m)
+                                and names(m)["bob"]["delegate"] is False, 3 * TIMEOUT)
+                    assert await delegate_keys(client, "bob") == []
+                    r = await c.get(f"{a}/room/api/delegate/bob",
+                                    headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 404, r.text
+                    r = await c.get(f"{b}/room/api/delegate/bob",  # (his own server's)
+                                    headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 200, r.text
                 # her token is hers on either server: on B it is no member's socket, and
                 # neither it nor the room token takes her name there while she is on A
                 async with ann.socket(b) as wrong:
@@ -173,7 +236,7 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 async with httpx.AsyncClient(base_url=b, timeout=TIMEOUT) as c:
                     r = await c.post("/room/api/join", json={"name": "ann"},
                                      headers={"X-Room-Token": ROOM})
-                    assert r.status_code == 409, r.text
+                    assert r.status_code == 403, r.text  # (enrolled: never with it)
                     r = await c.post("/room/api/offer", json={"type": "offer",
                                                               "sdp": "v=0\r\n"},
                                      headers={"X-Participant-Token": ann.token})
@@ -183,6 +246,28 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                                                               "sdp": "v=0\r\n"},
                                      headers={"X-Participant-Token": forged})
                     assert r.status_code == 401
+                    r = await c.post(f"{a}/room/api/offer", json={"type": "offer",
+                                                                   "sdp": "v=0\r\n"},
+                                     headers={"X-Participant-Token": bob.token})
+                    assert r.status_code == 409, r.text  # bob, on B, is in the room on A
+                # ann leaves (her page closes its socket on A): her delegate leaves Redis
+                # with her entry, and B no longer has it
+                await on_a.close()
+                await until(on_b, lambda m: names(m) is not None and "ann" not in names(m),
+                            3 * TIMEOUT)
+                assert await delegate_keys(client, "ann") == []
+                async with httpx.AsyncClient(timeout=TIMEOUT) as c:
+                    r = await c.get(f"{b}/room/api/delegate/ann",
+                                    headers={"X-Participant-Token": bob.token})
+                    assert r.status_code == 404 and "texture" not in r.text, r.text
+                await ann.pc.close()
+                at["ann left"] = time.monotonic() - t0
+                # she joins A again (her page would, with a new connection)
+                again = Page(a, "ann", ann_token)
+                await again.join()
+                await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
+                await until(on_b, lambda m: m["type"] == "frame" and m["session"] == "ann",
+                            3 * TIMEOUT)
                 # server A dies (its media process and workers with it): ann leaves B's
                 # room once her entry's TTL has run out
                 at["A killed"] = time.monotonic() - t0
@@ -194,24 +279,41 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 # (a killed server says no goodbye: her entry lapsed. No lower bound: on a
                 # loaded machine A's last rewrite may have come late, her entry lapsing soon)
                 assert servers[0].wait(TIMEOUT) == -signal.SIGKILL
+                # and so does A's copy of her delegate (its TTL is her entry's), and B no
+                # longer serves it
+                deadline = time.monotonic() + 3 * TIMEOUT
+                while await delegate_keys(client, "ann"):
+                    assert time.monotonic() < deadline, "ann's delegate stayed in Redis"
+                    await asyncio.sleep(0.1)
+                async with httpx.AsyncClient(timeout=TIMEOUT) as c:
+                    r = await c.get(f"{b}/room/api/delegate/ann",
+                                    headers={"X-Participant-Token": bob.token})
+                    assert r.status_code == 404, r.text
                 # bob stays, and ann can join again on B
                 await ann_again(on_b)
-            for p in (ann, bob):
+            for p in (again, bob):
                 await p.pc.close()
-            return gone
+            await client.aclose()
+            return gone, size
 
         async def ann_again(on_b):
-            again = Page(b, "ann")
+            again = Page(b, "ann", ann_token)
             await again.join()
             await until(on_b, lambda m: names(m) is not None and "ann" in names(m)
                         and names(m)["ann"].get("remote") is None, 3 * TIMEOUT)
             await again.pc.close()
 
-        gone = asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+        gone, size = asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
         print(f"ann left B's list {gone:.2f} s after A was killed (TTL {TTL:g} s); "
+              f"her delegate ({size / 1e6:.2f} MB) served by B in {took['from B'] * 1e3:.0f} ms, "
+              f"by A in {took['from A'] * 1e3:.0f} ms; "
               + ", ".join(f"{k} at {v:.1f} s" for k, v in at.items())
               + f"; the test took {time.monotonic() - t0:.1f} s")
         assert servers[1].poll() is None, servers[1].stderr.read()
+        stop(servers[1])
+        refused = [line for line in servers[1].stderr.read().splitlines()
+                   if "bob's delegate is not shared" in line]
+        assert len(refused) == 1 and "MB, over the 0.1 MB shared" in refused[0], refused
     finally:
         for p in servers:
             stop(p)
@@ -264,6 +366,7 @@ def test_the_membership_hash_gives_a_name_and_a_seat_once_and_forgets_a_silent_s
 @pytest.mark.parametrize("args, says", [
     (["--max-fps", "0"], "--max-fps: 1 to 60"),
     (["--member-ttl", "0.5"], "--member-ttl: 1 to 3600"),
+    (["--max-shared-delegate", "0"], "--max-shared-delegate: 0.01 to 64 MB"),
     (["--hub", "http://x"], "expected redis://"),
 ])
 def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch):

@@ -53,6 +53,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     redis.add_argument("--member-ttl", type=float, default=10.0, metavar="SECONDS",
                        help="with --hub: a member whose server stops refreshing their entry "
                        "(it died) leaves the room this long after (default 10)")
+    redis.add_argument("--max-shared-delegate", type=float, default=4.0, metavar="MB",
+                       help="with --hub: the largest enrolled delegate shared with the "
+                       "room's other servers (default 4; one enrolled on the page is ~0.5): a "
+                       "larger one is shown there as the generic head")
     p.add_argument("--processor", default="auto",
                    help="what tracks the participants' video: auto (the tracker, default), "
                    "or pkg.mod:callable (tests)")
@@ -123,6 +127,8 @@ def _room(args: argparse.Namespace) -> int:
         raise InputError("--max-fps: 1 to 60 frames a second")
     if not 1 <= args.member_ttl <= 3600:
         raise InputError("--member-ttl: 1 to 3600 s")
+    if not 0.01 <= args.max_shared_delegate <= 64:
+        raise InputError("--max-shared-delegate: 0.01 to 64 MB")
     from articast.service.commands.serve import hub_prefix, hub_url
 
     hub = hub_url(args)
@@ -162,6 +168,7 @@ def _room(args: argparse.Namespace) -> int:
                         speakers=str(args.speakers.resolve()) if args.speakers else "",
                         max_participants=args.max_participants, processor=args.processor,
                         max_fps=args.max_fps, member_ttl_s=args.member_ttl,
+                        max_shared_delegate=round(args.max_shared_delegate * 1e6),
                         warm_media=True))
 
     import logging
