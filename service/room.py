@@ -367,13 +367,25 @@ class Room:
         wait = 0.0
         if offered:  # (no token at all is no guess)
             async with self.attempts.turn(request_key):
-                wait = self.attempts.failed(request_key, time.monotonic())
+                shared = await self._wrong_token(request_key)
+                wait = self.attempts.failed(request_key, time.monotonic(), at_least=shared)
                 if wait:
                     await asyncio.sleep(wait)
         if wait:
             raise HTTPException(429, "too many wrong tokens from this address: each is "
                                 f"answered after {wait:g} s")
         raise HTTPException(401, "wrong or missing token")
+
+    async def _wrong_token(self, request_key: str) -> int:
+        """With a Redis hub: the address's wrong tokens on every server of the room, this one
+        counted (0: Redis away or slow, then this server's own count holds)."""
+        if self.presence is None:
+            return 0
+        try:
+            return await asyncio.wait_for(
+                self.presence.wrong_token(request_key, self.attempts.forget_s), 2.0)
+        except Exception:  # noqa: BLE001 - Redis away: the local back-off still applies
+            return 0
 
     async def name_of(self, ptoken: str, key: str) -> str:
         """The participant a participant token names (HTTPException 401/429 otherwise)."""

@@ -19,6 +19,11 @@ One hash per room, ``PREFIX room:ROOM:members``: a field per member, its value a
 Every change is one Lua script (atomic in Redis): two servers cannot both take a name or the
 last seat. The local room (``articast room`` without ``--hub``) does not use this module.
 
+A **wrong token** counts against its address room-wide: ``PREFIX room:ROOM:wrong:ADDRESS``,
+a counter that lapses ``forget_s`` (10 minutes) after the address's last wrong token, so the
+back-off (:class:`articast.service.security.FailedAttempts`) is the same on every server of the
+room (a guesser spreading over N servers gets the free tries once, not N times).
+
 A member's **delegate** (their enrolled face: the JSON ``/room/api/delegate/NAME`` serves,
 ~0.5 MB with its 256-pixel texture) is a string key of its own, ``PREFIX
 room:ROOM:delegate:NAME:SERVER``, bound to the server holding the member (another server
@@ -207,6 +212,18 @@ class Presence:
         """``name``'s delegate as ``server`` (the one holding them) shared it, or None."""
         body = await self.redis.get(self.delegate_key(name, server))
         return None if body is None else bytes(body)
+
+    async def wrong_token(self, address: str, forget_s: float) -> int:
+        """Count a wrong token from ``address`` (:func:`articast.service.security.client_key`)
+        room-wide: how many this address sent to any of the room's servers, none of them
+        more than ``forget_s`` after the one before (the count lapses then, in Redis's
+        clock)."""
+        key = f"{self.key.removesuffix('members')}wrong:{address}"
+        pipe = self.redis.pipeline(transaction=True)
+        pipe.incr(key)
+        pipe.pexpire(key, max(1, round(1000 * forget_s)))
+        count, _ = await pipe.execute()
+        return int(count)
 
     async def live(self) -> dict[str, dict[str, Any]]:
         """Every member whose entry has not lapsed, on any server: ``{name: entry}``."""

@@ -142,10 +142,12 @@ class FailedAttempts:
         self._failures: dict[str, tuple[int, float]] = {}  # key -> (count, last failure)
         self._turns: dict[str, tuple[Any, int]] = {}  # key -> (asyncio.Lock, users)
 
-    def failed(self, key: str, t: float) -> float:
-        """Count a wrong token; how long its answer waits (0: answered at once)."""
+    def failed(self, key: str, t: float, at_least: int = 0) -> float:
+        """Count a wrong token; how long its answer waits (0: answered at once).
+        ``at_least``: the address's count elsewhere too (a room's servers share it through
+        Redis): the higher of the two counts."""
         count, last = self._failures.pop(key, (0, t))
-        count = 1 if t - last > self.forget_s else count + 1
+        count = max(at_least, 1 if t - last > self.forget_s else count + 1)
         if len(self._failures) >= self.max_addresses:
             self._failures.pop(next(iter(self._failures)))
         self._failures[key] = (count, t)

@@ -268,6 +268,25 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
                 await until(on_b, lambda m: m["type"] == "frame" and m["session"] == "ann",
                             3 * TIMEOUT)
+                # wrong tokens count room-wide: an address that used its free ones on A
+                # is slowed down on B at once; B still admits the right token from it, and
+                # another address is not held
+                def guesser(host):
+                    return httpx.AsyncClient(timeout=3 * TIMEOUT, transport=httpx.
+                                             AsyncHTTPTransport(local_address=host))
+
+                wrong = {"X-Participant-Token": "bob." + "0" * 40}
+                async with guesser("127.0.0.9") as g:
+                    codes = [(await g.get(f"{a}/room/api/me", headers=wrong)).status_code
+                             for _ in range(5)]
+                    assert codes == [401] * 5, codes
+                    r = await g.get(f"{b}/room/api/me", headers=wrong)
+                    assert r.status_code == 429 and "answered after 1 s" in r.text, r.text
+                    r = await g.get(f"{b}/room/api/me",
+                                    headers={"X-Participant-Token": bob.token})
+                    assert r.status_code == 200 and r.json()["name"] == "bob", r.text
+                async with guesser("127.0.0.10") as g:
+                    assert (await g.get(f"{b}/room/api/me", headers=wrong)).status_code == 401
                 # server A dies (its media process and workers with it): ann leaves B's
                 # room once her entry's TTL has run out
                 at["A killed"] = time.monotonic() - t0
