@@ -560,7 +560,13 @@ class _TapReader:
         return item
 
     def stop(self) -> None:
+        """No more packets; a slot waiting on this reader is woken (it then reads the tap it
+        points at now: without this, a slot whose member left waited here for good and
+        never carried anyone again)."""
         self._tap.subscribers.discard(self._q)
+        while self._q.full():
+            self._q.get_nowait()
+        self._q.put_nowait(None)
 
 
 class SlotTrack:

@@ -361,10 +361,19 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                     assert r.status_code == 404 and "texture" not in r.text, r.text
                 await ann.pc.close()
                 at["ann left"] = time.monotonic() - t0
-                # she joins A again (her page would, with a new connection)
-                again = Page(a, "ann", ann_token)
+                # she joins A again (her page would, with a new connection): bob's slot, freed
+                # when she left, carries her again
+                again = Page(a, "ann", ann_token, tone=TONE)
                 await again.join()
                 await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
+                t_again = time.monotonic()
+                deadline = t_again + 3 * TIMEOUT
+                while len(ear.since(t_again)) < 48000 // 2:
+                    assert time.monotonic() < deadline, \
+                        f"bob's slot played {len(ear.since(t_again))} samples once ann was back"
+                    await asyncio.sleep(0.1)
+                freq_again, _ = spectrum_peak(ear.since(t_again)[-48000 // 2:])
+                assert abs(freq_again - TONE) <= 4.0, freq_again
                 await until(on_b, lambda m: m["type"] == "frame" and m["session"] == "ann",
                             3 * TIMEOUT)
                 # server A dies (its media process and workers with it): ann leaves B's
