@@ -735,7 +735,8 @@ class MediaRoom:
         """The members on the room's other servers are ``names`` (from the server's reading
         of the room's Redis membership): their voices are read from Redis, ours relayed."""
         self.others = set(names) - set(self.members)
-        voices = self._voices() if self._voices is not None else None
+        # (the process's Redis connection is made when the room first has members elsewhere)
+        voices = self._voices() if self._voices is not None and self.others else None
         changed = False
         for gone in [n for n in self.remote if n not in self.others]:
             for m in self.members.values():
