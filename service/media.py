@@ -18,6 +18,9 @@ server -> media   ``("offer", id, name, sdp, room)``  answer a participant's off
                   ``("inlet", id)`` + a file handle   the writing end of a new worker's frame
                                                       pipe: the participant's frames go there
                   ``("close", id, reason)``           the participant leaves (closes the peer)
+                  ``("remote", room, [name, ...])``   (Redis) the room's members on its other
+                                                      servers, each half second: their voices
+                                                      are heard here, ours relayed to them
                   ``("quit",)``
 media -> server   ``("answer", id, sdp, problem, mids)``
                   ``("ended", id, reason)``           the participant left (or their video)
@@ -29,6 +32,15 @@ Frames never pass through the server: the media process writes each participant'
 frame straight into the pipe its session's worker reads (:class:`articast.service.webrtc.Feed`
 there, a :class:`RemoteFeed` here with the same interface). The pipe's writing end is handed
 over with ``SCM_RIGHTS`` (:func:`multiprocessing.reduction.send_handle`).
+
+Voices across servers (``--hub redis://``): this process has a Redis connection of its own
+(:class:`RedisVoices`), so that 50 packets a second per voice go from the receiving peer's
+loop to Redis and from Redis to the slots without passing the server's busy loop or the
+pipe. While the room has members on other servers, each member's Opus packets here are
+published as they are forwarded (``PREFIX room:ROOM:audio:NAME``: a 12-byte header, the RTP
+timestamp and the wall-clock time of sending, then the packet), and the channel of each
+member on another server is read into a tap (:class:`RemoteVoice`) that the slots point at
+as at a local microphone. Redis away: the remote voices stop (one line), nothing else does.
 """
 
 from __future__ import annotations
@@ -36,7 +48,9 @@ from __future__ import annotations
 import asyncio
 import logging
 import multiprocessing
+import struct
 import threading
+import time
 from multiprocessing import reduction
 from multiprocessing.connection import Connection
 from typing import Any
@@ -77,7 +91,9 @@ class RemoteFeed:
 class MediaProcess:
     """The server's handle on the media process (see the module's docstring)."""
 
-    def __init__(self) -> None:
+    def __init__(self, redis_url: str = "", prefix: str = "articast:") -> None:
+        self.redis_url, self.prefix = redis_url, prefix
+        """The room's Redis (""): the media process relays voices to other servers there."""
         self._lock = threading.Lock()
         """Held while writing to the media process."""
         self._starting = threading.Lock()
@@ -102,7 +118,8 @@ class MediaProcess:
         ctx = ProcessWorker._ctx
         conn, child = ctx.Pipe(duplex=True)
         level = logging.getLogger("articast").getEffectiveLevel()
-        proc = ctx.Process(target=_process_main, args=(child, level),
+        proc = ctx.Process(target=_process_main,
+                           args=(child, level, self.redis_url, self.prefix),
                            name="articast media", daemon=True)
         proc.start()
         child.close()
@@ -217,12 +234,12 @@ def _settle(fut: asyncio.Future[Any], value: Any) -> None:
 
 
 # ----------------------------------------------------------------------------- the process
-def _process_main(conn: Any, level: int) -> None:
+def _process_main(conn: Any, level: int, redis_url: str = "", prefix: str = "") -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s (media): %(message)s")
     logging.getLogger("aioice").setLevel(max(level, logging.WARNING))
     logging.getLogger("aiortc").setLevel(max(level, logging.WARNING))
     try:
-        asyncio.run(_Media(conn).main())
+        asyncio.run(_Media(conn, redis_url, prefix).main())
     except KeyboardInterrupt:  # the server's Ctrl-C reaches its children too
         pass
 
@@ -235,8 +252,10 @@ class _Peer:
 class _Media:
     """The media process's loop: peers by id, rooms by name."""
 
-    def __init__(self, conn: Any) -> None:
+    def __init__(self, conn: Any, redis_url: str = "", prefix: str = "articast:") -> None:
         self.conn = conn
+        self.redis_url, self.prefix = redis_url, prefix
+        self._voices: RedisVoices | None = None
         self.lock = threading.Lock()
         self.peers: dict[int, _Peer] = {}
         self.rooms: dict[str, Any] = {}
@@ -260,6 +279,8 @@ class _Media:
         reporter.cancel()
         for peer in list(self.peers.values()):
             peer.feed.close("the server is stopping")
+        if self._voices is not None:
+            self._voices.close()
         await asyncio.sleep(0.2)  # the peers' close tasks
 
     def _read(self) -> None:
@@ -294,13 +315,23 @@ class _Media:
                 peer.feed.close(msg[2])
             else:  # still being answered (the server gave up waiting): closed once answered
                 self.closed_early[msg[1]] = msg[2]
+        elif kind == "remote":
+            self.room(msg[1]).set_remote(msg[2])
         elif kind == "quit":
             assert self.done is not None
             self.done.set()
 
+    def voices(self) -> RedisVoices | None:
+        """This process's Redis connection for the voices (made when first needed; None
+        without Redis)."""
+        if self._voices is None and self.redis_url:
+            self._voices = RedisVoices(self.redis_url, self.prefix)
+        return self._voices
+
     def room(self, name: str) -> MediaRoom:
         if name not in self.rooms:
-            self.rooms[name] = MediaRoom(name, lambda state: self.send(("room", name, state)))
+            self.rooms[name] = MediaRoom(name, lambda state: self.send(("room", name, state)),
+                                         self.voices)
         return self.rooms[name]
 
     async def _offer(self, pid: int, name: str, sdp: str, room: str) -> None:
@@ -361,40 +392,106 @@ class _Media:
                                  for pid, p in self.peers.items()}))
             for room in self.rooms.values():
                 room.publish()
+                if tick % 10 == 0:
+                    room.log_voices(10.0)
+
+
+# ----------------------------------------------------------------------------- voices via Redis
+HEADER = struct.Struct("!Id")
+"""A relayed packet's header: its RTP timestamp, and when its server published it (wall
+clock, seconds: the hop's delay is measured on the receiving server)."""
+
+
+class _Bytes:
+    """The voices' messages are bytes as they are."""
+
+    def encode(self, message: bytes) -> bytes:
+        return message
+
+    def decode(self, data: bytes) -> bytes:
+        return bytes(data)
+
+
+class RedisVoices:
+    """The media process's own Redis connection, for the voices only: a
+    :class:`articast.service.redis_hub.RedisHub` of bytes (its writer never holds the
+    caller; a packet not sent within ``max_age_s`` is dropped, never replayed after an
+    outage; its reader reconnects with back-off and joins its channels again)."""
+
+    MAX_AGE_S = 0.2
+    """A packet still waiting for Redis after this long is dropped (it would come too late to
+    be played)."""
+
+    def __init__(self, url: str, prefix: str) -> None:
+        from articast.service.redis_hub import RedisHub
+
+        self.hub: Any = RedisHub(url, _Bytes(), prefix=prefix, max_pending=256,
+                                 max_age_s=self.MAX_AGE_S)
+
+    @staticmethod
+    def topic(room: str, name: str) -> str:
+        return f"room:{room}:audio:{name}"
+
+    def publish(self, room: str, name: str, payload: bytes, timestamp: int) -> int:
+        """One packet of ``name``'s voice to the room's other servers: its size in bytes."""
+        data = HEADER.pack(timestamp, time.time()) + payload
+        self.hub.publish(self.topic(room, name), data)
+        return len(data)
+
+    def subscribe(self, room: str, name: str) -> Any:
+        return self.hub.subscribe(self.topic(room, name), max_queue=Tap.QUEUE)
+
+    def close(self) -> None:
+        self.hub.close()
+
+
+class RemoteVoice:
+    """The voice of a member on another of the room's servers, read from Redis into a
+    :class:`Tap` the slots point at as at a local microphone."""
+
+    def __init__(self, voices: RedisVoices, room: str, name: str) -> None:
+        self.name = name
+        self.tap = Tap()
+        self.packets = self.bytes = 0
+        self.delays: list[float] = []
+        """The hop's delays (s: publication on the member's server to reading here) since
+        they were last logged."""
+        self._sub = voices.subscribe(room, name)
+        self._task = asyncio.ensure_future(self._read())
+
+    async def _read(self) -> None:
+        from articast.service.hub import HubClosed
+
+        try:
+            while True:
+                data = await self._sub.get()
+                if len(data) <= HEADER.size:
+                    continue
+                timestamp, sent = HEADER.unpack_from(data)
+                self.packets += 1
+                self.bytes += len(data)
+                if len(self.delays) < 10_000:
+                    self.delays.append(time.time() - sent)
+                self.tap._fan((data[HEADER.size:], timestamp))
+        except (HubClosed, asyncio.CancelledError):
+            pass
+
+    def close(self) -> None:
+        self._sub.close()
+        self._task.cancel()
+        self.tap.end()
 
 
 # ----------------------------------------------------------------------------- a room's audio
-class PacketTap:
-    """A member's microphone as the Opus packets their browser sent, for the other members'
-    slots: forwarded as received, never decoded and encoded again.
-
-    aiortc has no public way to read a remote track's encoded frames, so the receiver's queue
-    to its decoder thread (``_RTCRtpReceiver__decoder_queue``, aiortc 1.16) is wrapped: each
-    reassembled frame still goes to the decoder (the member's level is measured on it) and, as
-    ``(payload, RTP timestamp)``, to every subscriber's queue. aiortc's sender sends an
-    ``av.Packet`` it is given as it is (``RTCRtpSender._next_encoded_frame``: ``pack``)."""
+class Tap:
+    """A member's voice as Opus packets ``(payload, RTP timestamp)``, fanned out to the slots
+    pointed at it (each a reader with a queue of its own); ``None`` ends it."""
 
     QUEUE = 25
     """Packets a slow subscriber may hold (0.5 s of 20 ms frames); older ones are dropped."""
 
-    def __init__(self, receiver: Any) -> None:
-        attr = "_RTCRtpReceiver__decoder_queue"
-        inner: Any = getattr(receiver, attr, None)
-        if inner is None or not hasattr(inner, "put"):
-            raise RuntimeError("this aiortc's receivers have no decoder queue to tap: "
-                               "the room cannot forward microphones")
-        tap = self
+    def __init__(self) -> None:
         self.subscribers: set[asyncio.Queue[Any]] = set()
-
-        class Tee:
-            def put(self, item: Any) -> None:  # on the media loop (the receiver's RTP task)
-                inner.put(item)
-                tap._fan(None if item is None else (item[1].data, item[1].timestamp))
-
-            def __getattr__(self, name: str) -> Any:
-                return getattr(inner, name)
-
-        setattr(receiver, attr, Tee())
 
     def _fan(self, item: Any) -> None:
         for q in list(self.subscribers):
@@ -411,8 +508,47 @@ class PacketTap:
         self._fan(None)
 
 
+class PacketTap(Tap):
+    """A member's microphone as the Opus packets their browser sent, for the other members'
+    slots: forwarded as received, never decoded and encoded again.
+
+    aiortc has no public way to read a remote track's encoded frames, so the receiver's queue
+    to its decoder thread (``_RTCRtpReceiver__decoder_queue``, aiortc 1.16) is wrapped: each
+    reassembled frame still goes to the decoder (the member's level is measured on it) and, as
+    ``(payload, RTP timestamp)``, to every subscriber's queue, and to ``relay`` (the room's
+    other servers, through Redis). aiortc's sender sends an ``av.Packet`` it is given as it is
+    (``RTCRtpSender._next_encoded_frame``: ``pack``)."""
+
+    def __init__(self, receiver: Any) -> None:
+        super().__init__()
+        attr = "_RTCRtpReceiver__decoder_queue"
+        inner: Any = getattr(receiver, attr, None)
+        if inner is None or not hasattr(inner, "put"):
+            raise RuntimeError("this aiortc's receivers have no decoder queue to tap: "
+                               "the room cannot forward microphones")
+        tap = self
+        self.relay: Any = None
+        """Called with ``(payload, RTP timestamp)`` for each packet (None: not relayed)."""
+
+        class Tee:
+            def put(self, item: Any) -> None:  # on the media loop (the receiver's RTP task)
+                inner.put(item)
+                if item is None:
+                    tap._fan(None)
+                    return
+                packet = (item[1].data, item[1].timestamp)
+                tap._fan(packet)
+                if tap.relay is not None:
+                    tap.relay(*packet)
+
+            def __getattr__(self, name: str) -> Any:
+                return getattr(inner, name)
+
+        setattr(receiver, attr, Tee())
+
+
 class _TapReader:
-    def __init__(self, tap: PacketTap, q: asyncio.Queue[Any]) -> None:
+    def __init__(self, tap: Tap, q: asyncio.Queue[Any]) -> None:
         self._tap, self._q = tap, q
 
     async def recv(self) -> tuple[bytes, int]:
@@ -424,7 +560,13 @@ class _TapReader:
         return item
 
     def stop(self) -> None:
+        """No more packets; a slot waiting on this reader is woken (it then reads the tap it
+        points at now: without this, a slot whose member left waited here for good and
+        never carried anyone again)."""
         self._tap.subscribers.discard(self._q)
+        while self._q.full():
+            self._q.get_nowait()
+        self._q.put_nowait(None)
 
 
 class SlotTrack:
@@ -501,11 +643,22 @@ class _Member:
 class MediaRoom:
     """One room's audio in the media process: each member's microphone is decoded once (its
     level measured) and its packets forwarded, as they came, to a slot of every other
-    member (:class:`PacketTap`)."""
+    member (:class:`PacketTap`). With Redis (``voices``: a callable giving the process's
+    :class:`RedisVoices`, or None), the members on the room's other servers are heard too
+    (:class:`RemoteVoice`), and this server's members' packets are relayed to them while
+    there are any."""
 
-    def __init__(self, name: str, publish: Any) -> None:
+    def __init__(self, name: str, publish: Any, voices: Any = None) -> None:
         self.name = name
         self._publish = publish
+        self._voices = voices
+        self.remote: dict[str, RemoteVoice] = {}
+        """The voices of the members on the room's other servers, by name."""
+        self.others: set[str] = set()
+        """The members on the room's other servers (as the server said last): while there
+        are any, this server's voices are relayed to them."""
+        self.relayed: dict[str, list[int]] = {}
+        """Member -> [packets, bytes] relayed through Redis since last logged."""
         self.members: dict[str, _Member] = {}
         self.levels: dict[str, float] = {}
         self._drains: dict[str, asyncio.Task[None]] = {}
@@ -548,6 +701,8 @@ class MediaRoom:
         """A member's microphone arrived: decoded (its level measured) always, its packets
         forwarded to the others."""
         member.audio = PacketTap(receiver)  # RuntimeError: nothing changed yet
+        member.audio.relay = lambda payload, timestamp: self._relay(member.name, payload,
+                                                                    timestamp)
         self._drains[member.name] = asyncio.ensure_future(self._drain(member, track))
         self.route()
 
@@ -566,18 +721,74 @@ class MediaRoom:
             if member.audio is not None:
                 member.audio.end()
 
+    def _relay(self, name: str, payload: bytes, timestamp: int) -> None:
+        """One packet of a member's microphone to the room's other servers, if it has any."""
+        if not self.others or self.members.get(name) is None:
+            return
+        voices = self._voices() if self._voices is not None else None
+        if voices is not None:
+            count = self.relayed.setdefault(name, [0, 0])
+            count[0] += 1
+            count[1] += voices.publish(self.name, name, payload, timestamp)
+
+    def set_remote(self, names: list[str]) -> None:
+        """The members on the room's other servers are ``names`` (from the server's reading
+        of the room's Redis membership): their voices are read from Redis, ours relayed."""
+        self.others = set(names) - set(self.members)
+        # (the process's Redis connection is made when the room first has members elsewhere)
+        voices = self._voices() if self._voices is not None and self.others else None
+        changed = False
+        for gone in [n for n in self.remote if n not in self.others]:
+            for m in self.members.values():
+                for s in m.slots:
+                    if s.member == gone:
+                        s.point("", None)
+            self.remote.pop(gone).close()
+            changed = True
+        if voices is not None:
+            for new in self.others - set(self.remote):
+                self.remote[new] = RemoteVoice(voices, self.name, new)
+                changed = True
+        if changed:
+            self.route()
+
+    def log_voices(self, period: float) -> None:
+        """One line on the voices through Redis (``--log-level info``), then counted anew."""
+        parts = []
+        for name, (packets, size) in sorted(self.relayed.items()):
+            parts.append(f"{name}'s voice out: {packets / period:.1f} packets/s, "
+                         f"{size / period / 1e3:.2f} kB/s")
+        for name, v in sorted(self.remote.items()):
+            d = sorted(v.delays)
+            hop = (f", Redis hop p50 {1e3 * d[len(d) // 2]:.2f} ms, p95 "
+                   f"{1e3 * d[int(0.95 * (len(d) - 1))]:.2f} ms, max {1e3 * d[-1]:.2f} ms"
+                   if d else "")
+            parts.append(f"{name}'s voice in: {v.packets / period:.1f} packets/s, "
+                         f"{v.bytes / period / 1e3:.2f} kB/s{hop}")
+            v.packets = v.bytes = 0
+            v.delays = []
+        self.relayed = {}
+        if parts:
+            log.info("room %s, voices through Redis over %g s: %s", self.name, period,
+                     "; ".join(parts))
+
     def route(self) -> None:
-        """Point every member's free slots at the other members' microphones."""
+        """Point every member's free slots at the other members' microphones (on this server
+        or, through Redis, on another)."""
+        sources: dict[str, Tap] = {o.name: o.audio for o in self.members.values()
+                                   if o.audio is not None}
+        for n, v in self.remote.items():
+            sources.setdefault(n, v.tap)
         for m in self.members.values():
             carried = {s.member for s in m.slots if s.source is not None}
-            for other in self.members.values():
-                if other is m or other.audio is None or other.name in carried:
+            for name, tap in sources.items():
+                if name == m.name or name in carried:
                     continue
                 free = next((s for s in m.slots if s.source is None), None)
                 if free is None:
                     break
-                free.point(other.name, other.audio.subscribe())
-                carried.add(other.name)
+                free.point(name, tap.subscribe())
+                carried.add(name)
         self.publish()
 
     def remove(self, member: _Member) -> None:

@@ -253,6 +253,7 @@ class Room:
             if t - self._polled > self.config.member_ttl_s and self.remote:
                 self.remote = {}
                 self.announce()
+                self._tell_media()
             return
         if self._redis_failing:
             log.warning("room %s: Redis is back", self.config.name)
@@ -268,6 +269,15 @@ class Room:
             self.remote = remote
             self.announce()
         self.remote = remote
+        self._tell_media()
+
+    def _tell_media(self) -> None:
+        """The media process hears the members on the room's other servers (their voices
+        from Redis) and relays ours while there are any: said each half second (idempotent
+        there; a media process started again is told within one)."""
+        media = self.svc.media
+        if media is not None:
+            media.send(("remote", self.config.name, sorted(self.remote)))
 
     # ------------------------------------------------------------------ delegates in Redis
     async def _keep_delegates(self) -> None:
@@ -475,16 +485,17 @@ class Room:
 
     def members_message(self, member: Member) -> str:
         """Every member for ``member``'s page: ``slot`` is the audio slot (mid) that carries
-        their voice there (None: not carried, as for members on another server)."""
+        their voice there (None: not carried, as when the page's slots are all taken)."""
         audio = self.audio
         slot_of = audio.get(member.name, {}).get("slots", {})
         rows = [{"name": m.name, "self": m is member, "slot": slot_of.get(m.name),
                  "delegate": bool(m.speaker), "joined": m.joined,
                  "level": audio.get(m.name, {}).get("level", 0.0)}
                 for m in self.members.values()]
-        # members on another server: tracked there; their frames and their delegate come
-        # through Redis, their voice does not (yet)
-        rows += [{"name": n, "self": False, "slot": None, "delegate": bool(e.get("delegate")),
+        # members on another server: tracked there; their frames, their delegate and their
+        # voice (a slot here, once this server's media process reads it) come through Redis
+        rows += [{"name": n, "self": False, "slot": slot_of.get(n),
+                  "delegate": bool(e.get("delegate")),
                   "joined": e.get("joined", 0.0), "level": 0.0, "remote": True}
                  for n, e in self.remote.items() if n not in self.members]
         rows.sort(key=lambda r: (float(r["joined"] or 0.0), r["name"]))

@@ -88,7 +88,8 @@ class Service:
         if self.media is None:
             from articast.service.media import MediaProcess
 
-            self.media = MediaProcess()
+            # (with Redis, the media process relays the room's voices there itself)
+            self.media = MediaProcess(self.config.hub_url, self.config.hub_prefix)
         return self.media
 
     def lookup(self, name: str) -> Any:

@@ -34,6 +34,8 @@ pytest.importorskip("aiortc", reason="the room needs aiortc (the test extra inst
 
 ROOM = "room-token-for-the-redis-test-0123"
 TTL = 2.0
+TONE = 440.0
+"""ann's microphone: a sine of this many Hz."""
 
 
 def room_server(redis_url, speakers, *more):
@@ -68,20 +70,85 @@ def stop(p):
             p.wait()
 
 
+def tone_track(freq):
+    """A microphone that says a sine of ``freq`` Hz: 20 ms frames of 48 kHz, in real time."""
+    import av
+    from aiortc.mediastreams import AudioStreamTrack
+
+    class Tone(AudioStreamTrack):
+        n = 0
+        start = None
+
+        async def recv(self):
+            if self.start is None:
+                self.start = time.monotonic()
+            wait = self.start + self.n * 0.02 - time.monotonic()
+            if wait > 0:
+                await asyncio.sleep(wait)
+            t = (self.n * 960 + np.arange(960)) / 48000
+            pcm = (0.3 * 32767 * np.sin(2 * np.pi * freq * t)).astype(np.int16)
+            frame = av.AudioFrame.from_ndarray(pcm.reshape(1, -1), format="s16", layout="mono")
+            frame.sample_rate, frame.pts = 48000, self.n * 960
+            frame.time_base = fractions.Fraction(1, 48000)
+            self.n += 1
+            return frame
+
+    return Tone()
+
+
+class Ear:
+    """What a page's audio slot plays: its decoded frames (aiortc decodes them), each with
+    when it came."""
+
+    def __init__(self, track):
+        self.frames = []
+        self.task = asyncio.ensure_future(self._listen(track))
+
+    async def _listen(self, track):
+        from aiortc.mediastreams import MediaStreamError
+
+        with contextlib.suppress(MediaStreamError, asyncio.CancelledError):
+            while True:
+                frame = await track.recv()
+                pcm = frame.to_ndarray().reshape(-1, len(frame.layout.channels))[:, 0]
+                self.frames.append((time.monotonic(), pcm.astype(np.float32) / 32768.0))
+
+    def since(self, t):
+        """The samples (channel 0, full scale 1) of the frames that came after ``t``."""
+        parts = [pcm for at, pcm in self.frames if at > t]
+        return np.concatenate(parts) if parts else np.zeros(0, np.float32)
+
+
+def spectrum_peak(pcm, rate=48000):
+    """The dominant frequency of ``pcm`` (Hz) and its RMS."""
+    window = np.hanning(len(pcm))
+    power = np.abs(np.fft.rfft(pcm * window)) ** 2
+    power[0] = 0.0
+    return np.argmax(power) * rate / len(pcm), float(np.sqrt(np.mean(pcm * pcm)))
+
+
 class Page:
     """A participant's page, as far as the server can tell: aiortc sends a camera whose
-    picture brightens and darkens (so the test processor's values move) and a microphone,
-    with one receive-only audio slot."""
+    picture brightens and darkens (so the test processor's values move) and a microphone
+    (silence, or a tone), with one receive-only audio slot."""
 
-    def __init__(self, http, name, token=""):
+    def __init__(self, http, name, token="", tone=None):
         self.http, self.name = http, name
         self.pc = None
         self.token = token
         """An enrolled name's token comes from the host (the room token cannot take it)."""
+        self.tone = tone
+        self.slot = None
+        """The receive-only audio transceiver (its ``mid`` is what the members list says)."""
 
     async def join(self):
         import av
-        from aiortc import RTCPeerConnection, RTCSessionDescription
+        from aiortc import (
+            RTCBundlePolicy,
+            RTCConfiguration,
+            RTCPeerConnection,
+            RTCSessionDescription,
+        )
         from aiortc.mediastreams import AudioStreamTrack, VideoStreamTrack
 
         class Camera(VideoStreamTrack):
@@ -104,10 +171,15 @@ class Page:
                 assert r.status_code == 200, r.text
                 self.token = r.json()["token"]
                 assert r.json()["max_fps"] == 15.0
-            self.pc = pc = RTCPeerConnection()
+            # as the page does: one transport for all, the microphone first (a browser's
+            # stream lists its audio first), then the camera, then the slot. (The server's
+            # aiortc, answering a camera first, would put the second audio m-line on a
+            # transport the bundle then discards: that slot would never send.)
+            self.pc = pc = RTCPeerConnection(RTCConfiguration(
+                bundlePolicy=RTCBundlePolicy.MAX_BUNDLE))
+            pc.addTrack(tone_track(self.tone) if self.tone else AudioStreamTrack())
             pc.addTrack(Camera())
-            pc.addTrack(AudioStreamTrack())
-            pc.addTransceiver("audio", direction="recvonly")
+            self.slot = pc.addTransceiver("audio", direction="recvonly")
             await pc.setLocalDescription(await pc.createOffer())
             r = await c.post("/room/api/offer", json={"type": "offer",
                                                       "sdp": pc.localDescription.sdp},
@@ -158,7 +230,8 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                room_server(redis.url, tmp_path, "--max-shared-delegate", "0.1")]
     try:
         a, b = (base_url(p) for p in servers)
-        ann, bob = Page(a, "ann", ann_token), Page(b, "bob", participant_token(ROOM, "bob"))
+        ann = Page(a, "ann", ann_token, tone=TONE)
+        bob = Page(b, "bob", participant_token(ROOM, "bob"))
 
         async def go():
             import redis.asyncio as aioredis
@@ -167,10 +240,11 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
             at["servers up"] = time.monotonic() - t0
             await asyncio.gather(ann.join(), bob.join())
             at["joined"] = time.monotonic() - t0
+            ear = Ear(bob.slot.receiver.track)  # what bob's page plays
             async with bob.socket() as on_b, ann.socket() as on_a:
                 # each server lists the other's member (from Redis), its own as itself
                 m = await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
-                assert names(m)["ann"]["remote"] and names(m)["ann"]["slot"] is None
+                assert names(m)["ann"]["remote"]
                 assert names(m)["ann"]["delegate"] is True  # her face: the page loads it
                 assert names(m)["bob"]["self"] and "remote" not in names(m)["bob"]
                 await until(on_a, lambda m: "bob" in (names(m) or {}), 3 * TIMEOUT)
@@ -185,6 +259,21 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                                               and m["session"] == "ann", 3 * TIMEOUT))
                 first = [next(iter(f["values"]["articulatory"].values())) for f in frames]
                 assert np.ptp(first) > 1.0, first  # her camera's picture, live
+                # her voice, relayed by A's media process through Redis: B points bob's slot
+                # at her, and his page plays her tone (its pitch, well above silence)
+                m = await until(on_b, lambda m: names(m) is not None and "ann" in names(m)
+                                and names(m)["ann"]["slot"] is not None, 3 * TIMEOUT)
+                assert names(m)["ann"]["slot"] == bob.slot.mid
+                t_slot = time.monotonic()
+                deadline = t_slot + 3 * TIMEOUT
+                while len(ear.since(t_slot)) < 48000 + 9600:  # 1 s after a 0.2 s start
+                    assert time.monotonic() < deadline, \
+                        f"bob's slot played {len(ear.since(t_slot))} samples of ann's voice"
+                    await asyncio.sleep(0.1)
+                at["ann's voice on B"] = time.monotonic() - t0
+                heard = ear.since(t_slot)[-48000:]
+                freq, rms = spectrum_peak(heard)
+                assert abs(freq - TONE) <= 3.0 and rms > 0.05, (freq, rms)
                 assert hello["delegate_url"]  # (B's page asks B for it on this hello)
                 # her delegate, shared by A through Redis: B serves it to a participant (bob)
                 # as A serves it to her, byte for byte, never cached; nobody else gets it
@@ -255,6 +344,16 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 await on_a.close()
                 await until(on_b, lambda m: names(m) is not None and "ann" not in names(m),
                             3 * TIMEOUT)
+                # and her voice stops on B (her page still sends it to A): after what the
+                # jitter buffer held, bob's slot plays nothing, or silence
+                await asyncio.sleep(1.0)
+                t_left = time.monotonic()
+                await asyncio.sleep(1.5)
+                after = ear.since(t_left)
+                assert not ear.task.done()  # (bob's slot still plays, nobody in it now)
+                if len(after) >= 4800:
+                    freq_after, rms_after = spectrum_peak(after)
+                    assert rms_after < rms / 10, (freq_after, rms_after, rms)
                 assert await delegate_keys(client, "ann") == []
                 async with httpx.AsyncClient(timeout=TIMEOUT) as c:
                     r = await c.get(f"{b}/room/api/delegate/ann",
@@ -262,10 +361,19 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                     assert r.status_code == 404 and "texture" not in r.text, r.text
                 await ann.pc.close()
                 at["ann left"] = time.monotonic() - t0
-                # she joins A again (her page would, with a new connection)
-                again = Page(a, "ann", ann_token)
+                # she joins A again (her page would, with a new connection): bob's slot, freed
+                # when she left, carries her again
+                again = Page(a, "ann", ann_token, tone=TONE)
                 await again.join()
                 await until(on_b, lambda m: "ann" in (names(m) or {}), 3 * TIMEOUT)
+                t_again = time.monotonic()
+                deadline = t_again + 3 * TIMEOUT
+                while len(ear.since(t_again)) < 48000 // 2:
+                    assert time.monotonic() < deadline, \
+                        f"bob's slot played {len(ear.since(t_again))} samples once ann was back"
+                    await asyncio.sleep(0.1)
+                freq_again, _ = spectrum_peak(ear.since(t_again)[-48000 // 2:])
+                assert abs(freq_again - TONE) <= 4.0, freq_again
                 await until(on_b, lambda m: m["type"] == "frame" and m["session"] == "ann",
                             3 * TIMEOUT)
                 # wrong tokens count room-wide: an address that used its free ones on A
@@ -310,10 +418,11 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                     assert r.status_code == 404, r.text
                 # bob stays, and ann can join again on B
                 await ann_again(on_b)
+            ear.task.cancel()
             for p in (again, bob):
                 await p.pc.close()
             await client.aclose()
-            return gone, size
+            return gone, size, freq, rms, after
 
         async def ann_again(on_b):
             again = Page(b, "ann", ann_token)
@@ -322,8 +431,11 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                         and names(m)["ann"].get("remote") is None, 3 * TIMEOUT)
             await again.pc.close()
 
-        gone, size = asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
-        print(f"ann left B's list {gone:.2f} s after A was killed (TTL {TTL:g} s); "
+        gone, size, freq, rms, after = asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+        print(f"ann's {TONE:g} Hz tone heard on B at {freq:.1f} Hz, RMS {rms:.3f} "
+              f"(after she left: {len(after)} samples, RMS "
+              f"{spectrum_peak(after)[1] if len(after) else 0:.4f}); "
+              f"ann left B's list {gone:.2f} s after A was killed (TTL {TTL:g} s); "
               f"her delegate ({size / 1e6:.2f} MB) served by B in {took['from B'] * 1e3:.0f} ms, "
               f"by A in {took['from A'] * 1e3:.0f} ms; "
               + ", ".join(f"{k} at {v:.1f} s" for k, v in at.items())
