@@ -97,6 +97,15 @@ def main(argv: list[str] | None = None) -> None:
             time.sleep(args.seconds)
             wall = time.monotonic() - t0
             own = time.process_time() - own0
+            # a connection that dropped meanwhile (its page joins again: a new worker, maybe
+            # a new media process) leaves no steady figure: said in one line, not measured
+            rejoined = {n: b.evaluate("window.articastRoom.rejoined.length")
+                        for n, b in zip(names, browsers, strict=True)}
+            if any(rejoined.values()) or not all(Path(f"/proc/{p}").exists() for p in (
+                    media_pid, *pids.values())):
+                raise SystemExit(f"{args.participants} participants: connections dropped "
+                                 f"during the measurement (rejoins per page: {rejoined}): "
+                                 "this machine does not hold them at this load")
             media = proc_cpu_s(media_pid) - media0
             cpu = {n: proc_cpu_s(p) - cpu0[n] for n, p in pids.items()}
             frames = {n: sessions[n].metrics.frames - frames0[n] for n in names}
