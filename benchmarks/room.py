@@ -92,6 +92,7 @@ def main(argv: list[str] | None = None) -> None:
             cpu0 = {n: proc_cpu_s(p) for n, p in pids.items()}
             media0 = proc_cpu_s(media_pid)
             frames0 = {n: sessions[n].metrics.frames for n in names}
+            rejoined0 = [b.evaluate("window.articastRoom.rejoined.length") for b in browsers]
             own0, t0 = time.process_time(), time.monotonic()
             load0 = os.getloadavg()[0]
             time.sleep(args.seconds)
@@ -99,8 +100,8 @@ def main(argv: list[str] | None = None) -> None:
             own = time.process_time() - own0
             # a connection that dropped meanwhile (its page joins again: a new worker, maybe
             # a new media process) leaves no steady figure: said in one line, not measured
-            rejoined = {n: b.evaluate("window.articastRoom.rejoined.length")
-                        for n, b in zip(names, browsers, strict=True)}
+            rejoined = {n: b.evaluate("window.articastRoom.rejoined.length") - r0
+                        for n, b, r0 in zip(names, browsers, rejoined0, strict=True)}
             if any(rejoined.values()) or not all(Path(f"/proc/{p}").exists() for p in (
                     media_pid, *pids.values())):
                 raise SystemExit(f"{args.participants} participants: connections dropped "
