@@ -36,7 +36,8 @@ The test maps a streamed frame to a clip frame by its media time, and Chromium's
 does not keep time: under load its frames are 1-2 frames (p95 3-4) from where their media
 time puts them, drifting 6-10 frames in 20 s (benchmarks/fake_camera.py). Errors of 2 frames
 (s.d.) alone cap r for a perfect tracker at ~0.6 at full speed, ~0.92 at a third of it (where
-runs gave 0.884-0.966) and ~0.97 at a fifth."""
+runs gave 0.884-0.966) and ~0.97 at a fifth. The drift (1-2 % here) is searched for: see
+:data:`RATES`."""
 ENROLLED_FILES = ("model.npz", "appearance.npz", "camera.json", "speaker.json",
                   "points_v1.npz", "points_v2.npz", "delegate.npz", "room-key")
 """A speaker folder the room's enrolment writes (no contact sheet, no clip; room-key: the
