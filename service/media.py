@@ -235,9 +235,27 @@ def _settle(fut: asyncio.Future[Any], value: Any) -> None:
 
 
 # ----------------------------------------------------------------------------- the process
+class _ConsentExpiry(logging.Filter):
+    """aioice's own lines at WARNING and above, and the one INFO line that says why a
+    connection closed by itself ("Consent to send expired": the browser left six consent
+    checks in a row unanswered), raised to a WARNING: a participant dropped under load is
+    then explained in the server's log (docs/ROOM.md, "Leaving and faults")."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.WARNING:
+            return True
+        if "Consent to send expired" in record.getMessage():
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            return True
+        return False
+
+
 def _process_main(conn: Any, level: int, redis_url: str = "", prefix: str = "") -> None:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s (media): %(message)s")
     logging.getLogger("aioice").setLevel(max(level, logging.WARNING))
+    ice = logging.getLogger("aioice.ice")  # (its consent line is INFO: let that one through)
+    ice.setLevel(min(level, logging.INFO))
+    ice.addFilter(_ConsentExpiry())
     logging.getLogger("aiortc").setLevel(max(level, logging.WARNING))
     try:
         asyncio.run(_Media(conn, redis_url, prefix).main())

@@ -166,3 +166,24 @@ def test_without_aiortc_the_endpoint_says_why_in_one_line(monkeypatch):
             assert r.status_code == 501
             detail = r.json()["detail"]
             assert "pip install 'articast[webrtc]'" in detail and "\n" not in detail
+
+
+def test_the_media_process_log_says_when_a_browser_stopped_answering_consent_checks():
+    """aioice's INFO lines stay out of the server's log, except the one that says why a
+    connection closed by itself (consent expired), raised to a WARNING."""
+    import logging
+
+    from articast.service.media import _ConsentExpiry
+
+    keep = _ConsentExpiry()
+
+    def record(level, msg):
+        return logging.LogRecord("aioice.ice", level, __file__, 1, "%s " + msg,
+                                 ("Connection(0)",), None)
+
+    chatter = record(logging.INFO, "Check CandidatePair(...) State.WAITING -> State.SUCCEEDED")
+    expired = record(logging.INFO, "Consent to send expired")
+    problem = record(logging.WARNING, "Connection lost")
+    assert not keep.filter(chatter)
+    assert keep.filter(expired) and expired.levelname == "WARNING"
+    assert keep.filter(problem)
