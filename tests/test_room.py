@@ -8,6 +8,7 @@ import asyncio
 import contextlib
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -255,7 +256,11 @@ def test_two_participants_see_each_other_move_and_leaving_and_rejoining_work(cli
         assert not (speakers / ".enrolling").exists() or \
             not os.listdir(speakers / ".enrolling")  # the clip is not kept
         assert os.stat(folder).st_mode & 0o777 == 0o700
-        desk["offline"] = track_causal(desk, speaker=folder)  # (its result: waited for below)
+        # (its result: waited for below; from a copy of his folder: he deletes his enrolment
+        # before the reference, which runs below the room's priority, may have read it)
+        reference = tmp_path / "bob-reference"
+        shutil.copytree(folder, reference)
+        desk["offline"] = track_causal(desk, speaker=reference)
         # his page joins with his own token (an enrolled name's), tracked as himself
         b.wait_for("window.articastRoom.joined", timeout=120)
         a = stack.enter_context(participant(srv, "ann", ann))
