@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import fractions
 import statistics
 import sys
 import tempfile
@@ -29,33 +28,6 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-
-def pulsed_tone(freq: float = 440.0) -> object:
-    """20 ms frames of 48 kHz, in real time: the tone for 10 frames of every 50."""
-    import av
-    from aiortc.mediastreams import AudioStreamTrack
-
-    class Pulse(AudioStreamTrack):
-        n = 0
-        start: float | None = None
-
-        async def recv(self) -> object:
-            if self.start is None:
-                self.start = time.monotonic()
-            wait = self.start + self.n * 0.02 - time.monotonic()
-            if wait > 0:
-                await asyncio.sleep(wait)
-            t = (self.n * 960 + np.arange(960)) / 48000
-            on = self.n % 50 < 10
-            pcm = (0.3 * 32767 * on * np.sin(2 * np.pi * freq * t)).astype(np.int16)
-            frame = av.AudioFrame.from_ndarray(pcm.reshape(1, -1), format="s16", layout="mono")
-            frame.sample_rate, frame.pts = 48000, self.n * 960
-            frame.time_base = fractions.Fraction(1, 48000)
-            self.n += 1
-            return frame
-
-    return Pulse()
 
 
 def onsets(ear: object, since: float) -> list[float]:
@@ -76,7 +48,6 @@ def main() -> int:
 
     import tests.test_room_redis as T
 
-    T.tone_track = lambda freq: pulsed_tone(freq)  # ann's page says the pulses
     folder = Path(tempfile.mkdtemp())
     redis = T.Redis()
     redis.start()
@@ -84,7 +55,8 @@ def main() -> int:
 
     async def go() -> None:
         a, b = (T.base_url(p) for p in servers)
-        ann, bob, carol = T.Page(a, "ann", tone=440.0), T.Page(b, "bob"), T.Page(a, "carol")
+        ann = T.Page(a, "ann", tone=440.0, pulse=(10, 50))  # (10 frames of every 50)
+        bob, carol = T.Page(b, "bob"), T.Page(a, "carol")
         await ann.join()
         await bob.join()
         bob_ear = T.Ear(bob.slot.receiver.track)

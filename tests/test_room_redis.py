@@ -70,8 +70,10 @@ def stop(p):
             p.wait()
 
 
-def tone_track(freq):
-    """A microphone that says a sine of ``freq`` Hz: 20 ms frames of 48 kHz, in real time."""
+def tone_track(freq, pulse=None):
+    """A microphone that says a sine of ``freq`` Hz: 20 ms frames of 48 kHz, in real time;
+    ``pulse`` (on, of): the tone only in the first ``on`` frames of every ``of`` (the voice
+    benchmark times its onsets)."""
     import av
     from aiortc.mediastreams import AudioStreamTrack
 
@@ -86,7 +88,8 @@ def tone_track(freq):
             if wait > 0:
                 await asyncio.sleep(wait)
             t = (self.n * 960 + np.arange(960)) / 48000
-            pcm = (0.3 * 32767 * np.sin(2 * np.pi * freq * t)).astype(np.int16)
+            on = pulse is None or self.n % pulse[1] < pulse[0]
+            pcm = (0.3 * 32767 * on * np.sin(2 * np.pi * freq * t)).astype(np.int16)
             frame = av.AudioFrame.from_ndarray(pcm.reshape(1, -1), format="s16", layout="mono")
             frame.sample_rate, frame.pts = 48000, self.n * 960
             frame.time_base = fractions.Fraction(1, 48000)
@@ -132,12 +135,12 @@ class Page:
     picture brightens and darkens (so the test processor's values move) and a microphone
     (silence, or a tone), with one receive-only audio slot."""
 
-    def __init__(self, http, name, token="", tone=None):
+    def __init__(self, http, name, token="", tone=None, pulse=None):
         self.http, self.name = http, name
         self.pc = None
         self.token = token
         """An enrolled name's token comes from the host (the room token cannot take it)."""
-        self.tone = tone
+        self.tone, self.pulse = tone, pulse
         self.slot = None
         """The receive-only audio transceiver (its ``mid`` is what the members list says)."""
 
@@ -177,7 +180,7 @@ class Page:
             # transport the bundle then discards: that slot would never send.)
             self.pc = pc = RTCPeerConnection(RTCConfiguration(
                 bundlePolicy=RTCBundlePolicy.MAX_BUNDLE))
-            pc.addTrack(tone_track(self.tone) if self.tone else AudioStreamTrack())
+            pc.addTrack(tone_track(self.tone, self.pulse) if self.tone else AudioStreamTrack())
             pc.addTrack(Camera())
             self.slot = pc.addTransceiver("audio", direction="recvonly")
             await pc.setLocalDescription(await pc.createOffer())
