@@ -94,8 +94,10 @@ class Section:
     plot: bool = False
 
     def argv(self, run: Path, clips: Path, fetched: Path) -> list[str]:
-        return [f"benchmarks/{self.script}"] + [
-            a.format(run=run, clips=clips, fetched=fetched) for a in self.args]
+        # a script of benchmarks/, or a module of the product (``articast.*``: its CLI)
+        head = (["-m", self.script] if self.script.startswith("articast.")
+                else [f"benchmarks/{self.script}"])
+        return head + [a.format(run=run, clips=clips, fetched=fetched) for a in self.args]
 
 
 def _peers(clips: str, *extra: str) -> tuple[str, ...]:
@@ -146,6 +148,14 @@ SECTIONS: tuple[Section, ...] = (
             ("clips", "speakers2")),
     # the older benchmarks ("Figures moved from the README"), with the commands stated there
     Section("demo_start", "demo_start.py", ("--runs", "5", "--json", "--fresh-cache"), "json"),
+    # the first-ever demo: an empty HOME and numba cache, this interpreter (issue 39)
+    Section("fresh_install", "fresh_install.py", ("--here", "--json"), "json"),
+    # the synthetic speaker's tracking accuracy, every condition and appearance model
+    Section("evaluate", "articast.service.cli", ("evaluate", "--json", "-o",
+                                                 "{run}/evaluation"), "json"),
+    # issue 39's subscribe flood: a bystander and /healthz against a no-attack baseline
+    Section("abuse_flood", "abuse.py", ("flood", "--connections", "32", "--seconds", "10",
+                                        "--json"), "json"),
     Section("upper_synthetic", "upper_synthetic.py", ("--seconds", "60", "--json"), "json"),
     Section("no_truth_path", "no_truth_path.py", ("--json", "--rigs", "desk"), "json"),
     Section("corpus_acceptance", "corpus_acceptance.py", (), "json"),
