@@ -460,12 +460,12 @@ def block(section: Section, run: Path, plots: Path | None, page: Path) -> str:
     """The section's block from its stored run (or why there is none)."""
     path = stored(run, section.name)
     if path is None:
-        return (f"## RUN/{section.name}.json\n\n*no stored run yet: `python "
+        return (f"### RUN/{section.name}.json\n\n*no stored run yet: `python "
                 f"benchmarks/results.py --run-dir RUN --only {section.name}` runs it*")
     if path.name.endswith(".meta.json"):
         meta = json.loads(path.read_text())
         shown = f"RUN/{section.name}.json"
-        return (f"## {shown}\n\n{provenance(meta, section.name, run)}\n\n"
+        return (f"### {shown}\n\n{provenance(meta, section.name, run)}\n\n"
                 f"**skipped**: {meta.get('skipped', 'no output')}")
     shown = f"RUN/{path.name}"
     data = read_output(path, section.kind)
@@ -484,7 +484,7 @@ def block(section: Section, run: Path, plots: Path | None, page: Path) -> str:
         table = text_table(data)
     else:
         table = json_table(data)
-    out = [f"## {shown}", "", provenance(meta, section.name, run), "", table]
+    out = [f"### {shown}", "", provenance(meta, section.name, run), "", table]
     if section.plot and plots is not None:
         png = plots / f"{section.name}.png"
         title = f"{shown}, {meta.get('date_end', '')}"

@@ -92,7 +92,7 @@ def test_the_old_names_of_issue_38_runs_are_read(tmp_path):
     (tmp_path / "RESULTS.md").write_text(page("live"))
     assert run(tmp_path, "--from-stored", "--only", "live", "--no-plots") == 0
     text = (tmp_path / "RESULTS.md").read_text()
-    assert "## RUN/final5.json" in text and "| franck |" in text
+    assert "### RUN/final5.json" in text and "| franck |" in text
     # no meta file: the command and load from the JSON, the date from the file
     assert "commit not recorded" in text and "the file's time" in text
     assert "1.5 2 2.5 at start" in text
