@@ -66,7 +66,8 @@ def join_url(srv, name, token=TOKEN):
 
 @pytest.mark.skipif(CHROMIUM is None, reason="chromium is not installed (.ci/run installs "
                     "Debian's chromium)")
-def test_a_browser_camera_is_tracked_and_streamed_and_leaving_ends_only_its_session(clip):
+def test_a_browser_camera_is_tracked_and_streamed_rejoins_and_leaving_ends_only_its_session(
+        clip):
     path, true_aperture = clip
     flags = (*FAKE_MEDIA, f"--use-file-for-fake-video-capture={path}")
     other = SessionSpec("bystander", f"synthetic:seed={SEED}&fps=10&loop=yes",
@@ -92,6 +93,19 @@ def test_a_browser_camera_is_tracked_and_streamed_and_leaving_ends_only_its_sess
             assert alice["source"]["kind"] == "webrtc"
             assert (alice["source"]["width"], alice["source"]["height"]) == (640, 480)
             assert not b.console_errors()
+            # the media process dies mid-session: the page joins again by itself (no click)
+            # and is tracked again; the bystander is not disturbed
+            srv.service.media._proc.kill()
+            b.wait_for("window.articastJoin.rejoined.length >= 1", timeout=6 * TIMEOUT)
+            b.wait_for("window.articastJoin.ok >= window.articastJoin.rejoined[0].okBefore + 30"
+                       " && window.articastJoin.connection === 'connected'", timeout=280)
+            page = json.loads(b.evaluate("JSON.stringify(window.articastJoin)"))
+            assert len(page["rejoined"]) == 1, page["rejoined"]  # one drop, one rejoin
+            assert page["rejoined"][0]["delayMs"] == 2000, page["rejoined"]
+            assert "ended" in page["rejoined"][0]["reason"] or "failed" in \
+                page["rejoined"][0]["reason"], page["rejoined"]
+            assert srv.service.manager.sessions["alice"].state == "running"
+            assert srv.service.manager.sessions["bystander"].state == "running"
             bystander_frames = srv.service.manager.sessions["bystander"].metrics.frames
             b.evaluate("document.getElementById('leave').click()")
             deadline = time.monotonic() + 6 * TIMEOUT

@@ -8,8 +8,18 @@ import { keepResolution } from "./connect.js";
 const params = new URLSearchParams(location.search);
 const token = params.get("token");
 const $ = (id) => document.getElementById(id);
-const state = { status: "", final: "", connection: "", frames: 0, ok: 0, apertures: [] };
+const state = { status: "", final: "", connection: "", frames: 0, ok: 0, apertures: [],
+                rejoined: [] };
 window.articastJoin = state; // for tests and the curious
+
+// A dropped session (its video or connection ended, the session failed: the server's media
+// process died, the network blinked) is joined again by itself after 2, 4, 8, 16 s while the
+// failure is transient (unreachable, 409 while the old session ends, 429, 5xx), at most
+// MAX_REJOINS times in a row (the count starts again after a minute joined). "leave" stops
+// it; a session the server stopped on purpose ("stopped": removed by its operator) and a
+// refusal (token, camera, offer) are not retried. As the room page does (room.js).
+const REJOIN_MS = 2000, MAX_REJOINS = 4, STEADY_MS = 60000;
+let rejoins = 0, rejoinTimer = null, joinedAt = 0, joinedAs = "";
 
 function status(text, bad) {
   const s = $("status"); s.textContent = text; s.className = bad ? "bad" : "good";
@@ -75,8 +85,9 @@ function follow(name) { // the session's own tracked frames, as a subscriber
       }
     } else if (m.type === "status") {
       if (m.state === "running") status(`joined as ${name}: your face is tracked`);
-      else if (["failed", "ended", "unavailable", "stalled", "restarting"].includes(m.state))
-        status(`session ${m.state}: ${m.detail}`, m.state !== "ended");
+      else if (m.state === "ended" || m.state === "failed") dropped(`session ${m.state}: ${m.detail}`);
+      else if (["unavailable", "stalled", "restarting", "stopped"].includes(m.state))
+        status(`session ${m.state}: ${m.detail}`, true);
       else status(`session ${m.state}: ${m.detail}`);
     } else if (m.type === "error") {
       status("the server said: " + m.reason, true);
@@ -84,18 +95,43 @@ function follow(name) { // the session's own tracked frames, as a subscriber
   };
 }
 
+function dropped(why) { // the session went without the participant choosing it
+  if (!joinedAs) return; // already dropped, or left
+  const name = joinedAs;
+  status(why, true);
+  leave(true);
+  rejoinLater(why, name);
+}
+
+function rejoinLater(why, name) {
+  if (performance.now() - joinedAt > STEADY_MS) rejoins = 0;
+  if (rejoins >= MAX_REJOINS) {
+    status(`${why}; it failed ${rejoins} times in a row: join again when your network is steady`, true);
+    return;
+  }
+  const delay = REJOIN_MS * 2 ** rejoins++;
+  status(`${why}: joining again in ${(delay / 1000).toFixed(0)} s…`);
+  state.rejoined.push({ reason: why, delayMs: delay, okBefore: state.ok });
+  $("join").disabled = true; $("leave").disabled = false; // (leave: stay out)
+  rejoinTimer = setTimeout(async () => {
+    rejoinTimer = null;
+    if ((await join(name)) === "retry") rejoinLater(state.final || why, name);
+  }, delay);
+}
+
+// join(name) resolves to "joined", "retry" (a transient failure) or "refused"
 async function join(name) {
   state.final = "";
   if (!window.isSecureContext || !navigator.mediaDevices) {
     status("the camera needs a secure page: open this page over https:// (or on localhost)", true);
-    return;
+    return "refused";
   }
   status("asking for the camera…");
   try {
     stream = await navigator.mediaDevices.getUserMedia({
       video: { width: { ideal: 640 }, height: { ideal: 480 }, frameRate: { ideal: 30 } },
       audio: $("audio").checked });
-  } catch (e) { status(cameraProblem(e), true); return; }
+  } catch (e) { status(cameraProblem(e), true); return "refused"; }
   $("self").srcObject = stream;
   pc = new RTCPeerConnection({ iceServers: [] }); // loopback and LAN: no STUN/TURN needed
   // the tracker needs the resolution its camera was calibrated for: short of CPU or bandwidth,
@@ -105,11 +141,13 @@ async function join(name) {
     if (track.kind === "video") track.contentHint = "detail";
     pc.addTrack(track, stream);
   }
+  const mine = pc;
   pc.onconnectionstatechange = () => {
+    if (pc !== mine) return; // an old connection closing after a rejoin
     state.connection = pc.connectionState;
     $("connection").textContent = pc.connectionState;
     if (pc.connectionState === "failed")
-      status("the connection to the server failed (a network between you needs TURN)", true);
+      dropped("the connection to the server failed (a network between you may need TURN)");
   };
   status("connecting…");
   await pc.setLocalDescription(await pc.createOffer());
@@ -122,19 +160,26 @@ async function join(name) {
       method: "POST", body: JSON.stringify(body),
       headers: { "Content-Type": "application/json",
                  ...(token ? { Authorization: `Bearer ${token}` } : {}) } });
-  } catch (e) { status("the server cannot be reached: " + e.message, true); leave(); return; }
-  if (!r.ok) { status(await refusal(r), true); leave(true); return; }
+  } catch (e) { status("the server cannot be reached: " + e.message, true); leave(true); return "retry"; }
+  if (!r.ok) {
+    status(await refusal(r), true); leave(true);
+    return [409, 429].includes(r.status) || r.status >= 500 ? "retry" : "refused";
+  }
   const answer = await r.json();
   await pc.setRemoteDescription({ type: "answer", sdp: answer.sdp });
   keepResolution(pc);
   $("session").textContent = name;
   $("join").disabled = true; $("leave").disabled = false;
   status(`sending your camera as ${name}; the tracker is starting…`);
+  joinedAs = name; joinedAt = performance.now();
   follow(name);
+  return "joined";
 }
 
 function leave(keepStatus) {
-  if (ws) { ws.close(); ws = null; }
+  joinedAs = "";
+  if (rejoinTimer && keepStatus !== true) { clearTimeout(rejoinTimer); rejoinTimer = null; } // the button: stay out
+  if (ws) { const w = ws; ws = null; w.onmessage = null; w.close(); }
   if (pc) { pc.close(); pc = null; }
   if (stream) { for (const t of stream.getTracks()) t.stop(); stream = null; }
   $("join").disabled = false; $("leave").disabled = true;
