@@ -112,6 +112,19 @@ def test_a_browser_camera_is_tracked_and_streamed_rejoins_and_leaving_ends_only_
             while srv.service.manager.sessions["alice"].state != "ended":
                 assert time.monotonic() < deadline, srv.service.manager.sessions["alice"].state
                 time.sleep(0.1)
+            # joined again by hand, then removed by the operator: the page stays out
+            b.evaluate("document.getElementById('join').click()")
+            b.wait_for("window.articastJoin.status.startsWith('joined as alice')", timeout=280)
+            assert srv.client().delete("/api/sessions/alice").status_code in (200, 204)
+            b.wait_for("window.articastJoin.final.startsWith('session stopped')",
+                       timeout=6 * TIMEOUT)
+            # the page closes its side at once (left open, it fails ~30 s later, and a page
+            # that took that for a drop joined again: the operator's removal undone)
+            b.wait_for("window.articastJoin.connection === 'closed'", timeout=6 * TIMEOUT)
+            time.sleep(5)  # longer than the first rejoin's delay
+            page = json.loads(b.evaluate("JSON.stringify(window.articastJoin)"))
+            assert len(page["rejoined"]) == 1 and "alice" not in srv.service.manager.sessions, \
+                page
         assert srv.service.manager.sessions["bystander"].state == "running"
         deadline = time.monotonic() + TIMEOUT  # the bystander streams on
         while srv.service.manager.sessions["bystander"].metrics.frames <= bystander_frames:

@@ -86,7 +86,9 @@ function follow(name) { // the session's own tracked frames, as a subscriber
     } else if (m.type === "status") {
       if (m.state === "running") status(`joined as ${name}: your face is tracked`);
       else if (m.state === "ended" || m.state === "failed") dropped(`session ${m.state}: ${m.detail}`);
-      else if (["unavailable", "stalled", "restarting", "stopped"].includes(m.state))
+      else if (m.state === "stopped") { // its operator stopped it: stay out
+        status(`session stopped: ${m.detail}`, true); leave(true);
+      } else if (["unavailable", "stalled", "restarting"].includes(m.state))
         status(`session ${m.state}: ${m.detail}`, true);
       else status(`session ${m.state}: ${m.detail}`);
     } else if (m.type === "error") {
@@ -180,7 +182,7 @@ function leave(keepStatus) {
   joinedAs = "";
   if (rejoinTimer && keepStatus !== true) { clearTimeout(rejoinTimer); rejoinTimer = null; } // the button: stay out
   if (ws) { const w = ws; ws = null; w.onmessage = null; w.close(); }
-  if (pc) { pc.close(); pc = null; }
+  if (pc) { pc.close(); pc = null; state.connection = "closed"; $("connection").textContent = "closed"; }
   if (stream) { for (const t of stream.getTracks()) t.stop(); stream = null; }
   $("join").disabled = false; $("leave").disabled = true;
   if (keepStatus !== true) status("left");
