@@ -37,8 +37,8 @@ Voices across servers (``--hub redis://``): this process has a Redis connection 
 (:class:`RedisVoices`), so that 50 packets a second per voice go from the receiving peer's
 loop to Redis and from Redis to the slots without passing the server's busy loop or the
 pipe. While the room has members on other servers, each member's Opus packets here are
-published as they are forwarded (``PREFIX room:ROOM:audio:NAME``: a 12-byte header, the RTP
-timestamp and the wall-clock time of sending, then the packet), and the channel of each
+published as they are forwarded (``PREFIX room:ROOM:audio:NAME``: a 16-byte header, the RTP
+timestamp, the wall-clock time of sending and the microphone's level, then the packet), and the channel of each
 member on another server is read into a tap (:class:`RemoteVoice`) that the slots point at
 as at a local microphone. Redis away: the remote voices stop (two lines in the log, one
 more when it is back), nothing else does.
@@ -416,9 +416,10 @@ class _Media:
 
 
 # ----------------------------------------------------------------------------- voices via Redis
-HEADER = struct.Struct("!Id")
-"""A relayed packet's header: its RTP timestamp, and when its server published it (wall
-clock, seconds: the hop's delay is measured on the receiving server)."""
+HEADER = struct.Struct("!Idf")
+"""A relayed packet's header: its RTP timestamp, when its server published it (wall clock,
+seconds: the hop's delay is measured on the receiving server), and the microphone's level
+there (RMS of the last decoded frame: a remote member's page shows them speaking too)."""
 
 
 class _Bytes:
@@ -451,9 +452,10 @@ class RedisVoices:
     def topic(room: str, name: str) -> str:
         return f"room:{room}:audio:{name}"
 
-    def publish(self, room: str, name: str, payload: bytes, timestamp: int) -> int:
+    def publish(self, room: str, name: str, payload: bytes, timestamp: int,
+                level: float = 0.0) -> int:
         """One packet of ``name``'s voice to the room's other servers: its size in bytes."""
-        data = HEADER.pack(timestamp, time.time()) + payload
+        data = HEADER.pack(timestamp, time.time(), level) + payload
         self.hub.publish(self.topic(room, name), data)
         return len(data)
 
@@ -472,6 +474,8 @@ class RemoteVoice:
         self.name = name
         self.tap = Tap()
         self.packets = self.bytes = 0
+        self.level = 0.0
+        """The microphone's level as its server measured it (the last packet's)."""
         self.delays: list[float] = []
         """The hop's delays (s: publication on the member's server to reading here) since
         they were last logged."""
@@ -486,7 +490,7 @@ class RemoteVoice:
                 data = await self._sub.get()
                 if len(data) <= HEADER.size:
                     continue
-                timestamp, sent = HEADER.unpack_from(data)
+                timestamp, sent, self.level = HEADER.unpack_from(data)
                 self.packets += 1
                 self.bytes += len(data)
                 if len(self.delays) < 10_000:
@@ -748,7 +752,8 @@ class MediaRoom:
         if voices is not None:
             count = self.relayed.setdefault(name, [0, 0])
             count[0] += 1
-            count[1] += voices.publish(self.name, name, payload, timestamp)
+            count[1] += voices.publish(self.name, name, payload, timestamp,
+                                       self.levels.get(name, 0.0))
 
     def set_remote(self, names: list[str]) -> None:
         """The members on the room's other servers are ``names`` (from the server's reading
@@ -828,7 +833,11 @@ class MediaRoom:
         self.route()
 
     def publish(self) -> None:
-        self._publish({m.name: {"slots": {s.member: mid for s, mid in
-                                          zip(m.slots, m.mids, strict=True) if s.member},
-                                "level": round(self.levels.get(m.name, 0.0), 4)}
-                       for m in self.members.values()})
+        routes: dict[str, dict[str, Any]] = {
+            m.name: {"slots": {s.member: mid for s, mid in zip(m.slots, m.mids, strict=True)
+                               if s.member},
+                     "level": round(self.levels.get(m.name, 0.0), 4)}
+            for m in self.members.values()}
+        for n, v in self.remote.items():  # members on other servers: their level, no slots
+            routes.setdefault(n, {"slots": {}, "level": round(v.level, 4), "remote": True})
+        self._publish(routes)

@@ -496,7 +496,8 @@ class Room:
         # voice (a slot here, once this server's media process reads it) come through Redis
         rows += [{"name": n, "self": False, "slot": slot_of.get(n),
                   "delegate": bool(e.get("delegate")),
-                  "joined": e.get("joined", 0.0), "level": 0.0, "remote": True}
+                  "joined": e.get("joined", 0.0),
+                  "level": audio.get(n, {}).get("level", 0.0), "remote": True}
                  for n, e in self.remote.items() if n not in self.members]
         rows.sort(key=lambda r: (float(r["joined"] or 0.0), r["name"]))
         return dumps({"type": "members", "room": self.config.name, "you": member.name,

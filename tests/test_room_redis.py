@@ -277,6 +277,11 @@ def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_
                 heard = ear.since(t_slot)[-48000:]
                 freq, rms = spectrum_peak(heard)
                 assert abs(freq - TONE) <= 3.0 and rms > 0.05, (freq, rms)
+                # and bob's page on B sees her speaking: the level A measured on her
+                # microphone travels with her packets (silent bob's own reads 0)
+                m = await until(on_b, lambda m: names(m) is not None and "ann" in names(m)
+                                and names(m)["ann"]["level"] > 0.02, 3 * TIMEOUT)
+                assert names(m)["bob"]["level"] < 0.01, names(m)
                 assert hello["delegate_url"]  # (B's page asks B for it on this hello)
                 # her delegate, shared by A through Redis: B serves it to a participant (bob)
                 # as A serves it to her, byte for byte, never cached; nobody else gets it
