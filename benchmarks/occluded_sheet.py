@@ -2,7 +2,7 @@
 (``peers.py --grid DIR`` writes DIR/CLIP_occluded.jpg, every flagged frame with its fitted
 mesh), titled with the clip and how many rows it has in all.
 
-    python benchmarks/occluded_sheet.py RUN/final_grid RUN/final_grid_f -o docs/results/occluded.jpg
+    python benchmarks/occluded_sheet.py RUN/final_grid RUN/final_grid_f -o RUN/occluded.jpg
 """
 
 from __future__ import annotations
