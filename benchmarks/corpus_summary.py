@@ -153,17 +153,23 @@ def blink_rows(path: Path) -> tuple[list[str], dict]:
     """A ``benchmarks/blinks.py --json`` run: a markdown row per clip (articast's events,
     dlib's, precision and recall against dlib's events as they are and as confirmed by
     looking, ``blink_review.json``; each confirmed event's closure peak) and the pooled
-    precision and recall (events summed over the clips with a reference)."""
+    precision and recall (events summed over the clips with a reference); the open eyes'
+    closure (frames where dlib's eye-aspect ratio is over 0.9 of its open eye's: median and
+    95th percentile; the issue's bound for an open eye is 0.15) and how many confirmed blinks
+    peak at 0.8 or more (a shut eye's bound)."""
     rows = json.loads(path.read_text())
     out = ["| clip | half | articast events | dlib events | precision | recall | confirmed "
            "blinks | precision (confirmed) | recall (confirmed) | closure peak at the "
-           "confirmed blinks |", "|---|---|---|---|---|---|---|---|---|---|"]
+           "confirmed blinks | open eyes' closure: median / p95 |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     tot = dict.fromkeys(("ours", "hit_ours", "ref", "hit_ref", "ours_c", "hit_ours_c",
-                         "ref_c", "hit_ref_c"), 0)
+                         "ref_c", "hit_ref_c", "peaks", "peaks_shut", "open_clips",
+                         "open_p95_over"), 0)
     for r in rows:
         if "ref" not in r:
             out.append(f"| {r['clip']} | {half(r['clip'])} | {r.get('articast_events')} | "
-                       f"– | – | – | – | – | – | {r.get('reference') or r.get('error', '')} |")
+                       f"– | – | – | – | – | – | {r.get('reference') or r.get('error', '')} "
+                       f"| – |")
             continue
         ours, ref = [tuple(e) for e in r["ours"]], [tuple(e) for e in r["ref"]]
         ours_c, ref_c = confirmed(r["clip"], ours, ref)
@@ -171,6 +177,18 @@ def blink_rows(path: Path) -> tuple[list[str], dict]:
         peaks = [float(np.nanmax(cl[max(a - 2, 0):b + 2])) if len(cl) and
                  np.isfinite(cl[max(a - 2, 0):b + 2]).any() else float("nan")
                  for a, b in ref_c]
+        ear = np.array([np.nan if v is None else v for v in r.get("ear_ratio") or []])
+        n = min(len(cl), len(ear))
+        open_eye = cl[:n][(ear[:n] > 0.9) & np.isfinite(cl[:n])] if n else np.array([])
+        if len(open_eye):
+            med, p95 = np.median(open_eye), np.percentile(open_eye, 95)
+            open_cell = f"{med:.2f} / {p95:.2f}"
+            tot["open_clips"] += 1
+            tot["open_p95_over"] += int(p95 > 0.15)
+        else:
+            open_cell = "–"
+        tot["peaks"] += sum(np.isfinite(peaks))
+        tot["peaks_shut"] += sum(1 for x in peaks if x >= 0.8)
         got = {"ours": len(ours), "hit_ours": _matched(ours, ref), "ref": len(ref),
                "hit_ref": _matched(ref, ours), "ours_c": len(ours_c),
                "hit_ours_c": _matched(ours_c, ref_c), "ref_c": len(ref_c),
@@ -184,7 +202,7 @@ def blink_rows(path: Path) -> tuple[list[str], dict]:
         out.append(f"| {r['clip']} | {half(r['clip'])} | {len(ours)} | {len(ref)} | "
                    f"{ratio('hit_ours', 'ours')} | {ratio('hit_ref', 'ref')} | {len(ref_c)} | "
                    f"{ratio('hit_ours_c', 'ours_c')} | {ratio('hit_ref_c', 'ref_c')} | "
-                   f"{' '.join(f'{p:.2f}' for p in peaks)} |")
+                   f"{' '.join(f'{p:.2f}' for p in peaks)} | {open_cell} |")
 
     def pooled(a: str, b: str) -> float | None:
         return round(tot[a] / tot[b], 3) if tot[b] else None
@@ -193,7 +211,9 @@ def blink_rows(path: Path) -> tuple[list[str], dict]:
                  "articast_events": tot["ours"], "reference_events": tot["ref"],
                  "precision_confirmed": pooled("hit_ours_c", "ours_c"),
                  "recall_confirmed": pooled("hit_ref_c", "ref_c"),
-                 "confirmed_events": tot["ref_c"]}
+                 "confirmed_events": tot["ref_c"],
+                 "confirmed_peaks_at_least_0.8": f"{tot['peaks_shut']} of {tot['peaks']}",
+                 "open_eye_p95_over_0.15": f"{tot['open_p95_over']} of {tot['open_clips']} clips"}
 
 
 def main() -> None:
