@@ -32,13 +32,14 @@ articast[report]``), skipped with one line where it is missing.
 Sections, in the order they run (the first writes the peers' series the others score against):
 ``before`` / ``before_fetched`` (every method, the default before issue 38, ``--variant
 cadence_3``, on the shared and on the fetched clips), ``live`` / ``live_fetched`` (articast's
-default against the stored peers), ``offline`` / ``offline_nogap``, ``blinks`` /
+default against the stored peers), ``offline``, ``blinks`` /
 ``blinks_fetched``, ``cost`` (articast and the FaceMesh v1 loop interleaved), ``identity``
-(another person's speaker folder: ``identity_check.py``), then the older
-benchmarks of "Figures moved from the README": ``demo_start``, ``upper_synthetic``,
-``no_truth_path``, ``corpus_acceptance``, ``tracking_speed``, ``latency``, ``fanout``,
-``soak``, ``transfer_speed``, ``delegate_clips``, ``scan_binding``, ``scan_avatar_latency``
-(their JSON shown as printed: a key and value a row).
+(another person's speaker folder: ``identity_check.py``), then the first run
+(``demo_start``, ``fresh_install``), the synthetic speaker (``evaluate``, ``upper_synthetic``,
+``no_truth_path``, ``corpus_acceptance``, ``tracking_speed``), the service (``latency``,
+``fanout``, ``soak``, ``abuse_flood``), dense transfer (``transfer_speed``, ``scan_binding``,
+``scan_avatar_latency``) and the delegate (``delegate_clips``) (their JSON shown as printed:
+a key and value a row).
 """
 
 from __future__ import annotations
@@ -126,10 +127,6 @@ SECTIONS: tuple[Section, ...] = (
             _peers("{clips}", "--offline", "--methods", "articast", "--others",
                    "{run}/series", "--speakers", "{run}/speakers", "--cpu-repeats", "0"),
             "peers", ("clips", "series")),
-    Section("offline_nogap", "peers.py",
-            _peers("{clips}", "--offline", "--offline-gap", "0", "--methods", "articast",
-                   "--others", "{run}/series", "--speakers", "{run}/speakers",
-                   "--cpu-repeats", "0"), "peers", ("clips", "series")),
     Section("blinks", "blinks.py", ("--json", "--clips", "{clips}", "--speakers",
                                     "{run}/speakers", "--no-cost", "--grid",
                                     "{run}/blinks_grid"), "blinks", ("clips", "peers"),
@@ -174,7 +171,7 @@ BY_NAME = {s.name: s for s in SECTIONS}
 #: the runs stored before this script (issue 38's RUN folder, /work/bench), by section
 OLD_NAMES = {"live": "final5.json", "live_fetched": "final4_f.json",
              "blinks": "final4_blinks.json", "blinks_fetched": "final4_blinks_f.json",
-             "offline": "offline4.json", "offline_nogap": "offline4_nogap.json",
+             "offline": "offline4.json",
              "cost": "final5_cpu.json", "before": "base.json", "before_fetched": "base_f.json"}
 
 
