@@ -187,15 +187,36 @@ class PeerHooks:
         return False
 
 
+def bundles_everything(sdp: str) -> bool:
+    """Whether an SDP's BUNDLE group names every one of its m-lines' ``mid``."""
+    mids, group = [], None
+    for line in sdp.splitlines():
+        if line.startswith("a=mid:"):
+            mids.append(line[len("a=mid:"):].strip())
+        elif line.startswith("a=group:BUNDLE"):
+            group = set(line.split()[1:])
+    return group is not None and bool(mids) and set(mids) <= group
+
+
 async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> str:
     """Answer a participant's offer: returns the answer's SDP. Raises ValueError (one line)
     for an offer that cannot be answered. The video track's frames go to ``feed``; an audio
     track goes to ``hooks`` (a room relays it) or is received and dropped; the peer
     connection closing, failing or the video ending closes ``feed``."""
-    from aiortc import RTCPeerConnection, RTCSessionDescription
+    from aiortc import (
+        RTCBundlePolicy,
+        RTCConfiguration,
+        RTCPeerConnection,
+        RTCSessionDescription,
+    )
     from aiortc.mediastreams import MediaStreamError
 
-    pc = RTCPeerConnection()
+    # Every m-line on one transport when the offer bundles them all (browsers do). aiortc's
+    # default (balanced) gives each kind its own transport and, when the first m-line is not
+    # audio (a page without a microphone offers its camera, then its audio slots), puts the
+    # second slot on a transport the BUNDLE then discards: that slot never sent.
+    pc = RTCPeerConnection(RTCConfiguration(bundlePolicy=RTCBundlePolicy.MAX_BUNDLE)
+                           if bundles_everything(offer_sdp) else None)
     tasks: list[asyncio.Task[None]] = []
     loop = asyncio.get_running_loop()
 

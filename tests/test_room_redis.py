@@ -135,8 +135,12 @@ class Page:
     picture brightens and darkens (so the test processor's values move) and a microphone
     (silence, or a tone), with one receive-only audio slot."""
 
-    def __init__(self, http, name, token="", tone=None, pulse=None):
+    def __init__(self, http, name, token="", tone=None, pulse=None, camera_first=False,
+                 slots=1):
         self.http, self.name = http, name
+        self.camera_first, self.n_slots = camera_first, slots
+        """``camera_first``: a browser without a microphone offers its camera first (and no
+        microphone), then its ``slots``."""
         self.pc = None
         self.token = token
         """An enrolled name's token comes from the host (the room token cannot take it)."""
@@ -180,9 +184,13 @@ class Page:
             # transport the bundle then discards: that slot would never send.)
             self.pc = pc = RTCPeerConnection(RTCConfiguration(
                 bundlePolicy=RTCBundlePolicy.MAX_BUNDLE))
-            pc.addTrack(tone_track(self.tone, self.pulse) if self.tone else AudioStreamTrack())
+            if not self.camera_first:
+                pc.addTrack(tone_track(self.tone, self.pulse) if self.tone
+                            else AudioStreamTrack())
             pc.addTrack(Camera())
-            self.slot = pc.addTransceiver("audio", direction="recvonly")
+            self.slots = [pc.addTransceiver("audio", direction="recvonly")
+                          for _ in range(self.n_slots)]
+            self.slot = self.slots[0]
             await pc.setLocalDescription(await pc.createOffer())
             r = await c.post("/room/api/offer", json={"type": "offer",
                                                       "sdp": pc.localDescription.sdp},
@@ -540,3 +548,42 @@ def test_without_its_redis_an_offer_is_a_503_in_one_line_and_starts_nothing():
         assert "Redis cannot be reached" in r.json()["detail"] and "\n" not in r.text
         assert not srv.service.manager.sessions and srv.service.media is None
         assert not srv.service.room.members
+
+
+def test_a_page_that_offers_its_camera_first_hears_every_other_member(tmp_path):
+    """A browser without a microphone offers its camera first, then its receive-only audio
+    slots. Answered with aiortc's default (balanced) bundling, the second slot's m-line was
+    put on the first slot's transport, which the BUNDLE then discarded: that slot never sent,
+    and such a page heard one member only. Each slot must carry a voice: ann's 440 Hz and
+    carl's 660 Hz. (One server; the room's script needs its Redis.)"""
+    redis = Redis()
+    redis.start()
+    server = room_server(redis.url, tmp_path)
+    try:
+        url = base_url(server)
+        ann, carl = Page(url, "ann", tone=440.0), Page(url, "carl", tone=660.0)
+        bob = Page(url, "bob", camera_first=True, slots=2)
+
+        async def go():
+            await asyncio.gather(ann.join(), carl.join(), bob.join())
+            ears = [Ear(s.receiver.track) for s in bob.slots]
+            t = time.monotonic()
+            heard = {}
+            while len(heard) < 2 and time.monotonic() < t + 4 * TIMEOUT:
+                await asyncio.sleep(0.25)
+                for i, ear in enumerate(ears):
+                    pcm = ear.since(t)
+                    if len(pcm) >= 48000:
+                        freq, rms = spectrum_peak(pcm[-24000:])
+                        if rms > 0.05:
+                            heard[i] = round(freq)
+            for page in (ann, carl, bob):
+                await page.pc.close()
+            return heard, [len(e.since(t)) for e in ears]
+
+        heard, samples = asyncio.run(asyncio.wait_for(go(), 8 * TIMEOUT))
+        assert len(heard) == 2, f"bob's slots heard {heard} (samples per slot {samples})"
+        assert sorted(heard.values()) == [440, 660], heard
+    finally:
+        stop(server)
+        redis.stop()
