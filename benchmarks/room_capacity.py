@@ -70,7 +70,8 @@ def missing() -> str:
         try:
             __import__(mod)
         except ImportError as exc:
-            return f"benchmarks/room_capacity.py needs {mod} ({exc}): pip install 'articast[{extra}]'"
+            return (f"benchmarks/room_capacity.py needs {mod} ({exc}): "
+                    f"pip install 'articast[{extra}]'")
     return ""
 
 
@@ -201,8 +202,10 @@ class _Counter:
 class Client:
     """One participant, as the room page is to the server."""
 
-    def __init__(self, http: str, name: str, media: tuple[Any, Any], index: int) -> None:
+    def __init__(self, http: str, name: str, media: tuple[Any, Any], index: int,
+                 buffers: int = 0) -> None:
         self.http, self.name, self.media, self.index = http, name, media, index
+        self.buffers = buffers
         self.pc: Any = None
         self.token = ""
         self.ws: Any = None
@@ -259,6 +262,10 @@ class Client:
                              headers={"X-Participant-Token": self.token})
             r.raise_for_status()
             await pc.setRemoteDescription(RTCSessionDescription(r.json()["sdp"], "answer"))
+        if self.buffers:  # (a browser's are larger than the kernel's default)
+            from articast.service.webrtc import grow_receive_buffers
+
+            grow_receive_buffers(pc, self.buffers)
         for receiver in pc.getReceivers():  # the slots' audio: counted, never decoded
             attr = "_RTCRtpReceiver__decoder_queue"
             counter = _Counter(getattr(receiver, attr))
@@ -298,9 +305,18 @@ class Client:
 
 
 async def run_clients(http: str, names: list[str], clip: Path, seconds: float,
-                      warmup: float, timeout: float) -> dict[str, Any]:
+                      warmup: float, timeout: float, buffers: int = 0) -> dict[str, Any]:
     media = read_packets(clip)
-    clients = [Client(http, n, media, i) for i, n in enumerate(names)]
+    clients = [Client(http, n, media, i, buffers) for i, n in enumerate(names)]
+    late = [0.0]
+
+    async def lateness() -> None:  # how late this loop runs a 0.1 s timer (its worst)
+        while True:
+            t = time.monotonic()
+            await asyncio.sleep(0.1)
+            late[0] = max(late[0], time.monotonic() - t - 0.1)
+
+    watch = asyncio.ensure_future(lateness())
     say = lambda **kw: print(json.dumps(kw), flush=True)  # noqa: E731
     try:
         for c in clients:  # one after the other, as people join
@@ -317,25 +333,28 @@ async def run_clients(http: str, names: list[str], clip: Path, seconds: float,
             c.measuring, c.dropped = True, []
         packets0 = [sum(k.packets for k in c.counters) for c in clients]
         cpu0, t0 = time.process_time(), time.monotonic()
+        late[0] = 0.0
         say(phase="start", t=time.time())
         await asyncio.sleep(seconds)
         for c in clients:
             c.measuring = False
         wall, own = time.monotonic() - t0, time.process_time() - cpu0
         say(phase="end", t=time.time())
-        return {"wall": wall, "cpu_s": own,
+        return {"wall": wall, "cpu_s": own, "late_ms": round(1000 * late[0], 1),
                 "frames": {c.name: c.frames for c in clients},
                 "dropped": {c.name: c.dropped for c in clients},
                 "slot_packets_per_s": {c.name: (sum(k.packets for k in c.counters) - p0) / wall
                                        for c, p0 in zip(clients, packets0, strict=True)}}
     finally:
+        watch.cancel()
         for c in clients:
             await c.leave()
 
 
 def clients_main(args: argparse.Namespace) -> None:
     out = asyncio.run(run_clients(args.http, args.names.split(","), Path(args.clip),
-                                  args.seconds, args.warmup, args.timeout))
+                                  args.seconds, args.warmup, args.timeout,
+                                  args.client_buffers))
     print(json.dumps({"phase": "result", **out}), flush=True)
 
 
@@ -346,6 +365,31 @@ def proc_cpu_s(pid: int) -> float:
     except OSError:
         return float("nan")
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def udp_drops(pid: int) -> dict[str, int]:
+    """Datagrams the kernel dropped (receive buffer full) on each UDP socket process ``pid``
+    holds, by inode (``/proc/net/udp``'s ``drops``)."""
+    inodes = set()
+    with contextlib.suppress(OSError):
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            with contextlib.suppress(OSError):
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if link.startswith("socket:["):
+                    inodes.add(link[8:-1])
+    out = {}
+    for table in ("udp", "udp6"):
+        with contextlib.suppress(OSError):
+            for row in Path(f"/proc/{pid}/net/{table}").read_text().splitlines()[1:]:
+                cols = row.split()
+                if cols[9] in inodes:
+                    out[cols[9]] = int(cols[-1])
+    return out
+
+
+def drops_between(a: dict[str, int], b: dict[str, int]) -> int:
+    """Drops on the sockets open at both times (a closed socket's count is gone)."""
+    return sum(b[k] - a[k] for k in a.keys() & b.keys())
 
 
 def pct(xs: list[float], q: float) -> float | None:
@@ -363,13 +407,14 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
     names = [f"p{i}" for i in range(n)]
     config = ServiceConfig(access=AccessPolicy(token=OPERATOR), room=RoomConfig(
         name="cap", token=ROOM_TOKEN, max_participants=max(8, n), max_fps=float(FPS),
-        warm_media=True))
+        warm_media=True, processor=args.processor))
     load0 = os.getloadavg()
     with ServerThread(config) as srv:
         proc = subprocess.Popen(
             [sys.executable, __file__, "--clients", "--http", srv.http, "--names",
              ",".join(names), "--clip", str(clip), "--seconds", str(args.seconds),
-             "--warmup", str(args.warmup), "--timeout", str(args.timeout)],
+             "--warmup", str(args.warmup), "--timeout", str(args.timeout),
+             "--client-buffers", str(args.client_buffers)],
             stdout=subprocess.PIPE, text=True)
         try:
             room = srv.service.room
@@ -384,7 +429,12 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
                 if msg.get("phase") == "start":
                     pids = {m: sessions[m]._worker.process.pid for m in names}
                     media_pid = srv.service.media._proc.pid
+                    print(f"N={n}: measuring: server {os.getpid()}, media process {media_pid}"
+                          f", workers {pids}, clients {proc.pid}", file=sys.stderr, flush=True)
+                    srv.service.media.late_ms = 0.0
                     before = {"own": time.process_time(), "media": proc_cpu_s(media_pid),
+                              "udp_drops": udp_drops(media_pid),
+                              "client_udp_drops": udp_drops(proc.pid),
                               "workers": {m: proc_cpu_s(p) for m, p in pids.items()},
                               "tracked": {m: sessions[m].metrics.frames for m in names},
                               "received": {m: room.members[m].feed.received for m in names},
@@ -394,6 +444,9 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
                 elif msg.get("phase") == "end":
                     wall = time.monotonic() - before["t"]
                     after = {"own": time.process_time(), "media": proc_cpu_s(media_pid),
+                             "udp_drops": udp_drops(media_pid),
+                             "client_udp_drops": udp_drops(proc.pid),
+                             "late_ms": srv.service.media.late_ms,
                              "workers": {m: proc_cpu_s(p) for m, p in pids.items()},
                              "tracked": {m: sessions[m].metrics.frames if m in sessions else 0
                                          for m in names},
@@ -457,6 +510,11 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
         "tracked_ms": {"p50": pct(tracked_part, 50), "p95": pct(tracked_part, 95)},
         "rtp": {m: rtp_delta(m) for m in names},
         "dropped": {m: v for m, v in result["dropped"].items() if v},
+        "media_udp_drops": drops_between(before["udp_drops"], after["udp_drops"]),
+        "media_loop_late_ms": after["late_ms"],
+        "clients_udp_drops": drops_between(before["client_udp_drops"],
+                                           after["client_udp_drops"]),
+        "clients_loop_late_ms": result["late_ms"],
         "cpu_cores": {"server": round(own / wall, 3), "media_process": round(media / wall, 3),
                       "workers": {m: round(v / wall, 3) for m, v in workers.items()},
                       "workers_total": round(sum(workers.values()) / wall, 3),
@@ -493,7 +551,10 @@ def line(r: dict[str, Any], target: float) -> str:
             f"{min(r['tracked_fps'].values()):.1f}-{max(r['tracked_fps'].values()):.1f}, target "
             f"{target:g}: {'ok' if min(fps) >= target else 'SHORT'}), capture->client socket "
             f"p50 {r['latency_ms']['p50']} p95 {r['latency_ms']['p95']} ms, RTP lost {lost}/"
-            f"{got}, dropped {len(r['dropped'])}, cores: server {c['server']:.2f} media "
+            f"{got} (media's UDP buffers dropped {r['media_udp_drops']}, its loop late by up to "
+            f"{r['media_loop_late_ms']:.0f} ms; clients' {r['clients_udp_drops']}, "
+            f"{r['clients_loop_late_ms']:.0f} ms), dropped {len(r['dropped'])}, cores: server "
+            f"{c['server']:.2f} media "
             f"{c['media_process']:.2f} workers {c['workers_total']:.2f} clients "
             f"{c['clients']:.2f}; x v1 {min(r['cpu_x_v1'].values()):.2f}-"
             f"{max(r['cpu_x_v1'].values()):.2f}; load {r['load_1min'][0]}->{r['load_1min'][1]}")
@@ -508,8 +569,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--timeout", type=float, default=240.0,
                     help="for every client to receive every member's frames")
     ap.add_argument("--target", type=float, default=25.0)
+    ap.add_argument("--processor", default="auto",
+                    help="what tracks each member (auto: the tracker; "
+                    "tests.service_helpers:ImageStats reads the image only, to measure the "
+                    "media and the server without the trackers)")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/articast-room-capacity"),
                     help="where the encoded clip (and the v1 reference) are kept")
+    ap.add_argument("--client-buffers", type=int, default=2 * 1024 * 1024,
+                    help="each client's UDP receive buffer (bytes; 0: the kernel's default)")
     ap.add_argument("--json", action="store_true", help="one JSON object, nothing else")
     ap.add_argument("--out", type=Path, help="also write the JSON object there")
     ap.add_argument("--clients", action="store_true", help=argparse.SUPPRESS)

@@ -25,7 +25,10 @@ server -> media   ``("offer", id, name, sdp, room)``  answer a participant's off
 media -> server   ``("answer", id, sdp, problem, mids)``
                   ``("ended", id, reason)``           the participant left (or their video)
                   ``("stats", {id: (received, replaced, width, height, resized,
-                                    {kind: (RTP packets, lost)})})``  each second
+                                    {kind: (RTP packets, lost)})}, late_ms)``  each second
+                                                      (late_ms: how late this process's
+                                                      loop ran a 0.1 s timer, at most, over
+                                                      that second)
                   ``("room", room, {name: {"slots": {member: mid}, "level": rms}})``
 
 Frames never pass through the server: the media process writes each participant's newest
@@ -109,6 +112,9 @@ class MediaProcess:
         self._answers: dict[int, tuple[asyncio.AbstractEventLoop, asyncio.Future[Any],
                                        int]] = {}
         self.feeds: dict[int, RemoteFeed] = {}
+        self.late_ms = 0.0
+        """The most the media process's loop ran late (ms) since this was last set to 0: a
+        loop held longer than its sockets' buffers last loses packets (docs/ROOM.md)."""
         self.rooms: dict[str, dict[str, dict[str, Any]]] = {}
         """Room -> member -> ``{"slots": {other member: mid}, "level": rms}`` (the media
         process routes the audio; this is what it said last)."""
@@ -198,6 +204,8 @@ class MediaProcess:
                 if feed is not None and not feed.ended:
                     feed.ended = msg[2]
             elif kind == "stats":
+                if len(msg) > 2:
+                    self.late_ms = max(self.late_ms, float(msg[2]))
                 for pid, (received, dropped, width, height, resized, rtp) in msg[1].items():
                     feed = self.feeds.get(pid)
                     if feed is not None:
@@ -279,6 +287,8 @@ class _Media:
         self.peers: dict[int, _Peer] = {}
         self.rooms: dict[str, Any] = {}
         self.closed_early: dict[int, str] = {}
+        self.late = 0.0
+        """The most this loop ran late since the last stats (s)."""
         self.loop: asyncio.AbstractEventLoop | None = None
         self.done: asyncio.Event | None = None
 
@@ -396,19 +406,33 @@ class _Media:
             ended(feed.ended)
         self.send(("answer", pid, answer, "", hooks.mids if hooks is not None else []))
 
+    async def _lateness(self) -> None:
+        """How late this loop runs a 0.1 s timer (its worst, each second, in the stats)."""
+        while True:
+            t0 = time.monotonic()
+            await asyncio.sleep(0.1)
+            self.late = max(self.late, time.monotonic() - t0 - 0.1)
+
     async def _report(self) -> None:
         from articast.service.webrtc import count_rtp
 
         tick = 0
+        self.late = 0.0
+        lateness = asyncio.ensure_future(self._lateness())
         while True:
-            await asyncio.sleep(1.0)
+            try:
+                await asyncio.sleep(1.0)
+            except asyncio.CancelledError:
+                lateness.cancel()
+                raise
             tick += 1
             if tick % 5 == 0:
                 for p in list(self.peers.values()):
                     await count_rtp(p.feed)
             self.send(("stats", {pid: (p.feed.received, p.feed.dropped, *p.feed.size,
                                        p.feed.resized, p.feed.rtp)
-                                 for pid, p in self.peers.items()}))
+                                 for pid, p in self.peers.items()}, round(1000 * self.late, 1)))
+            self.late = 0.0
             for room in self.rooms.values():
                 room.publish()
                 if tick % 10 == 0:
