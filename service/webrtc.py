@@ -28,10 +28,11 @@ log = logging.getLogger("articast.webrtc")
 
 RECEIVE_BUFFER = 2 * 1024 * 1024
 """Bytes asked for each peer connection's UDP receive buffer (``SO_RCVBUF``; Linux grants
-twice that, up to ``net.core.rmem_max``). The default (~208 kB here, ~90 datagrams of
-video) holds half a second of one participant's camera: a media loop held that long by a
-busy machine, or a browser's burst (a keyframe), lost packets there, the VP8 decoder then
-failed until the next keyframe and consent checks went unanswered (docs/ROOM.md)."""
+twice that, up to twice ``net.core.rmem_max``). aioice asks 256 kB (granted 512 kB: ~220
+datagrams at ~2.3 kB of kernel memory each, about a second of one participant's camera and
+microphone): a media loop held longer by a busy machine, or a sender's burst after a stall,
+lost packets there, the VP8 decoder then failed until the next keyframe and consent checks
+went unanswered (docs/ROOM.md, "Capacity")."""
 
 MAX_SDP_CHARS = 60000
 """An offer of one video and one audio track is 3-8 kB; far larger is not an offer."""

@@ -187,3 +187,46 @@ def test_the_media_process_log_says_when_a_browser_stopped_answering_consent_che
     assert not keep.filter(chatter)
     assert keep.filter(expired) and expired.levelname == "WARNING"
     assert keep.filter(problem)
+
+
+def test_a_participants_udp_sockets_ask_for_large_receive_buffers():
+    """aioice's UDP receive buffer (512 kB granted) holds about a second of one camera: a
+    media loop held longer by a busy machine (or a sender's burst after a stall) lost
+    packets, the VP8 decoder failed until the next keyframe and consent checks went unanswered
+    (docs/ROOM.md, benchmarks/room_capacity.py). Each peer's sockets ask for RECEIVE_BUFFER;
+    Linux grants twice the request, up to twice net.core.rmem_max."""
+    import socket
+    from pathlib import Path
+
+    from articast.service import webrtc
+
+    rmem_max = Path("/proc/sys/net/core/rmem_max")
+    if not rmem_max.exists():
+        pytest.skip("the granted size is Linux's rule")
+    default = 2 * 262144  # aioice's own request (aioice.turn.UDP_SOCKET_BUFFER_SIZE), granted
+    expected = 2 * min(webrtc.RECEIVE_BUFFER, int(rmem_max.read_text()))
+    if expected <= default:
+        pytest.skip(f"net.core.rmem_max allows no more than the default ({default} bytes)")
+
+    async def answer_one():
+        from aiortc import RTCPeerConnection
+        from aiortc.mediastreams import VideoStreamTrack
+
+        client = RTCPeerConnection()
+        client.addTrack(VideoStreamTrack())
+        await client.setLocalDescription(await client.createOffer())
+        feed = webrtc.Feed("buffers")
+        try:
+            await webrtc.answer(client.localDescription.sdp, feed)
+            sockets = webrtc.udp_sockets(feed.peer)
+            return [s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) for s in sockets]
+        finally:
+            peer = feed.peer
+            feed.close("the test is over")
+            if peer is not None:
+                await peer.close()
+            await client.close()
+
+    sizes = asyncio.run(answer_one())
+    assert sizes, "no UDP socket found on the peer connection (aiortc's internals moved?)"
+    assert min(sizes) >= expected > default, sizes
