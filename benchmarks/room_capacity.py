@@ -182,6 +182,41 @@ def _looped_track(kind: str, packets: list[bytes], period: float, step: int, clo
     return Looped()
 
 
+def udp_sockets(pc: Any) -> list[Any]:
+    """The UDP sockets a peer connection's ICE gathered (aiortc 1.16, aioice: none found
+    in another version)."""
+    out, seen = [], set()
+    for t in pc.getTransceivers():
+        try:
+            connection = t.receiver.transport.transport.iceGatherer._connection
+            protocols = list(connection._protocols)
+        except AttributeError:
+            continue
+        for p in protocols:
+            transport = getattr(p, "transport", None)
+            sock = transport.get_extra_info("socket") if transport is not None else None
+            if sock is not None and sock.fileno() not in seen:
+                seen.add(sock.fileno())
+                out.append(sock)
+    return out
+
+
+def grow_receive_buffers(pc: Any, size: int) -> list[int]:
+    """Each of the peer's UDP sockets asks for ``size`` bytes of receive buffer (Linux grants
+    twice that, up to twice ``net.core.rmem_max``): the sizes granted."""
+    import socket
+
+    granted = []
+    for sock in udp_sockets(pc):
+        try:
+            if sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) < size:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+            granted.append(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+        except OSError as exc:  # (a socket closing meanwhile): the default then
+            print(f"SO_RCVBUF: {exc!r}", file=sys.stderr)
+    return granted
+
+
 class _Counter:
     """In place of a receiver's queue to its decoder: packets counted, not decoded (the end,
     None, still reaches the decoder thread so that it stops)."""
@@ -262,9 +297,7 @@ class Client:
                              headers={"X-Participant-Token": self.token})
             r.raise_for_status()
             await pc.setRemoteDescription(RTCSessionDescription(r.json()["sdp"], "answer"))
-        if self.buffers:  # (a browser's are larger than the kernel's default)
-            from articast.service.webrtc import grow_receive_buffers
-
+        if self.buffers:  # (this process is busy too: its sockets hold more)
             grow_receive_buffers(pc, self.buffers)
         for receiver in pc.getReceivers():  # the slots' audio: counted, never decoded
             attr = "_RTCRtpReceiver__decoder_queue"

@@ -113,8 +113,9 @@ class MediaProcess:
                                        int]] = {}
         self.feeds: dict[int, RemoteFeed] = {}
         self.late_ms = 0.0
-        """The most the media process's loop ran late (ms) since this was last set to 0: a
-        loop held longer than its sockets' buffers last loses packets (docs/ROOM.md)."""
+        """The most the media process's loop ran late (ms) since this was last set to 0
+        (benchmarks/room_capacity.py reads it: a slow loop loses RTP packets, docs/ROOM.md,
+        "Capacity")."""
         self.rooms: dict[str, dict[str, dict[str, Any]]] = {}
         """Room -> member -> ``{"slots": {other member: mid}, "level": rms}`` (the media
         process routes the audio; this is what it said last)."""

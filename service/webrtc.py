@@ -26,14 +26,6 @@ from typing import Any
 
 log = logging.getLogger("articast.webrtc")
 
-RECEIVE_BUFFER = 2 * 1024 * 1024
-"""Bytes asked for each peer connection's UDP receive buffer (``SO_RCVBUF``; Linux grants
-twice that, up to twice ``net.core.rmem_max``). aioice asks 256 kB (granted 512 kB: ~220
-datagrams at ~2.3 kB of kernel memory each, about a second of one participant's camera and
-microphone): a media loop held longer by a busy machine, or a sender's burst after a stall,
-lost packets there, the VP8 decoder then failed until the next keyframe and consent checks
-went unanswered (docs/ROOM.md, "Capacity")."""
-
 MAX_SDP_CHARS = 60000
 """An offer of one video and one audio track is 3-8 kB; far larger is not an offer."""
 
@@ -273,43 +265,7 @@ async def answer(offer_sdp: str, feed: Feed, hooks: PeerHooks | None = None) -> 
         raise ValueError(problem)
     feed.on_close = close_peer
     feed.peer = pc
-    grow_receive_buffers(pc)
     return pc.localDescription.sdp
-
-
-def udp_sockets(pc: Any) -> list[Any]:
-    """The UDP sockets a peer connection's ICE gathered (aiortc 1.16, aioice: none found
-    in another version)."""
-    out, seen = [], set()
-    for t in pc.getTransceivers():
-        try:
-            connection = t.receiver.transport.transport.iceGatherer._connection
-            protocols = list(connection._protocols)
-        except AttributeError:
-            continue
-        for p in protocols:
-            transport = getattr(p, "transport", None)
-            sock = transport.get_extra_info("socket") if transport is not None else None
-            if sock is not None and sock.fileno() not in seen:
-                seen.add(sock.fileno())
-                out.append(sock)
-    return out
-
-
-def grow_receive_buffers(pc: Any, size: int = RECEIVE_BUFFER) -> list[int]:
-    """Each of the peer's UDP sockets asks for ``size`` bytes of receive buffer
-    (:data:`RECEIVE_BUFFER`): the sizes granted."""
-    import socket
-
-    granted = []
-    for sock in udp_sockets(pc):
-        try:
-            if sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF) < size:
-                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
-            granted.append(sock.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
-        except OSError as exc:  # (a socket closing meanwhile): the default then
-            log.debug("participant %s: SO_RCVBUF: %r", getattr(pc, "name", "?"), exc)
-    return granted
 
 
 async def count_rtp(feed: Feed) -> None:
