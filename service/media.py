@@ -266,10 +266,57 @@ def _process_main(conn: Any, level: int, redis_url: str = "", prefix: str = "") 
     ice.setLevel(min(level, logging.INFO))
     ice.addFilter(_ConsentExpiry())
     logging.getLogger("aiortc").setLevel(max(level, logging.WARNING))
+    batch_datagram_reads()
     try:
         asyncio.run(_Media(conn, redis_url, prefix).main())
     except KeyboardInterrupt:  # the server's Ctrl-C reaches its children too
         pass
+
+
+DATAGRAM_BATCH = 64
+"""Datagrams a socket's readiness reads at most (libuv reads 32)."""
+
+
+def batch_datagram_reads(batch: int = DATAGRAM_BATCH) -> Any:
+    """asyncio's datagram transports read up to ``batch`` datagrams when their socket is
+    ready, not one: the media process's (the call is its own; the server's loop is uvicorn's).
+
+    asyncio reads one datagram per socket per turn of the loop, and a turn of the media
+    process's loop runs every ready task of every participant (their RTP, the audio slots,
+    the decoders' frames): with 4 participants on this machine, a turn every few ms took
+    fewer datagrams a second from each socket than its camera and microphone sent, and its
+    buffer (aioice's 512 kB) overflowed while the loop was never more than 90 ms late (2017
+    datagrams dropped in 30 s; the VP8 decoder then fails until the next keyframe;
+    benchmarks/room_capacity.py, docs/ROOM.md "Capacity"). Returns the method replaced (a test
+    puts it back)."""
+    from asyncio import selector_events
+
+    cls: Any = selector_events._SelectorDatagramTransport
+    original = cls._read_ready
+    if getattr(original, "batched", False):
+        return original
+
+    def _read_ready(self: Any) -> None:  # asyncio's own, looped (Python 3.11-3.13)
+        for _ in range(batch):
+            if self._conn_lost:
+                return
+            try:
+                data, addr = self._sock.recvfrom(self.max_size)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                self._protocol.error_received(exc)
+                return
+            except (SystemExit, KeyboardInterrupt):
+                raise
+            except BaseException as exc:  # noqa: BLE001 - as asyncio's
+                self._fatal_error(exc, "Fatal read error on datagram transport")
+                return
+            self._protocol.datagram_received(data, addr)
+
+    _read_ready.batched = True  # type: ignore[attr-defined]
+    cls._read_ready = _read_ready
+    return original
 
 
 class _Peer:
