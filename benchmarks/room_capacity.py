@@ -395,7 +395,7 @@ def clients_main(args: argparse.Namespace) -> None:
 def proc_cpu_s(pid: int) -> float:
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
+    except OSError:  # (it ended: a member who dropped)
         return float("nan")
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
@@ -518,8 +518,11 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
     media = after["media"] - before["media"]
     own = after["own"] - before["own"]
     workers = {m: after["workers"][m] - before["workers"][m] for m in names}
+    ended = sorted(m for m, v in workers.items() if v != v)  # their worker is gone: NaN
+    workers = {m: (0.0 if m in ended else v) for m, v in workers.items()}
     tracked = {m: after["tracked"][m] - before["tracked"][m] for m in names}
-    per = {m: 1000 * (workers[m] + (own + media) / n) / max(tracked[m], 1) for m in names}
+    per = {m: 1000 * (workers[m] + (own + media) / n) / max(tracked[m], 1) for m in names
+           if m not in ended}
 
     def rtp_delta(m: str) -> dict[str, list[int]]:
         out = {}
@@ -532,6 +535,7 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
         "participants": n, "seconds": round(wall, 1), "cores": os.cpu_count(),
         "load_1min": [round(load0[0], 2), round(load1[0], 2)],
         "all_alive": alive,
+        "workers_ended": ended,
         "delivered_fps": delivered,
         "tracked_fps": {m: round(tracked[m] / wall, 1) for m in names},
         "received_fps": {m: round((after["received"][m] - before["received"][m]) / wall, 1)
@@ -580,6 +584,10 @@ def line(r: dict[str, Any], target: float) -> str:
     lost = sum(v[1] for m in r["rtp"].values() for v in m.values())
     got = sum(v[0] for m in r["rtp"].values() for v in m.values())
     c = r["cpu_cores"]
+    x = r["cpu_x_v1"].values()
+    xv1 = f"; x v1 {min(x):.2f}-{max(x):.2f}" if x else ""
+    if r["workers_ended"]:
+        xv1 += f" (workers ended: {','.join(r['workers_ended'])})"
     return (f"N={n}: delivered {min(fps):.1f}-{max(fps):.1f} fps (tracked "
             f"{min(r['tracked_fps'].values()):.1f}-{max(r['tracked_fps'].values()):.1f}, target "
             f"{target:g}: {'ok' if min(fps) >= target else 'SHORT'}), capture->client socket "
@@ -589,8 +597,7 @@ def line(r: dict[str, Any], target: float) -> str:
             f"{r['clients_loop_late_ms']:.0f} ms), dropped {len(r['dropped'])}, cores: server "
             f"{c['server']:.2f} media "
             f"{c['media_process']:.2f} workers {c['workers_total']:.2f} clients "
-            f"{c['clients']:.2f}; x v1 {min(r['cpu_x_v1'].values()):.2f}-"
-            f"{max(r['cpu_x_v1'].values()):.2f}; load {r['load_1min'][0]}->{r['load_1min'][1]}")
+            f"{c['clients']:.2f}{xv1}; load {r['load_1min'][0]}->{r['load_1min'][1]}")
 
 
 def main(argv: list[str] | None = None) -> None:
