@@ -19,7 +19,8 @@ room socket ``/room/ws?key=``), but costs almost nothing:
 
 The server runs in this process (a fresh one per N, its trackers real: the synthetic
 speaker's assets), the N clients in one child process (so their CPU is not the server's).
-After the warm-up (every client receives frames of every member), for ``--seconds``:
+After the warm-up (every client receives frames of every member, or ``--timeout`` passed:
+then ``before_measuring`` says who was short), for ``--seconds``:
 
 - ``delivered_fps``: per member, the frames of theirs a client received a second (the median
   over the other clients; with one participant, their own page);
@@ -27,7 +28,14 @@ After the warm-up (every client receives frames of every member), for ``--second
   socket** (not a rendered screen: a page adds its drawing and its wait for the voice),
   p50/p95 over every pair, and its part up to the tracker's result (``tracked_ms``);
 - ``rtp``: video and audio RTP packets the server's receivers counted and lost, per
-  participant, and connections that dropped (a closed room socket, a failed peer);
+  participant (read every 5 s: approximate), and connections that dropped (a closed room
+  socket, a failed peer; ``workers_ended``: members whose worker was gone by the end);
+- ``media_udp_drops`` / ``clients_udp_drops``: datagrams the kernel dropped on the media
+  process's / the clients' UDP sockets (``/proc/net/udp``, the sockets open at both ends),
+  and ``media_loop_late_ms`` / ``clients_loop_late_ms``: how late each loop ran a 0.1 s timer
+  at worst; ``received_fps`` / ``replaced_fps``: video frames the media process decoded, and
+  those replaced before a worker took them; ``slot_packets_per_s``: the voices each client
+  received;
 - CPU in cores (``/proc``): this process (the server's loop and its sockets), the media
   process (WebRTC, VP8 decoding, the audio relay), each worker (the tracker), the clients;
 - ``cpu_x_v1``: per participant, CPU per tracked frame (their worker, plus 1/N of the server
@@ -35,6 +43,9 @@ After the warm-up (every client receives frames of every member), for ``--second
   ``v1_loop_cpu_ms``, one thread, the same clip's frames);
 - ``capacity``: the largest N at which every member is delivered at >= ``--target`` fps
   (25, or the clip's rate if lower).
+
+The load (``load_1min``, start and end) includes this benchmark's own processes. Results and
+what they mean: docs/ROOM.md, "Capacity with light clients".
 """
 
 from __future__ import annotations
