@@ -25,7 +25,10 @@ server -> media   ``("offer", id, name, sdp, room)``  answer a participant's off
 media -> server   ``("answer", id, sdp, problem, mids)``
                   ``("ended", id, reason)``           the participant left (or their video)
                   ``("stats", {id: (received, replaced, width, height, resized,
-                                    {kind: (RTP packets, lost)})})``  each second
+                                    {kind: (RTP packets, lost)})}, late_ms)``  each second
+                                                      (late_ms: how late this process's
+                                                      loop ran a 0.1 s timer, at most, over
+                                                      that second)
                   ``("room", room, {name: {"slots": {member: mid}, "level": rms}})``
 
 Frames never pass through the server: the media process writes each participant's newest
@@ -109,6 +112,10 @@ class MediaProcess:
         self._answers: dict[int, tuple[asyncio.AbstractEventLoop, asyncio.Future[Any],
                                        int]] = {}
         self.feeds: dict[int, RemoteFeed] = {}
+        self.late_ms = 0.0
+        """The most the media process's loop ran late (ms) since this was last set to 0
+        (benchmarks/room_capacity.py reads it: a slow loop loses RTP packets, docs/ROOM.md,
+        "Capacity")."""
         self.rooms: dict[str, dict[str, dict[str, Any]]] = {}
         """Room -> member -> ``{"slots": {other member: mid}, "level": rms}`` (the media
         process routes the audio; this is what it said last)."""
@@ -198,6 +205,8 @@ class MediaProcess:
                 if feed is not None and not feed.ended:
                     feed.ended = msg[2]
             elif kind == "stats":
+                if len(msg) > 2:
+                    self.late_ms = max(self.late_ms, float(msg[2]))
                 for pid, (received, dropped, width, height, resized, rtp) in msg[1].items():
                     feed = self.feeds.get(pid)
                     if feed is not None:
@@ -257,10 +266,57 @@ def _process_main(conn: Any, level: int, redis_url: str = "", prefix: str = "") 
     ice.setLevel(min(level, logging.INFO))
     ice.addFilter(_ConsentExpiry())
     logging.getLogger("aiortc").setLevel(max(level, logging.WARNING))
+    batch_datagram_reads()
     try:
         asyncio.run(_Media(conn, redis_url, prefix).main())
     except KeyboardInterrupt:  # the server's Ctrl-C reaches its children too
         pass
+
+
+DATAGRAM_BATCH = 64
+"""Datagrams a socket's readiness reads at most (libuv reads 32)."""
+
+
+def batch_datagram_reads(batch: int = DATAGRAM_BATCH) -> Any:
+    """asyncio's datagram transports read up to ``batch`` datagrams when their socket is
+    ready, not one: the media process's (the call is its own; the server's loop is uvicorn's).
+
+    asyncio reads one datagram per socket per turn of the loop, and a turn of the media
+    process's loop runs every ready task of every participant (their RTP, the audio slots,
+    the decoders' frames): with 4 participants on this machine, a turn every few ms took
+    fewer datagrams a second from each socket than its camera and microphone sent, and its
+    buffer (aioice's 512 kB) overflowed while the loop was never more than 90 ms late (2017
+    datagrams dropped in 30 s; the VP8 decoder then fails until the next keyframe;
+    benchmarks/room_capacity.py, docs/ROOM.md "Capacity"). Returns the method replaced (a test
+    puts it back)."""
+    from asyncio import selector_events
+
+    cls: Any = selector_events._SelectorDatagramTransport
+    original = cls._read_ready
+    if getattr(original, "batched", False):
+        return original
+
+    def _read_ready(self: Any) -> None:  # asyncio's own, looped (Python 3.11-3.13)
+        for _ in range(batch):
+            if self._conn_lost:
+                return
+            try:
+                data, addr = self._sock.recvfrom(self.max_size)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                self._protocol.error_received(exc)
+                return
+            except (SystemExit, KeyboardInterrupt):
+                raise
+            except BaseException as exc:  # noqa: BLE001 - as asyncio's
+                self._fatal_error(exc, "Fatal read error on datagram transport")
+                return
+            self._protocol.datagram_received(data, addr)
+
+    _read_ready.batched = True  # type: ignore[attr-defined]
+    cls._read_ready = _read_ready
+    return original
 
 
 class _Peer:
@@ -279,6 +335,8 @@ class _Media:
         self.peers: dict[int, _Peer] = {}
         self.rooms: dict[str, Any] = {}
         self.closed_early: dict[int, str] = {}
+        self.late = 0.0
+        """The most this loop ran late since the last stats (s)."""
         self.loop: asyncio.AbstractEventLoop | None = None
         self.done: asyncio.Event | None = None
 
@@ -396,19 +454,33 @@ class _Media:
             ended(feed.ended)
         self.send(("answer", pid, answer, "", hooks.mids if hooks is not None else []))
 
+    async def _lateness(self) -> None:
+        """How late this loop runs a 0.1 s timer (its worst, each second, in the stats)."""
+        while True:
+            t0 = time.monotonic()
+            await asyncio.sleep(0.1)
+            self.late = max(self.late, time.monotonic() - t0 - 0.1)
+
     async def _report(self) -> None:
         from articast.service.webrtc import count_rtp
 
         tick = 0
+        self.late = 0.0
+        lateness = asyncio.ensure_future(self._lateness())
         while True:
-            await asyncio.sleep(1.0)
+            try:
+                await asyncio.sleep(1.0)
+            except asyncio.CancelledError:
+                lateness.cancel()
+                raise
             tick += 1
             if tick % 5 == 0:
                 for p in list(self.peers.values()):
                     await count_rtp(p.feed)
             self.send(("stats", {pid: (p.feed.received, p.feed.dropped, *p.feed.size,
                                        p.feed.resized, p.feed.rtp)
-                                 for pid, p in self.peers.items()}))
+                                 for pid, p in self.peers.items()}, round(1000 * self.late, 1)))
+            self.late = 0.0
             for room in self.rooms.values():
                 room.publish()
                 if tick % 10 == 0:
