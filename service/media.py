@@ -41,9 +41,9 @@ Voices across servers (``--hub redis://``): this process has a Redis connection 
 loop to Redis and from Redis to the slots without passing the server's busy loop or the
 pipe. While the room has members on other servers, each member's Opus packets here are
 published as they are forwarded (``PREFIX room:ROOM:audio:NAME``: a 16-byte header, the RTP
-timestamp, the wall-clock time of sending and the microphone's level, then the packet), and the channel of each
-member on another server is read into a tap (:class:`RemoteVoice`) that the slots point at
-as at a local microphone. Redis away: the remote voices stop (two lines in the log, one
+timestamp, the wall-clock time of sending and the microphone's level, then the packet), and
+the channel of each member on another server is read into a tap (:class:`RemoteVoice`) that
+the slots point at as at a local microphone. Redis away: the remote voices stop (two lines in the log, one
 more when it is back), nothing else does.
 """
 
@@ -53,6 +53,7 @@ import asyncio
 import logging
 import multiprocessing
 import struct
+import sys
 import threading
 import time
 from multiprocessing import reduction
@@ -291,8 +292,13 @@ def batch_datagram_reads(batch: int = DATAGRAM_BATCH) -> Any:
     puts it back)."""
     from asyncio import selector_events
 
-    cls: Any = selector_events._SelectorDatagramTransport
-    original = cls._read_ready
+    cls: Any = getattr(selector_events, "_SelectorDatagramTransport", None)
+    original = getattr(cls, "_read_ready", None)
+    if original is None or not sys.version_info[:2] <= (3, 13):
+        # asyncio's internals moved (a Python this was not read for): reads stay one a turn
+        log.warning("the media process reads datagrams one at a time (asyncio's datagram "
+                    "transport is not the one batch_datagram_reads knows)")
+        return original
     if getattr(original, "batched", False):
         return original
 
