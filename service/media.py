@@ -43,8 +43,8 @@ pipe. While the room has members on other servers, each member's Opus packets he
 published as they are forwarded (``PREFIX room:ROOM:audio:NAME``: a 16-byte header, the RTP
 timestamp, the wall-clock time of sending and the microphone's level, then the packet), and
 the channel of each member on another server is read into a tap (:class:`RemoteVoice`) that
-the slots point at as at a local microphone. Redis away: the remote voices stop (two lines in the log, one
-more when it is back), nothing else does.
+the slots point at as at a local microphone. Redis away: the remote voices stop (two lines
+in the log, one more when it is back), nothing else does.
 """
 
 from __future__ import annotations
