@@ -969,7 +969,8 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
     spies = KernelSpies()
     for name in ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system",
                  "lm_solve", "point_offset", "cv_predict", "cv_update", "lip_gap",
-                 "reading_features"):
+                 "reading_features", "lids_read", "iris_chords", "iris_former_rows",
+                 "iris_circle_height", "opening_centres", "dark_height", "brow_half"):
         monkeypatch.setattr(kernels, name, spies.wrap(name, getattr(kernels, name)))
     kernels.warm_up()
     warmed = spies.take()

@@ -839,3 +839,59 @@ def test_compiled_pairwise_sum_is_numpys_up_to_the_widest_eye_crop():
             assert kernels._pairwise_sum(a, 0, n) == a.sum(), (dtype, n)
     a = rng.random(200).astype(np.float32)
     assert kernels._pairwise_sum(a, 0, 200) != np.float32(sum(a.tolist()))  # not in order
+
+
+def test_compiled_eye_measures_are_numpys_to_the_bit():
+    """kernels.iris_circle_height, opening_centres, dark_height and brow_half (the iris
+    circle's height search, the eye opening's centres, the iris height of a lid strip and a
+    brow half's darkest band, each in one compiled call) give their numpy references to the
+    bit: on noisy smoothed strips (column slices, as the callers pass them), openings of one
+    and two stacked fractions, chords of circles with noise; their None cases alike."""
+    from articast.core.faces import brows as B
+    from articast.core.faces import iris as I
+    from articast.core.faces import lids as L
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(5)
+    n_found = n_none = 0
+    for trial in range(300):
+        h, w = int(rng.integers(3, 30)), int(rng.integers(6, 90))
+        img = rng.uniform(0, 255, (h, w + 4)).astype(np.float32)
+        if trial % 3:
+            img = cv2.GaussianBlur(img, (1, 0), sigmaX=0.1, sigmaY=float(rng.uniform(0.5, 3)))
+        if trial % 7 == 0:
+            img[:] = img[0]  # flat columns: the minimum on the edge
+        strip = img[:, 2:2 + w]  # a view, as the callers' slices
+        skin, iris = float(rng.uniform(100, 200)), float(rng.uniform(10, 90))
+        assert float(kernels.dark_height(strip, skin, iris)) == L._dark_height_numpy(
+            strip, skin, iris)
+        top, scale = float(rng.uniform(5, 30)), float(rng.uniform(1, 6))
+        found, at = kernels.brow_half(strip, top, scale)
+        want = B._brow_half_numpy(strip, np.float64(top), scale)
+        assert (float(at) if found else None) == want
+        n_found += want is not None
+        n_none += want is None
+        # the eye opening: an ellipse of white with soft edges, one or two stacked
+        yy, xx = np.mgrid[0:h, 0:w]
+        fr = [np.clip(1.5 - ((xx - rng.uniform(0, w)) / rng.uniform(2, w)) ** 2
+                      - ((yy - rng.uniform(0, h)) / rng.uniform(1, h)) ** 2
+                      + rng.normal(0, 0.2, (h, w)), 0.0, 1.0).astype(np.float32)
+              for _ in range(1 + trial % 2)]
+        frac = np.concatenate(fr, axis=0) if len(fr) > 1 else fr[0]
+        got = [(float(x), float(y)) if f else None
+               for x, y, f in kernels.opening_centres(np.ascontiguousarray(frac), len(fr))]
+        assert got == I._opening_centres_numpy(fr[0].shape, frac, len(fr))
+        # the iris circle's height: chords of a circle with noise
+        r = float(rng.uniform(1.5, 12))
+        ys = np.flatnonzero(rng.random(h + 10) < 0.7).astype(np.float64)
+        if ys.size < 3:
+            continue
+        c0 = float(rng.uniform(ys[0], ys[-1]))
+        wk = (2 * np.sqrt(np.clip(r * r - (ys - c0) ** 2, 0, None))
+              + rng.normal(0, 0.5, ys.size)).astype(np.float32)
+        for cys in (np.arange(ys[0] - r, ys[-1] + r, 0.5), c0 + I._FINE):
+            assert float(kernels.iris_circle_height(ys, wk, r, cys)) == I._circle_height(
+                ys, wk, r, cys)
+    assert n_found > 50 and n_none > 20  # both outcomes were compared

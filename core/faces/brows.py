@@ -13,6 +13,7 @@ import numpy as np
 
 from articast.core.faces.eye_landmarks import EYE_CORNERS
 from articast.core.faces.lids import _inside
+from articast.core.tracking import kernels
 
 if TYPE_CHECKING:
     from articast.core.faces.upper import Aligned
@@ -93,16 +94,28 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
             continue
         rs, cs = np.flatnonzero(sel), np.flatnonzero(half)  # (both contiguous)
         sub = strip[rs[0]:rs[-1] + 1, cs[0]:cs[-1] + 1]
-        k = np.argmin(sub, axis=0)
-        inside = (k > 0) & (k < sub.shape[0] - 1)
-        if inside.mean() < 0.5:
-            out.append(None)  # no dark band inside the window
+        if kernels.AVAILABLE:  # the same numbers in one compiled call (the numpy below: the
+            # reference)
+            found, at = kernels.brow_half(sub, float(heights[rs[0]]), float(scale))
+            out.append(float(at) if found else None)
             continue
-        kk, cc = k[inside], np.flatnonzero(inside)
-        y_m, y_0, y_p = sub[kk - 1, cc], sub[kk, cc], sub[kk + 1, cc]
-        den = y_m - 2.0 * y_0 + y_p
-        frac = np.where(den > 1e-6, 0.5 * (y_m - y_p) / np.maximum(den, 1e-6), 0.0)
-        hs = heights[np.flatnonzero(sel)[0]] - (kk + np.clip(frac, -0.5, 0.5)) / scale
-        hs = np.sort(hs)  # (the median: np.median's own overhead is most of this step's)
-        out.append(float(hs[(hs.size - 1) // 2] + hs[hs.size // 2]) / 2.0)
+        out.append(_brow_half_numpy(sub, heights[rs[0]], scale))
     return out[0], out[1]
+
+
+def _brow_half_numpy(sub: np.ndarray, top_mm: float, scale: float) -> float | None:
+    """:func:`brow_band_mm`'s search of one half's window ``sub`` of the smoothed strip (row
+    0 ``top_mm`` above the eye line), in numpy (the reference of
+    :func:`~articast.core.tracking.kernels.brow_half`): the half's height, None without a
+    dark band inside the window."""
+    k = np.argmin(sub, axis=0)
+    inside = (k > 0) & (k < sub.shape[0] - 1)
+    if inside.mean() < 0.5:
+        return None  # no dark band inside the window
+    kk, cc = k[inside], np.flatnonzero(inside)
+    y_m, y_0, y_p = sub[kk - 1, cc], sub[kk, cc], sub[kk + 1, cc]
+    den = y_m - 2.0 * y_0 + y_p
+    frac = np.where(den > 1e-6, 0.5 * (y_m - y_p) / np.maximum(den, 1e-6), 0.0)
+    hs = top_mm - (kk + np.clip(frac, -0.5, 0.5)) / scale
+    hs = np.sort(hs)  # (the median: np.median's own overhead is most of this step's)
+    return float(hs[(hs.size - 1) // 2] + hs[hs.size // 2]) / 2.0

@@ -33,6 +33,18 @@ class IrisFit:
 IRIS_MIN_ROWS = 3
 """An iris seen on fewer rows (chords bounded by white on both sides) is not fitted."""
 _SUB = np.array([-0.25, 0.25])  # sub-rows of a pixel row (a chord is a row's mean)
+_FINE = np.arange(-0.5, 0.5001, 0.05)  # the fine search's steps round the coarse height
+
+
+def _circle_height(ys: np.ndarray, wk: np.ndarray, r: float, cys: np.ndarray) -> float:
+    """Of the circle heights ``cys``, the one whose chords (radius ``r``, each row ``ys``
+    the mean of its sub-rows) fit the widths ``wk`` best (least absolute deviations; the
+    first best): :func:`fit_iris`'s search, in numpy (the reference of
+    :func:`~articast.core.tracking.kernels.iris_circle_height`)."""
+    yy = (ys[:, None] + _SUB[None, :]).ravel()[None, :] - cys[:, None]
+    pred = (2.0 * np.sqrt(np.clip(r * r - yy * yy, 0.0, None))).reshape(
+        len(cys), len(ys), len(_SUB)).mean(-1)
+    return float(cys[int(np.argmin(np.abs(pred - wk[None, :]).sum(1)))])
 
 
 def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
@@ -106,14 +118,9 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
               and _former_accepts(patch, grown, iris_l, white, cx0, radius_px) else None)
     ys = np.flatnonzero(keep).astype(np.float64)
     wk = widths[keep]
-    cy = 0.0
-    for cys in (np.arange(ys[0] - r, ys[-1] + r, 0.5), None):  # coarse, then fine
-        if cys is None:
-            cys = cy + np.arange(-0.5, 0.5001, 0.05)
-        yy = (ys[:, None] + _SUB[None, :]).ravel()[None, :] - cys[:, None]
-        pred = (2.0 * np.sqrt(np.clip(r * r - yy * yy, 0.0, None))).reshape(
-            len(cys), len(ys), len(_SUB)).mean(-1)
-        cy = float(cys[int(np.argmin(np.abs(pred - wk[None, :]).sum(1)))])
+    height = kernels.iris_circle_height if kernels.AVAILABLE else _circle_height
+    cy = float(height(ys, wk, r, np.arange(ys[0] - r, ys[-1] + r, 0.5)))  # coarse,
+    cy = float(height(ys, wk, r, cy + _FINE))  # then fine
     cx = float((cxs[keep] * wk).sum() / wk.sum())
     if white - skin < LEVELS_MIN_CONTRAST:
         # a sclera no brighter than the skin round the eye (shaded under the brow and the
@@ -280,8 +287,19 @@ def _opening_centres(fracs: list[np.ndarray]) -> list[tuple[float, float] | None
     widest), horizontally the middle of its ends on the rows within 2 of it (ends sub-pixel
     from the next pixel's fraction); None for an opening with fewer than 3 rows. (The rows of
     all of them in one array: the row-wise steps once.)"""
-    rows, cols = fracs[0].shape
     frac = np.concatenate(fracs, axis=0) if len(fracs) > 1 else fracs[0]
+    if kernels.AVAILABLE and frac.dtype == np.float32:  # the same numbers in one compiled
+        # call (the numpy below: the reference)
+        got = kernels.opening_centres(np.ascontiguousarray(frac), len(fracs))
+        return [(float(x), float(y)) if found else None for x, y, found in got]
+    return _opening_centres_numpy(fracs[0].shape, frac, len(fracs))
+
+
+def _opening_centres_numpy(shape: tuple[int, ...], frac: np.ndarray, n_open: int
+                           ) -> list[tuple[float, float] | None]:
+    """:func:`_opening_centres` of the ``n_open`` openings of ``shape`` stacked in ``frac``,
+    in numpy (the reference of :func:`~articast.core.tracking.kernels.opening_centres`)."""
+    rows, cols = shape
     bright = frac >= 0.5
     has = np.asarray(bright.any(axis=1))
     a = np.argmax(bright, axis=1)
@@ -292,7 +310,7 @@ def _opening_centres(fracs: list[np.ndarray]) -> list[tuple[float, float] | None
     widths = np.where(has, right - left, 0.0)
     mids = (left + right) / 2.0
     out: list[tuple[float, float] | None] = []
-    for n in range(len(fracs)):
+    for n in range(n_open):
         sl = slice(n * rows, (n + 1) * rows)
         if int(has[sl].sum()) < 3:
             out.append(None)

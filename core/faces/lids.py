@@ -12,6 +12,8 @@ import math
 import cv2
 import numpy as np
 
+from articast.core.tracking import kernels
+
 
 def photo_measure(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray,
                   open_px: float) -> float | None:
@@ -157,9 +159,18 @@ def iris_height(grey: np.ndarray, inner: np.ndarray, outer: np.ndarray, open_px:
     strip = _middle_strip(grey, inner, outer, open_px, 0.15)
     if strip is None:
         return None
+    if kernels.AVAILABLE and strip.shape[1] - (3 * strip.shape[1]) // 4 <= kernels.IRIS_MAX_WIDTH:
+        # the same numbers in one compiled call (the numpy below: the reference)
+        return float(kernels.dark_height(strip, skin, iris)) / float(open_px)
+    return _dark_height_numpy(strip, skin, iris) / float(open_px)
+
+
+def _dark_height_numpy(strip: np.ndarray, skin: float, iris: float) -> float:
+    """:func:`iris_height`'s measure of its strip before the division by the open eye, in
+    numpy (the reference of :func:`~articast.core.tracking.kernels.dark_height`)."""
     dark = _soft((skin - strip) / (skin - iris)).sum(0)
     tall = np.sort(dark)[(3 * dark.size) // 4:]
-    return float(tall.mean()) / float(open_px)
+    return float(tall.mean())
 
 
 def _soft(x: np.ndarray) -> np.ndarray:

@@ -1133,6 +1133,202 @@ def iris_former_rows(patch, grown, iris, white, cx0):  # pragma: no cover - comp
     return widths, bounded
 
 
+# ---------------------------------------------------------------------------- eye measures
+# The rest of core/faces/iris.py's fit (the iris circle's height, the opening's centres) and
+# the lids' and brows' pixel measures after their resampling (lids.iris_height,
+# brows.brow_band_mm), each in one compiled call: numpy's own float32 / float64 arithmetic
+# and its pairwise sums, so the same numbers to the bit; the numpy code is the reference
+# (a test checks each against it). Each was a chain of ~10-30 small numpy calls per eye.
+
+
+@njit(cache=True, nogil=True)
+def iris_circle_height(ys, wk, r, cys):  # pragma: no cover - compiled
+    """iris.fit_iris's least-absolute-deviation search of the circle's height: the ``cys``
+    (C,) whose chords of a circle of radius ``r`` (each row ``ys`` (N,) float64 the mean of
+    two sub-rows, iris._SUB) fit the widths ``wk`` (N,) float32 best (the first minimum)."""
+    n = ys.shape[0]
+    sub0, sub1 = -0.25, 0.25
+    rr = r * r
+    dev = np.empty(n)
+    best = np.inf
+    at = 0
+    for c in range(cys.shape[0]):
+        for i in range(n):
+            y0 = (ys[i] + sub0) - cys[c]
+            y1 = (ys[i] + sub1) - cys[c]
+            p0 = 2.0 * np.sqrt(max(rr - y0 * y0, 0.0))
+            p1 = 2.0 * np.sqrt(max(rr - y1 * y1, 0.0))
+            dev[i] = abs((p0 + p1) / 2.0 - np.float64(wk[i]))
+        s = _pairwise_sum(dev, 0, n)
+        if s < best:
+            best = s
+            at = c
+    return cys[at]
+
+
+@njit(cache=True, nogil=True)
+def _parabola_of(t, w, n):  # pragma: no cover - compiled
+    """iris._parabola of the points (t[:n], w[:n]), its sums in the same order."""
+    s0 = np.float64(n)
+    s1 = s2 = s3 = s4 = w0 = w1 = w2 = 0.0
+    for i in range(n):
+        s1 += t[i]
+    for i in range(n):
+        s2 += t[i] * t[i]
+    for i in range(n):
+        s3 += t[i] ** 3
+    for i in range(n):
+        s4 += t[i] ** 4
+    for i in range(n):
+        w0 += w[i]
+    for i in range(n):
+        w1 += t[i] * w[i]
+    for i in range(n):
+        w2 += t[i] * t[i] * w[i]
+    det = s4 * (s2 * s0 - s1 * s1) - s3 * (s3 * s0 - s1 * s2) + s2 * (s3 * s1 - s2 * s2)
+    if abs(det) < 1e-12:
+        return 0.0, 0.0
+    da = w2 * (s2 * s0 - s1 * s1) - s3 * (w1 * s0 - s1 * w0) + s2 * (w1 * s1 - s2 * w0)
+    db = s4 * (w1 * s0 - w0 * s1) - w2 * (s3 * s0 - s1 * s2) + s2 * (s3 * w0 - w1 * s2)
+    return da / det, db / det
+
+
+@njit(cache=True, nogil=True)
+def opening_centres(frac, n_open):  # pragma: no cover - compiled
+    """iris._opening_centres of the ``n_open`` openings stacked in ``frac`` (n_open * rows,
+    cols) float32: (n_open, 3) rows of (x, y, found) px in the crop (found 0: fewer than 3
+    rows of it)."""
+    total, cols = frac.shape
+    rows = total // n_open
+    half = np.float32(0.5)
+    widths = np.zeros(total)
+    mids = np.empty(total)
+    has = np.zeros(total, np.bool_)
+    for y in range(total):
+        a = -1
+        b = -1
+        for x in range(cols):
+            if frac[y, x] >= half:
+                if a < 0:
+                    a = x
+                b = x
+        if a < 0:  # (numpy's argmax of a row without any: 0, and cols - 1 from the end)
+            a, b = 0, cols - 1
+        else:
+            has[y] = True
+        fa = np.float64(frac[y, a - 1]) if a > 0 else 0.0
+        fb = np.float64(frac[y, b + 1]) if b < cols - 1 else 0.0
+        left = (np.float64(a) - 0.5) - fa
+        right = (np.float64(b) + 0.5) + fb
+        if has[y]:
+            widths[y] = right - left
+        mids[y] = (left + right) / 2.0
+    out = np.zeros((n_open, 3))
+    t = np.empty(7)
+    w = np.empty(7)
+    for o in range(n_open):
+        lo_row = o * rows
+        n_has = 0
+        for y in range(rows):
+            if has[lo_row + y]:
+                n_has += 1
+        if n_has < 3:
+            continue
+        k = 0
+        for y in range(1, rows):
+            if widths[lo_row + y] > widths[lo_row + k]:
+                k = y
+        wk = widths[lo_row + k]
+        acc = 0.0
+        cnt = 0
+        for y in range(max(k - 2, 0), min(k + 3, rows)):
+            if widths[lo_row + y] > 0.6 * wk:
+                acc += mids[lo_row + y]
+                cnt += 1
+        ex = acc / cnt
+        ey = np.float64(k)
+        n_pts = 0
+        for y in range(max(k - 3, 0), min(k + 4, rows)):
+            if widths[lo_row + y] > 0:
+                t[n_pts] = np.float64(y - k)
+                w[n_pts] = widths[lo_row + y]
+                n_pts += 1
+        if n_pts >= 3:
+            a2, b2 = _parabola_of(t, w, n_pts)
+            if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
+                ey = k - b2 / (2.0 * a2)
+        out[o, 0] = ex
+        out[o, 1] = ey
+        out[o, 2] = 1.0
+    return out
+
+
+@njit(cache=True, nogil=True)
+def dark_height(strip, skin, iris):  # pragma: no cover - compiled
+    """lids.iris_height after its strip (rows, cols) float32: the mean dark count (float32,
+    as numpy's mean) of the tallest quarter of the columns, each pixel dark by the soft
+    threshold of how far it is from ``skin`` towards ``iris``."""
+    h, w = strip.shape
+    skin32 = np.float32(skin)
+    span32 = np.float32(skin - iris)
+    q = np.float32(0.25)
+    two = np.float32(2.0)
+    zero = np.float32(0.0)
+    one = np.float32(1.0)
+    dark = np.empty(w, np.float32)
+    for x in range(w):
+        acc = zero
+        for y in range(h):
+            v = ((skin32 - strip[y, x]) / span32 - q) * two
+            v = zero if v < zero else (one if v > one else v)
+            acc = v if y == 0 else acc + v
+        dark[x] = acc
+    dark = np.sort(dark)
+    lo = (3 * w) // 4
+    tall = np.ascontiguousarray(dark[lo:])
+    s = _pairwise_sum(tall, 0, w - lo)
+    return np.float32(np.float64(s) / np.float64(w - lo))
+
+
+@njit(cache=True, nogil=True)
+def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
+    """brows.brow_band_mm's search in one half's window ``sub`` (rows, cols) float32 of the
+    smoothed strip, row 0 at ``top_mm`` above the eye line, ``scale`` px per mm: (found,
+    height mm): the median over the columns of the darkest row, sub-pixel by a parabola;
+    found False when fewer than half of the columns have their minimum inside."""
+    rows, cols = sub.shape
+    k = np.empty(cols, np.int64)
+    n_in = 0
+    for c in range(cols):
+        b = 0
+        for y in range(1, rows):
+            if sub[y, c] < sub[b, c]:
+                b = y
+        k[c] = b
+        if b > 0 and b < rows - 1:
+            n_in += 1
+    if 2 * n_in < cols:  # (inside.mean() < 0.5)
+        return False, 0.0
+    hs = np.empty(n_in)
+    two = np.float32(2.0)
+    half = np.float32(0.5)
+    eps = np.float32(1e-6)
+    zero = np.float32(0.0)
+    i = 0
+    for c in range(cols):
+        b = k[c]
+        if not (b > 0 and b < rows - 1):
+            continue
+        y_m, y_0, y_p = sub[b - 1, c], sub[b, c], sub[b + 1, c]
+        den = y_m - two * y_0 + y_p
+        frac = half * (y_m - y_p) / max(den, eps) if den > eps else zero
+        frac = -half if frac < -half else (half if frac > half else frac)
+        hs[i] = top_mm - (np.float64(b) + np.float64(frac)) / scale
+        i += 1
+    hs = np.sort(hs)
+    return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
+
+
 TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
@@ -1192,9 +1388,18 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         reading_features(np.random.default_rng(0).normal(0, 50, (8, 3)), np.eye(3),
                          np.array([0.0, 0.0, 500.0]), intr, np.zeros((8, 2)))
     if want("lids_read"):
-        lids_read(np.random.default_rng(0).normal(0, 50, (12, 3)), np.arange(8, dtype=np.int32),
-                  np.full(8, 0.125), np.random.default_rng(1).normal(0, 50, (8, 3)),
-                  np.array([[8, 9], [10, 11]]), np.array([[9, 8], [11, 10]]))
+        lm = np.random.default_rng(0).normal(0, 50, (12, 3))
+        for writable in (True, False):  # (a reader's landmarks come read-only)
+            lm.setflags(write=writable)
+            lids_read(lm, np.arange(8, dtype=np.int32), np.full(8, 0.125),
+                      np.random.default_rng(1).normal(0, 50, (8, 3)),
+                      np.array([[8, 9], [10, 11]]), np.array([[9, 8], [11, 10]]))
+    if want("iris_circle_height", "opening_centres", "dark_height", "brow_half"):
+        eye = np.random.default_rng(2).uniform(0, 1, (8, 14)).astype(np.float32)
+        iris_circle_height(np.arange(3.0), np.ones(3, np.float32), 2.0, np.arange(0.0, 2.0, 0.5))
+        opening_centres(eye, 2)
+        dark_height(eye[:, 2:12], 200.0, 40.0)  # (views: the strips are column slices)
+        brow_half(eye[1:7, 2:12], 20.0, 2.0)
     if want("lip_gap"):
         lip_gap(np.zeros((6, 3), f8), np.zeros((1, 18), f8), np.eye(3),
                 np.array([0.0, 0.0, 100.0]), intr, np.zeros(1, f8), np.zeros(1, f8), 0.1, 0.5,
@@ -1220,7 +1425,8 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
                                   lm_system, lm_solve, point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
-                                  iris_former_rows)
+                                  iris_former_rows, lids_read, iris_circle_height,
+                                  opening_centres, dark_height, brow_half)
         kernels = [f for f in every if only is None or f.__name__ in only]
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
                    for f in kernels)
