@@ -196,8 +196,8 @@ def test_sessions_are_capped(guarded):
                 assert r.status_code == 429 and "max-sessions" in r.json()["detail"]
         assert len(made) == 2  # "rec" + 2 = the cap of 3
     finally:
-        for n in made:
-            c.delete(f"/api/sessions/{n}")
+        for n in made:  # a just-started worker's stop waits for its start (load: > 10 s)
+            c.delete(f"/api/sessions/{n}", timeout=6 * TIMEOUT)
 
 
 # ----------------------------------------------------------------------------- abuse
