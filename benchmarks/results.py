@@ -84,7 +84,8 @@ class Section:
     ``args``: the script's arguments, with ``{run}`` (the run folder), ``{clips}`` (the shared
     clips), ``{fetched}`` (the fetched clips) filled in; ``kind``: how its output is
     tabulated (``peers``: ``corpus_summary.markdown``; ``blinks``:
-    ``corpus_summary.blink_rows``; ``cost``: the interleaved passes; ``json``/``text``: as
+    ``corpus_summary.blink_rows``; ``cost``: the interleaved passes; ``evaluate``: a row per
+    condition and model; ``json``/``text``: as
     printed); ``needs``: what must be there before it runs."""
 
     name: str
@@ -149,7 +150,7 @@ SECTIONS: tuple[Section, ...] = (
     Section("fresh_install", "fresh_install.py", ("--here", "--json"), "json"),
     # the synthetic speaker's tracking accuracy, every condition and appearance model
     Section("evaluate", "articast.service.cli", ("evaluate", "--json", "-o",
-                                                 "{run}/evaluation"), "json"),
+                                                 "{run}/evaluation"), "evaluate"),
     # issue 39's subscribe flood: a bystander and /healthz against a no-attack baseline
     Section("abuse_flood", "abuse.py", ("flood", "--connections", "32", "--seconds", "10",
                                         "--json"), "json"),
@@ -341,6 +342,21 @@ def cost_table(data: dict) -> str:
     return "\n".join(out)
 
 
+def evaluate_table(data: dict) -> str:
+    """``articast evaluate --json``: a row per condition and model (RMS 3D error in mm:
+    mean, median, p95; frames ok; evaluations and ms a frame; jitter; lag)."""
+    cols = ("rms_mm_mean", "rms_mm_median", "rms_mm_p95", "ok_fraction", "evals_per_frame",
+            "ms_per_frame", "jitter_mm", "lag_frames")
+    out = ["| condition | model | mean mm | median mm | p95 mm | ok | evals/frame | ms/frame "
+           "| jitter mm | lag |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for cond, models in data["conditions"].items():
+        for model, f in models.items():
+            out.append(f"| {cond} | {model} | " + " | ".join(
+                f"{f[c]:.3g}" if isinstance(f.get(c), float) else _cell(f.get(c))
+                for c in cols) + " |")
+    return "\n".join(out)
+
+
 def _cell(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:g}"
@@ -477,6 +493,8 @@ def block(section: Section, run: Path, plots: Path | None, page: Path) -> str:
         import identity_check
 
         table = identity_check.markdown(data)
+    elif section.kind == "evaluate":
+        table = evaluate_table(data)
     elif section.kind == "text":
         table = text_table(data)
     else:

@@ -200,3 +200,22 @@ def test_json_lines_and_text_outputs_are_shown_as_printed(tmp_path):
     table = results.json_table(data)
     assert "| key | 1 | 100 |" in table and "| p50_ms | 0.66 | 2.5 |" in table
     assert results.text_table("la_lin 3.2 ms\n\n") == "```text\nla_lin 3.2 ms\n```"
+
+
+def test_the_synthetic_speakers_evaluation_is_a_row_per_condition_and_model(tmp_path):
+    """``articast evaluate --json`` (conditions -> models -> figures) as one row each, not a
+    key per figure (585 rows before)."""
+    (tmp_path / "RUN").mkdir()
+    figures = {"rms_mm_mean": 0.444112, "rms_mm_median": 0.37961, "rms_mm_p95": 1.05995,
+               "ok_fraction": 1.0, "evals_per_frame": 8.01333, "ms_per_frame": 4.9,
+               "jitter_mm": 0.0306389, "lag_frames": 0.0}
+    (tmp_path / "RUN/evaluate.json").write_text(json.dumps({"conditions": {
+        "teleconference": {"la_lin": figures},
+        "postures": {"la_lin": {**figures, "jitter_mm": None, "lag_frames": None}}}}))
+    (tmp_path / "RESULTS.md").write_text(page("evaluate"))
+    assert run(tmp_path, "--from-stored", "--only", "evaluate", "--no-plots") == 0
+    text = (tmp_path / "RESULTS.md").read_text()
+    assert "| teleconference | la_lin | 0.444 | 0.38 | 1.06 | 1 | 8.01 | 4.9 | 0.0306 | 0 |" \
+        in text, text
+    assert "| postures | la_lin | 0.444 | 0.38 | 1.06 | 1 | 8.01 | 4.9 | – | – |" in text
+    assert "conditions.teleconference" not in text
