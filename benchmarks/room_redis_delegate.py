@@ -38,7 +38,7 @@ def main() -> int:
     import httpx
 
     from articast.service.room import participant_token
-    from tests.test_room_redis import ROOM, Page, Redis, base_url, room_server, stop, until
+    from tests.test_room_redis import ROOM, Page, Redis, base_url, room_server, stop_all, until
 
     folder = Path(tempfile.mkdtemp())
     shutil.copytree(args.speaker, folder / "ann", ignore=shutil.ignore_patterns("room-key"))
@@ -100,13 +100,7 @@ def main() -> int:
     try:
         asyncio.run(go())
     finally:
-        for p in servers:
-            stop(p)
-        for p in servers:
-            for line in p.stderr.read().splitlines():
-                if "delegate" in line:
-                    print("log:", line)
-        redis.stop()
+        stop_all(servers, redis, lambda line: "delegate" in line)
         shutil.rmtree(folder, ignore_errors=True)
     return 0
 

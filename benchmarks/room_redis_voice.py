@@ -106,13 +106,7 @@ def main() -> int:
     try:
         asyncio.run(go())
     finally:
-        for p in servers:
-            T.stop(p)
-        for name, p in zip("AB", servers, strict=True):
-            for line in p.stderr.read().splitlines():
-                if "voice" in line or "redis" in line.lower():
-                    print(f"log {name}:", line)
-        redis.stop()
+        T.stop_all(servers, redis, lambda line: "voice" in line or "redis" in line.lower())
     return 0
 
 

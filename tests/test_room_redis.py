@@ -226,6 +226,18 @@ async def delegate_keys(client, name):
     return [k async for k in client.scan_iter(f"articast:room:t:delegate:{name}:*")]
 
 
+def stop_all(servers, redis, says):
+    """Stop the room's servers, print their log lines for which ``says(line)`` holds (with
+    the server's letter), then stop Redis (the benchmarks' teardown)."""
+    for p in servers:
+        stop(p)
+    for name, p in zip("ABCDEFGH", servers):
+        for line in p.stderr.read().splitlines():
+            if says(line):
+                print(f"log {name}:", line)
+    redis.stop()
+
+
 def test_a_member_on_one_server_is_seen_and_streamed_on_another_and_leaves_when_it_dies(
         tmp_path):
     """ann and bob are enrolled (speaker folders with a delegate, in the folder both servers
