@@ -335,20 +335,7 @@ def _parabola(pts: list[tuple[float, float]]) -> tuple[float, float]:
     """(a, b) of the least-squares parabola a t^2 + b t + c through the points (t, w)
     (3 or more, t distinct), by the normal equations in closed form (a 3 x 3 system: numpy's
     solver costs more than the sums on these 3-7 points)."""
-    s0 = float(len(pts))
-    s1 = sum(t for t, _ in pts)
-    s2 = sum(t * t for t, _ in pts)
-    s3 = sum(t ** 3 for t, _ in pts)
-    s4 = sum(t ** 4 for t, _ in pts)
-    w0 = sum(w for _, w in pts)
-    w1 = sum(t * w for t, w in pts)
-    w2 = sum(t * t * w for t, w in pts)
-    # | s4 s3 s2 | |a|   |w2|
-    # | s3 s2 s1 | |b| = |w1|   (Cramer's rule)
-    # | s2 s1 s0 | |c|   |w0|
-    det = s4 * (s2 * s0 - s1 * s1) - s3 * (s3 * s0 - s1 * s2) + s2 * (s3 * s1 - s2 * s2)
-    if abs(det) < 1e-12:
-        return 0.0, 0.0
-    da = w2 * (s2 * s0 - s1 * s1) - s3 * (w1 * s0 - s1 * w0) + s2 * (w1 * s1 - s2 * w0)
-    db = s4 * (w1 * s0 - w0 * s1) - w2 * (s3 * s0 - s1 * s2) + s2 * (s3 * w0 - w1 * s2)
-    return da / det, db / det
+    t = np.array([p[0] for p in pts], np.float64)
+    w = np.array([p[1] for p in pts], np.float64)
+    a, b = kernels.parabola_of(t, w, len(pts))  # (compiled; plain Python without numba)
+    return float(a), float(b)

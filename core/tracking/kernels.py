@@ -1167,8 +1167,9 @@ def iris_circle_height(ys, wk, r, cys):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _parabola_of(t, w, n):  # pragma: no cover - compiled
-    """iris._parabola of the points (t[:n], w[:n]), its sums in the same order."""
+def parabola_of(t, w, n):  # pragma: no cover - compiled
+    """(a, b) of the least-squares parabola a t^2 + b t + c through (t[:n], w[:n]) by the
+    normal equations in closed form (Cramer's rule): iris._parabola and opening_centres."""
     s0 = np.float64(n)
     s1 = s2 = s3 = s4 = w0 = w1 = w2 = 0.0
     for i in range(n):
@@ -1254,7 +1255,7 @@ def opening_centres(frac, n_open):  # pragma: no cover - compiled
                 w[n_pts] = widths[lo_row + y]
                 n_pts += 1
         if n_pts >= 3:
-            a2, b2 = _parabola_of(t, w, n_pts)
+            a2, b2 = parabola_of(t, w, n_pts)
             if a2 < 0 and abs(b2 / (2.0 * a2)) <= 1.5:
                 ey = k - b2 / (2.0 * a2)
         out[o, 0] = ex
