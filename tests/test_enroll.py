@@ -654,7 +654,7 @@ def test_a_gated_reading_restarts_the_motion_model_at_the_head_pose_it_shows(enr
     """``FusionPolicy.realign``: a motion model knocked off the face just before a reading (as
     a hand-held camera's jump leaves its prediction) is gated; realigned, it restarts at the
     head's pose the reading shows and the regression is read there, so the frame's lips are
-    the undisturbed run's whatever the knock; restarted at the predicted pose (the default),
+    the undisturbed run's whatever the knock; restarted at the predicted pose (realign off),
     the same frame's lips depend on how far off the prediction was."""
     from articast.core.faces.live import FusionPolicy
 
