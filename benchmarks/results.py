@@ -300,11 +300,7 @@ def peers_table(data: dict, run: Path) -> str:
     import corpus_summary as cs
 
     rows = [cs.clip_row(c) for c in data["clips"]]
-    real = [r for r in rows if r["clip"] != "synthetic"]
-    pools = {h: cs.pooled([r for r in real if r["half"] == h]) for h in ("A", "B")}
-    pools["all"] = cs.pooled(real)
-    pools["all, to the best FaceMesh-family peer"] = cs.pooled(real, "gap_family")
-    return _shown(cs.markdown(data, rows, pools), run)
+    return _shown(cs.markdown(data, rows, cs.pools_of(rows, data["clips"])), run)
 
 
 def blinks_table(path: Path) -> str:

@@ -219,3 +219,27 @@ def test_the_synthetic_speakers_evaluation_is_a_row_per_condition_and_model(tmp_
         in text, text
     assert "| postures | la_lin | 0.444 | 0.38 | 1.06 | 1 | 8.01 | 4.9 | – | – |" in text
     assert "conditions.teleconference" not in text
+
+
+def test_the_goal_is_scored_against_the_best_single_peer_not_each_clips_best():
+    """Issue 38's goal names *the best single peer*: the one FaceMesh-family method with the
+    best mean r over the clips, not each clip's best (a stricter, different bar). Two people:
+    v2 is best pooled though v1 is best on one clip; the gap is articast's minus v2's."""
+    import corpus_summary as cs
+
+    def clip(name, a, v1, v2, mp):
+        return {"clip": name, "held_out_frames": 100, "methods": {
+            "articast": {"judge_r": a}, "facemesh_v1": {"judge_r": v1},
+            "facelandmarker_v2": {"judge_r": v2}, "mediapipe": {"judge_r": mp},
+            "dlib": {"judge_r": 0.99}}}
+
+    clips = [clip("franck", 0.95, 0.96, 0.93, 0.955), clip("cap13", 0.90, 0.80, 0.92, 0.81)]
+    rows = [cs.clip_row(c) for c in clips]
+    got = cs.single_peer(rows, clips)
+    assert got["peer"] == "facelandmarker_v2" and got["clips"] == 2 and got["people"] == 2
+    assert got["mean"] == pytest.approx(((0.95 - 0.93) + (0.90 - 0.92)) / 2, abs=1e-4)
+    lo, hi = got["ci95"]
+    assert lo == pytest.approx(-0.02, abs=1e-4) and hi == pytest.approx(0.02, abs=1e-4)
+    line = cs.markdown({"command": "x"}, rows, cs.pools_of(rows, clips)).splitlines()[-1]
+    assert line.startswith("pooled all, to the best single peer (facelandmarker_v2")
+    assert line.endswith("not worse")
