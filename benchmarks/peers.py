@@ -1090,6 +1090,47 @@ def write_occluded_grid(path: Path, held, run: dict, tile: int = 160, per_row: i
                 [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
+def write_worst_grid(path: Path, held, runs: dict[str, dict], count: int = 20,
+                     tile: int = 160, per_row: int = 10) -> None:
+    """The ``count`` held-out frames where articast's lip aperture departs most from the
+    judge's (each series z-scored over the frames both have: the error Pearson's r counts),
+    worst first, with articast's fitted mesh and each frame's z-scores: articast (a), its
+    reader (v1) and the judge (j). Where a and v1 agree against j, the judge or the reader's
+    family is off; where a alone is off, articast is."""
+    a = runs.get("articast", {})
+    if "error" in a or "results" not in a:
+        return
+    aps = {k: v["ratio"] for k, v in runs.items() if "error" not in v and "ratio" in v}
+    ref = judge(aps, "articast")
+    both = np.isfinite(aps["articast"]) & np.isfinite(ref)
+    if both.sum() < 3:
+        return
+
+    def z(x: np.ndarray) -> np.ndarray:
+        return (x - np.nanmean(x[both])) / max(float(np.nanstd(x[both])), 1e-9)
+
+    za, zj = z(aps["articast"]), z(ref)
+    zr = z(aps["facemesh_v1"]) if "facemesh_v1" in aps else np.full(len(za), np.nan)
+    err = np.where(both, np.abs(za - zj), -1.0)
+    worst = [int(i) for i in np.argsort(-err)[:count] if err[i] >= 0]
+    sp = a["speaker"]
+    tiles = []
+    for i in worst:
+        t = cv2.resize(fit_tile(held[i], sp.model, sp.camera, a["results"][i],
+                                lip_contours(sp)), (tile, tile))
+        for row, text in enumerate((f"#{i}", f"a {za[i]:+.1f} v1 {zr[i]:+.1f}",
+                                    f"j {zj[i]:+.1f}")):
+            cv2.putText(t, text, (4, 14 + 14 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
+                        (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(t)
+    while len(tiles) % per_row:
+        tiles.append(np.zeros_like(tiles[0]))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.vstack([np.hstack(tiles[r:r + per_row])
+                                      for r in range(0, len(tiles), per_row)]),
+                [cv2.IMWRITE_JPEG_QUALITY, 85])
+
+
 def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict],
                 truth: np.ndarray | None = None) -> None:
     """Each method's per-frame aperture ratio and lip box (NaN where none), to look into."""
@@ -1139,6 +1180,7 @@ def run_real(name: str, path: Path, methods, facemesh_v1, peers, grid: Path | No
                 "enrol_fraction": ENROL_FRACTION})
     if grid is not None and "error" not in runs.get("articast", {"error": 1}):
         write_occluded_grid(grid / f"{name}_occluded.jpg", held, runs["articast"])
+        write_worst_grid(grid / f"{name}_worst.jpg", held, runs)
     return row
 
 
@@ -1328,7 +1370,9 @@ def main(argv: list[str] | None = None) -> None:
                                               f"{' '.join([*clips, 'synthetic'])})")
     ap.add_argument("--methods", nargs="*", choices=METHODS, default=list(METHODS))
     ap.add_argument("--grid", type=Path,
-                    help="write an overlay grid of every frame articast marks occluded here")
+                    help="write here, per clip, an overlay grid of every frame articast marks "
+                         "occluded and one of the 20 frames its lips depart most from the "
+                         "judge's (z-scores: articast, its reader, the judge)")
     ap.add_argument("--series", type=Path,
                     help="write each clip's per-method aperture ratio and lip box series here")
     ap.add_argument("--others", type=Path,
