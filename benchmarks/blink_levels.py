@@ -76,13 +76,16 @@ def pooled(rows: list[dict]) -> dict:
             "false": ours - sum(r["matched"] for r in rows)}
 
 
+def _f(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
 def table(rows: list[dict]) -> str:
     out = ["| clip | half | confirmed | peaks >= 0.8 | open p95 | precision | recall |",
            "|---|---|---|---|---|---|---|"]
     for r in rows:
-        f = (lambda v: "-" if v is None else f"{v:.3f}")
         out.append(f"| {r['clip']} | {r['half']} | {r['events']} | {r['shut']} / {r['events']}"
-                   f" | {f(r['open_p95'])} | {f(r['precision'])} | {f(r['recall'])} |")
+                   f" | {_f(r['open_p95'])} | {_f(r['precision'])} | {_f(r['recall'])} |")
     return "\n".join(out)
 
 
