@@ -1,12 +1,17 @@
 """The closure's levels on real blinks and open eyes, from ``blinks.py --json`` output (issue 38).
 
-    python benchmarks/blink_levels.py RUN/blinks.json RUN/blinks_fetched.json [--halves]
+    python benchmarks/blink_levels.py RUN/blinks.json RUN/blinks_fetched.json [--levels]
 
 Per clip with dlib's series: the confirmed blinks (``blink_review.json``) whose closure peaks
 at >= 0.8 (the peak: the highest mean closure within ``TOLERANCE`` frames of the event), the
 open eye's closure (its 95th percentile over the frames further than ``MARGIN`` frames from
 every event of dlib's, confirmed or not, and from every unsure range), and precision and
-recall against the confirmed events (as blinks.py counts them). Pooled over the clips.
+recall against the confirmed events (as blinks.py counts them). Pooled over the clips and
+over each half of the people (``benchmarks/people.py``).
+
+``--levels``: the series of a run made without the session's levels (before issue 38's
+``ClosureLevels``, or ``UpperTracker(levels=False)``) read through them, as a simulation: on
+the two eyes' mean closure (the run records no more), where the tracker levels each eye.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from blink_review import REVIEW, confirmed  # noqa: E402
 from people import half  # noqa: E402
 
 from articast.core.evaluation.upper import BLINK_CLOSURE, blink_events, match_events  # noqa: E402
+from articast.core.faces.upper import ClosureLevels  # noqa: E402
 
 TOLERANCE = 2
 MARGIN = 5
@@ -65,6 +71,15 @@ def levels(row: dict, cl: np.ndarray | None = None, review: dict | None = None) 
             "open_frames": int(len(op))}
 
 
+def simulated(cl: np.ndarray) -> np.ndarray:
+    """A closure series read through :class:`ClosureLevels` (NaN where none)."""
+    lv, out = ClosureLevels(), np.full(len(cl), np.nan)
+    for t, c in enumerate(cl):
+        if np.isfinite(c):
+            out[t] = lv.read(float(c))
+    return out
+
+
 def pooled(rows: list[dict]) -> dict:
     ours = sum(r["ours"] for r in rows)
     ev = sum(r["events"] for r in rows)
@@ -93,9 +108,17 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--json", action="store_true")
+    ap.add_argument("--levels", action="store_true",
+                    help="simulate the session's levels on a run made without them")
     args = ap.parse_args()
+
+    def series(row: dict) -> np.ndarray | None:
+        if not args.levels or "closure" not in row:
+            return None
+        return simulated(np.array([np.nan if v is None else v for v in row["closure"]], float))
+
     rows = [r for f in args.runs for row in json.loads(f.read_text())
-            if (r := levels(row)) is not None]
+            if (r := levels(row, series(row))) is not None]
     if args.json:
         print(json.dumps({"clips": rows, "pooled": pooled(rows)}, indent=1))
         return
