@@ -368,7 +368,9 @@ def test_calibration_picks_the_iris_height_where_the_lid_gap_fails():
                        for g, d in zip(greys, lids, strict=True)])
     assert ref is not None and ref.photo_kind == ("iris", "iris")
     assert U.UpperReference.from_dict(ref.to_dict(), "x").photo_kind == ("iris", "iris")
-    tracker = U.UpperTracker(ref, photometric=True)
+    # (the measure against the enrolment's references, not the session's levels:
+    # test_closure_levels_learned_through_the_session_keep_the_blink_frames)
+    tracker = U.UpperTracker(ref, photometric=True, levels=False)
     got = [tracker.step(cv2.cvtColor(g, cv2.COLOR_GRAY2BGR), reading(with_lids(d)), None,
                         True).closure_left for g, d in zip(greys, lids, strict=True)]
     assert np.abs(np.array(got) - cs).max() < 0.1, np.round(got, 2)
@@ -394,12 +396,14 @@ def test_calibration_maps_the_usual_open_eye_to_0_and_the_deepest_blinks_to_1():
     assert ref is not None and ref.blinks == 2 and min(abs(r) for r in ref.photo_r) > 0.9
     back = U.UpperReference.from_dict(ref.to_dict(), "x")
     assert back.photo == pytest.approx(ref.photo) and back.levels == pytest.approx(ref.levels)
-    tracker = U.UpperTracker(ref)
+    # (the measure against the enrolment's references, not the session's levels:
+    # test_closure_levels_learned_through_the_session_keep_the_blink_frames)
+    tracker = U.UpperTracker(ref, levels=False)
     got = [tracker.step(lidded_eye_image(lm, (0.0, 0.0), closure=c), reading(with_lids(d)),
                         None, True).closure_left for c, d in zip(cs, lids, strict=True)]
     assert np.abs(np.array(got) - cs).max() < 0.08, np.round(got, 2)
     assert ref.photo_kind == ("gap", "gap")  # (it follows these lids better than contrast)
-    tracker = U.UpperTracker(ref, photometric=True)  # the lid gap on every frame
+    tracker = U.UpperTracker(ref, photometric=True, levels=False)  # the lid gap on every frame
     got = [tracker.step(lidded_eye_image(lm, (0.0, 0.0), closure=c), reading(with_lids(d)),
                         None, True).closure_left for c, d in zip(cs, lids, strict=True)]
     assert np.abs(np.array(got) - cs).max() < 0.08, np.round(got, 2)
@@ -584,7 +588,9 @@ def test_between_readings_a_lasting_disagreement_with_the_reader_is_carried():
     ref = U.UpperReference((OPEN, OPEN), (1.0, 1.0), REF.brows_mm, REF.iris_mm,
                            photo=(1.0, b, 1.0, b), photo_r=(-0.9, -0.9),
                            photo_kind=("gap", "gap"))
-    tracker = U.UpperTracker(ref)
+    # (the measure against the enrolment's references, not the session's levels:
+    # test_closure_levels_learned_through_the_session_keep_the_blink_frames)
+    tracker = U.UpperTracker(ref, levels=False)
     tracker.step(img, lm, np.zeros(2), True)  # an open eye: both measures agree
     got = []
     for _ in range(8):  # the reader every other frame, reading the lids shut
@@ -596,7 +602,7 @@ def test_between_readings_a_lasting_disagreement_with_the_reader_is_carried():
     assert cl[1] == pytest.approx(0.25, abs=0.05)  # after one reading: half its disagreement
     assert np.abs(cl[-6:] - 0.5).max() < 0.05, np.round(cl, 2)  # lasting: no jump
     # the photometric measure alone (``photometric``) keeps its own reading between
-    alone = U.UpperTracker(ref, photometric=True)
+    alone = U.UpperTracker(ref, photometric=True, levels=False)
     alone.step(img, shut_lm, np.zeros(2), True)
     assert alone.step(img, None, np.zeros(2), True).closure_left == pytest.approx(0.0, abs=0.05)
 
@@ -895,3 +901,43 @@ def test_compiled_eye_measures_are_numpys_to_the_bit():
             assert float(kernels.iris_circle_height(ys, wk, r, cys)) == I._circle_height(
                 ys, wk, r, cys)
     assert n_found > 50 and n_none > 20  # both outcomes were compared
+
+
+def test_closure_levels_learned_through_the_session_keep_the_blink_frames():
+    """Issue 38: the reader reads a shut eye shallow (closure 0.6-0.8 from the enrolment's
+    references) and a lowered lid on an open eye at 0.2-0.3. Against the session's own
+    levels (:class:`ClosureLevels`) the first blink reads shut by the prior, later ones by the
+    median of the session's blinks, an open eye held lowered reads open after a second; no
+    frame crosses 0.5 that did not before (the blinks found are the same)."""
+    img = np.full((400, 640, 3), 128, np.uint8)  # no pixels to follow: the reader's lids alone
+    travel = OPEN - 1.0
+
+    def frames(c: float, n: int = 1) -> list[np.ndarray]:
+        return [reading(with_lids(c * travel))] * n
+
+    seq = (frames(0.0, 30) + frames(0.4) + frames(0.75, 2) + frames(0.4)  # a first blink
+           + frames(0.0, 20) + frames(0.7, 2) + frames(0.0, 20) + frames(0.7, 2)
+           + frames(0.0, 20) + frames(0.68, 2) + frames(0.0, 5)
+           + frames(0.25, 40)  # lids lowered on an open eye (a look down)
+           + frames(0.9, 2) + frames(0.25, 5))  # a blink from it
+    levelled, measured = U.UpperTracker(REF), U.UpperTracker(REF, levels=False)
+    got = np.array([levelled.step(img, lm, None, True).closure_left for lm in seq])
+    raw = np.array([measured.step(img, lm, None, True).closure_left for lm in seq])
+    assert raw[31:33].max() == pytest.approx(0.75, abs=0.02)  # as the enrolment reads it
+    assert got[31:33].max() >= 0.9  # the first blink, by the prior
+    assert raw[98:100].max() < 0.7 and got[98:100].max() >= 0.85  # by the session's blinks
+    assert raw[140] == pytest.approx(0.25, abs=0.02) and got[140] <= 0.15  # open, lowered
+    assert got[145:147].max() >= 0.9  # a blink from the lowered lid still reads shut
+    assert got[:30].max() == pytest.approx(0.0, abs=0.01)
+    np.testing.assert_array_equal(got > 0.5, raw > 0.5)  # the same blink frames
+    # the shut level is bounded: shallow events (a squint over 0.5) do not stretch it
+    lv = U.ClosureLevels()
+    for _ in range(5):
+        for c in (0.0,) * 10 + (0.55,) * 3:
+            lv.read(c)
+    assert lv.levels()[1] == pytest.approx(U.SHUT_LEVEL_MIN)
+    assert lv.read(0.55) < 0.7
+    # the open level too: a long look down at 0.45 is not the open eye beyond OPEN_LEVEL_MAX
+    for _ in range(100):
+        lv.read(0.45)
+    assert lv.levels()[0] == pytest.approx(U.OPEN_LEVEL_MAX)

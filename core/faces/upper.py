@@ -36,6 +36,7 @@ Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll``
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -785,6 +786,97 @@ falls as the lid closes, r < 0) with the reader's closure at enrolment is not us
 readings (the last reading's closure is held)."""
 
 
+LEVEL_KNOT = 0.5
+"""The closure at which an eye is half shut, a blink frame (``BLINK_CLOSURE`` of
+core/evaluation/upper.py): the speaker's levels (:func:`levelled`) move every closure but
+this one, so no blink is found or lost by them."""
+
+OPEN_LEVEL_FRAMES = 25
+"""The open eye's level (:class:`ClosureLevels`) is the median closure of the last this many
+frames that were not a blink's (~1 s): a pose or a light that leaves the open eye reading
+0.2-0.3 for a second reads open after it."""
+
+OPEN_LEVEL_MAX = 0.3
+"""The open eye's level is at most this closure: a long look down or squint is not taken for
+the open eye beyond it (a blink from it still reads > 0.5: :data:`LEVEL_KNOT` is fixed)."""
+
+OPEN_CURVE = 2.0
+"""Below :data:`LEVEL_KNOT` the closure over its open level is raised to this power (a
+half-lowered lid reads less than half of it; 0 and the knot stay): FaceMesh v1 reads a shut
+eye at ~half the open eye's opening, so the enrolment's shut reference is shallow and a lid
+lowered by a sixth (a look down, a smile) read 0.3 on open eyes (issue 38, docs/UPPER_FACE.md)."""
+
+SHUT_LEVEL_PRIOR = 0.8
+"""The closure at which an eye reads shut (1) before the session has shown its own blinks,
+and the deepest the learned shut level may be (:class:`ClosureLevels`): the reader seldom
+reads a shut eye as deep as the enrolment's shut reference (issue 38's first blinks peaked at
+0.58-0.8)."""
+
+SHUT_LEVEL_MIN = 0.65
+"""The learned shut level is at least this closure: a session whose events are shallow (a
+squint that crossed :data:`LEVEL_KNOT`) cannot stretch the closure further."""
+
+SHUT_LEVEL_BLINKS = 2
+"""Events (runs of closure above :data:`LEVEL_KNOT`) seen before the shut level is the median
+of their deepest closures (the last :data:`SHUT_LEVEL_MEMORY`) rather than the prior."""
+
+SHUT_LEVEL_MEMORY = 9
+
+
+def levelled(c: float, open_level: float, shut_level: float, curve: float | None = None
+             ) -> float:
+    """Closure ``c`` (0..1 from the enrolment's references) against the session's levels:
+    ``open_level`` reads 0, ``shut_level`` 1 and above, :data:`LEVEL_KNOT` stays (the
+    lower part raised to ``curve``, default :data:`OPEN_CURVE`; the upper one linear). Never
+    above ``c`` below the knot nor below it above the knot (``open_level`` >= 0,
+    ``shut_level`` <= 1, ``curve`` >= 1)."""
+    k = LEVEL_KNOT
+    if c <= k:
+        return k * (max(c - open_level, 0.0) / (k - open_level)) ** (
+            OPEN_CURVE if curve is None else curve)
+    return min(1.0, k + (1.0 - k) * (c - k) / max(shut_level - k, 1e-6))
+
+
+def _median(v: Sequence[float]) -> float:
+    s = sorted(v)
+    n = len(s)
+    return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
+
+
+@dataclass
+class ClosureLevels:
+    """One eye's open and shut levels through the session (causal: a frame is read by the
+    levels of the frames before it). The open level: the median closure of the last
+    :data:`OPEN_LEVEL_FRAMES` frames at most :data:`LEVEL_KNOT` (0 before 5 of them), at most
+    :data:`OPEN_LEVEL_MAX`. The shut level: each event (closure above the knot, then back)
+    gives its deepest closure; with :data:`SHUT_LEVEL_BLINKS` of them their median, within
+    [:data:`SHUT_LEVEL_MIN`, :data:`SHUT_LEVEL_PRIOR`], else the prior: the first blink of a
+    session reads by the prior (enrolment may have seen none)."""
+
+    recent: deque = field(default_factory=lambda: deque(maxlen=OPEN_LEVEL_FRAMES))
+    peaks: deque = field(default_factory=lambda: deque(maxlen=SHUT_LEVEL_MEMORY))
+    peak: float = 0.0  # the deepest closure of the event under way (0: none)
+
+    def levels(self) -> tuple[float, float]:
+        """(open level, shut level) now."""
+        op = min(OPEN_LEVEL_MAX, _median(self.recent)) if len(self.recent) >= 5 else 0.0
+        shut = (SHUT_LEVEL_PRIOR if len(self.peaks) < SHUT_LEVEL_BLINKS
+                else _clip(_median(self.peaks), SHUT_LEVEL_MIN, SHUT_LEVEL_PRIOR))
+        return op, shut
+
+    def read(self, c: float) -> float:
+        """This frame's closure levelled (:func:`levelled`), then the levels updated by it."""
+        out = levelled(c, *self.levels())
+        if c > LEVEL_KNOT:
+            self.peak = max(self.peak, c)
+        else:
+            if self.peak > 0.0:
+                self.peaks.append(self.peak)
+                self.peak = 0.0
+            self.recent.append(c)
+        return out
+
+
 @dataclass
 class UpperTracker:
     """The upper face frame by frame (state: the last reading's measures and placement)."""
@@ -796,6 +888,8 @@ class UpperTracker:
     # the photometric closure, the photometric alone between readings: docs/UPPER_FACE.md)
     clock: Callable[[], float] | None = None  # (given: ``spent_s`` adds up the steps' time)
     spent_s: float = 0.0
+    levels: bool = True  # the closure against the session's own levels (:class:`ClosureLevels`;
+    # False: against the enrolment's references alone, as before issue 38's levels)
     canon: CanonicalFace = field(default_factory=canonical_face)
     _last: Measures | None = None
     _corners: np.ndarray | None = None  # (2 sides, 2 corners, 2) px at the last reading
@@ -810,6 +904,9 @@ class UpperTracker:
         default_factory=lambda: [None, None])  # each eye's grey levels at its last fit
     _templates: list[np.ndarray | None] = field(
         default_factory=lambda: [None, None])  # each watched eye's pixels at the last reading
+    _levels_of: list[ClosureLevels] = field(
+        default_factory=lambda: [ClosureLevels(), ClosureLevels()])  # each eye's (the
+    # session's: kept when the face is lost)
 
     def reset(self) -> None:
         self._last = self._corners = self._anchor = None
@@ -1013,7 +1110,9 @@ class UpperTracker:
             cl.append(c)
             wide.append(_clip(float(w), 0.0, 1.0))
         self._wide = (wide[0], wide[1])
-        self._closure = (cl[0], cl[1])
+        self._closure = (cl[0], cl[1])  # (held between readings as measured, not levelled)
+        if self.levels:
+            cl = [self._levels_of[i].read(cl[i]) for i in range(2)]
         gaze = self._gaze
         if source == "reader":
             # the gaze's zero is the iris centred in the eye's opening (not the enrolment's
