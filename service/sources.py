@@ -499,7 +499,9 @@ class WebRTCSource:
     an inlet: the reading end of a pipe, given by the worker (``SessionSpec.inlet``). Its
     messages are ``(t, width, height, i420_bytes)`` and, last, ``("end", reason)`` when the
     participant left: then :meth:`read` returns None and the session ends (``ends``), where a
-    camera's None would be reopened."""
+    camera's None would be reopened. A tracker on another machine (``articast room-tracker``)
+    reads the member's frames from Redis instead, as ``(t, width, height, jpeg, arrived,
+    "jpeg")`` (:class:`articast.service.room_frames.RedisInlet`)."""
 
     live = True
     pace = "realtime"
@@ -534,8 +536,13 @@ class WebRTCSource:
 
         t, width, height, data = item[:4]
         self.captured = float(item[4]) if len(item) > 4 else None
-        yuv = np.frombuffer(data, np.uint8).reshape(height * 3 // 2, width)
-        image = cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
+        if len(item) > 5 and item[5] == "jpeg":  # through Redis (service/room_frames.py)
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+            if image is None:
+                raise SourceError("a frame from Redis is not a JPEG")
+        else:
+            yuv = np.frombuffer(data, np.uint8).reshape(height * 3 // 2, width)
+            image = cv2.cvtColor(yuv, cv2.COLOR_YUV2BGR_I420)
         if self._size is None:
             self._size = (width, height)
         elif (width, height) != self._size:
