@@ -120,6 +120,13 @@ class RoomConfig:
     servers (``--max-shared-delegate`` MB); a larger one is refused in one line of the log
     (their pages show the generic head). One enrolled on the page is ~0.5 MB (its 256-pixel
     texture and its modes as PNG)."""
+    remote_trackers: bool = False
+    """With a Redis hub (``--remote-trackers``): this server tracks nobody; its media process
+    puts each member's frames in Redis and an ``articast room-tracker`` on any machine tracks
+    them (:mod:`articast.service.room_frames`)."""
+    tracker_wait_s: float = 20.0
+    """With remote trackers: a member no tracker has held for this long is told so and
+    leaves (``--tracker-wait``)."""
     warm_media: bool = False
     """Start the media process (and the workers' fork server) when the server starts rather
     than on the first offer (``articast room``: the first participant does not wait ~5 s)."""
@@ -153,6 +160,12 @@ class Member:
     put in Redis for the room's other servers (None: not there)."""
     unshared: str = ""
     """Why their delegate is not shared with the other servers ("": it is, or will be)."""
+    tracker: str = ""
+    """With remote trackers: the tracker that holds them (its lease in Redis; "": none)."""
+    tracked_at: float = 0.0
+    """With remote trackers: when a tracker was last seen holding them (or they joined)."""
+    untracked: str = ""
+    """With remote trackers: why they leave (no tracker held them long enough)."""
 
 
 class Room:
@@ -213,7 +226,8 @@ class Room:
         try:
             member.slot = await asyncio.wait_for(self.presence.claim(
                 member.name, member.joined, bool(member.speaker),
-                self.config.max_participants), 5.0)
+                self.config.max_participants,
+                "remote" if self.config.remote_trackers else "local"), 5.0)
         except Refused as exc:
             raise HTTPException(exc.status, exc.detail) from None
         except Exception as exc:  # noqa: BLE001 - Redis away: one line, nothing started
@@ -236,7 +250,8 @@ class Room:
                     if m.shared is not None and not self.config.speaker_of(n):
                         m.unshared = "their enrolment was deleted"  # (its folder is gone)
                 mine = {n: {"joined": m.joined, "slot": m.slot,
-                            "delegate": bool(m.speaker) and not m.unshared}
+                            "delegate": bool(m.speaker) and not m.unshared,
+                            "tracking": "remote" if self.config.remote_trackers else "local"}
                         for n, m in self.members.items()}
                 self._refreshed = t
                 for name in await self.presence.refresh(mine):
@@ -244,6 +259,8 @@ class Room:
                                 leave_redis=False)
                 await self._keep_delegates()
             entries = await self.presence.live()
+            if self.config.remote_trackers:
+                await self._check_trackers(t)
         except Exception as exc:  # noqa: BLE001 - Redis away: say so once, go on
             if not self._redis_failing:
                 log.warning("room %s: Redis cannot be reached (%r): the other servers' "
@@ -270,6 +287,33 @@ class Room:
             self.announce()
         self.remote = remote
         self._tell_media()
+
+    async def _check_trackers(self, t: float) -> None:
+        """With remote trackers: which tracker holds each member (their lease in Redis); one
+        no tracker has held for ``tracker_wait_s`` is marked to leave (the watcher tells
+        them)."""
+        from articast.service.room_frames import holders
+
+        mine = [n for n, m in self.members.items() if m.feed is not None]
+        held = await holders(self.presence.redis, self.svc.config.hub_prefix,
+                             self.config.name, mine)
+        for name, holder in held.items():
+            m = self.members.get(name)
+            if m is None:
+                continue
+            if holder:
+                m.tracked_at = t
+                if holder != m.tracker:
+                    log.warning("room %s: %s is tracked by %s%s", self.config.name, name,
+                                holder, f" (was {m.tracker})" if m.tracker else "")
+            elif m.tracker:
+                log.warning("room %s: %s's tracker %s let go of them", self.config.name, name,
+                            m.tracker)
+            m.tracker = holder
+            if not holder and t - m.tracked_at > self.config.tracker_wait_s and not m.untracked:
+                m.untracked = (f"no room tracker took your video for "
+                               f"{self.config.tracker_wait_s:g} s: 'articast room-tracker' "
+                               "must run")
 
     def _tell_media(self) -> None:
         """The media process hears the members on the room's other servers (their voices
@@ -415,7 +459,8 @@ class Room:
 
     # ------------------------------------------------------------------ members
     def add(self, name: str) -> Member:
-        member = Member(name, time.time(), speaker=self.config.speaker_of(name))
+        member = Member(name, time.time(), speaker=self.config.speaker_of(name),
+                        tracked_at=time.monotonic())
         self.members[name] = member
         return member
 
@@ -521,6 +566,9 @@ class Room:
             await asyncio.sleep(0.25)
             lag = max(lag, time.monotonic() - t0 - 0.25)
             for name, m in list(self.members.items()):
+                if m.feed is not None and self.config.remote_trackers:
+                    self._watch_remote(name, m)
+                    continue
                 session = self.svc.manager.sessions.get(name)
                 if m.feed is not None and (m.feed.ended or session is None
                                            or session.state in TERMINAL):
@@ -543,6 +591,19 @@ class Room:
                 log.info("room %s: event loop late by up to %.0f ms; %s", self.config.name,
                          1000 * lag, "; ".join(self.stats(n) for n in self.members))
                 lag = 0.0
+
+
+    def _watch_remote(self, name: str, m: Member) -> None:
+        """A member tracked elsewhere leaves when their video ends, when no tracker took
+        them for ``tracker_wait_s`` (:meth:`_check_trackers`), or when their session failed
+        on the tracker (its reason, as a local worker's failure is told)."""
+        session = self.svc.lookup(name)
+        if m.feed.ended:
+            self.remove(name, m.feed.ended, dropped=True)
+        elif m.untracked:
+            self.remove(name, m.untracked, dropped=True)
+        elif session is not None and session.state == "failed" and session.t >= m.joined:
+            self.remove(name, f"their tracker failed: {session.detail}", dropped=True)
 
 
 async def _send(ws: WebSocket, text: str) -> None:
@@ -657,6 +718,15 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         except ValueError as exc:
             room.remove(name, "the offer was refused")
             raise HTTPException(400, str(exc)) from None
+        if config.remote_trackers:  # their frames to Redis; a room tracker takes them
+            if old is not None:
+                await svc.manager.remove(name)
+            if not feed.to_redis(config.name):
+                room.remove(name, "the media process is gone")
+                raise HTTPException(503, "the server's media process is not running")
+            member.feed = feed
+            room.announce()
+            return {"type": "answer", "sdp": answer, "name": name, "slots": mids}
         try:
             if old is not None:
                 await svc.manager.remove(name)
