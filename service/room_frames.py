@@ -227,8 +227,15 @@ class RedisFeed:
 
 # ----------------------------------------------------------------------------- leases
 RENEW = """
-if redis.call('GET', KEYS[1]) == ARGV[1] then
-  return redis.call('PEXPIRE', KEYS[1], tonumber(ARGV[2]))
+-- 1: renewed; 2: it had lapsed and nobody had taken it: taken again; 0: another holds it
+local holder = redis.call('GET', KEYS[1])
+if holder == ARGV[1] then
+  redis.call('PEXPIRE', KEYS[1], tonumber(ARGV[2]))
+  return 1
+end
+if not holder then
+  redis.call('SET', KEYS[1], ARGV[1], 'PX', tonumber(ARGV[2]))
+  return 2
 end
 return 0
 """
@@ -255,11 +262,17 @@ class Leases:
         return bool(await self.redis.set(self.key(name), self.holder, nx=True, px=self.ttl_ms))
 
     async def renew(self, names: list[str]) -> list[str]:
-        """Renew these leases: the names this tracker no longer holds."""
+        """Renew these leases: the names another tracker holds now. A lease that lapsed
+        (this tracker renewed it too late: its loop was held) and that nobody took is taken
+        again, in one line of the log."""
         lost = []
         for name in names:
-            if not await self._renew(keys=[self.key(name)], args=[self.holder, self.ttl_ms]):
+            kept = await self._renew(keys=[self.key(name)], args=[self.holder, self.ttl_ms])
+            if not kept:
                 lost.append(name)
+            elif kept == 2:
+                log.warning("room %s: the lease on %s lapsed before this tracker renewed it "
+                            "(nobody had taken it: kept)", self.room, name)
         return lost
 
     async def release(self, name: str) -> None:

@@ -62,7 +62,9 @@ async def run_room_tracker(url: str, prefix: str, room: str, speakers: str = "",
     directory = Directory()
     policy = policy or SessionPolicy()
     manager = SessionManager(None, capture or CaptureSettings(), policy)  # type: ignore[arg-type]
-    manager.delegates = False  # (the room's servers serve the delegates)
+    # (an enrolled member's hello says they have a delegate; the room's servers serve it,
+    # from the speakers folder they share with this tracker)
+    manager.delegates = True
     hub: RedisHub[object] = RedisHub(url, EventCodec(directory, manager.sessions.get),
                                      prefix=prefix)
     manager.hub = hub
@@ -144,6 +146,10 @@ async def run_room_tracker(url: str, prefix: str, room: str, speakers: str = "",
                 log.warning("room %s: tracking %s", room, name)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), POLL_S)
+            held = time.monotonic() - t - POLL_S
+            if held > lease_s / 3:
+                log.warning("room %s: this tracker's loop was held for %.1f s (its leases "
+                            "last %g s)", room, held, lease_s)
     finally:
         for name in list(mine):
             with contextlib.suppress(Exception):
