@@ -166,6 +166,8 @@ class Member:
     """With remote trackers: when a tracker was last seen holding them (or they joined)."""
     untracked: str = ""
     """With remote trackers: why they leave (no tracker held them long enough)."""
+    delegate_cache: Any = None
+    """With remote trackers: (the tracker's description, their delegate's JSON for it)."""
 
 
 class Room:
@@ -343,7 +345,7 @@ class Room:
         shared for it, not refused."""
         out = []
         for name, m in self.members.items():
-            session = self.svc.manager.sessions.get(name)
+            session = self.session_of(name)
             if m.speaker and not m.unshared and m.feed is not None and session is not None \
                     and session.description is not None and m.shared is not session.description:
                 out.append((m, session))
@@ -408,6 +410,18 @@ class Room:
             if time.monotonic() >= deadline:
                 raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
             await asyncio.sleep(0.25)
+
+    def session_of(self, name: str) -> Any:
+        """This server's member's session: the local one, or (``--remote-trackers``) the one
+        their tracker announced, with a ``delegate_json`` made here from their speaker folder
+        (the room's servers and trackers share it) for that session's model."""
+        session = self.svc.manager.sessions.get(name)
+        member = self.members.get(name)
+        if session is None and self.config.remote_trackers and member is not None:
+            remote = self.svc.lookup(name)
+            if remote is not None and remote.description is not None:
+                return _TrackedElsewhere(remote.description, member, self.config)
+        return session
 
     # ------------------------------------------------------------------ access
     async def check(self, request_key: str, offered: str, expected: str) -> None:
@@ -606,6 +620,29 @@ class Room:
             self.remove(name, f"their tracker failed: {session.detail}", dropped=True)
 
 
+class _TrackedElsewhere:
+    """A member tracked by a room tracker, as the delegate route and the sharing see a
+    session: its description (the tracker's) and the member's delegate for its model (made
+    once per description, from the speakers folder)."""
+
+    def __init__(self, description: dict[str, Any], member: Member, config: RoomConfig) -> None:
+        self.description, self._member, self._config = description, member, config
+
+    def delegate_json(self) -> bytes:
+        from articast.core.errors import InputError
+        from articast.service.delegate import delegate_json, delegate_path
+
+        cached = self._member.delegate_cache
+        if cached is not None and cached[0] is self.description:
+            return bytes(cached[1])
+        path = delegate_path(self._member.speaker, (os.path.realpath(self._config.speakers),))
+        if path is None:
+            raise InputError(f"{self._member.name!r} has no delegate")
+        body = delegate_json(path, self.description["param_names"])
+        self._member.delegate_cache = (self.description, body)
+        return body
+
+
 async def _send(ws: WebSocket, text: str) -> None:
     with contextlib.suppress(Exception):
         await ws.send_text(text)
@@ -755,7 +792,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         if name not in room.members and name in room.remote:
             return Response(await room.remote_delegate(name), media_type="application/json",
                             headers={"Cache-Control": "no-store"})
-        session = svc.manager.sessions.get(name)
+        session = room.session_of(name)
         if name not in room.members or session is None or session.description is None:
             raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
         try:

@@ -661,7 +661,8 @@ def test_a_room_tracker_on_redis_tracks_a_member_and_another_takes_over_when_it_
         url = base_url(server)
         first = json.loads(trackers[0].stdout.readline() or "{}")
         assert first.get("pid") == trackers[0].pid, trackers[0].stderr.read()
-        ann = Page(url, "ann")
+        write_speaker(tmp_path / "ann")  # enrolled: her delegate, served by the server
+        ann = Page(url, "ann", participant_token(ROOM, "ann"))
 
         def tracked_by(p):
             e = sessions_entry(redis.url, "ann")
@@ -678,9 +679,14 @@ def test_a_room_tracker_on_redis_tracks_a_member_and_another_takes_over_when_it_
             await ann.join()
             async with ann.socket() as ws:
                 t = time.monotonic()
-                await until(ws, lambda m: m["type"] == "hello" and m["session"] == "ann",
-                            6 * TIMEOUT)
+                hello = await until(ws, lambda m: m["type"] == "hello"
+                                    and m["session"] == "ann", 6 * TIMEOUT)
                 at["hello"] = time.monotonic() - t
+                assert hello["delegate_url"]  # (the page asks the server's room route)
+                async with httpx.AsyncClient(timeout=TIMEOUT) as c:
+                    r = await c.get(f"{url}/room/api/delegate/ann",
+                                    headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 200 and "texture" in r.text, r.text[:300]
                 values = await frames(ws, 8)
                 assert np.ptp(values) > 1.0, values  # her camera's picture, live, via JPEG
                 # tracked by the tracker process: it announced her session (its pid in the
@@ -729,4 +735,9 @@ def test_a_room_tracker_on_redis_tracks_a_member_and_another_takes_over_when_it_
     finally:
         for p in (server, *trackers):
             stop(p)
+        for who, p in (("server", server), ("tracker 1", trackers[0])):
+            for text in p.stderr.read().splitlines():
+                if "tracked by" in text or "let go" in text or "left" in text or "lapsed" in text or "held" in text \
+                        or "tracking" in text:
+                    print(f"{who}: {text}")
         redis.stop()
