@@ -16,9 +16,9 @@ appearance maps are YCrCb), ~14 MB/s per member at 30 fps through one Redis; as 
 
 **Tracker's side.** :class:`RedisInlet` reads that stream where a worker reads its pipe (the
 ``webrtc:NAME`` source's ``inlet``: ``poll``, ``recv``, ``close``), always the newest entry
-(``XREVRANGE … COUNT 1``; ``XREAD BLOCK`` waits for the next), decoding the JPEG in the worker
-process; it holds only the URL and the key until it is first read, so it is handed to a
-worker process as a pipe is.
+(one ``XREAD BLOCK`` of the entries after the last one taken: their last), decoding the JPEG
+in the worker process; it holds only the URL and the key until it is first read, so it is
+handed to a worker process as a pipe is.
 
 **Leases.** A tracker takes a member with ``SET PREFIX room:ROOM:tracker:NAME HOLDER NX PX
 ttl`` and renews it every third of the TTL (a Lua script: only while it is still the
@@ -149,18 +149,19 @@ class RedisInlet:
                                                socket_timeout=10.0)
         return self._redis
 
-    def _newest(self) -> Any:
-        """The newest entry, if newer than the last one taken."""
-        rows = self._client().xrevrange(self.key, count=1)
-        if not rows:
+    def _newest(self, block_s: float) -> Any:
+        """The newest entry newer than the last one taken (waiting up to ``block_s`` for
+        one; None if none came): one ``XREAD`` of the entries after it (at most
+        :data:`KEEP`: the stream holds no more), its last."""
+        last = f"{self._last[0]}-{self._last[1]}"
+        got = self._client().xread({self.key: last}, count=KEEP,
+                                   block=max(1, int(1000 * block_s)) if block_s > 0 else None)
+        if not got:
             return None
-        raw_id, fields = rows[0]
+        raw_id, fields = got[0][1][-1]
         sid = raw_id.decode() if isinstance(raw_id, bytes) else str(raw_id)
         ms, _, seq = sid.partition("-")
-        ident = (int(ms), int(seq or 0))
-        if ident <= self._last:
-            return None
-        self._last = ident
+        self._last = (int(ms), int(seq or 0))
         return fields
 
     def poll(self, wait: float) -> bool:
@@ -168,16 +169,9 @@ class RedisInlet:
             return True
         deadline = time.monotonic() + max(wait, 0.0)
         while True:
+            left = deadline - time.monotonic()
             try:
-                fields = self._newest()
-                if fields is None:
-                    left = deadline - time.monotonic()
-                    if left <= 0:
-                        return False
-                    last = f"{self._last[0]}-{self._last[1]}" if self._last != (0, 0) else "0"
-                    self._client().xread({self.key: last}, count=1,
-                                         block=max(1, int(1000 * min(left, 1.0))))
-                    continue
+                fields = self._newest(min(max(left, 0.0), 1.0))
             except Exception as exc:  # noqa: BLE001 - Redis away: no frame (the source says so)
                 if not self._failing:
                     log.warning("%s: cannot read frames from Redis (%r)", self.key, exc)
@@ -187,6 +181,10 @@ class RedisInlet:
                     return False
                 continue
             self._failing = False
+            if fields is None:
+                if time.monotonic() >= deadline:
+                    return False
+                continue
             self._item = self._decode(fields)
             return True
 
