@@ -648,6 +648,10 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float,
     extra: dict[str, Any] = {"trackers": trackers}
     if remote:
         extra["tracker_cores"] = round(tracker_s / wall, 3)
+        pid = tracker.pid if tracker is not None else -1  # (its own loop: the hub, leases)
+        if pid in before["tracker"] and pid in after["tracker"]:
+            extra["tracker_main_cores"] = round(
+                (after["tracker"][pid] - before["tracker"][pid]) / wall, 3)
     here = own + media + (0.0 if remote else sum(workers.values()))
     extra["server_cores_per_participant"] = round(here / wall / n, 3)
     if redis_url:
@@ -719,7 +723,8 @@ def line(r: dict[str, Any], target: float) -> str:
     how = ""
     if "trackers" in r and "redis" in r:
         how = (f"[{r['trackers']} trackers; server {r['server_cores_per_participant']:.2f} "
-               f"cores/participant" + (f", tracker process {r['tracker_cores']:.2f} cores"
+               f"cores/participant" + (f", tracker process {r['tracker_cores']:.2f} cores "
+                                       f"(its own loop {r.get('tracker_main_cores', -1):.2f})"
                                        if "tracker_cores" in r else "")
                + f"; into Redis {r['redis']['in_kB_per_s']:.0f} kB/s"
                + (f", JPEG {r['redis']['jpeg_kB']} kB at "
