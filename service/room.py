@@ -41,6 +41,10 @@ every member's frames go through the Redis hub, so a page on any server follows 
 member. A member's enrolled delegate is shared through Redis too (written once per session
 run by the server holding them, read by the others' delegate route); their voice stays on their
 own server (not relayed yet).
+With ``--remote-trackers`` a server tracks nobody: its media process puts each member's
+frames in Redis and ``articast room-tracker`` processes on any machine track them under a
+lease (:mod:`articast.service.room_frames`, :mod:`articast.service.room_tracker`); their
+results come back through the hub as any other server's do.
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
