@@ -527,12 +527,28 @@ def test_the_membership_hash_gives_a_name_and_a_seat_once_and_forgets_a_silent_s
     (["--member-ttl", "0.5"], "--member-ttl: 1 to 3600"),
     (["--max-shared-delegate", "0"], "--max-shared-delegate: 0.01 to 64 MB"),
     (["--hub", "http://x"], "expected redis://"),
+    (["--remote-trackers"], "--remote-trackers needs --hub"),
+    (["--tracker-wait", "0"], "--tracker-wait: 1 to 3600"),
 ])
 def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch):
     from articast.service.cli import main
 
     monkeypatch.setenv("ARTICAST_ROOM_TOKEN", ROOM)
     assert main(["room", "--port", "0", "--speakers", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize("args, says", [
+    ([], "--hub redis://HOST:PORT/DB is required"),
+    (["--hub", "redis://127.0.0.1:1/0", "--lease", "0"], "--lease: 1 to 600"),
+    (["--hub", "redis://127.0.0.1:1/0", "--max-members", "0"], "--max-members: 1 to 64"),
+])
+def test_bad_room_tracker_options_are_one_line(args, says, capsys, monkeypatch):
+    from articast.service.cli import main
+
+    monkeypatch.delenv("ARTICAST_HUB", raising=False)
+    assert main(["room-tracker", "t", *args]) == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err, err
 
