@@ -172,6 +172,8 @@ class Member:
     """With remote trackers: why they leave (no tracker held them long enough)."""
     delegate_cache: Any = None
     """With remote trackers: (the tracker's description, their delegate's JSON for it)."""
+    failed_since: float = 0.0
+    """With remote trackers: since when their tracker's session has said it failed."""
 
 
 class Room:
@@ -300,7 +302,7 @@ class Room:
         them)."""
         from articast.service.room_frames import holders
 
-        mine = [n for n, m in self.members.items() if m.feed is not None]
+        mine = {n: m.joined for n, m in self.members.items() if m.feed is not None}
         held = await holders(self.presence.redis, self.svc.config.hub_prefix,
                              self.config.name, mine)
         for name, holder in held.items():
@@ -620,8 +622,14 @@ class Room:
             self.remove(name, m.feed.ended, dropped=True)
         elif m.untracked:
             self.remove(name, m.untracked, dropped=True)
-        elif session is not None and session.state == "failed" and session.t >= m.joined:
-            self.remove(name, f"their tracker failed: {session.detail}", dropped=True)
+        elif session is not None and session.state == "failed" and m.tracker:
+            # (held by a tracker for this membership, its lease says; failed for half a
+            # second: a former membership's failed session is gone by then)
+            m.failed_since = m.failed_since or time.monotonic()
+            if time.monotonic() - m.failed_since >= 0.5:
+                self.remove(name, f"their tracker failed: {session.detail}", dropped=True)
+        else:
+            m.failed_since = 0.0
 
 
 class _TrackedElsewhere:

@@ -20,12 +20,13 @@ appearance maps are YCrCb), ~14 MB/s per member at 30 fps through one Redis; as 
 in the worker process; it holds only the URL and the key until it is first read, so it is
 handed to a worker process as a pipe is.
 
-**Leases.** A tracker takes a member with ``SET PREFIX room:ROOM:tracker:NAME HOLDER NX PX
-ttl`` and renews it every third of the TTL (a Lua script: only while it is still the
-holder), in Redis's own clock: a tracker that dies stops renewing and the key lapses; another
-tracker then takes the member. The room's server reads the holders each half second: a member
-whom no tracker holds for ``--tracker-wait`` seconds is told so in one line and leaves (their
-page joins again by itself).
+**Leases.** A tracker takes a member with ``SET PREFIX room:ROOM:tracker:NAME HOLDER|JOINED
+NX PX ttl`` (JOINED: the membership's ``joined``, so that a lease of a former membership of
+the name is never taken for the present one's) and renews it every third of the TTL (a Lua
+script: only while it is still the holder), in Redis's own clock: a tracker that dies stops
+renewing and the key lapses; another tracker then takes the member. The room's server reads
+the holders each half second: a member whom no tracker holds for ``--tracker-wait`` seconds
+is told so in one line and leaves (their page joins again by itself).
 """
 
 from __future__ import annotations
@@ -252,12 +253,18 @@ class Leases:
         self.ttl_ms = max(100, round(1000 * ttl_s))
         self._renew = redis.register_script(RENEW)
         self._release = redis.register_script(RELEASE)
+        self._values: dict[str, str] = {}
 
     def key(self, name: str) -> str:
         return lease_key(self.prefix, self.room, name)
 
-    async def claim(self, name: str) -> bool:
-        return bool(await self.redis.set(self.key(name), self.holder, nx=True, px=self.ttl_ms))
+    async def claim(self, name: str, joined: float) -> bool:
+        """Take ``name``'s membership of ``joined`` (False: another tracker has it)."""
+        value = f"{self.holder}|{joined!r}"
+        if await self.redis.set(self.key(name), value, nx=True, px=self.ttl_ms):
+            self._values[name] = value
+            return True
+        return False
 
     async def renew(self, names: list[str]) -> list[str]:
         """Renew these leases: the names another tracker holds now. A lease that lapsed
@@ -265,22 +272,38 @@ class Leases:
         again, in one line of the log."""
         lost = []
         for name in names:
-            kept = await self._renew(keys=[self.key(name)], args=[self.holder, self.ttl_ms])
+            value = self._values.get(name, self.holder)
+            kept = await self._renew(keys=[self.key(name)], args=[value, self.ttl_ms])
             if not kept:
                 lost.append(name)
+                self._values.pop(name, None)
             elif kept == 2:
                 log.warning("room %s: the lease on %s lapsed before this tracker renewed it "
                             "(nobody had taken it: kept)", self.room, name)
         return lost
 
     async def release(self, name: str) -> None:
-        await self._release(keys=[self.key(name)], args=[self.holder])
+        value = self._values.pop(name, None)
+        if value is not None:
+            await self._release(keys=[self.key(name)], args=[value])
 
 
-async def holders(redis: Any, prefix: str, room: str, names: list[str]) -> dict[str, str]:
-    """Who tracks each of these members ("" for nobody): the room's server asks."""
-    if not names:
+async def holders(redis: Any, prefix: str, room: str,
+                  members: dict[str, float]) -> dict[str, str]:
+    """Which tracker tracks each of these members (``{name: joined}``) in that membership
+    ("" for none): the room's server asks."""
+    if not members:
         return {}
+    names = list(members)
     values = await redis.mget([lease_key(prefix, room, n) for n in names])
-    return {n: (v.decode() if isinstance(v, bytes) else (v or ""))
-            for n, v in zip(names, values, strict=True)}
+    out = {}
+    for name, raw in zip(names, values, strict=True):
+        value = raw.decode() if isinstance(raw, bytes) else (raw or "")
+        holder, _, joined = value.rpartition("|")
+        try:
+            # (the membership's Lua scripts keep 14 digits of ``joined``: 0.1 ms here)
+            ours = bool(holder) and abs(float(joined) - members[name]) < 1e-3
+        except ValueError:
+            ours = False
+        out[name] = holder if ours else ""
+    return out

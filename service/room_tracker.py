@@ -117,27 +117,21 @@ async def run_room_tracker(url: str, prefix: str, room: str, speakers: str = "",
                 session = manager.sessions.get(name)
                 if wanted.get(name) != joined:
                     await drop(name, "they left the room")
-                elif session is not None and session.state in TERMINAL:
-                    # kept (its state announced: their server tells them why) until they
-                    # leave; the lease goes, and this membership is not taken again
+                elif session is not None and session.state in TERMINAL and \
+                        (name, joined) not in finished:
+                    # kept, with its lease (its state announced under this tracker's run:
+                    # their server tells them why), until they leave; not restarted
                     finished.add((name, joined))
-                    mine.pop(name)
-                    with contextlib.suppress(Exception):
-                        await leases.release(name)
                     log.warning("room %s: %s's session %s: %s", room, name, session.state,
                                 session.detail)
-            for name, joined in list(finished):
-                if wanted.get(name) != joined:
-                    finished.discard((name, joined))
-                    if name in manager.sessions and name not in mine:
-                        await manager.remove(name)
+            finished = {(n, j) for n, j in finished if mine.get(n) == j}
             for name, joined in sorted(wanted.items(), key=lambda kv: kv[1]):
                 if name in mine or (name, joined) in finished or len(mine) >= max_members:
                     continue
                 if name in manager.sessions:  # (a former membership's session, stopping)
                     continue
                 try:
-                    if not await leases.claim(name):
+                    if not await leases.claim(name, joined):
                         continue
                 except Exception:  # noqa: BLE001 - Redis away: next round
                     break

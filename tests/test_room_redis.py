@@ -618,13 +618,13 @@ def test_a_page_that_offers_its_camera_first_hears_every_other_member(tmp_path):
 
 
 # ----------------------------------------------------------------------------- remote trackers
-def room_tracker(redis_url, speakers, lease=2.0):
+def room_tracker(redis_url, speakers, lease=2.0, processor="ImageStats"):
     """``articast room-tracker t`` in a process group of its own (a kill takes its workers)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room-tracker", "t", "--hub", redis_url,
          "--speakers", str(speakers), "--lease", str(lease), "--json",
-         "--processor", "tests.service_helpers:ImageStats", "--log-level", "warning"],
+         "--processor", f"tests.service_helpers:{processor}", "--log-level", "warning"],
         cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         start_new_session=True)
 
@@ -756,4 +756,40 @@ def test_a_room_tracker_on_redis_tracks_a_member_and_another_takes_over_when_it_
                 if "tracked by" in text or "let go" in text or "left" in text or "lapsed" in text or "held" in text \
                         or "tracking" in text:
                     print(f"{who}: {text}")
+        redis.stop()
+
+
+def test_a_member_whose_session_fails_on_the_room_tracker_is_told_why_and_can_join_again(
+        tmp_path):
+    """The tracker's session of ann fails (its processor refuses her video): her server tells
+    her the reason in one line (her socket's close reason) and she leaves; the tracker does
+    not start her again, and she can join again (failing again, told again)."""
+    redis = Redis()
+    redis.start()
+    server = room_server(redis.url, tmp_path, "--remote-trackers")
+    tracker = room_tracker(redis.url, tmp_path, processor="RefusesAll")
+    try:
+        url = base_url(server)
+        tracker.stdout.readline()
+
+        async def told():
+            ann = Page(url, "ann")
+            await ann.join()
+            try:
+                async with ann.socket() as ws:
+                    with pytest.raises(websockets.ConnectionClosed) as closed:
+                        while True:
+                            await asyncio.wait_for(ws.recv(), 6 * TIMEOUT)
+                return closed.value.rcvd
+            finally:
+                await ann.pc.close()
+
+        for _ in range(2):
+            rcvd = asyncio.run(asyncio.wait_for(told(), 12 * TIMEOUT))
+            assert rcvd is not None and rcvd.code == 4001, rcvd
+            assert "their tracker failed" in rcvd.reason and "refuses" in rcvd.reason, rcvd
+        assert server.poll() is None and tracker.poll() is None
+    finally:
+        for p in (server, tracker):
+            stop(p)
         redis.stop()
