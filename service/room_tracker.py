@@ -12,9 +12,10 @@ are announced in the sessions hash exactly as ``articast track-worker``'s
 member's frames: nothing on the servers or the pages changes.
 
 A member leaves (their entry goes, or is taken by another run of the name): their session is
-stopped and the lease released. A session that ends or fails is stopped and not taken again
-for that membership (the server tells the member why, from its status). A lease this tracker
-finds another holds (it was too late renewing it) stops its session: one tracker per member.
+stopped and the lease released. A session that ends or fails is not started again for that
+membership: it is kept, with its lease, its state announced, until the member leaves (their
+server tells them why, from that state). A lease this tracker finds another holds (it was too
+late renewing it, and another took it) stops its session: one tracker per member.
 This process killed: its leases lapse after their TTL and another tracker takes its members;
 with none left, the room's servers tell the members (``--tracker-wait``).
 """
