@@ -46,6 +46,17 @@ then ``before_measuring`` says who was short), for ``--seconds``:
 
 The load (``load_1min``, start and end) includes this benchmark's own processes. Results and
 what they mean: docs/ROOM.md, "Capacity with light clients".
+
+``--trackers local,remote`` measures each N twice in one run, both on one ``redis-server``
+started here (``--hub``): ``local``, the server's own workers track (their results through
+Redis, as with any hub); ``remote``, the server runs with ``--remote-trackers`` and one
+``articast room-tracker`` process tracks every member from their frames in Redis
+(service/room_frames.py): the difference is the frames' hop through Redis (JPEG encoding in
+the media process, the stream, decoding in the tracker's worker). Then ``tracker`` gives the
+tracker process's CPU (it and its workers), ``server_cores_per_participant`` the server's
+(its loop and the media process, plus its workers when they track here), ``redis`` the bytes
+a second into Redis and the JPEG frames' size and rate (docs/ROOM.md, "Trackers on other
+machines").
 """
 
 from __future__ import annotations
@@ -454,17 +465,79 @@ def pct(xs: list[float], q: float) -> float | None:
     return round(float(np.percentile(xs, q)), 1) if xs else None
 
 
-def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[str, Any]:
+def descendants(pid: int) -> list[int]:
+    """``pid`` and every process under it."""
+    parent: dict[int, int] = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError, IndexError, ValueError):
+                stat = Path(f"/proc/{entry}/stat").read_text()
+                parent[int(entry)] = int(stat.rsplit(")", 1)[1].split()[1])
+    out, todo = [pid], [pid]
+    while todo:
+        p = todo.pop()
+        for child, par in parent.items():
+            if par == p and child not in out:
+                out.append(child)
+                todo.append(child)
+    return out
+
+
+def tree_cpu_s(pid: int) -> dict[int, float]:
+    """CPU seconds of ``pid`` and each process under it, by pid (a process that ended
+    meanwhile is missing: compare the pids present at both ends)."""
+    return {p: c for p in descendants(pid) if (c := proc_cpu_s(p)) == c}
+
+
+def redis_counts(url: str, names: list[str]) -> dict[str, Any]:
+    """Bytes into Redis so far, and per member the frames added to their stream and the
+    sizes of the newest ones (JPEG)."""
+    import redis
+
+    c = redis.Redis.from_url(url)
+    try:
+        out: dict[str, Any] = {"in_bytes": int(c.info("stats")["total_net_input_bytes"]),
+                               "added": {}, "jpeg_bytes": []}
+        for m in names:
+            key = f"articast:room:cap:frames:{m}"
+            with contextlib.suppress(redis.ResponseError):
+                out["added"][m] = int(c.xinfo_stream(key)["entries-added"])
+            for _, fields in c.xrevrange(key, count=2):
+                if b"img" in fields:
+                    out["jpeg_bytes"].append(len(fields[b"img"]))
+        return out
+    finally:
+        c.close()
+
+
+def room_tracker(url: str, processor: str) -> subprocess.Popen[str]:
+    """``articast room-tracker cap`` on ``url`` (a process group of its own), started."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "room-tracker", "cap", "--hub", url,
+         "--processor", processor, "--max-members", "32", "--json"],
+        cwd=ROOT, stdout=subprocess.PIPE, text=True, start_new_session=True)
+    assert proc.stdout is not None
+    if not proc.stdout.readline():
+        raise RuntimeError(f"the room tracker did not start ({proc.wait()})")
+    return proc
+
+
+def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float,
+            trackers: str = "local", redis_url: str = "") -> dict[str, Any]:
+    import signal
+
     from articast.service.app import ServiceConfig
     from articast.service.room import RoomConfig
     from articast.service.security import AccessPolicy
     from tests.service_helpers import ServerThread
 
     names = [f"p{i}" for i in range(n)]
-    config = ServiceConfig(access=AccessPolicy(token=OPERATOR), room=RoomConfig(
+    remote = trackers == "remote"
+    config = ServiceConfig(access=AccessPolicy(token=OPERATOR), hub_url=redis_url, room=RoomConfig(
         name="cap", token=ROOM_TOKEN, max_participants=max(8, n), max_fps=float(FPS),
-        warm_media=True, processor=args.processor))
+        warm_media=True, processor=args.processor, remote_trackers=remote))
     load0 = os.getloadavg()
+    tracker = room_tracker(redis_url, args.processor) if remote else None
     with ServerThread(config) as srv:
         proc = subprocess.Popen(
             [sys.executable, __file__, "--clients", "--http", srv.http, "--names",
@@ -478,11 +551,16 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
             before: dict[str, Any] = {}
             pids: dict[str, int | None] = {}
 
+            def tracked(m: str) -> int:  # (remote: the frames that reached the server)
+                s = sessions.get(m) or (srv.service.lookup(m) if remote else None)
+                return s.metrics.frames if s is not None else 0
+
             def counts() -> dict[str, Any]:  # (a member who dropped counts 0 from then on)
                 feeds = {m: getattr(room.members.get(m), "feed", None) for m in names}
                 return {"workers": {m: proc_cpu_s(p) for m, p in pids.items()},
-                        "tracked": {m: sessions[m].metrics.frames if m in sessions else 0
-                                    for m in names},
+                        "tracker": tree_cpu_s(tracker.pid) if tracker is not None else {},
+                        "redis": redis_counts(redis_url, names) if redis_url else {},
+                        "tracked": {m: tracked(m) for m in names},
                         "received": {m: f.received if f else 0 for m, f in feeds.items()},
                         "replaced": {m: f.dropped if f else 0 for m, f in feeds.items()},
                         "rtp": {m: dict(f.rtp) if f else {} for m, f in feeds.items()}}
@@ -496,7 +574,8 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
                     return {"participants": n, "error": msg["error"], "seen": msg.get("seen"),
                             "load_1min": [round(load0[0], 2), round(os.getloadavg()[0], 2)]}
                 if msg.get("phase") == "start":
-                    pids = {m: worker_pid(sessions.get(m)) for m in names}
+                    pids = {m: (tracker.pid if tracker is not None else
+                                worker_pid(sessions.get(m))) for m in names}
                     media_pid = srv.service.media._proc.pid
                     print(f"N={n}: measuring: server {os.getpid()}, media process {media_pid}"
                           f", workers {pids}, clients {proc.pid}", file=sys.stderr, flush=True)
@@ -520,6 +599,14 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
             if proc.poll() is None:
                 proc.terminate()
                 proc.wait(10)
+            if tracker is not None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(tracker.pid, signal.SIGTERM)
+                try:
+                    tracker.wait(20)
+                except subprocess.TimeoutExpired:
+                    os.killpg(tracker.pid, signal.SIGKILL)
+                    tracker.wait()
     load1 = os.getloadavg()
     if not result:
         return {"participants": n, "error": f"the clients' process ended ({proc.returncode}) "
@@ -541,6 +628,10 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
     media = after["media"] - before["media"]
     own = after["own"] - before["own"]
     workers = {m: after["workers"][m] - before["workers"][m] for m in names}
+    tracker_s = sum(after["tracker"][p] - c for p, c in before["tracker"].items()
+                    if p in after["tracker"])
+    if remote:  # one process tracks them all: its CPU (its workers') shared out
+        workers = {m: tracker_s / n for m in names}
     ended = sorted(m for m, v in workers.items() if v != v)  # their worker is gone: NaN
     workers = {m: (0.0 if m in ended else v) for m, v in workers.items()}
     tracked = {m: after["tracked"][m] - before["tracked"][m] for m in names}
@@ -554,8 +645,25 @@ def measure(n: int, clip: Path, args: argparse.Namespace, v1_ms: float) -> dict[
             out[kind] = [got - g0, lost - l0]
         return out
 
+    extra: dict[str, Any] = {"trackers": trackers}
+    if remote:
+        extra["tracker_cores"] = round(tracker_s / wall, 3)
+        pid = tracker.pid if tracker is not None else -1  # (its own loop: the hub, leases)
+        if pid in before["tracker"] and pid in after["tracker"]:
+            extra["tracker_main_cores"] = round(
+                (after["tracker"][pid] - before["tracker"][pid]) / wall, 3)
+    here = own + media + (0.0 if remote else sum(workers.values()))
+    extra["server_cores_per_participant"] = round(here / wall / n, 3)
+    if redis_url:
+        r0, r1 = before["redis"], after["redis"]
+        added = {m: round((r1["added"][m] - r0["added"].get(m, 0)) / wall, 1)
+                 for m in names if m in r1["added"]}
+        jpeg = r1["jpeg_bytes"] + r0["jpeg_bytes"]
+        extra["redis"] = {"in_kB_per_s": round((r1["in_bytes"] - r0["in_bytes"]) / wall / 1e3, 1),
+                          "frames_published_fps": added,
+                          "jpeg_kB": round(sum(jpeg) / len(jpeg) / 1e3, 1) if jpeg else None}
     return {
-        "participants": n, "seconds": round(wall, 1), "cores": os.cpu_count(),
+        "participants": n, "seconds": round(wall, 1), "cores": os.cpu_count(), **extra,
         "load_1min": [round(load0[0], 2), round(load1[0], 2)],
         "all_alive": alive,
         "before_measuring": result.get("short") or "every client received every member",
@@ -612,7 +720,17 @@ def line(r: dict[str, Any], target: float) -> str:
     xv1 = f"; x v1 {min(x):.2f}-{max(x):.2f}" if x else ""
     if r["workers_ended"]:
         xv1 += f" (workers ended: {','.join(r['workers_ended'])})"
-    return (f"N={n}: delivered {min(fps):.1f}-{max(fps):.1f} fps (tracked "
+    how = ""
+    if "trackers" in r and "redis" in r:
+        how = (f"[{r['trackers']} trackers; server {r['server_cores_per_participant']:.2f} "
+               f"cores/participant" + (f", tracker process {r['tracker_cores']:.2f} cores "
+                                       f"(its own loop {r.get('tracker_main_cores', -1):.2f})"
+                                       if "tracker_cores" in r else "")
+               + f"; into Redis {r['redis']['in_kB_per_s']:.0f} kB/s"
+               + (f", JPEG {r['redis']['jpeg_kB']} kB at "
+                  f"{sum(r['redis']['frames_published_fps'].values()):.1f} fps"
+                  if r["redis"]["jpeg_kB"] else "") + "] ")
+    return (f"N={n}: {how}delivered {min(fps):.1f}-{max(fps):.1f} fps (tracked "
             f"{min(r['tracked_fps'].values()):.1f}-{max(r['tracked_fps'].values()):.1f}, target "
             f"{target:g}: {'ok' if min(fps) >= target else 'SHORT'}), capture->client socket "
             f"p50 {r['latency_ms']['p50']} p95 {r['latency_ms']['p95']} ms, RTP lost {lost}/"
@@ -637,6 +755,10 @@ def main(argv: list[str] | None = None) -> None:
                     help="what tracks each member (auto: the tracker; "
                     "tests.service_helpers:ImageStats reads the image only, to measure the "
                     "media and the server without the trackers)")
+    ap.add_argument("--trackers", default="local",
+                    help="local (the server's workers; no Redis), or local,remote: each N "
+                    "with both, on one redis-server started here (remote: the server with "
+                    "--remote-trackers and one 'articast room-tracker')")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/articast-room-capacity"),
                     help="where the encoded clip (and the v1 reference) are kept")
     ap.add_argument("--client-buffers", type=int, default=2 * 1024 * 1024,
@@ -658,12 +780,26 @@ def main(argv: list[str] | None = None) -> None:
     v1 = v1_reference(args.cache)
     target = min(args.target, FPS)
     results, started = [], time.time()
-    for n in (int(x) for x in args.participants.split(",")):
-        r = measure(n, clip, args, v1)
-        results.append(r)
-        if not args.json:
-            print(line(r, target), flush=True)
-        time.sleep(3.0)  # the last N's workers and media process gone
+    modes = [m.strip() for m in args.trackers.split(",")]
+    if not set(modes) <= {"local", "remote"}:
+        raise SystemExit("--trackers: local, remote or local,remote")
+    redis = None
+    if modes != ["local"]:
+        from tests.test_redis_scaleout import Redis
+
+        redis = Redis()
+        redis.start()
+    try:
+        for n in (int(x) for x in args.participants.split(",")):
+            for mode in modes:
+                r = measure(n, clip, args, v1, mode, redis.url if redis else "")
+                results.append(r)
+                if not args.json:
+                    print(line(r, target), flush=True)
+                time.sleep(3.0)  # the last N's workers and media process gone
+    finally:
+        if redis is not None:
+            redis.stop()
     ok = [r["participants"] for r in results
           if "error" not in r and min(r["delivered_fps"].values()) >= target]
     out = {"started": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime(started)),

@@ -18,6 +18,10 @@ server -> media   ``("offer", id, name, sdp, room)``  answer a participant's off
                   ``("inlet", id)`` + a file handle   the writing end of a new worker's frame
                                                       pipe: the participant's frames go there
                   ``("close", id, reason)``           the participant leaves (closes the peer)
+                  ``("frames", id, room)``            (``--remote-trackers``) the participant's
+                                                      frames go to Redis, for a tracker on
+                                                      any machine (service/room_frames.py),
+                                                      not to a local worker's pipe
                   ``("remote", room, [name, ...])``   (Redis) the room's members on its other
                                                       servers, each half second: their voices
                                                       are heard here, ours relayed to them
@@ -91,6 +95,10 @@ class RemoteFeed:
             return
         self.ended = reason
         self._media.send(("close", self.pid, reason))
+
+    def to_redis(self, room: str) -> bool:
+        """The participant's frames go to Redis (``--remote-trackers``), not to a worker."""
+        return not self.ended and self._media.send(("frames", self.pid, room))
 
 
 class MediaProcess:
@@ -341,6 +349,9 @@ class _Media:
         self.peers: dict[int, _Peer] = {}
         self.rooms: dict[str, Any] = {}
         self.closed_early: dict[int, str] = {}
+        self.publishers: dict[int, Any] = {}
+        """Peer id -> its :class:`articast.service.room_frames.FramePublisher` (frames to
+        Redis, ``--remote-trackers``)."""
         self.late = 0.0
         """The most this loop ran late since the last stats (s)."""
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -392,6 +403,8 @@ class _Media:
             else:
                 writer.send(("end", "the participant left"))
                 writer.close()
+        elif kind == "frames":
+            self._publish_frames(msg[1], msg[2])
         elif kind == "close":
             peer = self.peers.get(msg[1])
             if peer is not None:
@@ -403,6 +416,34 @@ class _Media:
         elif kind == "quit":
             assert self.done is not None
             self.done.set()
+
+    def _publish_frames(self, pid: int, room: str) -> None:
+        """The peer's frames go to their stream in Redis from now on (the feed's forwarder
+        writes there as it would to a worker's pipe), for a tracker on any machine."""
+        from articast.service.room_frames import FramePublisher, frames_key
+
+        peer = self.peers.get(pid)
+        if peer is None or not self.redis_url:
+            return
+        publisher = FramePublisher(self.redis_url, frames_key(self.prefix, room, peer.name))
+        self.publishers[pid] = publisher
+        peer.feed.attach(publisher)
+
+    def log_frames(self, period: float) -> None:
+        """One line on the frames put in Redis (``--log-level info``), then counted anew."""
+        parts = []
+        for pid, publisher in list(self.publishers.items()):
+            peer = self.peers.get(pid)
+            if peer is None:
+                self.publishers.pop(pid, None)
+                continue
+            frames, size, encode_s = publisher.counts()
+            if frames:
+                parts.append(f"{peer.name}: {frames / period:.1f} frames/s, "
+                             f"{size / frames / 1e3:.1f} kB a frame, JPEG "
+                             f"{1e3 * encode_s / frames:.1f} ms a frame")
+        if parts:
+            log.info("frames to Redis over %g s: %s", period, "; ".join(parts))
 
     def voices(self) -> RedisVoices | None:
         """This process's Redis connection for the voices (made when first needed; None
@@ -491,6 +532,8 @@ class _Media:
                 room.publish()
                 if tick % 10 == 0:
                     room.log_voices(10.0)
+            if tick % 10 == 0 and self.publishers:
+                self.log_frames(10.0)
 
 
 # ----------------------------------------------------------------------------- voices via Redis

@@ -41,6 +41,10 @@ every member's frames go through the Redis hub, so a page on any server follows 
 member. A member's enrolled delegate is shared through Redis too (written once per session
 run by the server holding them, read by the others' delegate route); their voice stays on their
 own server (not relayed yet).
+With ``--remote-trackers`` a server tracks nobody: its media process puts each member's
+frames in Redis and ``articast room-tracker`` processes on any machine track them under a
+lease (:mod:`articast.service.room_frames`, :mod:`articast.service.room_tracker`); their
+results come back through the hub as any other server's do.
 
 A participant leaves when their page closes its room socket, their peer connection closes or
 fails, or their video ends: their session ends, their slots are freed, the others' pages are
@@ -120,6 +124,13 @@ class RoomConfig:
     servers (``--max-shared-delegate`` MB); a larger one is refused in one line of the log
     (their pages show the generic head). One enrolled on the page is ~0.5 MB (its 256-pixel
     texture and its modes as PNG)."""
+    remote_trackers: bool = False
+    """With a Redis hub (``--remote-trackers``): this server tracks nobody; its media process
+    puts each member's frames in Redis and an ``articast room-tracker`` on any machine tracks
+    them (:mod:`articast.service.room_frames`)."""
+    tracker_wait_s: float = 20.0
+    """With remote trackers: a member no tracker has held for this long is told so and
+    leaves (``--tracker-wait``)."""
     warm_media: bool = False
     """Start the media process (and the workers' fork server) when the server starts rather
     than on the first offer (``articast room``: the first participant does not wait ~5 s)."""
@@ -153,6 +164,16 @@ class Member:
     put in Redis for the room's other servers (None: not there)."""
     unshared: str = ""
     """Why their delegate is not shared with the other servers ("": it is, or will be)."""
+    tracker: str = ""
+    """With remote trackers: the tracker that holds them (its lease in Redis; "": none)."""
+    tracked_at: float = 0.0
+    """With remote trackers: when a tracker was last seen holding them (or they joined)."""
+    untracked: str = ""
+    """With remote trackers: why they leave (no tracker held them long enough)."""
+    delegate_cache: Any = None
+    """With remote trackers: (the tracker's description, their delegate's JSON for it)."""
+    failed_since: float = 0.0
+    """With remote trackers: since when their tracker's session has said it failed."""
 
 
 class Room:
@@ -213,7 +234,8 @@ class Room:
         try:
             member.slot = await asyncio.wait_for(self.presence.claim(
                 member.name, member.joined, bool(member.speaker),
-                self.config.max_participants), 5.0)
+                self.config.max_participants,
+                "remote" if self.config.remote_trackers else "local"), 5.0)
         except Refused as exc:
             raise HTTPException(exc.status, exc.detail) from None
         except Exception as exc:  # noqa: BLE001 - Redis away: one line, nothing started
@@ -236,7 +258,8 @@ class Room:
                     if m.shared is not None and not self.config.speaker_of(n):
                         m.unshared = "their enrolment was deleted"  # (its folder is gone)
                 mine = {n: {"joined": m.joined, "slot": m.slot,
-                            "delegate": bool(m.speaker) and not m.unshared}
+                            "delegate": bool(m.speaker) and not m.unshared,
+                            "tracking": "remote" if self.config.remote_trackers else "local"}
                         for n, m in self.members.items()}
                 self._refreshed = t
                 for name in await self.presence.refresh(mine):
@@ -244,6 +267,8 @@ class Room:
                                 leave_redis=False)
                 await self._keep_delegates()
             entries = await self.presence.live()
+            if self.config.remote_trackers:
+                await self._check_trackers(t)
         except Exception as exc:  # noqa: BLE001 - Redis away: say so once, go on
             if not self._redis_failing:
                 log.warning("room %s: Redis cannot be reached (%r): the other servers' "
@@ -270,6 +295,33 @@ class Room:
             self.announce()
         self.remote = remote
         self._tell_media()
+
+    async def _check_trackers(self, t: float) -> None:
+        """With remote trackers: which tracker holds each member (their lease in Redis); one
+        no tracker has held for ``tracker_wait_s`` is marked to leave (the watcher tells
+        them)."""
+        from articast.service.room_frames import holders
+
+        mine = {n: m.joined for n, m in self.members.items() if m.feed is not None}
+        held = await holders(self.presence.redis, self.svc.config.hub_prefix,
+                             self.config.name, mine)
+        for name, holder in held.items():
+            m = self.members.get(name)
+            if m is None:
+                continue
+            if holder:
+                m.tracked_at = t
+                if holder != m.tracker:
+                    log.warning("room %s: %s is tracked by %s%s", self.config.name, name,
+                                holder, f" (was {m.tracker})" if m.tracker else "")
+            elif m.tracker:
+                log.warning("room %s: %s's tracker %s let go of them", self.config.name, name,
+                            m.tracker)
+            m.tracker = holder
+            if not holder and t - m.tracked_at > self.config.tracker_wait_s and not m.untracked:
+                m.untracked = (f"no room tracker took your video for "
+                               f"{self.config.tracker_wait_s:g} s: 'articast room-tracker' "
+                               "must run")
 
     def _tell_media(self) -> None:
         """The media process hears the members on the room's other servers (their voices
@@ -299,7 +351,7 @@ class Room:
         shared for it, not refused."""
         out = []
         for name, m in self.members.items():
-            session = self.svc.manager.sessions.get(name)
+            session = self.session_of(name)
             if m.speaker and not m.unshared and m.feed is not None and session is not None \
                     and session.description is not None and m.shared is not session.description:
                 out.append((m, session))
@@ -365,6 +417,18 @@ class Room:
                 raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
             await asyncio.sleep(0.25)
 
+    def session_of(self, name: str) -> Any:
+        """This server's member's session: the local one, or (``--remote-trackers``) the one
+        their tracker announced, with a ``delegate_json`` made here from their speaker folder
+        (the room's servers and trackers share it) for that session's model."""
+        session = self.svc.manager.sessions.get(name)
+        member = self.members.get(name)
+        if session is None and self.config.remote_trackers and member is not None:
+            remote = self.svc.lookup(name)
+            if remote is not None and remote.description is not None:
+                return _TrackedElsewhere(remote.description, member, self.config)
+        return session
+
     # ------------------------------------------------------------------ access
     async def check(self, request_key: str, offered: str, expected: str) -> None:
         """HTTPException 401 unless ``offered`` is ``expected``. The right token is never
@@ -415,7 +479,8 @@ class Room:
 
     # ------------------------------------------------------------------ members
     def add(self, name: str) -> Member:
-        member = Member(name, time.time(), speaker=self.config.speaker_of(name))
+        member = Member(name, time.time(), speaker=self.config.speaker_of(name),
+                        tracked_at=time.monotonic())
         self.members[name] = member
         return member
 
@@ -521,6 +586,9 @@ class Room:
             await asyncio.sleep(0.25)
             lag = max(lag, time.monotonic() - t0 - 0.25)
             for name, m in list(self.members.items()):
+                if m.feed is not None and self.config.remote_trackers:
+                    self._watch_remote(name, m)
+                    continue
                 session = self.svc.manager.sessions.get(name)
                 if m.feed is not None and (m.feed.ended or session is None
                                            or session.state in TERMINAL):
@@ -543,6 +611,48 @@ class Room:
                 log.info("room %s: event loop late by up to %.0f ms; %s", self.config.name,
                          1000 * lag, "; ".join(self.stats(n) for n in self.members))
                 lag = 0.0
+
+
+    def _watch_remote(self, name: str, m: Member) -> None:
+        """A member tracked elsewhere leaves when their video ends, when no tracker took
+        them for ``tracker_wait_s`` (:meth:`_check_trackers`), or when their session failed
+        on the tracker (its reason, as a local worker's failure is told)."""
+        session = self.svc.lookup(name)
+        if m.feed.ended:
+            self.remove(name, m.feed.ended, dropped=True)
+        elif m.untracked:
+            self.remove(name, m.untracked, dropped=True)
+        elif session is not None and session.state == "failed" and m.tracker:
+            # (held by a tracker for this membership, its lease says; failed for half a
+            # second: a former membership's failed session is gone by then)
+            m.failed_since = m.failed_since or time.monotonic()
+            if time.monotonic() - m.failed_since >= 0.5:
+                self.remove(name, f"their tracker failed: {session.detail}", dropped=True)
+        else:
+            m.failed_since = 0.0
+
+
+class _TrackedElsewhere:
+    """A member tracked by a room tracker, as the delegate route and the sharing see a
+    session: its description (the tracker's) and the member's delegate for its model (made
+    once per description, from the speakers folder)."""
+
+    def __init__(self, description: dict[str, Any], member: Member, config: RoomConfig) -> None:
+        self.description, self._member, self._config = description, member, config
+
+    def delegate_json(self) -> bytes:
+        from articast.core.errors import InputError
+        from articast.service.delegate import delegate_json, delegate_path
+
+        cached = self._member.delegate_cache
+        if cached is not None and cached[0] is self.description:
+            return bytes(cached[1])
+        path = delegate_path(self._member.speaker, (os.path.realpath(self._config.speakers),))
+        if path is None:
+            raise InputError(f"{self._member.name!r} has no delegate")
+        body = delegate_json(path, self.description["param_names"])
+        self._member.delegate_cache = (self.description, body)
+        return body
 
 
 async def _send(ws: WebSocket, text: str) -> None:
@@ -657,6 +767,15 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         except ValueError as exc:
             room.remove(name, "the offer was refused")
             raise HTTPException(400, str(exc)) from None
+        if config.remote_trackers:  # their frames to Redis; a room tracker takes them
+            if old is not None:
+                await svc.manager.remove(name)
+            if not feed.to_redis(config.name):
+                room.remove(name, "the media process is gone")
+                raise HTTPException(503, "the server's media process is not running")
+            member.feed = feed
+            room.announce()
+            return {"type": "answer", "sdp": answer, "name": name, "slots": mids}
         try:
             if old is not None:
                 await svc.manager.remove(name)
@@ -685,7 +804,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         if name not in room.members and name in room.remote:
             return Response(await room.remote_delegate(name), media_type="application/json",
                             headers={"Cache-Control": "no-store"})
-        session = svc.manager.sessions.get(name)
+        session = room.session_of(name)
         if name not in room.members or session is None or session.description is None:
             raise HTTPException(404, f"{name!r} has no delegate in this room (yet)")
         try:

@@ -2,12 +2,14 @@
 redis://…``) knows who is in it, whichever server holds each member's connection.
 
 One hash per room, ``PREFIX room:ROOM:members``: a field per member, its value a JSON object
-``{"name", "slot", "joined", "server", "delegate", "expires"}``:
+``{"name", "slot", "joined", "server", "delegate", "tracking", "expires"}``:
 
 * ``slot`` the member's seat in the room (the lowest free one, ``0 .. max - 1``, taken
   atomically with the name: the room's limit holds across servers);
 * ``joined`` when they joined (wall clock of the server that took them: the pages' order);
 * ``server`` which server holds their connection (:data:`articast.service.remote.RUN`);
+* ``tracking`` ``local`` (their server tracks them) or ``remote`` (an ``articast
+  room-tracker`` does, from their frames in Redis: :mod:`articast.service.room_frames`);
 * ``delegate`` whether they are shown as an enrolled delegate (their server rewrites it
   false when it cannot share that delegate: then the other servers show the generic head);
 * ``expires`` when the entry lapses, in **Redis's own clock** (``TIME``, milliseconds): the
@@ -157,11 +159,13 @@ class Presence:
     def ttl_ms(self) -> int:
         return max(100, round(1000 * self.ttl_s))
 
-    async def claim(self, name: str, joined: float, delegate: bool, max_members: int) -> int:
+    async def claim(self, name: str, joined: float, delegate: bool, max_members: int,
+                    tracking: str = "local") -> int:
         """Take ``name`` and a seat for this server: the seat (``slot``); :class:`Refused`
-        when the name is in the room (on any server) or the room is full."""
+        when the name is in the room (on any server) or the room is full. ``tracking``:
+        ``remote`` when a room tracker is to take them (``--remote-trackers``)."""
         entry = dumps({"name": name, "joined": joined, "server": self.server,
-                       "delegate": delegate})
+                       "delegate": delegate, "tracking": tracking})
         out = await self._scripts["claim"](keys=[self.key],
                                            args=[name, entry, self.ttl_ms, max_members])
         kind, value = (x.decode() if isinstance(x, bytes) else str(x) for x in out)

@@ -177,6 +177,7 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
         if capture.error is not None:
             raise capture.error
         assert capture.info is not None
+        finish = getattr(source, "finish", None)
         for path in (spec.speaker, spec.model, spec.appearance, spec.camera):
             if path:
                 check_confined(path, spec.media_roots)
@@ -216,6 +217,8 @@ def run_worker(spec: SessionSpec, capture_settings: CaptureSettings, record_dir:
                     next_alive = time.monotonic() + alive_s
                     emit(("alive",))
                 continue
+            if finish is not None:  # (a picture decoded only now: a frame from Redis)
+                frame = finish(frame)
             t0 = time.perf_counter()
             result = processor.process(frame)
             ms = (time.perf_counter() - t0) * 1000.0

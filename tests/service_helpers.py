@@ -230,6 +230,15 @@ class RefusesVideo:
         return frame.truth
 
 
+class RefusesAll:
+    """A test FrameProcessor that refuses every source (a session that fails at start)."""
+
+    def __init__(self, context: Any) -> None:
+        from articast.core.errors import InputError
+
+        raise InputError("test: this processor refuses every source")
+
+
 class HardCrash:
     """A test FrameProcessor whose process dies on frame 3 (no exception, no goodbye)."""
 

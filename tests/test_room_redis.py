@@ -527,12 +527,28 @@ def test_the_membership_hash_gives_a_name_and_a_seat_once_and_forgets_a_silent_s
     (["--member-ttl", "0.5"], "--member-ttl: 1 to 3600"),
     (["--max-shared-delegate", "0"], "--max-shared-delegate: 0.01 to 64 MB"),
     (["--hub", "http://x"], "expected redis://"),
+    (["--remote-trackers"], "--remote-trackers needs --hub"),
+    (["--tracker-wait", "0"], "--tracker-wait: 1 to 3600"),
 ])
 def test_bad_room_options_are_one_line(args, says, capsys, tmp_path, monkeypatch):
     from articast.service.cli import main
 
     monkeypatch.setenv("ARTICAST_ROOM_TOKEN", ROOM)
     assert main(["room", "--port", "0", "--speakers", str(tmp_path), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert says in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize("args, says", [
+    ([], "--hub redis://HOST:PORT/DB is required"),
+    (["--hub", "redis://127.0.0.1:1/0", "--lease", "0"], "--lease: 1 to 600"),
+    (["--hub", "redis://127.0.0.1:1/0", "--max-members", "0"], "--max-members: 1 to 64"),
+])
+def test_bad_room_tracker_options_are_one_line(args, says, capsys, monkeypatch):
+    from articast.service.cli import main
+
+    monkeypatch.delenv("ARTICAST_HUB", raising=False)
+    assert main(["room-tracker", "t", *args]) == 2
     err = capsys.readouterr().err.strip()
     assert says in err and "\n" not in err, err
 
@@ -598,4 +614,182 @@ def test_a_page_that_offers_its_camera_first_hears_every_other_member(tmp_path):
         assert sorted(heard.values()) == [440, 660], heard
     finally:
         stop(server)
+        redis.stop()
+
+
+# ----------------------------------------------------------------------------- remote trackers
+def room_tracker(redis_url, speakers, lease=2.0, processor="ImageStats"):
+    """``articast room-tracker t`` in a process group of its own (a kill takes its workers)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    return subprocess.Popen(
+        [sys.executable, "-m", "articast.service.cli", "room-tracker", "t", "--hub", redis_url,
+         "--speakers", str(speakers), "--lease", str(lease), "--json",
+         "--processor", f"tests.service_helpers:{processor}", "--log-level", "warning"],
+        cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        start_new_session=True)
+
+
+def descendants(pid):
+    """The processes under ``pid`` (children, theirs, ...), as ``{pid: command line}``,
+    multiprocessing's resource tracker left out."""
+    parent = {}
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            with contextlib.suppress(OSError):
+                stat = open(f"/proc/{entry}/stat").read()
+                parent[int(entry)] = int(stat.rsplit(")", 1)[1].split()[1])
+    out, todo = {}, [pid]
+    while todo:
+        p = todo.pop()
+        for child, par in parent.items():
+            if par == p and child not in out:
+                with contextlib.suppress(OSError):
+                    out[child] = open(f"/proc/{child}/cmdline").read().replace("\0", " ")
+                todo.append(child)
+    return {p: c for p, c in out.items() if "resource_tracker" not in c}
+
+
+def sessions_entry(client_redis_url, name):
+    """The sessions hash's entry of ``name`` (who announced their session), or None."""
+    import redis as sync_redis
+
+    c = sync_redis.Redis.from_url(client_redis_url)
+    try:
+        raw = c.hget("articast:sessions", name)
+        return json.loads(raw) if raw else None
+    finally:
+        c.close()
+
+
+def test_a_room_tracker_on_redis_tracks_a_member_and_another_takes_over_when_it_dies(tmp_path):
+    """A room server with --remote-trackers tracks nobody: ann's frames go to Redis, a room
+    tracker (another process, as on another machine) tracks them and her page receives them;
+    the server started no worker for her. A second tracker waits; the first is killed (with
+    its workers): the second takes her within its lease and her frames come again, from it.
+    With no tracker left, she is told in one line (her socket closes with the reason)."""
+    lease, wait = 2.0, 6.0
+    redis = Redis()
+    redis.start()
+    server = room_server(redis.url, tmp_path, "--remote-trackers", "--tracker-wait", str(wait))
+    trackers = [room_tracker(redis.url, tmp_path, lease)]
+    at = {}
+    try:
+        url = base_url(server)
+        first = json.loads(trackers[0].stdout.readline() or "{}")
+        assert first.get("pid") == trackers[0].pid, trackers[0].stderr.read()
+        write_speaker(tmp_path / "ann")  # enrolled: her delegate, served by the server
+        ann = Page(url, "ann", participant_token(ROOM, "ann"))
+
+        def tracked_by(p):
+            e = sessions_entry(redis.url, "ann")
+            return e is not None and f":{p.pid}:" in e.get("run", "")
+
+        async def frames(ws, n):
+            got = []
+            while len(got) < n:
+                got.append(await until(ws, lambda m: m["type"] == "frame"
+                                       and m["session"] == "ann", 3 * TIMEOUT))
+            return [next(iter(f["values"]["articulatory"].values())) for f in got]
+
+        async def go():
+            await ann.join()
+            async with ann.socket() as ws:
+                t = time.monotonic()
+                hello = await until(ws, lambda m: m["type"] == "hello"
+                                    and m["session"] == "ann", 6 * TIMEOUT)
+                at["hello"] = time.monotonic() - t
+                assert hello["delegate_url"]  # (the page asks the server's room route)
+                async with httpx.AsyncClient(timeout=TIMEOUT) as c:
+                    r = await c.get(f"{url}/room/api/delegate/ann",
+                                    headers={"X-Participant-Token": ann.token})
+                    assert r.status_code == 200 and "texture" in r.text, r.text[:300]
+                values = await frames(ws, 8)
+                assert np.ptp(values) > 1.0, values  # her camera's picture, live, via JPEG
+                # tracked by the tracker process: it announced her session (its pid in the
+                # run), and the server has no worker: under it only its fork server and the
+                # media process (forked from it; a local worker would be a third)
+                assert tracked_by(trackers[0]), sessions_entry(redis.url, "ann")
+                under = descendants(server.pid)
+                assert len(under) == 2, under
+                workers = descendants(trackers[0].pid)
+                assert len(workers) >= 2, workers  # its fork server and her worker
+                # a second tracker waits: she stays with the first while it lives
+                trackers.append(room_tracker(redis.url, tmp_path, lease))
+                trackers[1].stdout.readline()
+                await asyncio.sleep(2 * lease)
+                assert tracked_by(trackers[0]), sessions_entry(redis.url, "ann")
+                await frames(ws, 3)
+                # the first tracker dies with its workers: the second takes her over
+                os.killpg(trackers[0].pid, signal.SIGKILL)
+                t_kill = time.monotonic()
+                await until(ws, lambda m: m["type"] == "hello" and m["session"] == "ann",
+                            lease + 6 * TIMEOUT)
+                values = await frames(ws, 8)
+                at["takeover"] = time.monotonic() - t_kill
+                assert tracked_by(trackers[1]), sessions_entry(redis.url, "ann")
+                assert np.ptp(values) > 1.0, values
+                assert len(descendants(server.pid)) == 2
+                # no tracker left: she is told so, in one line, after --tracker-wait
+                os.killpg(trackers[1].pid, signal.SIGKILL)
+                t_kill = time.monotonic()
+                with pytest.raises(websockets.ConnectionClosed) as closed:
+                    while True:
+                        await asyncio.wait_for(ws.recv(), wait + lease + 3 * TIMEOUT)
+                at["told"] = time.monotonic() - t_kill
+            await ann.pc.close()
+            return closed.value
+
+        closed = asyncio.run(asyncio.wait_for(go(), 20 * TIMEOUT))
+        reason = closed.rcvd.reason if closed.rcvd else ""
+        print(f"ann's hello after {at['hello']:.1f} s; taken over {at['takeover']:.1f} s after "
+              f"the first tracker was killed (lease {lease:g} s); told {at['told']:.1f} s after "
+              f"the last one was (wait {wait:g} s): {reason!r}")
+        assert closed.rcvd is not None and closed.rcvd.code == 4001, closed
+        assert "no room tracker took your video for 6 s" in reason, reason
+        assert at["told"] >= wait - 1.0, at  # (not before the wait)
+        assert server.poll() is None, server.stderr.read()
+    finally:
+        for p in (server, *trackers):
+            stop(p)
+        for who, p in (("server", server), ("tracker 1", trackers[0])):
+            for text in p.stderr.read().splitlines():
+                if "tracked by" in text or "let go" in text or "left" in text or "lapsed" in text or "held" in text \
+                        or "tracking" in text:
+                    print(f"{who}: {text}")
+        redis.stop()
+
+
+def test_a_member_whose_session_fails_on_the_room_tracker_is_told_why_and_can_join_again(
+        tmp_path):
+    """The tracker's session of ann fails (its processor refuses her video): her server tells
+    her the reason in one line (her socket's close reason) and she leaves; the tracker does
+    not start her again, and she can join again (failing again, told again)."""
+    redis = Redis()
+    redis.start()
+    server = room_server(redis.url, tmp_path, "--remote-trackers")
+    tracker = room_tracker(redis.url, tmp_path, processor="RefusesAll")
+    try:
+        url = base_url(server)
+        tracker.stdout.readline()
+
+        async def told():
+            ann = Page(url, "ann")
+            await ann.join()
+            try:
+                async with ann.socket() as ws:
+                    with pytest.raises(websockets.ConnectionClosed) as closed:
+                        while True:
+                            await asyncio.wait_for(ws.recv(), 6 * TIMEOUT)
+                return closed.value.rcvd
+            finally:
+                await ann.pc.close()
+
+        for _ in range(2):
+            rcvd = asyncio.run(asyncio.wait_for(told(), 12 * TIMEOUT))
+            assert rcvd is not None and rcvd.code == 4001, rcvd
+            assert "their tracker failed" in rcvd.reason and "refuses" in rcvd.reason, rcvd
+        assert server.poll() is None and tracker.poll() is None
+    finally:
+        for p in (server, tracker):
+            stop(p)
         redis.stop()

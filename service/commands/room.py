@@ -2,6 +2,9 @@
 
 ``articast room`` serves one room on loopback and prints its URL; each participant opens it,
 gives a name, and joins with their camera and microphone (service/room.py, docs/ROOM.md).
+``articast room-tracker ROOM --hub redis://…`` tracks the members of a room whose servers run
+with ``--remote-trackers`` (their frames through Redis), on any machine that reaches the Redis
+and shares the ``--speakers`` folder (service/room_tracker.py).
 ``articast room-token NAME`` prints the participant token (and URL) of NAME for the room
 token in ARTICAST_ROOM_TOKEN or --room-token-file: how the host admits a participant whose
 name is enrolled (their delegate shows their face: the room token alone cannot take it).
@@ -57,12 +60,46 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="with --hub: the largest enrolled delegate shared with the "
                        "room's other servers (default 4; one enrolled on the page is ~0.5): a "
                        "larger one is shown there as the generic head")
+    redis.add_argument("--remote-trackers", action="store_true",
+                       help="with --hub: track nobody here; the members' frames go to Redis "
+                       "(JPEG, the newest 2 kept) and 'articast room-tracker ROOM' processes, "
+                       "on any machine, track them")
+    redis.add_argument("--tracker-wait", type=float, default=20.0, metavar="SECONDS",
+                       help="with --remote-trackers: a member no tracker has taken for this "
+                       "long is told so and leaves (default 20)")
     p.add_argument("--processor", default="auto",
                    help="what tracks the participants' video: auto (the tracker, default), "
                    "or pkg.mod:callable (tests)")
     p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
     p.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
     p.set_defaults(func=_room)
+
+    r = sub.add_parser(
+        "room-tracker", help="track the members of a room whose servers run with "
+        "--remote-trackers (any machine that reaches its Redis)",
+        description="Take members of ROOM (their frames in Redis, put there by the room's "
+        "servers started with --remote-trackers), each under a lease another tracker takes "
+        "over if this one dies, and track them as the room's servers would: their frames go "
+        "to every server's pages through Redis. Run one or more, on any machine that reaches "
+        "the Redis and shares the room's --speakers folder.")
+    r.add_argument("room", help="the room's name (as given to 'articast room')")
+    _hub_argument(r, required=True)
+    r.add_argument("--speakers", type=Path, metavar="DIR",
+                   help="the room's speakers folder, as given to 'articast room' (default: "
+                   "its private one on this machine)")
+    r.add_argument("--max-members", type=int, default=8,
+                   help="members this tracker takes at most (default 8; each takes a core "
+                   "while it tracks)")
+    r.add_argument("--lease", type=float, default=6.0, metavar="SECONDS",
+                   help="a member this tracker stops renewing (it died) is taken by another "
+                   "this long after (default 6)")
+    r.add_argument("--processor", default="auto",
+                   help="what tracks the members' video: auto (the tracker, default), or "
+                   "pkg.mod:callable (tests)")
+    r.add_argument("--seed", type=int, default=1, help=argparse.SUPPRESS)
+    r.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    r.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
+    r.set_defaults(func=_room_tracker)
 
     t = sub.add_parser(
         "room-token", help="print a participant's token for a room (for enrolled names)",
@@ -129,9 +166,14 @@ def _room(args: argparse.Namespace) -> int:
         raise InputError("--member-ttl: 1 to 3600 s")
     if not 0.01 <= args.max_shared_delegate <= 64:
         raise InputError("--max-shared-delegate: 0.01 to 64 MB")
+    if not 1 <= args.tracker_wait <= 3600:
+        raise InputError("--tracker-wait: 1 to 3600 s")
     from articast.service.commands.serve import hub_prefix, hub_url
 
     hub = hub_url(args)
+    if args.remote_trackers and not hub:
+        raise InputError("--remote-trackers needs --hub redis://HOST:PORT/DB (the members' "
+                         "frames go through it)")
     if args.speakers is not None and not args.speakers.is_dir():
         raise InputError(f"--speakers {args.speakers}: not a folder")
     from articast.service.room_enrol import default_speakers_dir, private_dir
@@ -169,7 +211,8 @@ def _room(args: argparse.Namespace) -> int:
                         max_participants=args.max_participants, processor=args.processor,
                         max_fps=args.max_fps, member_ttl_s=args.member_ttl,
                         max_shared_delegate=round(args.max_shared_delegate * 1e6),
-                        warm_media=True))
+                        remote_trackers=args.remote_trackers,
+                        tracker_wait_s=args.tracker_wait, warm_media=True))
 
     import logging
 
@@ -191,6 +234,50 @@ def _room(args: argparse.Namespace) -> int:
 
     serve(config, listening)
     print(f"articast room {args.name}: ended", file=sys.stderr, flush=True)
+    return 0
+
+
+def _room_tracker(args: argparse.Namespace) -> int:
+    import asyncio
+    import logging
+
+    from articast.core.errors import InputError
+    from articast.service.commands.serve import _safe_url, hub_prefix, hub_url
+    from articast.service.session import NAME_RE
+
+    if not NAME_RE.match(args.room):
+        raise InputError(f"room name {args.room!r}: 1-64 of letters, digits, _ . -")
+    if not 1 <= args.max_members <= 64:
+        raise InputError("--max-members: 1 to 64")
+    if not 1 <= args.lease <= 600:
+        raise InputError("--lease: 1 to 600 s")
+    url = hub_url(args, required=True)
+    if args.speakers is not None and not args.speakers.is_dir():
+        raise InputError(f"--speakers {args.speakers}: not a folder")
+    from articast.service.room_enrol import default_speakers_dir
+
+    speakers = args.speakers or default_speakers_dir(args.room)
+    from articast.service.worker import start_worker_server
+
+    start_worker_server()
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="articast %(levelname)s: %(message)s")
+    from articast.service.room_tracker import run_room_tracker
+
+    def started() -> None:
+        if args.json:
+            from articast.service.jsonsafe import dumps
+
+            print(dumps({"hub": _safe_url(url), "room": args.room, "pid": os.getpid()}),
+                  flush=True)
+        else:
+            print(f"articast room-tracker: tracking room {args.room}'s members from "
+                  f"{_safe_url(url)}; Ctrl-C stops", flush=True)
+
+    asyncio.run(run_room_tracker(url, hub_prefix(args), args.room,
+                                 str(Path(speakers).resolve()) if Path(speakers).is_dir()
+                                 else "", args.processor, args.seed, args.lease,
+                                 args.max_members, started=started))
     return 0
 
 
