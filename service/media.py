@@ -64,6 +64,8 @@ from multiprocessing import reduction
 from multiprocessing.connection import Connection
 from typing import Any
 
+from articast.service.clock import wall
+
 log = logging.getLogger("articast.media")
 
 ANSWER_TIMEOUT_S = 60.0
@@ -576,7 +578,7 @@ class RedisVoices:
     def publish(self, room: str, name: str, payload: bytes, timestamp: int,
                 level: float = 0.0) -> int:
         """One packet of ``name``'s voice to the room's other servers: its size in bytes."""
-        data = HEADER.pack(timestamp, time.time(), level) + payload
+        data = HEADER.pack(timestamp, wall(), level) + payload
         self.hub.publish(self.topic(room, name), data)
         return len(data)
 
@@ -615,7 +617,7 @@ class RemoteVoice:
                 self.packets += 1
                 self.bytes += len(data)
                 if len(self.delays) < 10_000:
-                    self.delays.append(time.time() - sent)
+                    self.delays.append(wall() - sent)
                 self.tap._fan((data[HEADER.size:], timestamp))
         except (HubClosed, asyncio.CancelledError):
             pass

@@ -35,6 +35,8 @@ import logging
 import time
 from typing import Any
 
+from articast.service.clock import wall
+
 log = logging.getLogger("articast.room")
 
 KEEP = 2
@@ -82,7 +84,7 @@ class FramePublisher:
             self.frames += 1
             self.bytes += len(data)
             # the capture time on the wall clock: the tracker's machine has another monotonic
-            fields = {"t": repr(float(t)), "a": repr(time.time() - (time.monotonic() - arrived)),
+            fields = {"t": repr(float(t)), "a": repr(wall() - (time.monotonic() - arrived)),
                       "w": width, "h": height, "img": data}
         try:
             pipe = self._redis.pipeline(transaction=False)
@@ -193,7 +195,7 @@ class RedisInlet:
     def _decode(fields: dict[bytes, bytes]) -> tuple[Any, ...]:
         if b"end" in fields:
             return ("end", fields[b"end"].decode("utf-8", "replace"))
-        arrived = time.monotonic() - (time.time() - float(fields[b"a"]))
+        arrived = time.monotonic() - (wall() - float(fields[b"a"]))
         return (float(fields[b"t"]), int(fields[b"w"]), int(fields[b"h"]), fields[b"img"],
                 arrived, "jpeg")
 

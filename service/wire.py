@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 
 from articast.client import protocol as P
+from articast.service.clock import wall
 
-_MONO_TO_EPOCH = time.time() - time.monotonic()
+_MONO_TO_EPOCH = wall() - time.monotonic()
 
 
 def epoch(t_monotonic: float) -> float:

@@ -1,0 +1,221 @@
+"""One clock for a room spread over machines: Redis's own ``TIME`` (issue 41).
+
+Every process of a room reaches the same Redis; a time that one machine stamps and another
+reads (a frame's capture time, a relayed voice packet's send time, a session entry's
+heartbeat) travels in **Redis's clock** and is converted back at the receiving process, so
+that two machines whose wall clocks differ (no NTP, a wrong clock) still agree on when a
+frame was captured. The membership's leases already live in Redis's clock
+(:mod:`articast.service.room_presence`).
+
+**Estimate.** :class:`OffsetEstimate` (pure): samples ``(local send, redis time, local
+receive)`` of ``TIME`` round trips; the offset is the Redis time minus the midpoint of the
+round trip with the smallest duration (NTP's rule: its one-way delays are nearest equal),
+its uncertainty half that round trip (the offset is within it whatever the asymmetry).
+:class:`RedisClock` (one per process, :data:`CLOCK`) takes :data:`SAMPLES` round trips at
+:meth:`~RedisClock.start` and every :data:`REFRESH_S` on a daemon thread with a synchronous
+client of its own (so that the media process's forwarder threads, the workers and the event
+loops read it alike, never waiting on Redis). The offset and its uncertainty are logged at
+start and when the offset moves by more than :data:`MOVED_S`; an offset over :data:`WRONG_S`
+is one warning line (this machine's clock is wrong). Redis unreachable: the last estimate is
+kept (0 before the first: times are then sent as they are, as before).
+
+**Exact on one machine.** A message stamped this way carries its clock's identity
+(:data:`CLOCK_ID`: the kernel's boot id, shared by every process and container of one
+machine) and the offset it was converted with; a receiver of the same identity subtracts that
+offset, which gives back the sender's stamp exactly (one machine has one wall clock), and
+only a receiver on another clock uses its own estimate.
+
+:data:`SKEW_S` (``ARTICAST_CLOCK_SKEW_S``) is **test-only**: it shifts this process's wall
+clock (and its children's, which inherit the environment) by that many seconds, as if it ran
+on a machine whose clock is that far off, so that one machine can test what two machines
+whose clocks differ do (tests/test_room_redis.py). It is read once, at import.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from typing import Any
+
+log = logging.getLogger("articast.clock")
+
+SKEW_S = float(os.environ.get("ARTICAST_CLOCK_SKEW_S", "") or 0.0)
+"""Test-only: this process's wall clock is shifted by this many seconds (see the module)."""
+SAMPLES = 8
+"""``TIME`` round trips per estimate."""
+REFRESH_S = 10.0
+"""How often the estimate is made again (a clock without NTP drifts ~0.5 ms in 10 s at
+50 ppm)."""
+MOVED_S = 0.002
+"""An estimate that moved more than this (beyond both uncertainties) is logged."""
+WRONG_S = 1.0
+"""An offset larger than this: this machine's clock is wrong, said in one line."""
+
+
+def _boot_id() -> str:
+    try:
+        with open("/proc/sys/kernel/random/boot_id") as f:
+            return f.read().strip()
+    except OSError:  # not Linux: the host's name (one clock per host)
+        return os.uname().nodename if hasattr(os, "uname") else "?"
+
+
+CLOCK_ID = _boot_id() + (f"{SKEW_S:+g}" if SKEW_S else "")
+"""This machine's wall clock (see the module: a skewed test process is another clock)."""
+
+
+def wall() -> float:
+    """This machine's wall clock (``time.time()``, with the test-only :data:`SKEW_S`)."""
+    return time.time() + SKEW_S
+
+
+class OffsetEstimate:
+    """Redis's clock minus this machine's, from ``TIME`` round trips (pure: fed samples)."""
+
+    def __init__(self) -> None:
+        self.best: tuple[float, float] | None = None  # (round trip, offset)
+        self.n = 0
+
+    def add(self, sent: float, redis_t: float, received: float) -> None:
+        """One round trip: sent and received on this machine's clock, ``redis_t`` what
+        ``TIME`` said (seconds)."""
+        rtt = received - sent
+        if rtt < 0:  # the local clock stepped back mid-trip: no information
+            return
+        self.n += 1
+        if self.best is None or rtt < self.best[0]:
+            self.best = (rtt, redis_t - (sent + received) / 2)
+
+    @property
+    def offset(self) -> float | None:
+        return None if self.best is None else self.best[1]
+
+    @property
+    def uncertainty(self) -> float | None:
+        """Half the shortest round trip: the true offset is within this of :attr:`offset`."""
+        return None if self.best is None else self.best[0] / 2
+
+
+class RedisClock:
+    """This process's offset to Redis's clock (see the module's docstring)."""
+
+    def __init__(self) -> None:
+        self.offset = 0.0
+        self.uncertainty: float | None = None
+        """None until a first estimate (then :attr:`offset` is 0: times are not converted)."""
+        self.measured = 0.0  # time.monotonic() of the last estimate
+        self.url = ""
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._failing = False
+        self._quiet = True
+
+    # ------------------------------------------------------------------ conversions
+    def to_redis(self, t: float) -> float:
+        """A stamp on this machine's wall clock, in Redis's."""
+        return t + self.offset
+
+    def stamp(self) -> list[Any]:
+        """What travels with stamps converted by :meth:`to_redis`: ``[clock, offset]``."""
+        return [CLOCK_ID, self.offset]
+
+    def local(self, t: float, stamp: Any) -> float:
+        """A stamp in Redis's clock (converted with ``stamp``, the sender's
+        :meth:`stamp`) on this machine's wall clock. No ``stamp`` (a sender that does not
+        convert): ``t`` as it came."""
+        if not stamp:
+            return t
+        clock, offset = stamp
+        return t - (float(offset) if clock == CLOCK_ID else self.offset)
+
+    def redis_now(self) -> float:
+        return wall() + self.offset
+
+    def status(self) -> dict[str, Any]:
+        """For ``/healthz``: the offset to Redis's clock (ms), its uncertainty, its age."""
+        if self.uncertainty is None:
+            return {"redis_offset_ms": None}
+        return {"redis_offset_ms": round(1000 * self.offset, 3),
+                "uncertainty_ms": round(1000 * self.uncertainty, 3),
+                "age_s": round(time.monotonic() - self.measured, 1)}
+
+    # ------------------------------------------------------------------ estimating
+    def start(self, url: str, quiet: bool = False) -> None:
+        """Estimate now (a few ms; up to a second if Redis is away) and every
+        :data:`REFRESH_S` after, against ``url``'s Redis (the last URL given, when a
+        process is given more than one). ``quiet``: the start is logged at INFO only (a
+        helper process: its main process says it)."""
+        with self._lock:
+            if url == self.url and self._thread is not None:
+                return
+            self.url = url
+            self._quiet = self._quiet and quiet
+            first = self._thread is None
+            if first:
+                self._thread = threading.Thread(target=self._run, name="redis clock",
+                                                daemon=True)
+        self.measure()
+        if first:
+            assert self._thread is not None
+            self._thread.start()
+
+    def measure(self, samples: int = SAMPLES) -> bool:
+        """One estimate (:data:`SAMPLES` ``TIME`` round trips); False if Redis is away."""
+        import redis
+
+        url = self.url
+        est = OffsetEstimate()
+        try:
+            client = redis.Redis.from_url(url, socket_connect_timeout=1.0, socket_timeout=1.0)
+            try:
+                client.ping()  # (the connection made first: not in the round trips)
+                for _ in range(samples):
+                    sent = wall()
+                    sec, usec = client.time()
+                    est.add(sent, sec + usec / 1e6, wall())
+            finally:
+                client.close()
+        except Exception as exc:  # noqa: BLE001 - Redis away: the last estimate is kept
+            if not self._failing:
+                log.warning("cannot read Redis's clock at %s (%r): times that cross machines "
+                            "use the last estimate (%+.1f ms)", url.split("@")[-1], exc,
+                            1000 * self.offset)
+            self._failing = True
+            return False
+        if self._failing:
+            log.warning("Redis's clock can be read again")
+        self._failing = False
+        assert est.offset is not None and est.uncertainty is not None
+        self.update(est.offset, est.uncertainty)
+        return True
+
+    def update(self, offset: float, uncertainty: float) -> None:
+        """Take an estimate; log it when it is the first or it moved."""
+        before, u_before = self.offset, self.uncertainty
+        self.offset, self.uncertainty, self.measured = offset, uncertainty, time.monotonic()
+        if u_before is None:
+            level = logging.INFO if self._quiet and abs(offset) <= WRONG_S else logging.WARNING
+            log.log(level, "this machine's clock is %+.3f ms off Redis's (± %.3f ms): times "
+                    "that cross machines travel in Redis's clock", 1000 * offset,
+                    1000 * uncertainty)
+        elif abs(offset - before) > MOVED_S + uncertainty + u_before:
+            log.warning("this machine's clock moved against Redis's: %+.3f ms off it now "
+                        "(± %.3f ms; it was %+.3f ms)", 1000 * offset, 1000 * uncertainty,
+                        1000 * before)
+        else:
+            return
+        if abs(offset) > WRONG_S:
+            log.warning("this machine's clock is %.1f s %s Redis's: it is wrong (is NTP "
+                        "running?); the room corrects the times it sends, but fix the clock",
+                        abs(offset), "behind" if offset > 0 else "ahead of")
+
+    def _run(self) -> None:
+        while True:
+            time.sleep(REFRESH_S)
+            self.measure()
+
+
+CLOCK = RedisClock()
+"""This process's clock against its Redis."""
