@@ -38,11 +38,15 @@ TONE = 440.0
 """ann's microphone: a sine of this many Hz."""
 
 
-def room_server(redis_url, speakers, *more):
+def room_server(redis_url, speakers, *more, skew=0.0):
     """``articast room`` on Redis in a process group of its own (a kill takes its media
-    process and workers with it, as a machine going down would)."""
+    process and workers with it, as a machine going down would); ``skew``: its wall clock
+    (and its children's) that many seconds off (the test-only ``ARTICAST_CLOCK_SKEW_S``,
+    service/clock.py), as on a machine whose clock is wrong."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     env["ARTICAST_ROOM_TOKEN"] = ROOM
+    if skew:
+        env["ARTICAST_CLOCK_SKEW_S"] = repr(skew)
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room", "t", "--hub", redis_url,
          "--port", "0", "--json", "--member-ttl", str(TTL), "--speakers", str(speakers),
@@ -793,3 +797,53 @@ def test_a_member_whose_session_fails_on_the_room_tracker_is_told_why_and_can_jo
         for p in (server, tracker):
             stop(p)
         redis.stop()
+
+
+# ----------------------------------------------------------------------------- one clock
+SKEW = 3.0
+"""Server A's wall clock is this many seconds ahead (ARTICAST_CLOCK_SKEW_S: test-only)."""
+
+
+def test_a_frame_captured_on_a_server_whose_clock_is_wrong_is_timed_right_on_another():
+    """ann joins on A, whose wall clock is SKEW s ahead (as on a machine without NTP); bob on
+    B (right). ann's frames reach ann's socket on A and bob's on B through Redis; each says
+    when it was captured (``t_capture``) and when that server sent it (``t_sent``), and a page
+    maps the first onto its own clock through the second (clients/web/room.js). For the same
+    frame, ``t_sent - t_capture`` on B is what it is on A (the two servers send it within a
+    few ms of each other): the capture time crossed in Redis's clock (service/clock.py).
+    Without that, B's figure is off by A's skew (main's code: by -SKEW s)."""
+    import tempfile
+
+    redis = Redis()
+    redis.start()
+    with tempfile.TemporaryDirectory() as speakers:
+        servers = [room_server(redis.url, speakers, skew=SKEW), room_server(redis.url, speakers)]
+        try:
+            a, b = (base_url(p) for p in servers)
+            ann, bob = Page(a, "ann"), Page(b, "bob")
+            lat = {"A": {}, "B": {}}
+
+            async def read(ws, side, n):
+                while len(lat[side]) < n:
+                    f = await until(ws, lambda m: m["type"] == "frame" and m["session"] == "ann",
+                                    3 * TIMEOUT)
+                    lat[side][f["seq"]] = f["t_sent"] - f["t_capture"]
+
+            async def go():
+                await asyncio.gather(ann.join(), bob.join())
+                async with ann.socket() as on_a, bob.socket() as on_b:
+                    await asyncio.gather(read(on_a, "A", 40), read(on_b, "B", 40))
+                await asyncio.gather(ann.pc.close(), bob.pc.close())
+
+            asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+            both = sorted(set(lat["A"]) & set(lat["B"]))
+            assert len(both) >= 20, (len(lat["A"]), len(lat["B"]), len(both))
+            d = np.array([lat["B"][k] - lat["A"][k] for k in both]) * 1000
+            on_a = np.array([lat["A"][k] for k in both]) * 1000
+            print(f"A {SKEW:+g} s: t_sent - t_capture of ann's {len(both)} frames on A: median "
+                  f"{np.median(on_a):.1f} ms; on B minus on A: median {np.median(d):+.2f} ms, "
+                  f"p5..p95 {np.percentile(d, 5):+.2f}..{np.percentile(d, 95):+.2f} ms")
+            assert 0 < np.median(on_a) < 2000, on_a  # (one clock on A: exact)
+            assert abs(np.median(d)) < 15.0, d
+        finally:
+            stop_all(servers, redis, lambda line: "clock" in line)
