@@ -8,13 +8,15 @@ frame was captured. The membership's leases already live in Redis's clock
 (:mod:`articast.service.room_presence`).
 
 **Estimate.** :class:`OffsetEstimate` (pure): samples ``(local send, redis time, local
-receive)`` of ``TIME`` round trips; the offset is the Redis time minus the midpoint of the
-round trip with the smallest duration (NTP's rule: its one-way delays are nearest equal),
-its uncertainty half that round trip (the offset is within it whatever the asymmetry).
-:class:`RedisClock` (one per process, :data:`CLOCK`) takes :data:`SAMPLES` round trips at
-:meth:`~RedisClock.start` and every :data:`REFRESH_S` on a daemon thread with a synchronous
-client of its own (so that the media process's forwarder threads, the workers and the event
-loops read it alike, never waiting on Redis). The offset and its uncertainty are logged at
+receive)`` of ``TIME`` round trips; the offset (Redis's clock minus this machine's) is the
+Redis time minus the midpoint of the round trip with the smallest duration (NTP's rule: its
+one-way delays are nearest equal), its uncertainty half that round trip (the offset is
+within it whatever the asymmetry).
+:class:`RedisClock` (one per process, :data:`CLOCK`) takes :data:`SAMPLES` round trips as
+soon as it is started and every :data:`REFRESH_S` after, on a daemon thread with a
+synchronous client of its own (so that the media process's forwarder threads, the workers
+and the event loops read it alike, never waiting on Redis; a forked child keeps the estimate
+and starts a thread of its own when it is started). The offset and its uncertainty are logged at
 start and when the offset moves by more than :data:`MOVED_S`; an offset over :data:`WRONG_S`
 is one warning line (this machine's clock is wrong). Redis unreachable: the last estimate is
 kept (0 before the first: times are then sent as they are, as before).
@@ -111,15 +113,32 @@ class RedisClock:
         self._thread: threading.Thread | None = None
         self._failing = False
         self._quiet = True
+        self._wake = threading.Event()
+        if hasattr(os, "register_at_fork"):  # a forked child (the media process, a worker)
+            os.register_at_fork(after_in_child=self._forked)  # keeps the estimate, not the thread
+
+    def _forked(self) -> None:
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._thread = None
+        self.url = ""
 
     # ------------------------------------------------------------------ conversions
     def to_redis(self, t: float) -> float:
-        """A stamp on this machine's wall clock, in Redis's."""
+        """A stamp on this machine's wall clock, in Redis's (see :meth:`outgoing` for stamps
+        that travel with the clock they came from)."""
         return t + self.offset
 
-    def stamp(self) -> list[Any]:
-        """What travels with stamps converted by :meth:`to_redis`: ``[clock, offset]``."""
-        return [CLOCK_ID, self.offset]
+    def outgoing(self) -> tuple[float, list[Any] | None]:
+        """``(offset, stamp)``: add the offset to this machine's stamps, send the stamp with
+        them (read at once: a refresh between the two would make them disagree)."""
+        stamp = self.stamp()
+        return (0.0, None) if stamp is None else (stamp[1], stamp)
+
+    def stamp(self) -> list[Any] | None:
+        """What travels with stamps converted by :meth:`to_redis`: ``[clock, offset]``
+        (None before a first estimate: the stamps went as they are)."""
+        return None if self.uncertainty is None else [CLOCK_ID, self.offset]
 
     def local(self, t: float, stamp: Any) -> float:
         """A stamp in Redis's clock (converted with ``stamp``, the sender's
@@ -127,8 +146,13 @@ class RedisClock:
         convert): ``t`` as it came."""
         if not stamp:
             return t
-        clock, offset = stamp
-        return t - (float(offset) if clock == CLOCK_ID else self.offset)
+        try:
+            clock, offset = stamp
+            if clock == CLOCK_ID:
+                return t - float(offset)
+        except (TypeError, ValueError):
+            pass
+        return t - self.offset
 
     def redis_now(self) -> float:
         return wall() + self.offset
@@ -143,23 +167,22 @@ class RedisClock:
 
     # ------------------------------------------------------------------ estimating
     def start(self, url: str, quiet: bool = False) -> None:
-        """Estimate now (a few ms; up to a second if Redis is away) and every
-        :data:`REFRESH_S` after, against ``url``'s Redis (the last URL given, when a
-        process is given more than one). ``quiet``: the start is logged at INFO only (a
-        helper process: its main process says it)."""
+        """Estimate against ``url``'s Redis (the last URL given, when a process is given more
+        than one) at once and every :data:`REFRESH_S` after, on a daemon thread: this never
+        waits on Redis. Until the first estimate, stamps go as they are (:meth:`stamp` is
+        None). ``quiet``: the first estimate is logged at INFO only (a helper process, such
+        as the media process or a worker: its main process says it)."""
         with self._lock:
             if url == self.url and self._thread is not None:
                 return
             self.url = url
             self._quiet = self._quiet and quiet
-            first = self._thread is None
-            if first:
+            if self._thread is None:
                 self._thread = threading.Thread(target=self._run, name="redis clock",
                                                 daemon=True)
-        self.measure()
-        if first:
-            assert self._thread is not None
-            self._thread.start()
+                self._thread.start()
+            else:
+                self._wake.set()
 
     def measure(self, samples: int = SAMPLES) -> bool:
         """One estimate (:data:`SAMPLES` ``TIME`` round trips); False if Redis is away."""
@@ -192,29 +215,31 @@ class RedisClock:
         return True
 
     def update(self, offset: float, uncertainty: float) -> None:
-        """Take an estimate; log it when it is the first or it moved."""
+        """Take an estimate; log it (one line) when it is the first or it moved."""
         before, u_before = self.offset, self.uncertainty
         self.offset, self.uncertainty, self.measured = offset, uncertainty, time.monotonic()
-        if u_before is None:
-            level = logging.INFO if self._quiet and abs(offset) <= WRONG_S else logging.WARNING
-            log.log(level, "this machine's clock is %+.3f ms off Redis's (± %.3f ms): times "
-                    "that cross machines travel in Redis's clock", 1000 * offset,
-                    1000 * uncertainty)
-        elif abs(offset - before) > MOVED_S + uncertainty + u_before:
-            log.warning("this machine's clock moved against Redis's: %+.3f ms off it now "
-                        "(± %.3f ms; it was %+.3f ms)", 1000 * offset, 1000 * uncertainty,
-                        1000 * before)
-        else:
+        if u_before is not None and abs(offset - before) <= MOVED_S + uncertainty + u_before:
             return
+        level = logging.INFO if self._quiet else logging.WARNING
+        ahead = -offset  # (this machine's clock minus Redis's)
+        how = (f"{1000 * abs(ahead):.3f} ms {'ahead of' if ahead >= 0 else 'behind'} Redis's "
+               f"(± {1000 * uncertainty:.3f} ms)")
+        if u_before is not None:
+            how += f"; it was {-1000 * before:+.3f} ms"
         if abs(offset) > WRONG_S:
-            log.warning("this machine's clock is %.1f s %s Redis's: it is wrong (is NTP "
-                        "running?); the room corrects the times it sends, but fix the clock",
-                        abs(offset), "behind" if offset > 0 else "ahead of")
+            log.log(level, "this machine's clock is wrong: %s (is NTP running?); the room "
+                    "corrects the times it sends, but fix the clock", how)
+        elif u_before is None:
+            log.log(level, "this machine's clock is %s: times that cross machines travel in "
+                    "Redis's clock", how)
+        else:
+            log.log(level, "this machine's clock moved against Redis's: %s", how)
 
     def _run(self) -> None:
         while True:
-            time.sleep(REFRESH_S)
             self.measure()
+            self._wake.wait(REFRESH_S)
+            self._wake.clear()
 
 
 CLOCK = RedisClock()
