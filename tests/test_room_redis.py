@@ -622,9 +622,12 @@ def test_a_page_that_offers_its_camera_first_hears_every_other_member(tmp_path):
 
 
 # ----------------------------------------------------------------------------- remote trackers
-def room_tracker(redis_url, speakers, lease=2.0, processor="ImageStats"):
-    """``articast room-tracker t`` in a process group of its own (a kill takes its workers)."""
+def room_tracker(redis_url, speakers, lease=2.0, processor="ImageStats", skew=0.0):
+    """``articast room-tracker t`` in a process group of its own (a kill takes its workers);
+    ``skew``: as :func:`room_server`'s."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    if skew:
+        env["ARTICAST_CLOCK_SKEW_S"] = repr(skew)
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room-tracker", "t", "--hub", redis_url,
          "--speakers", str(speakers), "--lease", str(lease), "--json",
@@ -847,3 +850,54 @@ def test_a_frame_captured_on_a_server_whose_clock_is_wrong_is_timed_right_on_ano
             assert abs(np.median(d)) < 15.0, d
         finally:
             stop_all(servers, redis, lambda line: "clock" in line)
+
+
+TRACKER_SKEW = -7.0
+"""The room tracker's wall clock is this many seconds behind: more than a session entry may
+age (remote.STALE_S) before its session is taken for unavailable."""
+
+
+def test_a_room_tracker_whose_clock_is_wrong_times_a_member_s_frames_right():
+    """A room server with --remote-trackers, and a room tracker whose wall clock is 7 s
+    behind: ann's frames cross twice (to the tracker in her frame stream, back through the
+    hub). On her page, the tracking took what it takes (``t_tracked - t_capture`` between 0
+    and 1 s) and her frame left the server after it was captured (``t_sent - t_capture``), as
+    with one clock; and her session is not taken for unavailable (its entries' time stamps
+    are not 7 s old). Without Redis's clock (main's code) ``t_tracked - t_capture`` is off by
+    the tracker's skew."""
+    import tempfile
+
+    redis = Redis()
+    redis.start()
+    with tempfile.TemporaryDirectory() as speakers:
+        server = room_server(redis.url, speakers, "--remote-trackers")
+        tracker = room_tracker(redis.url, speakers, skew=TRACKER_SKEW)
+        try:
+            url = base_url(server)
+            tracker.stdout.readline()
+            ann = Page(url, "ann")
+            got, states = [], []
+
+            async def go():
+                await ann.join()
+                async with ann.socket() as ws:
+                    while len(got) < 30:
+                        m = await until(ws, lambda m: m.get("session") == "ann"
+                                        and m["type"] in ("frame", "status"), 6 * TIMEOUT)
+                        if m["type"] == "status":
+                            states.append(m["state"])
+                        else:
+                            got.append(m)
+                await ann.pc.close()
+
+            asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+            tracked = np.array([f["t_tracked"] - f["t_capture"] for f in got]) * 1000
+            sent = np.array([f["t_sent"] - f["t_capture"] for f in got]) * 1000
+            print(f"tracker {TRACKER_SKEW:+g} s: t_tracked - t_capture median "
+                  f"{np.median(tracked):.1f} ms ({np.min(tracked):.1f}..{np.max(tracked):.1f}), "
+                  f"t_sent - t_capture median {np.median(sent):.1f} ms; statuses {states}")
+            assert 0 < np.median(tracked) < 1000, tracked
+            assert np.median(tracked) < np.median(sent) < 2000, (tracked, sent)
+            assert "unavailable" not in states, states
+        finally:
+            stop_all([server, tracker], redis, lambda line: "clock" in line)
