@@ -158,10 +158,11 @@ class RedisClock:
         return wall() + self.offset
 
     def status(self) -> dict[str, Any]:
-        """For ``/healthz``: the offset to Redis's clock (ms), its uncertainty, its age."""
+        """For ``/healthz``: how far this machine's clock is ahead of Redis's (ms; negative:
+        behind), the estimate's uncertainty (ms) and its age (s)."""
         if self.uncertainty is None:
-            return {"redis_offset_ms": None}
-        return {"redis_offset_ms": round(1000 * self.offset, 3),
+            return {"ahead_of_redis_ms": None}
+        return {"ahead_of_redis_ms": round(-1000 * self.offset, 3),
                 "uncertainty_ms": round(1000 * self.uncertainty, 3),
                 "age_s": round(time.monotonic() - self.measured, 1)}
 

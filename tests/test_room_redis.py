@@ -839,6 +839,10 @@ def test_a_frame_captured_on_a_server_whose_clock_is_wrong_is_timed_right_on_ano
                 await asyncio.gather(ann.pc.close(), bob.pc.close())
 
             asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+            # each server's /healthz says how far its clock is from Redis's
+            health = [httpx.get(f"{u}/healthz", timeout=TIMEOUT).json()["clock"] for u in (a, b)]
+            assert abs(health[0]["ahead_of_redis_ms"] - 1000 * SKEW) < 5.0, health
+            assert abs(health[1]["ahead_of_redis_ms"]) < 5.0, health
             both = sorted(set(lat["A"]) & set(lat["B"]))
             assert len(both) >= 20, (len(lat["A"]), len(lat["B"]), len(both))
             d = np.array([lat["B"][k] - lat["A"][k] for k in both]) * 1000
