@@ -68,9 +68,17 @@ CLOCK_ID = _boot_id() + (f"{SKEW_S:+g}" if SKEW_S else "")
 """This machine's wall clock (see the module: a skewed test process is another clock)."""
 
 
+MONO_TO_EPOCH = time.time() + SKEW_S - time.monotonic()
+"""This process's monotonic clock to the epoch, read once: :func:`wall`."""
+
+
 def wall() -> float:
-    """This machine's wall clock (``time.time()``, with the test-only :data:`SKEW_S`)."""
-    return time.time() + SKEW_S
+    """This process's wall clock: ``time.monotonic()`` on the epoch as ``time.time()`` (with
+    the test-only :data:`SKEW_S`) read it at start. Every stamp that crosses machines is made
+    on it (``articast.service.wire.now``), and the offset to Redis is measured on it: a clock
+    stepped while the process runs (an administrator fixing a wrong clock) moves neither its
+    stamps nor its offset (slewing, as NTP does, moves both alike)."""
+    return time.monotonic() + MONO_TO_EPOCH
 
 
 class OffsetEstimate:
