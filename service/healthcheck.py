@@ -24,11 +24,12 @@ def check_http(port: int, timeout: float = 3.0) -> str:
 def check_worker(url: str, prefix: str, timeout: float = 3.0) -> str:
     import redis
 
-    from articast.service.remote import STALE_S
+    from articast.service.remote import STALE_S, from_redis_clock
     from articast.service.wire import now
 
     client = redis.Redis.from_url(url, socket_connect_timeout=timeout, socket_timeout=timeout)
-    entries = {(k.decode() if isinstance(k, bytes) else k): json.loads(v)
+    # (this machine's entries: their "t" back on this clock exactly, whatever Redis's says)
+    entries = {(k.decode() if isinstance(k, bytes) else k): from_redis_clock(json.loads(v))
                for k, v in client.hgetall(prefix + "sessions").items()}
     mine = {n: e for n, e in entries.items() if e.get("host") in (None, os.uname().nodename)}
     if not mine:

@@ -10,6 +10,7 @@ from fastapi.responses import PlainTextResponse
 
 from articast.client import protocol as P
 from articast.service.admission import authorise
+from articast.service.clock import CLOCK
 
 if TYPE_CHECKING:
     from articast.service.state import Service
@@ -27,6 +28,8 @@ def status_routes(svc: Service) -> APIRouter:
     @router.get("/healthz")
     async def healthz(request: Request) -> dict[str, Any]:
         out: dict[str, Any] = {"status": "ok", "protocol": P.PROTOCOL_VERSION}
+        if CLOCK.uncertainty is not None:  # on Redis: this machine's clock against Redis's
+            out["clock"] = CLOCK.status()
         if access.token_ok(request.headers.get("authorization"),
                            request.scope.get("query_string", b"")):
             out["sessions"] = svc.states()

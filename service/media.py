@@ -64,6 +64,8 @@ from multiprocessing import reduction
 from multiprocessing.connection import Connection
 from typing import Any
 
+from articast.service.clock import CLOCK
+
 log = logging.getLogger("articast.media")
 
 ANSWER_TIMEOUT_S = 60.0
@@ -538,8 +540,9 @@ class _Media:
 
 # ----------------------------------------------------------------------------- voices via Redis
 HEADER = struct.Struct("!Idf")
-"""A relayed packet's header: its RTP timestamp, when its server published it (wall clock,
-seconds: the hop's delay is measured on the receiving server), and the microphone's level
+"""A relayed packet's header: its RTP timestamp, when its server published it (in Redis's
+clock, seconds: :mod:`articast.service.clock`; the hop's delay is measured on the receiving
+server, in Redis's clock too), and the microphone's level
 there (RMS of the last decoded frame: a remote member's page shows them speaking too)."""
 
 
@@ -566,6 +569,7 @@ class RedisVoices:
     def __init__(self, url: str, prefix: str) -> None:
         from articast.service.redis_hub import RedisHub
 
+        CLOCK.start(url, quiet=True)
         self.hub: Any = RedisHub(url, _Bytes(), prefix=prefix, max_pending=256,
                                  max_age_s=self.MAX_AGE_S)
 
@@ -576,7 +580,7 @@ class RedisVoices:
     def publish(self, room: str, name: str, payload: bytes, timestamp: int,
                 level: float = 0.0) -> int:
         """One packet of ``name``'s voice to the room's other servers: its size in bytes."""
-        data = HEADER.pack(timestamp, time.time(), level) + payload
+        data = HEADER.pack(timestamp, CLOCK.redis_now(), level) + payload
         self.hub.publish(self.topic(room, name), data)
         return len(data)
 
@@ -615,7 +619,7 @@ class RemoteVoice:
                 self.packets += 1
                 self.bytes += len(data)
                 if len(self.delays) < 10_000:
-                    self.delays.append(time.time() - sent)
+                    self.delays.append(CLOCK.redis_now() - sent)
                 self.tap._fan((data[HEADER.size:], timestamp))
         except (HubClosed, asyncio.CancelledError):
             pass

@@ -65,7 +65,10 @@ class RedisHub(Generic[T]):
         if client is None:
             import redis.asyncio as redis
 
+            from articast.service.clock import CLOCK
+
             client = redis.from_url
+            CLOCK.start(url)  # (times that cross machines go in Redis's clock)
         # short timeouts: a Redis that went away must not hold the writer for long
         self._redis = client(url, socket_connect_timeout=1.0, socket_timeout=5.0,
                              health_check_interval=0)

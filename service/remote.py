@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from articast.core.errors import ArticastError
+from articast.service.clock import CLOCK
 from articast.service.jsonsafe import dumps
 from articast.service.metrics import SessionMetrics
 from articast.service.wire import FrameEvent, FrameRecord, ReadyEvent, StatusEvent, now
@@ -55,6 +56,24 @@ def session_info(s: Any) -> dict[str, Any]:
             "description": s.description, "source": s.source_info, "processor": s.processor,
             "worker": s.worker_kind, "restarts": s.metrics.restarts, "t": now(),
             "host": HOST, "run": RUN}
+
+
+def to_redis_clock(info: dict[str, Any]) -> dict[str, Any]:
+    """A session entry as it goes to Redis: its time stamp ``t`` in Redis's clock, with the
+    clock it was converted from (:mod:`articast.service.clock`)."""
+    offset, stamp = CLOCK.outgoing()
+    return {**info, "t": info["t"] + offset, "clock": stamp} if stamp else info
+
+
+def from_redis_clock(info: Any) -> Any:
+    """An entry from Redis: ``t`` back on this machine's clock (anything malformed is left
+    as it is, for :func:`entry_problem` to say)."""
+    if isinstance(info, dict) and "clock" in info:
+        info = dict(info)
+        stamp = info.pop("clock")
+        with contextlib.suppress(TypeError, ValueError):
+            info["t"] = CLOCK.local(float(info["t"]), stamp)
+    return info
 
 
 def entry_problem(name: str, info: Any) -> str:
@@ -239,16 +258,23 @@ class EventCodec:
 
     def encode(self, ev: Any) -> bytes:
         if isinstance(ev, FrameEvent):
-            doc: dict[str, Any] = {"k": "f", "s": ev.session, "sid": ev.sid,
-                                   "r": dataclasses.asdict(ev.record)}
+            r = dataclasses.asdict(ev.record)
+            # the wall-clock stamps in Redis's clock: the receiver may be another machine
+            offset, stamp = CLOCK.outgoing()
+            r["t_capture"], r["t_tracked"] = r["t_capture"] + offset, r["t_tracked"] + offset
+            doc: dict[str, Any] = {"k": "f", "s": ev.session, "sid": ev.sid, "r": r,
+                                   "c": stamp}
         elif isinstance(ev, StatusEvent):
-            doc = {"k": "s", "s": ev.session, "state": ev.state, "detail": ev.detail, "t": ev.t}
+            offset, stamp = CLOCK.outgoing()
+            doc = {"k": "s", "s": ev.session, "state": ev.state, "detail": ev.detail,
+                   "t": ev.t + offset, "c": stamp}
         elif isinstance(ev, ReadyEvent):
             s = self.local(ev.session)
             info = session_info(s) if s is not None else None
             if info is not None:
                 self.directory.update(info)  # this process's own subscribers see it at once
-            doc = {"k": "r", "s": ev.session, "info": info}
+            doc = {"k": "r", "s": ev.session,
+                   "info": to_redis_clock(info) if info is not None else None}
         else:
             raise TypeError(f"not a hub event: {type(ev).__name__}")
         return dumps(doc, separators=(",", ":")).encode()
@@ -260,8 +286,10 @@ class EventCodec:
             s = self.directory.get(name)
             if s is None or s.sid != doc["sid"]:
                 return None
-            r = doc["r"]
-            record = FrameRecord(**{**r, "alpha": tuple(r["alpha"]),
+            r, stamp = doc["r"], doc.get("c")
+            record = FrameRecord(**{**r, "t_capture": CLOCK.local(r["t_capture"], stamp),
+                                    "t_tracked": CLOCK.local(r["t_tracked"], stamp),
+                                    "alpha": tuple(r["alpha"]),
                                     "rotation": tuple(r["rotation"]),
                                     "translation": tuple(r["translation"])})
             return s.frame_event(record)
@@ -271,12 +299,13 @@ class EventCodec:
                 s.state, s.detail = doc["state"], doc["detail"]
                 if s.state == "stopped":  # removed by its worker: forget it now
                     self.directory.sessions.pop(name, None)
-            return StatusEvent(name, doc["state"], doc["detail"], doc["t"])
+            return StatusEvent(name, doc["state"], doc["detail"],
+                               CLOCK.local(doc["t"], doc.get("c")))
         if kind == "r":
             # a new description only: the poll of the hash may have brought it first, and
             # one run gets one hello (a replaced worker gave three)
             if doc.get("info"):
-                _, new = self.directory.update(doc["info"])
+                _, new = self.directory.update(from_redis_clock(doc["info"]))
                 return ReadyEvent(name) if new else None
             return ReadyEvent(name)
         raise ValueError(f"unknown event kind {kind!r}")
@@ -303,7 +332,8 @@ class Announcer:
             await asyncio.sleep(HEARTBEAT_S)
 
     async def write(self) -> None:
-        current = {name: dumps(session_info(s)) for name, s in self.sessions().items()
+        current = {name: dumps(to_redis_clock(session_info(s)))
+                   for name, s in self.sessions().items()
                    if s.description is not None or s.state in ("failed", "unavailable")}
         gone = self.written - set(current)
         if current:
@@ -347,7 +377,7 @@ class Poller:
         for k, v in raw.items():
             name = k.decode("utf-8", "replace") if isinstance(k, bytes) else str(k)
             try:
-                entries[name] = json.loads(v)
+                entries[name] = from_redis_clock(json.loads(v))
             except (ValueError, RecursionError):
                 entries[name] = None  # malformed: Directory.sync says so
         for ev in self.directory.sync(entries):

@@ -70,6 +70,7 @@ from typing import Any
 from fastapi import APIRouter, HTTPException, Request, WebSocket
 from fastapi.responses import RedirectResponse, Response
 
+from articast.service.clock import wall
 from articast.service.jsonsafe import dumps
 from articast.service.room_enrol import Enrolments, EnrolRefused, receive
 from articast.service.security import FailedAttempts, client_key
@@ -566,7 +567,7 @@ class Room:
                  for n, e in self.remote.items() if n not in self.members]
         rows.sort(key=lambda r: (float(r["joined"] or 0.0), r["name"]))
         return dumps({"type": "members", "room": self.config.name, "you": member.name,
-                      "t_server": time.time(), "members": rows})
+                      "t_server": wall(), "members": rows})
 
     def announce(self) -> None:
         for m in self.members.values():
@@ -905,7 +906,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
                     break
                 text = msg.get("text") or ""
                 if text == "ping":
-                    await ws.send_text(dumps({"type": "pong", "t_server": time.time()}))
+                    await ws.send_text(dumps({"type": "pong", "t_server": wall()}))
         except Exception as exc:  # noqa: BLE001 - one broken socket, never the room
             log.debug("room socket of %s ended: %r", name, exc)
         finally:

@@ -8,11 +8,12 @@ worker's pipe, writes it instead to a :class:`FramePublisher`: the frame as a **
 (colour, quality :data:`JPEG_QUALITY`) appended to a Redis stream of its own, ``PREFIX
 room:ROOM:frames:NAME``, capped at :data:`KEEP` entries (``XADD … MAXLEN``: only the newest
 are kept, whoever reads them), each with its media time, its capture time (when the server
-received it, wall clock) and its size; the stream's key lapses :data:`STREAM_TTL_MS` after
-its last frame. The member leaving appends an ``end`` entry. Why JPEG and not the decoded
-picture: a 640x480 frame is 460 kB as I420 and 307 kB as grey (the tracker needs colour: its
-appearance maps are YCrCb), ~14 MB/s per member at 30 fps through one Redis; as a JPEG it is
-~30-60 kB for a few ms of one core (docs/ROOM.md, "Trackers on other machines", measured).
+received it, in Redis's clock: :mod:`articast.service.clock`) and its size; the stream's key
+lapses :data:`STREAM_TTL_MS` after its last frame. The member leaving appends an ``end``
+entry. Why JPEG and not the decoded picture: a 640x480 frame is 460 kB as I420 and 307 kB
+as grey (the tracker needs colour: its appearance maps are YCrCb), ~14 MB/s per member at
+30 fps through one Redis; as a JPEG it is ~30-60 kB for a few ms of one core (docs/ROOM.md,
+"Trackers on other machines", measured).
 
 **Tracker's side.** :class:`RedisInlet` reads that stream where a worker reads its pipe (the
 ``webrtc:NAME`` source's ``inlet``: ``poll``, ``recv``, ``close``), always the newest entry
@@ -34,6 +35,8 @@ from __future__ import annotations
 import logging
 import time
 from typing import Any
+
+from articast.service.clock import CLOCK, wall
 
 log = logging.getLogger("articast.room")
 
@@ -66,6 +69,7 @@ class FramePublisher:
 
         self.key, self.quality, self.keep = key, quality, keep
         self._redis = redis.Redis.from_url(url, socket_connect_timeout=1.0, socket_timeout=2.0)
+        CLOCK.start(url, quiet=True)
         self._failing = False
         self.frames = self.bytes = 0
         self.encode_s = 0.0
@@ -81,9 +85,14 @@ class FramePublisher:
             self.encode_s += time.perf_counter() - t0
             self.frames += 1
             self.bytes += len(data)
-            # the capture time on the wall clock: the tracker's machine has another monotonic
-            fields = {"t": repr(float(t)), "a": repr(time.time() - (time.monotonic() - arrived)),
+            # the capture time in Redis's clock (the tracker's machine has another monotonic
+            # and maybe another wall clock), with the clock it was converted from
+            offset, stamp = CLOCK.outgoing()
+            fields = {"t": repr(float(t)),
+                      "a": repr(wall() - (time.monotonic() - arrived) + offset),
                       "w": width, "h": height, "img": data}
+            if stamp is not None:
+                fields["c"], fields["o"] = stamp[0], repr(stamp[1])
         try:
             pipe = self._redis.pipeline(transaction=False)
             pipe.xadd(self.key, fields, maxlen=self.keep, approximate=False)
@@ -127,7 +136,8 @@ def encode_jpeg(width: int, height: int, i420: bytes, quality: int = JPEG_QUALIT
 class RedisInlet:
     """A worker's inlet (``poll``, ``recv``, ``close``: a pipe's reading end) on a member's
     frame stream: items ``(t, width, height, jpeg, arrived, "jpeg")`` (``arrived`` on this
-    machine's ``time.monotonic()``) and ``("end", reason)``. Picklable until first read."""
+    machine's ``time.monotonic()``, from the entry's capture time in Redis's clock) and
+    ``("end", reason)``. Picklable until first read."""
 
     def __init__(self, url: str, key: str) -> None:
         self.url, self.key = url, key
@@ -148,6 +158,7 @@ class RedisInlet:
 
             self._redis = redis.Redis.from_url(self.url, socket_connect_timeout=1.0,
                                                socket_timeout=10.0)
+            CLOCK.start(self.url, quiet=True)
         return self._redis
 
     def _newest(self, block_s: float) -> Any:
@@ -193,7 +204,9 @@ class RedisInlet:
     def _decode(fields: dict[bytes, bytes]) -> tuple[Any, ...]:
         if b"end" in fields:
             return ("end", fields[b"end"].decode("utf-8", "replace"))
-        arrived = time.monotonic() - (time.time() - float(fields[b"a"]))
+        stamp = ([fields[b"c"].decode("utf-8", "replace"), float(fields[b"o"])]
+                 if b"c" in fields else None)
+        arrived = time.monotonic() - (wall() - CLOCK.local(float(fields[b"a"]), stamp))
         return (float(fields[b"t"]), int(fields[b"w"]), int(fields[b"h"]), fields[b"img"],
                 arrived, "jpeg")
 

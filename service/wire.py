@@ -16,8 +16,7 @@ from typing import Any
 import numpy as np
 
 from articast.client import protocol as P
-
-_MONO_TO_EPOCH = time.time() - time.monotonic()
+from articast.service.clock import MONO_TO_EPOCH as _MONO_TO_EPOCH
 
 
 def epoch(t_monotonic: float) -> float:

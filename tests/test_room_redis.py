@@ -38,11 +38,15 @@ TONE = 440.0
 """ann's microphone: a sine of this many Hz."""
 
 
-def room_server(redis_url, speakers, *more):
+def room_server(redis_url, speakers, *more, skew=0.0):
     """``articast room`` on Redis in a process group of its own (a kill takes its media
-    process and workers with it, as a machine going down would)."""
+    process and workers with it, as a machine going down would); ``skew``: its wall clock
+    (and its children's) that many seconds off (the test-only ``ARTICAST_CLOCK_SKEW_S``,
+    service/clock.py), as on a machine whose clock is wrong."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
     env["ARTICAST_ROOM_TOKEN"] = ROOM
+    if skew:
+        env["ARTICAST_CLOCK_SKEW_S"] = repr(skew)
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room", "t", "--hub", redis_url,
          "--port", "0", "--json", "--member-ttl", str(TTL), "--speakers", str(speakers),
@@ -618,9 +622,12 @@ def test_a_page_that_offers_its_camera_first_hears_every_other_member(tmp_path):
 
 
 # ----------------------------------------------------------------------------- remote trackers
-def room_tracker(redis_url, speakers, lease=2.0, processor="ImageStats"):
-    """``articast room-tracker t`` in a process group of its own (a kill takes its workers)."""
+def room_tracker(redis_url, speakers, lease=2.0, processor="ImageStats", skew=0.0):
+    """``articast room-tracker t`` in a process group of its own (a kill takes its workers);
+    ``skew``: as :func:`room_server`'s."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("ARTICAST_")}
+    if skew:
+        env["ARTICAST_CLOCK_SKEW_S"] = repr(skew)
     return subprocess.Popen(
         [sys.executable, "-m", "articast.service.cli", "room-tracker", "t", "--hub", redis_url,
          "--speakers", str(speakers), "--lease", str(lease), "--json",
@@ -793,3 +800,108 @@ def test_a_member_whose_session_fails_on_the_room_tracker_is_told_why_and_can_jo
         for p in (server, tracker):
             stop(p)
         redis.stop()
+
+
+# ----------------------------------------------------------------------------- one clock
+SKEW = 3.0
+"""Server A's wall clock is this many seconds ahead (ARTICAST_CLOCK_SKEW_S: test-only)."""
+
+
+def test_a_frame_captured_on_a_server_whose_clock_is_wrong_is_timed_right_on_another():
+    """ann joins on A, whose wall clock is SKEW s ahead (as on a machine without NTP); bob on
+    B (right). ann's frames reach ann's socket on A and bob's on B through Redis; each says
+    when it was captured (``t_capture``) and when that server sent it (``t_sent``), and a page
+    maps the first onto its own clock through the second (clients/web/room.js). For the same
+    frame, ``t_sent - t_capture`` on B is what it is on A (the two servers send it within a
+    few ms of each other): the capture time crossed in Redis's clock (service/clock.py).
+    Without that, B's figure is off by A's skew (main's code: by -SKEW s)."""
+    import tempfile
+
+    redis = Redis()
+    redis.start()
+    with tempfile.TemporaryDirectory() as speakers:
+        servers = [room_server(redis.url, speakers, skew=SKEW), room_server(redis.url, speakers)]
+        try:
+            a, b = (base_url(p) for p in servers)
+            ann, bob = Page(a, "ann"), Page(b, "bob")
+            lat = {"A": {}, "B": {}}
+
+            async def read(ws, side, n):
+                while len(lat[side]) < n:
+                    f = await until(ws, lambda m: m["type"] == "frame" and m["session"] == "ann",
+                                    3 * TIMEOUT)
+                    lat[side][f["seq"]] = f["t_sent"] - f["t_capture"]
+
+            async def go():
+                await asyncio.gather(ann.join(), bob.join())
+                async with ann.socket() as on_a, bob.socket() as on_b:
+                    await asyncio.gather(read(on_a, "A", 40), read(on_b, "B", 40))
+                await asyncio.gather(ann.pc.close(), bob.pc.close())
+
+            asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+            # each server's /healthz says how far its clock is from Redis's
+            health = [httpx.get(f"{u}/healthz", timeout=TIMEOUT).json()["clock"] for u in (a, b)]
+            assert abs(health[0]["ahead_of_redis_ms"] - 1000 * SKEW) < 5.0, health
+            assert abs(health[1]["ahead_of_redis_ms"]) < 5.0, health
+            both = sorted(set(lat["A"]) & set(lat["B"]))
+            assert len(both) >= 20, (len(lat["A"]), len(lat["B"]), len(both))
+            d = np.array([lat["B"][k] - lat["A"][k] for k in both]) * 1000
+            on_a = np.array([lat["A"][k] for k in both]) * 1000
+            print(f"A {SKEW:+g} s: t_sent - t_capture of ann's {len(both)} frames on A: median "
+                  f"{np.median(on_a):.1f} ms; on B minus on A: median {np.median(d):+.2f} ms, "
+                  f"p5..p95 {np.percentile(d, 5):+.2f}..{np.percentile(d, 95):+.2f} ms")
+            assert 0 < np.median(on_a) < 2000, on_a  # (one clock on A: exact)
+            assert abs(np.median(d)) < 15.0, d
+        finally:
+            stop_all(servers, redis, lambda line: "clock" in line)
+
+
+TRACKER_SKEW = -7.0
+"""The room tracker's wall clock is this many seconds behind: more than a session entry may
+age (remote.STALE_S) before its session is taken for unavailable."""
+
+
+def test_a_room_tracker_whose_clock_is_wrong_times_a_member_s_frames_right():
+    """A room server with --remote-trackers, and a room tracker whose wall clock is 7 s
+    behind: ann's frames cross twice (to the tracker in her frame stream, back through the
+    hub). On her page, the tracking took what it takes (``t_tracked - t_capture`` between 0
+    and 1 s) and her frame left the server after it was captured (``t_sent - t_capture``), as
+    with one clock; and her session is not taken for unavailable (its entries' time stamps
+    are not 7 s old). Without Redis's clock (main's code) ``t_tracked - t_capture`` is off by
+    the tracker's skew."""
+    import tempfile
+
+    redis = Redis()
+    redis.start()
+    with tempfile.TemporaryDirectory() as speakers:
+        server = room_server(redis.url, speakers, "--remote-trackers")
+        tracker = room_tracker(redis.url, speakers, skew=TRACKER_SKEW)
+        try:
+            url = base_url(server)
+            tracker.stdout.readline()
+            ann = Page(url, "ann")
+            got, states = [], []
+
+            async def go():
+                await ann.join()
+                async with ann.socket() as ws:
+                    while len(got) < 30:
+                        m = await until(ws, lambda m: m.get("session") == "ann"
+                                        and m["type"] in ("frame", "status"), 6 * TIMEOUT)
+                        if m["type"] == "status":
+                            states.append(m["state"])
+                        else:
+                            got.append(m)
+                await ann.pc.close()
+
+            asyncio.run(asyncio.wait_for(go(), 12 * TIMEOUT))
+            tracked = np.array([f["t_tracked"] - f["t_capture"] for f in got]) * 1000
+            sent = np.array([f["t_sent"] - f["t_capture"] for f in got]) * 1000
+            print(f"tracker {TRACKER_SKEW:+g} s: t_tracked - t_capture median "
+                  f"{np.median(tracked):.1f} ms ({np.min(tracked):.1f}..{np.max(tracked):.1f}), "
+                  f"t_sent - t_capture median {np.median(sent):.1f} ms; statuses {states}")
+            assert 0 < np.median(tracked) < 1000, tracked
+            assert np.median(tracked) < np.median(sent) < 2000, (tracked, sent)
+            assert "unavailable" not in states, states
+        finally:
+            stop_all([server, tracker], redis, lambda line: "clock" in line)
