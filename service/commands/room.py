@@ -96,7 +96,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--processor", default="auto",
                    help="what tracks the members' video: auto (the tracker, default), or "
                    "pkg.mod:callable (tests)")
-    r.add_argument("--seed", type=int, default=1, help=argparse.SUPPRESS)
+    r.add_argument("--seed", type=int, default=1,
+                   help="the built-in speaker model that tracks members without an enrolment (its "
+                        "seed; default 1, as the room's servers)")
     r.add_argument("--json", action="store_true", help="print the start-up line as JSON")
     r.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
     r.set_defaults(func=_room_tracker)
