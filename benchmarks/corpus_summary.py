@@ -103,8 +103,9 @@ def single_peer(rows: list[dict], clips: list[dict], resamples: int = 2000,
     """Issue 38's goal, as it is worded: articast's pooled r against **the best single
     peer**, the one FaceMesh-family method (scored by the same judge) with the best mean r
     over the clips every one of them read; the mean of the per-clip r differences over the
-    clips articast and that peer both read, its 95 % interval with people resampled (no per-clip verdicts: a per-clip
-    interval is only computed against the reader and the per-clip best)."""
+    clips articast and that peer both read, its 95 % interval with people resampled (no
+    per-clip verdicts: a per-clip interval is only computed against the reader and the
+    per-clip best)."""
     by_clip = {c["clip"]: c["methods"] for c in clips}
     names = {r["clip"] for r in rows}
     both = [c for c in names
