@@ -1069,18 +1069,20 @@ def consensus_validity(rows: dict[str, dict]) -> dict | None:
             "by_truth": [p[0] for p in sorted(pairs, key=lambda p: -p[2])]}
 
 
-def write_occluded_grid(path: Path, held, run: dict, tile: int = 160, per_row: int = 10) -> None:
-    """Every held-out frame articast marked ``occluded``, with its fitted mesh."""
-    frames = run["info"]["occluded_frames"]
+def write_tiles(path: Path, held, run: dict, frames: Sequence[int],
+                labels: Sequence[Sequence[str]], tile: int = 160, per_row: int = 10) -> None:
+    """A grid of ``held``'s ``frames``, each with articast's fitted mesh (``run``: its run)
+    and its lines of ``labels``."""
     if not frames:
         return
+    sp = run["speaker"]
     tiles = []
-    for i in frames:
-        sp = run["speaker"]
+    for i, lines in zip(frames, labels, strict=True):
         t = cv2.resize(fit_tile(held[i], sp.model, sp.camera, run["results"][i],
                                 lip_contours(sp)), (tile, tile))
-        cv2.putText(t, f"#{i}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
-                    cv2.LINE_AA)
+        for row, text in enumerate(lines):
+            cv2.putText(t, text, (4, 14 + 14 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
+                        (255, 255, 255), 1, cv2.LINE_AA)
         tiles.append(t)
     while len(tiles) % per_row:
         tiles.append(np.zeros_like(tiles[0]))
@@ -1090,8 +1092,13 @@ def write_occluded_grid(path: Path, held, run: dict, tile: int = 160, per_row: i
                 [cv2.IMWRITE_JPEG_QUALITY, 85])
 
 
-def write_worst_grid(path: Path, held, runs: dict[str, dict], count: int = 20,
-                     tile: int = 160, per_row: int = 10) -> None:
+def write_occluded_grid(path: Path, held, run: dict) -> None:
+    """Every held-out frame articast marked ``occluded``, with its fitted mesh."""
+    frames = run["info"]["occluded_frames"]
+    write_tiles(path, held, run, frames, [[f"#{i}"] for i in frames])
+
+
+def write_worst_grid(path: Path, held, runs: dict[str, dict], count: int = 20) -> None:
     """The ``count`` held-out frames where articast's lip aperture departs most from the
     judge's (each series z-scored over the frames both have: the error Pearson's r counts),
     worst first, with articast's fitted mesh and each frame's z-scores: articast (a), its
@@ -1113,22 +1120,8 @@ def write_worst_grid(path: Path, held, runs: dict[str, dict], count: int = 20,
     zr = z(aps["facemesh_v1"]) if "facemesh_v1" in aps else np.full(len(za), np.nan)
     err = np.where(both, np.abs(za - zj), -1.0)
     worst = [int(i) for i in np.argsort(-err)[:count] if err[i] >= 0]
-    sp = a["speaker"]
-    tiles = []
-    for i in worst:
-        t = cv2.resize(fit_tile(held[i], sp.model, sp.camera, a["results"][i],
-                                lip_contours(sp)), (tile, tile))
-        for row, text in enumerate((f"#{i}", f"a {za[i]:+.1f} v1 {zr[i]:+.1f}",
-                                    f"j {zj[i]:+.1f}")):
-            cv2.putText(t, text, (4, 14 + 14 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.42,
-                        (255, 255, 255), 1, cv2.LINE_AA)
-        tiles.append(t)
-    while len(tiles) % per_row:
-        tiles.append(np.zeros_like(tiles[0]))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(path), np.vstack([np.hstack(tiles[r:r + per_row])
-                                      for r in range(0, len(tiles), per_row)]),
-                [cv2.IMWRITE_JPEG_QUALITY, 85])
+    write_tiles(path, held, a, worst, [(f"#{i}", f"a {za[i]:+.1f} v1 {zr[i]:+.1f}",
+                                        f"j {zj[i]:+.1f}") for i in worst])
 
 
 def save_series(series: Path | None, name: str, fps: float, runs: dict[str, dict],
