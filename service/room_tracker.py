@@ -26,18 +26,17 @@ import asyncio
 import contextlib
 import logging
 import os
-import signal
 import time
 from collections.abc import Callable
 from typing import Any
 
-from articast.service.redis_hub import RedisHub
-from articast.service.remote import RUN, Announcer, Directory, EventCodec
+from articast.service.remote import RUN
 from articast.service.room_frames import Leases, RedisFeed, frames_key
 from articast.service.room_presence import Presence
 from articast.service.session import TERMINAL, SessionManager
 from articast.service.settings import CaptureSettings, SessionPolicy
 from articast.service.worker import SessionSpec
+from articast.service.worker_role import publishing_manager, stop_on_signals
 
 log = logging.getLogger("articast.room_tracker")
 
@@ -54,23 +53,13 @@ async def run_room_tracker(url: str, prefix: str, room: str, speakers: str = "",
     """Track ``room``'s remote-tracked members until SIGTERM/SIGINT (or ``stop``)."""
     from articast.service.room import RoomConfig
 
-    stop = stop or asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
-            loop.add_signal_handler(sig, stop.set)
+    stop = stop_on_signals(stop)
     config = RoomConfig(name=room, speakers=speakers, seed=seed)
-    directory = Directory()
     policy = policy or SessionPolicy()
-    manager = SessionManager(None, capture or CaptureSettings(), policy)  # type: ignore[arg-type]
-    # (an enrolled member's hello says they have a delegate; the room's servers serve it,
+    # (delegates: an enrolled member's hello says they have one; the room's servers serve it,
     # from the speakers folder they share with this tracker)
-    manager.delegates = True
-    hub: RedisHub[object] = RedisHub(url, EventCodec(directory, manager.sessions.get),
-                                     prefix=prefix)
-    manager.hub = hub
-    announcer = Announcer(hub.redis, prefix + "sessions", lambda: manager.sessions)
-    announcer.start()
+    manager, hub, announcer = publishing_manager(url, prefix, capture or CaptureSettings(),
+                                                 policy, delegates=True)
     presence = Presence(hub.redis, f"{prefix}room:{room}:members", RUN)
     leases = Leases(hub.redis, prefix, room, RUN, lease_s)
     mine: dict[str, float] = {}

@@ -17,24 +17,39 @@ from articast.service.worker import SessionSpec
 log = logging.getLogger("articast.worker_role")
 
 
-async def run_track_worker(url: str, prefix: str, specs: list[SessionSpec],
-                           capture: CaptureSettings, policy: SessionPolicy, record_dir: str,
-                           started: Callable[[], None] | None = None,
-                           stop: asyncio.Event | None = None) -> None:
-    """Run ``specs`` until SIGTERM/SIGINT (or ``stop``), publishing on the Redis hub."""
+def stop_on_signals(stop: asyncio.Event | None) -> asyncio.Event:
+    """``stop`` (a new event if None), set by SIGTERM or SIGINT where the loop can say so."""
     stop = stop or asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         with contextlib.suppress(NotImplementedError, RuntimeError, ValueError):
             loop.add_signal_handler(sig, stop.set)
-    directory = Directory()
+    return stop
+
+
+def publishing_manager(url: str, prefix: str, capture: CaptureSettings, policy: SessionPolicy,
+                       record_dir: str = "", delegates: bool = False
+                       ) -> tuple[SessionManager, RedisHub[object], Announcer]:
+    """Sessions with no socket of their own: a manager whose frames go out on the Redis hub
+    and whose sessions are announced in its sessions hash (the announcer started)."""
     manager = SessionManager(None, capture, policy, record_dir)  # type: ignore[arg-type]
-    manager.delegates = False  # the gateway serves subscribers and cannot read our folders
-    hub: RedisHub[object] = RedisHub(url, EventCodec(directory, manager.sessions.get),
+    manager.delegates = delegates
+    hub: RedisHub[object] = RedisHub(url, EventCodec(Directory(), manager.sessions.get),
                                      prefix=prefix)
     manager.hub = hub
     announcer = Announcer(hub.redis, prefix + "sessions", lambda: manager.sessions)
     announcer.start()
+    return manager, hub, announcer
+
+
+async def run_track_worker(url: str, prefix: str, specs: list[SessionSpec],
+                           capture: CaptureSettings, policy: SessionPolicy, record_dir: str,
+                           started: Callable[[], None] | None = None,
+                           stop: asyncio.Event | None = None) -> None:
+    """Run ``specs`` until SIGTERM/SIGINT (or ``stop``), publishing on the Redis hub."""
+    stop = stop_on_signals(stop)
+    # (no delegates: the gateway serves subscribers and cannot read our folders)
+    manager, hub, announcer = publishing_manager(url, prefix, capture, policy, record_dir)
     try:
         for spec in specs:
             await manager.add(spec)

@@ -67,11 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     redis.add_argument("--tracker-wait", type=float, default=20.0, metavar="SECONDS",
                        help="with --remote-trackers: a member no tracker has taken for this "
                        "long is told so and leaves (default 20)")
-    p.add_argument("--processor", default="auto",
-                   help="what tracks the participants' video: auto (the tracker, default), "
-                   "or pkg.mod:callable (tests)")
-    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
-    p.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
+    _running_arguments(p, "participants'")
     p.set_defaults(func=_room)
 
     r = sub.add_parser(
@@ -93,14 +89,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--lease", type=float, default=6.0, metavar="SECONDS",
                    help="a member this tracker stops renewing (it died) is taken by another "
                    "this long after (default 6)")
-    r.add_argument("--processor", default="auto",
-                   help="what tracks the members' video: auto (the tracker, default), or "
-                   "pkg.mod:callable (tests)")
     r.add_argument("--seed", type=int, default=1,
-                   help="the built-in speaker model that tracks members without an enrolment (its "
-                        "seed; default 1, as the room's servers)")
-    r.add_argument("--json", action="store_true", help="print the start-up line as JSON")
-    r.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
+                   help="the built-in speaker model that tracks members without an enrolment "
+                        "(its seed; default 1, as the room's servers)")
+    _running_arguments(r, "members'")
     r.set_defaults(func=_room_tracker)
 
     t = sub.add_parser(
@@ -118,6 +110,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--url", default="http://127.0.0.1:8765",
                    help="the room server's address (default http://127.0.0.1:8765)")
     t.set_defaults(func=_room_token)
+
+
+def _running_arguments(p: argparse.ArgumentParser, whose: str) -> None:
+    """What tracks the video, the start-up line's form and the log's level."""
+    p.add_argument("--processor", default="auto",
+                   help=f"what tracks the {whose} video: auto (the tracker, default), or "
+                   "pkg.mod:callable (tests)")
+    p.add_argument("--json", action="store_true", help="print the start-up line as JSON")
+    p.add_argument("--log-level", default="warning", help="debug | info | warning (default)")
 
 
 def _token_arguments(p: argparse.ArgumentParser) -> None:
