@@ -18,7 +18,7 @@ server -> media   ``("offer", id, name, sdp, room)``  answer a participant's off
                   ``("inlet", id)`` + a file handle   the writing end of a new worker's frame
                                                       pipe: the participant's frames go there
                   ``("close", id, reason)``           the participant leaves (closes the peer)
-                  ``("frames", id, room)``            (``--remote-trackers``) the participant's
+                  ``("frames", id, room, joined)``    (``--remote-trackers``) the participant's
                                                       frames go to Redis, for a tracker on
                                                       any machine (service/room_frames.py),
                                                       not to a local worker's pipe
@@ -98,9 +98,10 @@ class RemoteFeed:
         self.ended = reason
         self._media.send(("close", self.pid, reason))
 
-    def to_redis(self, room: str) -> bool:
-        """The participant's frames go to Redis (``--remote-trackers``), not to a worker."""
-        return not self.ended and self._media.send(("frames", self.pid, room))
+    def to_redis(self, room: str, joined: float) -> bool:
+        """The participant's frames go to Redis (``--remote-trackers``), not to a worker: to
+        their membership's stream (``joined``: :func:`articast.service.room_frames.frames_key`)."""
+        return not self.ended and self._media.send(("frames", self.pid, room, joined))
 
 
 class MediaProcess:
@@ -406,7 +407,7 @@ class _Media:
                 writer.send(("end", "the participant left"))
                 writer.close()
         elif kind == "frames":
-            self._publish_frames(msg[1], msg[2])
+            self._publish_frames(msg[1], msg[2], msg[3])
         elif kind == "close":
             peer = self.peers.get(msg[1])
             if peer is not None:
@@ -419,7 +420,7 @@ class _Media:
             assert self.done is not None
             self.done.set()
 
-    def _publish_frames(self, pid: int, room: str) -> None:
+    def _publish_frames(self, pid: int, room: str, joined: float) -> None:
         """The peer's frames go to their stream in Redis from now on (the feed's forwarder
         writes there as it would to a worker's pipe), for a tracker on any machine."""
         from articast.service.room_frames import FramePublisher, frames_key
@@ -427,7 +428,8 @@ class _Media:
         peer = self.peers.get(pid)
         if peer is None or not self.redis_url:
             return
-        publisher = FramePublisher(self.redis_url, frames_key(self.prefix, room, peer.name))
+        publisher = FramePublisher(self.redis_url,
+                                   frames_key(self.prefix, room, peer.name, joined))
         self.publishers[pid] = publisher
         peer.feed.attach(publisher)
 

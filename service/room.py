@@ -771,7 +771,7 @@ def mount_room(app: Any, svc: Any, config: RoomConfig) -> Room:
         if config.remote_trackers:  # their frames to Redis; a room tracker takes them
             if old is not None:
                 await svc.manager.remove(name)
-            if not feed.to_redis(config.name):
+            if not feed.to_redis(config.name, member.joined):
                 room.remove(name, "the media process is gone")
                 raise HTTPException(503, "the server's media process is not running")
             member.feed = feed

@@ -4,16 +4,16 @@ room-tracker``; issue 41, item 5).
 
 **Frames.** The server's media process decodes the member's video as always; their feed's
 forwarder (:class:`articast.service.webrtc.Feed`), which writes the newest frame into a local
-worker's pipe, writes it instead to a :class:`FramePublisher`: the frame as a **JPEG**
-(colour, quality :data:`JPEG_QUALITY`) appended to a Redis stream of its own, ``PREFIX
-room:ROOM:frames:NAME``, capped at :data:`KEEP` entries (``XADD … MAXLEN``: only the newest
-are kept, whoever reads them), each with its media time, its capture time (when the server
-received it, in Redis's clock: :mod:`articast.service.clock`) and its size; the stream's key
-lapses :data:`STREAM_TTL_MS` after its last frame. The member leaving appends an ``end``
-entry. Why JPEG and not the decoded picture: a 640x480 frame is 460 kB as I420 and 307 kB
-as grey (the tracker needs colour: its appearance maps are YCrCb), ~14 MB/s per member at
-30 fps through one Redis; as a JPEG it is ~30-60 kB for a few ms of one core (docs/ROOM.md,
-"Trackers on other machines", measured).
+worker's pipe, writes it instead to a :class:`FramePublisher`: the frame as a **JPEG** (colour,
+quality :data:`JPEG_QUALITY`) appended to a Redis stream of its own, ``PREFIX
+room:ROOM:frames:NAME:JOINED``, one per membership (:func:`frames_key`), capped at :data:`KEEP`
+entries (``XADD … MAXLEN``: only the newest are kept, whoever reads them), each with its media
+time, its capture time (when the server received it, in Redis's clock:
+:mod:`articast.service.clock`) and its size; the stream's key lapses :data:`STREAM_TTL_MS` after
+its last frame. The member leaving appends an ``end`` entry. Why JPEG and not the decoded
+picture: a 640x480 frame is 460 kB as I420 and 307 kB as grey (the tracker needs colour: its
+appearance maps are YCrCb), ~14 MB/s per member at 30 fps through one Redis; as a JPEG it is
+~30-60 kB for a few ms of one core (docs/ROOM.md, "Trackers on other machines", measured).
 
 **Tracker's side.** :class:`RedisInlet` reads that stream where a worker reads its pipe (the
 ``webrtc:NAME`` source's ``inlet``: ``poll``, ``recv``, ``close``), always the newest entry
@@ -47,8 +47,13 @@ STREAM_TTL_MS = 10_000
 JPEG_QUALITY = 80
 
 
-def frames_key(prefix: str, room: str, name: str) -> str:
-    return f"{prefix}room:{room}:frames:{name}"
+def frames_key(prefix: str, room: str, name: str, joined: float) -> str:
+    """One membership's frame stream: ``joined`` (the membership's join time, as the
+    membership hash holds it) in the key, so that a tracker of a name that joins again never
+    reads the former membership's last frames or its ``end`` (it ended the new session
+    before any video). Written with 14 significant digits, as Redis's Lua (cjson) rewrites
+    the hash's numbers: the server's and the tracker's keys are the same string."""
+    return f"{prefix}room:{room}:frames:{name}:{joined:.14g}"
 
 
 def lease_key(prefix: str, room: str, name: str) -> str:

@@ -126,7 +126,7 @@ async def run_room_tracker(url: str, prefix: str, room: str, speakers: str = "",
                 except Exception:  # noqa: BLE001 - Redis away: next round
                     break
                 mine[name] = joined
-                await _track(manager, config, url, prefix, name, processor)
+                await _track(manager, config, url, prefix, name, joined, processor)
                 log.warning("room %s: tracking %s", room, name)
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(stop.wait(), POLL_S)
@@ -145,11 +145,11 @@ async def run_room_tracker(url: str, prefix: str, room: str, speakers: str = "",
 
 
 async def _track(manager: SessionManager, config: Any, url: str, prefix: str, name: str,
-                 processor: str) -> None:
+                 joined: float, processor: str) -> None:
     """``name``'s session here: as a room server starts it, frames from Redis."""
     speaker = config.speaker_of(name)
     spec = SessionSpec(name, f"webrtc:{name}" + ("" if speaker else f"?seed={config.seed}"),
                        speaker=speaker, processor=processor,
                        media_roots=(os.path.realpath(config.speakers),) if speaker else ())
-    manager.feeds[name] = RedisFeed(url, frames_key(prefix, config.name, name))
+    manager.feeds[name] = RedisFeed(url, frames_key(prefix, config.name, name, joined))
     await manager.add(spec)

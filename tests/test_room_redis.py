@@ -905,3 +905,17 @@ def test_a_room_tracker_whose_clock_is_wrong_times_a_member_s_frames_right():
             assert "unavailable" not in states, states
         finally:
             stop_all([server, tracker], redis, lambda line: "clock" in line)
+
+
+def test_a_membership_s_frame_stream_key_is_the_same_on_the_server_and_the_tracker():
+    """The server names a member's frame stream from its own join time; the tracker from the
+    membership hash, whose numbers Redis's Lua (cjson) rewrites with 14 significant digits:
+    the same key either way, and another key for the same name joining again (a tracker of
+    the new membership never reads the former one's ``end``)."""
+    from articast.service.room_frames import frames_key
+
+    joined = 1764481234.567890123
+    rewritten = float(f"{joined:.14g}")  # (as cjson writes it back)
+    assert rewritten != joined
+    assert frames_key("p:", "r", "ann", joined) == frames_key("p:", "r", "ann", rewritten)
+    assert frames_key("p:", "r", "ann", joined) != frames_key("p:", "r", "ann", joined + 0.01)
