@@ -22,10 +22,15 @@ Converter: ``tf2onnx`` (``--tflite``); ``tflite2onnx`` 0.4.1 fails on the v2 lan
 dimension with a counter, so a rerun rewrites the .onnx files with the same weights and graph
 but different bytes.
 
-Needs, besides articast: ``pip install tensorflow-cpu==2.21.0 tf2onnx==1.17.0`` (tools only,
-not run-time dependencies). Run from the repository root::
+Each PRelu is then written as Relu + Sub + Mul + Add (:func:`split_prelu`): the same floats,
+bit for bit, about twice as fast in onnxruntime.
 
-    python tools/convert_face_models.py [--cache DIR] [--with-v1]
+Needs, besides articast: ``pip install tensorflow-cpu==2.21.0 tf2onnx==1.17.0`` (tools only,
+not run-time dependencies); with ``--keep-onnx`` (the shipped .onnx files taken as they are,
+their PRelus rewritten and their parity checked again) only ``onnx`` and a TFLite interpreter
+(``ai-edge-litert``). Run from the repository root::
+
+    python tools/convert_face_models.py [--cache DIR] [--with-v1] [--keep-onnx]
 """
 
 from __future__ import annotations
@@ -254,6 +259,40 @@ def store_float16(path: Path) -> int:
     return len(casts)
 
 
+def split_prelu(path: Path) -> int:
+    """Write each ``PRelu(x, a)`` as ``Relu(x) + a * (x - Relu(x))``; returns how many.
+
+    The same floats, bit for bit: where x > 0 it is x + a * 0, elsewhere 0 + a * x, each one
+    rounding of the product as PRelu's. Why: onnxruntime's CPU PRelu has no kernel in its
+    blocked (NCHWc) layout, so each one reorders its input out of that layout and back, and
+    these networks have a PRelu after almost every convolution: it was about half of each
+    landmark network's time (FaceMesh v1 5.5 -> 2.6 ms, v2 19.5 -> 11.2 ms a crop, one thread,
+    onnxruntime 1.32). Relu, Sub, Mul and Add run in the blocked layout.
+    """
+    import onnx
+    from onnx import helper
+
+    model = onnx.load(str(path))
+    graph = model.graph
+    nodes, n = [], 0
+    for node in graph.node:
+        if node.op_type != "PRelu":
+            nodes.append(node)
+            continue
+        (x, slope), (y,) = node.input, node.output
+        relu, below, scaled = f"{y}__relu", f"{y}__below", f"{y}__scaled"
+        nodes += [helper.make_node("Relu", [x], [relu]),
+                  helper.make_node("Sub", [x, relu], [below]),
+                  helper.make_node("Mul", [below, slope], [scaled]),
+                  helper.make_node("Add", [relu, scaled], [y])]
+        n += 1
+    del graph.node[:]
+    graph.node.extend(nodes)
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+    return n
+
+
 def run_tflite(tflite: bytes, x: np.ndarray) -> list[np.ndarray]:
     try:
         from ai_edge_litert.interpreter import Interpreter
@@ -333,6 +372,8 @@ The files in this folder are derived from Google's MediaPipe FaceLandmarker mode
 from the mediapipe wheel). They were converted from TFLite to ONNX by
 tools/convert_face_models.py with tf2onnx (opset 17). The weights are the originals': float16
 in the .tflite files, stored as float16 here too (each followed by an exact Cast to float32).
+Each PRelu(x, a) is written as Relu(x) + a * (x - Relu(x)), the same floats, because
+onnxruntime runs that about twice as fast on a CPU (tools/convert_face_models.py split_prelu).
 
 - face_detector.onnx       <- face_landmarker.task / face_detector.tflite (BlazeFace short range)
 - face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
@@ -363,17 +404,24 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--with-v1", action="store_true",
                     help="also convert the 2022 FaceMesh v1 weights into the cache, for "
                          "comparisons")
+    ap.add_argument("--keep-onnx", action="store_true",
+                    help="do not convert again: take the .onnx files in core/faces/models as "
+                         "they are (no tensorflow needed), rewrite their PRelus and check "
+                         "them against the original .tflite files again")
     args = ap.parse_args(argv)
     args.cache.mkdir(parents=True, exist_ok=True)
     originals = extract(args.cache)
     MODELS.mkdir(parents=True, exist_ok=True)
     det, lm = MODELS / "face_detector.onnx", MODELS / "face_landmarks_v2.onnx"
-    convert(originals["face_detector.tflite"], det)
-    convert(originals["face_landmarks_detector.tflite"], lm)
     v1 = MODELS / "face_landmarks_v1.onnx"
-    convert(originals["face_landmark_v1_mediapipe.tflite"], v1)
+    if not args.keep_onnx:
+        convert(originals["face_detector.tflite"], det)
+        convert(originals["face_landmarks_detector.tflite"], lm)
+        convert(originals["face_landmark_v1_mediapipe.tflite"], v1)
+        for path in (det, lm, v1):
+            print(f"{path.name}: {store_float16(path)} weight tensors stored as float16 (exact)")
     for path in (det, lm, v1):
-        print(f"{path.name}: {store_float16(path)} weight tensors stored as float16 (exact)")
+        print(f"{path.name}: {split_prelu(path)} PRelu written as Relu + Sub + Mul + Add")
 
     inputs = real_inputs(det, lm)
     diffs = {}
@@ -393,11 +441,18 @@ def main(argv: list[str] | None = None) -> None:
                                        interpolation=cv2.INTER_AREA))
     _, diffs["face_landmarks_v1 (desk crop)"] = parity(
         "face_landmarks_v1", originals["face_landmark_v1_mediapipe.tflite"], v1, v1_input)
+    # and a committed reference for v1 alike: a 96 px crop expanded x2 to its 192 px input
+    v1_half = cv2.resize(inputs["landmarks_input_desk"], (96, 96), interpolation=cv2.INTER_AREA)
+    v1_ref, _ = parity("face_landmarks_v1 (reference)",
+                       originals["face_landmark_v1_mediapipe.tflite"], v1,
+                       to_landmarks(np.repeat(np.repeat(v1_half, 2, axis=0), 2, axis=1)))
     REFERENCE.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(REFERENCE, detector_input=inputs["detector_input"],
                         detector_outputs_0=det_ref[0], detector_outputs_1=det_ref[1],
                         landmarks_input_half=half,
-                        **{f"landmarks_outputs_{i}": r for i, r in enumerate(lm_ref)})
+                        **{f"landmarks_outputs_{i}": r for i, r in enumerate(lm_ref)},
+                        v1_input_half=v1_half,
+                        **{f"v1_outputs_{i}": r for i, r in enumerate(v1_ref)})
     groups = connections(originals["face_mesh_connections.py"])
     lips = groups["edges_lips"]
     contours = {k: chain(lips, *v) for k, v in LIP_CONTOURS.items()}
