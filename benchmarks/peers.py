@@ -188,6 +188,7 @@ OTHERS: Path | None = None  # --others: the methods not run, read from a --serie
 ENROL_BLEND = 0.0  # --enrol-blend: v1's share of the landmarks the speaker's model is built from
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
+OFFLINE_ONE_EURO = False  # --offline-one-euro: offline with the One Euro filter forward and back
 OFFLINE_GAP: float | None = None  # --offline-gap: the readers' share of the offline opening
 MAX_LAG = 5
 MIN_FRAMES = 10  # fewer frames in common: no correlation reported
@@ -645,18 +646,19 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
             with_reader_gap,
         )
 
+        sp2 = None if SINGLE_READER else second_reader(speaker)
+        readers, one_euro = (1 if sp2 is None else 2), (True if OFFLINE_ONE_EURO else None)
         c0 = time.process_time()
-        sm = OfflineSmoother.for_live(live)
+        sm = OfflineSmoother.for_live(live, readers, one_euro)
         for r in results:
             sm.add(r)
         frames = sm.finish()
         offline_cpu_ms = (time.process_time() - c0) * 1e3 / max(len(held), 1)
         ratios = [reader_ratios(results)]
-        sp2 = None if SINGLE_READER else second_reader(speaker)
         if sp2 is not None:
             c0 = time.process_time()
             second = ArticastLoop(sp2, held, fps, SECOND_READER)
-            sm2 = OfflineSmoother.for_live(second.live)
+            sm2 = OfflineSmoother.for_live(second.live, readers, one_euro)
             again = [second(i) for i in range(len(held))]
             for r in again:
                 sm2.add(r)
@@ -892,11 +894,15 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
                     help="with --offline: the readers' lip gap's share of the opening "
                          "(core/faces/offline.py READER_GAP; default: track's own; 0: the "
                          "smoothed fit alone, as before issue 38)")
+    ap.add_argument("--offline-one-euro", action="store_true",
+                    help="with --offline: the One Euro filter forward and back over the "
+                         "smoothed fits with two readers too, as sessions 6-8 wrote a track "
+                         "(core/faces/offline.py ONE_EURO_READERS)")
 
 
 def use_articast_options(args: argparse.Namespace) -> None:
     """:func:`add_articast_options`' choices, for :func:`run_articast`."""
-    global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND, OFFLINE_GAP
+    global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND, OFFLINE_GAP, OFFLINE_ONE_EURO
     try:
         ARTICAST_POLICY = policy_with(VARIANTS[args.variant], args.policy_set)
     except ValueError as e:
@@ -907,6 +913,7 @@ def use_articast_options(args: argparse.Namespace) -> None:
     from articast.core.faces.offline import READER_GAP
 
     OFFLINE_GAP = READER_GAP if args.offline_gap is None else args.offline_gap
+    OFFLINE_ONE_EURO = args.offline_one_euro
 
 
 def _value(text: str) -> Any:

@@ -163,16 +163,18 @@ def test_offline_track_averages_the_two_readers_trackers(enrolled):
     second = second_reader(sp)
     assert second is not None
     runs = {}
-    for key, speaker, policy in (("first", sp, None), ("second", second, SECOND_READER)):
+    # one reader: the One Euro filter forward and back; two: not (ONE_EURO_READERS)
+    for key, speaker, policy, readers in (("single", sp, None, 1), ("first", sp, None, 2),
+                                          ("second", second, SECOND_READER, 2)):
         live = LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(sp.rig), policy)
-        smoother = OfflineSmoother.for_live(live)
+        smoother = OfflineSmoother.for_live(live, readers)
         results = [live.track(f, got["single"][i]["t"]) for i, f in enumerate(frames)]
         for r in results:
             smoother.add(r)
         runs[key] = (smoother.finish(), reader_ratios(results))
-    (first, r1), (other, r2) = runs["first"], runs["second"]
+    (alone, r1), (first, _), (other, r2) = runs["single"], runs["first"], runs["second"]
     m, cam = sp.model, sp.camera
-    want = {"single": with_reader_gap(first, [r1], m, cam),
+    want = {"single": with_reader_gap(alone, [r1], m, cam),
             "both": with_reader_gap(averaged(first, other), [r1, r2], m, cam)}
     names = sp.model.param_names
     both, single = got["both"], got["single"]

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from articast.core.model.camera import rotation_matrix
-from articast.core.tracking.filters import OneEuroFilter
+from articast.core.tracking.filters import OneEuroFilter, OneEuroPolicy
 from articast.core.tracking.kalman import ConstantVelocity, MotionNoise
 from articast.core.tracking.smoother import (
     FixedLag,
@@ -149,6 +149,22 @@ def test_frames_not_ok_are_left_as_tracked():
     out = offline_articulation(a, np.arange(40) / FPS, ok, np.arange(40) % 3,
                                np.zeros(40, bool), 3)
     assert np.array_equal(out[~ok], a[~ok]) and not np.allclose(out[ok], a[ok])
+
+
+def test_the_offline_one_euro_runs_only_when_given_its_constants():
+    """Without a policy (the offline default since session 9, core/faces/offline.ONE_EURO)
+    and without a cadence to cancel, the smoothed fits are written as they are; with one, the
+    zero-phase filter smooths them: less frame-to-frame change, the same mean."""
+    rng = np.random.default_rng(5)
+    t = np.arange(120) / FPS
+    a = np.cumsum(rng.normal(size=(120, K)), axis=0) * 0.1 + rng.normal(size=(120, K)) * 0.05
+    ok, starts = np.ones(120, bool), np.zeros(120, bool)
+    plain = offline_articulation(a, t, ok, np.zeros(120, int), starts, None, policy=None)
+    assert np.array_equal(plain, a)
+    filtered = offline_articulation(a, t, ok, np.zeros(120, int), starts, None,
+                                    policy=OneEuroPolicy())
+    assert np.abs(np.diff(filtered, axis=0)).mean() < 0.8 * np.abs(np.diff(a, axis=0)).mean()
+    assert np.allclose(filtered.mean(axis=0), a.mean(axis=0), atol=0.05)
 
 
 def test_two_readers_are_averaged_only_where_both_have_the_frame():

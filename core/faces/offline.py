@@ -6,7 +6,8 @@ live results in order (:meth:`~OfflineSmoother.add`: bounded memory, the last
 :data:`~articast.core.tracking.smoother.LAG` frames' motion steps and a few numbers per
 frame) and gives at the end (:meth:`~OfflineSmoother.finish`) every frame's articulation
 and head pose smoothed (core/tracking/smoother.py: the motion model's fixed-lag RTS
-smoother, the cadence canceller, the One Euro filter forward and back); :func:`smoothed`
+smoother, the cadence canceller; the One Euro filter forward and back for a clip read by
+one tracker, :data:`ONE_EURO_READERS`); :func:`smoothed`
 makes the frame's result from them. Frames that are not ok, and frames without a motion
 step (a tracker without the fused motion model), are kept as tracked.
 
@@ -36,6 +37,20 @@ from articast.core.tracking.filters import OneEuroPolicy
 from articast.core.tracking.result import TrackResult
 from articast.core.tracking.smoother import LAG, FixedLag, State, offline_articulation
 
+ONE_EURO_READERS = 1
+""":meth:`OfflineSmoother.for_live` runs the live tracker's One Euro filter forward and back
+over the smoothed fits when the clip is read by at most this many trackers: with one
+(``track --single-reader``, or a speaker enrolled without the second reader's model) it
+does, as sessions 6-8 did with two as well; with two it does not, since session 9. Run twice,
+the filter smooths more than live's single pass and rounded fast openings off, and the mean
+of two readers' trackers already has less of the noise it takes out. Over the 22 clips
+(chosen on half A of the people, checked on half B), two readers without it read the
+opening r +0.006 (A) / +0.005 (B) closer to the judge of the other model families, no clip
+lower by more than 0.002, the rendered speaker's truth r 0.983 -> 0.984; the still mouth's
+jitter rises (docs/TRACKING.md, "Offline without the One Euro filter"). One reader without
+it was further from the rendered speaker's truth in mm than the live stream
+(tests/test_enroll.py), so one reader keeps it."""
+
 
 @dataclass(frozen=True)
 class Smoothed:
@@ -49,7 +64,8 @@ class OfflineSmoother:
     """Collects a live tracker's results frame by frame; :meth:`finish` smooths them.
 
     read_every : the live tracker's reading period (its cadence canceller's; None: none).
-    policy : the One Euro filter's constants (None: the live tracker's defaults)."""
+    policy : the constants of a One Euro filter run forward and back over the smoothed fits
+        (None: no such filter)."""
 
     def __init__(self, read_every: int | None, lag: int = LAG,
                  policy: OneEuroPolicy | None = None, cadence_rate: float | None = 0.1
@@ -63,11 +79,17 @@ class OfflineSmoother:
         self._states: list[np.ndarray | None] = []  # per frame: smoothed alpha, rotation, t
 
     @classmethod
-    def for_live(cls, live: Any) -> OfflineSmoother:
+    def for_live(cls, live: Any, readers: int = 1, one_euro: bool | None = None
+                 ) -> OfflineSmoother:
         """The smoother of a :class:`~articast.core.faces.live.LiveTracker`'s results, with its
-        reading period, cadence canceller and One Euro constants (its fusion policy needed)."""
+        reading period and cadence canceller (its fusion policy needed). ``readers``: how
+        many trackers' articulations of the clip are averaged (1 or 2); its One Euro
+        constants are used with ``one_euro``, by default when ``readers`` <=
+        :data:`ONE_EURO_READERS`."""
         fu = live.fusion
-        return cls(fu.read_every, policy=live.policy.smoothing, cadence_rate=fu.cadence)
+        use = readers <= ONE_EURO_READERS if one_euro is None else one_euro
+        policy = (live.policy.smoothing or OneEuroPolicy()) if use else None
+        return cls(fu.read_every, policy=policy, cadence_rate=fu.cadence)
 
     def add(self, result: TrackResult) -> None:
         """The next frame's live result (its ``extra["motion"]`` and ``extra["phase"]``)."""

@@ -14,9 +14,13 @@ are there, and the same motion model uses them:
    version on the peers' clips: r within 0.0005 of the whole clip's from 3 frames on, 0.0001
    from 6; docs/history/REAL_SPEAKERS_LOG.md, "Where the lag is").
 2. :func:`offline_articulation`: the reading cadence's sawtooth taken off
-   (:class:`~articast.core.tracking.filters.CadenceCanceller`, as live), then the One Euro
-   filter run forward and back, so that its smoothing of a still mouth adds no lag either
-   way.
+   (:class:`~articast.core.tracking.filters.CadenceCanceller`, as live), then, if asked
+   for, the One Euro filter run forward and back, so that its smoothing of a still mouth
+   adds no lag either way. Since session 9 only for a clip read by one tracker
+   (core/faces/offline.py :data:`~articast.core.faces.offline.ONE_EURO_READERS`): run
+   twice, it smooths more than the live filter does, and rounded the mouth's fast openings
+   off on faces of both halves of the people (docs/TRACKING.md, "Offline without the One
+   Euro filter").
 
 Pure functions over the steps and arrays; the track command streams the frames through
 :class:`FixedLag` and rewrites its lines at the end (service/commands/track.py).
@@ -153,8 +157,9 @@ def offline_articulation(alpha: np.ndarray, times: np.ndarray, ok: np.ndarray,
     """The articulation streamed offline from the smoothed fits ``alpha`` (F, K): the reading
     cadence's component taken off (``period``: frames between readings, ``phase``: each
     frame's frames since its reading; None or ``cadence_rate`` None: no canceller), then the
-    zero-phase One Euro filter (``policy`` None: its defaults). Frames not ``ok`` are left as
-    they are and, like ``starts`` (a restart, a gated reading), start the filters afresh."""
+    zero-phase One Euro filter with ``policy`` (None: no such filter). Frames not ``ok`` are
+    left as they are and, like ``starts`` (a restart, a gated reading), start the filters
+    afresh."""
     alpha = np.asarray(alpha, np.float64)
     ok = np.asarray(ok, bool)
     out = alpha.copy()
@@ -173,7 +178,7 @@ def offline_articulation(alpha: np.ndarray, times: np.ndarray, ok: np.ndarray,
         fresh[i] |= not prev_ok
         prev_ok = True
     idx = np.flatnonzero(ok)
-    if len(idx):
+    if len(idx) and policy is not None:
         out[idx] = zero_phase_one_euro(out[idx], np.asarray(times, np.float64)[idx],
                                        fresh[idx], policy)
     return out

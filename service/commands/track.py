@@ -291,10 +291,12 @@ def _track(args: argparse.Namespace) -> int:
     if getattr(tracker, "fusion", None) is not None and not args.causal:  # fused LiveTracker
         from articast.core.faces.offline import OfflineSmoother, reader_ratio_of
 
-        smoother = OfflineSmoother.for_live(tracker)
         if not args.single_reader:
             second = _second_tracker(args, tracker)
-            second_smoother = None if second is None else OfflineSmoother.for_live(second)
+        readers = 1 if second is None else 2
+        smoother = OfflineSmoother.for_live(tracker, readers)
+        if second is not None:
+            second_smoother = OfflineSmoother.for_live(second, readers)
     contours, upper = _contours(args)
     total = video_frame_count(args.video)
     if span:
