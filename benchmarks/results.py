@@ -36,7 +36,8 @@ default against the stored peers), ``offline``, ``blinks`` /
 ``blinks_fetched``, ``cost`` (articast and the FaceMesh v1 loop interleaved), ``identity``
 (another person's speaker folder: ``identity_check.py``), then the first run
 (``demo_start``, ``fresh_install``), the synthetic speaker (``evaluate``, ``upper_synthetic``,
-``no_truth_path``, ``corpus_acceptance``, ``tracking_speed``), the service (``latency``,
+``no_truth_path``, ``corpus_acceptance``, ``tracking_speed``), the face networks
+(``network_speed``), the service (``latency``,
 ``fanout``, ``soak``, ``abuse_flood``), dense transfer (``transfer_speed``, ``scan_binding``,
 ``scan_avatar_latency``) and the delegate (``delegate_clips``) (their JSON shown as printed:
 a key and value a row).
@@ -158,6 +159,8 @@ SECTIONS: tuple[Section, ...] = (
     Section("no_truth_path", "no_truth_path.py", ("--json", "--rigs", "desk"), "json"),
     Section("corpus_acceptance", "corpus_acceptance.py", (), "json"),
     Section("tracking_speed", "tracking_speed.py", (), "json"),
+    # the bundled face networks' CPU per call (the readers' share of the two loops' cost)
+    Section("network_speed", "network_speed.py", ("--json",), "json"),
     Section("latency", "latency.py", ("--json", "--subscribers", "1", "100"), "json"),
     Section("fanout", "fanout.py", ("--json", "--subscribers", "500", "--seconds", "20"),
             "json"),
