@@ -297,14 +297,16 @@ class FusionPolicy:
         is). A mouth whose pixels did not change did not open or close: what the fit's
         opening does there is its own noise, which the reader's half does not share. The
         reader's half is streamed as read and a moving mouth passes the fit's change whole,
-        so no lag is added. Off by default: it meets issue 38's still-mouth floor on cap13
-        (at 2 grey levels: jitter 0.186 -> 0.099 % of the mouth's width, the reader's 0.129,
-        gap -0.029, 95 % -0.057..-0.003; franck 0.235 -> 0.112; cap12's r +0.037, 95 %
-        +0.006..+0.090) but reads two clips worse, paired 95 % below zero:
-        styletalk_andrew_clip_2 -0.0023 (-0.0044..-0.0008) and edtalk_mouth_source -0.0003
-        (-0.0006..-0.0000), at every scale tried (0.5-4) on the first, from 2 on the second:
-        likely a fit still converging where the pixels barely change, followed late
-        (docs/TRACKING.md, "cap13's still mouth").
+        so no lag is added. Issue 38's still-mouth floor on cap13 (a compressed webcam clip):
+        jitter 0.186 -> 0.109 % of the mouth's width, the reader's 0.129 (gap -0.019, 95 %
+        -0.038..+0.004; franck 0.235 -> 0.155, cap12 0.167 -> 0.084), no clip's r worse
+        (the paired 95 % interval reaches zero on each of the 20 real clips long enough for
+        one, lowest edtalk_mouth_source -0.0002, -0.0004..0.0000; carphone, single_face
+        within 0.0001), the rendered speaker's truth r 0.977 as before, lag 0.
+        2 grey levels chosen on half A of the people (4 read edtalk_pose_source2 worse),
+        checked on half B. Gated on this frame's change alone, styletalk_andrew_clip_2 read
+        worse at every scale: its fit jumps a frame after the pixels do (docs/TRACKING.md,
+        "cap13's still mouth").
     """
 
     reader: str = "v1"
@@ -330,7 +332,7 @@ class FusionPolicy:
     reader_gap: float | None = 0.5
     eyes_every: int = 3
     realign: bool = True
-    still_mouth: float | None = None
+    still_mouth: float | None = 2.0
 
     def __post_init__(self) -> None:
         if self.start not in ("reader", "finder"):
