@@ -1224,7 +1224,7 @@ def test_the_streamed_opening_is_the_readers_gap_mixed_with_the_fits(enrolled, s
     from articast.core.faces.scheme import mediapipe_scheme
 
     sp, frames, ap_true = _test_clip(enrolled)
-    fu = FusionPolicy(read_every=1, cadence=None, reader_gap=share)
+    fu = FusionPolicy(read_every=1, cadence=None, reader_gap=share, still_mouth=None)
     live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig), LivePolicy(fusion=fu))
     gaps, ap = [], []
     for i, img in enumerate(frames[:40]):
@@ -1244,6 +1244,53 @@ def test_the_streamed_opening_is_the_readers_gap_mixed_with_the_fits(enrolled, s
     ap = np.array(ap)
     ok = np.isfinite(ap)
     assert ok.mean() > 0.95 and np.corrcoef(ap[ok], ap_true[:40][ok])[0, 1] > 0.9
+
+
+def test_the_fits_half_of_the_opening_moves_as_far_as_the_mouths_pixels_do(enrolled):
+    """``FusionPolicy.still_mouth``: the raw fit's half of the streamed opening follows the
+    fit by the share of its change that the mouth's pixels allow (their mean absolute change
+    since the last frame, or the last frame's own where larger, over ``still_mouth`` grey
+    levels, at least ``lipgap.STILL_MIN_GAIN``): where a frame comes again (a still mouth:
+    its pixels did not change) the fit's half hardly moves from the second repeat on, though
+    the raw fit does; where the mouth moves, the fit's change passes whole (no lag), and the
+    lips still follow the truth."""
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.lipgap import STILL_MIN_GAIN, model_ratios, still_gain
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+
+    sp, frames, ap_true = _test_clip(enrolled)
+    scale, share = 2.0, 0.5
+    fu = FusionPolicy(read_every=1, cadence=None, reader_gap=share, still_mouth=scale)
+    live = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig), LivePolicy(fusion=fu))
+    # the clip's first 30 frames, then its 30th nine times more (a mouth held still), then on
+    order = list(range(30)) + [29] * 9 + list(range(30, len(frames)))
+    rows, ap = [], []
+    for n, i in enumerate(order):
+        r = live.track(frames[i], n / 25)
+        assert r.ok and live._fresh is not None
+        ap.append(r.lips["aperture_mm"])
+        got = model_ratios(sp.model, sp.camera, r.alpha[None], r.pose)[0]
+        raw = model_ratios(sp.model, sp.camera, np.asarray(r.extra["alpha_raw"])[None],
+                           r.pose)[0]
+        rows.append((live._fit_gap, raw, r.extra.get("mouth_change", np.nan),
+                     got - share * r.extra["reader_ratio"]))
+    half, raw, change, rest = np.array(rows, np.float64).T
+    # the streamed opening is the reader's share of its gap and the rest the fit's half
+    assert np.median(np.abs(rest - (1 - share) * half)) < 5e-4
+    np.testing.assert_allclose(rest, (1 - share) * half, atol=3e-3)
+    assert np.isnan(change[0]) and np.all(np.isfinite(change[1:]))
+    # the frame again: not a pixel of the mouth changed (the first repeat keeps the change
+    # of the frame before: the fit may follow it a frame late)
+    assert change[30] == change[29] > 0 and np.all(change[31:39] == 0)
+    assert np.sum(change[1:30] >= scale) >= 5  # the speaker talks: those frames pass whole
+    gain = np.array([still_gain(c, scale) for c in change[1:]])
+    np.testing.assert_allclose(half[1:] - half[:-1], gain * (raw[1:] - half[:-1]), atol=1e-12)
+    assert np.allclose(gain[30:38], STILL_MIN_GAIN)
+    moved = np.abs(raw[31:39] - raw[30])
+    assert moved.max() > 3e-4  # the raw fit wanders on the still frames...
+    assert np.abs(half[31:39] - half[30]).max() < 0.2 * moved.max()  # ...its half hardly
+    assert np.corrcoef(ap, ap_true[order])[0, 1] > 0.9
 
 
 def _stretched(src, dst, sx: float) -> None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import math
 import weakref
 
+import cv2
 import numpy as np
 
 from articast.core.model.camera import Camera, Pose
@@ -38,6 +39,14 @@ MODEL_POINTS = ("2.2", "2.3", "8.4", "8.3")
 """The model's MPEG-4 points the scheme builds from those four landmarks, in the same order."""
 WIDTH_POINTS = ("2.5", "2.4")
 """The inner lip corners: the streamed mouth width (``lips.width_mm``) is theirs."""
+LIP_BOX_POINTS = (61, 291, 0, 17)
+"""MediaPipe topology: the outer lip corners and midpoints, whose box places the mouth's
+patch (:func:`lip_box`; ``benchmarks/peers.py``'s lip box)."""
+PATCH_SIZE = (64, 32)
+"""The (width, height) px of :func:`mouth_patch`."""
+STILL_MIN_GAIN = 0.05
+"""The least share of a frame's change that :func:`still_gain` lets through (the fit's
+opening is never frozen: a bias between it and the reading still settles, in ~20 frames)."""
 
 
 PROBE_STEP = 1e-3
@@ -175,3 +184,40 @@ def matched(model: FaceModel, camera: Camera, alpha: np.ndarray, pose: Pose, tar
     if norm > max_change:
         a = alpha + change * (max_change / norm)
     return a
+
+
+def lip_box(landmarks: np.ndarray) -> np.ndarray:
+    """(4,) the image box (x0, y0, x1, y1 px) of a reading's outer lips (its (L, 2+)
+    landmarks, :data:`LIP_BOX_POINTS`); NaN where not read."""
+    if len(landmarks) <= max(LIP_BOX_POINTS):
+        return np.full(4, np.nan)
+    pts = np.asarray(landmarks)[list(LIP_BOX_POINTS), :2].astype(np.float64)
+    return np.concatenate([pts.min(0), pts.max(0)])
+
+
+def mouth_patch(image: np.ndarray, box: np.ndarray) -> np.ndarray:
+    """(32, 64) grey patch of ``image`` (BGR or grey, uint8) around a lip ``box``, grown 30 %
+    (the still-mouth windows' patch of ``benchmarks/face_landmarks_clips.py``)."""
+    x0, y0, x1, y1 = (float(v) for v in box)
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    hx, hy = (x1 - x0) * 0.65 + 2, (y1 - y0) * 0.65 + 2
+    w, h = PATCH_SIZE
+    sx, sy = w / (2 * hx), h / (2 * hy)  # (the box's corners onto the patch's: an axis-
+    # aligned scale and shift, getAffineTransform's own result written out)
+    to = np.array([[sx, 0.0, -sx * (cx - hx)], [0.0, sy, -sy * (cy - hy)]])
+    patch = cv2.warpAffine(image, to, PATCH_SIZE)
+    return cv2.cvtColor(patch, cv2.COLOR_BGR2GRAY) if patch.ndim == 3 else patch
+
+
+def patch_change(patch: np.ndarray, before: np.ndarray) -> float:
+    """The mean absolute difference of two patches of :func:`mouth_patch` (grey levels)."""
+    return float(cv2.mean(cv2.absdiff(patch, before))[0])
+
+
+def still_gain(change: float, scale: float, least: float = STILL_MIN_GAIN) -> float:
+    """The share of a frame's change in the fit's opening let through where the mouth's
+    pixels changed by ``change`` (mean absolute grey level, the same box in both frames):
+    ``change`` / ``scale``, between ``least`` and 1; 1 where the change is not known."""
+    if not math.isfinite(change):
+        return 1.0
+    return min(1.0, max(least, change / scale))

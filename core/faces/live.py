@@ -287,6 +287,26 @@ class FusionPolicy:
         the reading), which stays above its own floor (-0.015, -0.041..+0.009); every other
         clip of the corpus within 0.002 (docs/TRACKING.md, "Where the streamed lips fall
         short of the reader").
+    still_mouth : the raw fit's half of the streamed opening (``reader_gap``) follows the fit
+        by the share of its change that the mouth's pixels allow: the mean absolute change of
+        the grey mouth patch (the box of the last frame's reading's outer lips grown 30 %, in
+        this frame and in that one; or the last frame's own change where larger: the fit
+        follows the image up to a frame late) over this many grey levels, between
+        :data:`~articast.core.faces.lipgap.STILL_MIN_GAIN` and 1
+        (:func:`~articast.core.faces.lipgap.still_gain`; None: the raw fit's opening as it
+        is). A mouth whose pixels did not change did not open or close: what the fit's
+        opening does there is its own noise, which the reader's half does not share. The
+        reader's half is streamed as read and a moving mouth passes the fit's change whole,
+        so no lag is added. Issue 38's still-mouth floor on cap13 (a compressed webcam clip):
+        jitter 0.186 -> 0.109 % of the mouth's width, the reader's 0.129 (gap -0.019, 95 %
+        -0.038..+0.004; franck 0.235 -> 0.155, cap12 0.167 -> 0.084), no clip's r worse
+        (the paired 95 % interval reaches zero on each of the 20 real clips long enough for
+        one, lowest edtalk_mouth_source -0.0002, -0.0004..0.0000; carphone, single_face
+        within 0.0001), the rendered speaker's truth r 0.977 as before, lag 0.
+        2 grey levels chosen on half A of the people (4 read edtalk_pose_source2 worse),
+        checked on half B. Gated on this frame's change alone, styletalk_andrew_clip_2 read
+        worse at every scale: its fit jumps a frame after the pixels do (docs/TRACKING.md,
+        "cap13's still mouth").
     """
 
     reader: str = "v1"
@@ -312,6 +332,7 @@ class FusionPolicy:
     reader_gap: float | None = 0.5
     eyes_every: int = 3
     realign: bool = True
+    still_mouth: float | None = 2.0
 
     def __post_init__(self) -> None:
         if self.start not in ("reader", "finder"):
@@ -405,6 +426,9 @@ class LiveTracker:
         self._last_anchor: np.ndarray | None = None  # the head's point at the last ok frame
         self._t_last: float | None = None
         self._phase = 0  # frames since the last reading (fused tracking)
+        self._mouth: tuple[np.ndarray, np.ndarray] | None = None  # last ok frame's lip box, patch
+        self._mouth_was = float("nan")  # the mouth's pixel change the frame before (still_mouth)
+        self._fit_gap: float | None = None  # the fit's opening as streamed (still_mouth)
         self._cadence = (CadenceCanceller(fu.read_every, fu.cadence)
                          if fu is not None and fu.cadence is not None and fu.read_every >= 2
                          else None)
@@ -485,6 +509,8 @@ class LiveTracker:
         self._face = None
         self._reading = None
         self._resume = None
+        self._mouth = self._fit_gap = None
+        self._mouth_was = float("nan")
         if self._cadence is not None:
             self._cadence.forget()
         if self._motion is not None:
@@ -520,10 +546,16 @@ class LiveTracker:
                 out = self._cadence(out, self._phase)
             if self._filter is not None:
                 out = self._filter(out, t)
-            out = self._lip_gap(result, out)
+            change = self._mouth_change(image, result)
+            out = self._lip_gap(result, out, change)
+            extra = {**result.extra, "alpha_raw": result.alpha}
+            if np.isfinite(change):  # (FusionPolicy.still_mouth)
+                extra["mouth_change"] = change
             result = replace(result, alpha=out, lips=lips_dict(self.speaker.model, out),
-                             extra={**result.extra, "alpha_raw": result.alpha})
+                             extra=extra)
         else:
+            self._mouth = self._fit_gap = None
+            self._mouth_was = float("nan")
             if not result.ok:
                 if self._filter is not None:
                     self._filter.reset()
@@ -535,18 +567,62 @@ class LiveTracker:
             self._last = result
         return result
 
-    def _lip_gap(self, result: TrackResult, alpha: np.ndarray) -> np.ndarray:
+    def _mouth_change(self, image: np.ndarray, result: TrackResult) -> float:
+        """How much the mouth's pixels changed (``FusionPolicy.still_mouth``): the mean
+        absolute grey change of the mouth's patch since the last ok frame, both taken in that
+        frame's lip box (its reading's outer lips), or the last frame's own change where that
+        was larger (the fit
+        follows the image up to a frame late: its motion prior); NaN after a frame not ok, or
+        without ``still_mouth``. Keeps this frame's box, patch and change for the next."""
+        fu = self.fusion
+        if fu is None or fu.still_mouth is None or fu.reader_gap is None:
+            return float("nan")
+        change = float("nan")
+        if self._mouth is not None:
+            box, patch = self._mouth
+            change = lipgap.patch_change(lipgap.mouth_patch(image, box), patch)
+        box = (np.full(4, np.nan) if self._fresh is None
+               else lipgap.lip_box(np.asarray(self._fresh.landmarks)))
+        self._mouth = ((box, lipgap.mouth_patch(image, box)) if np.all(np.isfinite(box))
+                       else None)
+        was, self._mouth_was = self._mouth_was, change
+        return was if not np.isfinite(change) or was > change else change
+
+    def _lip_gap(self, result: TrackResult, alpha: np.ndarray,
+                 change: float = float("nan")) -> np.ndarray:
         """The streamed ``alpha`` whose projected opening is this frame's mix of the reader's
         own lip gap and the fused fit's (:mod:`articast.core.faces.lipgap`,
-        ``FusionPolicy.reader_gap``); unchanged on a frame the reader did not read."""
+        ``FusionPolicy.reader_gap``; the fit's as ``FusionPolicy.still_mouth`` lets it follow
+        the mouth's pixel ``change`` since the last frame); unchanged on a frame the reader
+        did not read."""
         fu = self.fusion
         if fu is None or fu.reader_gap is None or self._fresh is None:
+            self._fit_gap = None
             return alpha
         read = result.extra.get("reader_ratio", float("nan"))
         if not np.isfinite(read):
+            self._fit_gap = None
             return alpha
         m, cam = self.speaker.model, self.speaker.camera
         w = fu.reader_gap
+        if fu.still_mouth is not None and w < 1.0:
+            if kernels.AVAILABLE and not cam.dist.any():
+                mean, basis = lipgap.lip_points(m)
+                fitted = float(kernels.lip_ratio(
+                    mean, basis, result.pose.matrix, np.array(result.pose.translation),
+                    np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
+                    np.array(result.alpha, np.float64)))
+            else:
+                fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
+            if not np.isfinite(fitted):
+                self._fit_gap = None
+            else:
+                if self._fit_gap is None or result.extra.get("recovered"):
+                    self._fit_gap = fitted
+                else:
+                    self._fit_gap += lipgap.still_gain(change, fu.still_mouth) * (
+                        fitted - self._fit_gap)
+                read, w = w * read + (1.0 - w) * self._fit_gap, 1.0  # (the target)
         if kernels.AVAILABLE and not cam.dist.any():  # the same below, in one compiled call
             mean, basis = lipgap.lip_points(m)
             pose = result.pose

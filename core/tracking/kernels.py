@@ -675,6 +675,15 @@ def _lip_measures(mean, basis, a, rot, t, intr, out, row):  # pragma: no cover -
 
 
 @njit(cache=True, nogil=True)
+def lip_ratio(mean, basis, rot, t, intr, alpha):  # pragma: no cover - compiled
+    """The lips' projected ratio at ``alpha`` (:func:`articast.core.faces.lipgap.model_ratios`
+    of one articulation, for a camera without distortion; the arguments as :func:`lip_gap`)."""
+    out = np.empty((1, 2))
+    _lip_measures(mean, basis, alpha, rot, t, intr, out, 0)
+    return out[0, 0]
+
+
+@njit(cache=True, nogil=True)
 def lip_gap(mean, basis, rot, t, intr, alpha, fitted, read, share, step, max_change,
             tolerance):  # pragma: no cover - compiled
     """:meth:`articast.core.faces.live.LiveTracker._lip_gap` in one call, for a camera
@@ -1401,6 +1410,9 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         opening_centres(eye, 2)
         dark_height(eye[:, 2:12], 200.0, 40.0)  # (views: the strips are column slices)
         brow_half(eye[1:7, 2:12], 20.0, 2.0)
+    if want("lip_ratio"):
+        lip_ratio(np.zeros((6, 3), f8), np.zeros((1, 18), f8), np.eye(3),
+                  np.array([0.0, 0.0, 100.0]), intr, np.zeros(1, f8))
     if want("lip_gap"):
         lip_gap(np.zeros((6, 3), f8), np.zeros((1, 18), f8), np.eye(3),
                 np.array([0.0, 0.0, 100.0]), intr, np.zeros(1, f8), np.zeros(1, f8), 0.1, 0.5,
