@@ -777,6 +777,24 @@ def lm_fit(smooth, ox, oy, mscale, sigma, alpha0, rot0, t0, s_mean, basis_sdk, i
 
 
 @njit(cache=True, nogil=True)
+def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: no cover
+    """:meth:`articast.core.tracking.fitting.StatePrior.with_measurement` (its numpy code is
+    the reference): the prior (p_alpha (K,), p_rot (3, 3), p_t (3,), p_info (K + 6, K + 6))
+    times a measurement N(alpha, information^-1) of the articulation; returns the new
+    alpha, rotation, translation and information."""
+    k = p_alpha.shape[0]
+    info = p_info.copy()
+    for i in range(k):
+        for j in range(k):
+            info[i, j] += information[i, j]
+    rhs = np.zeros(k + 6)
+    rhs[:k] = np.dot(information, p_alpha - alpha)
+    e = -np.linalg.solve(info, rhs)
+    return (p_alpha + e[:k], np.dot(_rodrigues(e[k], e[k + 1], e[k + 2]), p_rot),
+            p_t + e[k + 3:], info)
+
+
+@njit(cache=True, nogil=True)
 def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.points.ReadingRegression.features` for a camera without
     distortion (intr: fx, fy, cx, cy): the reading ``uv`` (M, 2) px as head-frame x, y
@@ -1563,6 +1581,9 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
                          np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
         lm_solve(h, g, 1e-3)
+    if want("state_measured"):
+        state_measured(np.zeros(1, f8), np.eye(3), np.zeros(3), np.eye(7), np.zeros(1, f8),
+                       np.eye(1))
     if want("point_offset"):
         point_offset(np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8), np.zeros(1, f8),
                      np.eye(3), np.array([0.0, 0.0, 100.0]), intr, np.zeros((1, 2)))
@@ -1605,7 +1626,8 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
         return True
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                  lm_system, lm_solve, lm_fit, point_offset, lip_gap,
+                                  lm_system, lm_solve, lm_fit, state_measured,
+                                  point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
                                   iris_former_rows, lids_read, iris_circle_height,
                                   opening_centres, dark_height, brow_half)
