@@ -303,8 +303,8 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     spies = KernelSpies()
 
     every = ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system", "lm_solve",
-             "lm_fit", "point_offset", "cv_predict", "cv_update", "iris_chords",
-             "iris_former_rows")
+             "lm_fit", "pixels_sd2", "point_offset", "cv_predict", "cv_update",
+             "iris_chords", "iris_former_rows")
     kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: fit_terms
     # calls la_residuals as a global, which a spy in its place would not type
     for name in every:
@@ -320,3 +320,36 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     assert "lm_fit" in seen  # the compiled path ran
     for name, types in seen.items():
         assert name in kernels.TRACKER and types <= warmed[name], (name, types)
+
+
+def test_the_compiled_contrast_is_opencvs_to_the_last_bit():
+    """kernels.pixels_sd3 / pixels_sd2 (the live frame's and the face's contrast checks, read
+    in place from strided views) are cv2.meanStdDev of a contiguous copy, bit for bit: exact
+    integer sums, then OpenCV's formula."""
+    import cv2
+
+    from articast.core.faces.live import _contrast
+    from articast.core.tracking import kernels
+    from articast.core.tracking.tracker import _spread
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(5)
+
+    def ref(p):
+        return float(cv2.meanStdDev(np.ascontiguousarray(p).reshape(-1, 1))[1][0, 0])
+
+    for i in range(200):
+        h, w = (int(v) for v in rng.integers(8, 300, 2))
+        img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        if i % 3 == 0:  # a face-like frame: smooth, few levels
+            img = (np.add.outer(np.arange(h), np.arange(w))[:, :, None] % 7 * 30
+                   + np.arange(3)).astype(np.uint8)
+        if i % 2:
+            img.setflags(write=False)
+        for view in (img, img[::8, ::8], img[1::3, 2::5]):
+            assert _contrast(view) == ref(view)
+            assert float(kernels.pixels_sd3(view)) == ref(view)
+            assert _spread(view[:, :, 1]) == ref(view[:, :, 1])
+            assert float(kernels.pixels_sd2(view[::4, ::4, 1])) == ref(view[::4, ::4, 1])
+    assert _contrast(np.full((4, 4, 3), 9, np.uint8)) == 0.0

@@ -795,6 +795,44 @@ def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: 
 
 
 @njit(cache=True, nogil=True)
+def _sd_of_sums(s, sq, n):  # pragma: no cover - compiled
+    """OpenCV's meanStdDev from exact integer sums: mean = s / n as s * (1 / n), the s.d. the
+    square root of sq / n - mean^2 (0 where that rounds below 0)."""
+    scale = 1.0 / n if n else 0.0
+    m = s * scale
+    return np.sqrt(max(sq * scale - m * m, 0.0))
+
+
+@njit(cache=True, nogil=True)
+def pixels_sd3(p):  # pragma: no cover - compiled
+    """``cv2.meanStdDev`` of every value of a uint8 (h, w, c) array, any strides (a frame's
+    every n-th pixel, read in place: no contiguous copy), to the last bit (its sums are
+    exact integers)."""
+    s = 0
+    sq = 0
+    for i in range(p.shape[0]):
+        for j in range(p.shape[1]):
+            for c in range(p.shape[2]):
+                v = np.int64(p[i, j, c])
+                s += v
+                sq += v * v
+    return _sd_of_sums(s, sq, p.shape[0] * p.shape[1] * p.shape[2])
+
+
+@njit(cache=True, nogil=True)
+def pixels_sd2(p):  # pragma: no cover - compiled
+    """:func:`pixels_sd3` of a uint8 (h, w) array (one channel's, any strides)."""
+    s = 0
+    sq = 0
+    for i in range(p.shape[0]):
+        for j in range(p.shape[1]):
+            v = np.int64(p[i, j])
+            s += v
+            sq += v * v
+    return _sd_of_sums(s, sq, p.shape[0] * p.shape[1])
+
+
+@njit(cache=True, nogil=True)
 def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.points.ReadingRegression.features` for a camera without
     distortion (intr: fx, fy, cx, cy): the reading ``uv`` (M, 2) px as head-frame x, y
@@ -1517,7 +1555,8 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "lm_fit")
+TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "lm_fit",
+           "pixels_sd2")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1581,6 +1620,13 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
                          np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
         lm_solve(h, g, 1e-3)
+    frame = np.zeros((16, 16, 3), np.uint8)
+    for writable in (True, False):  # (a frame may come read-only)
+        frame.setflags(write=writable)
+        if want("pixels_sd3"):
+            pixels_sd3(frame[::8, ::8])
+        if want("pixels_sd2"):
+            pixels_sd2(frame[::4, ::4, 1])
     if want("state_measured"):
         state_measured(np.zeros(1, f8), np.eye(3), np.zeros(3), np.eye(7), np.zeros(1, f8),
                        np.eye(1))
@@ -1627,6 +1673,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
                                   lm_system, lm_solve, lm_fit, state_measured,
+                                  pixels_sd3, pixels_sd2,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
                                   iris_former_rows, lids_read, iris_circle_height,

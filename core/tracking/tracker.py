@@ -19,6 +19,7 @@ from articast.core.appearance.models import AppearanceModel, sample_normals
 from articast.core.model.camera import Camera, Pose, axis_angle
 from articast.core.model.face import FaceModel, range_motion
 from articast.core.outputs.lips import lips_dict
+from articast.core.tracking import kernels
 from articast.core.tracking.fitting import (
     FitPolicy,
     FitResult,
@@ -35,7 +36,11 @@ OPTIMISERS = ("gauss-newton", "nelder-mead")
 
 def _spread(pixels: np.ndarray) -> float:
     """``pixels.std()`` (any shape), by OpenCV's one pass over a contiguous copy instead of
-    numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper)."""
+    numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper); a
+    uint8 (h, w) view (a channel's every n-th pixel) read in place by the compiled kernel,
+    the same number without the copy."""
+    if kernels.AVAILABLE and pixels.ndim == 2 and pixels.dtype == np.uint8:
+        return float(kernels.pixels_sd2(pixels))
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
