@@ -456,9 +456,9 @@ class Tracker:
             occluded = None
         self._suspect = self._suspect + 1 if occluded else 0
         if occluded and not self._occluding and self._suspect < self.policy.occlusion_frames:
-            return self._accept(fit, t, t0, evals, keep_point_levels=True)
+            return self._accept(fit, t, t0, evals, keep_point_levels=True, pose=fit_pose)
         self._occluding = occluded is not None
-        return self._accept(fit, t, t0, evals, occluded=occluded)
+        return self._accept(fit, t, t0, evals, occluded=occluded, pose=fit_pose)
 
     def _fit_from_neutral(self, image: np.ndarray, cache: dict[int, ImageMaps],
                           ref: np.ndarray | None, evidence: Evidence | None = None
@@ -551,15 +551,17 @@ class Tracker:
 
     def _accept(self, fit: FitResult, t: float, t0: float, evals: int,
                 force: bool = False, occluded: str | None = None,
-                keep_point_levels: bool = False) -> TrackResult:
+                keep_point_levels: bool = False, pose: Pose | None = None) -> TrackResult:
+        """``pose``: the fit's (``Pose(fit.rotation, fit.translation)``), if the caller made it
+        already (immutable: the held state and the result share it)."""
         pol = self.policy
         if occluded is not None:
             # keep tracking from the robust fit (its state seeds the next frame), but judge
             # nothing by it: no level, anchor or gain update; the last good state is streamed
             self._prev, self._theta = self._theta, fit.theta
-            alpha, pose = self._held if self._held is not None else (
-                fit.alpha, Pose(fit.rotation, fit.translation))
-            return TrackResult(self._frame, t, alpha.copy(), pose, False, occluded,
+            alpha, held = self._held if self._held is not None else (
+                fit.alpha, pose if pose is not None else Pose(fit.rotation, fit.translation))
+            return TrackResult(self._frame, t, alpha.copy(), held, False, occluded,
                                fit.residual, evals, fit.iterations, self._ms(t0),
                                {"converged": fit.converged, "robust_residual":
                                 fit.robust_residual, "point_q": fit.point_q,
@@ -591,8 +593,9 @@ class Tracker:
             self._rlevel += pol.level_rate * (rlvl - self._rlevel)
         if not keep_point_levels:
             self._update_point_levels(fit.point_q)
-        self._held = (fit.alpha.copy(), Pose(fit.rotation, fit.translation))
-        return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
+        fit_pose = pose if pose is not None else Pose(fit.rotation, fit.translation)
+        self._held = (fit.alpha.copy(), fit_pose)
+        return TrackResult(self._frame, t, fit.alpha.copy(), fit_pose,
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
                             "gain": fit.gain, "robust_residual": fit.robust_residual,
