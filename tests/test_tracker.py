@@ -303,8 +303,8 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     spies = KernelSpies()
 
     every = ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system", "lm_solve",
-             "lm_fit", "pixels_sd2", "point_offset", "cv_predict", "cv_update",
-             "iris_chords", "iris_former_rows")
+             "lm_fit", "pixels_sd2", "facing_cos", "point_offset", "cv_predict",
+             "cv_update", "iris_chords", "iris_former_rows")
     kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: fit_terms
     # calls la_residuals as a global, which a spy in its place would not type
     for name in every:
@@ -353,3 +353,20 @@ def test_the_compiled_contrast_is_opencvs_to_the_last_bit():
             assert _spread(view[:, :, 1]) == ref(view[:, :, 1])
             assert float(kernels.pixels_sd2(view[::4, ::4, 1])) == ref(view[::4, ::4, 1])
     assert _contrast(np.full((4, 4, 3), 9, np.uint8)) == 0.0
+
+
+def test_the_compiled_facing_is_the_numpy_one():
+    """Tracker.facing (every frame's occlusion test) runs kernels.facing_cos: the numpy
+    reference's cosines, to the last bit, at poses round the tracked one."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = blob_trained(seed=7, kind="la_lin")
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    assert tracker._normals is not None
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        at = Pose(pose.rotation + rng.normal(0, 0.2, 3), pose.translation + rng.normal(0, 20, 3))
+        got, ref = tracker.facing(at), tracker.facing_numpy(at)
+        np.testing.assert_array_equal(got, ref)

@@ -833,6 +833,21 @@ def pixels_sd2(p):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def facing_cos(s_mean, normals, rot, t):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.tracker.Tracker.facing` (its numpy code is the
+    reference): per sample point (S, 3 head frame, ``normals`` (S, 3)) posed by (rot, t), the
+    cosine between its normal and its direction to the camera's centre."""
+    p = np.dot(s_mean, rot.T)
+    nr = np.dot(normals, rot.T)
+    out = np.empty(s_mean.shape[0])
+    for i in range(s_mean.shape[0]):
+        p0, p1, p2 = p[i, 0] + t[0], p[i, 1] + t[1], p[i, 2] + t[2]
+        norm = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+        out[i] = -(nr[i, 0] * p0 + nr[i, 1] * p1 + nr[i, 2] * p2) / max(norm, 1e-9)
+    return out
+
+
+@njit(cache=True, nogil=True)
 def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.points.ReadingRegression.features` for a camera without
     distortion (intr: fx, fy, cx, cy): the reading ``uv`` (M, 2) px as head-frame x, y
@@ -1556,7 +1571,7 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
 
 
 TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "lm_fit",
-           "pixels_sd2")
+           "pixels_sd2", "facing_cos")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1627,6 +1642,8 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
             pixels_sd3(frame[::8, ::8])
         if want("pixels_sd2"):
             pixels_sd2(frame[::4, ::4, 1])
+    if want("facing_cos"):
+        facing_cos(np.zeros((2, 3)), np.ones((2, 3)), np.eye(3), np.array([0.0, 0.0, 100.0]))
     if want("state_measured"):
         state_measured(np.zeros(1, f8), np.eye(3), np.zeros(3), np.eye(7), np.zeros(1, f8),
                        np.eye(1))
@@ -1673,7 +1690,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
                                   lm_system, lm_solve, lm_fit, state_measured,
-                                  pixels_sd3, pixels_sd2,
+                                  pixels_sd3, pixels_sd2, facing_cos,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
                                   iris_former_rows, lids_read, iris_circle_height,

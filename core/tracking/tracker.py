@@ -532,6 +532,16 @@ class Tracker:
         the angle between its surface normal (the mean face's) and its direction to the
         camera's centre (1: head on; 0: at the silhouette; < 0: turned away)."""
         assert self._normals is not None
+        if kernels.AVAILABLE:  # the same sums in one compiled call (the numpy below: the
+            # reference; every frame's occlusion test)
+            return kernels.facing_cos(self.problem.s_mean, self._normals, pose.matrix,
+                                      np.array(pose.translation, np.float64))
+        return self.facing_numpy(pose)
+
+    def facing_numpy(self, pose: Pose) -> np.ndarray:
+        """:meth:`facing` in numpy (the reference of
+        :func:`~articast.core.tracking.kernels.facing_cos`)."""
+        assert self._normals is not None
         rot = pose.matrix
         p = self.problem.s_mean @ rot.T + pose.translation
         n = self._normals @ rot.T
