@@ -496,6 +496,31 @@ def test_a_measurement_of_the_articulation_is_the_product_of_the_two_gaussians()
     assert np.linalg.norm(both.alpha - meas) < np.linalg.norm(pred.alpha - meas)
 
 
+def test_the_compiled_measurement_of_the_articulation_is_the_numpy_one():
+    """StatePrior.with_measurement runs kernels.state_measured (two calls a live frame): the
+    numpy reference's numbers, to the last bit but for the rotation's sine (libm's against
+    numpy's, ~1 in 10^4 states a last bit)."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(9)
+    k = 7
+    for _ in range(20):
+        pred, _ = _correlated_prior(rng, alpha_sd=1.0)
+        b = rng.normal(size=(k, k))
+        m_info = b @ b.T / k + 0.1 * np.eye(k)
+        meas = rng.normal(size=k) * 2.0
+        for got, ref in ((pred.with_measurement(meas, m_info),
+                          pred.with_measurement_numpy(meas, m_info)),
+                         (pred.with_speaker(0.7),
+                          pred.with_measurement_numpy(np.zeros(k), 0.7 * np.eye(k)))):
+            np.testing.assert_array_equal(got.alpha, ref.alpha)
+            np.testing.assert_array_equal(got.translation, ref.translation)
+            np.testing.assert_array_equal(got.information, ref.information)
+            np.testing.assert_allclose(got.rotation, ref.rotation, rtol=0, atol=1e-15)
+
+
 @pytest.mark.skipif(not __import__("articast.core.tracking.kernels",
                                    fromlist=["AVAILABLE"]).AVAILABLE,
                     reason="numba is not installed: the numpy path is the only one")

@@ -303,7 +303,8 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     spies = KernelSpies()
 
     every = ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system", "lm_solve",
-             "point_offset", "cv_predict", "cv_update", "iris_chords", "iris_former_rows")
+             "lm_fit", "pixels_sd2", "facing_cos", "point_offset", "cv_predict",
+             "cv_update", "iris_chords", "iris_former_rows")
     kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: fit_terms
     # calls la_residuals as a global, which a spy in its place would not type
     for name in every:
@@ -316,6 +317,56 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     assert all(tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]).ok
                for i in range(8))
     seen = spies.take()
-    assert "fit_terms" in seen  # the compiled path ran
+    assert "lm_fit" in seen  # the compiled path ran
     for name, types in seen.items():
         assert name in kernels.TRACKER and types <= warmed[name], (name, types)
+
+
+def test_the_compiled_contrast_is_opencvs_to_the_last_bit():
+    """kernels.pixels_sd3 / pixels_sd2 (the live frame's and the face's contrast checks, read
+    in place from strided views) are cv2.meanStdDev of a contiguous copy, bit for bit: exact
+    integer sums, then OpenCV's formula."""
+    import cv2
+
+    from articast.core.faces.live import _contrast
+    from articast.core.tracking import kernels
+    from articast.core.tracking.tracker import _spread
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(5)
+
+    def ref(p):
+        return float(cv2.meanStdDev(np.ascontiguousarray(p).reshape(-1, 1))[1][0, 0])
+
+    for i in range(200):
+        h, w = (int(v) for v in rng.integers(8, 300, 2))
+        img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        if i % 3 == 0:  # a face-like frame: smooth, few levels
+            img = (np.add.outer(np.arange(h), np.arange(w))[:, :, None] % 7 * 30
+                   + np.arange(3)).astype(np.uint8)
+        if i % 2:
+            img.setflags(write=False)
+        for view in (img, img[::8, ::8], img[1::3, 2::5]):
+            assert _contrast(view) == ref(view)
+            assert float(kernels.pixels_sd3(view)) == ref(view)
+            assert _spread(view[:, :, 1]) == ref(view[:, :, 1])
+            assert float(kernels.pixels_sd2(view[::4, ::4, 1])) == ref(view[::4, ::4, 1])
+    assert _contrast(np.full((4, 4, 3), 9, np.uint8)) == 0.0
+
+
+def test_the_compiled_facing_is_the_numpy_one():
+    """Tracker.facing (every frame's occlusion test) runs kernels.facing_cos: the numpy
+    reference's cosines, to the last bit, at poses round the tracked one."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = blob_trained(seed=7, kind="la_lin")
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    assert tracker._normals is not None
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        at = Pose(pose.rotation + rng.normal(0, 0.2, 3), pose.translation + rng.normal(0, 20, 3))
+        got, ref = tracker.facing(at), tracker.facing_numpy(at)
+        np.testing.assert_array_equal(got, ref)

@@ -19,6 +19,7 @@ from articast.core.appearance.models import AppearanceModel, sample_normals
 from articast.core.model.camera import Camera, Pose, axis_angle
 from articast.core.model.face import FaceModel, range_motion
 from articast.core.outputs.lips import lips_dict
+from articast.core.tracking import kernels
 from articast.core.tracking.fitting import (
     FitPolicy,
     FitResult,
@@ -35,7 +36,11 @@ OPTIMISERS = ("gauss-newton", "nelder-mead")
 
 def _spread(pixels: np.ndarray) -> float:
     """``pixels.std()`` (any shape), by OpenCV's one pass over a contiguous copy instead of
-    numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper)."""
+    numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper); a
+    uint8 (h, w) view (a channel's every n-th pixel) read in place by the compiled kernel,
+    the same number without the copy."""
+    if kernels.AVAILABLE and pixels.ndim == 2 and pixels.dtype == np.uint8:
+        return float(kernels.pixels_sd2(pixels))
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
@@ -451,9 +456,9 @@ class Tracker:
             occluded = None
         self._suspect = self._suspect + 1 if occluded else 0
         if occluded and not self._occluding and self._suspect < self.policy.occlusion_frames:
-            return self._accept(fit, t, t0, evals, keep_point_levels=True)
+            return self._accept(fit, t, t0, evals, keep_point_levels=True, pose=fit_pose)
         self._occluding = occluded is not None
-        return self._accept(fit, t, t0, evals, occluded=occluded)
+        return self._accept(fit, t, t0, evals, occluded=occluded, pose=fit_pose)
 
     def _fit_from_neutral(self, image: np.ndarray, cache: dict[int, ImageMaps],
                           ref: np.ndarray | None, evidence: Evidence | None = None
@@ -527,6 +532,16 @@ class Tracker:
         the angle between its surface normal (the mean face's) and its direction to the
         camera's centre (1: head on; 0: at the silhouette; < 0: turned away)."""
         assert self._normals is not None
+        if kernels.AVAILABLE:  # the same sums in one compiled call (the numpy below: the
+            # reference; every frame's occlusion test)
+            return kernels.facing_cos(self.problem.s_mean, self._normals, pose.matrix,
+                                      np.array(pose.translation, np.float64))
+        return self.facing_numpy(pose)
+
+    def facing_numpy(self, pose: Pose) -> np.ndarray:
+        """:meth:`facing` in numpy (the reference of
+        :func:`~articast.core.tracking.kernels.facing_cos`)."""
+        assert self._normals is not None
         rot = pose.matrix
         p = self.problem.s_mean @ rot.T + pose.translation
         n = self._normals @ rot.T
@@ -546,15 +561,17 @@ class Tracker:
 
     def _accept(self, fit: FitResult, t: float, t0: float, evals: int,
                 force: bool = False, occluded: str | None = None,
-                keep_point_levels: bool = False) -> TrackResult:
+                keep_point_levels: bool = False, pose: Pose | None = None) -> TrackResult:
+        """``pose``: the fit's (``Pose(fit.rotation, fit.translation)``), if the caller made it
+        already (immutable: the held state and the result share it)."""
         pol = self.policy
         if occluded is not None:
             # keep tracking from the robust fit (its state seeds the next frame), but judge
             # nothing by it: no level, anchor or gain update; the last good state is streamed
             self._prev, self._theta = self._theta, fit.theta
-            alpha, pose = self._held if self._held is not None else (
-                fit.alpha, Pose(fit.rotation, fit.translation))
-            return TrackResult(self._frame, t, alpha.copy(), pose, False, occluded,
+            alpha, held = self._held if self._held is not None else (
+                fit.alpha, pose if pose is not None else Pose(fit.rotation, fit.translation))
+            return TrackResult(self._frame, t, alpha.copy(), held, False, occluded,
                                fit.residual, evals, fit.iterations, self._ms(t0),
                                {"converged": fit.converged, "robust_residual":
                                 fit.robust_residual, "point_q": fit.point_q,
@@ -586,8 +603,9 @@ class Tracker:
             self._rlevel += pol.level_rate * (rlvl - self._rlevel)
         if not keep_point_levels:
             self._update_point_levels(fit.point_q)
-        self._held = (fit.alpha.copy(), Pose(fit.rotation, fit.translation))
-        return TrackResult(self._frame, t, fit.alpha.copy(), Pose(fit.rotation, fit.translation),
+        fit_pose = pose if pose is not None else Pose(fit.rotation, fit.translation)
+        self._held = (fit.alpha.copy(), fit_pose)
+        return TrackResult(self._frame, t, fit.alpha.copy(), fit_pose,
                            True, "", fit.residual, evals, fit.iterations, self._ms(t0),
                            {"converged": fit.converged, "valid_fraction": fit.valid_fraction,
                             "gain": fit.gain, "robust_residual": fit.robust_residual,
