@@ -45,11 +45,6 @@ _EYE = np.eye(3)
 FIT_TERMS = kernels.AVAILABLE
 """Evaluate a Gauss-Newton state in one compiled call (:func:`kernels.fit_terms`) where the
 la cost and the landmark term are compiled (False: the numpy assembly, the reference)."""
-LM_FIT = True
-"""Where the terms are compiled (``FIT_TERMS``), run the whole Levenberg-Marquardt loop in one
-compiled call (:func:`kernels.lm_fit`; False: the Python loop over compiled evaluations, its
-reference): the loop's Python per evaluation and per iteration was ~0.5 ms of a live frame."""
-_NO_SHARED = (np.zeros((0, 0)), np.zeros((0, 0)))
 _NO_POINTS = (np.zeros((0, 3)), np.zeros((0, 3, 0)), np.ones(4), np.zeros(0), np.zeros((0, 2)),
               -1.0)
 _NO_STATE_PRIOR = (np.zeros(0), np.eye(3), np.zeros(3), np.zeros((0, 0)))
@@ -461,23 +456,6 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                         1.0 / pol.pose_sigma_mm**2)
         fixed = (*tail, *pts, problem.bound, float(pr_.weight), float(pr_.softness), *sp_args,
                  *ref_args)
-        if LM_FIT:  # the whole loop below in one compiled call (kernels.lm_fit)
-            sh_v, sh_c = (points.shared_modes() if points is not None and points.n_points
-                          else _NO_SHARED)
-            (alpha, rot, t, gain, cost, costs_, evals, it, converged, r, vf, rc,
-             hd) = kernels.lm_fit(*head, alpha, rot, t, *middle, gain, *fixed[:1],
-                                  bool(with_gain), *fixed[1:], sh_v, sh_c, float(wa),
-                                  np.array(a_ref, np.float64), float(wg),
-                                  float(lam), int(pol.max_iterations),
-                                  -1 if pol.max_rejections is None else int(pol.max_rejections),
-                                  float(pol.tol_alpha), float(pol.tol_rotation),
-                                  float(pol.tol_translation_mm), state_prior is not None)
-            info = _marginal_information(hd, k + 6, wg) if state_prior is not None else None
-            n = max(r.size * vf, 1.0)
-            rc_n = rc / max(appearance_weight, 1e-12) / n
-            return FitResult(alpha, axis_angle(rot), t, float(cost), float(r @ r) / n, evals,
-                             it, converged, vf, tuple(float(c) for c in costs_), float(gain),
-                             rc_n, _point_q(r, nc), info)
 
     def evaluate(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray, g_: float):
         """Everything at one state: the total cost, the data rows (whitened, IRLS-weighted)

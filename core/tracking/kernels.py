@@ -630,153 +630,6 @@ def _rodrigues(x, y, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _lm_evaluate(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist,
-                 w0, w1, w2, gain, cw, with_gain, src, done, rows, rdone, taps,
-                 rot_w, rot_ref, rot_scale, app_weight, app_scale,
-                 p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
-                 bound, prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info,
-                 ref_rot, ref_t, ref_wr, ref_wt, sh_v, sh_c, wa, a_ref, wg,
-                 gain0):  # pragma: no cover - compiled
-    """One evaluation of :func:`lm_fit`: :func:`fit_terms` at the state, the landmarks'
-    shared-error correction (``PointTerm.shared``: sh_v (2M, R), sh_c (R, R)) and the total
-    cost, as ``fit_gauss_newton``'s ``evaluate``."""
-    k = alpha.shape[0]
-    (rw, jw, r, valid, rc, pc, prior, g_p, h_p, sp, g_s, h_s, pp) = fit_terms(
-        smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist,
-        w0, w1, w2, gain, cw, with_gain, src, done, rows, rdone, taps,
-        rot_w, rot_ref, rot_scale, app_weight, app_scale,
-        p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
-        bound, prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info,
-        ref_rot, ref_t, ref_wr, ref_wt)
-    h_shared = np.zeros((k + 6, k + 6))
-    if p_mean.shape[0] > 0 and sh_v.shape[1] > 0:
-        na = r.shape[0]
-        vt = sh_v.T
-        vr = np.dot(vt, rw[na:].copy())
-        vj = np.dot(vt, np.ascontiguousarray(jw[na:, :k + 6]))  # (R, K + 6)
-        cvr = np.dot(sh_c, vr)
-        shared_c = np.dot(vr, cvr)
-        shared_g = np.dot(vj.T, cvr)
-        h_shared = np.dot(vj.T, np.dot(sh_c, vj))
-        pc -= shared_c  # the errors the landmarks share count once
-        g_s -= 2.0 * shared_g
-        h_s -= 2.0 * h_shared
-    d = alpha - a_ref
-    cost = (rc + pc + prior + pp + sp + wa * np.dot(d, d)
-            + wg * (gain - gain0) ** 2 * (1.0 if with_gain else 0.0))
-    vf = np.count_nonzero(valid) / max(valid.size, 1)
-    return cost, r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared
-
-
-@njit(cache=True, nogil=True)
-def lm_fit(smooth, ox, oy, mscale, sigma, alpha0, rot0, t0, s_mean, basis_sdk, intr, dist,
-           w0, w1, w2, gain0, cw, with_gain, src, done, rows, rdone, taps,
-           rot_w, rot_ref, rot_scale, app_weight, app_scale,
-           p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
-           bound, prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info,
-           ref_rot, ref_t, ref_wr, ref_wt, sh_v, sh_c, wa, a_ref, wg, lam,
-           max_iterations, max_rejections, tol_alpha, tol_rotation, tol_translation,
-           want_hessian):  # pragma: no cover - compiled
-    """The whole Levenberg-Marquardt fit of
-    :func:`articast.core.tracking.fitting.fit_gauss_newton` where its terms are compiled, in
-    one call: the same steps as its Python loop (evaluations by :func:`fit_terms`, the
-    landmarks' shared errors, :func:`lm_system`, :func:`lm_solve`), without a round trip to
-    Python per evaluation. The arguments up to ``ref_wt`` are :func:`fit_terms`'s (alpha0,
-    rot0, t0, gain0 the start); sh_v, sh_c the landmarks' shared modes (0 columns: none);
-    wa, a_ref the motion prior on alpha; wg the gain prior's weight; lam the initial damping;
-    max_rejections < 0: none; want_hessian: return the data rows' J^T J at the end, less the
-    shared errors' (0 x 0 otherwise). Returns alpha, rot, t, gain, cost, the costs, evals,
-    iterations, converged, the appearance residuals r, the valid fraction, the appearance's
-    robust cost and that Hessian."""
-    k = alpha0.shape[0]
-    alpha = alpha0.copy()
-    rot = rot0.copy()
-    t = t0.copy()
-    gain = gain0
-    cost, r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared = _lm_evaluate(
-        smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist,
-        w0, w1, w2, gain, cw, with_gain, src, done, rows, rdone, taps,
-        rot_w, rot_ref, rot_scale, app_weight, app_scale,
-        p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
-        bound, prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info,
-        ref_rot, ref_t, ref_wr, ref_wt, sh_v, sh_c, wa, a_ref, wg, gain0)
-    costs = np.empty(max_iterations + 1)
-    costs[0] = cost
-    n_costs = 1
-    evals = 1
-    converged = False
-    it = 0
-    jtj = np.zeros((0, 0))
-    jtj_fresh = False  # jtj is J^T J of the current jw
-    step = np.zeros(jw.shape[1])
-    for i in range(1, max_iterations + 1):
-        it = i
-        jwt = jw.T
-        jtj = np.dot(jwt, jw)
-        jtj_fresh = True
-        h, g = lm_system(jtj, np.dot(jwt, rw), h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain,
-                         gain0)
-        accepted = False
-        rejected = 0
-        a_new = alpha
-        rot_new = rot
-        t_new = t
-        g_new = gain
-        cost_new = cost
-        while True:
-            solved = True
-            try:
-                step = lm_solve(h, g, lam)
-            except Exception:  # noqa: BLE001 - numba: LinAlgError on a singular system
-                solved = False
-            if not solved:
-                lam *= 10
-                continue
-            a_new = alpha + step[:k]
-            rot_new = np.dot(_rodrigues(step[k], step[k + 1], step[k + 2]), rot)
-            t_new = t + step[k + 3:k + 6]
-            g_new = min(max(gain + step[k + 6], 0.2), 5.0) if step.size > k + 6 else gain
-            (cost_new, r_n, vf_n, rc_n, rw_n, jw_n, g_p_n, h_p_n, g_s_n, h_s_n,
-             h_shared_n) = _lm_evaluate(
-                smooth, ox, oy, mscale, sigma, a_new, rot_new, t_new, s_mean, basis_sdk, intr,
-                dist, w0, w1, w2, g_new, cw, with_gain, src, done, rows, rdone, taps,
-                rot_w, rot_ref, rot_scale, app_weight, app_scale,
-                p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
-                bound, prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info,
-                ref_rot, ref_t, ref_wr, ref_wt, sh_v, sh_c, wa, a_ref, wg, gain0)
-            evals += 1
-            if cost_new <= cost or lam > 1e6:
-                accepted = cost_new <= cost
-                break
-            rejected += 1
-            if max_rejections >= 0 and rejected >= max_rejections:
-                break
-            lam *= 10
-        if not accepted:
-            converged = True  # no descent direction left at this damping: a minimum
-            break
-        lam = max(lam / 10, 1e-7)
-        alpha, rot, t, gain = a_new, rot_new, t_new, g_new
-        cost = cost_new
-        r, vf, rc, rw, jw = r_n, vf_n, rc_n, rw_n, jw_n
-        g_p, h_p, g_s, h_s, h_shared = g_p_n, h_p_n, g_s_n, h_s_n, h_shared_n
-        jtj_fresh = False
-        costs[n_costs] = cost
-        n_costs += 1
-        if (np.abs(step[:k]).max() < tol_alpha
-                and np.abs(step[k:k + 3]).max() < tol_rotation
-                and np.abs(step[k + 3:k + 6]).max() < tol_translation):
-            converged = True
-            break
-    hd = np.zeros((0, 0))
-    if want_hessian:
-        hd = jtj.copy() if jtj_fresh else np.dot(jw.T, jw)
-        hd[:k + 6, :k + 6] -= h_shared
-    return (alpha, rot, t, gain, cost, costs[:n_costs].copy(), evals, it, converged, r, vf, rc,
-            hd)
-
-
-@njit(cache=True, nogil=True)
 def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: no cover
     """:meth:`articast.core.tracking.fitting.StatePrior.with_measurement` (its numpy code is
     the reference): the prior (p_alpha (K,), p_rot (3, 3), p_t (3,), p_info (K + 6, K + 6))
@@ -1579,8 +1432,8 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "lm_fit",
-           "pixels_sd2", "facing_cos")
+TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "pixels_sd2",
+           "facing_cos")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1628,18 +1481,6 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
                   np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
                   intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
                   np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0)
-    if want("lm_fit"):  # (max_iterations 0: compiled whole, one evaluation run)
-        lm_fit(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
-               np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
-               np.zeros((1, 3, 1), f8), intr, dist, np.zeros(8, f8), np.zeros((1, 8), f8),
-               np.zeros((0, 0), f8), 1.0, np.ones((1, 8), f8), True, src,
-               np.zeros((20, 20), np.uint8), np.zeros((20, 20, 3), np.float32),
-               np.zeros((20, 20), np.uint8), np.full(5, 0.2), np.zeros((3, 8), f8),
-               np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
-               intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
-               np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0,
-               np.zeros((2, 1)), np.eye(1), 0.0, np.zeros(1), 1.0, 1e-3, 0, -1, 1e-2, 1e-4,
-               1e-2, True)
     if want("lm_system", "lm_solve"):
         h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
                          np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
@@ -1701,7 +1542,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
         return True
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                  lm_system, lm_solve, lm_fit, state_measured,
+                                  lm_system, lm_solve, state_measured,
                                   pixels_sd3, pixels_sd2, facing_cos,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,

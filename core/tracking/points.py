@@ -479,11 +479,6 @@ class PointTerm:
         return (self._mean, self._basis_mk, self._intr, self.inv_sigma, self.uv,
                 -1.0 if self.scale is None else float(self.scale))
 
-    def shared_modes(self) -> tuple[np.ndarray, np.ndarray]:
-        """The shared error modes (2M, R) in whitened units and (I + V^T V)^-1 (R, R), as
-        :meth:`shared` uses them (:func:`~articast.core.tracking.kernels.lm_fit`'s)."""
-        return self._v, self._c
-
     def shared(self, r: np.ndarray, jac: np.ndarray
                ) -> tuple[float, np.ndarray, np.ndarray]:
         """The correction for the errors the points share: with whitened residuals r (2M,)
