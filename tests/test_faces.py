@@ -197,7 +197,7 @@ def test_onnx_models_match_the_original_tflite_reference(finder):
 def test_bundled_networks_carry_no_prelu():
     """tools/convert_face_models.py writes each PRelu as Relu + Sub + Mul + Add (the same
     floats; onnxruntime's CPU PRelu leaves its blocked layout and was half of each landmark
-    network's time). A model converted again without that step would be twice as slow and
+    network's time). A model converted again without that step would be slower and
     still pass the parity test above: this one fails on it. The op type is stored in the
     protobuf as a plain string."""
     folder = models_dir()

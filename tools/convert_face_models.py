@@ -23,7 +23,7 @@ dimension with a counter, so a rerun rewrites the .onnx files with the same weig
 but different bytes.
 
 Each PRelu is then written as Relu + Sub + Mul + Add (:func:`split_prelu`): the same floats,
-bit for bit, about twice as fast in onnxruntime.
+bit for bit, faster in onnxruntime (x0.84 v1, x0.76 v2 at load 1).
 
 Needs, besides articast: ``pip install tensorflow-cpu==2.21.0 tf2onnx==1.17.0`` (tools only,
 not run-time dependencies); with ``--keep-onnx`` (the shipped .onnx files taken as they are,
@@ -266,8 +266,9 @@ def split_prelu(path: Path) -> int:
     rounding of the product as PRelu's. Why: onnxruntime's CPU PRelu has no kernel in its
     blocked (NCHWc) layout, so each one reorders its input out of that layout and back, and
     these networks have a PRelu after almost every convolution: it was about half of each
-    landmark network's time (FaceMesh v1 5.5 -> 2.6 ms, v2 19.5 -> 11.2 ms a crop, one thread,
-    onnxruntime 1.32). Relu, Sub, Mul and Add run in the blocked layout.
+    landmark network's time in onnxruntime's profile; written so, FaceMesh v1 6.2 -> 5.1 ms and
+    v2 20.3 -> 15.5 ms a call (one thread, onnxruntime 1.32, load 1:
+    benchmarks/network_speed.py --against). Relu, Sub, Mul and Add run in the blocked layout.
     """
     import onnx
     from onnx import helper
@@ -373,7 +374,7 @@ from the mediapipe wheel). They were converted from TFLite to ONNX by
 tools/convert_face_models.py with tf2onnx (opset 17). The weights are the originals': float16
 in the .tflite files, stored as float16 here too (each followed by an exact Cast to float32).
 Each PRelu(x, a) is written as Relu(x) + a * (x - Relu(x)), the same floats, because
-onnxruntime runs that about twice as fast on a CPU (tools/convert_face_models.py split_prelu).
+onnxruntime runs that faster on a CPU (tools/convert_face_models.py split_prelu).
 
 - face_detector.onnx       <- face_landmarker.task / face_detector.tflite (BlazeFace short range)
 - face_landmarks_v2.onnx   <- face_landmarker.task / face_landmarks_detector.tflite (478 points)
