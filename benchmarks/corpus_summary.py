@@ -4,14 +4,14 @@
     python benchmarks/corpus_summary.py run.json [other.json ...] [--half A|B] [--json]
 
 Per clip (the held-out 40 %): articast's live lip aperture r against the independent judge
-(``peers.judge``: one vote per family outside FaceMesh's — OpenSeeFace, dlib), its reader's
-(the FaceMesh v1 loop) and the best FaceMesh-family peer's against the same judge, the gaps with
-their paired 95 % block-bootstrap intervals (``peers.against_reader``): *not worse* when the
-interval reaches zero, *better* when its lower bound is above zero; still-mouth jitter against
-the reader's, with its interval; the lag of articast's frame-to-frame changes behind the
-reader's own and behind the judge's; the best single peer of any family (by its own judge
-r, which for a FaceMesh-family peer is the same judge as articast's). ``synthetic`` (the
-rendered speaker) keeps its truth r.
+(``peers.judge``: one vote per family outside FaceMesh's — OpenSeeFace, dlib, face-api.js), its
+reader's (the FaceMesh v1 loop) and the best FaceMesh-family peer's against the same judge, the
+gaps with their paired 95 % block-bootstrap intervals (``peers.against_reader``): *not worse*
+when the interval reaches zero, *better* when its lower bound is above zero; still-mouth jitter
+against the reader's, with its interval; the lag of articast's frame-to-frame changes behind the
+reader's own and behind the judge's; the best single peer of any family (by its own judge r,
+which for a FaceMesh-family peer is the same judge as articast's). ``synthetic`` (the rendered
+speaker) keeps its truth r.
 
 Pooled, per half of the people (``benchmarks/people.py``) and over all: the mean gap to the
 reader over clips, and its 95 % interval by a bootstrap over *people* (a person's clips drawn

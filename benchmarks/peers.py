@@ -30,8 +30,10 @@ scored on the remaining 40 % (held out), where all methods run:
 - ``openseeface``, ``mediapipe`` (its own FaceMesh solution), ``dlib`` (68 points): each in its
   own venv (``benchmarks/setup_peers.py``), run as a subprocess (``benchmarks/peer_worker.py``)
   that receives the frames through a pipe and times its own per-frame work *inside* the
-  worker: process start-up, model loading and the pipe are not in its time. A peer that is not
-  set up is skipped with its reason.
+  worker: process start-up, model loading and the pipe are not in its time. ``faceapi``
+  (face-api.js's 68-point network in its SSD detector's box, WebAssembly, one thread) the
+  same way in Node.js (``benchmarks/peer_worker_faceapi.cjs``). A peer that is not set up is
+  skipped with its reason.
 
 ``--clips DIR`` takes any folder of videos as it is (every video file, named by its stem; a
 ``clips.json`` where ``tools/fetch_real_clips.py`` wrote one); the default is the team's
@@ -41,14 +43,14 @@ leaves out from it instead of running them: articast's policies scored against t
 
 Scores per clip and method (held-out frames):
 
-- ``judge_r`` (issue 38): correlation with the **independent judge**, one vote per model family
-  outside FaceMesh's (articast reads with that family: FaceMesh v1, mediapipe, FaceLandmarker
-  v2) and outside the method's own: for articast and every FaceMesh-family method the same
-  series (the median of OpenSeeFace's and dlib's); ``articast_vs_reader``: articast's r gap to
-  its own reader (the FaceMesh v1 loop) and to the best FaceMesh-family peer on that judge,
-  with paired block-bootstrap intervals, its jitter gap to the reader's, and the lag of its
-  frame-to-frame changes behind the reader's (``benchmarks/corpus_summary.py`` tabulates them
-  over the corpus, by half of the people);
+- ``judge_r`` (issue 38): correlation with the **independent judge**, one vote per model
+  family outside FaceMesh's (articast reads with that family: FaceMesh v1, mediapipe,
+  FaceLandmarker v2) and outside the method's own: for articast and every FaceMesh-family method
+  the same series (the median of OpenSeeFace's, dlib's and face-api.js's, each z-scored);
+  ``articast_vs_reader``: articast's r gap to its own reader (the FaceMesh v1 loop) and to the
+  best FaceMesh-family peer on that judge, with paired block-bootstrap intervals, its jitter gap
+  to the reader's, and the lag of its frame-to-frame changes behind the reader's
+  (``benchmarks/corpus_summary.py`` tabulates them over the corpus, by half of the people);
 
 - ``consensus_r`` (and ``consensus_n`` frames): correlation of the method's lip aperture (inner
   gap over outer width: MediaPipe 13-14 over 61-291, iBUG 62-66 over 48-54, OpenSeeFace 60-64
@@ -132,8 +134,9 @@ PEER_CACHE = Path.home() / ".cache/articast/peers"
 WIDTH = 640
 ENROL_FRACTION = 0.6
 MAX_ENROL_FRAMES = 600
-METHODS = ("articast", "facemesh_v1", "facelandmarker_v2", "openseeface", "mediapipe", "dlib")
-WORKERS = ("openseeface", "mediapipe", "dlib")
+METHODS = ("articast", "facemesh_v1", "facelandmarker_v2", "openseeface", "mediapipe", "dlib",
+           "faceapi")
+WORKERS = ("openseeface", "mediapipe", "dlib", "faceapi")
 BASELINE = "facemesh_v1"
 VARIANTS = {  # --variant: the design's ablation (docs/TRACKING.md, "Fused live tracking")
     "fused": None,  # the default LivePolicy
@@ -261,16 +264,19 @@ def lag(x: np.ndarray, ref: np.ndarray, max_lag: int = MAX_LAG) -> int | None:
 #: FaceMesh and FaceLandmarker v2 are one family (v1 and mediapipe agree at r ~0.998), and
 #: articast reads with it.
 FAMILIES = {"articast": "facemesh", "facemesh_v1": "facemesh", "facelandmarker_v2": "facemesh",
-            "mediapipe": "facemesh", "openseeface": "openseeface", "dlib": "dlib"}
+            "mediapipe": "facemesh", "openseeface": "openseeface", "dlib": "dlib",
+            "faceapi": "faceapi"}
 READER_FAMILY = "facemesh"
 
 
 def judge(aps: dict[str, np.ndarray], method: str) -> np.ndarray:
     """The independent judge of ``method``: per frame, the median of one vote per model family
     outside articast's reader's family (FaceMesh) and outside ``method``'s own, each family's
-    vote the median of its members' series; NaN where no family has the frame. articast and
-    every FaceMesh-family method are thus scored against the same series (OpenSeeFace's and
-    dlib's)."""
+    vote the median of its members' series, z-scored over the frames it has (the schemes'
+    ratios differ in scale and offset: unscaled, the median of three would mostly be the
+    family whose ratio sits in the middle, and a mean would weigh each family by its spread);
+    NaN where no family has the frame. articast and every FaceMesh-family method are thus
+    scored against the same series (OpenSeeFace's, dlib's and face-api.js's)."""
     own = FAMILIES.get(method, method)
     votes = []
     for fam in dict.fromkeys(FAMILIES.get(k, k) for k in aps):
@@ -279,7 +285,10 @@ def judge(aps: dict[str, np.ndarray], method: str) -> np.ndarray:
         members = np.array([v for k, v in aps.items() if FAMILIES.get(k, k) == fam])
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
-            votes.append(np.nanmedian(members, 0))
+            vote = np.nanmedian(members, 0)
+        if np.isfinite(vote).sum() > 1:
+            vote = (vote - np.nanmean(vote)) / max(float(np.nanstd(vote)), 1e-12)
+        votes.append(vote)
     n = len(next(iter(aps.values())))
     if not votes:
         return np.full(n, np.nan)
@@ -753,11 +762,17 @@ def worker_points(name: str, peer: dict, held: list[np.ndarray]) -> dict:
     """One peer's points on ``held`` (``points`` (N, K, 2) px, NaN where no face; ``scheme``;
     its mean ``ms`` and ``cpu_ms``), or ``error``."""
     h, w = held[0].shape[:2]
+    node = "node" in peer  # a Node.js worker (face-api.js) writes JSON, the Python ones npz
+    if node:
+        cmd = [peer["node"], str(HERE / f"peer_worker_{name}.cjs"), name, json.dumps(peer)]
+    else:
+        cmd = [peer["python"], str(HERE / "peer_worker.py"), name, json.dumps(peer)]
     with tempfile.TemporaryDirectory(prefix="articast-peer-") as tmp:
-        out, err = Path(tmp) / "out.npz", Path(tmp) / "stderr.txt"
+        out = Path(tmp) / ("out.json" if node else "out.npz")
+        err = Path(tmp) / "stderr.txt"
         with open(err, "wb") as fh:
             proc = subprocess.Popen(
-                [peer["python"], str(HERE / "peer_worker.py"), name, json.dumps(peer), str(out)],
+                [*cmd, str(out)],
                 stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=fh,
                 env={**os.environ, "OMP_NUM_THREADS": "1", "TF_NUM_INTEROP_THREADS": "1",
                      "TF_NUM_INTRAOP_THREADS": "1", "GLOG_minloglevel": "2"})
@@ -773,8 +788,18 @@ def worker_points(name: str, peer: dict, held: list[np.ndarray]) -> dict:
         if code != 0 or not out.is_file():
             tail = err.read_text(errors="replace").strip().splitlines()
             return {"error": f"worker exit {code}: {tail[-1] if tail else ''}"}
-        data = np.load(out)
-        pts, scheme = data["points"], str(data["scheme"])
+        if node:
+            got = json.loads(out.read_text())
+            k = max((len(p) for p in got["points"] if p is not None), default=0)
+            pts = np.full((len(got["points"]), k, 2), np.nan)
+            for i, p in enumerate(got["points"]):
+                if p is not None:
+                    pts[i] = p
+            data = {"ms": np.asarray(got["ms"], float), "cpu_ms": np.asarray(got["cpu_ms"], float)}
+            scheme = str(got["scheme"])
+        else:
+            data = np.load(out)
+            pts, scheme = data["points"], str(data["scheme"])
         if pts.shape[1] == 0:  # no face in any frame: as many NaN points as the scheme needs
             pts = np.full((len(held), max(SCHEMES[scheme]) + 1, 2), np.nan)
         return {"points": pts, "scheme": scheme, "ms": float(data["ms"].mean()),

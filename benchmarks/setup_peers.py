@@ -5,7 +5,7 @@ Nothing of a peer's code or models enters the repository: everything goes into a
 venv of its own, and ``<cache>/peers.json`` says what is there (or why a peer is not), which
 ``benchmarks/peers.py`` reads. Run once:
 
-    python benchmarks/setup_peers.py [--cache DIR] [--only mediapipe dlib openseeface]
+    python benchmarks/setup_peers.py [--cache DIR] [--only mediapipe dlib openseeface faceapi]
         [--openseeface-git GIT]
 
 - **mediapipe**: ``mediapipe==0.10.14`` (the last releases before 0.10.15 still carry the legacy
@@ -24,6 +24,12 @@ venv of its own, and ``<cache>/peers.json`` says what is there (or why a peer is
   (the one fetched for this benchmark had only ``lm_model0_opt.onnx``, not the default
   ``lm_model3_opt.onnx``): the best present is used, higher numbers being better and slower
   (``MODEL_ORDER``), and ``peers.json`` names it.
+- **faceapi**: face-api.js (``@vladmandic/face-api@1.7.15``, MIT, its models inside the npm
+  package; sha256 checked) on TensorFlow.js's WebAssembly backend (``@tensorflow/tfjs`` and
+  ``@tensorflow/tfjs-backend-wasm`` 4.22.0, whose ``.wasm`` ships in the package: nothing is
+  fetched at run time), installed with ``npm install --prefix <cache>/faceapi``; run by Node.js
+  (``benchmarks/peer_worker_faceapi.cjs``). Its 68-point landmark network is a model family of
+  its own in the judge (``peers.py``'s ``FAMILIES``).
 - **FaceMesh v1** (468 points, ONNX) ships with articast (``core/faces/models``, the live
   reader), which ``peers.py`` runs; this script checks that it is there (else a conversion by
   ``tools/convert_face_models.py --with-v1`` in ``~/.cache/articast/face-models``).
@@ -34,6 +40,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -67,6 +74,19 @@ VENVS = {
     "mediapipe": ["mediapipe==0.10.14", "numpy<2"],
     "dlib": ["dlib-bin==20.0.1.post1", "numpy", "opencv-python-headless"],
     "openseeface": ["numpy<2", "onnxruntime", "opencv-python-headless", "pillow"],
+}
+FACEAPI_PACKAGES = ("@vladmandic/face-api@1.7.15", "@tensorflow/tfjs@4.22.0",
+                    "@tensorflow/tfjs-backend-wasm@4.22.0")
+#: sha256 of the face-api.js files the worker loads (inside node_modules/@vladmandic/face-api)
+FACEAPI_FILES = {
+    "model/face_landmark_68_model.bin":
+        "4611ef65c87d836d03d684b30eec4d195d8b219fa1dd58fc58945831c6b9299b",
+    "model/face_landmark_68_model-weights_manifest.json":
+        "ca4886639f86e99b39fed0c155f81b63317225773bd9616716e887b0153389c9",
+    "model/ssd_mobilenetv1_model.bin":
+        "2835640602d53718aa6ae9a42896327eaa21beefed056c218d32ca7d79e1e2f8",
+    "model/ssd_mobilenetv1_model-weights_manifest.json":
+        "888f744dffbc84f5f060d1f8427d9742341943a2dfaaf9205d10029b7e7a2955",
 }
 CHECKS = {
     "mediapipe": "import mediapipe as mp; mp.solutions.face_mesh.FaceMesh",
@@ -159,6 +179,32 @@ def setup_openseeface(cache: Path, args) -> dict:
             "licence": "BSD-2-Clause"}
 
 
+def setup_faceapi(cache: Path, args) -> dict:
+    """face-api.js and TensorFlow.js from the npm registry into ``<cache>/faceapi``, checked
+    by running the worker's imports in Node.js."""
+    node = shutil.which("node")
+    if node is None or shutil.which("npm") is None:
+        raise SystemExit("faceapi: needs Node.js and npm (Debian: apt-get install nodejs npm)")
+    root = cache / "faceapi"
+    root.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["npm", "install", "--no-audit", "--no-fund", "--ignore-scripts",
+                    "--prefix", str(root), *FACEAPI_PACKAGES], check=True,
+                   capture_output=True)
+    modules = root / "node_modules"
+    for path, digest in FACEAPI_FILES.items():
+        got = sha256(modules / "@vladmandic/face-api" / path)
+        if got != digest:
+            raise SystemExit(f"face-api.js {path}: sha256 {got} != {digest}")
+    check = ("const p=require('path');const m=process.argv[1];"
+             "require(p.join(m,'@tensorflow/tfjs-backend-wasm'));"
+             "require(p.join(m,'@vladmandic/face-api/dist/face-api.node-wasm.js'));")
+    subprocess.run([node, "-e", check, str(modules)], check=True, capture_output=True)
+    return {"node": node, "modules": str(modules), "packages": list(FACEAPI_PACKAGES),
+            "model": "faceLandmark68Net (68 points) in SSD MobileNet v1's box, WebAssembly, "
+                     "one thread",
+            "licence": "MIT (package and models)"}
+
+
 def check_facemesh_v1(cache: Path, args) -> dict:
     """FaceMesh v1 as ``peers.py`` runs it: the bundled model (articast's live reader), else a
     converted one in the face-models cache."""
@@ -174,7 +220,7 @@ def check_facemesh_v1(cache: Path, args) -> dict:
 
 
 SETUPS = {"facemesh_v1": check_facemesh_v1, "mediapipe": setup_mediapipe, "dlib": setup_dlib,
-          "openseeface": setup_openseeface}
+          "openseeface": setup_openseeface, "faceapi": setup_faceapi}
 
 
 def main(argv: list[str] | None = None) -> None:

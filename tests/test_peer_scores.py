@@ -241,26 +241,53 @@ def test_set_changes_one_field_of_the_live_policy_and_refuses_what_is_not_one():
         peers.policy_with(LivePolicy(fusion=None), ["read_every=2"])
 
 
+def _z(v):
+    return (v - np.nanmean(v)) / np.nanstd(v)
+
+
 def test_the_judge_gives_each_family_outside_facemesh_one_vote():
     """articast and every FaceMesh-family method are scored against the same series, made of
-    the other families only (one vote each, however many members); a method of another family
-    is not its own judge."""
+    the other families only (one vote each, however many members, each vote z-scored over its
+    frames); a method of another family is not its own judge."""
     n = 5
     osf = np.array([1.0, 2.0, 3.0, np.nan, np.nan])
     dl = np.array([3.0, 4.0, 5.0, 7.0, np.nan])
     fm = {k: np.full(n, 100.0) for k in ("articast", "facemesh_v1", "facelandmarker_v2",
                                          "mediapipe")}
     aps = {**fm, "openseeface": osf, "dlib": dl}
+    both = (_z(osf) + _z(dl)) / 2
     for k in fm:  # the FaceMesh family never votes, for any of its members
-        np.testing.assert_allclose(peers.judge(aps, k)[:4], [2.0, 3.0, 4.0, 7.0])
+        np.testing.assert_allclose(peers.judge(aps, k)[:4], [*both[:3], _z(dl)[3]])
         assert np.isnan(peers.judge(aps, k)[4])
-    np.testing.assert_allclose(peers.judge(aps, "openseeface")[:4], dl[:4])  # dlib alone
-    np.testing.assert_allclose(peers.judge(aps, "dlib")[:3], osf[:3])
+    np.testing.assert_allclose(peers.judge(aps, "openseeface")[:4], _z(dl)[:4])  # dlib alone
+    np.testing.assert_allclose(peers.judge(aps, "dlib")[:3], _z(osf)[:3])
     # a second member of a family does not give the family a second vote
     two = {**aps, "dlib_2": np.array([3.0, 4.0, 5.0, 7.0, np.nan])}
     with pytest.MonkeyPatch.context() as mp:
         mp.setitem(peers.FAMILIES, "dlib_2", "dlib")
-        np.testing.assert_allclose(peers.judge(two, "articast")[:3], [2.0, 3.0, 4.0])
+        np.testing.assert_allclose(peers.judge(two, "articast")[:3], both[:3])
+
+
+def test_the_judge_is_the_median_of_three_families_whatever_their_scales():
+    """With three families each frame's judge is the middle vote, and a family's scale and
+    offset (the schemes' ratios differ in both) neither decide which vote is the middle one
+    nor weigh its vote: one family's error on a frame is outvoted by the other two."""
+    rng = np.random.default_rng(3)
+    n = 200
+    truth = np.convolve(rng.normal(size=n), np.ones(6) / 6, mode="same")
+    votes = {"openseeface": truth + 0.01 * rng.normal(size=n),
+             "dlib": truth + 0.01 * rng.normal(size=n),
+             "faceapi": truth + 0.01 * rng.normal(size=n)}
+    votes["faceapi"][50] += 3.0  # one family's blunder on one frame
+    aps = {"articast": truth, **votes}
+    j = peers.judge(aps, "articast")
+    assert abs(j[50] - _z(truth)[50]) < 0.1  # outvoted
+    # the same judge when one family's series is scaled and shifted (z-scores are unchanged)
+    scaled = {**aps, "dlib": 10.0 * votes["dlib"] + 5.0}
+    np.testing.assert_allclose(peers.judge(scaled, "articast"), j)
+    # unscaled, the middle of the three would mostly be one family: the judge would follow
+    # it, blunder included; z-scored, r with the truth stays near 1
+    assert peers.pearson(j, truth)[0] > 0.99
 
 
 def test_against_reader_scores_articast_and_its_reader_on_the_same_judge():
