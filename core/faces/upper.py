@@ -119,11 +119,11 @@ class UpperReference:
         without blinks, where a line through it against the reader's closure reaches 1),
         ``iris`` the visible iris's height (:func:`iris_height`, calibrated as the gap) or
         ``contrast`` (:func:`photo_measure`: a line fitted to the reader's closure), whichever
-        correlates better with the reader's closure on the clip (by more than the
-        correlation's standard error, else the earlier in :data:`PHOTO_KINDS`); photo_r :
-        (left, right) that correlation (a side below 0.5 in magnitude is not used between
-        readings: the last closure is held). A speaker.json from before the gap has contrast
-        lines.
+        correlates better with the reader's closure on the clip over the two series' fast
+        parts, the blinks (:data:`FAST_WINDOW`; by more than the correlation's standard
+        error, else the earlier in :data:`PHOTO_KINDS`); photo_r : (left, right) that
+        correlation (a side below 0.5 in magnitude is not used: :data:`PHOTO_MIN_R`). A
+        speaker.json from before the gap has contrast lines.
     brow_band_mm : (left inner, left outer, right inner, right outer) the neutral brow's
         height above the eye line from the pixels (:func:`brow_band_mm`, the clip's
         median); brow_floor_mm : (left, right) the open eye's top (its photometric opening)
@@ -814,8 +814,9 @@ clip with blinks and the synthetic speaker is in docs/UPPER_FACE.md."""
 
 PHOTO_MIN_R = 0.5
 """A side whose photometric measure correlated less than this (in magnitude: the contrast
-falls as the lid closes, r < 0) with the reader's closure at enrolment is not used between
-readings (the last reading's closure is held)."""
+falls as the lid closes, r < 0) with the reader's closure at enrolment (over their fast
+parts, :data:`FAST_WINDOW`) is not used: its closure is the reader's lids alone where the
+frame is read, the last reading's held between readings."""
 
 
 LEVEL_KNOT = 0.5
