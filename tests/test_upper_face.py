@@ -941,3 +941,40 @@ def test_closure_levels_learned_through_the_session_keep_the_blink_frames():
     for _ in range(100):
         lv.read(0.45)
     assert lv.levels()[0] == pytest.approx(U.OPEN_LEVEL_MAX)
+
+
+def test_the_photometric_measure_is_chosen_by_the_blinks_not_by_the_slow_lowerings():
+    """The reader reads a narrowed eye (a look down, a laugh's squint) as it reads a closing
+    one. A measure that follows those slow lowerings but not the lid over the eye (a lit lid
+    as bright as the white: pexels_woman's left lid gap) correlates with the reader's closure
+    over the whole clip better than one that sees the blinks; over the series' fast parts
+    (:func:`fast_part`), the blinks, it does not, and the measure that sees them is kept."""
+    img = cv2.cvtColor(np.full((400, 640, 3), 128, np.uint8), cv2.COLOR_BGR2GRAY)
+    rng = np.random.default_rng(11)
+    open_canon = U.lid_opening_mm(CANON.vertices_mm)[0]
+    n = 300
+    blink = np.zeros(n)
+    for i in (20, 60, 140, 180, 220, 270):
+        blink[i:i + 2] = 1.0
+    slow = np.zeros(n)
+    slow[80:125] = 1.0  # a long look down (~1.8 s at 25 fps)
+    slow[230:260] = 0.7  # a laugh's squint
+    closing = (0.4 * blink + 0.3 * slow + np.abs(rng.normal(0.0, 0.01, n))) * open_canon
+    gap = 1.2 - 0.5 * slow + rng.normal(0.0, 0.02, n)  # blind to the lid, sees the slow
+    iris = 1.0 - 0.6 * blink + rng.normal(0.0, 0.02, n)  # sees the lid, not the slow
+    ms = [dataclasses.replace(U.measure(img, reading(with_lids(c), 10.0), CANON),
+                              photo=(g, g), iris_h=(h, h), contrast=(None, None))
+          for c, g, h in zip(closing, gap, iris, strict=True)]
+    cl = np.array([m.opening[0] for m in ms])
+    # over the whole series the gap follows the reader's opening better (the former choice)
+    assert abs(np.corrcoef(gap, cl)[0, 1]) > abs(np.corrcoef(iris, cl)[0, 1]) + 0.05
+    ref = U.calibrate(ms)
+    assert ref is not None and ref.photo_kind == ("iris", "iris")
+    assert abs(ref.photo_r[0]) >= U.PHOTO_MIN_R
+    # and it reads the blinks shut: 1 at the deepest
+    a, b = ref.photo[0], ref.photo[1]
+    assert a + b * (1.0 - 0.6) > 0.8
+    # fast_part: the series less its running median (NaN kept)
+    x = np.array([1.0, 1.0, np.nan, 1.0, 0.0, 1.0, 1.0])
+    fx = U.fast_part(x, 2)
+    assert np.isnan(fx[2]) and fx[4] == pytest.approx(-1.0) and fx[0] == pytest.approx(0.0)

@@ -119,11 +119,11 @@ class UpperReference:
         without blinks, where a line through it against the reader's closure reaches 1),
         ``iris`` the visible iris's height (:func:`iris_height`, calibrated as the gap) or
         ``contrast`` (:func:`photo_measure`: a line fitted to the reader's closure), whichever
-        correlates better with the reader's closure on the clip (by more than the
-        correlation's standard error, else the earlier in :data:`PHOTO_KINDS`); photo_r :
-        (left, right) that correlation (a side below 0.5 in magnitude is not used between
-        readings: the last closure is held). A speaker.json from before the gap has contrast
-        lines.
+        correlates better with the reader's closure on the clip over the two series' fast
+        parts, the blinks (:data:`FAST_WINDOW`; by more than the correlation's standard
+        error, else the earlier in :data:`PHOTO_KINDS`); photo_r : (left, right) that
+        correlation (a side below 0.5 in magnitude is not used: :data:`PHOTO_MIN_R`). A
+        speaker.json from before the gap has contrast lines.
     brow_band_mm : (left inner, left outer, right inner, right outer) the neutral brow's
         height above the eye line from the pixels (:func:`brow_band_mm`, the clip's
         median); brow_floor_mm : (left, right) the open eye's top (its photometric opening)
@@ -678,6 +678,30 @@ def blink_dips(op: np.ndarray, window: int = 15, noise_sd: float = 3.0
     return [(a, b) for a, b in _runs(below) if b - a <= DIP_MAX_SAMPLES]
 
 
+FAST_WINDOW = 15
+"""The photometric measure is chosen (and trusted) by its correlation with the reader's
+closure over their fast parts: each series less its running median over this many readings
+either side (:func:`fast_part`; :func:`blink_dips`' own window, ~0.6 s at 25 fps), so that
+the blinks, short, weigh and the slow changes do not. The reader reads a narrowed eye (a look
+down, a frown, a laugh's squint) as deep as a shut one: on the whole series a measure that
+follows those lowerings but not the lid over the eye was chosen (pexels_woman's left lid gap:
+r -0.86 over the whole enrolment, -0.25 over its fast part; it reads her shut eyes open)."""
+
+
+def fast_part(v: np.ndarray, window: int = FAST_WINDOW) -> np.ndarray:
+    """A series (in frame order; NaN where none) less its running median over ``window``
+    samples either side (NaN where the window holds none)."""
+    v = np.asarray(v, np.float64)
+    n = len(v)
+    out = np.full(n, np.nan)
+    for k in range(n):
+        w = v[max(0, k - window):k + window + 1]
+        w = w[np.isfinite(w)]
+        if len(w) and np.isfinite(v[k]):
+            out[k] = v[k] - float(np.median(w))
+    return out
+
+
 def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     """The speaker's references from the enrolment clip's readings (in frame order; None
     where no face was read); None when fewer than 10 frames had measurable eyes."""
@@ -717,13 +741,21 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
                        if m.levels[i] is not None and c < 0.3]).reshape(-1, 3)
         levels += list(np.median(lv, axis=0)) if len(lv) >= 5 else [0.0, 0.0, 0.0]
         best, n_best = (0.0, 0.0, 0.0, "gap"), 0
+        fast_cl = fast_part(cl[:, i])
         for kind in PHOTO_KINDS:  # (in the order of preference)
             x = np.array([np.nan if v is None else v for v in
                           (m.photometric(kind, i) for m in ms)])
             ok = np.isfinite(x)
             if ok.sum() < 10 or np.std(x[ok]) <= 1e-6 or np.std(cl[ok, i]) <= 1e-6:
                 continue
-            r = float(np.corrcoef(x[ok], cl[ok, i])[0, 1])
+            # how well it follows the reader's fast lid movements, the blinks (FAST_WINDOW):
+            # not its slow ones, a look down or a laugh's squint, which the reader itself
+            # reads as deep as a shut eye and so teaches wrong (docs/UPPER_FACE.md)
+            fx = fast_part(x)
+            both = np.isfinite(fx)
+            if both.sum() < 10 or np.std(fx[both]) <= 1e-9 or np.std(fast_cl[both]) <= 1e-9:
+                continue
+            r = float(np.corrcoef(fx[both], fast_cl[both])[0, 1])
             k, c0 = np.polyfit(x[ok], cl[ok, i], 1)
             a, b = float(c0), float(k)
             if kind != "contrast":  # its own open (median) and shut (deepest blinks) refs
@@ -738,7 +770,7 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
             # (1 - r^2) / sqrt(n - 1): a tie on the synthetic eye (0.766 / 0.764) keeps the gap
             if not n_best or abs(r) > abs(best[2]) + (1.0 - best[2] ** 2) / math.sqrt(
                     n_best - 1):
-                best, n_best = (a, b, r, kind), int(ok.sum())
+                best, n_best = (a, b, r, kind), int(both.sum())
         photo += [best[0], best[1]]
         photo_r.append(best[2])
         kinds.append(best[3])
@@ -782,8 +814,9 @@ clip with blinks and the synthetic speaker is in docs/UPPER_FACE.md."""
 
 PHOTO_MIN_R = 0.5
 """A side whose photometric measure correlated less than this (in magnitude: the contrast
-falls as the lid closes, r < 0) with the reader's closure at enrolment is not used between
-readings (the last reading's closure is held)."""
+falls as the lid closes, r < 0) with the reader's closure at enrolment (over their fast
+parts, :data:`FAST_WINDOW`) is not used: its closure is the reader's lids alone where the
+frame is read, the last reading's held between readings."""
 
 
 LEVEL_KNOT = 0.5
