@@ -59,7 +59,8 @@ Scores per clip and method (held-out frames):
   ``pairwise_r``: every pair's correlation;
 - ``jitter``: RMS of the aperture ratio about its linear trend inside still windows, % of the
   outer width; the windows are the 10 % of 0.4 s windows whose mouth image changes least, the
-  mouth placed by the per-frame median of all methods' lip boxes (``box_motion``);
+  mouth placed by the per-frame median of the lip boxes of every method but articast
+  (``box_motion``, ``window_boxes``: its variants are scored on the same windows);
 - ``lag``: the shift (frames, within +-5) of the peak correlation with the leave-one-out
   consensus; positive: the method is late. +-5 means no peak inside the range (a slow drift
   between the two series makes the correlation climb with the shift), hence also
@@ -1026,12 +1027,24 @@ def series_clip(name: str, series: dict, left_out: Sequence[str] = ("articast",)
         raise SystemExit(f"{name}: the series in --series has another number of frames than "
                          f"the clip ({len(held)}): a run of another clip or version")
     return {"enrol": enrol, "held": held, "fps": fps, "kw": kw, "others": others,
-            "windows": clip_windows(held, series["boxes"], fps)}
+            "windows": clip_windows(held, window_boxes(dict(zip(series["ratio"], series["boxes"],
+                                                                strict=True)), left_out), fps)}
+
+
+def window_boxes(boxes: dict[str, np.ndarray], scored: Sequence[str] = ("articast",)
+                 ) -> list[np.ndarray]:
+    """The lip boxes that place the mouth for the still windows: every method's but the
+    ``scored`` ones' (articast's), so that every variant of articast is scored on the same
+    windows as its reader (with its own box in the median, a variant that moved its box by a
+    pixel moved the windows and the reader's jitter with them); all of them where no other
+    method has one."""
+    rest = [b for k, b in boxes.items() if k not in scored]
+    return rest or list(boxes.values())
 
 
 def clip_windows(held, boxes: Sequence[np.ndarray], fps: float) -> list[slice]:
     """The still-mouth windows of ``held``: the mouth placed by the per-frame median of the
-    methods' lip ``boxes`` (each (F, 4), NaN where none)."""
+    lip ``boxes`` (each (F, 4), NaN where none; :func:`window_boxes`)."""
     stack = np.array(boxes)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -1046,7 +1059,7 @@ def evaluate(name: str, held, fps, runs: dict[str, dict], truth: np.ndarray | No
              ) -> dict:
     live = {k: v for k, v in runs.items() if "error" not in v}
     aps = {k: v["ratio"] for k, v in live.items()}
-    windows = clip_windows(held, [v["boxes"] for v in live.values()], fps)
+    windows = clip_windows(held, window_boxes({k: v["boxes"] for k, v in live.items()}), fps)
     scores = score(aps, windows)
     base = live.get(BASELINE, {}).get("ms")
     base_cpu = live.get(BASELINE, {}).get("cpu_ms")

@@ -335,3 +335,13 @@ def test_a_clips_folder_is_read_as_it_is(tmp_path):
     assert common.clip_paths(tmp_path / "missing") == {}
     (tmp_path / "clips.json").write_text('[{"name": "x", "path": "/somewhere/x.mp4"}]')
     assert common.clip_paths(tmp_path) == {"x": Path("/somewhere/x.mp4")}  # a fetched cache
+
+
+def test_the_still_windows_are_placed_without_the_scored_methods_box():
+    """articast's own lip box does not place the still windows (a variant that moved its box
+    would move the windows, and its reader's jitter with them); the others' boxes do, and all
+    of them where articast is alone."""
+    a, v1, dl = (np.full((4, 4), x) for x in (1.0, 2.0, 3.0))
+    got = peers.window_boxes({"articast": a, "facemesh_v1": v1, "dlib": dl})
+    assert len(got) == 2 and all(g is not a for g in got)
+    assert peers.window_boxes({"articast": a})[0] is a
