@@ -1081,7 +1081,13 @@ def test_a_head_turned_beyond_the_enrolment_is_unfamiliar_a_hand_within_it_stays
         return [live.track(_hand_over_the_chin(frames[i + k], marks), (i + k) / 25).reason
                 .split(":")[0] for k in (1, 2, 3, 4)]
 
-    assert hand(sp)[1:] == ["occluded"] * 3
+    # (within the enrolment's lips too: the fit under the painted hand stretches the lips to
+    # the edge of the enrolment's 2nd-98th percentile width, 54.1-55.5 mm against 54.6 on
+    # session 10's machine, where a last digit decides; the rule for lips beyond the range
+    # is test_an_opening_beyond_the_enrolment_is_unfamiliar_to_the_appearance's)
+    within = replace(sp, report={**sp.report, "coverage": {
+        **cov, "aperture_mm": [0.0, 100.0], "width_mm": [0.0, 100.0]}})
+    assert hand(within)[1:] == ["occluded"] * 3
     # the same frames, the head beyond every rotation the appearance was trained on: the
     # landmarks, which read the face where the fit is, overrule the appearance
     beyond = replace(sp, report={**sp.report, "coverage": {
@@ -1289,9 +1295,11 @@ def test_the_fits_half_of_the_opening_moves_as_far_as_the_mouths_pixels_do(enrol
     gain = np.array([still_gain(c, scale) for c in change[1:]])
     np.testing.assert_allclose(half[1:] - half[:-1], gain * (raw[1:] - half[:-1]), atol=1e-12)
     assert np.allclose(gain[30:38], STILL_MIN_GAIN)
-    moved = np.abs(raw[31:39] - raw[30])
-    assert moved.max() > 3e-4  # the raw fit wanders on the still frames...
-    assert np.abs(half[31:39] - half[30]).max() < 0.2 * moved.max()  # ...its half hardly
+    off = np.abs(raw[31:39] - half[30]).max()
+    assert off > 3e-4  # the raw fit moves on the still frames (wanders, or settles away)...
+    # ...its half hardly: at most 1 - (1 - STILL_MIN_GAIN)^8, a third, of the way in 8 frames
+    # (ungated it would go all the way)
+    assert np.abs(half[31:39] - half[30]).max() <= (1 - (1 - STILL_MIN_GAIN) ** 8) * off + 1e-12
     assert np.corrcoef(ap, ap_true[order])[0, 1] > 0.9
 
 
