@@ -651,7 +651,8 @@ its held-out blinks peaked at a closure of 0.45-0.61, 6 of 10 found; with the di
 face, lia_vox_driving3, liveportrait_d10) are not told from the open eye's own flutter
 (taken for the shut eye, they read 1-5 false blinks each). Chosen on half B of the people
 (lia_obama, facerealtime_driving), checked on half A (lia_vox_driving3 and
-liveportrait_d10 keep their references): docs/UPPER_FACE.md."""
+liveportrait_d10 keep their references): docs/UPPER_FACE.md. (Enrolled afresh in session 10,
+lia_vox_driving3's two dips read 0.66 and 0.8, median 0.73: :data:`DIP_MIN_COUNT`.)"""
 
 DIP_MIN_COUNT = 3
 """Blink dips (:func:`blink_dips`) the enrolment needs before the median of their deepest
