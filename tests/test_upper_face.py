@@ -755,6 +755,37 @@ def test_blinks_the_reader_reads_shallow_give_the_shut_eye_from_their_dips():
     assert not [(a, b) for a, b in runs if b > 195 and a < 210]
 
 
+def test_two_dips_are_not_a_median_a_half_blink_does_not_set_the_shut_eye():
+    """lia_vox_driving3's enrolment: one blink (the reader's lids at 0.66 of the open eye) and
+    one half-closed eye (0.8, the iris seen), both dips. The median of two is their mean, a
+    shut eye the open eye's narrowings reach: with fewer than DIP_MIN_COUNT dips the shut eye
+    is as without the half blink. With a second blink the median of the three rejects it."""
+    img = cv2.cvtColor(np.full((400, 640, 3), 128, np.uint8), cv2.COLOR_BGR2GRAY)
+    open_canon = U.lid_opening_mm(CANON.vertices_mm)[0]
+    base = np.abs(np.random.default_rng(7).normal(0.0, 0.06 * open_canon, 220))
+
+    def calibrated(dips):
+        closing = base.copy()
+        for i, depth in dips:
+            closing[i:i + 2] = depth * open_canon
+        ms = [U.measure(img, reading(with_lids(c), 10.0), CANON) for c in closing]
+        return U.calibrate(ms), ms
+
+    blink, half = (150, 0.34), (60, 0.22)
+    one, _ = calibrated([blink])
+    two, ms = calibrated([blink, half])
+    assert one is not None and two is not None
+    assert [a for a, _ in U.blink_dips(np.array([m.opening for m in ms]))] == [60, 150]
+    mean = (U.lid_opening_mm(with_lids(blink[1] * open_canon))[0]
+            + U.lid_opening_mm(with_lids(half[1] * open_canon))[0]) / 2.0
+    assert two.closed_mm[0] == pytest.approx(one.closed_mm[0], abs=0.02)
+    assert abs(two.closed_mm[0] - mean) > 0.3  # (the former rule's shut eye)
+    three, _ = calibrated([blink, half, (100, 0.34)])
+    assert three is not None
+    assert three.closed_mm[0] == pytest.approx(
+        U.lid_opening_mm(with_lids(blink[1] * open_canon))[0], abs=0.1)
+
+
 def test_reference_round_trip_and_malformed():
     d = REF.to_dict()
     back = U.UpperReference.from_dict(d, "x")

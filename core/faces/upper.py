@@ -93,7 +93,7 @@ class UpperReference:
     """The speaker's own upper face at enrolment (speaker.json ``upper``).
 
     open_mm, closed_mm : (left, right) lid opening of the open eye (the clip's median: the
-        speaker's usual open eye) and of the closed eye: with two blinks or more that the
+        speaker's usual open eye) and of the closed eye: with three blinks or more that the
         reader reads deep enough (:func:`blink_dips`, :data:`DIP_MAX_FRACTION`), the median
         of their deepest readings; else the clip's deepest blinks, its 1st percentile; with
         blink frames fewer than 1 % of the clip's, the mean of those whose opening lies
@@ -651,7 +651,17 @@ its held-out blinks peaked at a closure of 0.45-0.61, 6 of 10 found; with the di
 face, lia_vox_driving3, liveportrait_d10) are not told from the open eye's own flutter
 (taken for the shut eye, they read 1-5 false blinks each). Chosen on half B of the people
 (lia_obama, facerealtime_driving), checked on half A (lia_vox_driving3 and
-liveportrait_d10 keep their references): docs/UPPER_FACE.md."""
+liveportrait_d10 keep their references): docs/UPPER_FACE.md. (Enrolled afresh in session 10,
+lia_vox_driving3's two dips read 0.66 and 0.8, median 0.73: :data:`DIP_MIN_COUNT`.)"""
+
+DIP_MIN_COUNT = 3
+"""Blink dips (:func:`blink_dips`) the enrolment needs before the median of their deepest
+readings is its shut eye: the fewest of which a median rejects one odd dip (a half blink, a
+narrowing that passed for one). With two, the median is their mean: lia_vox_driving3's
+enrolment holds one blink (read at 0.66 of the open eye) and a half-closed eye with the iris
+seen (0.80), and their mean, 0.73, taken for the shut eye read its narrowed eyes (0.75-0.79,
+the iris seen) as 4 false blinks. Fewer dips leave the former reference (:func:`calibrate`).
+Not chosen on the clips: the median's own breakdown; docs/UPPER_FACE.md (session 10)."""
 
 DIP_MAX_SAMPLES = 8
 """A blink dip lasts at most this many readings (~0.3 s at 25 fps): a longer one is a look
@@ -721,7 +731,7 @@ def calibrate(measures: list[Measures | None]) -> UpperReference | None:
     # the blinks as the reader reads them, where it reads them deep enough to be told
     # (:func:`blink_dips`): the shut eye is the median of their deepest readings
     runs = blink_dips(op)
-    if len(runs) >= 2:
+    if len(runs) >= DIP_MIN_COUNT:
         deepest = np.median([op[a:b].min(axis=0) for a, b in runs], axis=0)
         closed = np.where(deepest <= DIP_MAX_FRACTION * open_mm, deepest, closed)
     closed = np.minimum(closed, 0.8 * open_mm)
