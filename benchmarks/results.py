@@ -129,12 +129,15 @@ SECTIONS: tuple[Section, ...] = (
             _peers("{clips}", "--offline", "--methods", "articast", "--others",
                    "{run}/series", "--speakers", "{run}/speakers", "--cpu-repeats", "0"),
             "peers", ("clips", "series")),
+    # (--upper-again: the eyes' references by the code that runs, whatever code enrolled
+    # RUN/speakers for the lips)
     Section("blinks", "blinks.py", ("--json", "--clips", "{clips}", "--speakers",
-                                    "{run}/speakers", "--no-cost", "--grid",
+                                    "{run}/speakers", "--upper-again", "--no-cost", "--grid",
                                     "{run}/blinks_grid"), "blinks", ("clips", "peers"),
             plot=True),
     Section("blinks_fetched", "blinks.py", ("--json", "--clips", "{fetched}", "--speakers",
-                                            "{run}/speakers", "--no-cost", "--grid",
+                                            "{run}/speakers", "--upper-again", "--no-cost",
+                                            "--grid",
                                             "{run}/blinks_grid_fetched"), "blinks",
             ("fetched", "peers"), plot=True),
     Section("cost", "peers.py",
