@@ -107,7 +107,8 @@ def single_peer(rows: list[dict], clips: list[dict], resamples: int = 2000,
     per-clip verdicts: a per-clip interval is only computed against the reader and the
     per-clip best)."""
     by_clip = {c["clip"]: c["methods"] for c in clips}
-    names = {r["clip"] for r in rows}
+    names = sorted({r["clip"] for r in rows})  # (sorted: a set's order changes with the
+    # process's string hashing, and the people's order decides what the seeded resampling picks)
     both = [c for c in names
             if by_clip[c].get("articast", {}).get("judge_r") is not None
             and all(by_clip[c].get(p, {}).get("judge_r") is not None for p in FACEMESH_FAMILY)]
