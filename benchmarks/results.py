@@ -650,6 +650,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     plots = None if args.no_plots else args.plots
     contents, unreadable = {}, 0
     for name in names:
+        if args.from_stored and stored(run, name) is None:
+            # (a RUN folder may hold some sections only, as docs/results/run does: the others'
+            # blocks are the tables an earlier RUN wrote, kept, not wiped)
+            log(f"{name}: no stored run in {run}: its block is left as it was")
+            continue
         try:
             contents[name] = block(BY_NAME[name], run, plots, args.results)
         except (OSError, ValueError, KeyError, TypeError, IndexError, AttributeError) as e:
