@@ -681,8 +681,7 @@ def blink_dips(op: np.ndarray, window: int = 15, noise_sd: float = 3.0
     n = len(o)
     if n < 10:
         return []
-    local = np.array([np.median(o[max(0, i - window):i + window + 1]) for i in range(n)])
-    d = o - local
+    d = fast_part(o, window)  # (the opening less the median round it)
     noise = 1.4826 * float(np.median(np.abs(d)))
     below = d < -max(noise_sd * noise, DIP_MIN_FRACTION * float(np.median(o)))
     return [(a, b) for a, b in _runs(below) if b - a <= DIP_MAX_SAMPLES]
