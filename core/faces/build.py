@@ -259,9 +259,9 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
             "regression": None if reg is None else {
                 "ridge": reg.ridge,
                 "error_sd": [round(float(1 / np.sqrt(d)), 3) if d > 0 else None
-                             for d in np.diag(reg.information)]}}
-        if reader_keep_roi is not None:  # the crop its readings were made with
-            report["reader"]["keep_roi"] = float(reader_keep_roi)
+                             for d in np.diag(reg.information)]},
+            # the crop its readings were made with (FusionPolicy.reader_keep_roi)
+            **({} if reader_keep_roi is None else {"keep_roi": float(reader_keep_roi)})}
         if finder_points is not None:  # offline track's second reader
             report["second_reader"] = {
                 "network": finder_points.network,
