@@ -93,7 +93,7 @@ from articast.core.evaluation.upper import (  # noqa: E402
     match_events,
 )
 from articast.core.faces.finder import FaceFinder  # noqa: E402
-from articast.core.faces.live import LiveTracker  # noqa: E402
+from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.tracking import kernels  # noqa: E402
 
@@ -253,11 +253,13 @@ def run(name: str, path: Path, peers: dict, grid_dir: Path | None, cost: bool = 
     log(f"{name}: reading")
     enrol, held, fps, n, times = read_clip(path)
     log(f"{name}: enrolling on {len(enrol)} frames (or loading it from --speakers)")
-    speaker = peers_mod.enrolled(name, lambda: enrol_speaker(enrol, fps, max_frames=None,
-                                                             times=times), "v1")
-    if UPPER_AGAIN:
+    speaker = peers_mod.enrolled(name, lambda: enrol_speaker(
+        enrol, fps, max_frames=None, times=times, reader_keep_roi=peers_mod.reader_crop()),
+        "v1")
+    if UPPER_AGAIN:  # (read as the live reader reads: its crop)
         log(f"{name}: the upper face's references again, from the enrolment frames")
-        speaker = upper_again(speaker, enrol)
+        fu = (peers_mod.ARTICAST_POLICY or LivePolicy()).fusion
+        speaker = upper_again(speaker, enrol, fu)
     log(f"{name}: tracking {len(held)} held-out frames")
     res, cost_ = track(speaker, held, fps, cost)
     cl = np.array([np.nan if r.upper is None or not r.upper.eyes_ok

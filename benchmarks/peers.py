@@ -596,11 +596,28 @@ class FinderLoop:
         return face
 
 
+def reader_crop() -> float:
+    """The live reader's crop under test (``FusionPolicy.reader_keep_roi`` of ``--variant``
+    and ``--set``): the enrolment's readings are made with it too."""
+    fu = (ARTICAST_POLICY or LivePolicy()).fusion or FusionPolicy()
+    return float(fu.reader_keep_roi)
+
+
+def stored_crop(speaker: Any) -> float:
+    """The reader's crop a speaker's readings were made with (``report["reader"]
+    ["keep_roi"]``); a speaker enrolled before it was recorded was read with the finder's
+    default policy (``FaceFinder.load(landmarks="v1")``): ``FinderPolicy().keep_roi``."""
+    got = (speaker.report.get("reader") or {}).get("keep_roi")
+    return float(FinderPolicy().keep_roi if got is None else got)
+
+
 def enrolled(name: str | None, make: Callable[[], Any], reader: str) -> Any:
     """The speaker ``make`` enrols, kept in ``SPEAKERS``/<name> (``--speakers``) and loaded
     from there on the next run: a live-policy experiment need not enrol again (the enrolment
-    does not depend on the live policy). Only the product's enrolment is kept (the v1
-    reader, no ``--enrol-blend``); the folder is the clip's name."""
+    does not depend on the live policy, but for the reader's crop: a stored speaker whose
+    readings were made with another crop than the one under test is refused, SystemExit).
+    Only the product's enrolment is kept (the v1 reader, no ``--enrol-blend``); the folder
+    is the clip's name."""
     folder = SPEAKERS / name if SPEAKERS is not None and name else None
     if folder is None or reader != "v1" or ENROL_BLEND:
         return make()
@@ -608,9 +625,15 @@ def enrolled(name: str | None, make: Callable[[], Any], reader: str) -> Any:
 
     if (folder / "speaker.json").is_file():
         try:
-            return Speaker.load(folder)
+            stored = Speaker.load(folder)
         except Exception as e:  # noqa: BLE001 - a stale folder is enrolled again
             log(f"  {name}: stored speaker not loaded ({type(e).__name__}: {e}), enrolling")
+        else:
+            if stored.points is not None and stored_crop(stored) != reader_crop():
+                raise SystemExit(f"{folder}: enrolled with the reader's crop keep_roi "
+                                 f"{stored_crop(stored):g}, tracked with {reader_crop():g}: "
+                                 "give --speakers a folder of enrolments made with it")
+            return stored
     speaker = make()
     folder.mkdir(parents=True, exist_ok=True)
     speaker.save(folder)
@@ -627,7 +650,8 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     try:
         speaker = enrolled(name if build is None else None, lambda: enrol_speaker(
             enrol, enrol_fps or fps, camera=camera, rig=rig, max_frames=None, times=times,
-            build=build, reader=reader, blend=ENROL_BLEND), reader)
+            build=build, reader=reader, blend=ENROL_BLEND, reader_keep_roi=reader_crop()),
+            reader)
     except Exception as e:  # noqa: BLE001 - a clip it cannot enrol is a result, not a crash
         return {"error": f"enrolment failed: {type(e).__name__}: {e}"}
     kernels.warm_up()  # numba's compilation: once per process, not a session's
@@ -667,7 +691,9 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
         ratios = [reader_ratios(results)]
         if sp2 is not None:
             c0 = time.process_time()
-            second = ArticastLoop(sp2, held, fps, SECOND_READER)
+            # (its reader crops as the first's does: FusionPolicy.reader_keep_roi)
+            second = ArticastLoop(sp2, held, fps, replace(SECOND_READER, fusion=replace(
+                SECOND_READER.fusion, reader_keep_roi=reader_crop())))
             sm2 = OfflineSmoother.for_live(second.live, readers, one_euro)
             again = [second(i) for i in range(len(held))]
             for r in again:

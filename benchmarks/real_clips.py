@@ -53,7 +53,12 @@ from articast.core.faces.build import (  # noqa: E402
 )
 from articast.core.faces.enrol import DEPTHS, EnrolOptions  # noqa: E402
 from articast.core.faces.finder import FaceFinder, read_every_frame  # noqa: E402
-from articast.core.faces.live import LivePolicy, LiveTracker  # noqa: E402
+from articast.core.faces.live import (  # noqa: E402
+    FusionPolicy,
+    LivePolicy,
+    LiveTracker,
+    reader_finder,
+)
 from articast.core.faces.scheme import mediapipe_scheme  # noqa: E402
 from articast.core.faces.speaker import Speaker  # noqa: E402
 from articast.core.model.camera import Camera  # noqa: E402
@@ -111,15 +116,17 @@ def found_faces(finder: FaceFinder, frames: list[np.ndarray]) -> list:
     return faces
 
 
-def upper_again(speaker: Speaker, frames: list[np.ndarray]) -> Speaker:
+def upper_again(speaker: Speaker, frames: list[np.ndarray],
+                fusion: FusionPolicy | None = None) -> Speaker:
     """A stored enrolment (``--speakers``) with its upper-face references computed again by
     the current code from its enrolment ``frames`` (as ``enrol_speaker`` gave them: the
-    reader's readings of the same frames, ``build.upper_reference``): an experiment on the
-    eyes' calibration need not build the whole speaker again. Desk speakers only."""
+    reader's readings of the same frames, cropped as ``fusion``'s reader crops, default
+    :class:`FusionPolicy`'s; ``build.upper_reference``): an experiment on the eyes'
+    calibration need not build the whole speaker again. Desk speakers only."""
     if speaker.rig != "desk":
         return speaker
     faces = found_faces(FaceFinder.load(threads=1), frames)
-    readings = read_every_frame(FaceFinder.load(threads=1, landmarks="v1"), frames, faces)
+    readings = read_every_frame(reader_finder(fusion), frames, faces)
     upper = upper_reference(frames, readings)
     return replace(speaker, upper=upper,
                    report={**speaker.report, "upper": upper_report(upper)})
@@ -131,7 +138,7 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
                   options: EnrolOptions | None = None, build: BuildOptions | None = None,
                   extra: list[np.ndarray] | None = None,
                   times: np.ndarray | None = None, reader: str = "v1",
-                  blend: float = 0.0) -> Speaker:
+                  blend: float = 0.0, reader_keep_roi: float | None = None) -> Speaker:
     """Enrol a speaker on ``frames`` (BGR, all the same size) as ``articast enroll`` does: the
     frames it analyses (:func:`~articast.core.faces.build.analysed_frames`: strided to
     ``max_frames`` plus a consecutive run; None: the frames as given, taken at ``times`` s,
@@ -144,8 +151,11 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     built from (1 - blend) x the finding landmarks + blend x the reader's on the frames both
     read (their x, y; the finding network's iris points and depth kept), the observation
     model still learned from the reader's own readings. ``speaker.report["build_s"]`` is the
-    time of ``build_speaker``."""
+    time of ``build_speaker``. ``reader_keep_roi``: the reader's crop
+    (``FusionPolicy.reader_keep_roi``; None: the default policy's), recorded in the speaker."""
     finder = finder or FaceFinder.load(threads=1)
+    crop = FusionPolicy(reader=reader, reader_keep_roi=(
+        FusionPolicy().reader_keep_roi if reader_keep_roi is None else reader_keep_roi))
     h, w = frames[0].shape[:2]
     camera = camera or Camera.default(w, h, 60.0)
     if max_frames is not None:
@@ -164,7 +174,7 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     readings = None
     if rig == "desk":
         readings = (marks if reader == "v2" else
-                    read_every_frame(FaceFinder.load(threads=1, landmarks=reader), enrol, faces))
+                    read_every_frame(reader_finder(crop), enrol, faces))
     if blend and readings is not None:
         both = found & np.isfinite(readings[:, :, :2]).all(axis=(1, 2))
         n = readings.shape[1]  # (marks is this function's own array: mixed in place)
@@ -173,7 +183,9 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     t0 = time.perf_counter()
     speaker = build_speaker(enrol, marks, found, mediapipe_scheme(rig), camera, rig,
                             options or EnrolOptions(), build or BuildOptions(),
-                            readings=readings, reader=reader, times=at)
+                            readings=readings, reader=reader, times=at,
+                            reader_keep_roi=(crop.reader_keep_roi if readings is not None
+                                             and reader != "v2" else None))
     speaker.report["build_s"] = time.perf_counter() - t0
     speaker.report["enrol_frames"] = len(enrol)
     return speaker

@@ -195,6 +195,63 @@ def test_offline_track_averages_the_two_readers_trackers(enrolled):
     assert ok.mean() >= 0.95 and np.corrcoef(ap[ok], ap_true[ok])[0, 1] > 0.95
 
 
+def test_the_readers_crop_is_the_policys_wherever_the_reader_reads(enrolled, monkeypatch):
+    """``FusionPolicy.reader_keep_roi`` crops every reading of the live reader: the live
+    tracker's own reader, the enrolment's readings of its frames (which the speaker records)
+    and ``articast track``'s second tracker's reader (the finder's sessions, shared, cropping
+    as ``SECOND_READER`` says: what a live tracker built with that policy reads)."""
+    import argparse
+
+    import articast.core.faces.offline as offline
+    from articast.core.faces.finder import FaceFinder, read_every_frame
+    from articast.core.faces.live import FusionPolicy, LivePolicy, LiveTracker, reader_finder
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.service.commands.enroll import find_faces
+    from articast.service.commands.track import _second_tracker
+
+    default = FusionPolicy().reader_keep_roi
+    sp = Speaker.load(enrolled / "speaker")
+    assert sp.report["reader"]["keep_roi"] == default
+    finder = FaceFinder.load()
+    scheme = mediapipe_scheme(sp.rig)
+    for crop in (0.0, 0.05):
+        live = LiveTracker(sp, finder, scheme, LivePolicy(fusion=FusionPolicy(
+            reader_keep_roi=crop)))
+        assert live.reader.policy.keep_roi == crop
+    # the enrolment reads its frames as the default live reader does (the rendered face is
+    # still enough for the kept crop to be kept: another crop reads other landmarks)
+    images, _, _, _, _, _, readings, _ = find_faces(enrolled / "test" / "video.mp4", 600,
+                                                    quiet=True, read=True)
+    faces = []
+    for img in images:  # the enrolment's finding landmarks, as find_faces tracks them
+        face = finder.track(img, faces[-1]) if faces and faces[-1] is not None else None
+        faces.append(face or finder.find(img))
+    assert np.array_equal(readings, read_every_frame(reader_finder(), images, faces),
+                          equal_nan=True)
+    other = read_every_frame(reader_finder(FusionPolicy(reader_keep_roi=0.0)), images, faces)
+    assert not np.allclose(readings, other, equal_nan=True)
+    # offline: the second tracker's reader crops as SECOND_READER's policy, whatever it is
+    first = LiveTracker(sp, finder, scheme)
+    args = argparse.Namespace(rig=None, optimiser="gauss-newton", quiet=True)
+    for crop in (default, 0.0):
+        policy = replace(offline.SECOND_READER, fusion=replace(
+            offline.SECOND_READER.fusion, reader_keep_roi=crop))
+        monkeypatch.setattr(offline, "SECOND_READER", policy)
+        second = _second_tracker(args, first)
+        assert second.reader.policy.keep_roi == crop
+        assert second.reader.landmarks_session is finder.landmarks_session  # not loaded again
+        own = LiveTracker(second.speaker, FaceFinder.load(), scheme, policy)
+        assert own.reader.policy == second.reader.policy
+
+
+def test_a_readers_crop_outside_its_range_is_refused_in_one_line():
+    from articast.core.faces.live import FusionPolicy
+
+    for bad in (-0.01, 1.0):
+        with pytest.raises(ValueError, match="reader_keep_roi must be in"):
+            FusionPolicy(reader_keep_roi=bad)
+
+
 def test_a_speakers_track_file_is_served_as_a_recording(enrolled):
     """``articast serve --source rec=replay-record:track.jsonl --speaker DIR`` (the processor
     left to choose) streams the file's states with the speaker's model, as a ``--record``

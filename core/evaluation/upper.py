@@ -165,7 +165,7 @@ def evaluate_upper(cfg: UpperEvalConfig = UpperEvalConfig(),
     from articast.core.faces.build import build_speaker
     from articast.core.faces.enrol import EnrolOptions
     from articast.core.faces.finder import FaceFinder, read_every_frame
-    from articast.core.faces.live import LiveTracker
+    from articast.core.faces.live import FusionPolicy, LiveTracker, reader_finder
     from articast.core.faces.scheme import mediapipe_scheme
     from articast.core.model.build import invert
     from articast.core.outputs.lips import lip_measures
@@ -192,10 +192,12 @@ def evaluate_upper(cfg: UpperEvalConfig = UpperEvalConfig(),
     found = np.array([f is not None for f in faces])
     marks = np.array([f.landmarks if f is not None else np.full((478, 3), np.nan)
                       for f in faces])
-    readings = read_every_frame(FaceFinder.load(threads=1, landmarks="v1"), imgs, faces)
+    fu = FusionPolicy()  # the live tracker's below: its reader reads the enrolment too
+    readings = read_every_frame(reader_finder(fu), imgs, faces)
     speaker = build_speaker(imgs, marks, found, mediapipe_scheme("desk"), enrol.camera, "desk",
                             EnrolOptions(), readings=readings,
-                            times=np.arange(enrol.n_frames) / cfg.enrol_fps)
+                            times=np.arange(enrol.n_frames) / cfg.enrol_fps,
+                            reader_keep_roi=fu.reader_keep_roi)
     n = int(round(cfg.seconds * cfg.fps))
     say(f"upper face: rendering and tracking the test sentence ({n} frames)")
     test = make_sequence(cfg.seed * 100 + 12, n, cfg.fps, "desk", geometry=sp.geometry)

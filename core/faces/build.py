@@ -155,7 +155,8 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
                   name: str = "speaker",
                   progress: Callable[[str], None] | None = None,
                   readings: np.ndarray | None = None, reader: str = "v1",
-                  times: np.ndarray | None = None) -> Speaker:
+                  times: np.ndarray | None = None,
+                  reader_keep_roi: float | None = None) -> Speaker:
     """The speaker enrolled from ``images`` (F BGR uint8 frames) and their ``landmarks``
     (F, L, 3) (``found`` (F,) False where the finder saw no face). The returned speaker's
     ``report`` lists what was measured, rejected and assumed.
@@ -163,7 +164,10 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
     readings : (F, >=468, 2+) the live reader's landmarks on the same frames (NaN where it
         found none): learns the observation model, the evidence weights and the motion noise
         of fused live tracking (step 6). reader : its network's name. times : (F,) s, when
-        each frame was taken (for the motion noise; default: 25 frames a second)."""
+        each frame was taken (for the motion noise; default: 25 frames a second).
+        reader_keep_roi : the crop the readings were made with (``FusionPolicy.
+        reader_keep_roi``), recorded in ``report["reader"]["keep_roi"]`` (None: not known,
+        not recorded)."""
     opts = options or BuildOptions()
     say = progress or (lambda _msg: None)
     enrol = enrol or EnrolOptions(fixed_pose=(rig == "head"))
@@ -255,7 +259,9 @@ def build_speaker(images: Sequence[np.ndarray], landmarks: np.ndarray, found: np
             "regression": None if reg is None else {
                 "ridge": reg.ridge,
                 "error_sd": [round(float(1 / np.sqrt(d)), 3) if d > 0 else None
-                             for d in np.diag(reg.information)]}}
+                             for d in np.diag(reg.information)]},
+            # the crop its readings were made with (FusionPolicy.reader_keep_roi)
+            **({} if reader_keep_roi is None else {"keep_roi": float(reader_keep_roi)})}
         if finder_points is not None:  # offline track's second reader
             report["second_reader"] = {
                 "network": finder_points.network,

@@ -140,6 +140,12 @@ class FaceFinder:
                                                  providers=["CPUExecutionProvider"]))
         return cls(sessions[0], sessions[1], policy)
 
+    def with_policy(self, policy: FinderPolicy) -> FaceFinder:
+        """The same sessions (nothing loaded again) under another policy: e.g. the live
+        reader's crop (``FusionPolicy.reader_keep_roi``) for a finder loaded with the
+        finding one's."""
+        return type(self)(self._detector, self._landmarks, policy)
+
     @property
     def detector_session(self):
         """The detector's onnxruntime session (NHWC 128x128 input)."""

@@ -43,7 +43,7 @@ import numpy as np
 
 from articast.core.faces import lipgap
 from articast.core.faces.enrol import LandmarkScheme
-from articast.core.faces.finder import FaceFinder, reader_seed
+from articast.core.faces.finder import FaceFinder, FinderPolicy, reader_seed
 from articast.core.faces.fit import fit_pose, state_from_landmarks
 from articast.core.faces.lipgap import matched, model_ratios, reader_ratio
 from articast.core.faces.motion import FaceMotion, MotionPolicy
@@ -307,6 +307,14 @@ class FusionPolicy:
         checked on half B. Gated on this frame's change alone, styletalk_andrew_clip_2 read
         worse at every scale: its fit jumps a frame after the pixels do (docs/TRACKING.md,
         "cap13's still mouth").
+    reader_keep_roi : the reader's crop: it keeps the previous reading's crop while the crop
+        grown from that reading differs from it by less than this fraction of its side
+        (:attr:`~articast.core.faces.finder.FinderPolicy.keep_roi`; 0: a new crop on every
+        frame, as MediaPipe's own loop does). The same crop reads the enrolment's frames
+        (:func:`reader_finder`; the speaker records it, ``report["reader"]["keep_roi"]``),
+        so the observation model is learned from readings made as the live ones are; and it
+        is the second tracker's (``articast track``, ``SECOND_READER``) for its reader.
+        See docs/TRACKING.md, "The reader's crop".
     """
 
     reader: str = "v1"
@@ -333,10 +341,29 @@ class FusionPolicy:
     eyes_every: int = 3
     realign: bool = True
     still_mouth: float | None = 2.0
+    reader_keep_roi: float = 0.02
 
     def __post_init__(self) -> None:
         if self.start not in ("reader", "finder"):
             raise ValueError(f"start must be 'reader' or 'finder', got {self.start!r}")
+        if not 0.0 <= self.reader_keep_roi < 1.0:
+            raise ValueError(f"reader_keep_roi must be in [0, 1), got {self.reader_keep_roi!r}")
+
+    def reader_policy(self) -> FinderPolicy:
+        """The reader's :class:`~articast.core.faces.finder.FinderPolicy`: the finder's, with
+        this policy's crop (``reader_keep_roi``)."""
+        return FinderPolicy(keep_roi=self.reader_keep_roi)
+
+
+def reader_finder(fusion: FusionPolicy | None = None, *, threads: int = 1,
+                  detector: Any = None) -> FaceFinder:
+    """The live reader ``fusion`` names (default :class:`FusionPolicy`'s), cropping as it
+    says: what :class:`LiveTracker` reads every frame with, and what an enrolment reads its
+    frames with (``read_every_frame``), so that the observation model learns the readings
+    the live tracker will make. ``detector``: a loaded detector session to share."""
+    fu = fusion or FusionPolicy()
+    return FaceFinder.load(threads=threads, landmarks=fu.reader, policy=fu.reader_policy(),
+                           detector=detector)
 
 
 LIVE_ALPHA_SIGMA = 0.5
@@ -382,7 +409,8 @@ class LiveTracker:
                  clock: Callable[[], float] | None = None,
                  reader: FinderLike | None = None) -> None:
         """reader : the landmark network read every frame in fused tracking (default: the
-        bundled one the policy names, loaded here)."""
+        bundled one the policy names, loaded here with its crop, :func:`reader_finder`; a
+        reader given is used as it is: its own policy crops)."""
         self.speaker, self.finder, self.scheme = speaker, finder, scheme
         self.policy = policy or LivePolicy()
         tracking = tracking or live_policy(speaker.rig)
@@ -443,10 +471,10 @@ class LiveTracker:
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         if fu is not None:
-            if reader is None:  # the bundled one, on one thread (it runs no detector: the
-                # finder's session is shared rather than loaded again)
-                self.reader = FaceFinder.load(landmarks=fu.reader, detector=getattr(
-                    finder, "detector_session", None))
+            if reader is None:  # the bundled one, on one thread, cropping as the policy
+                # says (it runs no detector: the finder's session is shared, not loaded again)
+                self.reader = reader_finder(fu, detector=getattr(finder, "detector_session",
+                                                                 None))
             assert speaker.points is not None
             if speaker.points.network != fu.reader:
                 raise ValueError(f"the speaker's observation model is of the "

@@ -102,6 +102,7 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
 
     from articast.core.faces.build import analysed_frames
     from articast.core.faces.finder import FaceFinder, read_every_frame
+    from articast.core.faces.live import reader_finder
     from articast.service.progress import Progress
     from articast.service.video import iter_video, open_capture, video_frame_count
 
@@ -142,7 +143,7 @@ def find_faces(video: Path, max_frames: int, quiet: bool = False, span=None,
     fps_dt = length / max(n_read - 1, 1)
     readings = None
     if read:
-        reader = FaceFinder.load(landmarks="v1")
+        reader = reader_finder()  # the live reader, cropping as it will live
         prog = Progress(len(images), "reader landmarks", quiet=quiet)
 
         def step() -> None:
@@ -195,6 +196,7 @@ def enrol_speaker(video: Path, output: Path, opts: EnrolSettings, quiet: bool = 
     ``contact sheet``; ``of`` 0 when a stage has no count)."""
     from articast.core.faces.build import BuildOptions, build_speaker
     from articast.core.faces.enrol import EnrolOptions
+    from articast.core.faces.live import FusionPolicy
     from articast.core.faces.scheme import mediapipe_scheme
     from articast.core.model.camera import Camera
 
@@ -244,7 +246,8 @@ def enrol_speaker(video: Path, output: Path, opts: EnrolSettings, quiet: bool = 
         EnrolOptions(ipd_mm=opts.ipd_mm, mouth_width_mm=opts.mouth_width_mm,
                      fixed_pose=(opts.rig == "head"), depth=opts.depth),
         BuildOptions(kind=opts.kind, flow=opts.flow), opts.name or video.stem, say,
-        readings=readings, times=times)
+        readings=readings, times=times,
+        reader_keep_roi=FusionPolicy().reader_keep_roi if readings is not None else None)
     cov = speaker.report["coverage"]
     ap_range = cov["aperture_mm"][1] - cov["aperture_mm"][0]
     wd_range = cov["width_mm"][1] - cov["width_mm"][0]

@@ -412,10 +412,13 @@ def _second_tracker(args: argparse.Namespace, first):
         return None
     rig = args.rig or speaker.rig
     # the first tracker's finder (detector and FaceLandmarker v2) finds and reads for it
-    # too: the same networks with the same policy, not loaded twice more
+    # too: the same networks, not loaded twice more; its reading crops as the policy's
+    # reader does (FusionPolicy.reader_keep_roi), as a LiveTracker's own reader would
+    assert SECOND_READER.fusion is not None
+    reader = first.finder.with_policy(SECOND_READER.fusion.reader_policy())
     return LiveTracker(speaker, first.finder, mediapipe_scheme(speaker.rig), SECOND_READER,
                        tracking=live_policy(rig, optimiser=args.optimiser),
-                       clock=time.perf_counter, reader=first.finder)
+                       clock=time.perf_counter, reader=reader)
 
 
 def _rewrite_smoothed(path: Path, frames: list, model) -> None:
