@@ -392,12 +392,12 @@ class LiveTracker:
         tracking = tracking or live_policy(speaker.rig)
         if self.policy.fusion is not None and speaker.points is not None:
             # the landmarks start each fit in the basin
-            fu = self.policy.fusion
+            tol = self.policy.fusion.tolerance
             tracking = replace(tracking, fit=replace(
-                tracking.fit, max_iterations=fu.max_iterations, max_rejections=2,
-                tol_alpha=tracking.fit.tol_alpha * fu.tolerance,
-                tol_rotation=tracking.fit.tol_rotation * fu.tolerance,
-                tol_translation_mm=tracking.fit.tol_translation_mm * fu.tolerance))
+                tracking.fit, max_iterations=self.policy.fusion.max_iterations,
+                max_rejections=2, tol_alpha=tracking.fit.tol_alpha * tol,
+                tol_rotation=tracking.fit.tol_rotation * tol,
+                tol_translation_mm=tracking.fit.tol_translation_mm * tol))
         # the lips are measured once a frame, on the state streamed (track)
         self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera, tracking,
                                clock=clock, measure_lips=False)
