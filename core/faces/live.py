@@ -129,6 +129,9 @@ class FusionPolicy:
     levels : pyramid levels fitted per frame (the landmarks put the start in the basin of the
         finest level).
     max_iterations : Gauss-Newton iterations per frame.
+    tolerance : a factor on the fit's stopping steps (``FitPolicy.tol_alpha``,
+        ``tol_rotation``, ``tol_translation_mm``: a fit stops after an accepted step smaller
+        than all three).
     read_every : the reader runs on every n-th frame; the frames between are fitted on the
         appearance and the motion model alone (the reader is most of a frame's cost). 3,
         with ``adapt``, against every 2nd frame with fixed weights (benchmarks/peers.py, one
@@ -323,6 +326,7 @@ class FusionPolicy:
     points_scale: float | None = 3.0
     levels: tuple[int, ...] = (0,)
     max_iterations: int = 3
+    tolerance: float = 1.0
     points_weight: float = 0.3
     read_every: int = 1
     gate: float = 0.15
@@ -416,9 +420,12 @@ class LiveTracker:
         tracking = tracking or live_policy(speaker.rig)
         if self.policy.fusion is not None and speaker.points is not None:
             # the landmarks start each fit in the basin
+            tol = self.policy.fusion.tolerance
             tracking = replace(tracking, fit=replace(
                 tracking.fit, max_iterations=self.policy.fusion.max_iterations,
-                max_rejections=2))
+                max_rejections=2, tol_alpha=tracking.fit.tol_alpha * tol,
+                tol_rotation=tracking.fit.tol_rotation * tol,
+                tol_translation_mm=tracking.fit.tol_translation_mm * tol))
         # the lips are measured once a frame, on the state streamed (track)
         self.tracker = Tracker(speaker.model, speaker.appearance, speaker.camera, tracking,
                                clock=clock, measure_lips=False)
