@@ -154,8 +154,8 @@ def enrol_speaker(frames: list[np.ndarray], fps: float, *, camera: Camera | None
     time of ``build_speaker``. ``reader_keep_roi``: the reader's crop
     (``FusionPolicy.reader_keep_roi``; None: the default policy's), recorded in the speaker."""
     finder = finder or FaceFinder.load(threads=1)
-    crop = FusionPolicy(reader=reader, reader_keep_roi=(
-        FusionPolicy().reader_keep_roi if reader_keep_roi is None else reader_keep_roi))
+    crop = (FusionPolicy(reader=reader) if reader_keep_roi is None
+            else FusionPolicy(reader=reader, reader_keep_roi=reader_keep_roi))
     h, w = frames[0].shape[:2]
     camera = camera or Camera.default(w, h, 60.0)
     if max_frames is not None:
