@@ -361,11 +361,12 @@ def rotation_trained():
 @pytest.mark.parametrize("case", ["fused", "plain", "least_squares"])
 def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, monkeypatch,
                                                             case):
-    """fit_gauss_newton evaluates each state in one compiled call (kernels.fit_terms: la cost
-    with rotation terms, Cauchy weights, landmark term, priors) where it can; the numpy
-    assembly is the definition. Same fit to re-ordering precision: fused live tracking (the
-    landmarks with shared error modes, a state prior, the gain, on lazy maps), the plain
-    tracker's fit (pose and motion priors, full maps) and least squares."""
+    """fit_gauss_newton evaluates each state in one compiled call (kernels.gn_terms: la cost
+    with rotation terms, Cauchy weights, landmark term with its shared errors, priors) and
+    runs each Levenberg-Marquardt iteration in another (kernels.lm_step) where it can; the
+    numpy assembly and loop are the definition. Same fit to re-ordering precision: fused
+    live tracking (the landmarks with shared error modes, a state prior, the gain, on lazy
+    maps), the plain tracker's fit (pose and motion priors, full maps) and least squares."""
     from articast.core.appearance.maps import image_pyramid
     from articast.core.tracking import fitting, kernels
     from articast.core.tracking.fitting import StatePrior
@@ -401,24 +402,29 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
         pol = FitPolicy(max_iterations=6, pose_sigma_rad=0.003, pose_sigma_mm=0.5,
                         alpha_sigma=0.5, robust_scale=None if case == "least_squares" else 2.0)
     calls = []
-    real = kernels.fit_terms
     kernels.warm_up()
-    compiled = (real, kernels.lm_system, kernels.lm_solve)
-    compiled_types = [set(f.signatures) for f in compiled]
+    first, step = kernels.gn_terms, kernels.lm_step
+    compiled_types = [set(f.signatures) for f in (first, step)]
 
-    def counted(*args):
+    def counted_first(*args):
         calls.append(1)
-        return real(*args)
+        return first(*args)
 
-    monkeypatch.setattr(kernels, "fit_terms", counted)
+    def counted_step(*args):
+        out = step(*args)
+        calls.append(out[2])  # its evaluations
+        return out
+
+    monkeypatch.setattr(kernels, "gn_terms", counted_first)
+    monkeypatch.setattr(kernels, "lm_step", counted_step)
     fits = []
     for on in (True, False):
         monkeypatch.setattr(fitting, "FIT_TERMS", on)
         maps = image_pyramid(img, roi, app.sigma, (0,), lazy=case == "fused")[0]
         fits.append(fit_gauss_newton(prob, maps, 0, *start, pol, **kw))
-    assert len(calls) == fits[0].evals > 2  # the compiled path ran, every evaluation
+    assert sum(calls) == fits[0].evals > 2  # the compiled path ran, every evaluation
     # kernels.warm_up() compiled it for the types a fit passes (no compilation on a first frame)
-    assert [set(f.signatures) for f in compiled] == compiled_types
+    assert [set(f.signatures) for f in (first, step)] == compiled_types
     fast, ref = fits
     assert (fast.evals, fast.iterations, fast.converged) == (ref.evals, ref.iterations,
                                                             ref.converged)

@@ -630,6 +630,101 @@ def _rodrigues(x, y, z):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
+def gn_terms(alpha, rot, t, gain, smooth, ox, oy, mscale, sigma, s_mean, basis_sdk, intr,
+             dist, w0, w1, w2, cw, with_gain, src, done, rows, rdone, taps,
+             rot_w, rot_ref, rot_scale, app_weight, app_scale,
+             p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
+             bound, prior_weight, prior_softness,
+             sp_alpha, sp_rot, sp_t, sp_info,
+             ref_rot, ref_t, ref_wr, ref_wt,
+             p_v, p_c, wa, a_ref, wg, gain0):  # pragma: no cover - compiled
+    """One evaluation of :func:`articast.core.tracking.fitting.fit_gauss_newton` (its
+    ``evaluate``; ``evaluate_numpy`` is the reference) at the state (alpha (K,), rot (3, 3),
+    t (3,) mm, gain): :func:`fit_terms` (the same arguments from ``smooth`` on), the
+    landmarks' shared-error correction (``PointTerm.shared``: the modes ``p_v`` (2M, R),
+    ``p_c`` (R, R); R = 0: none) and the total cost with the articulation's motion prior
+    (``wa``, ``a_ref`` (K,)) and the gain's prior (``wg``, ``gain0``). The dense products
+    are BLAS's, as numpy's are. Returns the cost, then the appearance residuals r (S*8,),
+    the valid fraction, the appearance's robust cost, the weighted rows rw (N,) and jw
+    (N, P), the alpha prior's gradient and diagonal Hessian (K,), the state and pose
+    priors' gradient (K + 6,) and Hessian (K + 6, K + 6) less the shared correction, and
+    that correction's Hessian half (K + 6, K + 6)."""
+    k = alpha.shape[0]
+    (rw, jw, r, valid, rc, pc, prior, g_p, h_p, sp, g_s, h_s, pp) = fit_terms(
+        smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist, w0, w1,
+        w2, gain, cw, with_gain, src, done, rows, rdone, taps, rot_w, rot_ref, rot_scale,
+        app_weight, app_scale, p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale, bound,
+        prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info, ref_rot, ref_t, ref_wr,
+        ref_wt)
+    h_shared = np.zeros((k + 6, k + 6))
+    if p_mean.shape[0] > 0 and p_v.shape[1] > 0:  # PointTerm.shared
+        na = r.shape[0]
+        pr = rw[na:]
+        pj = np.ascontiguousarray(jw[na:, :k + 6])
+        vr = np.dot(p_v.T, pr)
+        vj = np.dot(p_v.T, pj)  # (R, K + 6)
+        cvr = np.dot(p_c, vr)
+        pc -= np.dot(vr, cvr)  # the errors the landmarks share count once
+        g_s -= 2.0 * np.dot(vj.T, cvr)
+        h_shared = np.dot(vj.T, np.dot(p_c, vj))
+        h_s -= 2.0 * h_shared
+    d = alpha - a_ref
+    cost = (rc + pc + prior + pp + sp + wa * np.dot(d, d)
+            + wg * (gain - gain0) ** 2 * (1.0 if with_gain else 0.0))
+    vf = np.count_nonzero(valid) / max(valid.shape[0], 1)
+    return cost, r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared
+
+
+@njit(cache=True, nogil=True)
+def lm_step(jtj, jtr, lam, max_rejections, cost, h_p, g_p, h_s, g_s, alpha, rot, t, gain,
+            smooth, ox, oy, mscale, sigma, s_mean, basis_sdk, intr,
+            dist, w0, w1, w2, cw, with_gain, src, done, rows, rdone, taps,
+            rot_w, rot_ref, rot_scale, app_weight, app_scale,
+            p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
+            bound, prior_weight, prior_softness,
+            sp_alpha, sp_rot, sp_t, sp_info,
+            ref_rot, ref_t, ref_wr, ref_wt,
+            p_v, p_c, wa, a_ref, wg, gain0):  # pragma: no cover - compiled
+    """One Levenberg-Marquardt iteration of
+    :func:`articast.core.tracking.fitting.fit_gauss_newton` (its numpy loop is the
+    reference): from the data's J^T J and J^T r (``jtj``, ``jtr``: numpy's products, passed
+    in) and the current state's cost and prior terms, the damped steps tried at ``lam``,
+    x10 after each rejection, until one lowers the cost, ``lam`` exceeds 1e6 or
+    ``max_rejections`` (< 0: no limit) were rejected; each trial evaluated by
+    :func:`gn_terms` (the arguments from ``smooth`` on). Returns whether a step was
+    accepted, the last ``lam``, the evaluations made, the last step, its state (alpha, rot,
+    t, gain) and :func:`gn_terms`'s values there."""
+    k = alpha.shape[0]
+    h, g = lm_system(jtj, jtr, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain, gain0)
+    rejected = 0
+    evals = 0
+    while True:
+        try:
+            step = lm_solve(h, g, lam)
+        except Exception:  # (numpy's LinAlgError: singular)
+            lam *= 10
+            continue
+        a_new = alpha + step[:k]
+        rot_new = np.dot(_rodrigues(step[k], step[k + 1], step[k + 2]), rot)
+        t_new = t + step[k + 3:k + 6]
+        g_new = min(max(gain + step[k + 6], 0.2), 5.0) if step.shape[0] > k + 6 else gain
+        terms = gn_terms(a_new, rot_new, t_new, g_new, smooth, ox, oy, mscale, sigma, s_mean,
+                         basis_sdk, intr, dist, w0, w1, w2, cw, with_gain, src, done, rows,
+                         rdone, taps, rot_w, rot_ref, rot_scale, app_weight, app_scale, p_mean,
+                         p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale, bound, prior_weight,
+                         prior_softness, sp_alpha, sp_rot, sp_t, sp_info, ref_rot, ref_t,
+                         ref_wr, ref_wt, p_v, p_c, wa, a_ref, wg, gain0)
+        evals += 1
+        cost_new = terms[0]
+        if cost_new <= cost or lam > 1e6:
+            return (cost_new <= cost, lam, evals, step, a_new, rot_new, t_new, g_new, terms)
+        rejected += 1
+        if max_rejections >= 0 and rejected >= max_rejections:
+            return (False, lam, evals, step, a_new, rot_new, t_new, g_new, terms)
+        lam *= 10
+
+
+@njit(cache=True, nogil=True)
 def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: no cover
     """:meth:`articast.core.tracking.fitting.StatePrior.with_measurement` (its numpy code is
     the reference): the prior (p_alpha (K,), p_rot (3, 3), p_t (3,), p_info (K + 6, K + 6))
@@ -1432,8 +1527,7 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "pixels_sd2",
-           "facing_cos")
+TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "facing_cos")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1471,20 +1565,22 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
                             np.eye(3), np.array([0.0, 0.0, 100.0]),
                             np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
                             jacobian)
-    if want("fit_terms"):
-        fit_terms(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
-                  np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
-                  np.zeros((1, 3, 1), f8), intr, dist, np.zeros(8, f8), np.zeros((1, 8), f8),
-                  np.zeros((0, 0), f8), 1.0, np.ones((1, 8), f8), True, src,
-                  np.zeros((20, 20), np.uint8), np.zeros((20, 20, 3), np.float32),
-                  np.zeros((20, 20), np.uint8), np.full(5, 0.2), np.zeros((3, 8), f8),
-                  np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
-                  intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
-                  np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0)
-    if want("lm_system", "lm_solve"):
-        h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
-                         np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
-        lm_solve(h, g, 1e-3)
+    if want("gn_terms", "lm_step"):  # (fit_terms, lm_system and lm_solve inside them)
+        # gn_terms's arguments after the state (alpha, rot, t, gain): one landmark with one
+        # shared error mode, a state prior, a pose prior
+        rest = (np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros((1, 3), f8),
+                np.zeros((1, 3, 1), f8), intr, dist, np.zeros(8, f8), np.zeros((1, 8), f8),
+                np.zeros((0, 0), f8), np.ones((1, 8), f8), True, src,
+                np.zeros((20, 20), np.uint8), np.zeros((20, 20, 3), np.float32),
+                np.zeros((20, 20), np.uint8), np.full(5, 0.2), np.zeros((3, 8), f8),
+                np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
+                intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
+                np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0,
+                np.ones((2, 1)), np.ones((1, 1)), 0.0, np.zeros(1), 1.0, 1.0)
+        state = (np.zeros(1, f8), np.eye(3), np.array([0.0, 0.0, 100.0]), 1.0)
+        cost, _, _, _, _, jw, g_p, h_p, g_s, h_s, _ = gn_terms(*state, *rest)
+        lm_step(jw.T @ jw, np.zeros(jw.shape[1]), 1e-3, 2, cost, h_p, g_p, h_s, g_s, *state,
+                *rest)
     frame = np.zeros((16, 16, 3), np.uint8)
     for writable in (True, False):  # (a frame may come read-only)
         frame.setflags(write=writable)
@@ -1541,8 +1637,8 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
     if not AVAILABLE:
         return True
     try:
-        every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                  lm_system, lm_solve, state_measured,
+        every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, gn_terms,
+                                  lm_step, state_measured,
                                   pixels_sd3, pixels_sd2, facing_cos,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
