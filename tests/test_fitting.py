@@ -441,11 +441,12 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
 
 
 def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
-    """kernels._smooth_pixel and _smooth_column (the lazy maps' blur: one pixel, or up to
-    four of a column with their passes side by side) are exactly the separable Gaussian
-    with OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
-    float32, then the column pass the same way -- bit for bit, inside and at every border,
-    whichever pixel asks first (the row passes kept column-major: rows (w, h, 3))."""
+    """kernels._smooth_pixel, _smooth_column and _smooth_cell (the lazy maps' blur: one
+    pixel, up to four of a column with their passes side by side, or a sample's 12) are
+    exactly the separable Gaussian with OpenCV's reflect-101 border: each row pass summed
+    tap by tap in float64 and kept in float32, then the column pass the same way -- bit for
+    bit, inside and at every border, whichever pixel asks first (the row passes kept
+    column-major: rows (w, h, 3))."""
     import cv2
 
     from articast.core.tracking import kernels
@@ -493,6 +494,18 @@ def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
             assert done[y, x] == 1
             np.testing.assert_array_equal(sm[y, x], want(y, x))
     assert done.sum() > 40
+    # a sample's cell (its 12 pixels; inside, the four columns' row passes side by side),
+    # on fresh buffers and on buffers some cells filled already, inside and at the borders
+    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((w, h, 3), np.float32)
+    done, rdone = np.zeros((h, w), np.uint8), np.zeros((w, h), np.uint8)
+    for ix, iy in [(12, 10), (13, 11), (9, 1), (20, h - 3), (1, 5), (w - 3, 12), (15, 2)]:
+        kernels._smooth_cell(src, sm, done, rows, rdone, taps, ix, iy, need)
+        for x, y in ([(ix - 1, iy), (ix - 1, iy + 1), (ix + 2, iy), (ix + 2, iy + 1)]
+                     + [(x, y) for x in (ix, ix + 1) for y in range(iy - 1, iy + 3)]):
+            assert done[y, x] == 1
+            np.testing.assert_array_equal(sm[y, x], want(y, x))
+    for x, yy in zip(*np.nonzero(rdone), strict=True):
+        np.testing.assert_array_equal(rows[x, yy], row_pass(yy, x))
 
 
 def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():

@@ -134,6 +134,68 @@ def _smooth_column(src, sm, done, rows, rdone, taps, x, y0, y1,
         done[y, x] = 1
 
 
+@njit(cache=True, nogil=True)
+def _smooth_cell(src, sm, done, rows, rdone, taps, ix, iy, need):  # pragma: no cover
+    """Gaussian-smooth the 12 pixels a sample in the cell (ix, iy) reads (its 2x2 values and
+    their central differences: columns ix-1..ix+2), as :func:`_smooth_column` of each of
+    its four columns. Away from the left and right borders the four columns' row passes
+    run side by side first, each row's pixels read once for the four sums (each summed in
+    the same order as ever: the same numbers); the columns' calls then find them done."""
+    w = src.shape[1]
+    n = taps.shape[0]
+    rad = n // 2
+    x0 = ix - 1
+    if x0 - rad >= 0 and x0 + 3 + rad < w:
+        h = src.shape[0]
+        for j in range(-rad - 1, rad + 3):  # every row a column's pixels read
+            yy = _reflect(iy + j, h)
+            if rdone[x0, yy] and rdone[x0 + 1, yy] and rdone[x0 + 2, yy] and rdone[x0 + 3, yy]:
+                continue
+            _row4(src, rows, taps, x0, yy)
+            rdone[x0, yy] = rdone[x0 + 1, yy] = rdone[x0 + 2, yy] = rdone[x0 + 3, yy] = 1
+    _smooth_column(src, sm, done, rows, rdone, taps, ix - 1, iy, iy + 1, need)
+    _smooth_column(src, sm, done, rows, rdone, taps, ix, iy - 1, iy + 2, need)
+    _smooth_column(src, sm, done, rows, rdone, taps, ix + 1, iy - 1, iy + 2, need)
+    _smooth_column(src, sm, done, rows, rdone, taps, ix + 2, iy, iy + 1, need)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row4(src, rows, taps, x0, yy):  # pragma: no cover - compiled
+    """The horizontal passes of row yy at the four columns x0..x0+3 (inside the image), each
+    as one column's, the row's pixels loaded once."""
+    n = taps.shape[0]
+    rad = n // 2
+    a0 = a1 = a2 = b0 = b1 = b2 = c0 = c1 = c2 = d0 = d1 = d2 = 0.0
+    left = x0 - rad
+    # the pixels m, m + 1, m + 2, m + 3 of the window slide along the row
+    p0, p1, p2 = float(src[yy, left, 0]), float(src[yy, left, 1]), float(src[yy, left, 2])
+    q0, q1, q2 = (float(src[yy, left + 1, 0]), float(src[yy, left + 1, 1]),
+                  float(src[yy, left + 1, 2]))
+    r0, r1, r2 = (float(src[yy, left + 2, 0]), float(src[yy, left + 2, 1]),
+                  float(src[yy, left + 2, 2]))
+    for m in range(n):
+        tp = taps[m]
+        s0, s1, s2 = (float(src[yy, left + m + 3, 0]), float(src[yy, left + m + 3, 1]),
+                      float(src[yy, left + m + 3, 2]))
+        a0 += tp * p0
+        a1 += tp * p1
+        a2 += tp * p2
+        b0 += tp * q0
+        b1 += tp * q1
+        b2 += tp * q2
+        c0 += tp * r0
+        c1 += tp * r1
+        c2 += tp * r2
+        d0 += tp * s0
+        d1 += tp * s1
+        d2 += tp * s2
+        p0, p1, p2, q0, q1, q2, r0, r1, r2 = q0, q1, q2, r0, r1, r2, s0, s1, s2
+    _put3(rows, x0, yy, a0, a1, a2)
+    _put3(rows, x0 + 1, yy, b0, b1, b2)
+    _put3(rows, x0 + 2, yy, c0, c1, c2)
+    _put3(rows, x0 + 3, yy, d0, d1, d2)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _rows4(src, rows, taps, x, inside, ya, yb, yc, yd):  # pragma: no cover - compiled
     """The horizontal passes of four rows at column x (each as one row's)."""
@@ -250,14 +312,7 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
                     and done[iy, ix + 2] and done[iy + 1, ix - 1] and done[iy + 1, ix]
                     and done[iy + 1, ix + 1] and done[iy + 1, ix + 2] and done[iy - 1, ix]
                     and done[iy - 1, ix + 1] and done[iy + 2, ix] and done[iy + 2, ix + 1]):
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix - 1, iy, iy + 1,
-                               need)
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix, iy - 1, iy + 2,
-                               need)
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 1, iy - 1, iy + 2,
-                               need)
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 2, iy, iy + 1,
-                               need)
+                _smooth_cell(src, smooth, done, rows, rdone, taps, ix, iy, need)
         for ch in range(3):
             for a in range(2):
                 for b in range(2):
