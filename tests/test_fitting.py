@@ -563,3 +563,33 @@ def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
     np.testing.assert_array_equal(alpha, want_alpha)
     np.testing.assert_array_equal(pose.rotation, want_pose.rotation)
     np.testing.assert_array_equal(pose.translation, want_pose.translation)
+
+
+def test_the_compiled_projection_and_box_are_the_numpy_ones(trained):
+    """Problem.project (kernels.sample_uv) and roi_of (kernels.roi_box), once a tracked
+    frame each, give their numpy references' numbers: the projection to the last bit on
+    this machine (the same BLAS products; another CPU's BLAS may sum in another order), the
+    box exactly (points behind the camera or not finite left out, none: an empty box)."""
+    from articast.core.appearance.maps import roi_of_numpy
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        theta = np.r_[rng.normal(size=model.n_params), pose.rotation + rng.normal(0, 0.1, 3),
+                      pose.translation + rng.normal(0, 5.0, 3)]
+        uv = prob.project(theta)
+        ref = prob.project_numpy(theta)
+        np.testing.assert_allclose(uv, ref, rtol=1e-13, atol=1e-10)
+        for margin in (0.0, 24.0, 3.7):
+            assert roi_of(uv, margin) == roi_of_numpy(uv, margin)
+    behind = np.r_[np.zeros(model.n_params), pose.rotation, 0.0, 0.0, -50.0]
+    assert np.isnan(prob.project(behind)).all() and np.isnan(prob.project_numpy(behind)).all()
+    uv = rng.uniform(-50, 700, (30, 2))
+    uv[[2, 9]] = np.nan
+    uv[4, 0] = np.inf
+    assert roi_of(uv, 5.5) == roi_of_numpy(uv, 5.5)
+    assert roi_of(uv[[2, 9]], 5.0) == roi_of_numpy(uv[[2, 9]], 5.0) == (0, 0, 0, 0)

@@ -202,7 +202,8 @@ class Problem:
                  prior: PriorPolicy | None = None, jit: bool | None = None) -> None:
         self.model, self.appearance, self.camera = model, appearance, camera
         self.s_mean, self.s_basis = appearance.samples.positions(model)
-        self._basis_flat = self.s_basis.reshape(self.s_basis.shape[0], -1)  # (K, S*3)
+        self._basis_flat = np.ascontiguousarray(  # (K, S*3)
+            self.s_basis.reshape(self.s_basis.shape[0], -1), np.float64)
         self._basis_sdk = np.ascontiguousarray(self.s_basis.transpose(1, 2, 0))  # (S, 3, K)
         self.k = model.n_params
         self.c = appearance.n_channels
@@ -222,6 +223,7 @@ class Problem:
                                                                       strict=True)]
         self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+        self._project_jit = kernels.AVAILABLE and not camera.dist.any()
         self._rot_ref = (None if rw is None or appearance.rotation_ref is None
                          else rotation_matrix(appearance.rotation_ref))
 
@@ -233,7 +235,19 @@ class Problem:
         return head, head @ rot.T + t
 
     def project(self, theta: np.ndarray) -> np.ndarray:
-        """Image positions (S, 2) of the sample points at state theta (K + 6,)."""
+        """Image positions (S, 2) of the sample points at state theta (K + 6,). Compiled
+        (:func:`~articast.core.tracking.kernels.sample_uv`, the same numbers) for an
+        undistorted camera; :meth:`project_numpy` is the reference."""
+        if self._project_jit:  # (once a tracked frame)
+            theta = np.asarray(theta, np.float64)
+            return kernels.sample_uv(self._s_mean, self._basis_flat,
+                                     np.ascontiguousarray(theta[:self.k]),
+                                     rotation_matrix(theta[self.k:self.k + 3]),
+                                     np.ascontiguousarray(theta[self.k + 3:]), self._intr)
+        return self.project_numpy(theta)
+
+    def project_numpy(self, theta: np.ndarray) -> np.ndarray:
+        """The reference of :meth:`project` (any camera)."""
         rot = rotation_matrix(theta[self.k:self.k + 3])
         return self.camera.project(self.sample_points_cam(theta[:self.k], rot,
                                                           theta[self.k + 3:])[1])

@@ -780,6 +780,42 @@ def lm_step(jtj, jtr, lam, max_rejections, cost, h_p, g_p, h_s, g_s, alpha, rot,
 
 
 @njit(cache=True, nogil=True)
+def sample_uv(s_mean, basis_flat, alpha, rot, t, intr):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.fitting.Problem.project` for an undistorted camera (its
+    numpy code is the reference): image positions (S, 2) px of the sample points (head-frame
+    mean s_mean (S, 3), basis_flat (K, S*3)) at alpha (K,), rot (3, 3), t (3,) mm; intr
+    (fx, fy, cx, cy). The products are BLAS's, as numpy's; NaN behind the camera."""
+    head = s_mean + np.dot(alpha, basis_flat).reshape(s_mean.shape)
+    cam = np.dot(head, rot.T)
+    uv = np.empty((cam.shape[0], 2))
+    for i in range(cam.shape[0]):
+        z = cam[i, 2] + t[2]
+        iz = 1.0 / z if z > 1e-6 else np.nan
+        uv[i, 0] = intr[0] * ((cam[i, 0] + t[0]) * iz) + intr[2]
+        uv[i, 1] = intr[1] * ((cam[i, 1] + t[1]) * iz) + intr[3]
+    return uv
+
+
+@njit(cache=True, nogil=True)
+def roi_box(uv, margin):  # pragma: no cover - compiled
+    """:func:`articast.core.appearance.maps.roi_of` (its numpy code is the reference): the
+    bounding box (x0, y0, x1, y1) of the finite points of uv (M, 2) grown by ``margin`` px."""
+    lo0 = lo1 = np.inf
+    hi0 = hi1 = -np.inf
+    seen = False
+    for i in range(uv.shape[0]):
+        u, v = uv[i, 0], uv[i, 1]
+        if np.isfinite(u) and np.isfinite(v):
+            seen = True
+            lo0, lo1 = min(lo0, u), min(lo1, v)
+            hi0, hi1 = max(hi0, u), max(hi1, v)
+    if not seen:
+        return 0, 0, 0, 0
+    return (int(np.floor(lo0 - margin)), int(np.floor(lo1 - margin)),
+            int(np.ceil(hi0 + margin)) + 1, int(np.ceil(hi1 + margin)) + 1)
+
+
+@njit(cache=True, nogil=True)
 def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: no cover
     """:meth:`articast.core.tracking.fitting.StatePrior.with_measurement` (its numpy code is
     the reference): the prior (p_alpha (K,), p_rot (3, 3), p_t (3,), p_info (K + 6, K + 6))
@@ -1582,7 +1618,8 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "facing_cos")
+TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "facing_cos",
+           "sample_uv", "roi_box")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1636,6 +1673,11 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         cost, _, _, _, _, jw, g_p, h_p, g_s, h_s, _ = gn_terms(*state, *rest)
         lm_step(jw.T @ jw, np.zeros(jw.shape[1]), 1e-3, 2, cost, h_p, g_p, h_s, g_s, *state,
                 *rest)
+    if want("sample_uv"):
+        sample_uv(np.zeros((1, 3), f8), np.zeros((1, 3), f8), np.zeros(1, f8), np.eye(3),
+                  np.array([0.0, 0.0, 100.0]), intr)
+    if want("roi_box"):
+        roi_box(np.zeros((1, 2)), 1.0)
     frame = np.zeros((16, 16, 3), np.uint8)
     for writable in (True, False):  # (a frame may come read-only)
         frame.setflags(write=writable)
@@ -1693,7 +1735,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
         return True
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, gn_terms,
-                                  lm_step, state_measured,
+                                  lm_step, sample_uv, roi_box, state_measured,
                                   pixels_sd3, pixels_sd2, facing_cos,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
