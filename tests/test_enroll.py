@@ -1029,8 +1029,8 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
     live = _fused(sp)
     assert live.fusion is not None
     spies = KernelSpies()
-    for name in ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system",
-                 "lm_solve", "state_measured", "pixels_sd3", "pixels_sd2",
+    for name in ("la_residuals", "cauchy", "point_residuals", "gn_terms", "lm_step",
+                 "sample_uv", "roi_box", "state_measured", "pixels_sd3", "pixels_sd2",
                  "facing_cos",
                  "point_offset", "cv_predict", "cv_update", "lip_gap",
                  "reading_features", "lids_read", "iris_chords", "iris_former_rows",
@@ -1042,7 +1042,7 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
           enumerate(iter_video(enrolled / "test" / "video.mp4")) if i < 12]
     seen = spies.take()
     assert all(ok) and live.finder_calls >= 4  # fitted with readings and between them
-    assert {"fit_terms", "lm_solve", "cv_predict", "cv_update", "point_offset", "lip_gap",
+    assert {"gn_terms", "lm_step", "sample_uv", "roi_box", "cv_predict", "cv_update", "point_offset", "lip_gap",
             "reading_features"} <= set(seen)
     for name, types in seen.items():
         assert types <= warmed.get(name, set()), (name, types - warmed.get(name, set()))

@@ -361,11 +361,12 @@ def rotation_trained():
 @pytest.mark.parametrize("case", ["fused", "plain", "least_squares"])
 def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, monkeypatch,
                                                             case):
-    """fit_gauss_newton evaluates each state in one compiled call (kernels.fit_terms: la cost
-    with rotation terms, Cauchy weights, landmark term, priors) where it can; the numpy
-    assembly is the definition. Same fit to re-ordering precision: fused live tracking (the
-    landmarks with shared error modes, a state prior, the gain, on lazy maps), the plain
-    tracker's fit (pose and motion priors, full maps) and least squares."""
+    """fit_gauss_newton evaluates each state in one compiled call (kernels.gn_terms: la cost
+    with rotation terms, Cauchy weights, landmark term with its shared errors, priors) and
+    runs each Levenberg-Marquardt iteration in another (kernels.lm_step) where it can; the
+    numpy assembly and loop are the definition. Same fit to re-ordering precision: fused
+    live tracking (the landmarks with shared error modes, a state prior, the gain, on lazy
+    maps), the plain tracker's fit (pose and motion priors, full maps) and least squares."""
     from articast.core.appearance.maps import image_pyramid
     from articast.core.tracking import fitting, kernels
     from articast.core.tracking.fitting import StatePrior
@@ -401,24 +402,29 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
         pol = FitPolicy(max_iterations=6, pose_sigma_rad=0.003, pose_sigma_mm=0.5,
                         alpha_sigma=0.5, robust_scale=None if case == "least_squares" else 2.0)
     calls = []
-    real = kernels.fit_terms
     kernels.warm_up()
-    compiled = (real, kernels.lm_system, kernels.lm_solve)
-    compiled_types = [set(f.signatures) for f in compiled]
+    first, step = kernels.gn_terms, kernels.lm_step
+    compiled_types = [set(f.signatures) for f in (first, step)]
 
-    def counted(*args):
+    def counted_first(*args):
         calls.append(1)
-        return real(*args)
+        return first(*args)
 
-    monkeypatch.setattr(kernels, "fit_terms", counted)
+    def counted_step(*args):
+        out = step(*args)
+        calls.append(out[2])  # its evaluations
+        return out
+
+    monkeypatch.setattr(kernels, "gn_terms", counted_first)
+    monkeypatch.setattr(kernels, "lm_step", counted_step)
     fits = []
     for on in (True, False):
         monkeypatch.setattr(fitting, "FIT_TERMS", on)
         maps = image_pyramid(img, roi, app.sigma, (0,), lazy=case == "fused")[0]
         fits.append(fit_gauss_newton(prob, maps, 0, *start, pol, **kw))
-    assert len(calls) == fits[0].evals > 2  # the compiled path ran, every evaluation
+    assert sum(calls) == fits[0].evals > 2  # the compiled path ran, every evaluation
     # kernels.warm_up() compiled it for the types a fit passes (no compilation on a first frame)
-    assert [set(f.signatures) for f in compiled] == compiled_types
+    assert [set(f.signatures) for f in (first, step)] == compiled_types
     fast, ref = fits
     assert (fast.evals, fast.iterations, fast.converged) == (ref.evals, ref.iterations,
                                                             ref.converged)
@@ -435,11 +441,12 @@ def test_the_compiled_evaluation_fits_as_the_numpy_assembly(rotation_trained, mo
 
 
 def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
-    """kernels._smooth_pixel and _smooth_column (the lazy maps' blur: one pixel, or up to
-    four of a column with their passes side by side) are exactly the separable Gaussian
-    with OpenCV's reflect-101 border: each row pass summed tap by tap in float64 and kept in
-    float32, then the column pass the same way -- bit for bit, inside and at every border,
-    whichever pixel asks first (the row passes kept column-major: rows (w, h, 3))."""
+    """kernels._smooth_pixel, _smooth_column and _smooth_cell (the lazy maps' blur: one
+    pixel, up to four of a column with their passes side by side, or a sample's 12) are
+    exactly the separable Gaussian with OpenCV's reflect-101 border: each row pass summed
+    tap by tap in float64 and kept in float32, then the column pass the same way -- bit for
+    bit, inside and at every border, whichever pixel asks first (the row passes kept
+    column-major: rows (w, h, 3))."""
     import cv2
 
     from articast.core.tracking import kernels
@@ -487,6 +494,18 @@ def test_lazy_smoothing_sums_each_pixel_as_the_separable_definition():
             assert done[y, x] == 1
             np.testing.assert_array_equal(sm[y, x], want(y, x))
     assert done.sum() > 40
+    # a sample's cell (its 12 pixels; inside, the four columns' row passes side by side),
+    # on fresh buffers and on buffers some cells filled already, inside and at the borders
+    sm, rows = np.zeros((h, w, 3), np.float32), np.zeros((w, h, 3), np.float32)
+    done, rdone = np.zeros((h, w), np.uint8), np.zeros((w, h), np.uint8)
+    for ix, iy in [(12, 10), (13, 11), (9, 1), (20, h - 3), (1, 5), (w - 3, 12), (15, 2)]:
+        kernels._smooth_cell(src, sm, done, rows, rdone, taps, ix, iy, need)
+        for x, y in ([(ix - 1, iy), (ix - 1, iy + 1), (ix + 2, iy), (ix + 2, iy + 1)]
+                     + [(x, y) for x in (ix, ix + 1) for y in range(iy - 1, iy + 3)]):
+            assert done[y, x] == 1
+            np.testing.assert_array_equal(sm[y, x], want(y, x))
+    for x, yy in zip(*np.nonzero(rdone), strict=True):
+        np.testing.assert_array_equal(rows[x, yy], row_pass(yy, x))
 
 
 def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
@@ -544,3 +563,33 @@ def test_fit_to_landmarks_is_levenberg_marquardt_with_every_step_recomputed():
     np.testing.assert_array_equal(alpha, want_alpha)
     np.testing.assert_array_equal(pose.rotation, want_pose.rotation)
     np.testing.assert_array_equal(pose.translation, want_pose.translation)
+
+
+def test_the_compiled_projection_and_box_are_the_numpy_ones(trained):
+    """Problem.project (kernels.sample_uv) and roi_of (kernels.roi_box), once a tracked
+    frame each, give their numpy references' numbers: the projection to the last bit on
+    this machine (the same BLAS products; another CPU's BLAS may sum in another order), the
+    box exactly (points behind the camera or not finite left out, none: an empty box)."""
+    from articast.core.appearance.maps import roi_of_numpy
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        theta = np.r_[rng.normal(size=model.n_params), pose.rotation + rng.normal(0, 0.1, 3),
+                      pose.translation + rng.normal(0, 5.0, 3)]
+        uv = prob.project(theta)
+        ref = prob.project_numpy(theta)
+        np.testing.assert_allclose(uv, ref, rtol=1e-13, atol=1e-10)
+        for margin in (0.0, 24.0, 3.7):
+            assert roi_of(uv, margin) == roi_of_numpy(uv, margin)
+    behind = np.r_[np.zeros(model.n_params), pose.rotation, 0.0, 0.0, -50.0]
+    assert np.isnan(prob.project(behind)).all() and np.isnan(prob.project_numpy(behind)).all()
+    uv = rng.uniform(-50, 700, (30, 2))
+    uv[[2, 9]] = np.nan
+    uv[4, 0] = np.inf
+    assert roi_of(uv, 5.5) == roi_of_numpy(uv, 5.5)
+    assert roi_of(uv[[2, 9]], 5.0) == roi_of_numpy(uv[[2, 9]], 5.0) == (0, 0, 0, 0)

@@ -302,11 +302,11 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     model, camera, pose, app = blob_trained(seed=7, kind=kind)
     spies = KernelSpies()
 
-    every = ("la_residuals", "cauchy", "point_residuals", "fit_terms", "lm_system", "lm_solve",
-             "pixels_sd2", "facing_cos", "point_offset", "cv_predict",
+    every = ("la_residuals", "cauchy", "point_residuals", "gn_terms", "lm_step",
+             "sample_uv", "roi_box", "pixels_sd2", "facing_cos", "point_offset", "cv_predict",
              "cv_update", "iris_chords", "iris_former_rows")
-    kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: fit_terms
-    # calls la_residuals as a global, which a spy in its place would not type
+    kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: lm_step
+    # calls gn_terms (and it la_residuals) as a global, which a spy in its place would not type
     for name in every:
         monkeypatch.setattr(kernels, name, spies.wrap(name, getattr(kernels, name)))
     kernels.warm_up(kernels.TRACKER)
@@ -317,7 +317,7 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     assert all(tracker.track(render_blobs(model, camera, alpha[i], pose), t[i]).ok
                for i in range(8))
     seen = spies.take()
-    assert "fit_terms" in seen  # the compiled path ran
+    assert {"gn_terms", "lm_step"} <= set(seen)  # the compiled path ran
     for name, types in seen.items():
         assert name in kernels.TRACKER and types <= warmed[name], (name, types)
 

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from articast.core.errors import InputError
+from articast.core.tracking import kernels
 
 LA_CHANNELS = ("Yx", "Yy", "Cr", "Crx", "Cry", "Cb", "Cbx", "Cby")
 
@@ -187,7 +188,16 @@ def sample_tex(maps: ImageMaps, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray,
 
 
 def roi_of(uv: np.ndarray, margin: float) -> tuple[int, int, int, int]:
-    """Bounding box (x0, y0, x1, y1) of finite image points grown by ``margin`` px."""
+    """Bounding box (x0, y0, x1, y1) of finite image points (M, 2) grown by ``margin`` px.
+    Compiled (:func:`~articast.core.tracking.kernels.roi_box`, the same box) for float64
+    points; :func:`roi_of_numpy` is the reference."""
+    if kernels.AVAILABLE and uv.dtype == np.float64 and uv.ndim == 2 and uv.shape[1] == 2:
+        return kernels.roi_box(np.ascontiguousarray(uv), float(margin))
+    return roi_of_numpy(uv, margin)
+
+
+def roi_of_numpy(uv: np.ndarray, margin: float) -> tuple[int, int, int, int]:
+    """The reference of :func:`roi_of`."""
     finite = uv[np.isfinite(uv).all(1)]
     if finite.size == 0:
         return (0, 0, 0, 0)

@@ -26,14 +26,15 @@ FRONTAL = np.array([np.pi, 0.0, 0.0])
 
 
 def _rotation_one(r: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for one (3,) vector (the hot path of the optimiser)."""
-    x, y, z = float(r[0]), float(r[1]), float(r[2])
+    """Rodrigues' formula for one (3,) vector (the hot path of the optimiser; Python floats,
+    numpy's sine and cosine: theirs and the C library's differ in the last bit at times)."""
+    x, y, z = r.tolist()
     th2 = x * x + y * y + z * z
     if th2 < 1e-16:
         a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
     else:
         th = th2**0.5
-        a, b = np.sin(th) / th, (1.0 - np.cos(th)) / th2
+        a, b = float(np.sin(th)) / th, (1.0 - float(np.cos(th))) / th2
     return np.array([
         [1.0 - b * (y * y + z * z), -a * z + b * x * y, a * y + b * x * z],
         [a * z + b * x * y, 1.0 - b * (x * x + z * z), -a * x + b * y * z],
@@ -82,10 +83,14 @@ def small_turn(d: np.ndarray) -> np.ndarray:
 def axis_angle(rot: np.ndarray) -> np.ndarray:
     """Inverse of :func:`rotation_matrix` for one (3, 3) matrix -> (3,) rad."""
     rot = np.asarray(rot, dtype=np.float64)
-    cos = np.clip((np.trace(rot) - 1.0) / 2.0, -1.0, 1.0)
+    # (Python floats: a few times cheaper than numpy's scalars, the same sums; numpy's
+    # arccos, which differs from the C library's in the last bit at times)
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = rot.tolist()
+    trace = r00 + r11 + r22
+    cos = min(max((trace - 1.0) / 2.0, -1.0), 1.0)
     theta = np.arccos(cos)
     if theta < 1e-8:
-        return np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]]) / 2
+        return np.array([r21 - r12, r02 - r20, r10 - r01]) / 2
     if np.pi - theta < 1e-4:
         # near pi: the symmetric part gives a a^T exactly, the antisymmetric part
         # w = 2 sin(theta) a (small, zero only at pi) the sign of the axis and, with atan2,
@@ -98,7 +103,7 @@ def axis_angle(rot: np.ndarray) -> np.ndarray:
         if w @ axis < 0:
             axis = -axis
         return axis / np.linalg.norm(axis) * theta
-    w = np.array([rot[2, 1] - rot[1, 2], rot[0, 2] - rot[2, 0], rot[1, 0] - rot[0, 1]])
+    w = np.array([r21 - r12, r02 - r20, r10 - r01])
     return w / (2.0 * np.sin(theta)) * theta
 
 

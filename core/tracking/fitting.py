@@ -43,11 +43,13 @@ _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
              np.zeros((0, 0, 3), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0))
 _EYE = np.eye(3)
 FIT_TERMS = kernels.AVAILABLE
-"""Evaluate a Gauss-Newton state in one compiled call (:func:`kernels.fit_terms`) where the
-la cost and the landmark term are compiled (False: the numpy assembly, the reference)."""
+"""Evaluate a Gauss-Newton state in one compiled call (:func:`kernels.gn_terms`) and run
+each iteration in one (:func:`kernels.lm_step`) where the la cost and the landmark term are
+compiled (False: the numpy assembly and loop, the reference)."""
 _NO_POINTS = (np.zeros((0, 3)), np.zeros((0, 3, 0)), np.ones(4), np.zeros(0), np.zeros((0, 2)),
               -1.0)
 _NO_STATE_PRIOR = (np.zeros(0), np.eye(3), np.zeros(3), np.zeros((0, 0)))
+_NO_SHARED = (np.zeros((0, 0)), np.zeros((0, 0)))
 
 
 @dataclass(frozen=True)
@@ -200,7 +202,8 @@ class Problem:
                  prior: PriorPolicy | None = None, jit: bool | None = None) -> None:
         self.model, self.appearance, self.camera = model, appearance, camera
         self.s_mean, self.s_basis = appearance.samples.positions(model)
-        self._basis_flat = self.s_basis.reshape(self.s_basis.shape[0], -1)  # (K, S*3)
+        self._basis_flat = np.ascontiguousarray(  # (K, S*3)
+            self.s_basis.reshape(self.s_basis.shape[0], -1), np.float64)
         self._basis_sdk = np.ascontiguousarray(self.s_basis.transpose(1, 2, 0))  # (S, 3, K)
         self.k = model.n_params
         self.c = appearance.n_channels
@@ -220,6 +223,7 @@ class Problem:
                                                                       strict=True)]
         self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
         self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+        self._project_jit = kernels.AVAILABLE and not camera.dist.any()
         self._rot_ref = (None if rw is None or appearance.rotation_ref is None
                          else rotation_matrix(appearance.rotation_ref))
 
@@ -231,7 +235,19 @@ class Problem:
         return head, head @ rot.T + t
 
     def project(self, theta: np.ndarray) -> np.ndarray:
-        """Image positions (S, 2) of the sample points at state theta (K + 6,)."""
+        """Image positions (S, 2) of the sample points at state theta (K + 6,). Compiled
+        (:func:`~articast.core.tracking.kernels.sample_uv`, the same numbers) for an
+        undistorted camera; :meth:`project_numpy` is the reference."""
+        if self._project_jit:  # (once a tracked frame)
+            theta = np.asarray(theta, np.float64)
+            return kernels.sample_uv(self._s_mean, self._basis_flat,
+                                     np.ascontiguousarray(theta[:self.k]),
+                                     rotation_matrix(theta[self.k:self.k + 3]),
+                                     np.ascontiguousarray(theta[self.k + 3:]), self._intr)
+        return self.project_numpy(theta)
+
+    def project_numpy(self, theta: np.ndarray) -> np.ndarray:
+        """The reference of :meth:`project` (any camera)."""
         rot = rotation_matrix(theta[self.k:self.k + 3])
         return self.camera.project(self.sample_points_cam(theta[:self.k], rot,
                                                           theta[self.k + 3:])[1])
@@ -439,8 +455,9 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     use_app = appearance_weight > 0
     sw = float(np.sqrt(appearance_weight))
     with_gain = estimate_gain and use_app
-    # one compiled call per evaluation (kernels.fit_terms) where the la cost and the landmark
-    # term are compiled; `evaluate_numpy` below is the reference
+    # one compiled call per evaluation (kernels.gn_terms) and per iteration (kernels.lm_step)
+    # where the la cost and the landmark term are compiled; `evaluate_numpy` and the numpy
+    # loop below are the reference
     compiled = FIT_TERMS and problem.jit and use_app and (points is None or points.compiled)
     if compiled:
         head, middle = problem.kernel_args(maps, li)
@@ -454,30 +471,22 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         if ref is not None and pol.pose_sigma_mm is not None and pol.pose_sigma_rad is not None:
             ref_args = (ref[0], np.asarray(ref[1], np.float64), 1.0 / pol.pose_sigma_rad**2,
                         1.0 / pol.pose_sigma_mm**2)
-        fixed = (*tail, *pts, problem.bound, float(pr_.weight), float(pr_.softness), *sp_args,
-                 *ref_args)
+        shared = (points.shared_args() if points is not None and points.n_points
+                  else _NO_SHARED)
+        # kernels.gn_terms's arguments after the state: fit_terms's, then the shared errors'
+        # and the motion and gain priors'
+        rest: tuple[Any, ...] = (*head, *middle, *tail[:1], bool(with_gain), *tail[1:], *pts,
+                                 problem.bound, float(pr_.weight), float(pr_.softness),
+                                 *sp_args, *ref_args, *shared, wa, a_ref, wg, gain0)
+        max_rej = -1 if pol.max_rejections is None else int(pol.max_rejections)
 
     def evaluate(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray, g_: float):
         """Everything at one state: the total cost, the data rows (whitened, IRLS-weighted)
         and the priors' gradient and Hessian."""
         if not compiled:
             return evaluate_numpy(a_, rot_, t_, g_)
-        args: tuple[Any, ...] = (*head, a_, rot_, t_, *middle, float(g_), *fixed[:1],
-                                 bool(with_gain), *fixed[1:])
-        (rw_, jw_, r_, valid_, rc_, pc_, prior_, g_p_, h_p_, sp_, g_s, h_s, pp_) = (
-            kernels.fit_terms(*args))
-        h_shared = np.zeros((k + 6, k + 6))
-        if points is not None and points.n_points:
-            na = r_.size
-            shared_c, shared_g, shared_h = points.shared(rw_[na:], jw_[na:, :k + 6])
-            pc_ -= shared_c  # the errors the landmarks share count once
-            g_s -= 2.0 * shared_g
-            h_s -= 2.0 * shared_h
-            h_shared = shared_h
-        cost_ = (rc_ + pc_ + prior_ + pp_ + sp_ + wa * float((a_ - a_ref) @ (a_ - a_ref))
-                 + wg * (g_ - gain0) ** 2 * with_gain)
-        vf_ = np.count_nonzero(valid_) / max(valid_.size, 1)  # (valid_.mean(), ~4x cheaper)
-        return cost_, (r_, float(vf_), rc_, rw_, jw_, g_p_, h_p_, g_s, h_s, h_shared)
+        cost_, *terms_ = kernels.gn_terms(a_, rot_, t_, float(g_), *rest)
+        return cost_, tuple(terms_)
 
     def evaluate_numpy(a_: np.ndarray, rot_: np.ndarray, t_: np.ndarray, g_: float):
         if use_app:
@@ -521,9 +530,12 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     jtj, jtj_of = None, None  # J^T J of the data rows jw (kept for the information)
     for it in range(1, pol.max_iterations + 1):  # noqa: B007 - `it` is reported
         jtj, jtj_of = jw.T @ jw, jw
-        if compiled:  # the same sums, one compiled call (kernels.lm_system)
-            h, g = kernels.lm_system(jtj, jw.T @ rw, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg,
-                                     gain, gain0)
+        if compiled:  # the whole iteration, the same sums, in one compiled call
+            (accepted, lam, n_evals, step, a_new, rot_new, t_new, g_new,
+             (cost_new, *terms_c)) = kernels.lm_step(jtj, jw.T @ rw, lam, max_rej, cost, h_p,
+                                                     g_p, h_s, g_s, alpha, rot, t, gain, *rest)
+            evals += n_evals
+            terms_new = tuple(terms_c)
         else:
             h = jtj.copy()
             g = jw.T @ rw
@@ -536,29 +548,29 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                 g[k + 6] += wg * (gain - gain0)
             diag = np.diag(h).copy()
             diag[diag <= 0] = 1.0
-        accepted = False
-        rejected = 0
-        while not accepted:
-            try:
-                step = (kernels.lm_solve(h, g, lam) if compiled
-                        else -np.linalg.solve(h + lam * np.diag(diag), g))
-            except np.linalg.LinAlgError:
+            accepted = False
+            rejected = 0
+            while not accepted:
+                try:
+                    step = -np.linalg.solve(h + lam * np.diag(diag), g)
+                except np.linalg.LinAlgError:
+                    lam *= 10
+                    continue
+                a_new = alpha + step[:k]
+                rot_new = rotation_matrix(step[k:k + 3]) @ rot
+                t_new = t + step[k + 3:k + 6]
+                # (min and max, not np.clip: its call on one number costs more than these sums)
+                g_new = (float(min(max(gain + step[k + 6], 0.2), 5.0)) if step.size > k + 6
+                         else gain)
+                cost_new, terms_new = evaluate(a_new, rot_new, t_new, g_new)
+                evals += 1
+                if cost_new <= cost or lam > 1e6:
+                    accepted = cost_new <= cost
+                    break
+                rejected += 1
+                if pol.max_rejections is not None and rejected >= pol.max_rejections:
+                    break
                 lam *= 10
-                continue
-            a_new = alpha + step[:k]
-            rot_new = rotation_matrix(step[k:k + 3]) @ rot
-            t_new = t + step[k + 3:k + 6]
-            # (min and max, not np.clip: its call on one number costs more than these sums)
-            g_new = float(min(max(gain + step[k + 6], 0.2), 5.0)) if step.size > k + 6 else gain
-            cost_new, terms_new = evaluate(a_new, rot_new, t_new, g_new)
-            evals += 1
-            if cost_new <= cost or lam > 1e6:
-                accepted = cost_new <= cost
-                break
-            rejected += 1
-            if pol.max_rejections is not None and rejected >= pol.max_rejections:
-                break
-            lam *= 10
         if not accepted:
             converged = True  # no descent direction left at this damping: a minimum
             break

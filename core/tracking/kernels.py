@@ -134,6 +134,68 @@ def _smooth_column(src, sm, done, rows, rdone, taps, x, y0, y1,
         done[y, x] = 1
 
 
+@njit(cache=True, nogil=True)
+def _smooth_cell(src, sm, done, rows, rdone, taps, ix, iy, need):  # pragma: no cover
+    """Gaussian-smooth the 12 pixels a sample in the cell (ix, iy) reads (its 2x2 values and
+    their central differences: columns ix-1..ix+2), as :func:`_smooth_column` of each of
+    its four columns. Away from the left and right borders the four columns' row passes
+    run side by side first, each row's pixels read once for the four sums (each summed in
+    the same order as ever: the same numbers); the columns' calls then find them done."""
+    w = src.shape[1]
+    n = taps.shape[0]
+    rad = n // 2
+    x0 = ix - 1
+    if x0 - rad >= 0 and x0 + 3 + rad < w:
+        h = src.shape[0]
+        for j in range(-rad - 1, rad + 3):  # every row a column's pixels read
+            yy = _reflect(iy + j, h)
+            if rdone[x0, yy] and rdone[x0 + 1, yy] and rdone[x0 + 2, yy] and rdone[x0 + 3, yy]:
+                continue
+            _row4(src, rows, taps, x0, yy)
+            rdone[x0, yy] = rdone[x0 + 1, yy] = rdone[x0 + 2, yy] = rdone[x0 + 3, yy] = 1
+    _smooth_column(src, sm, done, rows, rdone, taps, ix - 1, iy, iy + 1, need)
+    _smooth_column(src, sm, done, rows, rdone, taps, ix, iy - 1, iy + 2, need)
+    _smooth_column(src, sm, done, rows, rdone, taps, ix + 1, iy - 1, iy + 2, need)
+    _smooth_column(src, sm, done, rows, rdone, taps, ix + 2, iy, iy + 1, need)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row4(src, rows, taps, x0, yy):  # pragma: no cover - compiled
+    """The horizontal passes of row yy at the four columns x0..x0+3 (inside the image), each
+    as one column's, the row's pixels loaded once."""
+    n = taps.shape[0]
+    rad = n // 2
+    a0 = a1 = a2 = b0 = b1 = b2 = c0 = c1 = c2 = d0 = d1 = d2 = 0.0
+    left = x0 - rad
+    # the pixels m, m + 1, m + 2, m + 3 of the window slide along the row
+    p0, p1, p2 = float(src[yy, left, 0]), float(src[yy, left, 1]), float(src[yy, left, 2])
+    q0, q1, q2 = (float(src[yy, left + 1, 0]), float(src[yy, left + 1, 1]),
+                  float(src[yy, left + 1, 2]))
+    r0, r1, r2 = (float(src[yy, left + 2, 0]), float(src[yy, left + 2, 1]),
+                  float(src[yy, left + 2, 2]))
+    for m in range(n):
+        tp = taps[m]
+        s0, s1, s2 = (float(src[yy, left + m + 3, 0]), float(src[yy, left + m + 3, 1]),
+                      float(src[yy, left + m + 3, 2]))
+        a0 += tp * p0
+        a1 += tp * p1
+        a2 += tp * p2
+        b0 += tp * q0
+        b1 += tp * q1
+        b2 += tp * q2
+        c0 += tp * r0
+        c1 += tp * r1
+        c2 += tp * r2
+        d0 += tp * s0
+        d1 += tp * s1
+        d2 += tp * s2
+        p0, p1, p2, q0, q1, q2, r0, r1, r2 = q0, q1, q2, r0, r1, r2, s0, s1, s2
+    _put3(rows, x0, yy, a0, a1, a2)
+    _put3(rows, x0 + 1, yy, b0, b1, b2)
+    _put3(rows, x0 + 2, yy, c0, c1, c2)
+    _put3(rows, x0 + 3, yy, d0, d1, d2)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _rows4(src, rows, taps, x, inside, ya, yb, yc, yd):  # pragma: no cover - compiled
     """The horizontal passes of four rows at column x (each as one row's)."""
@@ -250,14 +312,7 @@ def la_residuals(smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk
                     and done[iy, ix + 2] and done[iy + 1, ix - 1] and done[iy + 1, ix]
                     and done[iy + 1, ix + 1] and done[iy + 1, ix + 2] and done[iy - 1, ix]
                     and done[iy - 1, ix + 1] and done[iy + 2, ix] and done[iy + 2, ix + 1]):
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix - 1, iy, iy + 1,
-                               need)
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix, iy - 1, iy + 2,
-                               need)
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 1, iy - 1, iy + 2,
-                               need)
-                _smooth_column(src, smooth, done, rows, rdone, taps, ix + 2, iy, iy + 1,
-                               need)
+                _smooth_cell(src, smooth, done, rows, rdone, taps, ix, iy, need)
         for ch in range(3):
             for a in range(2):
                 for b in range(2):
@@ -627,6 +682,137 @@ def _rodrigues(x, y, z):  # pragma: no cover - compiled
     out[2, 1] = a * x + b * y * z
     out[2, 2] = 1.0 - b * (x * x + y * y)
     return out
+
+
+@njit(cache=True, nogil=True)
+def gn_terms(alpha, rot, t, gain, smooth, ox, oy, mscale, sigma, s_mean, basis_sdk, intr,
+             dist, w0, w1, w2, cw, with_gain, src, done, rows, rdone, taps,
+             rot_w, rot_ref, rot_scale, app_weight, app_scale,
+             p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
+             bound, prior_weight, prior_softness,
+             sp_alpha, sp_rot, sp_t, sp_info,
+             ref_rot, ref_t, ref_wr, ref_wt,
+             p_v, p_c, wa, a_ref, wg, gain0):  # pragma: no cover - compiled
+    """One evaluation of :func:`articast.core.tracking.fitting.fit_gauss_newton` (its
+    ``evaluate``; ``evaluate_numpy`` is the reference) at the state (alpha (K,), rot (3, 3),
+    t (3,) mm, gain): :func:`fit_terms` (the same arguments from ``smooth`` on), the
+    landmarks' shared-error correction (``PointTerm.shared``: the modes ``p_v`` (2M, R),
+    ``p_c`` (R, R); R = 0: none) and the total cost with the articulation's motion prior
+    (``wa``, ``a_ref`` (K,)) and the gain's prior (``wg``, ``gain0``). The dense products
+    are BLAS's, as numpy's are. Returns the cost, then the appearance residuals r (S*8,),
+    the valid fraction, the appearance's robust cost, the weighted rows rw (N,) and jw
+    (N, P), the alpha prior's gradient and diagonal Hessian (K,), the state and pose
+    priors' gradient (K + 6,) and Hessian (K + 6, K + 6) less the shared correction, and
+    that correction's Hessian half (K + 6, K + 6)."""
+    k = alpha.shape[0]
+    (rw, jw, r, valid, rc, pc, prior, g_p, h_p, sp, g_s, h_s, pp) = fit_terms(
+        smooth, ox, oy, mscale, sigma, alpha, rot, t, s_mean, basis_sdk, intr, dist, w0, w1,
+        w2, gain, cw, with_gain, src, done, rows, rdone, taps, rot_w, rot_ref, rot_scale,
+        app_weight, app_scale, p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale, bound,
+        prior_weight, prior_softness, sp_alpha, sp_rot, sp_t, sp_info, ref_rot, ref_t, ref_wr,
+        ref_wt)
+    h_shared = np.zeros((k + 6, k + 6))
+    if p_mean.shape[0] > 0 and p_v.shape[1] > 0:  # PointTerm.shared
+        na = r.shape[0]
+        pr = rw[na:]
+        pj = np.ascontiguousarray(jw[na:, :k + 6])
+        vr = np.dot(p_v.T, pr)
+        vj = np.dot(p_v.T, pj)  # (R, K + 6)
+        cvr = np.dot(p_c, vr)
+        pc -= np.dot(vr, cvr)  # the errors the landmarks share count once
+        g_s -= 2.0 * np.dot(vj.T, cvr)
+        h_shared = np.dot(vj.T, np.dot(p_c, vj))
+        h_s -= 2.0 * h_shared
+    d = alpha - a_ref
+    cost = (rc + pc + prior + pp + sp + wa * np.dot(d, d)
+            + wg * (gain - gain0) ** 2 * (1.0 if with_gain else 0.0))
+    vf = np.count_nonzero(valid) / max(valid.shape[0], 1)
+    return cost, r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared
+
+
+@njit(cache=True, nogil=True)
+def lm_step(jtj, jtr, lam, max_rejections, cost, h_p, g_p, h_s, g_s, alpha, rot, t, gain,
+            smooth, ox, oy, mscale, sigma, s_mean, basis_sdk, intr,
+            dist, w0, w1, w2, cw, with_gain, src, done, rows, rdone, taps,
+            rot_w, rot_ref, rot_scale, app_weight, app_scale,
+            p_mean, p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale,
+            bound, prior_weight, prior_softness,
+            sp_alpha, sp_rot, sp_t, sp_info,
+            ref_rot, ref_t, ref_wr, ref_wt,
+            p_v, p_c, wa, a_ref, wg, gain0):  # pragma: no cover - compiled
+    """One Levenberg-Marquardt iteration of
+    :func:`articast.core.tracking.fitting.fit_gauss_newton` (its numpy loop is the
+    reference): from the data's J^T J and J^T r (``jtj``, ``jtr``: numpy's products, passed
+    in) and the current state's cost and prior terms, the damped steps tried at ``lam``,
+    x10 after each rejection, until one lowers the cost, ``lam`` exceeds 1e6 or
+    ``max_rejections`` (< 0: no limit) were rejected; each trial evaluated by
+    :func:`gn_terms` (the arguments from ``smooth`` on). Returns whether a step was
+    accepted, the last ``lam``, the evaluations made, the last step, its state (alpha, rot,
+    t, gain) and :func:`gn_terms`'s values there."""
+    k = alpha.shape[0]
+    h, g = lm_system(jtj, jtr, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain, gain0)
+    rejected = 0
+    evals = 0
+    while True:
+        try:
+            step = lm_solve(h, g, lam)
+        except Exception:  # (numpy's LinAlgError: singular)
+            lam *= 10
+            continue
+        a_new = alpha + step[:k]
+        rot_new = np.dot(_rodrigues(step[k], step[k + 1], step[k + 2]), rot)
+        t_new = t + step[k + 3:k + 6]
+        g_new = min(max(gain + step[k + 6], 0.2), 5.0) if step.shape[0] > k + 6 else gain
+        terms = gn_terms(a_new, rot_new, t_new, g_new, smooth, ox, oy, mscale, sigma, s_mean,
+                         basis_sdk, intr, dist, w0, w1, w2, cw, with_gain, src, done, rows,
+                         rdone, taps, rot_w, rot_ref, rot_scale, app_weight, app_scale, p_mean,
+                         p_basis_mk, p_intr, p_inv_sigma, p_uv, p_scale, bound, prior_weight,
+                         prior_softness, sp_alpha, sp_rot, sp_t, sp_info, ref_rot, ref_t,
+                         ref_wr, ref_wt, p_v, p_c, wa, a_ref, wg, gain0)
+        evals += 1
+        cost_new = terms[0]
+        if cost_new <= cost or lam > 1e6:
+            return (cost_new <= cost, lam, evals, step, a_new, rot_new, t_new, g_new, terms)
+        rejected += 1
+        if max_rejections >= 0 and rejected >= max_rejections:
+            return (False, lam, evals, step, a_new, rot_new, t_new, g_new, terms)
+        lam *= 10
+
+
+@njit(cache=True, nogil=True)
+def sample_uv(s_mean, basis_flat, alpha, rot, t, intr):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.fitting.Problem.project` for an undistorted camera (its
+    numpy code is the reference): image positions (S, 2) px of the sample points (head-frame
+    mean s_mean (S, 3), basis_flat (K, S*3)) at alpha (K,), rot (3, 3), t (3,) mm; intr
+    (fx, fy, cx, cy). The products are BLAS's, as numpy's; NaN behind the camera."""
+    head = s_mean + np.dot(alpha, basis_flat).reshape(s_mean.shape)
+    cam = np.dot(head, rot.T)
+    uv = np.empty((cam.shape[0], 2))
+    for i in range(cam.shape[0]):
+        z = cam[i, 2] + t[2]
+        iz = 1.0 / z if z > 1e-6 else np.nan
+        uv[i, 0] = intr[0] * ((cam[i, 0] + t[0]) * iz) + intr[2]
+        uv[i, 1] = intr[1] * ((cam[i, 1] + t[1]) * iz) + intr[3]
+    return uv
+
+
+@njit(cache=True, nogil=True)
+def roi_box(uv, margin):  # pragma: no cover - compiled
+    """:func:`articast.core.appearance.maps.roi_of` (its numpy code is the reference): the
+    bounding box (x0, y0, x1, y1) of the finite points of uv (M, 2) grown by ``margin`` px."""
+    lo0 = lo1 = np.inf
+    hi0 = hi1 = -np.inf
+    seen = False
+    for i in range(uv.shape[0]):
+        u, v = uv[i, 0], uv[i, 1]
+        if np.isfinite(u) and np.isfinite(v):
+            seen = True
+            lo0, lo1 = min(lo0, u), min(lo1, v)
+            hi0, hi1 = max(hi0, u), max(hi1, v)
+    if not seen:
+        return 0, 0, 0, 0
+    return (int(np.floor(lo0 - margin)), int(np.floor(lo1 - margin)),
+            int(np.ceil(hi0 + margin)) + 1, int(np.ceil(hi1 + margin)) + 1)
 
 
 @njit(cache=True, nogil=True)
@@ -1432,8 +1618,8 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "fit_terms", "lm_system", "lm_solve", "pixels_sd2",
-           "facing_cos")
+TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "facing_cos",
+           "sample_uv", "roi_box")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1471,20 +1657,27 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
                             np.eye(3), np.array([0.0, 0.0, 100.0]),
                             np.array([100.0, 100.0, 10.0, 10.0]), np.ones(1), np.zeros((1, 2)),
                             jacobian)
-    if want("fit_terms"):
-        fit_terms(np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros(1, f8),
-                  np.eye(3), np.array([0.0, 0.0, 100.0]), np.zeros((1, 3), f8),
-                  np.zeros((1, 3, 1), f8), intr, dist, np.zeros(8, f8), np.zeros((1, 8), f8),
-                  np.zeros((0, 0), f8), 1.0, np.ones((1, 8), f8), True, src,
-                  np.zeros((20, 20), np.uint8), np.zeros((20, 20, 3), np.float32),
-                  np.zeros((20, 20), np.uint8), np.full(5, 0.2), np.zeros((3, 8), f8),
-                  np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
-                  intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
-                  np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0)
-    if want("lm_system", "lm_solve"):
-        h, g = lm_system(np.eye(8), np.zeros(8), np.ones(1), np.zeros(1), 0.0, np.zeros(1),
-                         np.zeros(1), np.eye(7), np.zeros(7), 1.0, 1.0, 1.0)
-        lm_solve(h, g, 1e-3)
+    if want("gn_terms", "lm_step"):  # (fit_terms, lm_system and lm_solve inside them)
+        # gn_terms's arguments after the state (alpha, rot, t, gain): one landmark with one
+        # shared error mode, a state prior, a pose prior
+        rest = (np.zeros((20, 20, 3), np.float32), 0.0, 0.0, 1.0, 2.0, np.zeros((1, 3), f8),
+                np.zeros((1, 3, 1), f8), intr, dist, np.zeros(8, f8), np.zeros((1, 8), f8),
+                np.zeros((0, 0), f8), np.ones((1, 8), f8), True, src,
+                np.zeros((20, 20), np.uint8), np.zeros((20, 20, 3), np.float32),
+                np.zeros((20, 20), np.uint8), np.full(5, 0.2), np.zeros((3, 8), f8),
+                np.eye(3), 0.05, 1.0, 2.0, np.zeros((1, 3), f8), np.zeros((1, 3, 1), f8),
+                intr, np.ones(1), np.zeros((1, 2)), 3.0, np.ones(1), 1.0, 0.25, np.zeros(1),
+                np.eye(3), np.zeros(3), np.eye(7), np.eye(3), np.zeros(3), 1.0, 1.0,
+                np.ones((2, 1)), np.ones((1, 1)), 0.0, np.zeros(1), 1.0, 1.0)
+        state = (np.zeros(1, f8), np.eye(3), np.array([0.0, 0.0, 100.0]), 1.0)
+        cost, _, _, _, _, jw, g_p, h_p, g_s, h_s, _ = gn_terms(*state, *rest)
+        lm_step(jw.T @ jw, np.zeros(jw.shape[1]), 1e-3, 2, cost, h_p, g_p, h_s, g_s, *state,
+                *rest)
+    if want("sample_uv"):
+        sample_uv(np.zeros((1, 3), f8), np.zeros((1, 3), f8), np.zeros(1, f8), np.eye(3),
+                  np.array([0.0, 0.0, 100.0]), intr)
+    if want("roi_box"):
+        roi_box(np.zeros((1, 2)), 1.0)
     frame = np.zeros((16, 16, 3), np.uint8)
     for writable in (True, False):  # (a frame may come read-only)
         frame.setflags(write=writable)
@@ -1541,8 +1734,8 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
     if not AVAILABLE:
         return True
     try:
-        every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, fit_terms,
-                                  lm_system, lm_solve, state_measured,
+        every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, gn_terms,
+                                  lm_step, sample_uv, roi_box, state_measured,
                                   pixels_sd3, pixels_sd2, facing_cos,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,

@@ -479,6 +479,12 @@ class PointTerm:
         return (self._mean, self._basis_mk, self._intr, self.inv_sigma, self.uv,
                 -1.0 if self.scale is None else float(self.scale))
 
+    def shared_args(self) -> tuple[np.ndarray, np.ndarray]:
+        """The shared error modes' arguments of
+        :func:`~articast.core.tracking.kernels.gn_terms` (p_v (2M, R), p_c (R, R)): what
+        :meth:`shared` reads."""
+        return self._v, self._c
+
     def shared(self, r: np.ndarray, jac: np.ndarray
                ) -> tuple[float, np.ndarray, np.ndarray]:
         """The correction for the errors the points share: with whitened residuals r (2M,)
