@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from articast.core.faces.eye_landmarks import EYE_CORNERS
-from articast.core.faces.lids import _inside
+from articast.core.faces.lids import _inside_xy, norm2
 from articast.core.tracking import kernels
 
 if TYPE_CHECKING:
@@ -49,14 +49,17 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     raised off the synthetic face's mesh)."""
     lm = np.asarray(landmarks, np.float64)
     inner, outer = lm[EYE_CORNERS[side][0], :2], lm[EYE_CORNERS[side][1], :2]
-    axis = outer - inner
-    length = float(np.linalg.norm(axis))
-    if not np.isfinite(length) or length < 6.0:
+    # (the geometry in Python floats: numpy's float64 operations on these 2-vectors, one at
+    # a time, without ~20 small array calls)
+    ix, iy, ox, oy = float(inner[0]), float(inner[1]), float(outer[0]), float(outer[1])
+    ax, ay = ox - ix, oy - iy
+    length = norm2(ax, ay)
+    if not math.isfinite(length) or length < 6.0:
         return None
-    u = axis / length
-    if u[0] < 0:
-        u = -u  # left to right in the image
-    v = np.array([u[1], -u[0]])  # up in the image
+    ux, uy = ax / length, ay / length
+    if ux < 0:
+        ux, uy = -ux, -uy  # left to right in the image
+    vx, vy = uy, -ux  # up in the image
     scale = aligned.scale
     wins = [w for w in window if w is not None]
     if not wins:
@@ -65,16 +68,16 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     hi = max(w[1] for w in wins)
     r0, r1 = int(math.floor(max(lo, 0.0) * scale)) - 2, int(math.ceil(hi * scale)) + 2
     wide = int(round(1.2 * length))
-    centre = (inner + outer) / 2.0
-    corners = np.array([centre + s_ * u * wide / 2.0 + t * v
-                        for s_ in (-1, 1) for t in (max(r0, 0), r1)])
-    boxed = _inside(grey, corners)
+    cx, cy = (ix + ox) / 2.0, (iy + oy) / 2.0
+    ts = (max(r0, 0), r1)
+    boxed = _inside_xy(grey, [cx + s_ * ux * wide / 2.0 + t * vx for s_ in (-1, 1) for t in ts],
+                       [cy + s_ * uy * wide / 2.0 + t * vy for s_ in (-1, 1) for t in ts])
     if boxed is None:
         return None
     crop, x0, y0 = boxed
     # strip pixel (j, i) <- image centre - u wide/2 + j u + (r1 - i) v: row 0 is the top
-    top = centre - [x0, y0] - u * wide / 2.0 + r1 * v
-    m = np.array([[u[0], -v[0], top[0]], [u[1], -v[1], top[1]]])
+    m = np.array([[ux, -vx, cx - x0 - ux * wide / 2.0 + r1 * vx],
+                  [uy, -vy, cy - y0 - uy * wide / 2.0 + r1 * vy]])
     rows = r1 - max(r0, 0) + 1
     strip = cv2.GaussianBlur(
         cv2.warpAffine(crop, m, (wide + 1, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
@@ -82,7 +85,7 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         (1, 0), sigmaX=0.1, sigmaY=max(0.5, 1.5 * scale))  # ~ a brow's half thickness
     heights = (r1 - np.arange(rows)) / scale  # mm above the corners' line, per row
     cols = np.arange(wide + 1) - wide / 2.0
-    nasal = (cols * float(np.dot(inner - centre, u))) > 0
+    nasal = (cols * float(np.dot(inner - (inner + outer) / 2.0, np.array((ux, uy))))) > 0
     out: list[float | None] = []
     for half, win in zip((nasal, ~nasal), window, strict=True):
         if win is None:
