@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from articast.core.faces import kernels as faces_kernels
 from articast.core.faces.eye_landmarks import EYE_CONTOUR, EYE_CORNERS
 from articast.core.faces.lids import LEVELS_MIN_CONTRAST, _grey
 from articast.core.tracking import kernels
@@ -34,6 +35,7 @@ IRIS_MIN_ROWS = 3
 """An iris seen on fewer rows (chords bounded by white on both sides) is not fitted."""
 _SUB = np.array([-0.25, 0.25])  # sub-rows of a pixel row (a chord is a row's mean)
 _FINE = np.arange(-0.5, 0.5001, 0.05)  # the fine search's steps round the coarse height
+_GLINT = np.ones((1, 3), np.uint8)  # the chords' opening (a glint narrower than 3 px)
 
 
 def _circle_height(ys: np.ndarray, wk: np.ndarray, r: float, cys: np.ndarray) -> float:
@@ -90,6 +92,32 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     contour = np.zeros(patch.shape, np.uint8)
     cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
     grown = cv2.dilate(contour, np.ones((5, 5), np.uint8))
+    if (faces_kernels.AVAILABLE and grey.dtype == np.uint8
+            and patch.size <= faces_kernels.IRIS_MAX_PIXELS):  # the same numbers in one
+        # compiled call (_fit_steps below: the reference)
+        got = faces_kernels.iris_fit(
+            patch, contour, grown, cv2.morphologyEx(patch, cv2.MORPH_OPEN, _GLINT),
+            float(radius_px) if radius_px else 0.0, _FINE, ROW_WHITE, IRIS_MIN_ROWS,
+            LEVELS_MIN_CONTRAST)
+        status, cx, cy, half, ex, ey, rows, skin, white, iris_l, levels = got
+        if status == 0:
+            return None
+        if status == 2:  # (a shaded sclera: the corners' midpoint, as _fit_steps)
+            lm = np.asarray(landmarks, np.float64)
+            ex, ey = (lm[EYE_CORNERS[side][0], :2] + lm[EYE_CORNERS[side][1], :2]) / 2.0 - [
+                x0, y0]
+        return IrisFit(np.array([cx + x0, cy + y0]), float(half),
+                       np.array([ex + x0, ey + y0]), int(rows),
+                       (float(skin), float(white), float(iris_l)) if levels else None)
+    return _fit_steps(patch, contour, grown, landmarks, side, radius_px, x0, y0)
+
+
+def _fit_steps(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray,
+               landmarks: np.ndarray, side: str, radius_px: float | None, x0: int, y0: int
+               ) -> IrisFit | None:
+    """:func:`fit_iris` after the crop (``patch`` float32 at (``x0``, ``y0``) px of the
+    frame, the reader's ``contour`` in it and that ``grown``), step by step (the reference
+    of :func:`~articast.core.faces.kernels.iris_fit`)."""
     inside = patch[contour > 0]
     outside = patch[grown == 0]
     if inside.size < 12 or outside.size < 12:

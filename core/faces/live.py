@@ -41,6 +41,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from articast.core.faces import kernels as faces_kernels
 from articast.core.faces import lipgap
 from articast.core.faces.enrol import LandmarkScheme
 from articast.core.faces.finder import FaceFinder, FinderPolicy, reader_seed
@@ -474,6 +475,7 @@ class LiveTracker:
         # the upper face (eyes, brows) from this frame's landmarks, or between readings
         # from the eyes' pixels (core/faces/upper.py)
         self.upper = UpperTracker(speaker.upper, speaker.rig, clock=clock)
+        faces_kernels.warm_up()  # (its compiled iris fit loaded before the first frame, not in it)
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
