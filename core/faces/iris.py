@@ -4,6 +4,7 @@ lid measures use (:mod:`articast.core.faces.upper`, docs/UPPER_FACE.md)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -36,6 +37,8 @@ IRIS_MIN_ROWS = 3
 _SUB = np.array([-0.25, 0.25])  # sub-rows of a pixel row (a chord is a row's mean)
 _FINE = np.arange(-0.5, 0.5001, 0.05)  # the fine search's steps round the coarse height
 _GLINT = np.ones((1, 3), np.uint8)  # the chords' opening (a glint narrower than 3 px)
+_GROW = np.ones((5, 5), np.uint8)  # the contour grown by 2 px
+_CONTOUR = {side: np.array(EYE_CONTOUR[side]) for side in EYE_CONTOUR}
 
 
 def _circle_height(ys: np.ndarray, wk: np.ndarray, r: float, cys: np.ndarray) -> float:
@@ -80,18 +83,20 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     desk webcams of cap12 and cap13) the pixels cannot tell the opening from the skin and
     the middle of the reader's corners is its centre. None when the eye is too closed, too
     small or outside the image, or no iris/white contrast is found."""
-    poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
-    if not np.all(np.isfinite(poly)):
+    poly = np.asarray(landmarks, np.float64)[_CONTOUR[side], :2]
+    xs, ys = poly[:, 0].tolist(), poly[:, 1].tolist()  # (the bounds in Python floats: the
+    # same numbers as numpy's min, max, floor and ceil, without their calls)
+    if not all(math.isfinite(v) for v in xs + ys):
         return None
-    x0, y0 = np.floor(poly.min(0)).astype(int) - 3
-    x1, y1 = np.ceil(poly.max(0)).astype(int) + 4
+    x0, y0 = math.floor(min(xs)) - 3, math.floor(min(ys)) - 3
+    x1, y1 = math.ceil(max(xs)) + 4, math.ceil(max(ys)) + 4
     h, w = grey.shape[:2]
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 12 or y1 - y0 < 8:
         return None
     patch = _grey(grey[y0:y1, x0:x1]).astype(np.float32)
     contour = np.zeros(patch.shape, np.uint8)
     cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
-    grown = cv2.dilate(contour, np.ones((5, 5), np.uint8))
+    grown = cv2.dilate(contour, _GROW)
     if (faces_kernels.AVAILABLE and grey.dtype == np.uint8
             and patch.size <= faces_kernels.IRIS_MAX_PIXELS):  # the same numbers in one
         # compiled call (_fit_steps below: the reference)

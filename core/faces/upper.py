@@ -38,7 +38,8 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -161,6 +162,15 @@ class UpperReference:
     def brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
         """Side ``i``'s live brow search windows (inner, outer: mm above the eye line; None
         for a half whose band was not found at enrolment), None when neither was."""
+        return self._brow_windows[i]
+
+    @cached_property
+    def _brow_windows(self) -> tuple[tuple[tuple[float, float] | None, ...] | None, ...]:
+        """Both sides' :meth:`brow_window`, worked out once (the reference does not change;
+        the live frame asks for them up to six times)."""
+        return tuple(self._brow_window(i) for i in range(2))
+
+    def _brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
         band = self.brow_band_mm[2 * i:2 * i + 2]
         if max(band) <= 0:
             return None
@@ -418,7 +428,7 @@ def lids_only_numpy(lm: np.ndarray, canon: CanonicalFace
 
 # (the points these read, per side, in one index each: a few Python float operations on
 # the values instead of ~10 small numpy calls per measure; the same sums in the same order
-# as numpy's mean of 2 or 3 values, so the same numbers)
+# as numpy's mean of 2 or 3 values, from 0.0 as numpy's, so the same numbers)
 _LIDS_Y = {s: [i for pair in LID_PAIRS[s] for i in pair] for s in SIDES}  # u0 l0 u1 l1 u2 l2
 _BROWS_Y = {s: [*EYE_CORNERS[s], *BROW_POINTS[s]["inner"], *BROW_POINTS[s]["outer"]]
             for s in SIDES}
@@ -429,7 +439,7 @@ def lid_opening_mm(points: np.ndarray) -> tuple[float, float]:
     out = []
     for s in SIDES:
         u0, l0, u1, l1, u2, l2 = points[_LIDS_Y[s], 1].tolist()
-        out.append(((u0 - l0) + (u1 - l1) + (u2 - l2)) / 3)
+        out.append((0.0 + (u0 - l0) + (u1 - l1) + (u2 - l2)) / 3)
     return out[0], out[1]
 
 
@@ -440,7 +450,7 @@ def lower_lids_mm(points: np.ndarray) -> tuple[float, float]:
     for s in SIDES:
         _, l0, _, l1, _, l2 = points[_LIDS_Y[s], 1].tolist()
         c0, c1 = points[list(EYE_CORNERS[s]), 1].tolist()
-        out.append((l0 + l1 + l2) / 3 - (c0 + c1) / 2)
+        out.append((0.0 + l0 + l1 + l2) / 3 - (0.0 + c0 + c1) / 2)
     return out[0], out[1]
 
 
@@ -450,7 +460,7 @@ def inner_brows_x_mm(points: np.ndarray) -> tuple[float, float]:
     right)."""
     l0, l1 = points[list(BROW_POINTS["left"]["inner"]), 0].tolist()
     r0, r1 = points[list(BROW_POINTS["right"]["inner"]), 0].tolist()
-    return (l0 + l1) / 2, -((r0 + r1) / 2)
+    return (0.0 + l0 + l1) / 2, -((0.0 + r0 + r1) / 2)
 
 
 def brow_heights_mm(points: np.ndarray) -> np.ndarray:
@@ -459,8 +469,8 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     out = []
     for s in SIDES:
         c0, c1, i0, i1, o0, o1 = points[_BROWS_Y[s], 1].tolist()
-        eye_y = (c0 + c1) / 2
-        out += [(i0 + i1) / 2 - eye_y, (o0 + o1) / 2 - eye_y]
+        eye_y = (0.0 + c0 + c1) / 2
+        out += [(0.0 + i0 + i1) / 2 - eye_y, (0.0 + o0 + o1) / 2 - eye_y]
     return np.array(out)
 
 
@@ -1052,8 +1062,7 @@ class UpperTracker:
                                   self._corners[i, 1] + shift)
                       if used else None for i, used in enumerate(self._followed()))
         if lids is not None and (read := lids_only(lids, self.canon)) is not None:
-            return self._from(replace(self._last, opening=read[0], yaw_deg=read[1]), "lids",
-                              photo)  # type: ignore[arg-type]
+            return self._from(self._last, "lids", photo, read)  # type: ignore[arg-type]
         return self._from(self._last, "photo", photo)  # type: ignore[arg-type]
 
     def _shift(self, anchor: np.ndarray | None) -> np.ndarray:
@@ -1117,16 +1126,21 @@ class UpperTracker:
         return measured
 
     def _from(self, m: Measures, source: str,
-              photo: tuple[float | None, float | None] | None = None) -> UpperFace:
+              photo: tuple[float | None, float | None] | None = None,
+              lids: tuple[tuple[float, float], float] | None = None) -> UpperFace:
+        """The upper face of measures ``m`` (``source`` "reader", "lids" or "photo"; ``photo``
+        each eye's photometric measure between readings; ``lids``: this frame's lid opening
+        and yaw, :func:`lids_only`, in place of ``m``'s)."""
         ref = self.reference
         assert ref is not None
-        if abs(m.yaw_deg) > MAX_YAW_DEG:
-            why = f"turned: the head is turned {abs(m.yaw_deg):.0f} deg from the camera"
+        opening, yaw_deg = (m.opening, m.yaw_deg) if lids is None else lids
+        if abs(yaw_deg) > MAX_YAW_DEG:
+            why = f"turned: the head is turned {abs(yaw_deg):.0f} deg from the camera"
             return UpperFace.absent(why)
         cl, wide = [], []
         for i in range(2):
-            c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
-            w = (m.opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
+            c = closure(opening[i], ref.open_mm[i], ref.closed_mm[i])
+            w = (opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
             x = m.photometric(ref.photo_kind[i], i) if photo is None else photo[i]
             usable = x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R
             # on a reading's frame (unless ``photometric``) both measures are averaged: two
@@ -1176,7 +1190,8 @@ class UpperTracker:
             # median: a speaker who looked round while enrolling would shift it)
             offs = [iris[:2] for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
             if offs:
-                dx, dy = np.mean(offs, axis=0)
+                dx = sum(o[0] for o in offs) / len(offs)  # (numpy's mean of the 1-2 eyes)
+                dy = sum(o[1] for o in offs) / len(offs)
                 gaze = (math.degrees(math.asin(_clip(float(dx) / EYE_RADIUS_MM, -1.0, 1.0))),
                         math.degrees(math.asin(_clip(float(dy) / EYE_RADIUS_MM, -1.0, 1.0))))
                 self._gaze, self._gaze_misses = gaze, 0
