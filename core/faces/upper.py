@@ -36,6 +36,7 @@ Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll``
 from __future__ import annotations
 
 import math
+import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -350,17 +351,35 @@ class Aligned:
     yaw_deg: float
 
 
+_RIGID: weakref.WeakKeyDictionary[CanonicalFace, tuple[np.ndarray, ...]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _rigid(canon: CanonicalFace) -> tuple[np.ndarray, ...]:
+    """The canonical face's side of :func:`align`'s Procrustes, worked out once per face (the
+    same arrays each reading computed before): the rigid points' ids (33,), their weights
+    normalised (33,), the points (33, 3) mm, their weighted mean (3,) mm and the weighted,
+    centred points transposed (3, 33) mm."""
+    got = _RIGID.get(canon)
+    if got is None:
+        ids, w = canon.procrustes_ids, canon.procrustes_weights
+        b = canon.vertices_mm[ids]
+        wn = w / w.sum()
+        mb = wn @ b
+        got = _RIGID[canon] = (ids, wn, b, mb, ((b - mb) * wn[:, None]).T)
+    return got
+
+
 def align(landmarks: np.ndarray, canon: CanonicalFace) -> Aligned | None:
     """Similarity Procrustes of a reading (>=468, 3: x, y px, z depth px, image frame) onto
     the canonical face on MediaPipe's rigid points; None for a degenerate reading."""
     lm = np.asarray(landmarks, np.float64)[:468]
     src = np.column_stack([lm[:, 0], -lm[:, 1], -lm[:, 2]])  # -> x right, y up, z forward
-    ids, w = canon.procrustes_ids, canon.procrustes_weights
-    a, b = src[ids], canon.vertices_mm[ids]
-    wn = w / w.sum()
-    ma, mb = wn @ a, wn @ b
-    ac, bc = a - ma, b - mb
-    cov = (bc * wn[:, None]).T @ ac
+    ids, wn, _, mb, bcw = _rigid(canon)
+    a = src[ids]
+    ma = wn @ a
+    ac = a - ma
+    cov = bcw @ ac
     if not np.all(np.isfinite(cov)):
         return None
     u, s, vt = np.linalg.svd(cov)
@@ -390,10 +409,9 @@ def lids_only(landmarks: np.ndarray, canon: CanonicalFace
     a degenerate reading. ~0.1 of ``align``'s cost, for the frames whose reading is read for
     the lids alone (:meth:`UpperTracker.step`'s ``lids``)."""
     lm = np.asarray(landmarks, np.float64)
-    ids, w = canon.procrustes_ids, canon.procrustes_weights
     if kernels.AVAILABLE:  # the same numbers in one compiled call
-        out = kernels.lids_read(lm, ids, w / w.sum(), canon.vertices_mm[ids], _LID_UPPER,
-                                _LID_LOWER)
+        ids, wn, b, _, _ = _rigid(canon)
+        out = kernels.lids_read(lm, ids, wn, b, _LID_UPPER, _LID_LOWER)
         return ((float(out[0]), float(out[1])), float(out[2])) if out[3] else None
     return lids_only_numpy(lm, canon)
 
