@@ -57,7 +57,8 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     if not math.isfinite(length) or length < 6.0:
         return None
     ux, uy = ax / length, ay / length
-    if ux < 0:
+    flipped = ux < 0
+    if flipped:
         ux, uy = -ux, -uy  # left to right in the image
     vx, vy = uy, -ux  # up in the image
     scale = aligned.scale
@@ -83,23 +84,26 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
         cv2.warpAffine(crop, m, (wide + 1, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                        borderMode=cv2.BORDER_REPLICATE).astype(np.float32),
         (1, 0), sigmaX=0.1, sigmaY=max(0.5, 1.5 * scale))  # ~ a brow's half thickness
-    heights = (r1 - np.arange(rows)) / scale  # mm above the corners' line, per row
-    cols = np.arange(wide + 1) - wide / 2.0
-    nasal = (cols * float(np.dot(inner - (inner + outer) / 2.0, np.array((ux, uy))))) > 0
+    heights = [(r1 - i) / scale for i in range(rows)]  # mm above the corners' line, per row
+    # each half's columns: the nasal half is the strip's right one when the corners run right
+    # to left in the image (u turned round above), else its left one; the middle column
+    # (wide even) is the outer half's (the masks of column - wide / 2 times the inner corner's
+    # side, > 0 for nasal, as runs of columns)
+    nasal = (wide // 2 + 1, wide) if flipped else (0, (wide - 1) // 2)
+    temporal = (0, wide // 2) if flipped else ((wide + 1) // 2, wide)
     out: list[float | None] = []
-    for half, win in zip((nasal, ~nasal), window, strict=True):
+    for (c0, c1), win in zip((nasal, temporal), window, strict=True):
         if win is None:
             out.append(None)
             continue
-        sel = (heights >= win[0]) & (heights <= win[1])
-        if sel.sum() < 3 or half.sum() < 3:
+        rs = [i for i, h in enumerate(heights) if win[0] <= h <= win[1]]  # (one run of rows)
+        if len(rs) < 3 or c1 - c0 + 1 < 3:
             out.append(None)
             continue
-        rs, cs = np.flatnonzero(sel), np.flatnonzero(half)  # (both contiguous)
-        sub = strip[rs[0]:rs[-1] + 1, cs[0]:cs[-1] + 1]
+        sub = strip[rs[0]:rs[-1] + 1, c0:c1 + 1]
         if kernels.AVAILABLE:  # the same numbers in one compiled call (the numpy below: the
             # reference)
-            found, at = kernels.brow_half(sub, float(heights[rs[0]]), float(scale))
+            found, at = kernels.brow_half(sub, heights[rs[0]], float(scale))
             out.append(float(at) if found else None)
             continue
         out.append(_brow_half_numpy(sub, heights[rs[0]], scale))
