@@ -479,6 +479,8 @@ class LiveTracker:
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
+        self._rotation_of: Pose | None = None  # the last pose whose matrix was worked out
+        self._rotation = np.eye(3)  # (:meth:`_matrix`)
         if fu is not None:
             if reader is None:  # the bundled one, on one thread, cropping as the policy
                 # says (it runs no detector: the finder's session is shared, not loaded again)
@@ -650,7 +652,7 @@ class LiveTracker:
             if kernels.AVAILABLE and not cam.dist.any():
                 mean, basis = lipgap.lip_points(m)
                 fitted = float(kernels.lip_ratio(
-                    mean, basis, result.pose.matrix, np.array(result.pose.translation),
+                    mean, basis, self._matrix(result.pose), np.array(result.pose.translation),
                     np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
                     np.array(result.alpha, np.float64)))
             else:
@@ -667,7 +669,7 @@ class LiveTracker:
         if kernels.AVAILABLE and not cam.dist.any():  # the same below, in one compiled call
             mean, basis = lipgap.lip_points(m)
             pose = result.pose
-            return kernels.lip_gap(mean, basis, pose.matrix, np.array(pose.translation),
+            return kernels.lip_gap(mean, basis, self._matrix(pose), np.array(pose.translation),
                                    np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
                                    np.array(alpha, np.float64), np.array(result.alpha, np.float64),
                                    float(read), float(w), lipgap.PROBE_STEP,
@@ -696,11 +698,21 @@ class LiveTracker:
             self._eyes_frame = self._frame
         anchor = None
         if result.ok or result.reason.startswith("occluded"):
-            anchor = self.speaker.camera.project_head(self._head_point[None], result.pose)[0]
+            # (Camera.project_head: project(pose.transform(point)), the rotation worked out
+            # once a frame)
+            anchor = self.speaker.camera.project(
+                self._head_point[None] @ self._matrix(result.pose).T + result.pose.translation)[0]
         if result.ok:  # (where the next frame's eyes are looked for, :meth:`_eyes_changed`)
             self._last_anchor = anchor
         return self.upper.step(image, marks, anchor,
                                result.ok or result.reason.startswith("occluded"), lids)
+
+    def _matrix(self, pose: Pose) -> np.ndarray:
+        """``pose.matrix`` (3, 3), worked out once per pose (a frame's result's is asked for
+        up to four times: judged, the eyes' anchor, the lips' gap twice; a Pose is immutable)."""
+        if self._rotation_of is not pose:
+            self._rotation_of, self._rotation = pose, pose.matrix
+        return self._rotation
 
     def _eyes_changed(self, image: np.ndarray) -> bool:
         """Whether the upper face asks for this frame between readings to be read (the head's
@@ -1048,7 +1060,7 @@ class LiveTracker:
         if not result.ok:
             return result
         pm = self.point_model
-        off = self._offset(result.alpha, result.pose.matrix, result.pose.translation,
+        off = self._offset(result.alpha, self._matrix(result.pose), result.pose.translation,
                            reading.landmarks[pm.landmarks, :2])
         limit = fu.agreement * pm.offset_p99
         result = replace(result, extra={**result.extra, "landmark_offset": off})

@@ -351,6 +351,7 @@ class Aligned:
     yaw_deg: float
 
 
+_FLIP = np.array([1.0, -1.0, -1.0])  # image (x right, y down, z away) -> head frame axes
 _RIGID: weakref.WeakKeyDictionary[CanonicalFace, tuple[np.ndarray, ...]] = (
     weakref.WeakKeyDictionary())
 
@@ -374,7 +375,7 @@ def align(landmarks: np.ndarray, canon: CanonicalFace) -> Aligned | None:
     """Similarity Procrustes of a reading (>=468, 3: x, y px, z depth px, image frame) onto
     the canonical face on MediaPipe's rigid points; None for a degenerate reading."""
     lm = np.asarray(landmarks, np.float64)[:468]
-    src = np.column_stack([lm[:, 0], -lm[:, 1], -lm[:, 2]])  # -> x right, y up, z forward
+    src = lm * _FLIP  # -> x right, y up, z forward
     ids, wn, _, mb, bcw = _rigid(canon)
     a = src[ids]
     ma = wn @ a
