@@ -191,6 +191,11 @@ def lip_box(landmarks: np.ndarray) -> np.ndarray:
     landmarks, :data:`LIP_BOX_POINTS`); NaN where not read."""
     if len(landmarks) <= max(LIP_BOX_POINTS):
         return np.full(4, np.nan)
+    # (four points: their bounds in Python floats, numpy's where all are finite)
+    xs = [float(landmarks[i][0]) for i in LIP_BOX_POINTS]
+    ys = [float(landmarks[i][1]) for i in LIP_BOX_POINTS]
+    if all(math.isfinite(v) for v in xs + ys):
+        return np.array([min(xs), min(ys), max(xs), max(ys)])
     pts = np.asarray(landmarks)[list(LIP_BOX_POINTS), :2].astype(np.float64)
     return np.concatenate([pts.min(0), pts.max(0)])
 

@@ -34,6 +34,7 @@ fit (:meth:`LiveTracker._unfamiliar`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -626,8 +627,8 @@ class LiveTracker:
             change = lipgap.patch_change(lipgap.mouth_patch(image, box), patch)
         box = (np.full(4, np.nan) if self._fresh is None
                else lipgap.lip_box(np.asarray(self._fresh.landmarks)))
-        self._mouth = ((box, lipgap.mouth_patch(image, box)) if np.all(np.isfinite(box))
-                       else None)
+        self._mouth = ((box, lipgap.mouth_patch(image, box))
+                       if all(math.isfinite(v) for v in box.tolist()) else None)
         was, self._mouth_was = self._mouth_was, change
         return was if not np.isfinite(change) or was > change else change
 
