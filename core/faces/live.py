@@ -699,14 +699,23 @@ class LiveTracker:
             self._eyes_frame = self._frame
         anchor = None
         if result.ok or result.reason.startswith("occluded"):
-            # (Camera.project_head: project(pose.transform(point)), the rotation worked out
-            # once a frame)
-            anchor = self.speaker.camera.project(
-                self._head_point[None] @ self._matrix(result.pose).T + result.pose.translation)[0]
+            anchor = self._head_in_image(result.pose)
         if result.ok:  # (where the next frame's eyes are looked for, :meth:`_eyes_changed`)
             self._last_anchor = anchor
         return self.upper.step(image, marks, anchor,
                                result.ok or result.reason.startswith("occluded"), lids)
+
+    def _head_in_image(self, pose: Pose) -> np.ndarray:
+        """(2,) px: the head's point at ``pose`` (``Camera.project_head``: the pose's transform
+        with the rotation worked out once a frame, :meth:`_matrix`; an undistorted camera's
+        projection of the one point in Python floats, the same operations as its numpy's)."""
+        cam = self.speaker.camera
+        p = self._head_point[None] @ self._matrix(pose).T + pose.translation
+        if cam.dist.any():
+            return cam.project(p)[0]
+        x, y, z = p[0].tolist()
+        iz = 1.0 / z if z > 1e-6 else math.nan
+        return np.array([cam.fx * (x * iz) + cam.cx, cam.fy * (y * iz) + cam.cy])
 
     def _matrix(self, pose: Pose) -> np.ndarray:
         """``pose.matrix`` (3, 3), worked out once per pose (a frame's result's is asked for
