@@ -86,7 +86,7 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     poly = np.asarray(landmarks, np.float64)[_CONTOUR[side], :2]
     xs, ys = poly[:, 0].tolist(), poly[:, 1].tolist()  # (the bounds in Python floats: the
     # same numbers as numpy's min, max, floor and ceil, without their calls)
-    if not all(math.isfinite(v) for v in xs + ys):
+    if not all(map(math.isfinite, xs + ys)):
         return None
     x0, y0 = math.floor(min(xs)) - 3, math.floor(min(ys)) - 3
     x1, y1 = math.ceil(max(xs)) + 4, math.ceil(max(ys)) + 4

@@ -51,7 +51,7 @@ from articast.core.faces.lipgap import matched, model_ratios, reader_ratio
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.faces.upper import UpperTracker
-from articast.core.model.camera import Pose, axis_angle, rotation_matrix
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
 from articast.core.outputs.lips import lip_measures, lips_dict
 from articast.core.tracking import kernels
 from articast.core.tracking.filters import CadenceCanceller, OneEuroFilter, OneEuroPolicy
@@ -388,6 +388,17 @@ def _contrast(pixels: np.ndarray) -> float:
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
+def project_one(camera: Camera, point: np.ndarray) -> np.ndarray:
+    """``camera.project`` of one camera-frame point (3,) mm -> (2,) px (NaN behind the
+    camera): an undistorted camera's in Python floats, the same operations as its numpy code
+    without its ~10 array calls a frame; a distorted one's as it is."""
+    if camera.dist.any():
+        return camera.project(point[None])[0]
+    x, y, z = point.tolist()
+    iz = 1.0 / z if z > 1e-6 else math.nan
+    return np.array([camera.fx * (x * iz) + camera.cx, camera.fy * (y * iz) + camera.cy])
+
+
 def live_policy(rig: str, **changes: Any) -> TrackingPolicy:
     """The tracking policy of a live speaker on ``rig``: the rig's, plus the motion prior."""
     pol = TrackingPolicy.for_rig(rig, **changes)
@@ -628,7 +639,7 @@ class LiveTracker:
         box = (np.full(4, np.nan) if self._fresh is None
                else lipgap.lip_box(np.asarray(self._fresh.landmarks)))
         self._mouth = ((box, lipgap.mouth_patch(image, box))
-                       if all(math.isfinite(v) for v in box.tolist()) else None)
+                       if all(map(math.isfinite, box.tolist())) else None)
         was, self._mouth_was = self._mouth_was, change
         return was if not np.isfinite(change) or was > change else change
 
@@ -706,16 +717,10 @@ class LiveTracker:
                                result.ok or result.reason.startswith("occluded"), lids)
 
     def _head_in_image(self, pose: Pose) -> np.ndarray:
-        """(2,) px: the head's point at ``pose`` (``Camera.project_head``: the pose's transform
-        with the rotation worked out once a frame, :meth:`_matrix`; an undistorted camera's
-        projection of the one point in Python floats, the same operations as its numpy's)."""
-        cam = self.speaker.camera
-        p = self._head_point[None] @ self._matrix(pose).T + pose.translation
-        if cam.dist.any():
-            return cam.project(p)[0]
-        x, y, z = p[0].tolist()
-        iz = 1.0 / z if z > 1e-6 else math.nan
-        return np.array([cam.fx * (x * iz) + cam.cx, cam.fy * (y * iz) + cam.cy])
+        """(2,) px: the head's point at ``pose`` (``Camera.project_head``: the pose's transform,
+        with the rotation worked out once a frame, :meth:`_matrix`, then :func:`project_one`)."""
+        return project_one(self.speaker.camera,
+                           (self._head_point[None] @ self._matrix(pose).T + pose.translation)[0])
 
     def _matrix(self, pose: Pose) -> np.ndarray:
         """``pose.matrix`` (3, 3), worked out once per pose (a frame's result's is asked for

@@ -89,7 +89,7 @@ def lips_dict(model: FaceModel, alpha: np.ndarray) -> dict[str, float] | None:
     a = np.asarray(alpha, np.float64)
     if a.ndim == 1:
         values = a.tolist()
-        if not all(math.isfinite(v) for v in values):
+        if not all(map(math.isfinite, values)):
             return None
         ap, wd = _lip_measures_one(model, values)
     else:
