@@ -371,6 +371,14 @@ def _rigid(canon: CanonicalFace) -> tuple[np.ndarray, ...]:
     return got
 
 
+def _det3(m: list[list[float]]) -> float:
+    """The determinant of a 3 x 3 matrix (rows of Python floats), by its first row's
+    cofactors."""
+    return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
+
+
 def align(landmarks: np.ndarray, canon: CanonicalFace) -> Aligned | None:
     """Similarity Procrustes of a reading (>=468, 3: x, y px, z depth px, image frame) onto
     the canonical face on MediaPipe's rigid points; None for a degenerate reading."""
@@ -381,16 +389,19 @@ def align(landmarks: np.ndarray, canon: CanonicalFace) -> Aligned | None:
     ma = wn @ a
     ac = a - ma
     cov = bcw @ ac
-    if not np.all(np.isfinite(cov)):
+    if not all(map(math.isfinite, cov.ravel().tolist())):
         return None
     u, s, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
+    # (the sign of det(u @ vt), +-1: the product of u's and vt's, both orthogonal, by their
+    # cofactors in Python floats; and the scale's sum of three in floats, from 0.0 as numpy's)
+    d = 1.0 if _det3(u.tolist()) * _det3(vt.tolist()) > 0 else -1.0
     rot = u @ np.diag([1.0, 1.0, d]) @ vt  # src -> canonical
     var = float((wn * np.sum(ac ** 2, axis=1)).sum())
     if var <= 1e-9:
         return None
-    scale = float((s * [1.0, 1.0, d]).sum() / var)  # mm per px
-    if not np.isfinite(scale) or scale <= 0:
+    s0, s1, s2 = s.tolist()
+    scale = (0.0 + s0 + s1 + s2 * d) / var  # mm per px
+    if not math.isfinite(scale) or scale <= 0:
         return None
     pts = (src - ma) @ rot.T * scale + mb
     # rot maps the face's frame as seen to the canonical: its inverse is the head's rotation
