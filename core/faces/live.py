@@ -492,6 +492,9 @@ class LiveTracker:
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         self._rotation_of: Pose | None = None  # the last pose whose matrix was worked out
+        cam = speaker.camera  # (the lips' compiled gap: an undistorted camera's intrinsics)
+        self._pinhole = not cam.dist.any()
+        self._intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
         self._rotation = np.eye(3)  # (:meth:`_matrix`)
         if fu is not None:
             if reader is None:  # the bundled one, on one thread, cropping as the policy
@@ -655,18 +658,19 @@ class LiveTracker:
             self._fit_gap = None
             return alpha
         read = result.extra.get("reader_ratio", float("nan"))
-        if not np.isfinite(read):
+        if not math.isfinite(read):
             self._fit_gap = None
             return alpha
         m, cam = self.speaker.model, self.speaker.camera
         w = fu.reader_gap
+        compiled = kernels.AVAILABLE and self._pinhole
+        if compiled:  # (the compiled calls' arguments, each made once a frame)
+            mean, basis = lipgap.lip_points(m)
+            rot, t = self._matrix(result.pose), np.array(result.pose.translation)
+            fit = np.array(result.alpha, np.float64)
         if fu.still_mouth is not None and w < 1.0:
-            if kernels.AVAILABLE and not cam.dist.any():
-                mean, basis = lipgap.lip_points(m)
-                fitted = float(kernels.lip_ratio(
-                    mean, basis, self._matrix(result.pose), np.array(result.pose.translation),
-                    np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
-                    np.array(result.alpha, np.float64)))
+            if compiled:
+                fitted = float(kernels.lip_ratio(mean, basis, rot, t, self._intrinsics, fit))
             else:
                 fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
             if not np.isfinite(fitted):
@@ -678,14 +682,10 @@ class LiveTracker:
                     self._fit_gap += lipgap.still_gain(change, fu.still_mouth) * (
                         fitted - self._fit_gap)
                 read, w = w * read + (1.0 - w) * self._fit_gap, 1.0  # (the target)
-        if kernels.AVAILABLE and not cam.dist.any():  # the same below, in one compiled call
-            mean, basis = lipgap.lip_points(m)
-            pose = result.pose
-            return kernels.lip_gap(mean, basis, self._matrix(pose), np.array(pose.translation),
-                                   np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
-                                   np.array(alpha, np.float64), np.array(result.alpha, np.float64),
-                                   float(read), float(w), lipgap.PROBE_STEP,
-                                   lipgap.MAX_CHANGE, lipgap.TOLERANCE)
+        if compiled:  # the same below, in one compiled call
+            return kernels.lip_gap(mean, basis, rot, t, self._intrinsics,
+                                   np.array(alpha, np.float64), fit, float(read), float(w),
+                                   lipgap.PROBE_STEP, lipgap.MAX_CHANGE, lipgap.TOLERANCE)
         target = read
         if w < 1.0:  # the fit's own opening, raw (before the output filter: no lag)
             fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
