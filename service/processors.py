@@ -62,17 +62,36 @@ def _warm_up(context: ProcessorContext, only: tuple[str, ...] | None = None) -> 
     """Compile (first run) or load the cost kernels before frames flow (``only``: those the
     processor calls, :func:`articast.core.tracking.kernels.warm_up`), saying so when it
     compiles: a worker that is starting is not stalled."""
-    from articast.core.tracking import kernels
-
-    if kernels.compiled_on_disk(only):
-        kernels.warm_up(only)  # loaded from numba's cache
+    if kernels_on_disk(only):
+        warm_up_kernels(only)  # loaded from numba's cache
     elif context.busy is not None:
         with context.busy(COMPILING):
-            kernels.warm_up(only)
+            warm_up_kernels(only)
     else:
         if context.progress is not None:
             context.progress(COMPILING)
-        kernels.warm_up(only)
+        warm_up_kernels(only)
+
+
+def kernels_on_disk(only: tuple[str, ...] | None = None) -> bool:
+    """Whether numba's cache holds the kernels :func:`warm_up_kernels` would compile."""
+    from articast.core.faces import kernels as faces_kernels
+    from articast.core.tracking import kernels
+
+    return kernels.compiled_on_disk(only) and (only is not None
+                                               or faces_kernels.compiled_on_disk())
+
+
+def warm_up_kernels(only: tuple[str, ...] | None = None) -> None:
+    """Compile or load the tracking kernels (``only``: those,
+    :func:`articast.core.tracking.kernels.warm_up`); with ``only`` None, the whole live
+    face's, the upper face's compiled iris fit too (:mod:`articast.core.faces.kernels`)."""
+    from articast.core.faces import kernels as faces_kernels
+    from articast.core.tracking import kernels
+
+    kernels.warm_up(only)
+    if only is None:
+        faces_kernels.warm_up()
 
 
 class TruthProcessor:

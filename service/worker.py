@@ -44,9 +44,11 @@ from articast.service.preview import PreviewPolicy, render_preview
 from articast.service.processors import (
     COMPILING,
     ProcessorContext,
+    kernels_on_disk,
     load_assets,
     load_speaker,
     make_processor,
+    warm_up_kernels,
 )
 from articast.service.record import Recorder
 from articast.service.settings import CaptureSettings
@@ -274,11 +276,9 @@ def _compile_kernels(busy_with: Callable[[str], contextlib.AbstractContextManage
     """Compile the tracker's kernels (``only``: those) if numba's cache lacks them (a first
     run), saying so and that it is alive; in a thread beside the source's opening, which on
     a first run builds its own caches."""
-    from articast.core.tracking import kernels
-
-    if not kernels.compiled_on_disk(only):
+    if not kernels_on_disk(only):
         with busy_with(COMPILING):
-            kernels.warm_up(only)
+            warm_up_kernels(only)
 
 
 def _record(seq: int, index: int, t: float, t_capture: float, t_tracked: float,

@@ -37,3 +37,21 @@ def test_lips_dict_is_none_without_inner_lip_points_or_finite_alpha():
     d = lips_dict(model, np.zeros(model.n_params))
     ap, wd = lip_measures(model, np.zeros(model.n_params))
     assert d == {"aperture_mm": round(float(ap), 3), "width_mm": round(float(wd), 3)}
+
+
+def test_one_frames_lips_in_python_floats_are_numpys_to_the_bit():
+    """lips_dict's one-frame path (Python floats: einsum's sums over K from 0.0, the norm's
+    squares) gives lip_measures' numpy numbers to the bit, before any rounding."""
+    from articast.core.outputs.lips import _lip_measures_one
+
+    sp = SyntheticSpeaker(0)
+    model = sp.model()
+    rng = np.random.default_rng(2)
+    alphas = rng.normal(size=(3000, model.n_params)) * rng.choice([0.05, 1.0, 4.0], (3000, 1))
+    ap, wd = lip_measures(model, alphas)
+    got = [_lip_measures_one(model, a.tolist()) for a in alphas]
+    assert [g[0] for g in got] == ap.tolist() and [g[1] for g in got] == wd.tolist()
+    for a in alphas[:50]:  # and the dict of one frame, as before
+        x, y = lip_measures(model, a)
+        assert lips_dict(model, a) == {"aperture_mm": round(float(x), 3),
+                                       "width_mm": round(float(y), 3)}

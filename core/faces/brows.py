@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from articast.core.faces.eye_landmarks import EYE_CORNERS
-from articast.core.faces.lids import _inside
+from articast.core.faces.lids import _inside_xy, norm2
 from articast.core.tracking import kernels
 
 if TYPE_CHECKING:
@@ -49,14 +49,18 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     raised off the synthetic face's mesh)."""
     lm = np.asarray(landmarks, np.float64)
     inner, outer = lm[EYE_CORNERS[side][0], :2], lm[EYE_CORNERS[side][1], :2]
-    axis = outer - inner
-    length = float(np.linalg.norm(axis))
-    if not np.isfinite(length) or length < 6.0:
+    # (the geometry in Python floats: numpy's float64 operations on these 2-vectors, one at
+    # a time, without ~20 small array calls)
+    ix, iy, ox, oy = float(inner[0]), float(inner[1]), float(outer[0]), float(outer[1])
+    ax, ay = ox - ix, oy - iy
+    length = norm2(ax, ay)
+    if not math.isfinite(length) or length < 6.0:
         return None
-    u = axis / length
-    if u[0] < 0:
-        u = -u  # left to right in the image
-    v = np.array([u[1], -u[0]])  # up in the image
+    ux, uy = ax / length, ay / length
+    flipped = ux < 0
+    if flipped:
+        ux, uy = -ux, -uy  # left to right in the image
+    vx, vy = uy, -ux  # up in the image
     scale = aligned.scale
     wins = [w for w in window if w is not None]
     if not wins:
@@ -65,38 +69,41 @@ def brow_band_mm(grey: np.ndarray, landmarks: np.ndarray, aligned: Aligned, side
     hi = max(w[1] for w in wins)
     r0, r1 = int(math.floor(max(lo, 0.0) * scale)) - 2, int(math.ceil(hi * scale)) + 2
     wide = int(round(1.2 * length))
-    centre = (inner + outer) / 2.0
-    corners = np.array([centre + s_ * u * wide / 2.0 + t * v
-                        for s_ in (-1, 1) for t in (max(r0, 0), r1)])
-    boxed = _inside(grey, corners)
+    cx, cy = (ix + ox) / 2.0, (iy + oy) / 2.0
+    ts = (max(r0, 0), r1)
+    boxed = _inside_xy(grey, [cx + s_ * ux * wide / 2.0 + t * vx for s_ in (-1, 1) for t in ts],
+                       [cy + s_ * uy * wide / 2.0 + t * vy for s_ in (-1, 1) for t in ts])
     if boxed is None:
         return None
     crop, x0, y0 = boxed
     # strip pixel (j, i) <- image centre - u wide/2 + j u + (r1 - i) v: row 0 is the top
-    top = centre - [x0, y0] - u * wide / 2.0 + r1 * v
-    m = np.array([[u[0], -v[0], top[0]], [u[1], -v[1], top[1]]])
+    m = np.array([[ux, -vx, cx - x0 - ux * wide / 2.0 + r1 * vx],
+                  [uy, -vy, cy - y0 - uy * wide / 2.0 + r1 * vy]])
     rows = r1 - max(r0, 0) + 1
     strip = cv2.GaussianBlur(
         cv2.warpAffine(crop, m, (wide + 1, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                        borderMode=cv2.BORDER_REPLICATE).astype(np.float32),
         (1, 0), sigmaX=0.1, sigmaY=max(0.5, 1.5 * scale))  # ~ a brow's half thickness
-    heights = (r1 - np.arange(rows)) / scale  # mm above the corners' line, per row
-    cols = np.arange(wide + 1) - wide / 2.0
-    nasal = (cols * float(np.dot(inner - centre, u))) > 0
+    heights = [(r1 - i) / scale for i in range(rows)]  # mm above the corners' line, per row
+    # each half's columns: the nasal half is the strip's right one when the corners run right
+    # to left in the image (u turned round above), else its left one; the middle column
+    # (wide even) is the outer half's (the masks of column - wide / 2 times the inner corner's
+    # side, > 0 for nasal, as runs of columns)
+    nasal = (wide // 2 + 1, wide) if flipped else (0, (wide - 1) // 2)
+    temporal = (0, wide // 2) if flipped else ((wide + 1) // 2, wide)
     out: list[float | None] = []
-    for half, win in zip((nasal, ~nasal), window, strict=True):
+    for (c0, c1), win in zip((nasal, temporal), window, strict=True):
         if win is None:
             out.append(None)
             continue
-        sel = (heights >= win[0]) & (heights <= win[1])
-        if sel.sum() < 3 or half.sum() < 3:
+        rs = [i for i, h in enumerate(heights) if win[0] <= h <= win[1]]  # (one run of rows)
+        if len(rs) < 3 or c1 - c0 + 1 < 3:
             out.append(None)
             continue
-        rs, cs = np.flatnonzero(sel), np.flatnonzero(half)  # (both contiguous)
-        sub = strip[rs[0]:rs[-1] + 1, cs[0]:cs[-1] + 1]
+        sub = strip[rs[0]:rs[-1] + 1, c0:c1 + 1]
         if kernels.AVAILABLE:  # the same numbers in one compiled call (the numpy below: the
             # reference)
-            found, at = kernels.brow_half(sub, float(heights[rs[0]]), float(scale))
+            found, at = kernels.brow_half(sub, heights[rs[0]], float(scale))
             out.append(float(at) if found else None)
             continue
         out.append(_brow_half_numpy(sub, heights[rs[0]], scale))

@@ -4,11 +4,13 @@ lid measures use (:mod:`articast.core.faces.upper`, docs/UPPER_FACE.md)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from articast.core.faces import kernels as faces_kernels
 from articast.core.faces.eye_landmarks import EYE_CONTOUR, EYE_CORNERS
 from articast.core.faces.lids import LEVELS_MIN_CONTRAST, _grey
 from articast.core.tracking import kernels
@@ -34,6 +36,9 @@ IRIS_MIN_ROWS = 3
 """An iris seen on fewer rows (chords bounded by white on both sides) is not fitted."""
 _SUB = np.array([-0.25, 0.25])  # sub-rows of a pixel row (a chord is a row's mean)
 _FINE = np.arange(-0.5, 0.5001, 0.05)  # the fine search's steps round the coarse height
+_GLINT = np.ones((1, 3), np.uint8)  # the chords' opening (a glint narrower than 3 px)
+_GROW = np.ones((5, 5), np.uint8)  # the contour grown by 2 px
+_CONTOUR = {side: np.array(EYE_CONTOUR[side]) for side in EYE_CONTOUR}
 
 
 def _circle_height(ys: np.ndarray, wk: np.ndarray, r: float, cys: np.ndarray) -> float:
@@ -78,18 +83,46 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     desk webcams of cap12 and cap13) the pixels cannot tell the opening from the skin and
     the middle of the reader's corners is its centre. None when the eye is too closed, too
     small or outside the image, or no iris/white contrast is found."""
-    poly = np.asarray(landmarks, np.float64)[list(EYE_CONTOUR[side]), :2]
-    if not np.all(np.isfinite(poly)):
+    poly = np.asarray(landmarks, np.float64)[_CONTOUR[side], :2]
+    xs, ys = poly[:, 0].tolist(), poly[:, 1].tolist()  # (the bounds in Python floats: the
+    # same numbers as numpy's min, max, floor and ceil, without their calls)
+    if not all(map(math.isfinite, xs + ys)):
         return None
-    x0, y0 = np.floor(poly.min(0)).astype(int) - 3
-    x1, y1 = np.ceil(poly.max(0)).astype(int) + 4
+    x0, y0 = math.floor(min(xs)) - 3, math.floor(min(ys)) - 3
+    x1, y1 = math.ceil(max(xs)) + 4, math.ceil(max(ys)) + 4
     h, w = grey.shape[:2]
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 12 or y1 - y0 < 8:
         return None
     patch = _grey(grey[y0:y1, x0:x1]).astype(np.float32)
     contour = np.zeros(patch.shape, np.uint8)
     cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
-    grown = cv2.dilate(contour, np.ones((5, 5), np.uint8))
+    grown = cv2.dilate(contour, _GROW)
+    if (faces_kernels.AVAILABLE and grey.dtype == np.uint8
+            and patch.size <= faces_kernels.IRIS_MAX_PIXELS):  # the same numbers in one
+        # compiled call (_fit_steps below: the reference)
+        got = faces_kernels.iris_fit(
+            patch, contour, grown, cv2.morphologyEx(patch, cv2.MORPH_OPEN, _GLINT),
+            float(radius_px) if radius_px else 0.0, _FINE, ROW_WHITE, IRIS_MIN_ROWS,
+            LEVELS_MIN_CONTRAST)
+        status, cx, cy, half, ex, ey, rows, skin, white, iris_l, levels = got
+        if status == 0:
+            return None
+        if status == 2:  # (a shaded sclera: the corners' midpoint, as _fit_steps)
+            lm = np.asarray(landmarks, np.float64)
+            ex, ey = (lm[EYE_CORNERS[side][0], :2] + lm[EYE_CORNERS[side][1], :2]) / 2.0 - [
+                x0, y0]
+        return IrisFit(np.array([cx + x0, cy + y0]), float(half),
+                       np.array([ex + x0, ey + y0]), int(rows),
+                       (float(skin), float(white), float(iris_l)) if levels else None)
+    return _fit_steps(patch, contour, grown, landmarks, side, radius_px, x0, y0)
+
+
+def _fit_steps(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray,
+               landmarks: np.ndarray, side: str, radius_px: float | None, x0: int, y0: int
+               ) -> IrisFit | None:
+    """:func:`fit_iris` after the crop (``patch`` float32 at (``x0``, ``y0``) px of the
+    frame, the reader's ``contour`` in it and that ``grown``), step by step (the reference
+    of :func:`~articast.core.faces.kernels.iris_fit`)."""
     inside = patch[contour > 0]
     outside = patch[grown == 0]
     if inside.size < 12 or outside.size < 12:

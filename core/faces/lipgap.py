@@ -191,6 +191,11 @@ def lip_box(landmarks: np.ndarray) -> np.ndarray:
     landmarks, :data:`LIP_BOX_POINTS`); NaN where not read."""
     if len(landmarks) <= max(LIP_BOX_POINTS):
         return np.full(4, np.nan)
+    # (four points: their bounds in Python floats, numpy's where all are finite)
+    xs = [float(landmarks[i][0]) for i in LIP_BOX_POINTS]
+    ys = [float(landmarks[i][1]) for i in LIP_BOX_POINTS]
+    if all(map(math.isfinite, xs + ys)):
+        return np.array([min(xs), min(ys), max(xs), max(ys)])
     pts = np.asarray(landmarks)[list(LIP_BOX_POINTS), :2].astype(np.float64)
     return np.concatenate([pts.min(0), pts.max(0)])
 
@@ -198,7 +203,7 @@ def lip_box(landmarks: np.ndarray) -> np.ndarray:
 def mouth_patch(image: np.ndarray, box: np.ndarray) -> np.ndarray:
     """(32, 64) grey patch of ``image`` (BGR or grey, uint8) around a lip ``box``, grown 30 %
     (the still-mouth windows' patch of ``benchmarks/face_landmarks_clips.py``)."""
-    x0, y0, x1, y1 = (float(v) for v in box)
+    x0, y0, x1, y1 = map(float, box)
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     hx, hy = (x1 - x0) * 0.65 + 2, (y1 - y0) * 0.65 + 2
     w, h = PATCH_SIZE

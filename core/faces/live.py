@@ -34,6 +34,7 @@ fit (:meth:`LiveTracker._unfamiliar`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -41,6 +42,7 @@ from typing import Any, Protocol
 import cv2
 import numpy as np
 
+from articast.core.faces import kernels as faces_kernels
 from articast.core.faces import lipgap
 from articast.core.faces.enrol import LandmarkScheme
 from articast.core.faces.finder import FaceFinder, FinderPolicy, reader_seed
@@ -49,7 +51,7 @@ from articast.core.faces.lipgap import matched, model_ratios, reader_ratio
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.faces.upper import UpperTracker
-from articast.core.model.camera import Pose, axis_angle, rotation_matrix
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
 from articast.core.outputs.lips import lip_measures, lips_dict
 from articast.core.tracking import kernels
 from articast.core.tracking.filters import CadenceCanceller, OneEuroFilter, OneEuroPolicy
@@ -386,6 +388,17 @@ def _contrast(pixels: np.ndarray) -> float:
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
+def project_one(camera: Camera, point: np.ndarray) -> np.ndarray:
+    """``camera.project`` of one camera-frame point (3,) mm -> (2,) px (NaN behind the
+    camera): an undistorted camera's in Python floats, the same operations as its numpy code
+    without its ~10 array calls a frame; a distorted one's as it is."""
+    if camera.dist.any():
+        return camera.project(point[None])[0]
+    x, y, z = point.tolist()
+    iz = 1.0 / z if z > 1e-6 else math.nan
+    return np.array([camera.fx * (x * iz) + camera.cx, camera.fy * (y * iz) + camera.cy])
+
+
 def live_policy(rig: str, **changes: Any) -> TrackingPolicy:
     """The tracking policy of a live speaker on ``rig``: the rig's, plus the motion prior."""
     pol = TrackingPolicy.for_rig(rig, **changes)
@@ -474,9 +487,15 @@ class LiveTracker:
         # the upper face (eyes, brows) from this frame's landmarks, or between readings
         # from the eyes' pixels (core/faces/upper.py)
         self.upper = UpperTracker(speaker.upper, speaker.rig, clock=clock)
+        faces_kernels.warm_up()  # (its compiled iris fit loaded before the first frame, not in it)
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
+        self._rotation_of: Pose | None = None  # the last pose whose matrix was worked out
+        cam = speaker.camera  # (the lips' compiled gap: an undistorted camera's intrinsics)
+        self._pinhole = not cam.dist.any()
+        self._intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
+        self._rotation = np.eye(3)  # (:meth:`_matrix`)
         if fu is not None:
             if reader is None:  # the bundled one, on one thread, cropping as the policy
                 # says (it runs no detector: the finder's session is shared, not loaded again)
@@ -622,8 +641,8 @@ class LiveTracker:
             change = lipgap.patch_change(lipgap.mouth_patch(image, box), patch)
         box = (np.full(4, np.nan) if self._fresh is None
                else lipgap.lip_box(np.asarray(self._fresh.landmarks)))
-        self._mouth = ((box, lipgap.mouth_patch(image, box)) if np.all(np.isfinite(box))
-                       else None)
+        self._mouth = ((box, lipgap.mouth_patch(image, box))
+                       if all(map(math.isfinite, box.tolist())) else None)
         was, self._mouth_was = self._mouth_was, change
         return was if not np.isfinite(change) or was > change else change
 
@@ -639,18 +658,19 @@ class LiveTracker:
             self._fit_gap = None
             return alpha
         read = result.extra.get("reader_ratio", float("nan"))
-        if not np.isfinite(read):
+        if not math.isfinite(read):
             self._fit_gap = None
             return alpha
         m, cam = self.speaker.model, self.speaker.camera
         w = fu.reader_gap
+        compiled = kernels.AVAILABLE and self._pinhole
+        if compiled:  # (the compiled calls' arguments, each made once a frame)
+            mean, basis = lipgap.lip_points(m)
+            rot, t = self._matrix(result.pose), np.array(result.pose.translation)
+            fit = np.array(result.alpha, np.float64)
         if fu.still_mouth is not None and w < 1.0:
-            if kernels.AVAILABLE and not cam.dist.any():
-                mean, basis = lipgap.lip_points(m)
-                fitted = float(kernels.lip_ratio(
-                    mean, basis, result.pose.matrix, np.array(result.pose.translation),
-                    np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
-                    np.array(result.alpha, np.float64)))
+            if compiled:
+                fitted = float(kernels.lip_ratio(mean, basis, rot, t, self._intrinsics, fit))
             else:
                 fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
             if not np.isfinite(fitted):
@@ -662,14 +682,10 @@ class LiveTracker:
                     self._fit_gap += lipgap.still_gain(change, fu.still_mouth) * (
                         fitted - self._fit_gap)
                 read, w = w * read + (1.0 - w) * self._fit_gap, 1.0  # (the target)
-        if kernels.AVAILABLE and not cam.dist.any():  # the same below, in one compiled call
-            mean, basis = lipgap.lip_points(m)
-            pose = result.pose
-            return kernels.lip_gap(mean, basis, pose.matrix, np.array(pose.translation),
-                                   np.array([cam.fx, cam.fy, cam.cx, cam.cy]),
-                                   np.array(alpha, np.float64), np.array(result.alpha, np.float64),
-                                   float(read), float(w), lipgap.PROBE_STEP,
-                                   lipgap.MAX_CHANGE, lipgap.TOLERANCE)
+        if compiled:  # the same below, in one compiled call
+            return kernels.lip_gap(mean, basis, rot, t, self._intrinsics,
+                                   np.array(alpha, np.float64), fit, float(read), float(w),
+                                   lipgap.PROBE_STEP, lipgap.MAX_CHANGE, lipgap.TOLERANCE)
         target = read
         if w < 1.0:  # the fit's own opening, raw (before the output filter: no lag)
             fitted = float(model_ratios(m, cam, result.alpha[None], result.pose)[0])
@@ -694,11 +710,24 @@ class LiveTracker:
             self._eyes_frame = self._frame
         anchor = None
         if result.ok or result.reason.startswith("occluded"):
-            anchor = self.speaker.camera.project_head(self._head_point[None], result.pose)[0]
+            anchor = self._head_in_image(result.pose)
         if result.ok:  # (where the next frame's eyes are looked for, :meth:`_eyes_changed`)
             self._last_anchor = anchor
         return self.upper.step(image, marks, anchor,
                                result.ok or result.reason.startswith("occluded"), lids)
+
+    def _head_in_image(self, pose: Pose) -> np.ndarray:
+        """(2,) px: the head's point at ``pose`` (``Camera.project_head``: the pose's transform,
+        with the rotation worked out once a frame, :meth:`_matrix`, then :func:`project_one`)."""
+        return project_one(self.speaker.camera,
+                           (self._head_point[None] @ self._matrix(pose).T + pose.translation)[0])
+
+    def _matrix(self, pose: Pose) -> np.ndarray:
+        """``pose.matrix`` (3, 3), worked out once per pose (a frame's result's is asked for
+        up to four times: judged, the eyes' anchor, the lips' gap twice; a Pose is immutable)."""
+        if self._rotation_of is not pose:
+            self._rotation_of, self._rotation = pose, pose.matrix
+        return self._rotation
 
     def _eyes_changed(self, image: np.ndarray) -> bool:
         """Whether the upper face asks for this frame between readings to be read (the head's
@@ -1046,7 +1075,7 @@ class LiveTracker:
         if not result.ok:
             return result
         pm = self.point_model
-        off = self._offset(result.alpha, result.pose.matrix, result.pose.translation,
+        off = self._offset(result.alpha, self._matrix(result.pose), result.pose.translation,
                            reading.landmarks[pm.landmarks, :2])
         limit = fu.agreement * pm.offset_p99
         result = replace(result, extra={**result.extra, "landmark_offset": off})

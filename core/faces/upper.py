@@ -36,9 +36,11 @@ Nothing here reads a clock or a file; :class:`UpperReference` is what ``enroll``
 from __future__ import annotations
 
 import math
+import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -161,6 +163,15 @@ class UpperReference:
     def brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
         """Side ``i``'s live brow search windows (inner, outer: mm above the eye line; None
         for a half whose band was not found at enrolment), None when neither was."""
+        return self._brow_windows[i]
+
+    @cached_property
+    def _brow_windows(self) -> tuple[tuple[tuple[float, float] | None, ...] | None, ...]:
+        """Both sides' :meth:`brow_window`, worked out once (the reference does not change;
+        the live frame asks for them up to six times)."""
+        return tuple(self._brow_window(i) for i in range(2))
+
+    def _brow_window(self, i: int) -> tuple[tuple[float, float] | None, ...] | None:
         band = self.brow_band_mm[2 * i:2 * i + 2]
         if max(band) <= 0:
             return None
@@ -340,27 +351,57 @@ class Aligned:
     yaw_deg: float
 
 
+_FLIP = np.array([1.0, -1.0, -1.0])  # image (x right, y down, z away) -> head frame axes
+_RIGID: weakref.WeakKeyDictionary[CanonicalFace, tuple[np.ndarray, ...]] = (
+    weakref.WeakKeyDictionary())
+
+
+def _rigid(canon: CanonicalFace) -> tuple[np.ndarray, ...]:
+    """The canonical face's side of :func:`align`'s Procrustes, worked out once per face (the
+    same arrays each reading computed before): the rigid points' ids (33,), their weights
+    normalised (33,), the points (33, 3) mm, their weighted mean (3,) mm and the weighted,
+    centred points transposed (3, 33) mm."""
+    got = _RIGID.get(canon)
+    if got is None:
+        ids, w = canon.procrustes_ids, canon.procrustes_weights
+        b = canon.vertices_mm[ids]
+        wn = w / w.sum()
+        mb = wn @ b
+        got = _RIGID[canon] = (ids, wn, b, mb, ((b - mb) * wn[:, None]).T)
+    return got
+
+
+def _det3(m: list[list[float]]) -> float:
+    """The determinant of a 3 x 3 matrix (rows of Python floats), by its first row's
+    cofactors."""
+    return (m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
+
+
 def align(landmarks: np.ndarray, canon: CanonicalFace) -> Aligned | None:
     """Similarity Procrustes of a reading (>=468, 3: x, y px, z depth px, image frame) onto
     the canonical face on MediaPipe's rigid points; None for a degenerate reading."""
     lm = np.asarray(landmarks, np.float64)[:468]
-    src = np.column_stack([lm[:, 0], -lm[:, 1], -lm[:, 2]])  # -> x right, y up, z forward
-    ids, w = canon.procrustes_ids, canon.procrustes_weights
-    a, b = src[ids], canon.vertices_mm[ids]
-    wn = w / w.sum()
-    ma, mb = wn @ a, wn @ b
-    ac, bc = a - ma, b - mb
-    cov = (bc * wn[:, None]).T @ ac
-    if not np.all(np.isfinite(cov)):
+    src = lm * _FLIP  # -> x right, y up, z forward
+    ids, wn, _, mb, bcw = _rigid(canon)
+    a = src[ids]
+    ma = wn @ a
+    ac = a - ma
+    cov = bcw @ ac
+    if not all(map(math.isfinite, cov.ravel().tolist())):
         return None
     u, s, vt = np.linalg.svd(cov)
-    d = np.sign(np.linalg.det(u @ vt))
+    # (the sign of det(u @ vt), +-1: the product of u's and vt's, both orthogonal, by their
+    # cofactors in Python floats; and the scale's sum of three in floats, from 0.0 as numpy's)
+    d = 1.0 if _det3(u.tolist()) * _det3(vt.tolist()) > 0 else -1.0
     rot = u @ np.diag([1.0, 1.0, d]) @ vt  # src -> canonical
     var = float((wn * np.sum(ac ** 2, axis=1)).sum())
     if var <= 1e-9:
         return None
-    scale = float((s * [1.0, 1.0, d]).sum() / var)  # mm per px
-    if not np.isfinite(scale) or scale <= 0:
+    s0, s1, s2 = s.tolist()
+    scale = (0.0 + s0 + s1 + s2 * d) / var  # mm per px
+    if not math.isfinite(scale) or scale <= 0:
         return None
     pts = (src - ma) @ rot.T * scale + mb
     # rot maps the face's frame as seen to the canonical: its inverse is the head's rotation
@@ -380,10 +421,9 @@ def lids_only(landmarks: np.ndarray, canon: CanonicalFace
     a degenerate reading. ~0.1 of ``align``'s cost, for the frames whose reading is read for
     the lids alone (:meth:`UpperTracker.step`'s ``lids``)."""
     lm = np.asarray(landmarks, np.float64)
-    ids, w = canon.procrustes_ids, canon.procrustes_weights
     if kernels.AVAILABLE:  # the same numbers in one compiled call
-        out = kernels.lids_read(lm, ids, w / w.sum(), canon.vertices_mm[ids], _LID_UPPER,
-                                _LID_LOWER)
+        ids, wn, b, _, _ = _rigid(canon)
+        out = kernels.lids_read(lm, ids, wn, b, _LID_UPPER, _LID_LOWER)
         return ((float(out[0]), float(out[1])), float(out[2])) if out[3] else None
     return lids_only_numpy(lm, canon)
 
@@ -416,26 +456,41 @@ def lids_only_numpy(lm: np.ndarray, canon: CanonicalFace
     return (float(up[0]), float(up[1])), yaw
 
 
+# (the points these read, per side, in one index each: a few Python float operations on
+# the values instead of ~10 small numpy calls per measure; the same sums in the same order
+# as numpy's mean of 2 or 3 values, from 0.0 as numpy's, so the same numbers)
+_LIDS_Y = {s: [i for pair in LID_PAIRS[s] for i in pair] for s in SIDES}  # u0 l0 u1 l1 u2 l2
+_BROWS_Y = {s: [*EYE_CORNERS[s], *BROW_POINTS[s]["inner"], *BROW_POINTS[s]["outer"]]
+            for s in SIDES}
+
+
 def lid_opening_mm(points: np.ndarray) -> tuple[float, float]:
     """(left, right) lid opening, mm: mean upper-minus-lower height of the three lid pairs."""
-    return tuple(float(np.mean([points[u, 1] - points[lo, 1] for u, lo in LID_PAIRS[s]]))
-                 for s in SIDES)  # type: ignore[return-value]
+    out = []
+    for s in SIDES:
+        u0, l0, u1, l1, u2, l2 = points[_LIDS_Y[s], 1].tolist()
+        out.append((0.0 + (u0 - l0) + (u1 - l1) + (u2 - l2)) / 3)
+    return out[0], out[1]
 
 
 def lower_lids_mm(points: np.ndarray) -> tuple[float, float]:
     """(left, right) the lower lid's height above its eye's corners' line, mm (the mean of
     the three lid pairs' lower points)."""
-    return tuple(float(np.mean([points[lo, 1] for _, lo in LID_PAIRS[s]])
-                       - points[list(EYE_CORNERS[s]), 1].mean())
-                 for s in SIDES)  # type: ignore[return-value]
+    out = []
+    for s in SIDES:
+        _, l0, _, l1, _, l2 = points[_LIDS_Y[s], 1].tolist()
+        c0, c1 = points[list(EYE_CORNERS[s]), 1].tolist()
+        out.append((0.0 + l0 + l1 + l2) / 3 - (0.0 + c0 + c1) / 2)
+    return out[0], out[1]
 
 
 def inner_brows_x_mm(points: np.ndarray) -> tuple[float, float]:
     """(left, right) the inner brow's distance from the face's midline, mm (x of the
     inner brow points' mean: + to the speaker's left for the left brow, mirrored for the
     right)."""
-    return (float(points[list(BROW_POINTS["left"]["inner"]), 0].mean()),
-            -float(points[list(BROW_POINTS["right"]["inner"]), 0].mean()))
+    l0, l1 = points[list(BROW_POINTS["left"]["inner"]), 0].tolist()
+    r0, r1 = points[list(BROW_POINTS["right"]["inner"]), 0].tolist()
+    return (0.0 + l0 + l1) / 2, -((0.0 + r0 + r1) / 2)
 
 
 def brow_heights_mm(points: np.ndarray) -> np.ndarray:
@@ -443,9 +498,9 @@ def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     mm (each brow point pair's mean height minus its eye corners' mean height)."""
     out = []
     for s in SIDES:
-        eye_y = float(points[list(EYE_CORNERS[s]), 1].mean())
-        for end in ("inner", "outer"):
-            out.append(float(points[list(BROW_POINTS[s][end]), 1].mean()) - eye_y)
+        c0, c1, i0, i1, o0, o1 = points[_BROWS_Y[s], 1].tolist()
+        eye_y = (0.0 + c0 + c1) / 2
+        out += [(0.0 + i0 + i1) / 2 - eye_y, (0.0 + o0 + o1) / 2 - eye_y]
     return np.array(out)
 
 
@@ -1037,8 +1092,7 @@ class UpperTracker:
                                   self._corners[i, 1] + shift)
                       if used else None for i, used in enumerate(self._followed()))
         if lids is not None and (read := lids_only(lids, self.canon)) is not None:
-            return self._from(replace(self._last, opening=read[0], yaw_deg=read[1]), "lids",
-                              photo)  # type: ignore[arg-type]
+            return self._from(self._last, "lids", photo, read)  # type: ignore[arg-type]
         return self._from(self._last, "photo", photo)  # type: ignore[arg-type]
 
     def _shift(self, anchor: np.ndarray | None) -> np.ndarray:
@@ -1102,16 +1156,21 @@ class UpperTracker:
         return measured
 
     def _from(self, m: Measures, source: str,
-              photo: tuple[float | None, float | None] | None = None) -> UpperFace:
+              photo: tuple[float | None, float | None] | None = None,
+              lids: tuple[tuple[float, float], float] | None = None) -> UpperFace:
+        """The upper face of measures ``m`` (``source`` "reader", "lids" or "photo"; ``photo``
+        each eye's photometric measure between readings; ``lids``: this frame's lid opening
+        and yaw, :func:`lids_only`, in place of ``m``'s)."""
         ref = self.reference
         assert ref is not None
-        if abs(m.yaw_deg) > MAX_YAW_DEG:
-            why = f"turned: the head is turned {abs(m.yaw_deg):.0f} deg from the camera"
+        opening, yaw_deg = (m.opening, m.yaw_deg) if lids is None else lids
+        if abs(yaw_deg) > MAX_YAW_DEG:
+            why = f"turned: the head is turned {abs(yaw_deg):.0f} deg from the camera"
             return UpperFace.absent(why)
         cl, wide = [], []
         for i in range(2):
-            c = closure(m.opening[i], ref.open_mm[i], ref.closed_mm[i])
-            w = (m.opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
+            c = closure(opening[i], ref.open_mm[i], ref.closed_mm[i])
+            w = (opening[i] - ref.open_mm[i]) / (ref.open_mm[i] - ref.closed_mm[i])
             x = m.photometric(ref.photo_kind[i], i) if photo is None else photo[i]
             usable = x is not None and abs(ref.photo_r[i]) >= PHOTO_MIN_R
             # on a reading's frame (unless ``photometric``) both measures are averaged: two
@@ -1161,7 +1220,8 @@ class UpperTracker:
             # median: a speaker who looked round while enrolling would shift it)
             offs = [iris[:2] for i, iris in enumerate(m.iris) if iris is not None and cl[i] < 0.5]
             if offs:
-                dx, dy = np.mean(offs, axis=0)
+                dx = sum(o[0] for o in offs) / len(offs)  # (numpy's mean of the 1-2 eyes)
+                dy = sum(o[1] for o in offs) / len(offs)
                 gaze = (math.degrees(math.asin(_clip(float(dx) / EYE_RADIUS_MM, -1.0, 1.0))),
                         math.degrees(math.asin(_clip(float(dy) / EYE_RADIUS_MM, -1.0, 1.0))))
                 self._gaze, self._gaze_misses = gaze, 0

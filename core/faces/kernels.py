@@ -1,0 +1,234 @@
+"""Compiled steps of the upper face's pixel measures (:mod:`articast.core.faces.iris`).
+
+:func:`iris_fit` is :func:`~articast.core.faces.iris.fit_iris` after its crop, in one call:
+the grey levels, the dark centroid, the chords, the circle's height and the opening's
+centres (some 30 small numpy calls per eye before, ~0.2 ms of a reading's frame). It is
+the same arithmetic as the step-by-step code (:func:`~articast.core.faces.iris._fit_steps`,
+the reference, which a test compares it with): numpy's float32 operations where numpy does
+them in float32, its pairwise sums (:func:`~articast.core.tracking.kernels._pairwise_sum`)
+where numpy sums a row or a whole array, its row-by-row accumulation where it sums down the
+columns, its ``arange`` fill; so the same numbers to the bit. The compiled chords, circle
+search and opening centres it calls are :mod:`articast.core.tracking.kernels`' own.
+
+Compiled with numba when available (``ARTICAST_JIT=0`` or numba missing: the step-by-step
+code runs); cached on disk like the tracker's kernels.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from articast.core.tracking.kernels import (
+    AVAILABLE,
+    _pairwise_sum,
+    iris_chords,
+    iris_circle_height,
+    iris_former_rows,
+    njit,
+    opening_centres,
+)
+
+__all__ = ["AVAILABLE", "IRIS_MAX_PIXELS", "compiled_on_disk", "iris_fit", "warm_up"]
+
+IRIS_MAX_PIXELS = 4096
+"""The largest eye crop (rows x columns) :func:`iris_fit` takes: its whole-crop pairwise sum
+is numpy's up to this length (a larger crop is fitted step by step)."""
+
+
+@njit(cache=True, nogil=True)
+def _arange(start, stop, step):  # pragma: no cover - compiled
+    """``np.arange(start, stop, step)`` of floats as numpy fills it (its second value minus
+    its first as the step of the rest)."""
+    n = int(np.ceil((stop - start) / step))
+    out = np.empty(max(n, 0))
+    if n >= 1:
+        out[0] = start
+    if n >= 2:
+        out[1] = start + step
+        d = out[1] - out[0]
+        for i in range(2, n):
+            out[i] = start + i * d
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _kth(hist, k):  # pragma: no cover - compiled
+    """The k-th (from 0) of the sorted values whose histogram over 0..255 is ``hist``, as
+    float32 (the crop's dtype)."""
+    seen = 0
+    for v in range(256):
+        seen += hist[v]
+        if seen > k:
+            return np.float32(v)
+    return np.float32(255.0)
+
+
+@njit(cache=True, nogil=True)
+def _iris_rows(widths, bounded, radius_px, min_rows):  # pragma: no cover - compiled
+    """iris._iris_rows: (found, keep, r, half); ``radius_px`` 0: none given."""
+    h = widths.shape[0]
+    any_b = False
+    top = np.float32(0.0)
+    for y in range(h):
+        if bounded[y] and (not any_b or widths[y] > top):
+            top = widths[y]
+            any_b = True
+    half = np.float64(top) / 2.0 if any_b else 0.0
+    r = radius_px if radius_px != 0.0 else half
+    wide32 = np.float32(2.0 * r + 1.0)  # (numpy compares the float32 widths in float32)
+    least = np.float32(0.5)
+    keep = np.zeros(h, np.bool_)
+    n = 0
+    for y in range(h):
+        if bounded[y] and widths[y] <= wide32 and widths[y] > least:
+            keep[y] = True
+            n += 1
+    return n >= min_rows and r >= 1.5, keep, r, half
+
+
+@njit(cache=True, nogil=True)
+def iris_fit(patch, contour, grown, opened, radius_px, fine, row_white, min_rows,
+             min_contrast):  # pragma: no cover - compiled
+    """iris.fit_iris in the eye's crop: ``patch`` (h, w) float32 grey of a uint8 image (whole
+    grey levels 0..255: their order statistics are taken from histograms), ``contour`` and its
+    dilation ``grown`` (h, w) uint8 0/1, ``opened`` the patch's (1, 3) opening (the chords'
+    glint removal), ``radius_px`` the speaker's iris radius px (0: this frame's widest
+    chord), ``fine`` iris._FINE, ``row_white`` iris.ROW_WHITE, ``min_rows``
+    iris.IRIS_MIN_ROWS, ``min_contrast`` lids.LEVELS_MIN_CONTRAST.
+
+    Returns (status, cx, cy, half, ex, ey, rows, skin, white, iris, levels): status 0 no
+    fit (fit_iris's None), 1 fitted, 2 fitted on a sclera no brighter than the skin (ex, ey
+    not measured: the caller takes the corners' midpoint); (cx, cy) the circle's centre and
+    (ex, ey) the opening's, px in the crop; ``levels`` whether the grey levels are given
+    (iris._former_accepts)."""
+    h, w = patch.shape
+    fail = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0.0, False)
+    # the grey levels' order statistics from their histograms (the values are whole grey
+    # levels 0..255: the k-th of the sorted values is the level where the count passes k)
+    hist_in = np.zeros(256, np.int64)
+    hist_out = np.zeros(256, np.int64)
+    for y in range(h):
+        for x in range(w):
+            if contour[y, x] > 0:
+                hist_in[int(patch[y, x])] += 1
+            if grown[y, x] == 0:
+                hist_out[int(patch[y, x])] += 1
+    n = 0
+    n_out = 0
+    for v in range(256):
+        n += hist_in[v]
+        n_out += hist_out[v]
+    if n < 12 or n_out < 12:
+        return fail
+    thr = np.float64(_kth(hist_in, n // 10) + _kth(hist_in, (9 * n) // 10)) / 2.0
+    nd = 0  # (np.searchsorted: the values below thr)
+    for v in range(256):
+        if np.float64(v) < thr:
+            nd += hist_in[v]
+    if nd < 4 or n - nd < 4:
+        return fail
+    iris = np.float64(_kth(hist_in, nd // 2))
+    white = np.float64(_kth(hist_in, nd + (3 * (n - nd)) // 4))
+    skin = np.float64(_kth(hist_out, n_out // 2))
+    if white - iris < 20.0:
+        return fail
+    # the dark centroid: the weights' column sums row by row, as numpy's sum(0)
+    thr32 = np.float32(thr)
+    zero = np.float32(0.0)
+    wgt = np.empty((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            v = thr32 - patch[y, x]
+            wgt[y, x] = (v if v > zero else zero) * np.float32(contour[y, x])
+    total = _pairwise_sum(wgt.ravel(), 0, h * w)
+    if not total > zero:
+        return fail
+    col = wgt[0].copy()
+    for y in range(1, h):
+        for x in range(w):
+            col[x] += wgt[y, x]
+    moment = np.empty(w)
+    for x in range(w):
+        moment[x] = np.float64(col[x]) * np.float64(x)
+    cx0 = _pairwise_sum(moment, 0, w) / np.float64(total)
+    widths, cxs, bounded = iris_chords(opened, contour, grown, thr, iris, white, cx0,
+                                       row_white)
+    found, keep, r, half = _iris_rows(widths, bounded, radius_px, min_rows)
+    if not found:
+        return fail
+    levels = False
+    if white - skin >= min_contrast:
+        w2, b2 = iris_former_rows(patch, grown, iris, white, cx0)
+        levels = _iris_rows(w2, b2, radius_px, min_rows)[0]
+    nk = 0
+    for y in range(h):
+        if keep[y]:
+            nk += 1
+    ys = np.empty(nk)
+    wk = np.empty(nk, np.float32)
+    wc = np.empty(nk)
+    i = 0
+    for y in range(h):
+        if keep[y]:
+            ys[i] = np.float64(y)
+            wk[i] = widths[y]
+            wc[i] = cxs[y] * np.float64(widths[y])
+            i += 1
+    cy = iris_circle_height(ys, wk, r, _arange(ys[0] - r, ys[nk - 1] + r, 0.5))  # coarse,
+    cy = iris_circle_height(ys, wk, r, cy + fine)  # then fine
+    cx = _pairwise_sum(wc, 0, nk) / np.float64(_pairwise_sum(wk, 0, nk))
+    if white - skin < min_contrast:
+        return (2, cx, cy, half, 0.0, 0.0, nk, skin, white, iris, levels)
+    # the opening: the white, and the white or what is darker than the skin (iris.fit_iris)
+    skin32 = np.float32(skin)
+    span_w = np.float32(white - skin)
+    span_d = np.float32(skin - iris)
+    dark = skin - iris >= min_contrast
+    one = np.float32(1.0)
+    frac = np.empty((2 * h if dark else h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            if grown[y, x] == 0:
+                frac[y, x] = zero
+                if dark:
+                    frac[h + y, x] = zero
+                continue
+            v = (patch[y, x] - skin32) / span_w
+            v = zero if v < zero else (one if v > one else v)
+            frac[y, x] = v
+            if dark:
+                d = (skin32 - patch[y, x]) / span_d
+                d = zero if d < zero else (one if d > one else d)
+                frac[h + y, x] = v if v >= d else d
+    eyes = opening_centres(frac, 2 if dark else 1)
+    if eyes[0, 2] == 0.0:
+        return fail
+    ex, ey = eyes[0, 0], eyes[0, 1]
+    if dark and eyes[1, 2] != 0.0:
+        ex, ey = (eyes[0, 0] + eyes[1, 0]) / 2.0, (eyes[0, 1] + eyes[1, 1]) / 2.0
+    return (1, cx, cy, half, ex, ey, nk, skin, white, iris, levels)
+
+
+def warm_up() -> None:
+    """Compile (or load from the on-disk cache) :func:`iris_fit` for the live fit's types:
+    ~3 s of CPU once the tracker's kernels are compiled (a cold cache), ~20 ms loaded from
+    the cache; the live tracker calls it when built, before its first frame."""
+    if not AVAILABLE:
+        return
+    z = np.zeros((12, 16), np.float32)
+    u = np.zeros((12, 16), np.uint8)
+    iris_fit(z, u, u, z, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
+
+
+def compiled_on_disk() -> bool:
+    """Whether numba's on-disk cache already holds :func:`iris_fit` (False: :func:`warm_up`
+    will compile it, ~3 s); True when it cannot tell (as
+    :func:`articast.core.tracking.kernels.compiled_on_disk`)."""
+    if not AVAILABLE:
+        return True
+    try:
+        return os.path.exists(iris_fit._cache._cache_file._index_path)  # noqa: SLF001
+    except AttributeError:  # another numba's internals
+        return True
