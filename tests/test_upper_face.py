@@ -1067,3 +1067,29 @@ def test_compiled_iris_fit_is_the_step_by_step_fit_to_the_bit():
                     levels += got is not None and got.levels is not None
                     nones += got is None
     assert fitted >= 40 and levels >= 20 and nones >= 3  # every branch was compared
+
+
+def test_the_compile_notice_counts_the_iris_kernel(tmp_path):
+    """The iris fit's own cache check, which the service's compile notice now counts
+    (``kernels_on_disk``): an empty cache (a fresh process, NUMBA_CACHE_DIR empty, nothing
+    compiled, only imported) holds neither it nor the tracker's kernels, and the service
+    would say it compiles; once warmed, this process's cache holds the iris fit (a check
+    reading the wrong numba attribute answers True, or False after the warm-up)."""
+    import os
+    import subprocess
+    import sys
+
+    from articast.core.faces import kernels as FK
+
+    if not FK.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    code = ("from articast.core.faces import kernels as FK\n"
+            "from articast.service.processors import kernels_on_disk\n"
+            "print(FK.compiled_on_disk(), kernels_on_disk(('cauchy',)), kernels_on_disk())\n")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "False", "False"]
+    FK.warm_up()
+    assert FK.compiled_on_disk()
