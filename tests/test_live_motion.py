@@ -113,10 +113,9 @@ def test_a_fast_recession_of_the_head_is_tracked(enrolled):
 
 
 def test_one_point_projected_in_floats_is_the_cameras_to_the_bit():
-    """live.project_one (the eyes' anchor every frame: one point, Python floats) gives
+    """Camera.project_one (the eyes' anchor every frame: one point, Python floats) gives
     Camera.project's numbers to the bit, behind the camera (NaN) included; a distorted
     camera's through Camera.project itself."""
-    from articast.core.faces.live import project_one
     from articast.core.model.camera import Camera
 
     rng = np.random.default_rng(8)
@@ -124,4 +123,4 @@ def test_one_point_projected_in_floats_is_the_cameras_to_the_bit():
                 Camera(900.0, 900.0, 300.0, 200.0, 640, 480, dist=np.array([0.1, -0.05]))):
         for _ in range(3000):
             p = np.array([rng.normal() * 60, rng.normal() * 60, rng.uniform(-50.0, 900.0)])
-            assert project_one(cam, p).tobytes() == cam.project(p[None])[0].tobytes()
+            assert cam.project_one(p).tobytes() == cam.project(p[None])[0].tobytes()

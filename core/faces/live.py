@@ -51,7 +51,7 @@ from articast.core.faces.lipgap import matched, model_ratios, reader_ratio
 from articast.core.faces.motion import FaceMotion, MotionPolicy
 from articast.core.faces.speaker import Speaker
 from articast.core.faces.upper import UpperTracker
-from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
+from articast.core.model.camera import Pose, axis_angle, rotation_matrix
 from articast.core.outputs.lips import lip_measures, lips_dict
 from articast.core.tracking import kernels
 from articast.core.tracking.filters import CadenceCanceller, OneEuroFilter, OneEuroPolicy
@@ -388,17 +388,6 @@ def _contrast(pixels: np.ndarray) -> float:
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
-def project_one(camera: Camera, point: np.ndarray) -> np.ndarray:
-    """``camera.project`` of one camera-frame point (3,) mm -> (2,) px (NaN behind the
-    camera): an undistorted camera's in Python floats, the same operations as its numpy code
-    without its ~10 array calls a frame; a distorted one's as it is."""
-    if camera.dist.any():
-        return camera.project(point[None])[0]
-    x, y, z = point.tolist()
-    iz = 1.0 / z if z > 1e-6 else math.nan
-    return np.array([camera.fx * (x * iz) + camera.cx, camera.fy * (y * iz) + camera.cy])
-
-
 def live_policy(rig: str, **changes: Any) -> TrackingPolicy:
     """The tracking policy of a live speaker on ``rig``: the rig's, plus the motion prior."""
     pol = TrackingPolicy.for_rig(rig, **changes)
@@ -491,11 +480,9 @@ class LiveTracker:
         self._fresh: Any = None  # the landmarks read in this frame, if any
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
-        self._rotation_of: Pose | None = None  # the last pose whose matrix was worked out
         cam = speaker.camera  # (the lips' compiled gap: an undistorted camera's intrinsics)
         self._pinhole = not cam.dist.any()
         self._intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
-        self._rotation = np.eye(3)  # (:meth:`_matrix`)
         if fu is not None:
             if reader is None:  # the bundled one, on one thread, cropping as the policy
                 # says (it runs no detector: the finder's session is shared, not loaded again)
@@ -666,7 +653,7 @@ class LiveTracker:
         compiled = kernels.AVAILABLE and self._pinhole
         if compiled:  # (the compiled calls' arguments, each made once a frame)
             mean, basis = lipgap.lip_points(m)
-            rot, t = self._matrix(result.pose), np.array(result.pose.translation)
+            rot, t = result.pose.matrix, np.array(result.pose.translation)
             fit = np.array(result.alpha, np.float64)
         if fu.still_mouth is not None and w < 1.0:
             if compiled:
@@ -717,17 +704,10 @@ class LiveTracker:
                                result.ok or result.reason.startswith("occluded"), lids)
 
     def _head_in_image(self, pose: Pose) -> np.ndarray:
-        """(2,) px: the head's point at ``pose`` (``Camera.project_head``: the pose's transform,
-        with the rotation worked out once a frame, :meth:`_matrix`, then :func:`project_one`)."""
-        return project_one(self.speaker.camera,
-                           (self._head_point[None] @ self._matrix(pose).T + pose.translation)[0])
-
-    def _matrix(self, pose: Pose) -> np.ndarray:
-        """``pose.matrix`` (3, 3), worked out once per pose (a frame's result's is asked for
-        up to four times: judged, the eyes' anchor, the lips' gap twice; a Pose is immutable)."""
-        if self._rotation_of is not pose:
-            self._rotation_of, self._rotation = pose, pose.matrix
-        return self._rotation
+        """(2,) px: the head's point at ``pose`` (``Camera.project_head``, the point alone:
+        :meth:`~articast.core.model.camera.Camera.project_one`)."""
+        return self.speaker.camera.project_one(
+            (self._head_point[None] @ pose.matrix.T + pose.translation)[0])
 
     def _eyes_changed(self, image: np.ndarray) -> bool:
         """Whether the upper face asks for this frame between readings to be read (the head's
@@ -1075,7 +1055,7 @@ class LiveTracker:
         if not result.ok:
             return result
         pm = self.point_model
-        off = self._offset(result.alpha, self._matrix(result.pose), result.pose.translation,
+        off = self._offset(result.alpha, result.pose.matrix, result.pose.translation,
                            reading.landmarks[pm.landmarks, :2])
         limit = fu.agreement * pm.offset_p99
         result = replace(result, extra={**result.extra, "landmark_offset": off})

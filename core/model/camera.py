@@ -8,9 +8,11 @@ A head pose maps head to camera: ``X_cam = R(rotation) @ X_head + translation``.
 from __future__ import annotations
 
 import json
+import math
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -122,9 +124,13 @@ class Pose:
             v.setflags(write=False)
             object.__setattr__(self, name, v)
 
-    @property
+    @cached_property
     def matrix(self) -> np.ndarray:
-        """(3, 3) rotation matrix."""
+        """(3, 3) rotation matrix, worked out once per pose (a live frame's pose is asked for
+        it several times: judged, the eyes' anchor, the lips' gap). Shared: do not write into
+        it (it stays writable: the compiled kernels it is handed to are compiled for
+        writable arrays, and a read-only one would be a new type, compiled on a first
+        frame)."""
         return rotation_matrix(self.rotation)
 
     def transform(self, points: np.ndarray) -> np.ndarray:
@@ -222,6 +228,16 @@ class Camera:
     def project(self, points: np.ndarray) -> np.ndarray:
         """Camera-frame points (M, 3) mm -> pixels (M, 2). Points behind the camera give NaN."""
         return self.project_jacobian(points, jacobian=False)[0]
+
+    def project_one(self, point: np.ndarray) -> np.ndarray:
+        """:meth:`project` of one camera-frame point (3,) mm -> (2,) px (NaN behind the
+        camera): an undistorted camera's in Python floats, the same operations as the array
+        code without its ~10 array calls (the live eyes' anchor, every frame)."""
+        if self.dist.any():
+            return self.project(np.asarray(point)[None])[0]
+        x, y, z = np.asarray(point, np.float64).tolist()
+        iz = 1.0 / z if z > 1e-6 else math.nan
+        return np.array([self.fx * (x * iz) + self.cx, self.fy * (y * iz) + self.cy])
 
     def project_jacobian(
         self, points: np.ndarray, jacobian: bool = True
