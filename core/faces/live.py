@@ -477,6 +477,8 @@ class LiveTracker:
         self.fusion = fu
         self.reader = reader
         self._reading: Any = None
+        self._seen_of: Any = None  # (the reading whose points _seen indexed last, and those)
+        self._seen_points: np.ndarray | None = None
         self._resume: Any = None  # the last reading, after a frame whose fit diverged
         self._resumed = -1  # the last frame started from it
         self._since_read = 0
@@ -815,7 +817,7 @@ class LiveTracker:
             prior = self.kalman.predict(dt)
             # how far the prediction is from the reading, as a fraction of the face's size
             missed = (self._offset(prior.alpha, prior.rotation, prior.translation,
-                                   reading.landmarks[self.point_model.landmarks, :2])
+                                   self._seen(reading))
                       if reading is not None else 0.0)
             p99 = self.point_model.offset_p99
             if fu.reread is not None and np.isfinite(p99) and missed > fu.reread * p99:
@@ -912,7 +914,7 @@ class LiveTracker:
         judged, and the motion model updated with it."""
         term = None
         measured = None  # the information of the articulation read off the reading, if any
-        seen = None if reading is None else reading.landmarks[self.point_model.landmarks, :2]
+        seen = None if reading is None else self._seen(reading)
         if reading is not None:
             assert seen is not None
             self._reading = reading
@@ -960,13 +962,16 @@ class LiveTracker:
             fitted = result.extra.get("theta_fit")
             k = self.speaker.model.n_params
             if result.ok or fitted is not None:
-                th = np.asarray(np.concatenate([result.alpha, result.pose.as_vector()])
-                                if result.ok else fitted)
                 info = result.extra.get("information")
                 if measured is not None and info is not None:
                     info = np.array(info, np.float64)
                     info[:k, :k] += measured
-                self.kalman.update(th[:k], th[k:k + 3], th[k + 3:], info)
+                if result.ok:  # (the state's own arrays: the values of its theta's parts)
+                    self.kalman.update(result.alpha, result.pose.rotation,
+                                       result.pose.translation, info)
+                else:
+                    th = np.asarray(fitted)
+                    self.kalman.update(th[:k], th[k:k + 3], th[k + 3:], info)
             else:
                 self.kalman.hold()
         return result
@@ -1002,9 +1007,17 @@ class LiveTracker:
         observation model's mm into px)."""
         depth = float(prior.translation[2]) if prior is not None else float(
             (self.tracker.state or (None, Pose()))[1].translation[2])
-        return PointTerm(self.point_model, self.speaker.camera,
-                         reading.landmarks[self.point_model.landmarks, :2], depth,
+        return PointTerm(self.point_model, self.speaker.camera, self._seen(reading), depth,
                          scale, weight)
+
+    def _seen(self, reading: Any) -> np.ndarray:
+        """(M, 2) px: ``reading``'s points of the observation model
+        (:attr:`~articast.core.tracking.points.PointModel.landmarks`), indexed once a reading
+        (a frame asks for them up to four times; no caller writes to them)."""
+        if self._seen_of is not reading or self._seen_points is None:
+            self._seen_of = reading
+            self._seen_points = reading.landmarks[self.point_model.landmarks, :2]
+        return self._seen_points
 
     def _reading_pose(self, reading: Any, prior: StatePrior) -> Pose | None:
         """The head's pose that puts the observation model's mean points where ``reading``
@@ -1081,7 +1094,7 @@ class LiveTracker:
             return result
         pm = self.point_model
         off = self._offset(result.alpha, result.pose.matrix, result.pose.translation,
-                           reading.landmarks[pm.landmarks, :2])
+                           self._seen(reading))
         limit = fu.agreement * pm.offset_p99
         result = _with(result, extra={**result.extra, "landmark_offset": off})
         if np.isfinite(off) and off <= limit:
