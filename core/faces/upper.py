@@ -1237,7 +1237,8 @@ class UpperTracker:
             for i in range(2)]
         squeeze = [None, None] if ref.brow_x_mm is None else [
             ref.brow_x_mm[i] - m.brow_x[i] for i in range(2)]
-        d = m.brows - np.asarray(ref.brows_mm)
+        # (in Python floats: the same float64 differences as numpy's on these 4-vectors)
+        rise = [b - float(r) for b, r in zip(m.brows.tolist(), ref.brows_mm, strict=True)]
         for i in range(2):  # the brow band from the pixels where measured (module docstring)
             band = m.band[i]
             if band is None or ref.brow_window(i) is None or band == (None, None):
@@ -1247,9 +1248,9 @@ class UpperTracker:
             if up == [None, None]:
                 continue
             # a half not seen (under hair, off the face) rises with the other
-            d[2 * i:2 * i + 2] = [up[j] if up[j] is not None else up[1 - j] for j in range(2)]
-        lowering = float(max(0.0, -(d[0] + d[2]) / 2.0))
+            rise[2 * i:2 * i + 2] = [up[j] if up[j] is not None else up[1 - j] for j in range(2)]
+        lowering = float(max(0.0, -(rise[0] + rise[2]) / 2.0))
         return UpperFace(True, "", cl[0], cl[1], None if gaze is None else gaze[0],
                          None if gaze is None else gaze[1], source, True, "",
-                         float(d[0]), float(d[1]), float(d[2]), float(d[3]), lowering,
+                         float(rise[0]), float(rise[1]), float(rise[2]), float(rise[3]), lowering,
                          wide[0], wide[1], lower[0], lower[1], squeeze[0], squeeze[1])
