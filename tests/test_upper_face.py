@@ -56,6 +56,36 @@ def test_alignment_removes_pose_and_scale():
         assert np.abs(al.points[ids] - CANON.vertices_mm[ids]).max() < 1e-6
 
 
+def test_compiled_alignment_is_the_numpy_alignment_to_rounding():
+    """align's compiled call (faces.kernels.aligned) gives align_numpy's points, scale and
+    yaw to rounding (its sums in another order), at any pose and scale, with noise on the
+    points, mirrored (a reflection) and with the non-rigid points not finite; and None where
+    the numpy code gives None."""
+    from articast.core.faces import kernels as FK
+
+    if not FK.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(11)
+    compared = 0
+    for k in range(60):
+        lm = reading(CANON.vertices_mm, rng.uniform(-40, 40), rng.uniform(-20, 20)) \
+            * rng.uniform(0.3, 2.5) + rng.normal(0.0, (0.0, 0.5, 3.0)[k % 3], (468, 3))
+        if k % 5 == 1:
+            lm[:, 0] *= -1.0  # mirrored: the rotation's reflection is taken out
+        if k % 7 == 2:
+            lm[np.setdiff1d(np.arange(468), CANON.procrustes_ids)[:5]] = np.nan
+        lm.setflags(write=False)  # (a reading's landmarks are read-only)
+        got, ref = U.align(lm, CANON), U.align_numpy(lm, CANON)
+        assert ref is not None and got is not None
+        np.testing.assert_allclose(got.points, ref.points, rtol=1e-12, atol=1e-12)
+        assert got.scale == pytest.approx(ref.scale, rel=1e-12)
+        assert got.yaw_deg == pytest.approx(ref.yaw_deg, rel=1e-12, abs=1e-12)
+        compared += 1
+    for bad in (np.full((468, 3), np.nan), np.zeros((468, 3))):
+        assert U.align(bad, CANON) is None and U.align_numpy(bad, CANON) is None
+    assert compared == 60
+
+
 def test_closure_is_relative_to_the_speakers_open_eye_whatever_the_pose():
     tracker = U.UpperTracker(REF)
     img = np.full((400, 640, 3), 128, np.uint8)

@@ -30,7 +30,7 @@ from articast.core.tracking.kernels import (
     opening_centres,
 )
 
-__all__ = ["AVAILABLE", "IRIS_MAX_PIXELS", "compiled_on_disk", "iris_fit", "warm_up"]
+__all__ = ["AVAILABLE", "IRIS_MAX_PIXELS", "aligned", "compiled_on_disk", "iris_fit", "warm_up"]
 
 IRIS_MAX_PIXELS = 4096
 """The largest eye crop (rows x columns) :func:`iris_fit` takes: its whole-crop pairwise sum
@@ -211,6 +211,69 @@ def iris_fit(patch, contour, grown, opened, radius_px, fine, row_white, min_rows
     return (1, cx, cy, half, ex, ey, nk, skin, white, iris, levels)
 
 
+@njit(cache=True, nogil=True)
+def _det3(m):  # pragma: no cover - compiled
+    """The determinant of a 3 x 3 matrix by its first row's cofactors (upper._det3)."""
+    return (m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+            - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+            + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]))
+
+
+@njit(cache=True, nogil=True)
+def aligned(lm, ids, wn, b, mb):  # pragma: no cover - compiled
+    """upper.align in one call (its numpy code, :func:`~articast.core.faces.upper.align_numpy`,
+    is the reference; a test checks they agree to rounding): the similarity Procrustes of a
+    reading ``lm`` (N, 3) px (x right, y down, z away) onto the canonical face's rigid points
+    ``b`` (len(ids), 3) mm, weights ``wn`` (summing to 1), their weighted mean ``mb`` (3,),
+    on the reading's points ``ids``. Returns (ok, points (N, 3) mm in the head frame, scale
+    px per mm, yaw deg); ok False for a degenerate reading (a point not finite, no spread, a
+    scale not positive). The same operations as the numpy code, its sums in another order
+    (~25 small numpy calls and the SVD's wrapper, ~0.25 ms of a reading's frame in the live
+    loop)."""
+    n = lm.shape[0]
+    m = ids.shape[0]
+    fail = (False, np.empty((0, 3)), 0.0, 0.0)
+    ma = np.zeros(3)
+    for j in range(m):
+        i = ids[j]
+        ma[0] += wn[j] * lm[i, 0]
+        ma[1] += wn[j] * -lm[i, 1]
+        ma[2] += wn[j] * -lm[i, 2]
+    cov = np.zeros((3, 3))
+    var = 0.0
+    for j in range(m):
+        i = ids[j]
+        a0, a1, a2 = lm[i, 0] - ma[0], -lm[i, 1] - ma[1], -lm[i, 2] - ma[2]
+        var += wn[j] * (a0 * a0 + a1 * a1 + a2 * a2)
+        for r in range(3):
+            bw = (b[j, r] - mb[r]) * wn[j]
+            cov[r, 0] += bw * a0
+            cov[r, 1] += bw * a1
+            cov[r, 2] += bw * a2
+    for r in range(3):
+        for c in range(3):
+            if not np.isfinite(cov[r, c]):
+                return fail
+    u, sv, vt = np.linalg.svd(cov)
+    d = 1.0 if _det3(u) * _det3(vt) > 0 else -1.0  # (the sign of det(u @ vt), as align's)
+    rot = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            rot[r, c] = u[r, 0] * vt[0, c] + u[r, 1] * vt[1, c] + d * u[r, 2] * vt[2, c]
+    if var <= 1e-9:
+        return fail
+    scale = (0.0 + sv[0] + sv[1] + sv[2] * d) / var  # mm per px
+    if not np.isfinite(scale) or scale <= 0:
+        return fail
+    pts = np.empty((n, 3))
+    for k in range(n):
+        s0, s1, s2 = lm[k, 0] - ma[0], -lm[k, 1] - ma[1], -lm[k, 2] - ma[2]
+        for c in range(3):
+            pts[k, c] = (s0 * rot[c, 0] + s1 * rot[c, 1] + s2 * rot[c, 2]) * scale + mb[c]
+    # rot maps the face's frame as seen to the canonical: its inverse is the head's rotation
+    return True, pts, 1.0 / scale, np.degrees(np.arctan2(rot[2, 0], rot[2, 2]))
+
+
 def warm_up() -> None:
     """Compile (or load from the on-disk cache) :func:`iris_fit` for the live fit's types:
     ~3 s of CPU once the tracker's kernels are compiled (a cold cache), ~20 ms loaded from
@@ -220,15 +283,18 @@ def warm_up() -> None:
     z = np.zeros((12, 16), np.float32)
     u = np.zeros((12, 16), np.uint8)
     iris_fit(z, u, u, z, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
+    aligned(np.zeros((468, 3)), np.arange(4, dtype=np.int32), np.full(4, 0.25), np.zeros((4, 3)),
+            np.zeros(3))
 
 
 def compiled_on_disk() -> bool:
-    """Whether numba's on-disk cache already holds :func:`iris_fit` (False: :func:`warm_up`
-    will compile it, ~3 s); True when it cannot tell (as
+    """Whether numba's on-disk cache already holds :func:`iris_fit` and :func:`aligned`
+    (False: :func:`warm_up` will compile them, ~4 s); True when it cannot tell (as
     :func:`articast.core.tracking.kernels.compiled_on_disk`)."""
     if not AVAILABLE:
         return True
     try:
-        return os.path.exists(iris_fit._cache._cache_file._index_path)  # noqa: SLF001
+        return all(os.path.exists(k._cache._cache_file._index_path)  # noqa: SLF001
+                   for k in (iris_fit, aligned))
     except AttributeError:  # another numba's internals
         return True
