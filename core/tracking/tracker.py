@@ -14,7 +14,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
+from articast.core.appearance.maps import (
+    ImageMaps,
+    MapBuffers,
+    image_maps,
+    image_pyramid,
+    roi_of,
+)
 from articast.core.appearance.models import AppearanceModel, sample_normals
 from articast.core.model.camera import Camera, Pose, axis_angle
 from articast.core.model.face import FaceModel, range_motion
@@ -238,6 +244,9 @@ class Tracker:
         pts = self.problem.s_mean
         self._span = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= pol.occlusion_span_mm
         self._normals = sample_normals(model, appearance)
+        # each frame's lazy full-resolution maps go to the same memory (one image_pyramid
+        # call a frame makes them; a frame's maps are dropped before the next frame's)
+        self._map_buffers = MapBuffers()
         self.reset()
 
     def reset(self, pose: Pose | None = None, alpha: np.ndarray | None = None) -> None:
@@ -312,7 +321,7 @@ class Tracker:
             fine = None if lazy else roi_of(uv, pol.roi_margin_px + 4 * sig)
             cache.update(image_pyramid(image, roi_of(uv, margin), sig,
                                        tuple(lv for lv in levels if lv not in cache), fine,
-                                       lazy=lazy))
+                                       lazy=lazy, buffers=self._map_buffers))
         for level in levels:
             fit_pol = policy or pol.fit
             if policy is None and level > 0 and pol.coarse_iterations:
