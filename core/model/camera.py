@@ -213,6 +213,17 @@ class Camera:
         f = 0.5 * width / np.tan(np.radians(fov_deg) / 2.0)
         return cls(f, f, (width - 1) / 2.0, (height - 1) / 2.0, width, height)
 
+    @cached_property
+    def pinhole(self) -> bool:
+        """Whether the camera has no distortion (the compiled projections' case)."""
+        return not bool(np.any(self.dist != 0))
+
+    @cached_property
+    def intrinsics(self) -> np.ndarray:
+        """(fx, fy, cx, cy) float64, made once (the compiled projections' argument; shared:
+        do not write into it)."""
+        return np.array([self.fx, self.fy, self.cx, self.cy], np.float64)
+
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual name
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
