@@ -579,9 +579,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         cost = cost_new
         r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared = terms_new
         costs.append(cost)
-        if (np.abs(step[:k]).max() < pol.tol_alpha
-                and np.abs(step[k:k + 3]).max() < pol.tol_rotation
-                and np.abs(step[k + 3:k + 6]).max() < pol.tol_translation_mm):
+        if _small_step(step.tolist(), k, pol):
             converged = True
             break
     info = None
@@ -594,6 +592,15 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n if use_app else 0.0,
                      evals, it, converged, vf, tuple(costs), gain, rc_n,
                      _point_q(r, nc) if use_app else None, info)
+
+
+def _small_step(step: list[float], k: int, pol: FitPolicy) -> bool:
+    """Whether every part of an LM step (K + 6 or more, as Python floats) is below the
+    policy's tolerances (a NaN is not): numpy's ``abs(...).max() < tol`` per part, on floats
+    (a frame's few iterations: three numpy reductions cost more than these comparisons)."""
+    ta, tr, tt = pol.tol_alpha, pol.tol_rotation, pol.tol_translation_mm
+    return (all(abs(x) < ta for x in step[:k]) and all(abs(x) < tr for x in step[k:k + 3])
+            and all(abs(x) < tt for x in step[k + 3:k + 6]))
 
 
 def _marginal_information(h: np.ndarray, p: int, wg: float) -> np.ndarray:

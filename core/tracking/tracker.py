@@ -7,6 +7,7 @@ Core never reads a clock: pass ``clock`` (e.g. ``time.perf_counter``) to get ms 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -247,6 +248,7 @@ class Tracker:
         # each frame's lazy full-resolution maps go to the same memory (one image_pyramid
         # call a frame makes them; a frame's maps are dropped before the next frame's)
         self._map_buffers = MapBuffers()
+        self._alpha_limit = (self.problem.bound + 3.0).tolist()  # _good's range test
         self.reset()
 
     def reset(self, pose: Pose | None = None, alpha: np.ndarray | None = None) -> None:
@@ -491,9 +493,13 @@ class Tracker:
         judges it by the landmarks (an articulation the enrolment never showed, a wide-open
         mouth, raises the appearance residual of a fit that the landmarks confirm)."""
         pol = self.policy
-        if fit.valid_fraction < pol.min_valid_fraction or not np.all(np.isfinite(fit.theta)):
+        # (Python floats: the same tests as numpy's isfinite and abs(alpha) > bound + 3,
+        # a few times cheaper on K + 6 numbers)
+        alpha = fit.alpha.tolist()
+        if fit.valid_fraction < pol.min_valid_fraction or not all(
+                map(math.isfinite, alpha + fit.rotation.tolist() + fit.translation.tolist())):
             return False
-        if np.any(np.abs(fit.alpha) > self.problem.bound + 3.0):
+        if any(abs(a) > b for a, b in zip(alpha, self._alpha_limit, strict=True)):
             return False
         if self._level is None or landmarks:
             return True
