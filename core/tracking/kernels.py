@@ -886,6 +886,48 @@ def facing_cos(s_mean, normals, rot, t):  # pragma: no cover - compiled
     return out
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _nan_max(a, b):  # pragma: no cover - compiled
+    """np.maximum of two numbers (NaN if either is)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a >= b else b
+
+
+@njit(cache=True, nogil=True)
+def occlusion_votes(q, judged, s_mean, normals, rot, t, min_facing, q_div, base, factor,
+                    q_level, floor):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.tracker.Tracker.occlusion`'s per-point test (its numpy
+    code, ``occlusion_numpy``, is the reference): the points ``judged`` (S,) bool with
+    q (S,) > 0 and, unless ``min_facing`` is NaN, :func:`facing_cos` >= it (posed by rot,
+    t) are judged; of those, out are those with q / q_div above max(base, factor *
+    max(q_level, floor)) (S,). Returns (out (S,) bool, its count, the judged count)."""
+    m = q.shape[0]
+    use_facing = min_facing == min_facing
+    if use_facing:
+        p = np.dot(s_mean, rot.T)
+        nr = np.dot(normals, rot.T)
+    else:
+        p = np.empty((0, 3))
+        nr = np.empty((0, 3))
+    out = np.zeros(m, np.bool_)
+    n_out = 0
+    n_judged = 0
+    for i in range(m):
+        ok = judged[i] and q[i] > 0
+        if ok and use_facing:
+            p0, p1, p2 = p[i, 0] + t[0], p[i, 1] + t[1], p[i, 2] + t[2]
+            norm = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+            ok = -(nr[i, 0] * p0 + nr[i, 1] * p1 + nr[i, 2] * p2) / max(norm, 1e-9) >= min_facing
+        if not ok:
+            continue
+        n_judged += 1
+        if q[i] / q_div > _nan_max(base, factor * _nan_max(q_level[i], floor)):
+            out[i] = True
+            n_out += 1
+    return out, n_out, n_judged
+
+
 @njit(cache=True, nogil=True)
 def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.points.ReadingRegression.features` for a camera without
@@ -1618,7 +1660,7 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "facing_cos",
+TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "occlusion_votes",
            "sample_uv", "roi_box")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
@@ -1685,8 +1727,12 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
             pixels_sd3(frame[::8, ::8])
         if want("pixels_sd2"):
             pixels_sd2(frame[::4, ::4, 1])
-    if want("facing_cos"):
+    if only is not None and "facing_cos" in only:  # (Tracker.facing alone: not a frame's)
         facing_cos(np.zeros((2, 3)), np.ones((2, 3)), np.eye(3), np.array([0.0, 0.0, 100.0]))
+    if want("occlusion_votes"):
+        occlusion_votes(np.ones(2), np.ones(2, np.bool_), np.zeros((2, 3)), np.ones((2, 3)),
+                        np.eye(3), np.array([0.0, 0.0, 100.0]), 0.2, 1.0, 10.0, 3.0,
+                        np.ones(2), 1.0)
     if want("state_measured"):
         state_measured(np.zeros(1, f8), np.eye(3), np.zeros(3), np.eye(7), np.zeros(1, f8),
                        np.eye(1))
@@ -1736,7 +1782,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, gn_terms,
                                   lm_step, sample_uv, roi_box, state_measured,
-                                  pixels_sd3, pixels_sd2, facing_cos,
+                                  pixels_sd3, pixels_sd2, occlusion_votes,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
                                   iris_former_rows, lids_read, iris_circle_height,

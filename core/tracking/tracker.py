@@ -39,6 +39,8 @@ from articast.core.tracking.points import PointTerm
 from articast.core.tracking.result import TrackResult
 
 OPTIMISERS = ("gauss-newton", "nelder-mead")
+_EYE = np.eye(3)
+_ZERO3 = np.zeros(3)
 
 
 def _spread(pixels: np.ndarray) -> float:
@@ -511,7 +513,8 @@ class Tracker:
                   staying: bool = False, pose: Pose | None = None) -> str | None:
         """The ``occluded`` reason for a fit whose per-point residuals ``q`` (S,) show that
         the part of the face the articulation moves no longer looks like the speaker, else
-        None (see ``TrackingPolicy.occlusion_q``). Cheap: a few array operations over S.
+        None (see ``TrackingPolicy.occlusion_q``). Cheap: one compiled call over S
+        (:meth:`occlusion_numpy`: the reference).
 
         gain : the fit's image gain. The model's mispredictions grow with it (the weights
         whiten residuals at the enrolment's exposure), so q is judged divided by gain^2
@@ -524,6 +527,42 @@ class Tracker:
         if (pol.occlusion_q is None or q is None or self._qlevel is None
                 or not self.problem.appearance.kind.startswith("la")):
             return None  # (tex: one z-scored value per point, another scale)
+        out, n_out, n_judged = self._votes(q, gain, staying, pose)
+        if staying and n_out:
+            return (f"occluded: still {n_out} of {n_judged} sample points on the lips, "
+                    f"jaw and chin unlike the face; tracked through; last good state held")
+        if n_out < pol.occlusion_points or (
+                self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
+            return None
+        return (f"occluded: {n_out} of {n_judged} sample points on the lips, jaw and "
+                f"chin no longer look like the face (a hand or an object over them, or the fit "
+                f"is wrong there); tracked through; last good state held")
+
+    def _votes(self, q: np.ndarray, gain: float, staying: bool, pose: Pose | None
+               ) -> tuple[np.ndarray, int, int]:
+        """:meth:`occlusion_numpy` in one compiled call
+        (:func:`~articast.core.tracking.kernels.occlusion_votes`, the same tests)."""
+        pol = self.policy
+        if not kernels.AVAILABLE or q.dtype != np.float64:
+            return self.occlusion_numpy(q, gain, staying, pose)
+        assert self._qlevel is not None and pol.occlusion_q is not None
+        normals, rot, t, min_facing = self.problem.s_mean, _EYE, _ZERO3, math.nan
+        if pol.occlusion_facing is not None and pose is not None and self._normals is not None:
+            normals, rot, min_facing = self._normals, pose.matrix, pol.occlusion_facing
+            t = np.array(pose.translation, np.float64)
+        return kernels.occlusion_votes(
+            q, self._judged, self.problem.s_mean, normals, rot, t, float(min_facing),
+            float(max(1.0, gain) ** 2),
+            float(pol.occlusion_stay_q if staying else pol.occlusion_q),
+            float(pol.occlusion_factor), self._qlevel, float(pol.occlusion_floor))
+
+    def occlusion_numpy(self, q: np.ndarray, gain: float = 1.0, staying: bool = False,
+                        pose: Pose | None = None) -> tuple[np.ndarray, int, int]:
+        """:meth:`occlusion`'s per-point test in numpy (the reference of
+        :func:`~articast.core.tracking.kernels.occlusion_votes`): the points above their
+        limit (S,) bool, their count and the count of points judged."""
+        pol = self.policy
+        assert self._qlevel is not None
         judged = self._judged & (q > 0)  # q = 0: outside the image
         if pol.occlusion_facing is not None and pose is not None and self._normals is not None:
             judged = judged & (self.facing(pose) >= pol.occlusion_facing)
@@ -531,16 +570,7 @@ class Tracker:
         limit = np.maximum(pol.occlusion_stay_q if staying else pol.occlusion_q,
                            pol.occlusion_factor * np.maximum(self._qlevel, pol.occlusion_floor))
         out = judged & (q > limit)
-        n_out = int(np.count_nonzero(out))
-        if staying and n_out:
-            return (f"occluded: still {n_out} of {int(judged.sum())} sample points on the lips, "
-                    f"jaw and chin unlike the face; tracked through; last good state held")
-        if n_out < pol.occlusion_points or (
-                self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
-            return None
-        return (f"occluded: {n_out} of {int(judged.sum())} sample points on the lips, jaw and "
-                f"chin no longer look like the face (a hand or an object over them, or the fit "
-                f"is wrong there); tracked through; last good state held")
+        return out, int(np.count_nonzero(out)), int(judged.sum())
 
     def facing(self, pose: Pose) -> np.ndarray:
         """(S,) how squarely each sample point faces the camera at ``pose``: the cosine of
@@ -548,7 +578,7 @@ class Tracker:
         camera's centre (1: head on; 0: at the silhouette; < 0: turned away)."""
         assert self._normals is not None
         if kernels.AVAILABLE:  # the same sums in one compiled call (the numpy below: the
-            # reference; every frame's occlusion test)
+            # reference; a frame's occlusion test runs them in kernels.occlusion_votes)
             return kernels.facing_cos(self.problem.s_mean, self._normals, pose.matrix,
                                       np.array(pose.translation, np.float64))
         return self.facing_numpy(pose)
