@@ -160,8 +160,11 @@ class ConstantVelocity:
         dt = float(min(max(dt, 1e-3), 1.0))
         # F P F^T + Q by blocks, F = [[I, dt I], [0, I]] (the 2n x 2n products cost more)
         q = self.noise.q
+        k = self.k
         if kernels.AVAILABLE:  # the same sums and inverse in one compiled call
-            p, info = kernels.cv_predict(self.p, q * dt**3 / 3.0, q * dt**2 / 2.0, q * dt, dt)
+            p, info, alpha, t = kernels.cv_predict(self.p, q, dt**3, dt**2, dt, self.alpha,
+                                                   self.v, self.t)
+            rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
         else:
             i = np.arange(n)
             pxx, pxv, pvv = self.p[:n, :n], self.p[:n, n:], self.p[n:, n:]
@@ -176,10 +179,9 @@ class ConstantVelocity:
             p[n + i, i] += q * dt**2 / 2.0
             p[n + i, n + i] += q * dt
             info = np.linalg.inv(p[:n, :n] + 1e-12 * np.eye(n))
-        k = self.k
-        alpha = self.alpha + dt * self.v[:k]
-        rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
-        t = self.t + dt * self.v[k + 3:]
+            alpha = self.alpha + dt * self.v[:k]
+            rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
+            t = self.t + dt * self.v[k + 3:]
         self._pred = (alpha, rot, t, p)
         self._info = info
         self._dt = dt

@@ -1168,12 +1168,29 @@ def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
-    """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict`'s covariance
-    F P F^T + Q by blocks (p (2n, 2n); q3, q2, q1 (n,) the noise's dt^3/3, dt^2/2 and dt
-    terms) and the information of its state block, in one call: the same element-wise sums
-    as its numpy code, the inverse by LAPACK's gesv on the identity, as numpy's inv."""
+def cv_predict(p, q, dt3, dt2, dt, alpha, v, t):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict` but its rotation: the
+    covariance F P F^T + Q by blocks (p (2n, 2n); q (n,) the noise's density, its terms
+    q * dt^3 / 3, q * dt^2 / 2 and q * dt with dt3 = dt**3 and dt2 = dt**2 as Python works
+    them out) and the information of its state block, and the articulation alpha (K,) and
+    translation t (3,) moved by the velocity v (n,) over dt, in one call: the same
+    element-wise sums as its numpy code, the inverse by LAPACK's gesv on the identity, as
+    numpy's inv. Returns (P, information, alpha, t)."""
     n = p.shape[0] // 2
+    k = alpha.shape[0]
+    q3 = np.empty(n)
+    q2 = np.empty(n)
+    q1 = np.empty(n)
+    for i in range(n):
+        q3[i] = q[i] * dt3 / 3.0
+        q2[i] = q[i] * dt2 / 2.0
+        q1[i] = q[i] * dt
+    a_new = np.empty(k)
+    for i in range(k):
+        a_new[i] = alpha[i] + dt * v[i]
+    t_new = np.empty(3)
+    for i in range(3):
+        t_new[i] = t[i] + dt * v[k + 3 + i]
     out = np.empty_like(p)
     dt2 = dt * dt
     for a in range(n):
@@ -1190,7 +1207,8 @@ def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
     a = np.ascontiguousarray(out[:n, :n])
     for i in range(n):
         a[i, i] += 1e-12
-    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
+    # (LAPACK's is F)
+    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n))), a_new, t_new
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1768,9 +1786,10 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
         iris_former_rows(eye, mask, 0.0, 30.0, 5.0)
     if want("cv_predict", "cv_update"):
-        cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
-        for information in (np.eye(2), np.zeros((0, 0))):
-            cv_update(cov, info, np.zeros(2), np.zeros(2), information)
+        cov, info, _, _ = cv_predict(np.eye(14), np.ones(7), 0.04**3, 0.04**2, 0.04,
+                                     np.zeros(1), np.zeros(7), np.zeros(3))
+        for information in (np.eye(7), np.zeros((0, 0))):
+            cv_update(cov, info, np.zeros(7), np.zeros(7), information)
 
 
 def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
