@@ -341,7 +341,7 @@ def test_lazy_maps_in_reused_buffers_are_fresh_maps(trained):
     buffers = MapBuffers()
     rot = rotation_matrix(pose.rotation)
     rng = np.random.default_rng(4)
-    for i, margin in enumerate((30, 12, 45, 30, 20)):
+    for margin in (30, 12, 45, 30, 20):
         alpha = rng.normal(0, 0.3, 7)
         img = render_blobs(model, camera, alpha, pose)
         img = np.clip(img.astype(np.int16) + rng.integers(-20, 20, img.shape), 0, 255
