@@ -94,6 +94,18 @@ class FitPolicy:
     max_rejections: int | None = None
 
 
+_SPEAKER: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _speaker_measurement(k: int, weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """(zeros (K,), weight * I (K, K)): :meth:`StatePrior.with_speaker`'s measurement, made
+    once per (K, weight) (every live frame asks for it; shared: not written into)."""
+    key = (k, weight)
+    if key not in _SPEAKER:
+        _SPEAKER[key] = (np.zeros(k), weight * np.eye(k))
+    return _SPEAKER[key]
+
+
 @dataclass(frozen=True, eq=False)
 class StatePrior:
     """A Gaussian prior on the whole state (a motion model's prediction): ``alpha`` (K,),
@@ -113,8 +125,7 @@ class StatePrior:
         articulation the term changes nothing; where it does not (a direction the landmarks
         and the appearance hardly see), the estimate stays where the speaker's mouth goes
         instead of wandering several s.d. away with the reader's noise."""
-        k = len(self.alpha)
-        return self.with_measurement(np.zeros(k), weight * np.eye(k))
+        return self.with_measurement(*_speaker_measurement(len(self.alpha), float(weight)))
 
     def with_measurement(self, alpha: np.ndarray, information: np.ndarray) -> StatePrior:
         """This prior times a Gaussian measurement of the articulation, N(``alpha``,
