@@ -195,12 +195,15 @@ class ConstantVelocity:
         a_p, r_p, t_p, p = self._pred
         n = self.n
         r_f = rotation_matrix(np.asarray(rotation, np.float64))
-        e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
-                            np.asarray(translation) - t_p])
-        if kernels.AVAILABLE:  # the same algebra in one compiled call
-            self.p, v = kernels.cv_update(p, self._info, e, self.v, _NONE if information is None
+        if kernels.AVAILABLE:  # the same algebra in one compiled call (the innovation too,
+            # but the rotations' product, numpy's)
+            self.p, v = kernels.cv_update(p, self._info, np.asarray(alpha, np.float64), a_p,
+                                          r_f @ r_p.T, np.asarray(translation, np.float64),
+                                          t_p, self.v, _NONE if information is None
                                           else np.asarray(information, np.float64))
         else:
+            e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
+                                np.asarray(translation) - t_p])
             pxx = p[:n, :n]
             gain = (self._info @ p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1 (predict's inverse)
             v = self.v + (gain @ e)[n:]

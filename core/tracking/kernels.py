@@ -1226,13 +1226,24 @@ def _mm(a, b):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
+def cv_update(p, info, alpha, a_p, turn, t, t_p, v, information):  # pragma: no cover
     """:meth:`articast.core.tracking.kalman.ConstantVelocity.update`'s algebra in one call:
-    the gain P_{:,x} Pxx^-1 (``info`` = Pxx^-1), the velocity ``v`` moved by the gain times
-    the innovation ``e``, and the covariance P - G (Pxx - post) G^T made symmetric, post the
-    inverse of info + ``information`` ((0, 0): none, P kept). Returns (P, v)."""
+    the innovation e = (alpha - a_p, small_turn(``turn``), t - t_p) (turn: the fitted
+    rotation times the predicted one's transpose, (3, 3)), the gain P_{:,x} Pxx^-1
+    (``info`` = Pxx^-1), the velocity ``v`` moved by the gain times e, and the covariance
+    P - G (Pxx - post) G^T made symmetric, post the inverse of info + ``information``
+    ((0, 0): none, P kept). Returns (P, v)."""
     n = info.shape[0]
     m = p.shape[0]
+    k = alpha.shape[0]
+    e = np.empty(n)
+    for i in range(k):
+        e[i] = alpha[i] - a_p[i]
+    e[k] = 0.5 * (turn[2, 1] - turn[1, 2])
+    e[k + 1] = 0.5 * (turn[0, 2] - turn[2, 0])
+    e[k + 2] = 0.5 * (turn[1, 0] - turn[0, 1])
+    for i in range(3):
+        e[k + 3 + i] = t[i] - t_p[i]
     g = _mm(p[:n, :].T, info.T)  # (m, n)
     v_new = v.copy()
     for r in range(n, m):
@@ -1789,7 +1800,8 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         cov, info, _, _ = cv_predict(np.eye(14), np.ones(7), 0.04**3, 0.04**2, 0.04,
                                      np.zeros(1), np.zeros(7), np.zeros(3))
         for information in (np.eye(7), np.zeros((0, 0))):
-            cv_update(cov, info, np.zeros(7), np.zeros(7), information)
+            cv_update(cov, info, np.zeros(1), np.zeros(1), np.eye(3), np.zeros(3), np.zeros(3),
+                      np.zeros(7), information)
 
 
 def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
