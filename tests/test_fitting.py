@@ -360,6 +360,32 @@ def test_lazy_maps_in_reused_buffers_are_fresh_maps(trained):
         assert reused.done.sum() > 0
 
 
+def test_the_compiled_fit_information_is_the_numpy_one():
+    """kernels.fit_information (a fused fit's epilogue: J^T J less the landmarks' shared
+    errors, the image gain marginalised out) equals the numpy steps it replaced to the last
+    bit, with the gain and without, and leaves its input as it was."""
+    from articast.core.tracking import kernels
+    from articast.core.tracking.fitting import _marginal_information
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(6)
+    for i in range(200):
+        p = 13
+        jw = rng.normal(0, 10 ** rng.uniform(-2, 2), (300, p + (i % 2)))
+        h = jw.T @ jw
+        v = rng.normal(0, 1, (20, p))
+        shared = v.T @ v
+        wg = float(rng.uniform(100, 3000))
+        kept = h.copy()
+        got = kernels.fit_information(h, shared, p, wg)
+        ref = h.copy()
+        ref[:p, :p] -= shared
+        ref = _marginal_information(ref, p, wg)
+        np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(h, kept)
+
+
 def test_the_compiled_kernels_are_what_the_product_runs():
     """numba is a dependency: unless disabled on purpose, the kernels must import — or the
     parity tests above would skip silently and the tracker run 2-3x slower."""

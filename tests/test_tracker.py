@@ -303,7 +303,7 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     spies = KernelSpies()
 
     every = ("la_residuals", "cauchy", "point_residuals", "gn_terms", "lm_step",
-             "sample_uv", "roi_box", "pixels_sd2", "facing_cos", "occlusion_votes",
+             "fit_information", "sample_uv", "roi_box", "pixels_sd2", "facing_cos", "occlusion_votes",
              "point_offset", "cv_predict", "cv_update", "iris_chords", "iris_former_rows")
     kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: lm_step
     # calls gn_terms (and it la_residuals) as a global, which a spy in its place would not type

@@ -595,9 +595,13 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
             break
     info = None
     if state_prior is not None:  # what a motion model's update needs (fused tracking only)
-        hd = jtj.copy() if jtj is not None and jtj_of is jw else jw.T @ jw
-        hd[:k + 6, :k + 6] -= h_shared
-        info = _marginal_information(hd, k + 6, wg)
+        reuse = jtj is not None and jtj_of is jw
+        if compiled and jw.shape[1] <= k + 7:  # the same sums in one compiled call
+            info = kernels.fit_information(jtj if reuse else jw.T @ jw, h_shared, k + 6, wg)
+        else:
+            hd = jtj.copy() if reuse else jw.T @ jw
+            hd[:k + 6, :k + 6] -= h_shared
+            info = _marginal_information(hd, k + 6, wg)
     n = max(r.size * vf, 1.0)
     rc_n = rc / max(appearance_weight, 1e-12) / n if use_app else 0.0
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n if use_app else 0.0,

@@ -780,6 +780,26 @@ def lm_step(jtj, jtr, lam, max_rejections, cost, h_p, g_p, h_s, g_s, alpha, rot,
 
 
 @njit(cache=True, nogil=True)
+def fit_information(h, h_shared, p, wg):  # pragma: no cover - compiled
+    """A fit's data information about its first ``p`` unknowns (``fit_gauss_newton``'s
+    epilogue; its numpy code, ``_marginal_information`` after the subtraction, is the
+    reference): J^T J ``h`` (p, p) or (p + 1, p + 1) less the landmarks' shared errors
+    ``h_shared`` (p, p) on its first p rows and columns, the image gain (the last unknown,
+    prior ``wg``) marginalised out by its Schur complement, the same products and quotients
+    as numpy's outer product. ``h`` is only read. Returns (p, p)."""
+    out = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            out[i, j] = h[i, j] - h_shared[i, j]
+    if h.shape[0] == p + 1:
+        d = h[p, p] + wg
+        for i in range(p):
+            for j in range(p):
+                out[i, j] = out[i, j] - h[i, p] * h[p, j] / d
+    return out
+
+
+@njit(cache=True, nogil=True)
 def sample_uv(s_mean, basis_flat, alpha, rot, t, intr):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.fitting.Problem.project` for an undistorted camera (its
     numpy code is the reference): image positions (S, 2) px of the sample points (head-frame
@@ -1689,8 +1709,8 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "occlusion_votes",
-           "sample_uv", "roi_box")
+TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "fit_information", "pixels_sd2",
+           "occlusion_votes", "sample_uv", "roi_box")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1744,6 +1764,8 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         cost, _, _, _, _, jw, g_p, h_p, g_s, h_s, _ = gn_terms(*state, *rest)
         lm_step(jw.T @ jw, np.zeros(jw.shape[1]), 1e-3, 2, cost, h_p, g_p, h_s, g_s, *state,
                 *rest)
+    if want("fit_information"):
+        fit_information(np.eye(8), np.zeros((7, 7)), 7, 1.0)
     if want("sample_uv"):
         sample_uv(np.zeros((1, 3), f8), np.zeros((1, 3), f8), np.zeros(1, f8), np.eye(3),
                   np.array([0.0, 0.0, 100.0]), intr)
@@ -1812,7 +1834,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
         return True
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, gn_terms,
-                                  lm_step, sample_uv, roi_box, state_measured,
+                                  lm_step, fit_information, sample_uv, roi_box, state_measured,
                                   pixels_sd3, pixels_sd2, occlusion_votes,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
