@@ -1030,8 +1030,8 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
     assert live.fusion is not None
     spies = KernelSpies()
     for name in ("la_residuals", "cauchy", "point_residuals", "gn_terms", "lm_step",
-                 "sample_uv", "roi_box", "state_measured", "pixels_sd3", "pixels_sd2",
-                 "facing_cos",
+                 "fit_information", "sample_uv", "roi_box", "state_measured", "pixels_sd3", "pixels_sd2",
+                 "facing_cos", "occlusion_votes",
                  "point_offset", "cv_predict", "cv_update", "lip_gap",
                  "reading_features", "lids_read", "iris_chords", "iris_former_rows",
                  "iris_circle_height", "opening_centres", "dark_height", "brow_half"):

@@ -326,6 +326,66 @@ def test_lazy_maps_smooth_on_demand_what_the_full_blur_gives(trained):
     np.testing.assert_allclose(lazy.dense(), full.smooth, atol=1e-3)
 
 
+def test_lazy_maps_in_reused_buffers_are_fresh_maps(trained):
+    """image_pyramid(buffers=MapBuffers()) (a tracker's frames, one after the other): the maps
+    a call makes in the memory the calls before used (a smaller ROI, a larger, with pixels
+    smoothed there already) give the residuals and Jacobian of fresh maps to the last bit,
+    and the YCrCb crop is OpenCV's."""
+    from articast.core.appearance.maps import MapBuffers, image_pyramid
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = trained
+    prob = Problem(model, app, camera)
+    buffers = MapBuffers()
+    rot = rotation_matrix(pose.rotation)
+    rng = np.random.default_rng(4)
+    for margin in (30, 12, 45, 30, 20):
+        alpha = rng.normal(0, 0.3, 7)
+        img = render_blobs(model, camera, alpha, pose)
+        img = np.clip(img.astype(np.int16) + rng.integers(-20, 20, img.shape), 0, 255
+                      ).astype(np.uint8)  # (colour noise: every channel's value matters)
+        roi = roi_of(prob.project(np.r_[alpha, pose.as_vector()]), margin)
+        reused = image_pyramid(img, roi, app.sigma, (0,), lazy=True, buffers=buffers)[0]
+        fresh = image_pyramid(img, roi, app.sigma, (0,), lazy=True)[0]
+        assert reused.lazy and reused.done.sum() == 0 and reused.rows_done.sum() == 0
+        assert np.shares_memory(reused.smooth, buffers._f32)
+        np.testing.assert_array_equal(reused.source, fresh.source)
+        for a_fit in (alpha, alpha + 0.05):
+            a = prob.residuals(reused, 0, a_fit, rot, pose.translation, True, 1.0, True)
+            b = prob.residuals(fresh, 0, a_fit, rot, pose.translation, True, 1.0, True)
+            np.testing.assert_array_equal(a[0], b[0])
+            np.testing.assert_array_equal(a[1], b[1])
+        assert reused.done.sum() > 0
+
+
+def test_the_compiled_fit_information_is_the_numpy_one():
+    """kernels.fit_information (a fused fit's epilogue: J^T J less the landmarks' shared
+    errors, the image gain marginalised out) equals the numpy steps it replaced to the last
+    bit, with the gain and without, and leaves its input as it was."""
+    from articast.core.tracking import kernels
+    from articast.core.tracking.fitting import _marginal_information
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(6)
+    for i in range(200):
+        p = 13
+        jw = rng.normal(0, 10 ** rng.uniform(-2, 2), (300, p + (i % 2)))
+        h = jw.T @ jw
+        v = rng.normal(0, 1, (20, p))
+        shared = v.T @ v
+        wg = float(rng.uniform(100, 3000))
+        kept = h.copy()
+        got = kernels.fit_information(h, shared, p, wg)
+        ref = h.copy()
+        ref[:p, :p] -= shared
+        ref = _marginal_information(ref, p, wg)
+        np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(h, kept)
+
+
 def test_the_compiled_kernels_are_what_the_product_runs():
     """numba is a dependency: unless disabled on purpose, the kernels must import — or the
     parity tests above would skip silently and the tracker run 2-3x slower."""

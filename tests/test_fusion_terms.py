@@ -371,14 +371,14 @@ def test_the_compiled_motion_model_steps_are_the_numpy_ones(monkeypatch, told):
             cv.update(prior.alpha + 0.1 * r.normal(size=k),
                       FRONTAL + 0.01 * r.normal(size=3),
                       prior.translation + r.normal(size=3), info)
-            out.append((prior.information, prior.alpha, prior.rotation, cv.p.copy(),
-                        cv.v.copy()))
+            out.append((prior.information, prior.alpha, prior.rotation, prior.translation,
+                        cv.p.copy(), cv.v.copy()))
         runs.append(out)
     fast, ref = runs
     for got, want in zip(fast, ref, strict=True):
         for x, y in zip(got, want, strict=True):
             np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-9 * np.abs(y).max())
-    assert np.abs(ref[-1][4]).max() > 1e-3  # the velocity moved: a real comparison
+    assert np.abs(ref[-1][5]).max() > 1e-3  # the velocity moved: a real comparison
 
 
 def _regression_case(seed=7, n=300, own_sd=3.0):

@@ -303,8 +303,8 @@ def test_the_tracker_calls_only_the_kernels_its_warm_up_compiles(kind, monkeypat
     spies = KernelSpies()
 
     every = ("la_residuals", "cauchy", "point_residuals", "gn_terms", "lm_step",
-             "sample_uv", "roi_box", "pixels_sd2", "facing_cos", "point_offset", "cv_predict",
-             "cv_update", "iris_chords", "iris_former_rows")
+             "fit_information", "sample_uv", "roi_box", "pixels_sd2", "facing_cos", "occlusion_votes",
+             "point_offset", "cv_predict", "cv_update", "iris_chords", "iris_former_rows")
     kernels.warm_up(kernels.TRACKER)  # compiled (or loaded) before the spies: lm_step
     # calls gn_terms (and it la_residuals) as a global, which a spy in its place would not type
     for name in every:
@@ -353,6 +353,42 @@ def test_the_compiled_contrast_is_opencvs_to_the_last_bit():
             assert _spread(view[:, :, 1]) == ref(view[:, :, 1])
             assert float(kernels.pixels_sd2(view[::4, ::4, 1])) == ref(view[::4, ::4, 1])
     assert _contrast(np.full((4, 4, 3), 9, np.uint8)) == 0.0
+
+
+def test_the_compiled_occlusion_votes_are_the_numpy_ones():
+    """Tracker.occlusion runs kernels.occlusion_votes: the numpy reference's points judged
+    and voting (and their counts), exactly, over residuals round their limits, gains above
+    and below 1, staying or not, with and without a pose (the facing test)."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model, camera, pose, app = blob_trained(seed=7, kind="la_lin")
+    tracker = Tracker(model, app, camera, TOY, initial_pose=pose)
+    pol = tracker.policy
+    assert pol.occlusion_q is not None and pol.occlusion_facing is not None
+    assert tracker._normals is not None
+    s = len(tracker._judged)
+    rng = np.random.default_rng(8)
+    tracker._qlevel = rng.uniform(0.5, 2.0, s) * pol.occlusion_floor
+    votes = 0
+    for i in range(60):
+        limit = np.maximum(pol.occlusion_q, pol.occlusion_factor * np.maximum(
+            tracker._qlevel, pol.occlusion_floor))
+        q = limit * rng.uniform(0.5, 1.5, s)
+        q[rng.random(s) < 0.1] = 0.0  # outside the image
+        if i % 7 == 0:
+            q[rng.integers(s)] = limit[0]  # on a limit
+        gain = float(rng.uniform(0.8, 1.3))
+        at = (None if i % 5 == 0 else
+              Pose(pose.rotation + rng.normal(0, 0.5, 3), pose.translation))
+        staying = bool(i % 3 == 0)
+        got = tracker._votes(q, gain, staying, at)
+        ref = tracker.occlusion_numpy(q, gain, staying, at)
+        np.testing.assert_array_equal(got[0], ref[0])
+        assert got[1:] == ref[1:]
+        votes += got[1]
+    assert votes > 0
 
 
 def test_the_compiled_facing_is_the_numpy_one():

@@ -64,10 +64,47 @@ class ImageMaps:
         return (uv - np.asarray(self.origin)) * self.scale + 0.5 * (self.scale - 1.0)
 
 
+class MapBuffers:
+    """Memory that lazy maps (:func:`image_pyramid` ``buffers=``) reuse from one call to the
+    next, grown to the largest ROI seen: a tracker's frames then write into memory they
+    touched the frame before, instead of into fresh allocations (their page faults and cold
+    cache lines). Maps made with them are valid until the next call that uses them."""
+
+    def __init__(self) -> None:
+        self._u8 = np.empty(0, np.uint8)
+        self._f32 = np.empty(0, np.float32)
+        self._taps: dict[tuple[int, float], np.ndarray] = {}
+
+    def take(self, h: int, w: int) -> tuple[np.ndarray, ...]:
+        """(ycrcb (h, w, 3) uint8, smooth (h, w, 3) float32, done (h, w) uint8 zeroed,
+        rows (w, h, 3) float32, rows_done (w, h) uint8 zeroed), all C-contiguous."""
+        n = h * w
+        if self._u8.size < 5 * n:
+            self._u8 = np.empty(5 * n, np.uint8)
+            self._f32 = np.empty(6 * n, np.float32)
+        flags = self._u8[3 * n:5 * n]
+        flags[...] = 0
+        return (self._u8[:3 * n].reshape(h, w, 3), self._f32[:3 * n].reshape(h, w, 3),
+                flags[:n].reshape(h, w), self._f32[3 * n:6 * n].reshape(w, h, 3),
+                flags[n:].reshape(w, h))
+
+    def taps(self, k: int, sigma: float) -> np.ndarray:
+        """``cv2.getGaussianKernel(k, sigma)`` (k,), kept."""
+        key = (k, float(sigma))
+        if key not in self._taps:
+            self._taps[key] = cv2.getGaussianKernel(k, sigma).ravel()
+        return self._taps[key]
+
+
 def _lazy_maps(part: np.ndarray, origin: tuple[int, int], scale: float, sigma: float,
-               k: int) -> ImageMaps:
+               k: int, buffers: MapBuffers | None = None,
+               taken: tuple[np.ndarray, ...] | None = None) -> ImageMaps:
     h, w = part.shape[:2]
     src = np.ascontiguousarray(part)
+    if buffers is not None and taken is not None:
+        _, smooth, done, rows, rows_done = taken
+        return ImageMaps(smooth, origin, scale, float(sigma), src, done, rows, rows_done,
+                         buffers.taps(k, sigma))
     return ImageMaps(np.empty((h, w, 3), np.float32), origin, scale, float(sigma), src,
                      np.zeros((h, w), np.uint8), np.empty((w, h, 3), np.float32),
                      np.zeros((w, h), np.uint8), cv2.getGaussianKernel(k, sigma).ravel())
@@ -87,7 +124,8 @@ def image_maps(
 def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: float,
                   levels: tuple[int, ...],
                   fine_roi: tuple[int, int, int, int] | None = None,
-                  lazy: bool = False) -> dict[int, ImageMaps]:
+                  lazy: bool = False, buffers: MapBuffers | None = None
+                  ) -> dict[int, ImageMaps]:
     """:func:`image_maps` for several levels from one colour conversion of one ROI.
 
     fine_roi : a smaller ROI for level 0 (inside ``roi``): the coarse levels need the wide
@@ -95,6 +133,9 @@ def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: floa
     is the most expensive step of a frame.
     lazy : level 0 as lazy maps (see :class:`ImageMaps`), smoothed on demand by the compiled
     kernel: a frame's fit touches a few thousand of its ~150 000 face pixels.
+    buffers : where a lazy level 0 is made of the whole ROI, its colour conversion and
+    buffers go there (:class:`MapBuffers`; the same numbers): the maps of the previous call
+    with them are then no longer valid.
     """
     if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
         raise InputError(f"expected a BGR uint8 image (H, W, 3), got {image.dtype} {image.shape}")
@@ -103,8 +144,14 @@ def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: floa
     x1, y1 = min(w, int(roi[2])), min(h, int(roi[3]))
     if x1 - x0 < 8 or y1 - y0 < 8:
         x0, y0, x1, y1 = 0, 0, w, h
-    crop = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2YCrCb)
     k = 2 * int(np.ceil(3.0 * sigma)) + 1
+    taken = None
+    if (buffers is not None and lazy and 0 in levels and fine_roi is None
+            and min(y1 - y0, x1 - x0) > k):
+        taken = buffers.take(y1 - y0, x1 - x0)
+        crop = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2YCrCb, dst=taken[0])
+    else:
+        crop = cv2.cvtColor(image[y0:y1, x0:x1], cv2.COLOR_BGR2YCrCb)
     out: dict[int, ImageMaps] = {}
     for level in range(max(levels) + 1):
         if level:
@@ -118,7 +165,7 @@ def image_pyramid(image: np.ndarray, roi: tuple[int, int, int, int], sigma: floa
             if fx1 - fx0 >= 8 and fy1 - fy0 >= 8:
                 part, ox, oy = crop[fy0 - y0:fy1 - y0, fx0 - x0:fx1 - x0], fx0, fy0
         if lazy and level == 0 and min(part.shape[:2]) > k:
-            out[level] = _lazy_maps(part, (ox, oy), 1.0, sigma, k)
+            out[level] = _lazy_maps(part, (ox, oy), 1.0, sigma, k, buffers, taken)
             continue
         smooth = cv2.GaussianBlur(part.astype(np.float32), (k, k), sigma)
         out[level] = ImageMaps(smooth, (ox, oy), 0.5**level, float(sigma))

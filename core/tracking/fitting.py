@@ -94,6 +94,18 @@ class FitPolicy:
     max_rejections: int | None = None
 
 
+_SPEAKER: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _speaker_measurement(k: int, weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """(zeros (K,), weight * I (K, K)): :meth:`StatePrior.with_speaker`'s measurement, made
+    once per (K, weight) (every live frame asks for it; shared: not written into)."""
+    key = (k, weight)
+    if key not in _SPEAKER:
+        _SPEAKER[key] = (np.zeros(k), weight * np.eye(k))
+    return _SPEAKER[key]
+
+
 @dataclass(frozen=True, eq=False)
 class StatePrior:
     """A Gaussian prior on the whole state (a motion model's prediction): ``alpha`` (K,),
@@ -113,8 +125,7 @@ class StatePrior:
         articulation the term changes nothing; where it does not (a direction the landmarks
         and the appearance hardly see), the estimate stays where the speaker's mouth goes
         instead of wandering several s.d. away with the reader's noise."""
-        k = len(self.alpha)
-        return self.with_measurement(np.zeros(k), weight * np.eye(k))
+        return self.with_measurement(*_speaker_measurement(len(self.alpha), float(weight)))
 
     def with_measurement(self, alpha: np.ndarray, information: np.ndarray) -> StatePrior:
         """This prior times a Gaussian measurement of the articulation, N(``alpha``,
@@ -579,21 +590,32 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         cost = cost_new
         r, vf, rc, rw, jw, g_p, h_p, g_s, h_s, h_shared = terms_new
         costs.append(cost)
-        if (np.abs(step[:k]).max() < pol.tol_alpha
-                and np.abs(step[k:k + 3]).max() < pol.tol_rotation
-                and np.abs(step[k + 3:k + 6]).max() < pol.tol_translation_mm):
+        if _small_step(step.tolist(), k, pol):
             converged = True
             break
     info = None
     if state_prior is not None:  # what a motion model's update needs (fused tracking only)
-        hd = jtj.copy() if jtj is not None and jtj_of is jw else jw.T @ jw
-        hd[:k + 6, :k + 6] -= h_shared
-        info = _marginal_information(hd, k + 6, wg)
+        reuse = jtj is not None and jtj_of is jw
+        if compiled and jw.shape[1] <= k + 7:  # the same sums in one compiled call
+            info = kernels.fit_information(jtj if reuse else jw.T @ jw, h_shared, k + 6, wg)
+        else:
+            hd = jtj.copy() if reuse else jw.T @ jw
+            hd[:k + 6, :k + 6] -= h_shared
+            info = _marginal_information(hd, k + 6, wg)
     n = max(r.size * vf, 1.0)
     rc_n = rc / max(appearance_weight, 1e-12) / n if use_app else 0.0
     return FitResult(alpha, axis_angle(rot), t, cost, float(r @ r) / n if use_app else 0.0,
                      evals, it, converged, vf, tuple(costs), gain, rc_n,
                      _point_q(r, nc) if use_app else None, info)
+
+
+def _small_step(step: list[float], k: int, pol: FitPolicy) -> bool:
+    """Whether every part of an LM step (K + 6 or more, as Python floats) is below the
+    policy's tolerances (a NaN is not): numpy's ``abs(...).max() < tol`` per part, on floats
+    (a frame's few iterations: three numpy reductions cost more than these comparisons)."""
+    ta, tr, tt = pol.tol_alpha, pol.tol_rotation, pol.tol_translation_mm
+    return (all(abs(x) < ta for x in step[:k]) and all(abs(x) < tr for x in step[k:k + 3])
+            and all(abs(x) < tt for x in step[k + 3:k + 6]))
 
 
 def _marginal_information(h: np.ndarray, p: int, wg: float) -> np.ndarray:

@@ -160,8 +160,11 @@ class ConstantVelocity:
         dt = float(min(max(dt, 1e-3), 1.0))
         # F P F^T + Q by blocks, F = [[I, dt I], [0, I]] (the 2n x 2n products cost more)
         q = self.noise.q
+        k = self.k
         if kernels.AVAILABLE:  # the same sums and inverse in one compiled call
-            p, info = kernels.cv_predict(self.p, q * dt**3 / 3.0, q * dt**2 / 2.0, q * dt, dt)
+            p, info, alpha, t = kernels.cv_predict(self.p, q, dt**3, dt**2, dt, self.alpha,
+                                                   self.v, self.t)
+            rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
         else:
             i = np.arange(n)
             pxx, pxv, pvv = self.p[:n, :n], self.p[:n, n:], self.p[n:, n:]
@@ -176,10 +179,9 @@ class ConstantVelocity:
             p[n + i, i] += q * dt**2 / 2.0
             p[n + i, n + i] += q * dt
             info = np.linalg.inv(p[:n, :n] + 1e-12 * np.eye(n))
-        k = self.k
-        alpha = self.alpha + dt * self.v[:k]
-        rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
-        t = self.t + dt * self.v[k + 3:]
+            alpha = self.alpha + dt * self.v[:k]
+            rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
+            t = self.t + dt * self.v[k + 3:]
         self._pred = (alpha, rot, t, p)
         self._info = info
         self._dt = dt
@@ -193,12 +195,15 @@ class ConstantVelocity:
         a_p, r_p, t_p, p = self._pred
         n = self.n
         r_f = rotation_matrix(np.asarray(rotation, np.float64))
-        e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
-                            np.asarray(translation) - t_p])
-        if kernels.AVAILABLE:  # the same algebra in one compiled call
-            self.p, v = kernels.cv_update(p, self._info, e, self.v, _NONE if information is None
+        if kernels.AVAILABLE:  # the same algebra in one compiled call (the innovation too,
+            # but the rotations' product, numpy's)
+            self.p, v = kernels.cv_update(p, self._info, np.asarray(alpha, np.float64), a_p,
+                                          r_f @ r_p.T, np.asarray(translation, np.float64),
+                                          t_p, self.v, _NONE if information is None
                                           else np.asarray(information, np.float64))
         else:
+            e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
+                                np.asarray(translation) - t_p])
             pxx = p[:n, :n]
             gain = (self._info @ p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1 (predict's inverse)
             v = self.v + (gain @ e)[n:]

@@ -780,6 +780,26 @@ def lm_step(jtj, jtr, lam, max_rejections, cost, h_p, g_p, h_s, g_s, alpha, rot,
 
 
 @njit(cache=True, nogil=True)
+def fit_information(h, h_shared, p, wg):  # pragma: no cover - compiled
+    """A fit's data information about its first ``p`` unknowns (``fit_gauss_newton``'s
+    epilogue; its numpy code, ``_marginal_information`` after the subtraction, is the
+    reference): J^T J ``h`` (p, p) or (p + 1, p + 1) less the landmarks' shared errors
+    ``h_shared`` (p, p) on its first p rows and columns, the image gain (the last unknown,
+    prior ``wg``) marginalised out by its Schur complement, the same products and quotients
+    as numpy's outer product. ``h`` is only read. Returns (p, p)."""
+    out = np.empty((p, p))
+    for i in range(p):
+        for j in range(p):
+            out[i, j] = h[i, j] - h_shared[i, j]
+    if h.shape[0] == p + 1:
+        d = h[p, p] + wg
+        for i in range(p):
+            for j in range(p):
+                out[i, j] = out[i, j] - h[i, p] * h[p, j] / d
+    return out
+
+
+@njit(cache=True, nogil=True)
 def sample_uv(s_mean, basis_flat, alpha, rot, t, intr):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.fitting.Problem.project` for an undistorted camera (its
     numpy code is the reference): image positions (S, 2) px of the sample points (head-frame
@@ -884,6 +904,48 @@ def facing_cos(s_mean, normals, rot, t):  # pragma: no cover - compiled
         norm = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
         out[i] = -(nr[i, 0] * p0 + nr[i, 1] * p1 + nr[i, 2] * p2) / max(norm, 1e-9)
     return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nan_max(a, b):  # pragma: no cover - compiled
+    """np.maximum of two numbers (NaN if either is)."""
+    if a != a or b != b:
+        return np.nan
+    return a if a >= b else b
+
+
+@njit(cache=True, nogil=True)
+def occlusion_votes(q, judged, s_mean, normals, rot, t, min_facing, q_div, base, factor,
+                    q_level, floor):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.tracker.Tracker.occlusion`'s per-point test (its numpy
+    code, ``occlusion_numpy``, is the reference): the points ``judged`` (S,) bool with
+    q (S,) > 0 and, unless ``min_facing`` is NaN, :func:`facing_cos` >= it (posed by rot,
+    t) are judged; of those, out are those with q / q_div above max(base, factor *
+    max(q_level, floor)) (S,). Returns (out (S,) bool, its count, the judged count)."""
+    m = q.shape[0]
+    use_facing = min_facing == min_facing
+    if use_facing:
+        p = np.dot(s_mean, rot.T)
+        nr = np.dot(normals, rot.T)
+    else:
+        p = np.empty((0, 3))
+        nr = np.empty((0, 3))
+    out = np.zeros(m, np.bool_)
+    n_out = 0
+    n_judged = 0
+    for i in range(m):
+        ok = judged[i] and q[i] > 0
+        if ok and use_facing:
+            p0, p1, p2 = p[i, 0] + t[0], p[i, 1] + t[1], p[i, 2] + t[2]
+            norm = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+            ok = -(nr[i, 0] * p0 + nr[i, 1] * p1 + nr[i, 2] * p2) / max(norm, 1e-9) >= min_facing
+        if not ok:
+            continue
+        n_judged += 1
+        if q[i] / q_div > _nan_max(base, factor * _nan_max(q_level[i], floor)):
+            out[i] = True
+            n_out += 1
+    return out, n_out, n_judged
 
 
 @njit(cache=True, nogil=True)
@@ -1126,12 +1188,29 @@ def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
-    """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict`'s covariance
-    F P F^T + Q by blocks (p (2n, 2n); q3, q2, q1 (n,) the noise's dt^3/3, dt^2/2 and dt
-    terms) and the information of its state block, in one call: the same element-wise sums
-    as its numpy code, the inverse by LAPACK's gesv on the identity, as numpy's inv."""
+def cv_predict(p, q, dt3, dt2, dt, alpha, v, t):  # pragma: no cover - compiled
+    """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict` but its rotation: the
+    covariance F P F^T + Q by blocks (p (2n, 2n); q (n,) the noise's density, its terms
+    q * dt^3 / 3, q * dt^2 / 2 and q * dt with dt3 = dt**3 and dt2 = dt**2 as Python works
+    them out) and the information of its state block, and the articulation alpha (K,) and
+    translation t (3,) moved by the velocity v (n,) over dt, in one call: the same
+    element-wise sums as its numpy code, the inverse by LAPACK's gesv on the identity, as
+    numpy's inv. Returns (P, information, alpha, t)."""
     n = p.shape[0] // 2
+    k = alpha.shape[0]
+    q3 = np.empty(n)
+    q2 = np.empty(n)
+    q1 = np.empty(n)
+    for i in range(n):
+        q3[i] = q[i] * dt3 / 3.0
+        q2[i] = q[i] * dt2 / 2.0
+        q1[i] = q[i] * dt
+    a_new = np.empty(k)
+    for i in range(k):
+        a_new[i] = alpha[i] + dt * v[i]
+    t_new = np.empty(3)
+    for i in range(3):
+        t_new[i] = t[i] + dt * v[k + 3 + i]
     out = np.empty_like(p)
     dt2 = dt * dt
     for a in range(n):
@@ -1148,7 +1227,8 @@ def cv_predict(p, q3, q2, q1, dt):  # pragma: no cover - compiled
     a = np.ascontiguousarray(out[:n, :n])
     for i in range(n):
         a[i, i] += 1e-12
-    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
+    # (LAPACK's is F)
+    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n))), a_new, t_new
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1166,13 +1246,24 @@ def _mm(a, b):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def cv_update(p, info, e, v, information):  # pragma: no cover - compiled
+def cv_update(p, info, alpha, a_p, turn, t, t_p, v, information):  # pragma: no cover
     """:meth:`articast.core.tracking.kalman.ConstantVelocity.update`'s algebra in one call:
-    the gain P_{:,x} Pxx^-1 (``info`` = Pxx^-1), the velocity ``v`` moved by the gain times
-    the innovation ``e``, and the covariance P - G (Pxx - post) G^T made symmetric, post the
-    inverse of info + ``information`` ((0, 0): none, P kept). Returns (P, v)."""
+    the innovation e = (alpha - a_p, small_turn(``turn``), t - t_p) (turn: the fitted
+    rotation times the predicted one's transpose, (3, 3)), the gain P_{:,x} Pxx^-1
+    (``info`` = Pxx^-1), the velocity ``v`` moved by the gain times e, and the covariance
+    P - G (Pxx - post) G^T made symmetric, post the inverse of info + ``information``
+    ((0, 0): none, P kept). Returns (P, v)."""
     n = info.shape[0]
     m = p.shape[0]
+    k = alpha.shape[0]
+    e = np.empty(n)
+    for i in range(k):
+        e[i] = alpha[i] - a_p[i]
+    e[k] = 0.5 * (turn[2, 1] - turn[1, 2])
+    e[k + 1] = 0.5 * (turn[0, 2] - turn[2, 0])
+    e[k + 2] = 0.5 * (turn[1, 0] - turn[0, 1])
+    for i in range(3):
+        e[k + 3 + i] = t[i] - t_p[i]
     g = _mm(p[:n, :].T, info.T)  # (m, n)
     v_new = v.copy()
     for r in range(n, m):
@@ -1618,8 +1709,8 @@ def brow_half(sub, top_mm, scale):  # pragma: no cover - compiled
     return True, (hs[(n_in - 1) // 2] + hs[n_in // 2]) / 2.0
 
 
-TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "pixels_sd2", "facing_cos",
-           "sample_uv", "roi_box")
+TRACKER = ("la_residuals", "cauchy", "gn_terms", "lm_step", "fit_information", "pixels_sd2",
+           "occlusion_votes", "sample_uv", "roi_box")
 """The kernels the appearance tracker calls (``core/tracking/fitting.py``; a session with no
 speaker, e.g. ``articast demo``): about half of the compilation of all of them (35 of 65 s of
 CPU on this 2-core machine). The landmark, iris and Kalman kernels are the live tracker's."""
@@ -1673,6 +1764,8 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         cost, _, _, _, _, jw, g_p, h_p, g_s, h_s, _ = gn_terms(*state, *rest)
         lm_step(jw.T @ jw, np.zeros(jw.shape[1]), 1e-3, 2, cost, h_p, g_p, h_s, g_s, *state,
                 *rest)
+    if want("fit_information"):
+        fit_information(np.eye(8), np.zeros((7, 7)), 7, 1.0)
     if want("sample_uv"):
         sample_uv(np.zeros((1, 3), f8), np.zeros((1, 3), f8), np.zeros(1, f8), np.eye(3),
                   np.array([0.0, 0.0, 100.0]), intr)
@@ -1685,8 +1778,12 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
             pixels_sd3(frame[::8, ::8])
         if want("pixels_sd2"):
             pixels_sd2(frame[::4, ::4, 1])
-    if want("facing_cos"):
+    if only is not None and "facing_cos" in only:  # (Tracker.facing alone: not a frame's)
         facing_cos(np.zeros((2, 3)), np.ones((2, 3)), np.eye(3), np.array([0.0, 0.0, 100.0]))
+    if want("occlusion_votes"):
+        occlusion_votes(np.ones(2), np.ones(2, np.bool_), np.zeros((2, 3)), np.ones((2, 3)),
+                        np.eye(3), np.array([0.0, 0.0, 100.0]), 0.2, 1.0, 10.0, 3.0,
+                        np.ones(2), 1.0)
     if want("state_measured"):
         state_measured(np.zeros(1, f8), np.eye(3), np.zeros(3), np.eye(7), np.zeros(1, f8),
                        np.eye(1))
@@ -1722,9 +1819,11 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
         iris_former_rows(eye, mask, 0.0, 30.0, 5.0)
     if want("cv_predict", "cv_update"):
-        cov, info = cv_predict(np.eye(4), np.ones(2), np.ones(2), np.ones(2), 0.04)
-        for information in (np.eye(2), np.zeros((0, 0))):
-            cv_update(cov, info, np.zeros(2), np.zeros(2), information)
+        cov, info, _, _ = cv_predict(np.eye(14), np.ones(7), 0.04**3, 0.04**2, 0.04,
+                                     np.zeros(1), np.zeros(7), np.zeros(3))
+        for information in (np.eye(7), np.zeros((0, 0))):
+            cv_update(cov, info, np.zeros(1), np.zeros(1), np.eye(3), np.zeros(3), np.zeros(3),
+                      np.zeros(7), information)
 
 
 def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
@@ -1735,8 +1834,8 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
         return True
     try:
         every: tuple[Any, ...] = (la_residuals, cauchy, point_residuals, gn_terms,
-                                  lm_step, sample_uv, roi_box, state_measured,
-                                  pixels_sd3, pixels_sd2, facing_cos,
+                                  lm_step, fit_information, sample_uv, roi_box, state_measured,
+                                  pixels_sd3, pixels_sd2, occlusion_votes,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
                                   iris_former_rows, lids_read, iris_circle_height,

@@ -86,11 +86,10 @@ class ReadingRegression:
         every part a small move of the head would make: the live pose is a prediction, and a
         pose off by a millimetre shifts every offset alike, a pattern the enrolment never
         showed the regression (which would read it as articulation)."""
-        if kernels.AVAILABLE and not camera.dist.any():  # the same in one compiled call
+        if kernels.AVAILABLE and camera.pinhole:  # the same in one compiled call
             return kernels.reading_features(
                 np.array(mean, np.float64), np.array(rotation, np.float64),
-                np.array(translation, np.float64),
-                np.array([camera.fx, camera.fy, camera.cx, camera.cy]),
+                np.array(translation, np.float64), camera.intrinsics,
                 np.array(uv, np.float64))  # (copies: a read-only array is another type)
         return ReadingRegression.features_numpy(mean, camera, uv, rotation, translation)
 
@@ -343,8 +342,8 @@ def state_offset(pm: PointModel, camera: Camera, alpha: np.ndarray, rotation: np
     ``pm.landmarks``) from the state (alpha (K,), rotation matrix (3, 3), translation (3,)
     mm). Compiled (:func:`~articast.core.tracking.kernels.point_offset`) where the camera has
     no distortion; :func:`state_offset_numpy` is the reference."""
-    if kernels.AVAILABLE and not np.any(np.asarray(camera.dist) != 0):
-        intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+    if kernels.AVAILABLE and camera.pinhole:
+        intr = camera.intrinsics
         return float(kernels.point_offset(
             np.ascontiguousarray(pm.mean, np.float64), pm.every_point[0],
             np.array(alpha, np.float64), np.array(rotation, np.float64),
@@ -460,8 +459,8 @@ class PointTerm:
         self.inv_sigma = np.sqrt(weight) / (pm.sigma_mm[ok] * px_per_mm)
         self.scale = scale
         self.k = pm.n_params
-        self._jit = kernels.AVAILABLE and not np.any(np.asarray(camera.dist) != 0)
-        self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
+        self._jit = kernels.AVAILABLE and camera.pinhole
+        self._intr = camera.intrinsics
         self._mean = np.ascontiguousarray(self.mean)
 
     @property

@@ -7,6 +7,7 @@ Core never reads a clock: pass ``clock`` (e.g. ``time.perf_counter``) to get ms 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -14,7 +15,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from articast.core.appearance.maps import ImageMaps, image_maps, image_pyramid, roi_of
+from articast.core.appearance.maps import (
+    ImageMaps,
+    MapBuffers,
+    image_maps,
+    image_pyramid,
+    roi_of,
+)
 from articast.core.appearance.models import AppearanceModel, sample_normals
 from articast.core.model.camera import Camera, Pose, axis_angle
 from articast.core.model.face import FaceModel, range_motion
@@ -32,6 +39,8 @@ from articast.core.tracking.points import PointTerm
 from articast.core.tracking.result import TrackResult
 
 OPTIMISERS = ("gauss-newton", "nelder-mead")
+_EYE = np.eye(3)
+_ZERO3 = np.zeros(3)
 
 
 def _spread(pixels: np.ndarray) -> float:
@@ -238,6 +247,10 @@ class Tracker:
         pts = self.problem.s_mean
         self._span = np.linalg.norm(pts[:, None] - pts[None], axis=2) <= pol.occlusion_span_mm
         self._normals = sample_normals(model, appearance)
+        # each frame's lazy full-resolution maps go to the same memory (one image_pyramid
+        # call a frame makes them; a frame's maps are dropped before the next frame's)
+        self._map_buffers = MapBuffers()
+        self._alpha_limit = (self.problem.bound + 3.0).tolist()  # _good's range test
         self.reset()
 
     def reset(self, pose: Pose | None = None, alpha: np.ndarray | None = None) -> None:
@@ -312,7 +325,7 @@ class Tracker:
             fine = None if lazy else roi_of(uv, pol.roi_margin_px + 4 * sig)
             cache.update(image_pyramid(image, roi_of(uv, margin), sig,
                                        tuple(lv for lv in levels if lv not in cache), fine,
-                                       lazy=lazy))
+                                       lazy=lazy, buffers=self._map_buffers))
         for level in levels:
             fit_pol = policy or pol.fit
             if policy is None and level > 0 and pol.coarse_iterations:
@@ -482,9 +495,13 @@ class Tracker:
         judges it by the landmarks (an articulation the enrolment never showed, a wide-open
         mouth, raises the appearance residual of a fit that the landmarks confirm)."""
         pol = self.policy
-        if fit.valid_fraction < pol.min_valid_fraction or not np.all(np.isfinite(fit.theta)):
+        # (Python floats: the same tests as numpy's isfinite and abs(alpha) > bound + 3,
+        # a few times cheaper on K + 6 numbers)
+        alpha = fit.alpha.tolist()
+        if fit.valid_fraction < pol.min_valid_fraction or not all(
+                map(math.isfinite, alpha + fit.rotation.tolist() + fit.translation.tolist())):
             return False
-        if np.any(np.abs(fit.alpha) > self.problem.bound + 3.0):
+        if any(abs(a) > b for a, b in zip(alpha, self._alpha_limit, strict=True)):
             return False
         if self._level is None or landmarks:
             return True
@@ -496,7 +513,8 @@ class Tracker:
                   staying: bool = False, pose: Pose | None = None) -> str | None:
         """The ``occluded`` reason for a fit whose per-point residuals ``q`` (S,) show that
         the part of the face the articulation moves no longer looks like the speaker, else
-        None (see ``TrackingPolicy.occlusion_q``). Cheap: a few array operations over S.
+        None (see ``TrackingPolicy.occlusion_q``). Cheap: one compiled call over S
+        (:meth:`occlusion_numpy`: the reference).
 
         gain : the fit's image gain. The model's mispredictions grow with it (the weights
         whiten residuals at the enrolment's exposure), so q is judged divided by gain^2
@@ -509,6 +527,42 @@ class Tracker:
         if (pol.occlusion_q is None or q is None or self._qlevel is None
                 or not self.problem.appearance.kind.startswith("la")):
             return None  # (tex: one z-scored value per point, another scale)
+        out, n_out, n_judged = self._votes(q, gain, staying, pose)
+        if staying and n_out:
+            return (f"occluded: still {n_out} of {n_judged} sample points on the lips, "
+                    f"jaw and chin unlike the face; tracked through; last good state held")
+        if n_out < pol.occlusion_points or (
+                self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
+            return None
+        return (f"occluded: {n_out} of {n_judged} sample points on the lips, jaw and "
+                f"chin no longer look like the face (a hand or an object over them, or the fit "
+                f"is wrong there); tracked through; last good state held")
+
+    def _votes(self, q: np.ndarray, gain: float, staying: bool, pose: Pose | None
+               ) -> tuple[np.ndarray, int, int]:
+        """:meth:`occlusion_numpy` in one compiled call
+        (:func:`~articast.core.tracking.kernels.occlusion_votes`, the same tests)."""
+        pol = self.policy
+        if not kernels.AVAILABLE or q.dtype != np.float64:
+            return self.occlusion_numpy(q, gain, staying, pose)
+        assert self._qlevel is not None and pol.occlusion_q is not None
+        normals, rot, t, min_facing = self.problem.s_mean, _EYE, _ZERO3, math.nan
+        if pol.occlusion_facing is not None and pose is not None and self._normals is not None:
+            normals, rot, min_facing = self._normals, pose.matrix, pol.occlusion_facing
+            t = np.array(pose.translation, np.float64)
+        return kernels.occlusion_votes(
+            q, self._judged, self.problem.s_mean, normals, rot, t, float(min_facing),
+            float(max(1.0, gain) ** 2),
+            float(pol.occlusion_stay_q if staying else pol.occlusion_q),
+            float(pol.occlusion_factor), self._qlevel, float(pol.occlusion_floor))
+
+    def occlusion_numpy(self, q: np.ndarray, gain: float = 1.0, staying: bool = False,
+                        pose: Pose | None = None) -> tuple[np.ndarray, int, int]:
+        """:meth:`occlusion`'s per-point test in numpy (the reference of
+        :func:`~articast.core.tracking.kernels.occlusion_votes`): the points above their
+        limit (S,) bool, their count and the count of points judged."""
+        pol = self.policy
+        assert self._qlevel is not None
         judged = self._judged & (q > 0)  # q = 0: outside the image
         if pol.occlusion_facing is not None and pose is not None and self._normals is not None:
             judged = judged & (self.facing(pose) >= pol.occlusion_facing)
@@ -516,16 +570,7 @@ class Tracker:
         limit = np.maximum(pol.occlusion_stay_q if staying else pol.occlusion_q,
                            pol.occlusion_factor * np.maximum(self._qlevel, pol.occlusion_floor))
         out = judged & (q > limit)
-        n_out = int(np.count_nonzero(out))
-        if staying and n_out:
-            return (f"occluded: still {n_out} of {int(judged.sum())} sample points on the lips, "
-                    f"jaw and chin unlike the face; tracked through; last good state held")
-        if n_out < pol.occlusion_points or (
-                self._span[np.ix_(out, out)].sum(1).max() < pol.occlusion_points):
-            return None
-        return (f"occluded: {n_out} of {int(judged.sum())} sample points on the lips, jaw and "
-                f"chin no longer look like the face (a hand or an object over them, or the fit "
-                f"is wrong there); tracked through; last good state held")
+        return out, int(np.count_nonzero(out)), int(judged.sum())
 
     def facing(self, pose: Pose) -> np.ndarray:
         """(S,) how squarely each sample point faces the camera at ``pose``: the cosine of
@@ -533,7 +578,7 @@ class Tracker:
         camera's centre (1: head on; 0: at the silhouette; < 0: turned away)."""
         assert self._normals is not None
         if kernels.AVAILABLE:  # the same sums in one compiled call (the numpy below: the
-            # reference; every frame's occlusion test)
+            # reference; a frame's occlusion test runs them in kernels.occlusion_votes)
             return kernels.facing_cos(self.problem.s_mean, self._normals, pose.matrix,
                                       np.array(pose.translation, np.float64))
         return self.facing_numpy(pose)
