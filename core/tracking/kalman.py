@@ -195,15 +195,16 @@ class ConstantVelocity:
         a_p, r_p, t_p, p = self._pred
         n = self.n
         r_f = rotation_matrix(np.asarray(rotation, np.float64))
+        # the new state's own copies: writable (a pose's arrays are read-only, another type
+        # to the compiled call, which would compile again on a live frame), never shared
+        a_f, t_f = np.array(alpha, np.float64), np.array(translation, np.float64)
         if kernels.AVAILABLE:  # the same algebra in one compiled call (the innovation too,
             # but the rotations' product, numpy's)
-            self.p, v = kernels.cv_update(p, self._info, np.asarray(alpha, np.float64), a_p,
-                                          r_f @ r_p.T, np.asarray(translation, np.float64),
-                                          t_p, self.v, _NONE if information is None
+            self.p, v = kernels.cv_update(p, self._info, a_f, a_p, r_f @ r_p.T, t_f, t_p,
+                                          self.v, _NONE if information is None
                                           else np.asarray(information, np.float64))
         else:
-            e = np.concatenate([np.asarray(alpha) - a_p, small_turn(r_f @ r_p.T),
-                                np.asarray(translation) - t_p])
+            e = np.concatenate([a_f - a_p, small_turn(r_f @ r_p.T), t_f - t_p])
             pxx = p[:n, :n]
             gain = (self._info @ p[:n, :]).T  # (2n, n): P_{:,x} Pxx^-1 (predict's inverse)
             v = self.v + (gain @ e)[n:]
@@ -214,8 +215,7 @@ class ConstantVelocity:
             self.p = p - gain @ (pxx - post) @ gain.T
             self.p = 0.5 * (self.p + self.p.T)
         v_pred = self.v
-        self.alpha, self.rot, self.t, self.v = (np.array(alpha, np.float64), r_f,
-                                                np.array(translation, np.float64), v)
+        self.alpha, self.rot, self.t, self.v = a_f, r_f, t_f, v
         self.step = MotionStep((a_p, r_p, t_p, v_pred), p, (self.alpha, r_f, self.t, v),
                                self.p, self._dt, self._linked)
         self._linked = True
