@@ -124,3 +124,28 @@ def test_one_point_projected_in_floats_is_the_cameras_to_the_bit():
         for _ in range(3000):
             p = np.array([rng.normal() * 60, rng.normal() * 60, rng.uniform(-50.0, 900.0)])
             assert cam.project_one(p).tobytes() == cam.project(p[None])[0].tobytes()
+
+
+def test_the_live_loops_record_copy_is_dataclasses_replace():
+    """``live._with`` (the per-frame records copied without the frozen ``__init__``) makes the
+    very record ``dataclasses.replace`` makes, leaves the original as it was, and refuses a
+    field the record does not have, as ``replace`` does."""
+    from dataclasses import fields
+
+    from articast.core.faces.live import _with
+    from articast.core.model.camera import Pose
+    from articast.core.tracking.result import TrackResult
+
+    base = TrackResult(3, 0.12, np.arange(7.0), Pose(np.array([0.1, 0.2, 0.3]),
+                                                      np.array([1.0, 2.0, 500.0])),
+                       extra={"a": 1})
+    changes = {"ok": False, "reason": "diverged: x", "frame": 4, "extra": {"b": 2},
+               "alpha": np.ones(7)}
+    got, want = _with(base, **changes), replace(base, **changes)
+    assert type(got) is TrackResult
+    for f in fields(TrackResult):
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        assert (np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b), f.name
+    assert base.ok and base.frame == 3 and base.extra == {"a": 1}
+    with pytest.raises(TypeError):
+        _with(base, no_such_field=1)

@@ -105,7 +105,7 @@ def model_measures(model: FaceModel, camera: Camera, alphas: np.ndarray, pose: P
     mean, basis = lip_points(model)
     a = np.atleast_2d(np.asarray(alphas, np.float64))
     pts = (a @ basis).reshape(len(a), 6, 3) + mean
-    if camera.dist.any():
+    if not camera.pinhole:
         uv = camera.project_head(pts[:, :4].reshape(-1, 3), pose).reshape(len(a), 4, 2)
     else:  # (the pinhole inline: this runs on every frame, twice, Camera.project's checks
         # and Jacobian plumbing cost more than the sums; behind the camera gives NaN alike)

@@ -508,8 +508,8 @@ class LiveTracker:
         self._eyes_frame = -(10**9)  # the last frame whose reading the eyes were measured on
         self._head_point = speaker.model.shape(np.zeros(speaker.model.n_params)).mean(axis=0)
         cam = speaker.camera  # (the lips' compiled gap: an undistorted camera's intrinsics)
-        self._pinhole = not cam.dist.any()
-        self._intrinsics = np.array([cam.fx, cam.fy, cam.cx, cam.cy])
+        self._pinhole = cam.pinhole
+        self._intrinsics = cam.intrinsics
         if fu is not None:
             if reader is None:  # the bundled one, on one thread, cropping as the policy
                 # says (it runs no detector: the finder's session is shared, not loaded again)

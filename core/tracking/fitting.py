@@ -20,6 +20,7 @@ downhill simplex centred on the start, the baseline).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -94,16 +95,11 @@ class FitPolicy:
     max_rejections: int | None = None
 
 
-_SPEAKER: dict[tuple[int, float], tuple[np.ndarray, np.ndarray]] = {}
-
-
+@functools.lru_cache(maxsize=16)
 def _speaker_measurement(k: int, weight: float) -> tuple[np.ndarray, np.ndarray]:
     """(zeros (K,), weight * I (K, K)): :meth:`StatePrior.with_speaker`'s measurement, made
     once per (K, weight) (every live frame asks for it; shared: not written into)."""
-    key = (k, weight)
-    if key not in _SPEAKER:
-        _SPEAKER[key] = (np.zeros(k), weight * np.eye(k))
-    return _SPEAKER[key]
+    return np.zeros(k), weight * np.eye(k)
 
 
 @dataclass(frozen=True, eq=False)
@@ -233,8 +229,8 @@ class Problem:
         self._rot_w = [] if rw is None else [w * cw for w, cw in zip(rw, self._cw_flat,
                                                                       strict=True)]
         self._s_mean = np.ascontiguousarray(self.s_mean, np.float64)
-        self._intr = np.array([camera.fx, camera.fy, camera.cx, camera.cy], np.float64)
-        self._project_jit = kernels.AVAILABLE and not camera.dist.any()
+        self._intr = camera.intrinsics
+        self._project_jit = kernels.AVAILABLE and camera.pinhole
         self._rot_ref = (None if rw is None or appearance.rotation_ref is None
                          else rotation_matrix(appearance.rotation_ref))
 
