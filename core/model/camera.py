@@ -105,8 +105,9 @@ def axis_angle(rot: np.ndarray) -> np.ndarray:
         if w @ axis < 0:
             axis = -axis
         return axis / np.linalg.norm(axis) * theta
-    w = np.array([r21 - r12, r02 - r20, r10 - r01])
-    return w / (2.0 * np.sin(theta)) * theta
+    d = 2.0 * float(np.sin(theta))  # (w / (2 sin theta) * theta, each entry's two roundings)
+    th = float(theta)
+    return np.array([(r21 - r12) / d * th, (r02 - r20) / d * th, (r10 - r01) / d * th])
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,6 +21,7 @@ downhill simplex centred on the start, the baseline).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +44,7 @@ _NO_W2 = np.zeros((0, 0))
 _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
              np.zeros((0, 0, 3), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0))
 _EYE = np.eye(3)
+_ZERO3 = np.zeros(3)  # (shared constants: read, never written)
 FIT_TERMS = kernels.AVAILABLE
 """Evaluate a Gauss-Newton state in one compiled call (:func:`kernels.gn_terms`) and run
 each iteration in one (:func:`kernels.lm_step`) where the la cost and the landmark term are
@@ -93,6 +95,13 @@ class FitPolicy:
     # as converged (None: until the damping exceeds 1e6). At a minimum every trial is
     # rejected: a fused live fit spent 10 of its 14 evaluations there on some frames.
     max_rejections: int | None = None
+
+
+@functools.lru_cache(maxsize=16)
+def _zeros(k: int) -> np.ndarray:
+    """(K,) zeros, made once per K (a fit's ``alpha_ref`` when none is given; shared: not
+    written into)."""
+    return np.zeros(k)
 
 
 @functools.lru_cache(maxsize=16)
@@ -241,15 +250,17 @@ class Problem:
         head = self.s_mean + (alpha @ self._basis_flat).reshape(-1, 3)
         return head, head @ rot.T + t
 
-    def project(self, theta: np.ndarray) -> np.ndarray:
+    def project(self, theta: np.ndarray, rot: np.ndarray | None = None) -> np.ndarray:
         """Image positions (S, 2) of the sample points at state theta (K + 6,). Compiled
         (:func:`~articast.core.tracking.kernels.sample_uv`, the same numbers) for an
-        undistorted camera; :meth:`project_numpy` is the reference."""
+        undistorted camera; :meth:`project_numpy` is the reference. rot : (3, 3) theta's
+        rotation as a matrix (``rotation_matrix(theta[K:K + 3])``), if the caller has it."""
         if self._project_jit:  # (once a tracked frame)
             theta = np.asarray(theta, np.float64)
             return kernels.sample_uv(self._s_mean, self._basis_flat,
                                      np.ascontiguousarray(theta[:self.k]),
-                                     rotation_matrix(theta[self.k:self.k + 3]),
+                                     rotation_matrix(theta[self.k:self.k + 3]) if rot is None
+                                     else rot,
                                      np.ascontiguousarray(theta[self.k + 3:]), self._intr)
         return self.project_numpy(theta)
 
@@ -430,7 +441,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                      alpha_ref: np.ndarray | None = None,
                      points: PointTerm | None = None,
                      state_prior: StatePrior | None = None,
-                     appearance_weight: float = 1.0) -> FitResult:
+                     appearance_weight: float = 1.0,
+                     rot0: np.ndarray | None = None) -> FitResult:
     """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level.
 
     pose_ref : (rotation (3,), translation (3,)) the pose prior is centred on, if any.
@@ -444,13 +456,14 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         give no ``pose_ref`` / ``alpha_ref`` (it replaces both).
     appearance_weight : the appearance term's weight (0: the landmarks and priors alone; the
         appearance is then not sampled at all).
+    rot0 : (3, 3) ``rotation_matrix(rotation0)``, if the caller has it (not written into).
     """
     pol = policy or FitPolicy()
     ref = None if pose_ref is None else (rotation_matrix(pose_ref[0]), np.asarray(pose_ref[1]))
     li = problem.appearance.level_index(level)
     k = problem.k
     alpha = np.array(alpha0, np.float64)
-    rot = rotation_matrix(rotation0)
+    rot = rotation_matrix(rotation0) if rot0 is None else rot0
     t = np.array(translation0, np.float64)
     gain = gain0 = float(gain0)
     lam = pol.lm_lambda
@@ -458,9 +471,9 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     scale = problem.loss_scale(pol.robust_scale)
     wg = 1.0 / pol.gain_sigma**2
     wa = 0.0 if alpha_ref is None or pol.alpha_sigma is None else 1.0 / pol.alpha_sigma**2
-    a_ref = np.zeros(k) if alpha_ref is None else np.asarray(alpha_ref, np.float64)
+    a_ref = _zeros(k) if alpha_ref is None else np.asarray(alpha_ref, np.float64)
     use_app = appearance_weight > 0
-    sw = float(np.sqrt(appearance_weight))
+    sw = math.sqrt(appearance_weight)
     with_gain = estimate_gain and use_app
     # one compiled call per evaluation (kernels.gn_terms) and per iteration (kernels.lm_step)
     # where the la cost and the landmark term are compiled; `evaluate_numpy` and the numpy
@@ -474,7 +487,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         pr_ = problem.prior
         sp_args = ((state_prior.alpha, state_prior.rotation, state_prior.translation,
                     state_prior.information) if state_prior is not None else _NO_STATE_PRIOR)
-        ref_args: tuple = (_EYE, np.zeros(3), -1.0, -1.0)  # as _pose_prior: none
+        ref_args: tuple = (_EYE, _ZERO3, -1.0, -1.0)  # as _pose_prior: none
         if ref is not None and pol.pose_sigma_mm is not None and pol.pose_sigma_rad is not None:
             ref_args = (ref[0], np.asarray(ref[1], np.float64), 1.0 / pol.pose_sigma_rad**2,
                         1.0 / pol.pose_sigma_mm**2)
