@@ -121,6 +121,9 @@ class StatePrior:
     rotation: np.ndarray
     translation: np.ndarray
     information: np.ndarray
+    # (weight, :meth:`with_speaker`'s prior at that weight) where the motion model made it
+    # in the prediction's own compiled call (``ConstantVelocity(speaker=)``), else None
+    speaker: tuple[float, StatePrior] | None = field(default=None, repr=False)
 
     def with_speaker(self, weight: float = 1.0) -> StatePrior:
         """This prior times the speaker's own distribution of articulations, N(0, I / weight)
@@ -130,6 +133,8 @@ class StatePrior:
         articulation the term changes nothing; where it does not (a direction the landmarks
         and the appearance hardly see), the estimate stays where the speaker's mouth goes
         instead of wandering several s.d. away with the reader's noise."""
+        if self.speaker is not None and self.speaker[0] == weight:  # (made with the prior)
+            return self.speaker[1]
         return self.with_measurement(*_speaker_measurement(len(self.alpha), float(weight)))
 
     def with_measurement(self, alpha: np.ndarray, information: np.ndarray) -> StatePrior:
