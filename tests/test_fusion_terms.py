@@ -404,7 +404,8 @@ def test_the_prediction_s_speaker_prior_is_with_speaker_s():
         prior = cv.predict(0.04 + 0.01 * step)
         assert prior.speaker is not None
         got = prior.with_speaker(0.7)
-        bare = replace(prior, speaker=None)
+        bare = replace(prior)  # (a prior made otherwise: without it)
+        assert bare.speaker is None
         own = bare.with_speaker(0.7)
         ref = bare.with_measurement_numpy(np.zeros(k), 0.7 * np.eye(k))
         for name in ("alpha", "rotation", "translation", "information"):

@@ -122,8 +122,18 @@ class StatePrior:
     translation: np.ndarray
     information: np.ndarray
     # (weight, :meth:`with_speaker`'s prior at that weight) where the motion model made it
-    # in the prediction's own compiled call (``ConstantVelocity(speaker=)``), else None
-    speaker: tuple[float, StatePrior] | None = field(default=None, repr=False)
+    # in the prediction's own compiled call (``ConstantVelocity(speaker=)``, :meth:`made`),
+    # else None (not an argument: a prior made otherwise, e.g. by dataclasses.replace, has none)
+    speaker: tuple[float, StatePrior] | None = field(default=None, init=False, repr=False)
+
+    @classmethod
+    def made(cls, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+             information: np.ndarray, speaker: tuple[float, StatePrior] | None) -> StatePrior:
+        """The prior with its speaker's prior (weight, prior) made already, if any."""
+        prior = cls(alpha, rotation, translation, information)
+        if speaker is not None:
+            object.__setattr__(prior, "speaker", speaker)
+        return prior
 
     def with_speaker(self, weight: float = 1.0) -> StatePrior:
         """This prior times the speaker's own distribution of articulations, N(0, I / weight)

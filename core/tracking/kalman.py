@@ -195,7 +195,7 @@ class ConstantVelocity:
         self._pred = (alpha, rot, t, p)
         self._info = info
         self._dt = dt
-        return StatePrior(alpha, rot, t, info, speaker)
+        return StatePrior.made(alpha, rot, t, info, speaker)
 
     def update(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                information: np.ndarray | None) -> None:
