@@ -430,7 +430,8 @@ def _robust(r: np.ndarray, jac: np.ndarray | None, c: int, scale: float | None
 
 def _point_q(r: np.ndarray, c: int) -> np.ndarray:
     """Squared weighted residual norm per sample point (S,) from the residuals (S*C,)."""
-    return np.einsum("sc,sc->s", r.reshape(-1, c), r.reshape(-1, c))
+    rs = r.reshape(-1, c)
+    return np.einsum("sc,sc->s", rs, rs)
 
 
 def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,

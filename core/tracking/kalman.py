@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from articast.core.model.camera import axis_angle, rotation_matrix, small_turn
+from articast.core.model.camera import axis_angle, rotation_matrix, rotation_of, small_turn
 from articast.core.tracking import kernels
 from articast.core.tracking.fitting import StatePrior
 
@@ -169,7 +169,8 @@ class ConstantVelocity:
         speaker = None
         if kernels.AVAILABLE:  # the same sums and inverse in one compiled call, and the
             # speaker's prior on it (StatePrior.with_speaker's numbers) where one is given
-            rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
+            x, y, z = self.v[k:k + 3].tolist()  # (rotation_matrix(dt * v[k:k + 3]), on floats)
+            rot = rotation_of(dt * x, dt * y, dt * z) @ self.rot
             w = -1.0 if self.speaker is None else float(self.speaker)
             p, info, alpha, t, *sp = kernels.cv_predict(self.p, q, dt**3, dt**2, dt,
                                                         self.alpha, self.v, self.t, rot, w)

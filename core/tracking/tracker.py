@@ -47,9 +47,10 @@ def _spread(pixels: np.ndarray) -> float:
     """``pixels.std()`` (any shape), by OpenCV's one pass over a contiguous copy instead of
     numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper); a
     uint8 (h, w) view (a channel's every n-th pixel) read in place by the compiled kernel,
-    the same number without the copy."""
+    the same number without the copy, read column by column (its sums are exact integers,
+    the same in any order; the rows of a column are fetched together)."""
     if kernels.AVAILABLE and pixels.ndim == 2 and pixels.dtype == np.uint8:
-        return float(kernels.pixels_sd2(pixels))
+        return float(kernels.pixels_sd2(pixels.T))
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
