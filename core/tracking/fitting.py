@@ -257,6 +257,11 @@ class Problem:
         self._project_jit = kernels.AVAILABLE and camera.pinhole
         self._rot_ref = (None if rw is None or appearance.rotation_ref is None
                          else rotation_matrix(appearance.rotation_ref))
+        k = self.k
+        # per level, fit_terms's fixed arguments between the state and the gain (kernel_args)
+        self._middle = [(self._s_mean, self._basis_sdk, self._intr, camera.dist, w[0],
+                         w[1:k + 1], w[k + 1:] if self._quad else _NO_W2)
+                        for w in appearance.weights]
 
     # -------------------------------------------------------------- geometry
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
@@ -386,12 +391,8 @@ class Problem:
         """The fixed arguments of :func:`~articast.core.tracking.kernels.fit_terms` for one
         map: those before the state (alpha, rot, t) and those between the state and the gain.
         """
-        w = self.appearance.weights[level_index]
-        k = self.k
         return ((maps.smooth, float(maps.origin[0]), float(maps.origin[1]), float(maps.scale),
-                 float(maps.sigma)),
-                (self._s_mean, self._basis_sdk, self._intr, self.camera.dist, w[0], w[1:k + 1],
-                 w[k + 1:] if self._quad else _NO_W2))
+                 float(maps.sigma)), self._middle[level_index])
 
     def kernel_tail(self, maps: ImageMaps, level_index: int) -> tuple:
         """The arguments of :func:`~articast.core.tracking.kernels.fit_terms` from the

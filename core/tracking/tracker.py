@@ -422,12 +422,13 @@ class Tracker:
         patch = image[y0:y1:4, x0:x1:4, 1]  # green, every 4th pixel: contrast is coarse
         if patch.size == 0 or _spread(patch) < pol.min_contrast:
             return self._lost(t, t0, "blank: no contrast where the face should be", 0)
-        ref = self.pose_prior_centre
-        if translation_hint is not None and ref is not None:
-            ref[3:] = translation_hint
-        a_ref: np.ndarray | None = theta0[:self.k]
-        if ev is not None and ev.prior is not None:
-            ref = a_ref = None  # the motion model's prior replaces both
+        ref: np.ndarray | None = None
+        a_ref: np.ndarray | None = None
+        if ev is None or ev.prior is None:  # (else the motion model's prior replaces both)
+            ref = self.pose_prior_centre
+            if translation_hint is not None and ref is not None:
+                ref[3:] = translation_hint
+            a_ref = theta0[:self.k]
         fit = None
         evals = 0
         levels = pol.levels if ev is None or ev.levels is None else ev.levels
