@@ -381,6 +381,45 @@ def test_the_compiled_motion_model_steps_are_the_numpy_ones(monkeypatch, told):
     assert np.abs(ref[-1][5]).max() > 1e-3  # the velocity moved: a real comparison
 
 
+
+def test_the_prediction_s_speaker_prior_is_with_speaker_s():
+    """ConstantVelocity(speaker=w) makes the speaker's prior in predict's compiled call
+    (kernels.cv_predict): with_speaker(w) returns it, the very numbers of with_speaker's own
+    compiled call on the same prediction (and the numpy reference's to 1e-9); another weight
+    is worked out as before."""
+    from dataclasses import replace
+
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    k, n = 7, 13
+    r = np.random.default_rng(5)
+    cv = ConstantVelocity(k, speaker=0.7)
+    cv.start(r.normal(size=k), FRONTAL + 0.1 * r.normal(size=3), r.normal(size=3))
+    a = r.normal(size=(2 * n, 2 * n))
+    cv.p = a @ a.T / n
+    cv.v = r.normal(size=n)
+    for step in range(3):
+        prior = cv.predict(0.04 + 0.01 * step)
+        assert prior.speaker is not None
+        got = prior.with_speaker(0.7)
+        bare = replace(prior)  # (a prior made otherwise: without it)
+        assert bare.speaker is None
+        own = bare.with_speaker(0.7)
+        ref = bare.with_measurement_numpy(np.zeros(k), 0.7 * np.eye(k))
+        for name in ("alpha", "rotation", "translation", "information"):
+            x, y, z = getattr(got, name), getattr(own, name), getattr(ref, name)
+            assert x.tobytes() == y.tobytes(), name
+            np.testing.assert_allclose(x, z, rtol=1e-9, atol=1e-9 * np.abs(z).max())
+        assert np.abs(got.alpha - prior.alpha).max() > 1e-3  # the speaker's prior moved it
+        other = prior.with_speaker(2.0)  # not the one made: worked out
+        assert other.alpha.tobytes() == bare.with_speaker(2.0).alpha.tobytes()
+        cv.update(prior.alpha, FRONTAL + 0.01 * r.normal(size=3), prior.translation, None)
+    plain = ConstantVelocity(k)
+    plain.start(np.zeros(k), FRONTAL, np.zeros(3))
+    assert plain.predict(0.04).speaker is None
+
 def _regression_case(seed=7, n=300, own_sd=3.0):
     """A network that reads the articulation its own way (offsets, an articulation-dependent
     change of its points) with errors shared by all its points; its observation model and

@@ -520,7 +520,8 @@ class LiveTracker:
                 raise ValueError(f"the speaker's observation model is of the "
                                  f"{speaker.points.network!r} landmarks, not {fu.reader!r}")
             self.point_model = speaker.points
-            self.kalman = ConstantVelocity(speaker.model.n_params, speaker.motion_noise)
+            self.kalman = ConstantVelocity(speaker.model.n_params, speaker.motion_noise,
+                                           speaker=fu.speaker_prior)
             self.weights = (fu.points_weight, fu.appearance_weight)
             self._app_level = speaker.residual.median
             self._motion = None  # the landmarks give the head's translation every frame

@@ -27,10 +27,10 @@ FRONTAL = np.array([np.pi, 0.0, 0.0])
 """Axis-angle of a camera looking at the face from the front (head y up -> image y down)."""
 
 
-def _rotation_one(r: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula for one (3,) vector (the hot path of the optimiser; Python floats,
-    numpy's sine and cosine: theirs and the C library's differ in the last bit at times)."""
-    x, y, z = r.tolist()
+def rotation_of(x: float, y: float, z: float) -> np.ndarray:
+    """:func:`rotation_matrix` of one axis-angle vector given as three floats (rad) -> (3, 3)
+    (the hot path of the optimiser; Python floats, numpy's sine and cosine: theirs and the C
+    library's differ in the last bit at times)."""
     th2 = x * x + y * y + z * z
     if th2 < 1e-16:
         a, b = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0
@@ -51,7 +51,7 @@ def rotation_matrix(r: np.ndarray) -> np.ndarray:
     """
     r = np.asarray(r, dtype=np.float64)
     if r.shape == (3,):
-        return _rotation_one(r)
+        return rotation_of(*r.tolist())
     theta = np.linalg.norm(r, axis=-1)[..., None, None]
     k = np.zeros(r.shape[:-1] + (3, 3))
     k[..., 0, 1], k[..., 0, 2] = -r[..., 2], r[..., 1]
@@ -105,8 +105,9 @@ def axis_angle(rot: np.ndarray) -> np.ndarray:
         if w @ axis < 0:
             axis = -axis
         return axis / np.linalg.norm(axis) * theta
-    w = np.array([r21 - r12, r02 - r20, r10 - r01])
-    return w / (2.0 * np.sin(theta)) * theta
+    d = 2.0 * float(np.sin(theta))  # (w / (2 sin theta) * theta, each entry's two roundings)
+    th = float(theta)
+    return np.array([(r21 - r12) / d * th, (r02 - r20) / d * th, (r10 - r01) / d * th])
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,6 +21,7 @@ downhill simplex centred on the start, the baseline).
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,6 +44,7 @@ _NO_W2 = np.zeros((0, 0))
 _NOT_LAZY = (np.zeros((0, 0, 3), np.uint8), np.zeros((0, 0), np.uint8),
              np.zeros((0, 0, 3), np.float32), np.zeros((0, 0), np.uint8), np.zeros(0))
 _EYE = np.eye(3)
+_ZERO3 = np.zeros(3)  # (shared constants: read, never written)
 FIT_TERMS = kernels.AVAILABLE
 """Evaluate a Gauss-Newton state in one compiled call (:func:`kernels.gn_terms`) and run
 each iteration in one (:func:`kernels.lm_step`) where the la cost and the landmark term are
@@ -96,6 +98,13 @@ class FitPolicy:
 
 
 @functools.lru_cache(maxsize=16)
+def _zeros(k: int) -> np.ndarray:
+    """(K,) zeros, made once per K (a fit's ``alpha_ref`` when none is given; shared: not
+    written into)."""
+    return np.zeros(k)
+
+
+@functools.lru_cache(maxsize=16)
 def _speaker_measurement(k: int, weight: float) -> tuple[np.ndarray, np.ndarray]:
     """(zeros (K,), weight * I (K, K)): :meth:`StatePrior.with_speaker`'s measurement, made
     once per (K, weight) (every live frame asks for it; shared: not written into)."""
@@ -112,6 +121,19 @@ class StatePrior:
     rotation: np.ndarray
     translation: np.ndarray
     information: np.ndarray
+    # (weight, :meth:`with_speaker`'s prior at that weight) where the motion model made it
+    # in the prediction's own compiled call (``ConstantVelocity(speaker=)``, :meth:`made`),
+    # else None (not an argument: a prior made otherwise, e.g. by dataclasses.replace, has none)
+    speaker: tuple[float, StatePrior] | None = field(default=None, init=False, repr=False)
+
+    @classmethod
+    def made(cls, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
+             information: np.ndarray, speaker: tuple[float, StatePrior] | None) -> StatePrior:
+        """The prior with its speaker's prior (weight, prior) made already, if any."""
+        prior = cls(alpha, rotation, translation, information)
+        if speaker is not None:
+            object.__setattr__(prior, "speaker", speaker)
+        return prior
 
     def with_speaker(self, weight: float = 1.0) -> StatePrior:
         """This prior times the speaker's own distribution of articulations, N(0, I / weight)
@@ -121,6 +143,8 @@ class StatePrior:
         articulation the term changes nothing; where it does not (a direction the landmarks
         and the appearance hardly see), the estimate stays where the speaker's mouth goes
         instead of wandering several s.d. away with the reader's noise."""
+        if self.speaker is not None and self.speaker[0] == weight:  # (made with the prior)
+            return self.speaker[1]
         return self.with_measurement(*_speaker_measurement(len(self.alpha), float(weight)))
 
     def with_measurement(self, alpha: np.ndarray, information: np.ndarray) -> StatePrior:
@@ -233,6 +257,11 @@ class Problem:
         self._project_jit = kernels.AVAILABLE and camera.pinhole
         self._rot_ref = (None if rw is None or appearance.rotation_ref is None
                          else rotation_matrix(appearance.rotation_ref))
+        k = self.k
+        # per level, fit_terms's fixed arguments between the state and the gain (kernel_args)
+        self._middle = [(self._s_mean, self._basis_sdk, self._intr, camera.dist, w[0],
+                         w[1:k + 1], w[k + 1:] if self._quad else _NO_W2)
+                        for w in appearance.weights]
 
     # -------------------------------------------------------------- geometry
     def sample_points_cam(self, alpha: np.ndarray, rot: np.ndarray,
@@ -241,15 +270,17 @@ class Problem:
         head = self.s_mean + (alpha @ self._basis_flat).reshape(-1, 3)
         return head, head @ rot.T + t
 
-    def project(self, theta: np.ndarray) -> np.ndarray:
+    def project(self, theta: np.ndarray, rot: np.ndarray | None = None) -> np.ndarray:
         """Image positions (S, 2) of the sample points at state theta (K + 6,). Compiled
         (:func:`~articast.core.tracking.kernels.sample_uv`, the same numbers) for an
-        undistorted camera; :meth:`project_numpy` is the reference."""
+        undistorted camera; :meth:`project_numpy` is the reference. rot : (3, 3) theta's
+        rotation as a matrix (``rotation_matrix(theta[K:K + 3])``), if the caller has it."""
         if self._project_jit:  # (once a tracked frame)
             theta = np.asarray(theta, np.float64)
             return kernels.sample_uv(self._s_mean, self._basis_flat,
                                      np.ascontiguousarray(theta[:self.k]),
-                                     rotation_matrix(theta[self.k:self.k + 3]),
+                                     rotation_matrix(theta[self.k:self.k + 3]) if rot is None
+                                     else rot,
                                      np.ascontiguousarray(theta[self.k + 3:]), self._intr)
         return self.project_numpy(theta)
 
@@ -360,12 +391,8 @@ class Problem:
         """The fixed arguments of :func:`~articast.core.tracking.kernels.fit_terms` for one
         map: those before the state (alpha, rot, t) and those between the state and the gain.
         """
-        w = self.appearance.weights[level_index]
-        k = self.k
         return ((maps.smooth, float(maps.origin[0]), float(maps.origin[1]), float(maps.scale),
-                 float(maps.sigma)),
-                (self._s_mean, self._basis_sdk, self._intr, self.camera.dist, w[0], w[1:k + 1],
-                 w[k + 1:] if self._quad else _NO_W2))
+                 float(maps.sigma)), self._middle[level_index])
 
     def kernel_tail(self, maps: ImageMaps, level_index: int) -> tuple:
         """The arguments of :func:`~articast.core.tracking.kernels.fit_terms` from the
@@ -404,7 +431,8 @@ def _robust(r: np.ndarray, jac: np.ndarray | None, c: int, scale: float | None
 
 def _point_q(r: np.ndarray, c: int) -> np.ndarray:
     """Squared weighted residual norm per sample point (S,) from the residuals (S*C,)."""
-    return np.einsum("sc,sc->s", r.reshape(-1, c), r.reshape(-1, c))
+    rs = r.reshape(-1, c)
+    return np.einsum("sc,sc->s", rs, rs)
 
 
 def _pose_prior(pol: FitPolicy, rot: np.ndarray, t: np.ndarray,
@@ -430,7 +458,8 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
                      alpha_ref: np.ndarray | None = None,
                      points: PointTerm | None = None,
                      state_prior: StatePrior | None = None,
-                     appearance_weight: float = 1.0) -> FitResult:
+                     appearance_weight: float = 1.0,
+                     rot0: np.ndarray | None = None) -> FitResult:
     """Levenberg-Marquardt from (alpha0, rotation0, translation0) on one pyramid level.
 
     pose_ref : (rotation (3,), translation (3,)) the pose prior is centred on, if any.
@@ -444,13 +473,14 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         give no ``pose_ref`` / ``alpha_ref`` (it replaces both).
     appearance_weight : the appearance term's weight (0: the landmarks and priors alone; the
         appearance is then not sampled at all).
+    rot0 : (3, 3) ``rotation_matrix(rotation0)``, if the caller has it (not written into).
     """
     pol = policy or FitPolicy()
     ref = None if pose_ref is None else (rotation_matrix(pose_ref[0]), np.asarray(pose_ref[1]))
     li = problem.appearance.level_index(level)
     k = problem.k
     alpha = np.array(alpha0, np.float64)
-    rot = rotation_matrix(rotation0)
+    rot = rotation_matrix(rotation0) if rot0 is None else rot0
     t = np.array(translation0, np.float64)
     gain = gain0 = float(gain0)
     lam = pol.lm_lambda
@@ -458,9 +488,9 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
     scale = problem.loss_scale(pol.robust_scale)
     wg = 1.0 / pol.gain_sigma**2
     wa = 0.0 if alpha_ref is None or pol.alpha_sigma is None else 1.0 / pol.alpha_sigma**2
-    a_ref = np.zeros(k) if alpha_ref is None else np.asarray(alpha_ref, np.float64)
+    a_ref = _zeros(k) if alpha_ref is None else np.asarray(alpha_ref, np.float64)
     use_app = appearance_weight > 0
-    sw = float(np.sqrt(appearance_weight))
+    sw = math.sqrt(appearance_weight)
     with_gain = estimate_gain and use_app
     # one compiled call per evaluation (kernels.gn_terms) and per iteration (kernels.lm_step)
     # where the la cost and the landmark term are compiled; `evaluate_numpy` and the numpy
@@ -474,7 +504,7 @@ def fit_gauss_newton(problem: Problem, maps: ImageMaps, level: int, alpha0: np.n
         pr_ = problem.prior
         sp_args = ((state_prior.alpha, state_prior.rotation, state_prior.translation,
                     state_prior.information) if state_prior is not None else _NO_STATE_PRIOR)
-        ref_args: tuple = (_EYE, np.zeros(3), -1.0, -1.0)  # as _pose_prior: none
+        ref_args: tuple = (_EYE, _ZERO3, -1.0, -1.0)  # as _pose_prior: none
         if ref is not None and pol.pose_sigma_mm is not None and pol.pose_sigma_rad is not None:
             ref_args = (ref[0], np.asarray(ref[1], np.float64), 1.0 / pol.pose_sigma_rad**2,
                         1.0 / pol.pose_sigma_mm**2)

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from articast.core.model.camera import axis_angle, rotation_matrix, small_turn
+from articast.core.model.camera import axis_angle, rotation_matrix, rotation_of, small_turn
 from articast.core.tracking import kernels
 from articast.core.tracking.fitting import StatePrior
 
@@ -126,9 +126,14 @@ class ConstantVelocity:
     """The filter; call :meth:`start` on a first state, then per frame :meth:`predict`, fit with
     :meth:`prior`, :meth:`update`."""
 
-    def __init__(self, k: int, noise: MotionNoise | None = None) -> None:
+    def __init__(self, k: int, noise: MotionNoise | None = None,
+                 speaker: float | None = None) -> None:
+        """speaker : the weight of the speaker's distribution the fit multiplies each
+        prediction by (:meth:`StatePrior.with_speaker`), if any: :meth:`predict` makes that
+        prior too, in its own compiled call, and ``with_speaker(speaker)`` returns it."""
         self.k, self.n = k, k + 6
         self.noise = noise or MotionNoise.default(k)
+        self.speaker = speaker
         self.started = False
         self.step: MotionStep | None = None  # the last update's or hold's (smoothers)
         self._linked = False
@@ -161,10 +166,16 @@ class ConstantVelocity:
         # F P F^T + Q by blocks, F = [[I, dt I], [0, I]] (the 2n x 2n products cost more)
         q = self.noise.q
         k = self.k
-        if kernels.AVAILABLE:  # the same sums and inverse in one compiled call
-            p, info, alpha, t = kernels.cv_predict(self.p, q, dt**3, dt**2, dt, self.alpha,
-                                                   self.v, self.t)
-            rot = rotation_matrix(dt * self.v[k:k + 3]) @ self.rot
+        speaker = None
+        if kernels.AVAILABLE:  # the same sums and inverse in one compiled call, and the
+            # speaker's prior on it (StatePrior.with_speaker's numbers) where one is given
+            x, y, z = self.v[k:k + 3].tolist()  # (rotation_matrix(dt * v[k:k + 3]), on floats)
+            rot = rotation_of(dt * x, dt * y, dt * z) @ self.rot
+            w = -1.0 if self.speaker is None else float(self.speaker)
+            p, info, alpha, t, *sp = kernels.cv_predict(self.p, q, dt**3, dt**2, dt,
+                                                        self.alpha, self.v, self.t, rot, w)
+            if w >= 0:
+                speaker = (w, StatePrior(*sp))
         else:
             i = np.arange(n)
             pxx, pxv, pvv = self.p[:n, :n], self.p[:n, n:], self.p[n:, n:]
@@ -185,7 +196,7 @@ class ConstantVelocity:
         self._pred = (alpha, rot, t, p)
         self._info = info
         self._dt = dt
-        return StatePrior(alpha, rot, t, info)
+        return StatePrior.made(alpha, rot, t, info, speaker)
 
     def update(self, alpha: np.ndarray, rotation: np.ndarray, translation: np.ndarray,
                information: np.ndarray | None) -> None:

@@ -1188,14 +1188,18 @@ def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def cv_predict(p, q, dt3, dt2, dt, alpha, v, t):  # pragma: no cover - compiled
+def cv_predict(p, q, dt3, dt2, dt, alpha, v, t, rot, speaker):  # pragma: no cover
     """:meth:`articast.core.tracking.kalman.ConstantVelocity.predict` but its rotation: the
     covariance F P F^T + Q by blocks (p (2n, 2n); q (n,) the noise's density, its terms
     q * dt^3 / 3, q * dt^2 / 2 and q * dt with dt3 = dt**3 and dt2 = dt**2 as Python works
     them out) and the information of its state block, and the articulation alpha (K,) and
     translation t (3,) moved by the velocity v (n,) over dt, in one call: the same
     element-wise sums as its numpy code, the inverse by LAPACK's gesv on the identity, as
-    numpy's inv. Returns (P, information, alpha, t)."""
+    numpy's inv. Returns (P, information, alpha, t), then, with ``speaker`` >= 0, that
+    prediction (at the predicted rotation ``rot`` (3, 3)) times the speaker's distribution
+    of weight ``speaker`` (:meth:`~articast.core.tracking.fitting.StatePrior.with_speaker`,
+    by :func:`state_measured` on the same numbers: its alpha, rotation, translation and
+    information; empty arrays where ``speaker`` < 0)."""
     n = p.shape[0] // 2
     k = alpha.shape[0]
     q3 = np.empty(n)
@@ -1227,8 +1231,13 @@ def cv_predict(p, q, dt3, dt2, dt, alpha, v, t):  # pragma: no cover - compiled
     a = np.ascontiguousarray(out[:n, :n])
     for i in range(n):
         a[i, i] += 1e-12
-    # (LAPACK's is F)
-    return out, np.ascontiguousarray(np.linalg.solve(a, np.eye(n))), a_new, t_new
+    info = np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
+    if speaker < 0:
+        return out, info, a_new, t_new, np.zeros(0), np.zeros((0, 0)), np.zeros(0), \
+            np.zeros((0, 0))
+    s_alpha, s_rot, s_t, s_info = state_measured(a_new, rot, t_new, info, np.zeros(k),
+                                                 speaker * np.eye(k))
+    return out, info, a_new, t_new, s_alpha, s_rot, s_t, s_info
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -1819,8 +1828,8 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
         iris_chords(eye, mask, mask, 1.0, 0.0, 2.0, 5.0, 0.75)
         iris_former_rows(eye, mask, 0.0, 30.0, 5.0)
     if want("cv_predict", "cv_update"):
-        cov, info, _, _ = cv_predict(np.eye(14), np.ones(7), 0.04**3, 0.04**2, 0.04,
-                                     np.zeros(1), np.zeros(7), np.zeros(3))
+        cov, info, *_ = cv_predict(np.eye(14), np.ones(7), 0.04**3, 0.04**2, 0.04,
+                                   np.zeros(1), np.zeros(7), np.zeros(3), np.eye(3), 1.0)
         for information in (np.eye(7), np.zeros((0, 0))):
             cv_update(cov, info, np.zeros(1), np.zeros(1), np.eye(3), np.zeros(3), np.zeros(3),
                       np.zeros(7), information)

@@ -456,7 +456,8 @@ class PointTerm:
         self.uv = np.ascontiguousarray(uv if every else uv[ok])
         self.camera = camera
         px_per_mm = 0.5 * (camera.fx + camera.fy) / max(float(depth_mm), 1.0)
-        self.inv_sigma = np.sqrt(weight) / (pm.sigma_mm[ok] * px_per_mm)
+        self.inv_sigma = np.sqrt(weight) / ((pm.sigma_mm if every else pm.sigma_mm[ok])
+                                            * px_per_mm)
         self.scale = scale
         self.k = pm.n_params
         self._jit = kernels.AVAILABLE and camera.pinhole

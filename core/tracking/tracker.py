@@ -23,7 +23,7 @@ from articast.core.appearance.maps import (
     roi_of,
 )
 from articast.core.appearance.models import AppearanceModel, sample_normals
-from articast.core.model.camera import Camera, Pose, axis_angle
+from articast.core.model.camera import Camera, Pose, axis_angle, rotation_matrix
 from articast.core.model.face import FaceModel, range_motion
 from articast.core.outputs.lips import lips_dict
 from articast.core.tracking import kernels
@@ -47,9 +47,10 @@ def _spread(pixels: np.ndarray) -> float:
     """``pixels.std()`` (any shape), by OpenCV's one pass over a contiguous copy instead of
     numpy's float64 conversion and two passes (a frame's contrast check: ~5x cheaper); a
     uint8 (h, w) view (a channel's every n-th pixel) read in place by the compiled kernel,
-    the same number without the copy."""
+    the same number without the copy, read column by column (its sums are exact integers,
+    the same in any order; the rows of a column are fetched together)."""
     if kernels.AVAILABLE and pixels.ndim == 2 and pixels.dtype == np.uint8:
-        return float(kernels.pixels_sd2(pixels))
+        return float(kernels.pixels_sd2(pixels.T))
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
@@ -308,8 +309,9 @@ class Tracker:
              cache: dict[int, ImageMaps], policy: FitPolicy | None = None,
              pose_ref: np.ndarray | None = None, refine_gain: bool = True,
              alpha_ref: np.ndarray | None = None, evidence: Evidence | None = None,
-             uv0: np.ndarray | None = None) -> FitResult:
-        """uv0 : the sample points projected at theta0, if the caller has them."""
+             uv0: np.ndarray | None = None, rot0: np.ndarray | None = None) -> FitResult:
+        """uv0 : the sample points projected at theta0, if the caller has them; rot0 : theta0's
+        rotation as a matrix, if the caller has it."""
         pol = self.policy
         ev = evidence or Evidence()
         theta = theta0
@@ -340,10 +342,13 @@ class Tracker:
                                           estimate_gain=(level == 0 and refine_gain),
                                           alpha_ref=alpha_ref, points=ev.points,
                                           state_prior=ev.prior,
-                                          appearance_weight=ev.appearance_weight)
+                                          appearance_weight=ev.appearance_weight,
+                                          rot0=rot0 if theta is theta0 else None)
             evals += result.evals
             theta = result.theta
         assert result is not None
+        if len(levels) == 1:  # (a live frame's: the record as it is, its evals the same)
+            return result
         return FitResult(result.alpha, result.rotation, result.translation, result.cost,
                          result.residual, evals, result.iterations, result.converged,
                          result.valid_fraction, result.costs, result.gain,
@@ -410,18 +415,20 @@ class Tracker:
         if ev is not None and ev.prior is not None:
             pr = ev.prior
             theta0 = np.concatenate([pr.alpha, axis_angle(pr.rotation), pr.translation])
-        uv = self.problem.project(theta0)
+        rot0 = rotation_matrix(theta0[self.k:self.k + 3])  # (the projection's and the fit's)
+        uv = self.problem.project(theta0, rot0)
         roi = roi_of(uv, pol.roi_margin_px)
         x0, y0, x1, y1 = (max(0, roi[0]), max(0, roi[1]), roi[2], roi[3])
         patch = image[y0:y1:4, x0:x1:4, 1]  # green, every 4th pixel: contrast is coarse
         if patch.size == 0 or _spread(patch) < pol.min_contrast:
             return self._lost(t, t0, "blank: no contrast where the face should be", 0)
-        ref = self.pose_prior_centre
-        if translation_hint is not None and ref is not None:
-            ref[3:] = translation_hint
-        a_ref: np.ndarray | None = theta0[:self.k]
-        if ev is not None and ev.prior is not None:
-            ref = a_ref = None  # the motion model's prior replaces both
+        ref: np.ndarray | None = None
+        a_ref: np.ndarray | None = None
+        if ev is None or ev.prior is None:  # (else the motion model's prior replaces both)
+            ref = self.pose_prior_centre
+            if translation_hint is not None and ref is not None:
+                ref[3:] = translation_hint
+            a_ref = theta0[:self.k]
         fit = None
         evals = 0
         levels = pol.levels if ev is None or ev.levels is None else ev.levels
@@ -431,13 +438,13 @@ class Tracker:
             # most frames are easy: try the full-resolution fit from the prediction alone, and
             # pay for coarse-to-fine only when its residual says the motion was not predicted
             quick = self._fit(image, theta0, (0,), cache, pose_ref=ref, alpha_ref=a_ref,
-                              evidence=ev, uv0=uv)
+                              evidence=ev, uv0=uv, rot0=rot0)
             evals += quick.evals
             if self._good(quick) and quick.residual <= pol.fast_path_factor * self._level:
                 fit = quick
         if fit is None:
             fit = self._fit(image, theta0, levels, cache, pose_ref=ref, alpha_ref=a_ref,
-                            evidence=ev, uv0=uv)
+                            evidence=ev, uv0=uv, rot0=rot0)
             evals += fit.evals
         if self._gap and self._good(fit, landmarks):
             # first frame after a gap: the last good state may be far from the face that
@@ -599,10 +606,11 @@ class Tracker:
             self._qlevel = np.maximum(q, self.policy.occlusion_floor)
             return
         pol = self.policy
-        seen = q > 0
         lv = self._qlevel
-        lv[seen] += pol.occlusion_rate * (np.minimum(q[seen], pol.level_clip * lv[seen])
-                                          - lv[seen])
+        # lv[q > 0] += rate * (min(q, clip * lv) - lv)[q > 0]: the same sums on every point,
+        # written where seen (q = 0: outside the image; fewer calls than boolean indexing)
+        np.add(lv, pol.occlusion_rate * (np.minimum(q, pol.level_clip * lv) - lv), out=lv,
+               where=q > 0)
 
     def _accept(self, fit: FitResult, t: float, t0: float, evals: int,
                 force: bool = False, occluded: str | None = None,
