@@ -152,9 +152,9 @@ def test_the_live_loops_record_copy_is_dataclasses_replace():
 
 
 def test_a_blank_frame_is_told_as_by_every_8th_pixel():
-    """live._blank (every 16th pixel first) answers as _contrast of every 8th pixel below
-    the least contrast does, on random, smooth, striped (the 16th pixels of one level), dim
-    and blank frames, at several least contrasts."""
+    """live._blank (every 32nd pixel first) answers as _contrast of every 8th pixel below
+    the least contrast does, on random, dim, striped (the 32nd pixels' rows and columns
+    apart from the others) and blank frames, at several least contrasts."""
     from articast.core.faces.live import _blank, _contrast
 
     rng = np.random.default_rng(8)
@@ -167,10 +167,10 @@ def test_a_blank_frame_is_told_as_by_every_8th_pixel():
         elif kind == 1:  # dim noise round one level: near the least contrasts below
             img = np.clip(100 + rng.normal(0, rng.uniform(0, 8), (h, w, 3)), 0, 255).astype(
                 np.uint8)
-        elif kind == 2:  # the every-16th pixels striped, the others flat
+        elif kind == 2:  # the every-32nd pixels striped, the others flat
             img = np.full((h, w, 3), 90, np.uint8)
-            img[::16, ::32] = 250
-        elif kind == 3:  # the every-16th pixels flat, the others striped
+            img[::32, ::64] = int(rng.integers(91, 256))
+        elif kind == 3:  # the every-32nd pixels flat, the others striped
             img = np.full((h, w, 3), 90, np.uint8)
             img[8::16] = rng.integers(0, 256, (len(range(8, h, 16)), w, 3), dtype=np.uint8)
         else:
