@@ -14,7 +14,6 @@ from articast.core.faces.lipgap import (
     matched,
     model_ratios,
     mouth_patch,
-    patch_change,
     reader_ratio,
 )
 from articast.core.model.camera import Camera, Pose
@@ -152,20 +151,6 @@ def test_the_compiled_lip_gap_is_the_numpy_one(model, share):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
         moved += not np.allclose(got, alpha)
     assert moved >= 30  # (the comparison is not of alphas left where they were)
-
-
-def test_the_patch_change_is_the_mean_of_the_absolute_difference():
-    """patch_change (one OpenCV call) is cv2.mean of cv2.absdiff to the bit, on patches
-    of the mouth's size and of others (a count not a power of two), near and far apart."""
-    import cv2
-
-    rng = np.random.default_rng(5)
-    for k in range(300):
-        shape = PATCH_SIZE[::-1] if k % 2 else tuple(int(v) for v in rng.integers(1, 50, 2))
-        a = rng.integers(0, 256, shape, dtype=np.uint8)
-        b = (rng.integers(0, 256, shape, dtype=np.uint8) if k % 3 else
-             np.clip(a.astype(int) + rng.integers(-3, 4, shape), 0, 255).astype(np.uint8))
-        assert patch_change(a, b) == float(cv2.mean(cv2.absdiff(a, b))[0])
 
 
 def test_the_mouth_patch_takes_a_box_as_an_array_or_a_sequence():

@@ -243,5 +243,6 @@ def _inside_xy(grey: np.ndarray, xs: Sequence[float], ys: Sequence[float]
 
 def _grey(patch: np.ndarray) -> np.ndarray:
     """A crop of a grey or BGR image, grey (only the crop is converted: cheaper than the
-    frame; OpenCV reads the crop's rows in place, without a contiguous copy first)."""
-    return patch if patch.ndim == 2 else cv2.cvtColor(patch, cv2.COLOR_BGR2GRAY)
+    frame)."""
+    return patch if patch.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(patch),
+                                                       cv2.COLOR_BGR2GRAY)
