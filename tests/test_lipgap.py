@@ -8,10 +8,12 @@ import pytest
 
 from articast.core.faces.lipgap import (
     MODEL_POINTS,
+    PATCH_SIZE,
     READER_POINTS,
     gap_ratio,
     matched,
     model_ratios,
+    mouth_patch,
     reader_ratio,
 )
 from articast.core.model.camera import Camera, Pose
@@ -149,3 +151,11 @@ def test_the_compiled_lip_gap_is_the_numpy_one(model, share):
         np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
         moved += not np.allclose(got, alpha)
     assert moved >= 30  # (the comparison is not of alphas left where they were)
+
+
+def test_the_mouth_patch_takes_a_box_as_an_array_or_a_sequence():
+    img = np.random.default_rng(6).integers(0, 256, (120, 160, 3), dtype=np.uint8)
+    box = np.array([40.3, 50.7, 90.1, 75.2])
+    got = mouth_patch(img, box)
+    assert got.shape == PATCH_SIZE[::-1] and got.dtype == np.uint8
+    assert np.array_equal(got, mouth_patch(img, list(box)))

@@ -149,3 +149,34 @@ def test_the_live_loops_record_copy_is_dataclasses_replace():
     assert base.ok and base.frame == 3 and base.extra == {"a": 1}
     with pytest.raises(TypeError):
         _with(base, no_such_field=1)
+
+
+def test_a_blank_frame_is_told_as_by_every_8th_pixel():
+    """live._blank (every 32nd pixel first) answers as _contrast of every 8th pixel below
+    the least contrast does, on random, dim, striped (the 32nd pixels' rows and columns
+    apart from the others) and blank frames, at several least contrasts."""
+    from articast.core.faces.live import _blank, _contrast
+
+    rng = np.random.default_rng(8)
+    seen = set()
+    for i in range(400):
+        h, w = (int(v) for v in rng.integers(1, 200, 2))
+        kind = i % 5
+        if kind == 0:
+            img = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        elif kind == 1:  # dim noise round one level: near the least contrasts below
+            img = np.clip(100 + rng.normal(0, rng.uniform(0, 8), (h, w, 3)), 0, 255).astype(
+                np.uint8)
+        elif kind == 2:  # the every-32nd pixels striped, the others flat
+            img = np.full((h, w, 3), 90, np.uint8)
+            img[::32, ::64] = int(rng.integers(91, 256))
+        elif kind == 3:  # the every-32nd pixels flat, the others striped
+            img = np.full((h, w, 3), 90, np.uint8)
+            img[8::16] = rng.integers(0, 256, (len(range(8, h, 16)), w, 3), dtype=np.uint8)
+        else:
+            img = np.full((h, w, 3), int(rng.integers(0, 256)), np.uint8)
+        for least in (0.5, 3.0, 6.0, 20.0):
+            want = _contrast(img[::8, ::8]) < least
+            assert _blank(img, least) == want
+            seen.add(want)
+    assert seen == {True, False}

@@ -56,6 +56,47 @@ def test_alignment_removes_pose_and_scale():
         assert np.abs(al.points[ids] - CANON.vertices_mm[ids]).max() < 1e-6
 
 
+def test_the_compiled_3x3_svd_is_numpys_to_rounding():
+    """faces.kernels._svd3 (the alignment's SVD, one-sided Jacobi) gives np.linalg.svd's
+    singular values, orthogonal factors that rebuild the matrix, and the same Procrustes
+    rotation and scale (u diag(1, 1, det) vt), on well and badly conditioned matrices, of
+    rank 2 and 1, diagonal, symmetric, and zero."""
+    from articast.core.faces import kernels as FK
+
+    if not FK.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(12)
+    for k in range(3000):
+        m = rng.normal(size=(3, 3)) * rng.uniform(1e-3, 1e3, 3)[None, :] * 10.0 ** rng.uniform(-3, 3)
+        if k % 7 == 1:
+            m[:, 2] = 0.0  # rank 2: the third u from the first two
+        elif k % 7 == 2:
+            m[:, 1] = 2.0 * m[:, 0]
+        elif k % 7 == 3:
+            m = np.diag(rng.uniform(0.0, 5.0, 3))
+        elif k % 7 == 4:
+            m = m @ m.T
+        elif k % 7 == 5:
+            m = np.outer(rng.normal(size=3), rng.normal(size=3))  # rank 1
+        u, s, vt = FK._svd3(m)
+        u0, s0, vt0 = np.linalg.svd(m)
+        top = s0[0]
+        np.testing.assert_allclose(s, s0, rtol=0, atol=1e-14 * top)
+        np.testing.assert_allclose(u @ np.diag(s) @ vt, m, rtol=0, atol=1e-14 * top)
+        np.testing.assert_allclose(vt @ vt.T, np.eye(3), atol=1e-14)
+        if s0[1] > 1e-6 * top:  # (rank 1 leaves u's last two columns free)
+            np.testing.assert_allclose(u.T @ u, np.eye(3), atol=1e-14)
+        if min(s0[0] - s0[1], s0[1] - s0[2], s0[1]) > 1e-3 * top:  # a well-defined rotation
+            rots = []
+            for uu, ss, vv in ((u, s, vt), (u0, s0, vt0)):
+                d = 1.0 if np.linalg.det(uu) * np.linalg.det(vv) > 0 else -1.0
+                rots.append((uu @ np.diag([1.0, 1.0, d]) @ vv, ss[0] + ss[1] + d * ss[2]))
+            np.testing.assert_allclose(rots[0][0], rots[1][0], rtol=0, atol=1e-12)
+            assert rots[0][1] == pytest.approx(rots[1][1], rel=1e-13, abs=1e-14 * top)
+    u, s, vt = FK._svd3(np.zeros((3, 3)))
+    assert np.all(s == 0.0) and np.all(np.isfinite(u)) and np.all(np.isfinite(vt))
+
+
 def test_compiled_alignment_is_the_numpy_alignment_to_rounding():
     """align's compiled call (faces.kernels.aligned) gives align_numpy's points, scale and
     yaw to rounding (its sums in another order), at any pose and scale, with noise on the

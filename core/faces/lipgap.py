@@ -203,7 +203,9 @@ def lip_box(landmarks: np.ndarray) -> np.ndarray:
 def mouth_patch(image: np.ndarray, box: np.ndarray) -> np.ndarray:
     """(32, 64) grey patch of ``image`` (BGR or grey, uint8) around a lip ``box``, grown 30 %
     (the still-mouth windows' patch of ``benchmarks/face_landmarks_clips.py``)."""
-    x0, y0, x1, y1 = map(float, box)
+    # (an array's values as Python floats at once: ~5 us a call less in the live loop than
+    # float() of each of its numpy scalars; the same values)
+    x0, y0, x1, y1 = map(float, box.tolist() if isinstance(box, np.ndarray) else box)
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     hx, hy = (x1 - x0) * 0.65 + 2, (y1 - y0) * 0.65 + 2
     w, h = PATCH_SIZE

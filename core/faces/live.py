@@ -392,6 +392,19 @@ def _contrast(pixels: np.ndarray) -> float:
     return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
 
 
+def _blank(image: np.ndarray, least: float) -> bool:
+    """Whether a frame has no contrast: ``_contrast(image[::8, ::8]) < least``, the same
+    answer on every frame. Its every 32nd pixel is read first: a sixteenth (at least) of
+    those samples, whose s.d. is at most four times theirs (n var_all >= n_part var_part,
+    each about its own mean), so where that s.d. reaches 4 x ``least`` the frame has
+    contrast and the every-8th sample is not read (a real frame's s.d. is tens of grey
+    levels; a frame read cold from memory: ~20 against ~70 us in the live loop); below, the
+    every-8th sample decides as before."""
+    if _contrast(image[::32, ::32]) >= 4.0 * least + 1e-6:
+        return False
+    return _contrast(image[::8, ::8]) < least
+
+
 _PLAIN_RESULT = (not hasattr(TrackResult, "__post_init__")
                  and all(f.init for f in fields(TrackResult)))
 
@@ -745,7 +758,7 @@ class LiveTracker:
         return self.upper.wants_reading(image, self._last_anchor)
 
     def _track(self, image: np.ndarray, t: float) -> TrackResult:
-        if _contrast(image[::8, ::8]) < self.tracker.policy.min_contrast:
+        if _blank(image, self.tracker.policy.min_contrast):
             return self._lost(t, "blank: the frame has no contrast")
         if self.fusion is not None:
             return self._track_fused(image, t, self.fusion)

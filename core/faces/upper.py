@@ -72,7 +72,6 @@ from articast.core.faces.lids import eye_template as eye_template
 from articast.core.faces.lids import iris_height as iris_height
 from articast.core.faces.lids import lid_gap as lid_gap
 from articast.core.faces.lids import photo_measure as photo_measure
-from articast.core.tracking import kernels
 
 PHOTO_KINDS = ("gap", "iris", "contrast")
 """The photometric eye measures between readings (:class:`UpperReference` ``photo_kind``), in
@@ -433,20 +432,19 @@ def lids_only(landmarks: np.ndarray, canon: CanonicalFace
               ) -> tuple[tuple[float, float], float] | None:
     """A reading's lid opening (:func:`lid_opening_mm` of :func:`align`'s points) and yaw,
     without aligning the other 460 points: (opening (left, right) mm, yaw deg), or None for
-    a degenerate reading. ~0.1 of ``align``'s cost, for the frames whose reading is read for
-    the lids alone (:meth:`UpperTracker.step`'s ``lids``)."""
-    lm = np.asarray(landmarks, np.float64)
-    if kernels.AVAILABLE:  # the same numbers in one compiled call
-        ids, wn, b, _, _ = _rigid(canon)
-        out = kernels.lids_read(lm, ids, wn, b, _LID_UPPER, _LID_LOWER)
-        return ((float(out[0]), float(out[1])), float(out[2])) if out[3] else None
-    return lids_only_numpy(lm, canon)
+    a degenerate reading. For the frames whose reading is read for the lids alone
+    (:meth:`UpperTracker.step`'s ``lids``): compiled, :func:`align`'s own call (aligning the
+    other points costs it ~1 us); in numpy, ~0.1 of ``align``'s cost."""
+    if faces_kernels.AVAILABLE:
+        al = align(landmarks, canon)
+        return None if al is None else (lid_opening_mm(al.points), al.yaw_deg)
+    return lids_only_numpy(np.asarray(landmarks, np.float64), canon)
 
 
 def lids_only_numpy(lm: np.ndarray, canon: CanonicalFace
                     ) -> tuple[tuple[float, float], float] | None:
-    """:func:`lids_only` in numpy (the reference of
-    :func:`~articast.core.tracking.kernels.lids_read`)."""
+    """:func:`lids_only` in numpy, where numba is not (the reference of
+    :func:`~articast.core.tracking.kernels.lids_read`, its former compiled call)."""
     ids, w = canon.procrustes_ids, canon.procrustes_weights
     a = lm[ids] * (1.0, -1.0, -1.0)  # -> x right, y up, z forward
     b = canon.vertices_mm[ids]
@@ -471,19 +469,26 @@ def lids_only_numpy(lm: np.ndarray, canon: CanonicalFace
     return (float(up[0]), float(up[1])), yaw
 
 
-# (the points these read, per side, in one index each: a few Python float operations on
+# (the points these read, both sides', in one take each: a few Python float operations on
 # the values instead of ~10 small numpy calls per measure; the same sums in the same order
-# as numpy's mean of 2 or 3 values, from 0.0 as numpy's, so the same numbers)
-_LIDS_Y = {s: [i for pair in LID_PAIRS[s] for i in pair] for s in SIDES}  # u0 l0 u1 l1 u2 l2
-_BROWS_Y = {s: [*EYE_CORNERS[s], *BROW_POINTS[s]["inner"], *BROW_POINTS[s]["outer"]]
-            for s in SIDES}
+# as numpy's mean of 2 or 3 values, from 0.0 as numpy's, so the same numbers. A column's
+# take of an index array: ~1.4 us, against ~5 us for a list's fancy index per side, ~15 us
+# a call cold in the live loop, where the lids are read on every frame)
+_LIDS_Y = np.array([i for s in SIDES for pair in LID_PAIRS[s] for i in pair])
+# (per side: u0 l0 u1 l1 u2 l2)
+_LOWER_Y = np.array([i for s in SIDES for i in (*(lo for _, lo in LID_PAIRS[s]),
+                                                  *EYE_CORNERS[s])])  # (l0 l1 l2 c0 c1)
+_BROWS_Y = np.array([i for s in SIDES for i in (*EYE_CORNERS[s], *BROW_POINTS[s]["inner"],
+                                                 *BROW_POINTS[s]["outer"])])
+_INNER_X = np.array([*BROW_POINTS["left"]["inner"], *BROW_POINTS["right"]["inner"]])
 
 
 def lid_opening_mm(points: np.ndarray) -> tuple[float, float]:
     """(left, right) lid opening, mm: mean upper-minus-lower height of the three lid pairs."""
+    v = points[:, 1].take(_LIDS_Y).tolist()
     out = []
-    for s in SIDES:
-        u0, l0, u1, l1, u2, l2 = points[_LIDS_Y[s], 1].tolist()
+    for k in (0, 6):
+        u0, l0, u1, l1, u2, l2 = v[k:k + 6]
         out.append((0.0 + (u0 - l0) + (u1 - l1) + (u2 - l2)) / 3)
     return out[0], out[1]
 
@@ -491,10 +496,10 @@ def lid_opening_mm(points: np.ndarray) -> tuple[float, float]:
 def lower_lids_mm(points: np.ndarray) -> tuple[float, float]:
     """(left, right) the lower lid's height above its eye's corners' line, mm (the mean of
     the three lid pairs' lower points)."""
+    v = points[:, 1].take(_LOWER_Y).tolist()
     out = []
-    for s in SIDES:
-        _, l0, _, l1, _, l2 = points[_LIDS_Y[s], 1].tolist()
-        c0, c1 = points[list(EYE_CORNERS[s]), 1].tolist()
+    for k in (0, 5):
+        l0, l1, l2, c0, c1 = v[k:k + 5]
         out.append((0.0 + l0 + l1 + l2) / 3 - (0.0 + c0 + c1) / 2)
     return out[0], out[1]
 
@@ -503,17 +508,17 @@ def inner_brows_x_mm(points: np.ndarray) -> tuple[float, float]:
     """(left, right) the inner brow's distance from the face's midline, mm (x of the
     inner brow points' mean: + to the speaker's left for the left brow, mirrored for the
     right)."""
-    l0, l1 = points[list(BROW_POINTS["left"]["inner"]), 0].tolist()
-    r0, r1 = points[list(BROW_POINTS["right"]["inner"]), 0].tolist()
+    l0, l1, r0, r1 = points[:, 0].take(_INNER_X).tolist()
     return (0.0 + l0 + l1) / 2, -((0.0 + r0 + r1) / 2)
 
 
 def brow_heights_mm(points: np.ndarray) -> np.ndarray:
     """(left inner, left outer, right inner, right outer) brow heights above the eye line,
     mm (each brow point pair's mean height minus its eye corners' mean height)."""
+    v = points[:, 1].take(_BROWS_Y).tolist()
     out = []
-    for s in SIDES:
-        c0, c1, i0, i1, o0, o1 = points[_BROWS_Y[s], 1].tolist()
+    for k in (0, 6):
+        c0, c1, i0, i1, o0, o1 = v[k:k + 6]
         eye_y = (0.0 + c0 + c1) / 2
         out += [(0.0 + i0 + i1) / 2 - eye_y, (0.0 + o0 + o1) / 2 - eye_y]
     return np.array(out)
