@@ -1033,7 +1033,7 @@ def test_warm_up_compiles_every_kernel_fused_live_tracking_calls(enrolled, monke
                  "fit_information", "sample_uv", "roi_box", "state_measured", "pixels_sd3", "pixels_sd2",
                  "facing_cos", "occlusion_votes",
                  "point_offset", "cv_predict", "cv_update", "lip_gap",
-                 "reading_features", "lids_read", "iris_chords", "iris_former_rows",
+                 "reading_features", "iris_chords", "iris_former_rows",
                  "iris_circle_height", "opening_centres", "dark_height", "brow_half"):
         monkeypatch.setattr(kernels, name, spies.wrap(name, getattr(kernels, name)))
     kernels.warm_up()

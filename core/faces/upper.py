@@ -443,8 +443,8 @@ def lids_only(landmarks: np.ndarray, canon: CanonicalFace
 
 def lids_only_numpy(lm: np.ndarray, canon: CanonicalFace
                     ) -> tuple[tuple[float, float], float] | None:
-    """:func:`lids_only` in numpy, where numba is not (the reference of
-    :func:`~articast.core.tracking.kernels.lids_read`, its former compiled call)."""
+    """:func:`lids_only` in numpy, where numba is not (the reference its test compares the
+    compiled :func:`align` path with)."""
     ids, w = canon.procrustes_ids, canon.procrustes_weights
     a = lm[ids] * (1.0, -1.0, -1.0)  # -> x right, y up, z forward
     b = canon.vertices_mm[ids]

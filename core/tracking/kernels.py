@@ -1093,61 +1093,6 @@ def lip_gap(mean, basis, rot, t, intr, alpha, fitted, read, share, step, max_cha
 
 
 @njit(cache=True, nogil=True)
-def lids_read(lm, ids, wn, b, upper, lower):  # pragma: no cover - compiled
-    """:func:`articast.core.faces.upper.lids_only` in one call (the numpy reference; a test
-    checks they agree): a reading's (lm, (N, 3) px) lid openings in mm, out[0:2], and its
-    yaw in degrees, out[2], from the similarity Procrustes of its points ``ids`` (weights
-    ``wn``, summing to 1) onto the canonical face's ``b`` (len(ids), 3); out[3] is 1, or
-    0 for a degenerate reading. ``upper``, ``lower``: (2 sides, P) the lid pairs' points.
-    ~0.36 ms a frame in numpy at load, most of it the overhead of ~20 small calls."""
-    n = ids.shape[0]
-    out = np.zeros(4)
-    a = np.empty((n, 3))
-    ma = np.zeros(3)
-    mb = np.zeros(3)
-    for j in range(n):
-        i = ids[j]
-        a[j, 0], a[j, 1], a[j, 2] = lm[i, 0], -lm[i, 1], -lm[i, 2]
-        for c in range(3):
-            ma[c] += wn[j] * a[j, c]
-            mb[c] += wn[j] * b[j, c]
-    cov = np.zeros((3, 3))
-    var = 0.0
-    for j in range(n):
-        for c in range(3):
-            ac = a[j, c] - ma[c]
-            var += wn[j] * ac * ac
-            for r in range(3):
-                cov[r, c] += wn[j] * (b[j, r] - mb[r]) * ac
-    for r in range(3):
-        for c in range(3):
-            if not np.isfinite(cov[r, c]):
-                return out
-    u, sv, vt = np.linalg.svd(cov)
-    d = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
-    if var <= 1e-9:
-        return out
-    scale = (sv[0] + sv[1] + d * sv[2]) / var
-    if not np.isfinite(scale) or scale <= 0:
-        return out
-    rot = np.empty((3, 3))
-    for r in range(3):
-        for c in range(3):
-            rot[r, c] = u[r, 0] * vt[0, c] + u[r, 1] * vt[1, c] + d * u[r, 2] * vt[2, c]
-    pairs = upper.shape[1]
-    for side in range(2):
-        acc = 0.0
-        for q in range(pairs):
-            iu, il = upper[side, q], lower[side, q]
-            acc += (rot[1, 0] * (lm[iu, 0] - lm[il, 0]) - rot[1, 1] * (lm[iu, 1] - lm[il, 1])
-                    - rot[1, 2] * (lm[iu, 2] - lm[il, 2]))
-        out[side] = acc / pairs * scale
-    out[2] = np.degrees(np.arctan2(rot[2, 0], rot[2, 2]))
-    out[3] = 1.0
-    return out
-
-
-@njit(cache=True, nogil=True)
 def point_offset(mean, basis_mk, alpha, rot, t, intr, seen):  # pragma: no cover - compiled
     """:func:`articast.core.tracking.points.offset_fraction` of readings ``seen`` (M, 2) px from
     the points mean + basis_mk @ alpha (M, 3) posed by (rot, t) and projected by a camera
@@ -1802,13 +1747,6 @@ def warm_up(only: tuple[str, ...] | None = None) -> None:
     if want("reading_features"):
         reading_features(np.random.default_rng(0).normal(0, 50, (8, 3)), np.eye(3),
                          np.array([0.0, 0.0, 500.0]), intr, np.zeros((8, 2)))
-    if want("lids_read"):
-        lm = np.random.default_rng(0).normal(0, 50, (12, 3))
-        for writable in (True, False):  # (a reader's landmarks come read-only)
-            lm.setflags(write=writable)
-            lids_read(lm, np.arange(8, dtype=np.int32), np.full(8, 0.125),
-                      np.random.default_rng(1).normal(0, 50, (8, 3)),
-                      np.array([[8, 9], [10, 11]]), np.array([[9, 8], [11, 10]]))
     if want("iris_circle_height", "opening_centres", "dark_height", "brow_half"):
         eye = np.random.default_rng(2).uniform(0, 1, (8, 14)).astype(np.float32)
         iris_circle_height(np.arange(3.0), np.ones(3, np.float32), 2.0, np.arange(0.0, 2.0, 0.5))
@@ -1847,7 +1785,7 @@ def compiled_on_disk(only: tuple[str, ...] | None = None) -> bool:
                                   pixels_sd3, pixels_sd2, occlusion_votes,
                                   point_offset, lip_gap,
                                   reading_features, cv_predict, cv_update, iris_chords,
-                                  iris_former_rows, lids_read, iris_circle_height,
+                                  iris_former_rows, iris_circle_height,
                                   opening_centres, dark_height, brow_half)
         kernels = [f for f in every if only is None or f.__name__ in only]
         return all(os.path.exists(f._cache._cache_file._index_path)  # noqa: SLF001
