@@ -152,10 +152,11 @@ def test_the_live_loops_record_copy_is_dataclasses_replace():
 
 
 def test_a_blank_frame_is_told_as_by_every_8th_pixel():
-    """live._blank (every 32nd pixel first) answers as _contrast of every 8th pixel below
+    """live._blank (every 32nd pixel first) answers as the contrast of every 8th pixel below
     the least contrast does, on random, dim, striped (the 32nd pixels' rows and columns
     apart from the others) and blank frames, at several least contrasts."""
-    from articast.core.faces.live import _blank, _contrast
+    from articast.core.faces.live import _blank
+    from articast.core.tracking.tracker import pixel_spread as _contrast
 
     rng = np.random.default_rng(8)
     seen = set()

@@ -39,7 +39,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Protocol
 
-import cv2
 import numpy as np
 
 from articast.core.faces import kernels as faces_kernels
@@ -59,7 +58,7 @@ from articast.core.tracking.fitting import StatePrior
 from articast.core.tracking.kalman import ConstantVelocity
 from articast.core.tracking.points import PointTerm, state_offset
 from articast.core.tracking.result import TrackResult
-from articast.core.tracking.tracker import Evidence, Tracker, TrackingPolicy
+from articast.core.tracking.tracker import Evidence, Tracker, TrackingPolicy, pixel_spread
 
 
 class FinderLike(Protocol):
@@ -378,31 +377,17 @@ a 31 s webcam clip it brought the still-mouth jitter of the lip aperture from 0.
 of the mouth width (the landmark model: 0.21 %) at the same agreement with the landmarks."""
 
 
-def _contrast(pixels: np.ndarray) -> float:
-    """The grey-level s.d. of ``pixels`` (any shape, every channel), as ``pixels.std()``
-    (OpenCV's one pass instead of numpy's strided float copies: 26 against 51 us a frame); a
-    uint8 (h, w, 3) view (the frame's every 8th pixel) read in place by the compiled kernel,
-    the same number without the strided copy. The kernel reads it column by column (its
-    exact integer sums do not depend on the order): a column's pixels lie on as many rows,
-    whose cache lines a frame just decoded must all fetch from memory, and fetched together
-    they arrive in about half the time of one row after the other (a cold 640 x 640 frame:
-    34 against 70 us)."""
-    if kernels.AVAILABLE and pixels.ndim == 3 and pixels.dtype == np.uint8:
-        return float(kernels.pixels_sd3(pixels.transpose(1, 0, 2)))
-    return float(cv2.meanStdDev(np.ascontiguousarray(pixels).reshape(-1, 1))[1][0, 0])
-
-
 def _blank(image: np.ndarray, least: float) -> bool:
-    """Whether a frame has no contrast: ``_contrast(image[::8, ::8]) < least``, the same
+    """Whether a frame has no contrast: ``pixel_spread(image[::8, ::8]) < least``, the same
     answer on every frame. Its every 32nd pixel is read first: a sixteenth (at least) of
     those samples, whose s.d. is at most four times theirs (n var_all >= n_part var_part,
     each about its own mean), so where that s.d. reaches 4 x ``least`` the frame has
     contrast and the every-8th sample is not read (a real frame's s.d. is tens of grey
     levels; a frame read cold from memory: ~20 against ~70 us in the live loop); below, the
     every-8th sample decides as before."""
-    if _contrast(image[::32, ::32]) >= 4.0 * least + 1e-6:
+    if pixel_spread(image[::32, ::32]) >= 4.0 * least + 1e-6:
         return False
-    return _contrast(image[::8, ::8]) < least
+    return pixel_spread(image[::8, ::8]) < least
 
 
 _PLAIN_RESULT = (not hasattr(TrackResult, "__post_init__")
