@@ -537,9 +537,8 @@ def test_a_measurement_of_the_articulation_is_the_product_of_the_two_gaussians()
 
 def test_the_compiled_measurement_of_the_articulation_is_the_numpy_one():
     """StatePrior.with_measurement runs kernels.state_measured (two calls a live frame): the
-    numpy reference's numbers to rounding (its solve and products are compiled loops, not
-    LAPACK's and BLAS's: ~1e-15 apart on values of ~1), where a wrong term would be off by
-    far more."""
+    numpy reference's numbers to rounding (its solve is a compiled LU, not LAPACK's: ~1e-15
+    apart on values of ~1), where a wrong term would be off by far more."""
     from articast.core.tracking import kernels
 
     if not kernels.AVAILABLE:

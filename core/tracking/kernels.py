@@ -650,28 +650,6 @@ def lm_system(jtj, jtr, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain,
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _mv(a, x):  # pragma: no cover - compiled
-    """a @ x, a (m, n), x (n,), by a plain loop (each entry summed in order: small
-    products, where BLAS's call, its code cold after the network's run, costs more)."""
-    out = np.empty(a.shape[0])
-    for r in range(a.shape[0]):
-        acc = 0.0
-        for j in range(a.shape[1]):
-            acc += a[r, j] * x[j]
-        out[r] = acc
-    return out
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _vdot(x, y):  # pragma: no cover - compiled
-    """x @ y of two vectors (n,) by a plain loop, summed in order."""
-    acc = 0.0
-    for i in range(x.shape[0]):
-        acc += x[i] * y[i]
-    return acc
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _lu(a):  # pragma: no cover - compiled
     """LU factors of a small square ``a`` (n, n), partial pivoting as LAPACK's getrf (the
     first largest |pivot| of each column, the column scaled by the pivot's reciprocal):
@@ -864,7 +842,7 @@ def lm_step(jtj, jtr, lam, max_rejections, cost, h_p, g_p, h_s, g_s, alpha, rot,
             lam *= 10
             continue
         a_new = alpha + step[:k]
-        rot_new = _mm(_rodrigues(step[k], step[k + 1], step[k + 2]), rot)
+        rot_new = np.dot(_rodrigues(step[k], step[k + 1], step[k + 2]), rot)
         t_new = t + step[k + 3:k + 6]
         g_new = min(max(gain + step[k + 6], 0.2), 5.0) if step.shape[0] > k + 6 else gain
         terms = gn_terms(a_new, rot_new, t_new, g_new, smooth, ox, oy, mscale, sigma, s_mean,
@@ -909,8 +887,8 @@ def sample_uv(s_mean, basis_flat, alpha, rot, t, intr):  # pragma: no cover - co
     numpy code is the reference): image positions (S, 2) px of the sample points (head-frame
     mean s_mean (S, 3), basis_flat (K, S*3)) at alpha (K,), rot (3, 3), t (3,) mm; intr
     (fx, fy, cx, cy). The products are BLAS's, as numpy's; NaN behind the camera."""
-    head = s_mean + _mv(basis_flat.T, alpha).reshape(s_mean.shape)
-    cam = _mm(head, rot.T)
+    head = s_mean + np.dot(alpha, basis_flat).reshape(s_mean.shape)
+    cam = np.dot(head, rot.T)
     uv = np.empty((cam.shape[0], 2))
     for i in range(cam.shape[0]):
         z = cam[i, 2] + t[2]
@@ -951,9 +929,9 @@ def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: 
         for j in range(k):
             info[i, j] += information[i, j]
     rhs = np.zeros(k + 6)
-    rhs[:k] = _mv(information, p_alpha - alpha)
+    rhs[:k] = np.dot(information, p_alpha - alpha)
     e = -solve_small(info, rhs)
-    return (p_alpha + e[:k], _mm(_rodrigues(e[k], e[k + 1], e[k + 2]), p_rot),
+    return (p_alpha + e[:k], np.dot(_rodrigues(e[k], e[k + 1], e[k + 2]), p_rot),
             p_t + e[k + 3:], info)
 
 
@@ -1000,8 +978,8 @@ def facing_cos(s_mean, normals, rot, t):  # pragma: no cover - compiled
     """:meth:`articast.core.tracking.tracker.Tracker.facing` (its numpy code is the
     reference): per sample point (S, 3 head frame, ``normals`` (S, 3)) posed by (rot, t), the
     cosine between its normal and its direction to the camera's centre."""
-    p = _mm(s_mean, rot.T)
-    nr = _mm(normals, rot.T)
+    p = np.dot(s_mean, rot.T)
+    nr = np.dot(normals, rot.T)
     out = np.empty(s_mean.shape[0])
     for i in range(s_mean.shape[0]):
         p0, p1, p2 = p[i, 0] + t[0], p[i, 1] + t[1], p[i, 2] + t[2]
@@ -1029,8 +1007,8 @@ def occlusion_votes(q, judged, s_mean, normals, rot, t, min_facing, q_div, base,
     m = q.shape[0]
     use_facing = min_facing == min_facing
     if use_facing:
-        p = _mm(s_mean, rot.T)
-        nr = _mm(normals, rot.T)
+        p = np.dot(s_mean, rot.T)
+        nr = np.dot(normals, rot.T)
     else:
         p = np.empty((0, 3))
         nr = np.empty((0, 3))
@@ -1087,9 +1065,9 @@ def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
             e1 = dcam[1, q] - y * iz * dcam[2, q]
             moves[2 * i, q] = e0 * rot[0, 0] + e1 * rot[1, 0]
             moves[2 * i + 1, q] = e0 * rot[0, 1] + e1 * rot[1, 1]
-    gram = _mm(moves.T, moves)
-    coef = solve_small(gram, _mv(moves.T, f))
-    return f - _mv(moves, coef)
+    gram = moves.T @ moves
+    coef = solve_small(gram, moves.T @ f)
+    return f - moves @ coef
 
 
 @njit(cache=True, nogil=True, inline="always")
