@@ -1140,6 +1140,26 @@ def test_compiled_iris_fit_is_the_step_by_step_fit_to_the_bit():
     assert fitted >= 40 and levels >= 20 and nones >= 3  # every branch was compared
 
 
+def test_the_iris_kernels_growth_and_opening_are_opencvs():
+    """faces.kernels._grown and _opened (the contour's growth and the glints' opening made in
+    the compiled iris fit) are cv2.dilate with iris._GROW and cv2.morphologyEx's opening with
+    iris._GLINT to the bit: random masks and grey levels of every size from one pixel, the
+    crop's edges included."""
+    from articast.core.faces import iris as I
+    from articast.core.faces import kernels as FK
+
+    if not FK.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(11)
+    for _ in range(800):
+        h, w = (int(v) for v in rng.integers(1, 30, 2))
+        mask = (rng.random((h, w)) < rng.random()).astype(np.uint8)
+        assert np.array_equal(FK._grown(mask), cv2.dilate(mask, I._GROW)), (h, w)
+        patch = rng.integers(0, 256, (h, w)).astype(np.float32)
+        assert np.array_equal(FK._opened(patch),
+                              cv2.morphologyEx(patch, cv2.MORPH_OPEN, I._GLINT)), (h, w)
+
+
 def test_the_compile_notice_counts_the_iris_kernel(tmp_path):
     """The iris fit's own cache check, which the service's compile notice now counts
     (``kernels_on_disk``): an empty cache (a fresh process, NUMBA_CACHE_DIR empty, nothing

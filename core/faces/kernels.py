@@ -89,21 +89,75 @@ def _iris_rows(widths, bounded, radius_px, min_rows):  # pragma: no cover - comp
 
 
 @njit(cache=True, nogil=True)
-def iris_fit(patch, contour, grown, opened, radius_px, fine, row_white, min_rows,
+def _grown(contour):  # pragma: no cover - compiled
+    """``cv2.dilate(contour, iris._GROW)``: each pixel of the (h, w) uint8 mask the largest
+    within 2 px of it in x and y, inside the crop (OpenCV's dilation leaves out what lies
+    outside); a row's 5-wide maximum, then a column's (the same maxima)."""
+    h, w = contour.shape
+    rows = np.empty((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            m = contour[y, x]
+            for k in range(max(0, x - 2), min(w, x + 3)):
+                if contour[y, k] > m:
+                    m = contour[y, k]
+            rows[y, x] = m
+    out = np.empty((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            m = rows[y, x]
+            for k in range(max(0, y - 2), min(h, y + 3)):
+                if rows[k, x] > m:
+                    m = rows[k, x]
+            out[y, x] = m
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _opened(patch):  # pragma: no cover - compiled
+    """``cv2.morphologyEx(patch, cv2.MORPH_OPEN, iris._GLINT)``: the (h, w) float32 patch's
+    3-wide row minimum (erosion), then that's 3-wide row maximum (dilation), each inside the
+    crop (OpenCV's morphology leaves out what lies outside)."""
+    h, w = patch.shape
+    low = np.empty((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            m = patch[y, x]
+            for k in range(max(0, x - 1), min(w, x + 2)):
+                if patch[y, k] < m:
+                    m = patch[y, k]
+            low[y, x] = m
+    out = np.empty((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            m = low[y, x]
+            for k in range(max(0, x - 1), min(w, x + 2)):
+                if low[y, k] > m:
+                    m = low[y, k]
+            out[y, x] = m
+    return out
+
+
+@njit(cache=True, nogil=True)
+def iris_fit(crop, contour, radius_px, fine, row_white, min_rows,
              min_contrast):  # pragma: no cover - compiled
-    """iris.fit_iris in the eye's crop: ``patch`` (h, w) float32 grey of a uint8 image (whole
-    grey levels 0..255: their order statistics are taken from histograms), ``contour`` and its
-    dilation ``grown`` (h, w) uint8 0/1, ``opened`` the patch's (1, 3) opening (the chords'
-    glint removal), ``radius_px`` the speaker's iris radius px (0: this frame's widest
-    chord), ``fine`` iris._FINE, ``row_white`` iris.ROW_WHITE, ``min_rows``
-    iris.IRIS_MIN_ROWS, ``min_contrast`` lids.LEVELS_MIN_CONTRAST.
+    """iris.fit_iris in the eye's crop: ``crop`` (h, w) uint8 grey (whole grey levels
+    0..255: their order statistics are taken from histograms; the step-by-step code's float32
+    ``patch``), ``contour`` (h, w) uint8 0/1 the reader's contour (its dilation ``grown``
+    and the patch's (1, 3) opening, the chords' glint removal, are made here:
+    :func:`_grown`, :func:`_opened`, OpenCV's own numbers without two cold OpenCV calls,
+    ~25 us a reading's eye in the live loop), ``radius_px`` the speaker's iris radius px
+    (0: this frame's widest chord), ``fine`` iris._FINE, ``row_white`` iris.ROW_WHITE,
+    ``min_rows`` iris.IRIS_MIN_ROWS, ``min_contrast`` lids.LEVELS_MIN_CONTRAST.
 
     Returns (status, cx, cy, half, ex, ey, rows, skin, white, iris, levels): status 0 no
     fit (fit_iris's None), 1 fitted, 2 fitted on a sclera no brighter than the skin (ex, ey
     not measured: the caller takes the corners' midpoint); (cx, cy) the circle's centre and
     (ex, ey) the opening's, px in the crop; ``levels`` whether the grey levels are given
     (iris._former_accepts)."""
-    h, w = patch.shape
+    h, w = crop.shape
+    patch = crop.astype(np.float32)
+    grown = _grown(contour)
     fail = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0.0, False)
     # the grey levels' order statistics from their histograms (the values are whole grey
     # levels 0..255: the k-th of the sorted values is the level where the count passes k)
@@ -153,7 +207,7 @@ def iris_fit(patch, contour, grown, opened, radius_px, fine, row_white, min_rows
     for x in range(w):
         moment[x] = np.float64(col[x]) * np.float64(x)
     cx0 = _pairwise_sum(moment, 0, w) / np.float64(total)
-    widths, cxs, bounded = iris_chords(opened, contour, grown, thr, iris, white, cx0,
+    widths, cxs, bounded = iris_chords(_opened(patch), contour, grown, thr, iris, white, cx0,
                                        row_white)
     found, keep, r, half = _iris_rows(widths, bounded, radius_px, min_rows)
     if not found:
@@ -343,9 +397,8 @@ def warm_up() -> None:
     the cache; the live tracker calls it when built, before its first frame."""
     if not AVAILABLE:
         return
-    z = np.zeros((12, 16), np.float32)
     u = np.zeros((12, 16), np.uint8)
-    iris_fit(z, u, u, z, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
+    iris_fit(u, u, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
     aligned(np.zeros((468, 3)), np.arange(4, dtype=np.int32), np.full(4, 0.25), np.zeros((4, 3)),
             np.zeros(3))
 
