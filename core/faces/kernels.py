@@ -20,6 +20,7 @@ import os
 
 import numpy as np
 
+from articast.core.outputs import lips
 from articast.core.tracking.kernels import (
     AVAILABLE,
     _pairwise_sum,
@@ -392,7 +393,8 @@ def aligned(lm, ids, wn, b, mb):  # pragma: no cover - compiled
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) :func:`iris_fit` for the live fit's types:
+    """Compile (or load from the on-disk cache) :func:`iris_fit`, :func:`aligned` and the lips'
+    lengths (:func:`articast.core.outputs.lips.lip_lengths`) for the live fit's types:
     ~3 s of CPU once the tracker's kernels are compiled (a cold cache), ~20 ms loaded from
     the cache; the live tracker calls it when built, before its first frame."""
     if not AVAILABLE:
@@ -401,6 +403,7 @@ def warm_up() -> None:
     iris_fit(u, u, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
     aligned(np.zeros((468, 3)), np.arange(4, dtype=np.int32), np.full(4, 0.25), np.zeros((4, 3)),
             np.zeros(3))
+    lips.warm_up()  # (the lips' lengths of every live frame)
 
 
 def compiled_on_disk() -> bool:
@@ -411,6 +414,6 @@ def compiled_on_disk() -> bool:
         return True
     try:
         return all(os.path.exists(k._cache._cache_file._index_path)  # noqa: SLF001
-                   for k in (iris_fit, aligned))
+                   for k in (iris_fit, aligned, lips.lip_lengths))
     except AttributeError:  # another numba's internals
         return True
