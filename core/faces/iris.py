@@ -94,14 +94,13 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 12 or y1 - y0 < 8:
         return None
     crop = _grey(grey[y0:y1, x0:x1])
-    contour = np.zeros(crop.shape, np.uint8)
-    cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
     if (faces_kernels.AVAILABLE and grey.dtype == np.uint8
             and crop.size <= faces_kernels.IRIS_MAX_PIXELS):  # the same numbers in one
-        # compiled call, the contour's growth and the glints' opening included (_fit_steps
-        # below: the reference; a C-ordered crop, the type the kernel is compiled for)
+        # compiled call, the contour's mask, its growth and the glints' opening included
+        # (below and _fit_steps: the reference; a C-ordered crop, the type the kernel is
+        # compiled for)
         got = faces_kernels.iris_fit(
-            crop if crop.flags.c_contiguous else crop.copy(), contour,
+            crop if crop.flags.c_contiguous else crop.copy(), poly, x0, y0,
             float(radius_px) if radius_px else 0.0, _FINE, ROW_WHITE, IRIS_MIN_ROWS,
             LEVELS_MIN_CONTRAST)
         status, cx, cy, half, ex, ey, rows, skin, white, iris_l, levels = got
@@ -114,6 +113,8 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
         return IrisFit(np.array([cx + x0, cy + y0]), float(half),
                        np.array([ex + x0, ey + y0]), int(rows),
                        (float(skin), float(white), float(iris_l)) if levels else None)
+    contour = np.zeros(crop.shape, np.uint8)
+    cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
     return _fit_steps(crop.astype(np.float32), contour, cv2.dilate(contour, _GROW), landmarks,
                       side, radius_px, x0, y0)
 

@@ -90,6 +90,158 @@ def _iris_rows(widths, bounded, radius_px, min_rows):  # pragma: no cover - comp
 
 
 @njit(cache=True, nogil=True)
+def _tdiv(a, b):  # pragma: no cover - compiled
+    """C's integer division of ``a`` by ``b`` != 0 (rounded toward zero, not floored)."""
+    q = abs(a) // abs(b)
+    return q if (a >= 0) == (b > 0) else -q
+
+
+@njit(cache=True, nogil=True)
+def _line8(mask, xa, ya, xb, yb):  # pragma: no cover - compiled
+    """Set the pixels of OpenCV's 8-connected line from (xa, ya) to (xb, yb) px (both inside
+    ``mask``) to 1: its ``LineIterator``, left to right, one step along the longer axis a
+    pixel, one along the other where the error goes negative."""
+    dx, dy = xb - xa, yb - ya
+    if dx < 0:
+        xa, ya, dx, dy = xb, yb, -dx, -dy
+    sy = 1
+    if dy < 0:
+        dy, sy = -dy, -1
+    steep = dy > dx
+    if steep:
+        dx, dy = dy, dx
+    err = dx - 2 * dy
+    x, y = xa, ya
+    for _ in range(dx + 1):
+        mask[y, x] = 1
+        if err < 0:
+            err += 2 * dx - 2 * dy
+            x += 1
+            y += sy
+        else:
+            err -= 2 * dy
+            if steep:
+                y += sy
+            else:
+                x += 1
+
+
+_XY_SHIFT = 16  # (OpenCV's drawing: x in 16.16 fixed point)
+
+
+@njit(cache=True, nogil=True)
+def _contour(poly, x0, y0, h, w):  # pragma: no cover - compiled
+    """``cv2.fillPoly`` of the (n, 2) float64 polygon ``poly`` px, less (``x0``, ``y0``) and
+    rounded (numpy's round, half to even), with 1 on an (h, w) uint8 zero mask: the points
+    must fall inside it (fit_iris's crop: the contour grown by 3 px). OpenCV's own integer
+    steps (drawing.cpp, 8-connected lines, shift 0): each edge drawn as a line, then the
+    scan lines filled between the edges' 16.16 fixed-point crossings in their order (the
+    edges sorted by top, x and step; the active list kept in x order by a bubble sort), so
+    the same pixels, without a cold OpenCV call and its arguments' conversions."""
+    n = poly.shape[0]
+    px = np.empty(n, np.int64)
+    py = np.empty(n, np.int64)
+    for k in range(n):
+        px[k] = int(np.rint(poly[k, 0] - np.float64(x0)))
+        py[k] = int(np.rint(poly[k, 1] - np.float64(y0)))
+    mask = np.zeros((h, w), np.uint8)
+    ey0 = np.empty(n, np.int64)
+    ey1 = np.empty(n, np.int64)
+    ex = np.empty(n, np.int64)
+    edx = np.empty(n, np.int64)
+    total = 0
+    xa, ya = px[n - 1], py[n - 1]
+    for k in range(n):  # CollectPolyEdges
+        xb, yb = px[k], py[k]
+        _line8(mask, xa, ya, xb, yb)
+        if ya != yb:
+            if ya < yb:
+                ey0[total], ey1[total], ex[total] = ya, yb, xa << _XY_SHIFT
+            else:
+                ey0[total], ey1[total], ex[total] = yb, ya, xb << _XY_SHIFT
+            edx[total] = _tdiv((xb - xa) << _XY_SHIFT, yb - ya)
+            total += 1
+        xa, ya = xb, yb
+    if total < 2:
+        return mask
+    # FillEdgeCollection: the edges sorted by (top, x, step) (an insertion sort: equal
+    # keys are equal edges, so the order among them does not matter), a sentinel after them
+    # and the active list's head after it (-1: none)
+    order = np.arange(total)
+    for a in range(1, total):
+        k = order[a]
+        b = a - 1
+        while b >= 0:
+            j = order[b]
+            if not (ey0[j] > ey0[k] or (ey0[j] == ey0[k] and (
+                    ex[j] > ex[k] or (ex[j] == ex[k] and edx[j] > edx[k])))):
+                break
+            order[b + 1] = j
+            b -= 1
+        order[b + 1] = k
+    sy0 = np.empty(total + 2, np.int64)
+    sy1 = np.empty(total + 2, np.int64)
+    sx = np.empty(total + 2, np.int64)
+    sdx = np.empty(total + 2, np.int64)
+    nxt = np.full(total + 2, -1, np.int64)
+    y_max = ey1[0]
+    for k in range(total):
+        j = order[k]
+        sy0[k], sy1[k], sx[k], sdx[k] = ey0[j], ey1[j], ex[j], edx[j]
+        y_max = max(y_max, ey1[j])
+    sy0[total] = 1 << 62
+    head = total + 1
+    i = e = 0
+    one = 1 << _XY_SHIFT
+    for y in range(sy0[0], min(y_max, h)):
+        sort_flag = draw = False
+        prelast, last = head, nxt[head]
+        while last != -1 or sy0[e] == y:
+            if last != -1 and sy1[last] == y:  # an edge whose bottom is reached leaves
+                nxt[prelast] = nxt[last]
+                last = nxt[last]
+                continue
+            keep = prelast
+            if last != -1 and (sy0[e] > y or sx[last] < sx[e]):
+                prelast, last = last, nxt[last]
+            elif i < total:  # an edge whose top is reached joins
+                nxt[prelast] = e
+                nxt[e] = last
+                prelast = e
+                i += 1
+                e = i
+            else:
+                break
+            if draw:
+                if sx[keep] > sx[prelast]:
+                    xl, xr = (sx[prelast] + one - 1) >> _XY_SHIFT, sx[keep] >> _XY_SHIFT
+                else:
+                    xl, xr = (sx[keep] + one - 1) >> _XY_SHIFT, sx[prelast] >> _XY_SHIFT
+                for xx in range(max(xl, 0), min(xr, w - 1) + 1):
+                    mask[y, xx] = 1
+                sx[keep] += sdx[keep]
+                sx[prelast] += sdx[prelast]
+            draw = not draw
+        keep = -1
+        while True:  # the active list in x order again
+            prelast, last = head, nxt[head]
+            while last != keep and nxt[last] != -1:
+                te = nxt[last]
+                if sx[last] > sx[te]:
+                    nxt[prelast] = te
+                    nxt[last] = nxt[te]
+                    nxt[te] = last
+                    prelast = te
+                    sort_flag = True
+                else:
+                    prelast, last = last, te
+            keep = prelast
+            if not (sort_flag and keep != nxt[head] and keep != head):
+                break
+    return mask
+
+
+@njit(cache=True, nogil=True)
 def _grown(contour):  # pragma: no cover - compiled
     """``cv2.dilate(contour, iris._GROW)``: each pixel of the (h, w) uint8 mask the largest
     within 2 px of it in x and y, inside the crop (OpenCV's dilation leaves out what lies
@@ -140,14 +292,15 @@ def _opened(patch):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def iris_fit(crop, contour, radius_px, fine, row_white, min_rows,
+def iris_fit(crop, poly, x0, y0, radius_px, fine, row_white, min_rows,
              min_contrast):  # pragma: no cover - compiled
-    """iris.fit_iris in the eye's crop: ``crop`` (h, w) uint8 grey (whole grey levels
-    0..255: their order statistics are taken from histograms; the step-by-step code's float32
-    ``patch``), ``contour`` (h, w) uint8 0/1 the reader's contour (its dilation ``grown``
-    and the patch's (1, 3) opening, the chords' glint removal, are made here:
-    :func:`_grown`, :func:`_opened`, OpenCV's own numbers without two cold OpenCV calls,
-    ~25 us a reading's eye in the live loop), ``radius_px`` the speaker's iris radius px
+    """iris.fit_iris in the eye's crop: ``crop`` (h, w) uint8 grey at (``x0``, ``y0``) px
+    of the frame (whole grey levels 0..255: their order statistics are taken from
+    histograms; the step-by-step code's float32 ``patch``), ``poly`` (n, 2) float64 the
+    reader's eye contour px (its mask ``contour``, that mask's dilation ``grown`` and the
+    patch's (1, 3) opening, the chords' glint removal, are made here: :func:`_contour`,
+    :func:`_grown`, :func:`_opened`, OpenCV's own numbers without three cold OpenCV calls,
+    ~40 us a reading's eye in the live loop), ``radius_px`` the speaker's iris radius px
     (0: this frame's widest chord), ``fine`` iris._FINE, ``row_white`` iris.ROW_WHITE,
     ``min_rows`` iris.IRIS_MIN_ROWS, ``min_contrast`` lids.LEVELS_MIN_CONTRAST.
 
@@ -158,6 +311,7 @@ def iris_fit(crop, contour, radius_px, fine, row_white, min_rows,
     (iris._former_accepts)."""
     h, w = crop.shape
     patch = crop.astype(np.float32)
+    contour = _contour(poly, x0, y0, h, w)
     grown = _grown(contour)
     fail = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0.0, False)
     # the grey levels' order statistics from their histograms (the values are whole grey
@@ -400,7 +554,7 @@ def warm_up() -> None:
     if not AVAILABLE:
         return
     u = np.zeros((12, 16), np.uint8)
-    iris_fit(u, u, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
+    iris_fit(u, np.full((3, 2), 4.0), 0, 0, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
     aligned(np.zeros((468, 3)), np.arange(4, dtype=np.int32), np.full(4, 0.25), np.zeros((4, 3)),
             np.zeros(3))
     lips.warm_up()  # (the lips' lengths of every live frame)
