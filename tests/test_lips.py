@@ -1,6 +1,7 @@
 """Lip measures (mm) on the fitted geometry: against the synthetic speaker's true lips."""
 
 import numpy as np
+import pytest
 
 from articast.core.model.build import invert
 from articast.core.model.face import FaceModel
@@ -55,3 +56,24 @@ def test_one_frames_lips_in_python_floats_are_numpys_to_the_bit():
         x, y = lip_measures(model, a)
         assert lips_dict(model, a) == {"aperture_mm": round(float(x), 3),
                                        "width_mm": round(float(y), 3)}
+
+
+def test_the_compiled_lips_lengths_are_the_python_floats_to_the_bit():
+    """lip_lengths (lips_dict's one-frame path where numba is) gives _lip_measures_one's
+    numbers (the Python-float reference) to the bit, and says where an alpha is not
+    finite."""
+    from articast.core.outputs import lips as L
+
+    if not L.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    model = SyntheticSpeaker(0).model()
+    rows = L._lip_rows(model)[3]
+    rng = np.random.default_rng(4)
+    alphas = rng.normal(size=(3000, model.n_params)) * rng.choice([0.05, 1.0, 4.0, 40.0],
+                                                                  (3000, 1))
+    for a in alphas:
+        ok, ap, wd = L.lip_lengths(rows, a)
+        assert ok and (ap, wd) == L._lip_measures_one(model, a.tolist())
+    a = alphas[0].copy()
+    a[-1] = np.inf
+    assert not L.lip_lengths(rows, a)[0] and lips_dict(model, a) is None

@@ -1140,6 +1140,55 @@ def test_compiled_iris_fit_is_the_step_by_step_fit_to_the_bit():
     assert fitted >= 40 and levels >= 20 and nones >= 3  # every branch was compared
 
 
+def test_the_iris_kernels_contour_mask_is_opencvs_fill_poly():
+    """faces.kernels._contour (the reader's eye contour's mask made in the compiled iris
+    fit) is cv2.fillPoly of the contour less the crop's corner, rounded as numpy rounds, to
+    the bit: eye-like rings with jittered points and random polygons of 3-20 points (self-
+    crossing, with flat and vertical edges, repeated points), every point inside the mask."""
+    from articast.core.faces import kernels as FK
+
+    if not FK.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(12)
+    for k in range(3000):
+        h, w = (int(v) for v in rng.integers(8, 40, 2))
+        n = int(rng.integers(3, 21))
+        x0, y0 = (int(v) for v in rng.integers(0, 500, 2))
+        if k % 3 == 0:  # a ring like an eye's contour
+            t = np.sort(rng.uniform(0.0, 2.0 * np.pi, n))
+            r = rng.uniform(0.3, 0.5)
+            pts = np.stack([w / 2 + r * w * np.cos(t), h / 2 + 0.5 * r * h * np.sin(t)], 1)
+            pts += rng.normal(0.0, 1.0, pts.shape)
+        elif k % 3 == 1:  # anywhere, on whole and half pixels (ties rounded to even)
+            pts = rng.integers(0, 2 * min(h, w) - 1, (n, 2)) / 2.0
+        else:
+            pts = rng.uniform(0.0, 1.0, (n, 2)) * (w - 1, h - 1)
+        pts = np.clip(pts, 0.0, (w - 1.5, h - 1.5)) + (x0, y0)
+        want = np.zeros((h, w), np.uint8)
+        cv2.fillPoly(want, [np.round(pts - [x0, y0]).astype(np.int32)], 1)
+        assert np.array_equal(FK._contour(pts, x0, y0, h, w), want), k
+
+
+def test_the_iris_kernels_growth_and_opening_are_opencvs():
+    """faces.kernels._grown and _opened (the contour's growth and the glints' opening made in
+    the compiled iris fit) are cv2.dilate with iris._GROW and cv2.morphologyEx's opening with
+    iris._GLINT to the bit: random masks and grey levels of every size from one pixel, the
+    crop's edges included."""
+    from articast.core.faces import iris as I
+    from articast.core.faces import kernels as FK
+
+    if not FK.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(11)
+    for _ in range(800):
+        h, w = (int(v) for v in rng.integers(1, 30, 2))
+        mask = (rng.random((h, w)) < rng.random()).astype(np.uint8)
+        assert np.array_equal(FK._grown(mask), cv2.dilate(mask, I._GROW)), (h, w)
+        patch = rng.integers(0, 256, (h, w)).astype(np.float32)
+        assert np.array_equal(FK._opened(patch),
+                              cv2.morphologyEx(patch, cv2.MORPH_OPEN, I._GLINT)), (h, w)
+
+
 def test_the_compile_notice_counts_the_iris_kernel(tmp_path):
     """The iris fit's own cache check, which the service's compile notice now counts
     (``kernels_on_disk``): an empty cache (a fresh process, NUMBA_CACHE_DIR empty, nothing

@@ -93,15 +93,14 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
     h, w = grey.shape[:2]
     if x0 < 0 or y0 < 0 or x1 > w or y1 > h or x1 - x0 < 12 or y1 - y0 < 8:
         return None
-    patch = _grey(grey[y0:y1, x0:x1]).astype(np.float32)
-    contour = np.zeros(patch.shape, np.uint8)
-    cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
-    grown = cv2.dilate(contour, _GROW)
+    crop = _grey(grey[y0:y1, x0:x1])
     if (faces_kernels.AVAILABLE and grey.dtype == np.uint8
-            and patch.size <= faces_kernels.IRIS_MAX_PIXELS):  # the same numbers in one
-        # compiled call (_fit_steps below: the reference)
+            and crop.size <= faces_kernels.IRIS_MAX_PIXELS):  # the same numbers in one
+        # compiled call, the contour's mask, its growth and the glints' opening included
+        # (below and _fit_steps: the reference; a C-ordered crop, the type the kernel is
+        # compiled for)
         got = faces_kernels.iris_fit(
-            patch, contour, grown, cv2.morphologyEx(patch, cv2.MORPH_OPEN, _GLINT),
+            crop if crop.flags.c_contiguous else crop.copy(), poly, x0, y0,
             float(radius_px) if radius_px else 0.0, _FINE, ROW_WHITE, IRIS_MIN_ROWS,
             LEVELS_MIN_CONTRAST)
         status, cx, cy, half, ex, ey, rows, skin, white, iris_l, levels = got
@@ -114,7 +113,10 @@ def fit_iris(grey: np.ndarray, landmarks: np.ndarray, side: str,
         return IrisFit(np.array([cx + x0, cy + y0]), float(half),
                        np.array([ex + x0, ey + y0]), int(rows),
                        (float(skin), float(white), float(iris_l)) if levels else None)
-    return _fit_steps(patch, contour, grown, landmarks, side, radius_px, x0, y0)
+    contour = np.zeros(crop.shape, np.uint8)
+    cv2.fillPoly(contour, [np.round(poly - [x0, y0]).astype(np.int32)], 1)
+    return _fit_steps(crop.astype(np.float32), contour, cv2.dilate(contour, _GROW), landmarks,
+                      side, radius_px, x0, y0)
 
 
 def _fit_steps(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray,
@@ -208,7 +210,7 @@ def _chords(patch: np.ndarray, contour: np.ndarray, grown: np.ndarray, thr: floa
     percentile of that side's bright pixels; a lid's skin in the contour is not sclera);
     a specular glint narrower than 3 px is removed first (a grey opening along the rows: it
     would end the chord inside the iris; a monotonic edge is kept as it is)."""
-    p = cv2.morphologyEx(patch, cv2.MORPH_OPEN, np.ones((1, 3), np.uint8))
+    p = cv2.morphologyEx(patch, cv2.MORPH_OPEN, _GLINT)
     if kernels.AVAILABLE and p.shape[1] <= kernels.IRIS_MAX_WIDTH:  # the same numbers in one
         # compiled call (the numpy below: the reference)
         return kernels.iris_chords(p, contour, grown, thr, iris, white, cx0, ROW_WHITE)

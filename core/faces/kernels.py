@@ -20,6 +20,7 @@ import os
 
 import numpy as np
 
+from articast.core.outputs import lips
 from articast.core.tracking.kernels import (
     AVAILABLE,
     _pairwise_sum,
@@ -89,21 +90,181 @@ def _iris_rows(widths, bounded, radius_px, min_rows):  # pragma: no cover - comp
 
 
 @njit(cache=True, nogil=True)
-def iris_fit(patch, contour, grown, opened, radius_px, fine, row_white, min_rows,
+def _tdiv(a, b):  # pragma: no cover - compiled
+    """C's integer division of ``a`` by ``b`` != 0 (rounded toward zero, not floored)."""
+    q = abs(a) // abs(b)
+    return q if (a >= 0) == (b > 0) else -q
+
+
+@njit(cache=True, nogil=True)
+def _line8(mask, xa, ya, xb, yb):  # pragma: no cover - compiled
+    """Set the pixels of OpenCV's 8-connected line from (xa, ya) to (xb, yb) px (both inside
+    ``mask``) to 1: its ``LineIterator``, left to right, one step along the longer axis a
+    pixel, one along the other where the error goes negative."""
+    dx, dy = xb - xa, yb - ya
+    if dx < 0:
+        xa, ya, dx, dy = xb, yb, -dx, -dy
+    sy = 1
+    if dy < 0:
+        dy, sy = -dy, -1
+    steep = dy > dx
+    if steep:
+        dx, dy = dy, dx
+    err = dx - 2 * dy
+    x, y = xa, ya
+    for _ in range(dx + 1):
+        mask[y, x] = 1
+        if err < 0:
+            err += 2 * dx - 2 * dy
+            x += 1
+            y += sy
+        else:
+            err -= 2 * dy
+            if steep:
+                y += sy
+            else:
+                x += 1
+
+
+_XY_SHIFT = 16  # (OpenCV's drawing: x in 16.16 fixed point)
+
+
+@njit(cache=True, nogil=True)
+def _contour(poly, x0, y0, h, w):  # pragma: no cover - compiled
+    """``cv2.fillPoly`` of the (n, 2) float64 polygon ``poly`` px, less (``x0``, ``y0``) and
+    rounded (numpy's round, half to even), with 1 on an (h, w) uint8 zero mask: the points
+    must fall inside it (fit_iris's crop: the contour grown by 3 px). OpenCV's own integer
+    steps (drawing.cpp, 8-connected lines, shift 0): each edge drawn as a line, then the
+    scan lines filled between pairs of the edges' 16.16 fixed-point crossings in x order
+    (each edge's crossing its top's x stepped by its dx a line, dx C's division rounded
+    toward zero), so the same pixels, without a cold OpenCV call and its arguments'
+    conversions (~1 s more compile from an empty cache than OpenCV's own edge list, its
+    sorts and bubble sort written out, which gave the same pixels)."""
+    n = poly.shape[0]
+    px = np.empty(n, np.int64)
+    py = np.empty(n, np.int64)
+    for k in range(n):
+        px[k] = int(np.rint(poly[k, 0] - np.float64(x0)))
+        py[k] = int(np.rint(poly[k, 1] - np.float64(y0)))
+    mask = np.zeros((h, w), np.uint8)
+    ey0 = np.empty(n, np.int64)
+    ey1 = np.empty(n, np.int64)
+    ex = np.empty(n, np.int64)
+    edx = np.empty(n, np.int64)
+    total = 0
+    xa, ya = px[n - 1], py[n - 1]
+    for k in range(n):  # CollectPolyEdges
+        xb, yb = px[k], py[k]
+        _line8(mask, xa, ya, xb, yb)
+        if ya != yb:
+            if ya < yb:
+                ey0[total], ey1[total], ex[total] = ya, yb, xa << _XY_SHIFT
+            else:
+                ey0[total], ey1[total], ex[total] = yb, ya, xb << _XY_SHIFT
+            edx[total] = _tdiv((xb - xa) << _XY_SHIFT, yb - ya)
+            total += 1
+        xa, ya = xb, yb
+    if total < 2:
+        return mask
+    # FillEdgeCollection, per scan line: OpenCV keeps the edges the line crosses in a list
+    # in x order (new edges put in place, a bubble sort after each line) and steps each by
+    # its dx once a line, filling between the first and second, third and fourth...; the
+    # same crossings sorted here each line (equal x's give the same spans in any order)
+    y_lo, y_hi = ey0[0], ey1[0]
+    for k in range(total):
+        y_lo, y_hi = min(y_lo, ey0[k]), max(y_hi, ey1[k])
+    xs = np.empty(total, np.int64)
+    one = 1 << _XY_SHIFT
+    for y in range(max(y_lo, 0), min(y_hi, h)):
+        m = 0
+        for k in range(total):
+            if ey0[k] <= y < ey1[k]:
+                v = ex[k] + (y - ey0[k]) * edx[k]
+                j = m  # (an insertion sort)
+                while j > 0 and xs[j - 1] > v:
+                    xs[j] = xs[j - 1]
+                    j -= 1
+                xs[j] = v
+                m += 1
+        for k in range(0, m - 1, 2):
+            for xx in range(max((xs[k] + one - 1) >> _XY_SHIFT, 0),
+                            min(xs[k + 1] >> _XY_SHIFT, w - 1) + 1):
+                mask[y, xx] = 1
+    return mask
+
+
+@njit(cache=True, nogil=True)
+def _grown(contour):  # pragma: no cover - compiled
+    """``cv2.dilate(contour, iris._GROW)``: each pixel of the (h, w) uint8 mask the largest
+    within 2 px of it in x and y, inside the crop (OpenCV's dilation leaves out what lies
+    outside); a row's 5-wide maximum, then a column's (the same maxima)."""
+    h, w = contour.shape
+    rows = np.empty((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            m = contour[y, x]
+            for k in range(max(0, x - 2), min(w, x + 3)):
+                if contour[y, k] > m:
+                    m = contour[y, k]
+            rows[y, x] = m
+    out = np.empty((h, w), np.uint8)
+    for y in range(h):
+        for x in range(w):
+            m = rows[y, x]
+            for k in range(max(0, y - 2), min(h, y + 3)):
+                if rows[k, x] > m:
+                    m = rows[k, x]
+            out[y, x] = m
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _opened(patch):  # pragma: no cover - compiled
+    """``cv2.morphologyEx(patch, cv2.MORPH_OPEN, iris._GLINT)``: the (h, w) float32 patch's
+    3-wide row minimum (erosion), then that's 3-wide row maximum (dilation), each inside the
+    crop (OpenCV's morphology leaves out what lies outside)."""
+    h, w = patch.shape
+    low = np.empty((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            m = patch[y, x]
+            for k in range(max(0, x - 1), min(w, x + 2)):
+                if patch[y, k] < m:
+                    m = patch[y, k]
+            low[y, x] = m
+    out = np.empty((h, w), np.float32)
+    for y in range(h):
+        for x in range(w):
+            m = low[y, x]
+            for k in range(max(0, x - 1), min(w, x + 2)):
+                if low[y, k] > m:
+                    m = low[y, k]
+            out[y, x] = m
+    return out
+
+
+@njit(cache=True, nogil=True)
+def iris_fit(crop, poly, x0, y0, radius_px, fine, row_white, min_rows,
              min_contrast):  # pragma: no cover - compiled
-    """iris.fit_iris in the eye's crop: ``patch`` (h, w) float32 grey of a uint8 image (whole
-    grey levels 0..255: their order statistics are taken from histograms), ``contour`` and its
-    dilation ``grown`` (h, w) uint8 0/1, ``opened`` the patch's (1, 3) opening (the chords'
-    glint removal), ``radius_px`` the speaker's iris radius px (0: this frame's widest
-    chord), ``fine`` iris._FINE, ``row_white`` iris.ROW_WHITE, ``min_rows``
-    iris.IRIS_MIN_ROWS, ``min_contrast`` lids.LEVELS_MIN_CONTRAST.
+    """iris.fit_iris in the eye's crop: ``crop`` (h, w) uint8 grey at (``x0``, ``y0``) px
+    of the frame (whole grey levels 0..255: their order statistics are taken from
+    histograms; the step-by-step code's float32 ``patch``), ``poly`` (n, 2) float64 the
+    reader's eye contour px (its mask ``contour``, that mask's dilation ``grown`` and the
+    patch's (1, 3) opening, the chords' glint removal, are made here: :func:`_contour`,
+    :func:`_grown`, :func:`_opened`, OpenCV's own numbers without three cold OpenCV calls,
+    ~40 us a reading's eye in the live loop), ``radius_px`` the speaker's iris radius px
+    (0: this frame's widest chord), ``fine`` iris._FINE, ``row_white`` iris.ROW_WHITE,
+    ``min_rows`` iris.IRIS_MIN_ROWS, ``min_contrast`` lids.LEVELS_MIN_CONTRAST.
 
     Returns (status, cx, cy, half, ex, ey, rows, skin, white, iris, levels): status 0 no
     fit (fit_iris's None), 1 fitted, 2 fitted on a sclera no brighter than the skin (ex, ey
     not measured: the caller takes the corners' midpoint); (cx, cy) the circle's centre and
     (ex, ey) the opening's, px in the crop; ``levels`` whether the grey levels are given
     (iris._former_accepts)."""
-    h, w = patch.shape
+    h, w = crop.shape
+    patch = crop.astype(np.float32)
+    contour = _contour(poly, x0, y0, h, w)
+    grown = _grown(contour)
     fail = (0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, 0.0, 0.0, False)
     # the grey levels' order statistics from their histograms (the values are whole grey
     # levels 0..255: the k-th of the sorted values is the level where the count passes k)
@@ -153,7 +314,7 @@ def iris_fit(patch, contour, grown, opened, radius_px, fine, row_white, min_rows
     for x in range(w):
         moment[x] = np.float64(col[x]) * np.float64(x)
     cx0 = _pairwise_sum(moment, 0, w) / np.float64(total)
-    widths, cxs, bounded = iris_chords(opened, contour, grown, thr, iris, white, cx0,
+    widths, cxs, bounded = iris_chords(_opened(patch), contour, grown, thr, iris, white, cx0,
                                        row_white)
     found, keep, r, half = _iris_rows(widths, bounded, radius_px, min_rows)
     if not found:
@@ -338,16 +499,17 @@ def aligned(lm, ids, wn, b, mb):  # pragma: no cover - compiled
 
 
 def warm_up() -> None:
-    """Compile (or load from the on-disk cache) :func:`iris_fit` for the live fit's types:
+    """Compile (or load from the on-disk cache) :func:`iris_fit`, :func:`aligned` and the lips'
+    lengths (:func:`articast.core.outputs.lips.lip_lengths`) for the live fit's types:
     ~3 s of CPU once the tracker's kernels are compiled (a cold cache), ~20 ms loaded from
     the cache; the live tracker calls it when built, before its first frame."""
     if not AVAILABLE:
         return
-    z = np.zeros((12, 16), np.float32)
     u = np.zeros((12, 16), np.uint8)
-    iris_fit(z, u, u, z, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
+    iris_fit(u, np.full((3, 2), 4.0), 0, 0, 0.0, np.arange(-0.5, 0.5001, 0.05), 0.75, 3, 8.0)
     aligned(np.zeros((468, 3)), np.arange(4, dtype=np.int32), np.full(4, 0.25), np.zeros((4, 3)),
             np.zeros(3))
+    lips.warm_up()  # (the lips' lengths of every live frame)
 
 
 def compiled_on_disk() -> bool:
@@ -358,6 +520,6 @@ def compiled_on_disk() -> bool:
         return True
     try:
         return all(os.path.exists(k._cache._cache_file._index_path)  # noqa: SLF001
-                   for k in (iris_fit, aligned))
+                   for k in (iris_fit, aligned, lips.lip_lengths))
     except AttributeError:  # another numba's internals
         return True
