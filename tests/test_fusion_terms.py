@@ -537,9 +537,8 @@ def test_a_measurement_of_the_articulation_is_the_product_of_the_two_gaussians()
 
 def test_the_compiled_measurement_of_the_articulation_is_the_numpy_one():
     """StatePrior.with_measurement runs kernels.state_measured (two calls a live frame): the
-    numpy reference's numbers, to the last bits (exactly on the machine it was written on;
-    on another CPU numpy's BLAS kernels sum in another order: 9e-16 apart on 7 values of
-    ~1, session 10's machine), where a wrong term would be off by far more."""
+    numpy reference's numbers to rounding (its solve is a compiled LU, not LAPACK's: ~1e-15
+    apart on values of ~1), where a wrong term would be off by far more."""
     from articast.core.tracking import kernels
 
     if not kernels.AVAILABLE:
@@ -579,3 +578,40 @@ def test_the_compiled_reading_features_are_the_numpy_ones():
             got = reg.features(pm.mean, CAM, uv, pose.matrix, pose.translation)
             assert np.abs(want).max() > 1e-3  # (offsets there to compare)
             np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("n", [3, 6, 13, 20])
+def test_the_compiled_small_solve_and_inverse_are_numpy_s(n):
+    """kernels.solve_small and inverse_small (LU with partial pivoting: the tracking kernels'
+    systems, instead of LAPACK's gesv) give np.linalg.solve's and inv's numbers to rounding
+    on well- and ill-conditioned systems, non-symmetric ones and one with a zero leading
+    entry (pivoting) included, and raise numpy's LinAlgError where numba's solve does
+    (singular, non-finite)."""
+    from articast.core.tracking import kernels
+
+    if not kernels.AVAILABLE:
+        pytest.skip("no compiled kernels (numba missing or ARTICAST_JIT=0)")
+    rng = np.random.default_rng(n)
+    for trial in range(60):
+        m = rng.normal(size=(n, n))
+        a = m @ m.T * rng.uniform(0.01, 100) + 10.0 ** rng.uniform(-8, 0) * np.eye(n)
+        if trial % 3 == 1:
+            a = m  # not symmetric: pivoting matters
+        if trial % 3 == 2:
+            a = m.copy()
+            a[0, 0] = 0.0
+        b = rng.normal(size=n)
+        cond = np.linalg.cond(a)
+        x, want = kernels.solve_small(a, b), np.linalg.solve(a, b)
+        assert np.abs(x - want).max() <= 1e-13 * cond * np.abs(want).max()
+        inv, want_inv = kernels.inverse_small(a), np.linalg.inv(a)
+        assert inv.flags.c_contiguous
+        assert np.abs(inv - want_inv).max() <= 1e-13 * cond * np.abs(want_inv).max()
+    with pytest.raises(np.linalg.LinAlgError):
+        kernels.solve_small(np.ones((n, n)), np.ones(n))
+    with pytest.raises(np.linalg.LinAlgError):
+        kernels.inverse_small(np.zeros((n, n)))
+    bad = np.eye(n)
+    bad[1, 1] = np.nan
+    with pytest.raises(np.linalg.LinAlgError):
+        kernels.solve_small(bad, np.ones(n))

@@ -649,6 +649,88 @@ def lm_system(jtj, jtr, h_p, g_p, wa, alpha, a_ref, h_s, g_s, wg, gain,
     return h, g
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _lu(a):  # pragma: no cover - compiled
+    """LU factors of a small square ``a`` (n, n), partial pivoting as LAPACK's getrf (the
+    first largest |pivot| of each column, the column scaled by the pivot's reciprocal):
+    returns (lu (n, n): L below the diagonal (unit diagonal implied), U on and above it;
+    piv (n,): the row swapped with row i at step i). ``a`` is only read. Raises numpy's
+    LinAlgError on a non-finite entry or a zero pivot (singular), as numba's
+    np.linalg.solve does (a compiled loop instead of LAPACK's call: its code is cold after
+    the network's run, ~tens of us a frame, and these systems are 6 to 20 unknowns)."""
+    n = a.shape[0]
+    lu = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            x = a[i, j]
+            if not np.isfinite(x):
+                raise np.linalg.LinAlgError("Array must not contain infs or NaNs.")
+            lu[i, j] = x
+    piv = np.empty(n, np.int64)
+    for c in range(n):
+        p = c
+        big = abs(lu[c, c])
+        for r in range(c + 1, n):
+            if abs(lu[r, c]) > big:
+                p, big = r, abs(lu[r, c])
+        if big == 0.0:
+            raise np.linalg.LinAlgError("Matrix is singular to machine precision.")
+        piv[c] = p
+        if p != c:
+            for j in range(n):
+                lu[c, j], lu[p, j] = lu[p, j], lu[c, j]
+        inv = 1.0 / lu[c, c]
+        for r in range(c + 1, n):
+            lu[r, c] *= inv
+        for r in range(c + 1, n):
+            f = lu[r, c]
+            for j in range(c + 1, n):
+                lu[r, j] -= f * lu[c, j]
+    return lu, piv
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lu_solve(lu, piv, b):  # pragma: no cover - compiled
+    """Solve in place ``b`` (n, r) <- A^-1 b from :func:`_lu`'s factors of A (getrs's
+    order: the row swaps, L forward, U backward)."""
+    n, m = b.shape
+    for c in range(n):
+        p = piv[c]
+        if p != c:
+            for j in range(m):
+                b[c, j], b[p, j] = b[p, j], b[c, j]
+    for j in range(m):
+        for r in range(n):
+            acc = b[r, j]
+            for i in range(r):
+                acc -= lu[r, i] * b[i, j]
+            b[r, j] = acc
+        for r in range(n - 1, -1, -1):
+            acc = b[r, j]
+            for i in range(r + 1, n):
+                acc -= lu[r, i] * b[i, j]
+            b[r, j] = acc / lu[r, r]
+    return b
+
+
+@njit(cache=True, nogil=True)
+def solve_small(a, b):  # pragma: no cover - compiled
+    """np.linalg.solve(a, b) of a small system, a (n, n), b (n,): by :func:`_lu` and
+    :func:`_lu_solve` (the same to rounding, LAPACK's blocked sums aside)."""
+    lu, piv = _lu(a)
+    x = np.empty((b.shape[0], 1))
+    x[:, 0] = b
+    return _lu_solve(lu, piv, x)[:, 0]
+
+
+@njit(cache=True, nogil=True)
+def inverse_small(a):  # pragma: no cover - compiled
+    """np.linalg.inv(a) (as np.linalg.solve(a, I)) of a small a (n, n), C order: by
+    :func:`_lu` and :func:`_lu_solve`."""
+    lu, piv = _lu(a)
+    return _lu_solve(lu, piv, np.eye(a.shape[0]))
+
+
 @njit(cache=True, nogil=True)
 def lm_solve(h, g, lam):  # pragma: no cover - compiled
     """The damped step -(h + lam diag(d))^-1 g, d the diagonal of h (1 where not positive);
@@ -659,7 +741,7 @@ def lm_solve(h, g, lam):  # pragma: no cover - compiled
         if d <= 0:
             d = 1.0
         a[i, i] = h[i, i] + lam * d
-    return -np.linalg.solve(a, g)
+    return -solve_small(a, g)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -848,7 +930,7 @@ def state_measured(p_alpha, p_rot, p_t, p_info, alpha, information):  # pragma: 
             info[i, j] += information[i, j]
     rhs = np.zeros(k + 6)
     rhs[:k] = np.dot(information, p_alpha - alpha)
-    e = -np.linalg.solve(info, rhs)
+    e = -solve_small(info, rhs)
     return (p_alpha + e[:k], np.dot(_rodrigues(e[k], e[k + 1], e[k + 2]), p_rot),
             p_t + e[k + 3:], info)
 
@@ -984,7 +1066,7 @@ def reading_features(mean, rot, t, intr, uv):  # pragma: no cover - compiled
             moves[2 * i, q] = e0 * rot[0, 0] + e1 * rot[1, 0]
             moves[2 * i + 1, q] = e0 * rot[0, 1] + e1 * rot[1, 1]
     gram = moves.T @ moves
-    coef = np.linalg.solve(gram, moves.T @ f)
+    coef = solve_small(gram, moves.T @ f)
     return f - moves @ coef
 
 
@@ -1139,8 +1221,8 @@ def cv_predict(p, q, dt3, dt2, dt, alpha, v, t, rot, speaker):  # pragma: no cov
     q * dt^3 / 3, q * dt^2 / 2 and q * dt with dt3 = dt**3 and dt2 = dt**2 as Python works
     them out) and the information of its state block, and the articulation alpha (K,) and
     translation t (3,) moved by the velocity v (n,) over dt, in one call: the same
-    element-wise sums as its numpy code, the inverse by LAPACK's gesv on the identity, as
-    numpy's inv. Returns (P, information, alpha, t), then, with ``speaker`` >= 0, that
+    element-wise sums as its numpy code, the inverse by :func:`inverse_small` (numpy's inv to
+    rounding). Returns (P, information, alpha, t), then, with ``speaker`` >= 0, that
     prediction (at the predicted rotation ``rot`` (3, 3)) times the speaker's distribution
     of weight ``speaker`` (:meth:`~articast.core.tracking.fitting.StatePrior.with_speaker`,
     by :func:`state_measured` on the same numbers: its alpha, rotation, translation and
@@ -1176,7 +1258,7 @@ def cv_predict(p, q, dt3, dt2, dt, alpha, v, t, rot, speaker):  # pragma: no cov
     a = np.ascontiguousarray(out[:n, :n])
     for i in range(n):
         a[i, i] += 1e-12
-    info = np.ascontiguousarray(np.linalg.solve(a, np.eye(n)))  # (LAPACK's is F)
+    info = inverse_small(a)
     if speaker < 0:
         return out, info, a_new, t_new, np.zeros(0), np.zeros((0, 0)), np.zeros(0), \
             np.zeros((0, 0))
@@ -1227,7 +1309,7 @@ def cv_update(p, info, alpha, a_p, turn, t, t_p, v, information):  # pragma: no 
         v_new[r - n] += acc
     out = p.copy()
     if information.shape[0] > 0:
-        post = np.linalg.solve(info + information, np.eye(n))
+        post = inverse_small(info + information)
         out -= _mm(_mm(g, p[:n, :n] - post), g.T)
     sym = np.empty_like(out)
     for r in range(m):
