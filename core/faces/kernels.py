@@ -194,53 +194,41 @@ def _contour(poly, x0, y0, h, w):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _grown(contour):  # pragma: no cover - compiled
-    """``cv2.dilate(contour, iris._GROW)``: each pixel of the (h, w) uint8 mask the largest
-    within 2 px of it in x and y, inside the crop (OpenCV's dilation leaves out what lies
-    outside); a row's 5-wide maximum, then a column's (the same maxima)."""
-    h, w = contour.shape
-    rows = np.empty((h, w), np.uint8)
+def _slide(a, half, along_x, largest):  # pragma: no cover - compiled
+    """OpenCV's flat morphology of the (h, w) ``a`` along one axis: each pixel the largest
+    (``largest``; dilation) or smallest (erosion) of the ``2 * half + 1`` along its row
+    (``along_x``) or its column, inside the array (OpenCV leaves out what lies outside)."""
+    h, w = a.shape
+    out = np.empty_like(a)
     for y in range(h):
         for x in range(w):
-            m = contour[y, x]
-            for k in range(max(0, x - 2), min(w, x + 3)):
-                if contour[y, k] > m:
-                    m = contour[y, k]
-            rows[y, x] = m
-    out = np.empty((h, w), np.uint8)
-    for y in range(h):
-        for x in range(w):
-            m = rows[y, x]
-            for k in range(max(0, y - 2), min(h, y + 3)):
-                if rows[k, x] > m:
-                    m = rows[k, x]
+            m = a[y, x]
+            if along_x:
+                for k in range(max(0, x - half), min(w, x + half + 1)):
+                    v = a[y, k]
+                    if (v > m) if largest else (v < m):
+                        m = v
+            else:
+                for k in range(max(0, y - half), min(h, y + half + 1)):
+                    v = a[k, x]
+                    if (v > m) if largest else (v < m):
+                        m = v
             out[y, x] = m
     return out
 
 
 @njit(cache=True, nogil=True)
+def _grown(contour):  # pragma: no cover - compiled
+    """``cv2.dilate(contour, iris._GROW)`` of the (h, w) uint8 mask: a row's 5-wide maximum,
+    then a column's (the same maxima as the 5 x 5 square's)."""
+    return _slide(_slide(contour, 2, True, True), 2, False, True)
+
+
+@njit(cache=True, nogil=True)
 def _opened(patch):  # pragma: no cover - compiled
-    """``cv2.morphologyEx(patch, cv2.MORPH_OPEN, iris._GLINT)``: the (h, w) float32 patch's
-    3-wide row minimum (erosion), then that's 3-wide row maximum (dilation), each inside the
-    crop (OpenCV's morphology leaves out what lies outside)."""
-    h, w = patch.shape
-    low = np.empty((h, w), np.float32)
-    for y in range(h):
-        for x in range(w):
-            m = patch[y, x]
-            for k in range(max(0, x - 1), min(w, x + 2)):
-                if patch[y, k] < m:
-                    m = patch[y, k]
-            low[y, x] = m
-    out = np.empty((h, w), np.float32)
-    for y in range(h):
-        for x in range(w):
-            m = low[y, x]
-            for k in range(max(0, x - 1), min(w, x + 2)):
-                if low[y, k] > m:
-                    m = low[y, k]
-            out[y, x] = m
-    return out
+    """``cv2.morphologyEx(patch, cv2.MORPH_OPEN, iris._GLINT)`` of the (h, w) float32 patch:
+    its 3-wide row minimum (erosion), then that's 3-wide row maximum (dilation)."""
+    return _slide(_slide(patch, 1, True, False), 1, True, True)
 
 
 @njit(cache=True, nogil=True)
