@@ -355,6 +355,9 @@ def main(argv: list[str] | None = None) -> None:
     global UPPER_AGAIN
     UPPER_AGAIN = args.upper_again
     peers_mod.use_articast_options(args)
+    if peers_mod.READERS != 1:  # (core/faces/two_readers.py: the eyes are the first's)
+        ap.error("--readers: the eyes of two readers' stream are the first tracker's, "
+                 "which this script measures already")
     peers_mod.SPEAKERS = args.speakers
     cv2.setNumThreads(1)
     clips = clip_paths(args.clips)

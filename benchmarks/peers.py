@@ -192,6 +192,7 @@ OTHERS: Path | None = None  # --others: the methods not run, read from a --serie
 ENROL_BLEND = 0.0  # --enrol-blend: v1's share of the landmarks the speaker's model is built from
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
+READERS = 1  # --readers: live, 2 streams the mean of a v1 and a v2 reader's trackers
 OFFLINE_ONE_EURO = False  # --offline-one-euro: offline with the One Euro filter forward and back
 OFFLINE_GAP: float | None = None  # --offline-gap: the readers' share of the offline opening
 MAX_LAG = 5
@@ -573,13 +574,20 @@ class ArticastLoop:
     :class:`LiveTracker` (which loads the reader) made once, then one ``track`` per frame."""
 
     def __init__(self, speaker, frames: list[np.ndarray], fps: float,
-                 policy: LivePolicy | None = None) -> None:
+                 policy: LivePolicy | None = None, readers: int = 1) -> None:
+        """readers : 2, the live stream of two readers (core/faces/two_readers.py; ``live``
+        stays the first tracker, whose figures the info reports)."""
         self.frames, self.fps = frames, fps
         self.live = LiveTracker(speaker, FaceFinder.load(threads=1),
                                 mediapipe_scheme(speaker.rig), policy, clock=time.perf_counter)
+        self.step: Any = self.live
+        if readers == 2:
+            from articast.core.faces.two_readers import TwoReaderTracker
+
+            self.step = TwoReaderTracker.of(self.live)
 
     def __call__(self, i: int) -> Any:
-        return self.live.track(self.frames[i], i / self.fps)
+        return self.step.track(self.frames[i], i / self.fps)
 
 
 class FinderLoop:
@@ -617,8 +625,20 @@ def enrolled(name: str | None, make: Callable[[], Any], reader: str) -> Any:
     does not depend on the live policy, but for the reader's crop: a stored speaker whose
     readings were made with another crop than the one under test is refused, SystemExit).
     Only the product's enrolment is kept (the v1 reader, no ``--enrol-blend``); the folder
-    is the clip's name."""
+    is the clip's name. A FaceLandmarker v2 reader (``--variant reader_v2``) tracks a stored
+    speaker through the observation model its enrolment learned for v2 (``finder_points``,
+    offline track's second reader: :func:`~articast.core.faces.offline.second_reader`), the
+    upper face left out (its references are the v1 reader's lids); a folder without it is
+    enrolled again with the v2 reader, not kept."""
     folder = SPEAKERS / name if SPEAKERS is not None and name else None
+    if folder is not None and reader == "v2" and not ENROL_BLEND \
+            and (folder / "points_v2.npz").is_file():
+        from articast.core.faces.offline import second_reader
+        from articast.core.faces.speaker import Speaker
+
+        got = second_reader(Speaker.load(folder))
+        if got is not None:
+            return got
     if folder is None or reader != "v1" or ENROL_BLEND:
         return make()
     from articast.core.faces.speaker import Speaker
@@ -657,10 +677,10 @@ def run_articast(enrol, held, fps, camera=None, enrol_fps=None, rig="desk",
     kernels.warm_up()  # numba's compilation: once per process, not a session's
 
     def build() -> ArticastLoop:
-        return ArticastLoop(speaker, held, fps, ARTICAST_POLICY)
+        return ArticastLoop(speaker, held, fps, ARTICAST_POLICY, READERS)
 
     def build_lips() -> ArticastLoop:  # (the lips alone: the upper face's references left out)
-        return ArticastLoop(replace(speaker, upper=None), held, fps, ARTICAST_POLICY)
+        return ArticastLoop(replace(speaker, upper=None), held, fps, ARTICAST_POLICY, READERS)
 
     got = timed_pass(build, len(held))
     results, live = got["outputs"], got["step"].live
@@ -939,6 +959,11 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
                          "clip (core/faces/offline.py); its CPU figures stay the live loop's, "
                          "the smoothing's own cost is offline_smoothing_cpu_ms, the second "
                          "reader's offline_second_reader_cpu_ms")
+    ap.add_argument("--readers", type=int, choices=(1, 2), default=1,
+                    help="live, 2: the opt-in stream of two readers (core/faces/"
+                         "two_readers.py: a second tracker reads FaceLandmarker v2 on every "
+                         "frame through the speaker's v2 observation model, each frame the "
+                         "mean of the two articulations; timed in the loop); default 1")
     ap.add_argument("--single-reader", action="store_true",
                     help="with --offline: FaceMesh v1's tracker alone, as 'articast track "
                          "--single-reader' writes it")
@@ -955,6 +980,7 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
 def use_articast_options(args: argparse.Namespace) -> None:
     """:func:`add_articast_options`' choices, for :func:`run_articast`."""
     global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND, OFFLINE_GAP, OFFLINE_ONE_EURO
+    global READERS
     try:
         ARTICAST_POLICY = policy_with(VARIANTS[args.variant], args.policy_set)
     except ValueError as e:
@@ -962,6 +988,10 @@ def use_articast_options(args: argparse.Namespace) -> None:
     if not 0.0 <= args.enrol_blend <= 1.0:
         raise SystemExit(f"--enrol-blend must be within 0..1, got {args.enrol_blend:g}")
     OFFLINE, SINGLE_READER, ENROL_BLEND = args.offline, args.single_reader, args.enrol_blend
+    READERS = args.readers
+    if READERS != 1 and OFFLINE:
+        raise SystemExit("--readers is for the live stream: --offline reads two already "
+                         "(--single-reader: one)")
     from articast.core.faces.offline import READER_GAP
 
     OFFLINE_GAP = READER_GAP if args.offline_gap is None else args.offline_gap

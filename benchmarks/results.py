@@ -129,6 +129,15 @@ SECTIONS: tuple[Section, ...] = (
             _peers("{clips}", "--offline", "--methods", "articast", "--others",
                    "{run}/series", "--speakers", "{run}/speakers", "--cpu-repeats", "0"),
             "peers", ("clips", "series")),
+    # the opt-in stream of two readers (core/faces/two_readers.py), same speakers and peers
+    Section("live_two_readers", "peers.py",
+            _peers("{clips}", "--readers", "2", "--methods", "articast", "--others",
+                   "{run}/series", "--speakers", "{run}/speakers", "--cpu-repeats", "0"),
+            "peers", ("clips", "series")),
+    Section("live_two_readers_fetched", "peers.py",
+            _peers("{fetched}", "--readers", "2", "--methods", "articast", "--others",
+                   "{run}/series_fetched", "--speakers", "{run}/speakers", "--cpu-repeats",
+                   "0"), "peers", ("fetched", "series_fetched")),
     # (--upper-again: the eyes' references by the code that runs, whatever code enrolled
     # RUN/speakers for the lips)
     Section("blinks", "blinks.py", ("--json", "--clips", "{clips}", "--speakers",
@@ -144,6 +153,10 @@ SECTIONS: tuple[Section, ...] = (
             _peers("{clips}", "--only", *COST_CLIPS, "--methods", "articast", "facemesh_v1",
                    "--others", "{run}/series", "--speakers", "{run}/speakers"), "cost",
             ("clips", "series")),
+    Section("cost_two_readers", "peers.py",
+            _peers("{clips}", "--readers", "2", "--only", *COST_CLIPS, "--methods", "articast",
+                   "facemesh_v1", "--others", "{run}/series", "--speakers", "{run}/speakers"),
+            "cost", ("clips", "series")),
     # issue 39, row 5: another person's speaker folder (the folders peers.py enrolled)
     Section("identity", "identity_check.py", ("--json", "--speakers", "{run}/speakers2",
                                               "--clips", "{clips}", "{fetched}"), "identity",

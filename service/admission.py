@@ -52,6 +52,8 @@ class SessionCreate(BaseModel):
     wait_for_subscriber: bool = False
     speaker: str = ""
     preview: bool = False
+    readers: int = Field(default=1, ge=1, le=2)
+    """2: a speaker's face tracked with two landmark readers (core/faces/two_readers.py)."""
 
 
 def path_name_problem(path: str) -> str:
@@ -87,6 +89,9 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
         problem = path_name_problem(path)
         if problem:
             raise HTTPException(400, f"{field_name}: {problem}")
+    if body.readers != 1 and not body.speaker:
+        raise HTTPException(400, f"readers: {body.readers} needs a speaker (a speaker folder "
+                                 "from 'articast enroll')")
     access.check_session_files(p.kind, p.target, files)
     if p.kind in ("file", "images", "replay-record"):
         query = body.source.partition("?")[2]
@@ -97,6 +102,7 @@ def confined_spec(access: AccessPolicy, body: SessionCreate) -> SessionSpec:
     resolved = {k: access.resolve(v) if v else "" for k, v in files.items()}
     return SessionSpec(body.name, source, resolved["model"], resolved["appearance"],
                        resolved["camera"], body.processor, body.wait_for_subscriber,
+                       options={"readers": body.readers} if body.readers != 1 else {},
                        speaker=resolved["speaker"], preview=body.preview,
                        media_roots=tuple(os.path.realpath(r) for r in access.media_roots))
 

@@ -603,3 +603,18 @@ def test_random_garbage_never_breaks_the_server(server):
             await until(ws, "hello", skip=("status", "frame"))
     run(go())
     assert httpx.get(server.http + "/healthz", timeout=TIMEOUT).json()["status"] == "ok"
+
+
+def test_two_readers_are_asked_for_with_a_speaker_and_as_1_or_2(server):
+    """``readers`` (core/faces/two_readers.py) tracks a speaker's face: asked for without a
+    speaker it is a 400 saying so, anything but 1 or 2 is malformed (422); neither starts a
+    session."""
+    c = server.client()
+    r = c.post("/api/sessions", json={"name": "two", "source": "synthetic:seed=1",
+                                      "readers": 2})
+    assert r.status_code == 400 and "needs a speaker" in r.json()["detail"], r.text
+    for bad in (0, 3, "many"):
+        r = c.post("/api/sessions", json={"name": "two", "source": "synthetic:seed=1",
+                                          "readers": bad})
+        assert r.status_code == 422, (bad, r.text)
+    assert "two" not in [s["name"] for s in c.get("/api/sessions").json()]

@@ -33,11 +33,12 @@ BRIEF_EPILOG = EPILOG + """\
 
 SHOWN = {
     "demo": ("seed", "fps", "host", "port", "json", "vmc", "record", "preview"),
-    "serve": ("source", "speaker", "model", "appearance", "camera", "processor", "host",
-              "port", "json", "vmc", "record", "preview", "wait_for_subscriber",
+    "serve": ("source", "speaker", "readers", "model", "appearance", "camera", "processor",
+              "host", "port", "json", "vmc", "record", "preview", "wait_for_subscriber",
               "token_file"),
-    "replay": ("video", "speaker", "model", "appearance", "camera", "name", "pace", "loop",
-               "plays", "start", "end", "host", "port", "json", "vmc", "record", "preview"),
+    "replay": ("video", "speaker", "readers", "model", "appearance", "camera", "name", "pace",
+               "loop", "plays", "start", "end", "host", "port", "json", "vmc", "record",
+               "preview"),
     "replay-record": ("recording", "name", "pace", "loop", "plays", "host", "port", "json",
                       "vmc", "record"),
 }
@@ -232,7 +233,32 @@ def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
     g.add_argument("--camera", default="", help="camera calibration (.json)")
     g.add_argument("--processor", default="auto",
                    help="auto | truth | tracker | live | module:factory (default auto)")
+    g.add_argument("--readers", type=int, choices=(1, 2), default=1,
+                   help="with --speaker: 2 tracks each face with two landmark readers "
+                        "(FaceMesh v1 and FaceLandmarker v2), streaming the mean: lips read "
+                        "better on faces the enrolment never saw, at ~3x the CPU a frame "
+                        "(docs/RESULTS.md, 'Two readers live'); default 1")
     return g
+
+
+def session_options(args: argparse.Namespace) -> dict:
+    """The sessions' options from the command line (``--readers``), checked against the
+    speaker now: one clear error, not a worker restarting."""
+    from articast.core.errors import InputError
+
+    readers = getattr(args, "readers", 1)
+    if readers == 1:
+        return {}
+    if not args.speaker:
+        raise InputError(f"--readers {readers} needs --speaker (a speaker folder from "
+                         "'articast enroll')")
+    from articast.core.faces.speaker import Speaker
+    from articast.core.faces.two_readers import readers_problem
+
+    problem = readers_problem(Speaker.load(args.speaker), readers)
+    if problem:
+        raise InputError(f"--readers {readers}: {problem}")
+    return {"readers": readers}
 
 
 COMMON_SERVER = ("host", "port", "record", "log_level", "scan")
@@ -377,8 +403,10 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
 
         Speaker.load(args.speaker)  # a wrong folder: one clear error now, not a restart loop
     preview = bool(args.preview) if args.preview is not None else args.func is _demo
+    options = session_options(args)
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
-                              args.wait_for_subscriber, speaker=args.speaker, preview=preview)
+                              args.wait_for_subscriber, options=options, speaker=args.speaker,
+                              preview=preview)
                   for n, uri in sources)
     config = ServiceConfig(
         server=server, hub=from_args(HubSettings, args),
@@ -515,8 +543,9 @@ def _track_worker(args: argparse.Namespace) -> int:
         from articast.core.faces.speaker import Speaker
 
         Speaker.load(args.speaker)  # a wrong folder: one clear error now
+    options = session_options(args)
     specs = [SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
-                         speaker=args.speaker)
+                         options=options, speaker=args.speaker)
              for n, uri in sources]
     from articast.service.worker_role import run_track_worker
 

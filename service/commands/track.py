@@ -118,6 +118,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                          "alone, instead of averaging it with a second tracker that reads the "
                          "finding landmarks (FaceLandmarker v2) on every frame, which costs "
                          "~15-20 ms of CPU a frame more (docs/TRACKING.md, 'Offline')")
+    tk.add_argument("--readers", type=int, choices=(1, 2), default=1,
+                    help="with --speaker --causal: 2 streams each frame as the live service "
+                         "does with --readers 2 (the mean of a FaceMesh v1 and a "
+                         "FaceLandmarker v2 reader's trackers, ~3x the CPU; docs/RESULTS.md, "
+                         "'Two readers live'); offline tracking reads two already")
     tk.add_argument("--quiet", action="store_true", help="no progress line")
     tk.set_defaults(func=_track)
 
@@ -253,6 +258,14 @@ def _make_tracker(args: argparse.Namespace, size: tuple[int, int]):
         policy = live_policy(rig, optimiser=args.optimiser)
         live = LiveTracker(speaker, FaceFinder.load(), mediapipe_scheme(speaker.rig),
                            tracking=policy, clock=time.perf_counter)
+        if args.readers == 2:
+            from articast.core.faces.two_readers import TwoReaderTracker
+
+            try:
+                return (TwoReaderTracker.of(live, tracking=policy), speaker.model,
+                        speaker.camera)
+            except ValueError as exc:
+                raise InputError(f"--readers 2: {exc}") from None
         return live, speaker.model, speaker.camera
     if not (args.model and args.appearance and args.camera):
         raise InputError("give --speaker DIR (from 'articast enroll'), or all of --model, "
@@ -285,6 +298,9 @@ def _track(args: argparse.Namespace) -> int:
     if args.single_reader and (args.causal or not args.speaker):
         raise InputError("--single-reader is for offline tracking with --speaker (without "
                          "--causal, which reads one network as the live service does)")
+    if args.readers != 1 and not (args.causal and args.speaker):
+        raise InputError(f"--readers {args.readers} is for --speaker with --causal (offline "
+                         "tracking reads two readers already; --single-reader for one)")
     span = Span(args.start, args.end)
     tracker, model, camera = _make_tracker(args, _frame_size(args.video))
     smoother = second = second_smoother = None
