@@ -58,9 +58,9 @@ def readers_problem(speaker: Speaker, readers: int) -> str:
 
 def paired(first: TrackResult, second: TrackResult) -> TrackResult:
     """The frame as :class:`TwoReaderTracker` streams it: ``first`` with the mean of the two
-    articulations where both are ok (its lips measured again from that mean by the caller's
-    model: :meth:`TwoReaderTracker.track`), else ``first`` as it is. Each tracker's own
-    articulation is kept in ``extra`` (``alpha_first``, ``alpha_second``)."""
+    articulations where both are ok, else ``first`` as it is. Each tracker's own
+    articulation is kept in ``extra`` (``alpha_first``, ``alpha_second``); ``lips`` are still
+    the first's (no model here: :meth:`TwoReaderTracker.track` measures them on the mean)."""
     if not (first.ok and second.ok):
         return first
     a, b = np.asarray(first.alpha, float), np.asarray(second.alpha, float)
