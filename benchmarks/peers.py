@@ -193,6 +193,7 @@ ENROL_BLEND = 0.0  # --enrol-blend: v1's share of the landmarks the speaker's mo
 OFFLINE = False  # --offline: articast's results smoothed with the frames after (track's)
 SINGLE_READER = False  # --single-reader: offline without the second reader's tracker
 READERS = 1  # --readers: live, 2 streams the mean of a v1 and a v2 reader's trackers
+SECOND_EVERY = 1  # --second-every: with --readers 2, the second reads every n-th frame
 OFFLINE_ONE_EURO = False  # --offline-one-euro: offline with the One Euro filter forward and back
 OFFLINE_GAP: float | None = None  # --offline-gap: the readers' share of the offline opening
 MAX_LAG = 5
@@ -584,7 +585,17 @@ class ArticastLoop:
         if readers == 2:
             from articast.core.faces.two_readers import TwoReaderTracker
 
-            self.step = TwoReaderTracker.of(self.live)
+            pair = TwoReaderTracker.of(self.live)
+            if SECOND_EVERY > 1:  # (a point of the cost curve, not the product: the
+                # second tracker reads v2 every n-th frame, as the default before issue 38
+                # read v1: the cadence cancelled, no reader's gap in its stream)
+                s = pair.second
+                assert s.fusion is not None
+                fu = replace(s.fusion, read_every=SECOND_EVERY, cadence=0.1, reader_gap=None)
+                pair = TwoReaderTracker(self.live, LiveTracker(
+                    s.speaker, self.live.finder, mediapipe_scheme(s.speaker.rig),
+                    replace(s.policy, fusion=fu), clock=time.perf_counter, reader=s.reader))
+            self.step = pair
 
     def __call__(self, i: int) -> Any:
         return self.step.track(self.frames[i], i / self.fps)
@@ -964,6 +975,10 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
                          "two_readers.py: a second tracker reads FaceLandmarker v2 on every "
                          "frame through the speaker's v2 observation model, each frame the "
                          "mean of the two articulations; timed in the loop); default 1")
+    ap.add_argument("--second-every", type=int, default=1, metavar="N",
+                    help="with --readers 2, a point of the cost curve (not the product): "
+                         "the second tracker reads FaceLandmarker v2 on every N-th frame only "
+                         "(its cadence cancelled, no reader's gap in its stream); default 1")
     ap.add_argument("--single-reader", action="store_true",
                     help="with --offline: FaceMesh v1's tracker alone, as 'articast track "
                          "--single-reader' writes it")
@@ -980,7 +995,7 @@ def add_articast_options(ap: argparse.ArgumentParser) -> None:
 def use_articast_options(args: argparse.Namespace) -> None:
     """:func:`add_articast_options`' choices, for :func:`run_articast`."""
     global ARTICAST_POLICY, OFFLINE, SINGLE_READER, ENROL_BLEND, OFFLINE_GAP, OFFLINE_ONE_EURO
-    global READERS
+    global READERS, SECOND_EVERY
     try:
         ARTICAST_POLICY = policy_with(VARIANTS[args.variant], args.policy_set)
     except ValueError as e:
@@ -988,7 +1003,9 @@ def use_articast_options(args: argparse.Namespace) -> None:
     if not 0.0 <= args.enrol_blend <= 1.0:
         raise SystemExit(f"--enrol-blend must be within 0..1, got {args.enrol_blend:g}")
     OFFLINE, SINGLE_READER, ENROL_BLEND = args.offline, args.single_reader, args.enrol_blend
-    READERS = args.readers
+    READERS, SECOND_EVERY = args.readers, args.second_every
+    if SECOND_EVERY < 1 or (SECOND_EVERY != 1 and READERS != 2):
+        raise SystemExit("--second-every N: N >= 1, with --readers 2")
     if READERS != 1 and OFFLINE:
         raise SystemExit("--readers is for the live stream: --offline reads two already "
                          "(--single-reader: one)")
