@@ -177,3 +177,45 @@ def test_track_causal_with_two_readers_writes_the_pairs_stream(clip, tmp_path):
             assert np.allclose(a2, want.alpha, atol=1e-6)
             moved += not np.allclose(a2, a1, atol=1e-3)
     assert moved >= 0.5 * len(lines[2])
+
+
+def test_a_serve_session_with_readers_2_streams_the_pairs_frames(clip, tmp_path):
+    """The session option ``readers`` (``serve --readers``, ``"readers"`` in POST) reaches
+    the live processor: 2 streams the pair's frames, 1 (the default) the one reader's; a bad
+    count or a speaker without the v2 model fails the session with one line."""
+    from articast.core.errors import InputError
+    from articast.core.faces.finder import FaceFinder
+    from articast.core.faces.live import LiveTracker
+    from articast.core.faces.scheme import mediapipe_scheme
+    from articast.core.faces.two_readers import TwoReaderTracker
+    from articast.service.processors import LiveProcessor, ProcessorContext
+    from articast.service.source_types import Frame, SourceInfo
+
+    sp = Speaker.load(clip / "speaker")
+    info = SourceInfo("file:video.mp4", "file", False, sp.camera.width, sp.camera.height)
+
+    def context(options, speaker=sp):
+        return ProcessorContext("s", info, speaker.model, speaker.camera, speaker.appearance,
+                                options, speaker, None)
+
+    frames = _frames(clip)[:20]
+    streams = {}
+    for readers in (1, 2):
+        proc = LiveProcessor(context({"readers": readers} if readers == 2 else {}))
+        streams[readers] = [proc.process(Frame(i, t, 0.0, img))
+                            for i, (t, img) in enumerate(frames)]
+    pair = TwoReaderTracker.of(LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig)))
+    moved = 0
+    for (t, img), two, one in zip(frames, streams[2], streams[1], strict=True):
+        want = pair.track(img, t)
+        assert two.ok == want.ok == one.ok
+        if want.ok:
+            assert np.allclose(two.alpha, want.alpha, atol=1e-9)
+            moved += not np.allclose(two.alpha, one.alpha, atol=1e-3)
+    assert moved >= 0.5 * len(frames)
+    old = replace(sp, finder_points=None)
+    for options, speaker, says in (({"readers": 3}, sp, "1 or 2"),
+                                   ({"readers": 2}, old, "enrol again")):
+        with pytest.raises(InputError) as err:
+            LiveProcessor(context(options, speaker))
+        assert says in str(err.value) and "\n" not in str(err.value)
