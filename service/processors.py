@@ -177,26 +177,24 @@ class LiveProcessor:
         from articast.core.faces.finder import FaceFinder
         from articast.core.faces.live import LiveTracker, live_policy
         from articast.core.faces.scheme import mediapipe_scheme
-        from articast.core.faces.two_readers import READERS, TwoReaderTracker
+        from articast.core.faces.two_readers import TwoReaderTracker, readers_problem
 
         sp = context.speaker
         rig = str(context.options.get("rig", sp.rig))
         readers = context.options.get("readers", 1)
         try:
             policy = live_policy(rig)
-            if readers not in READERS:
-                raise ValueError(f"readers must be 1 or 2, got {readers!r}")
+            problem = readers_problem(sp, readers)
+            if problem:
+                raise ValueError(problem)
         except ValueError as exc:
             raise InputError(f"session {context.session!r}: {exc}") from None
         self.tracker = LiveTracker(sp, FaceFinder.load(), mediapipe_scheme(sp.rig),
                                    tracking=policy, clock=time.perf_counter)
         # readers 2: the opt-in stream of two readers (core/faces/two_readers.py), ~3x the CPU
-        self.step: LiveTracker | TwoReaderTracker = self.tracker
-        if readers == 2:
-            try:
-                self.step = TwoReaderTracker.of(self.tracker, tracking=policy)
-            except ValueError as exc:
-                raise InputError(f"session {context.session!r}: {exc}") from None
+        self.step: LiveTracker | TwoReaderTracker = (
+            TwoReaderTracker.of(self.tracker, tracking=policy) if readers == 2
+            else self.tracker)
         _warm_up(context)
         # the session's console and its clients hear it (worker.py's "progress"), once
         say = context.progress or (lambda text: None)

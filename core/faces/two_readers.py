@@ -45,6 +45,9 @@ NO_SECOND_MODEL = ("this speaker has no FaceLandmarker v2 observation model (enr
                    "it was learned, or on a head-mounted camera): enrol again with 'articast "
                    "enroll' to track with two readers")
 
+NOT_FUSED = ("two readers need fused live tracking (a speaker enrolled with the live reader's "
+             "observation model)")
+
 
 def readers_problem(speaker: Speaker, readers: int) -> str:
     """Why ``speaker`` cannot be tracked live with ``readers`` readers ("" if it can): one
@@ -80,8 +83,7 @@ class TwoReaderTracker:
 
     def __init__(self, first: LiveTracker, second: LiveTracker) -> None:
         if first.fusion is None or second.fusion is None:
-            raise ValueError("two readers need fused live tracking (a speaker enrolled with "
-                             "the live reader's observation model)")
+            raise ValueError(NOT_FUSED)
         if first.speaker.model.n_params != second.speaker.model.n_params:
             raise ValueError("the two trackers track different models")
         self.first, self.second = first, second
@@ -95,8 +97,10 @@ class TwoReaderTracker:
         rig) and ``first``'s clock, through ``first``'s finder (the same sessions; the
         reading crops as the policy's reader does). ValueError, one line, for a speaker
         enrolled without that model."""
+        if first.fusion is None:
+            raise ValueError(NOT_FUSED)
         speaker = second_reader(first.speaker)
-        if speaker is None or first.fusion is None:
+        if speaker is None:
             raise ValueError(NO_SECOND_MODEL)
         assert speaker.points is not None
         fusion = replace(first.fusion, reader=speaker.points.network)
@@ -125,6 +129,5 @@ class TwoReaderTracker:
         a = self.first.track(image, t)
         b = self.second.track(image, t)
         out = paired(a, b)
-        if out is not a:
-            out = replace(out, lips=lips_dict(self.first.speaker.model, out.alpha))
-        return replace(out, ms=a.ms + b.ms)
+        lips = out.lips if out is a else lips_dict(self.first.speaker.model, out.alpha)
+        return replace(out, lips=lips, ms=a.ms + b.ms)

@@ -242,23 +242,23 @@ def _session_files(p: argparse.ArgumentParser) -> argparse._ArgumentGroup:
 
 
 def session_options(args: argparse.Namespace) -> dict:
-    """The sessions' options from the command line (``--readers``), checked against the
-    speaker now: one clear error, not a worker restarting."""
+    """The sessions' options from the command line (``--readers``), the speaker folder loaded
+    once to check it and them now: one clear error, not a worker restarting."""
     from articast.core.errors import InputError
 
     readers = getattr(args, "readers", 1)
-    if readers == 1:
-        return {}
     if not args.speaker:
-        raise InputError(f"--readers {readers} needs --speaker (a speaker folder from "
-                         "'articast enroll')")
+        if readers != 1:
+            raise InputError(f"--readers {readers} needs --speaker (a speaker folder from "
+                             "'articast enroll')")
+        return {}
     from articast.core.faces.speaker import Speaker
     from articast.core.faces.two_readers import readers_problem
 
-    problem = readers_problem(Speaker.load(args.speaker), readers)
+    problem = readers_problem(Speaker.load(args.speaker), readers)  # (a wrong folder too)
     if problem:
         raise InputError(f"--readers {readers}: {problem}")
-    return {"readers": readers}
+    return {} if readers == 1 else {"readers": readers}
 
 
 COMMON_SERVER = ("host", "port", "record", "log_level", "scan")
@@ -398,12 +398,8 @@ def _run(args: argparse.Namespace, sources: list[tuple[str, str]]) -> int:
         probe(uri)  # a corrupt file or unknown kind: one clear error now, not a server later
         check_processor(args.processor, parse_uri(uri).kind,
                         bool(args.appearance or args.speaker))
-    if args.speaker:
-        from articast.core.faces.speaker import Speaker
-
-        Speaker.load(args.speaker)  # a wrong folder: one clear error now, not a restart loop
     preview = bool(args.preview) if args.preview is not None else args.func is _demo
-    options = session_options(args)
+    options = session_options(args)  # (a wrong speaker folder: one clear error now)
     specs = tuple(SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
                               args.wait_for_subscriber, options=options, speaker=args.speaker,
                               preview=preview)
@@ -539,11 +535,7 @@ def _track_worker(args: argparse.Namespace) -> int:
         probe(uri)
         check_processor(args.processor, parse_uri(uri).kind,
                         bool(args.appearance or args.speaker))
-    if args.speaker:
-        from articast.core.faces.speaker import Speaker
-
-        Speaker.load(args.speaker)  # a wrong folder: one clear error now
-    options = session_options(args)
+    options = session_options(args)  # (a wrong speaker folder: one clear error now)
     specs = [SessionSpec(n, uri, args.model, args.appearance, args.camera, args.processor,
                          options=options, speaker=args.speaker)
              for n, uri in sources]
